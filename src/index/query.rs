@@ -1,0 +1,379 @@
+//! Cuts through LOD space (§4.3): uniform, view-dependent, and any error field.
+
+use super::cover::covered_all;
+use super::geom::{Aabb, ORect};
+use super::lod::{LodIndex, PatchBox, Span};
+use crate::model::ids::{PatchId, SurveyId};
+use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
+use std::sync::Arc;
+
+/// A patch returned by a query.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Extracted {
+    pub id: PatchId,
+    pub survey: SurveyId,
+    pub level: u8,
+    pub span: Span,
+    pub kernel: ORect,
+    pub window: ORect,
+}
+
+impl Extracted {
+    fn of(b: &PatchBox, span: Span) -> Self {
+        Extracted {
+            id: b.id,
+            survey: b.survey,
+            level: b.level,
+            span,
+            kernel: b.kernel,
+            window: b.window,
+        }
+    }
+}
+
+/// The error allowed at each point of the plane: the query surface in LOD space.
+pub trait ErrorField: Sync {
+    /// Lower and upper bounds of the allowed error over an area. Bounds may be loose, which
+    /// costs minimality, never coverage.
+    fn range(&self, area: &Aabb) -> (f64, f64);
+}
+
+/// The same error everywhere: a horizontal plane.
+#[derive(Clone, Copy, Debug)]
+pub struct Uniform(pub f64);
+
+impl ErrorField for Uniform {
+    fn range(&self, _: &Aabb) -> (f64, f64) {
+        (self.0, self.0)
+    }
+}
+
+/// A convex region of interest.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Roi {
+    /// Counter-clockwise or clockwise vertices of a convex polygon.
+    pub points: Vec<[f64; 2]>,
+}
+
+impl Roi {
+    pub fn rect(b: &Aabb) -> Self {
+        Roi {
+            points: b.corners().to_vec(),
+        }
+    }
+
+    pub fn aabb(&self) -> Aabb {
+        Aabb::of_points(&self.points)
+    }
+
+    /// Separating-axis test against a rectangle; closed.
+    pub fn intersects(&self, r: &ORect) -> bool {
+        let n = self.points.len();
+        let corners = r.corners();
+        let proj = |pts: &[[f64; 2]], a: [f64; 2]| {
+            pts.iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                    let d = p[0] * a[0] + p[1] * a[1];
+                    (lo.min(d), hi.max(d))
+                })
+        };
+        let mut axes: Vec<[f64; 2]> = vec![r.u, r.v];
+        for i in 0..n {
+            let p = self.points[i];
+            let q = self.points[(i + 1) % n];
+            axes.push([q[1] - p[1], p[0] - q[0]]);
+        }
+        axes.iter().all(|&a| {
+            let (a0, a1) = proj(&self.points, a);
+            let (b0, b1) = proj(&corners, a);
+            !(a1 < b0 || b1 < a0)
+        })
+    }
+
+    pub fn contains_point(&self, p: [f64; 2]) -> bool {
+        let n = self.points.len();
+        let mut sign = 0.0f64;
+        for i in 0..n {
+            let a = self.points[i];
+            let b = self.points[(i + 1) % n];
+            let c = (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]);
+            if c != 0.0 {
+                if sign != 0.0 && c.signum() != sign {
+                    return false;
+                }
+                sign = c.signum();
+            }
+        }
+        true
+    }
+}
+
+impl LodIndex {
+    /// Boxes whose z-span meets the field over the ROI, in id order.
+    pub fn cut(&self, roi: &Roi, field: &dyn ErrorField) -> Vec<Extracted> {
+        let area = roi.aabb();
+        let mut ids = Vec::new();
+        self.tree().cut(
+            &area,
+            |a| field.range(a),
+            |e| {
+                if e.is_active() {
+                    ids.push(e.id);
+                }
+            },
+        );
+        ids.sort_unstable();
+        ids.dedup();
+        ids.into_iter()
+            .filter_map(|id| {
+                let (b, span) = self.get(id)?;
+                if !roi.intersects(&b.kernel) {
+                    return None;
+                }
+                let (lo, hi) = field.range(&b.aabb.intersection(&area)?);
+                (b.min_z <= hi && span.max_z > lo).then(|| Extracted::of(b, span))
+            })
+            .collect()
+    }
+
+    /// The uniform cut at error `e` over a rectangle. Where no data is as accurate as `e`, the
+    /// most accurate data there is returned instead of a hole; each patch carries its own error.
+    pub fn uniform(&self, roi: &Aabb, e: f64) -> Vec<Extracted> {
+        let e = e.max(0.0);
+        let region = Roi::rect(roi);
+        let mut out = self.cut(&region, &Uniform(e));
+        let mut floors: Vec<f64> = self
+            .survey_floors_in(roi)
+            .into_iter()
+            .filter(|&f| f > e)
+            .collect();
+        if floors.is_empty() {
+            return out;
+        }
+        floors.sort_by(f64::total_cmp);
+        floors.dedup();
+        // Raise the cut through each coarser accuracy in turn, keeping only patches that reach
+        // somewhere the finer cuts left bare.
+        let mut chosen: HashSet<PatchId> = out.iter().map(|x| x.id).collect();
+        for z in floors {
+            let clip = ORect::from_aabb(roi);
+            for cand in self.cut(&region, &Uniform(z)) {
+                if chosen.contains(&cand.id) {
+                    continue;
+                }
+                let (b, _) = self.get(cand.id).expect("just extracted");
+                let targets: Vec<ORect> = b
+                    .valid
+                    .iter()
+                    .filter(|v| v.intersects(&clip))
+                    .copied()
+                    .collect();
+                let near: Vec<ORect> = out
+                    .iter()
+                    .filter(|x| x.kernel.intersects(&b.kernel))
+                    .flat_map(|x| self.get(x.id).expect("present").0.valid.iter().copied())
+                    .collect();
+                if !covered_all(&targets, &near) {
+                    chosen.insert(cand.id);
+                    out.push(cand);
+                }
+            }
+        }
+        out.sort_by_key(|x| x.id);
+        out
+    }
+
+    /// The view-dependent cut: a skewed plane of constant screen error, clipped to the view's
+    /// footprint on the plane.
+    pub fn view(&self, view: &ViewQuery) -> Vec<Extracted> {
+        let Some(bounds) = self.bounds() else {
+            return Vec::new();
+        };
+        let field = view.field();
+        let roi = view.footprint(&bounds);
+        self.cut(&roi, &field)
+    }
+
+    /// Accuracies of the surveys with a box meeting `area`.
+    fn survey_floors_in(&self, area: &Aabb) -> Vec<f64> {
+        let mut seen = HashSet::new();
+        let mut floors = Vec::new();
+        for b in self.boxes_in(area) {
+            if seen.insert(b.survey) {
+                floors.push(self.survey_floor(b.survey).unwrap_or(b.min_z));
+            }
+        }
+        floors
+    }
+}
+
+/// Metres per CRS unit along x and y near a point. Geographic CRSs use the WGS84 ellipsoid's
+/// local scale, so that view distances come out in metres whatever the CRS.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Metric {
+    pub scale: [f64; 2],
+}
+
+impl Metric {
+    pub const PROJECTED: Metric = Metric { scale: [1.0, 1.0] };
+
+    /// The local scale at latitude `lat` degrees, for longitude/latitude coordinates.
+    pub fn geographic(lat: f64) -> Metric {
+        let p = lat.to_radians();
+        let m_lat = 111_132.92 - 559.82 * (2.0 * p).cos() + 1.175 * (4.0 * p).cos()
+            - 0.0023 * (6.0 * p).cos();
+        let m_lon = 111_412.84 * p.cos() - 93.5 * (3.0 * p).cos() + 0.118 * (5.0 * p).cos();
+        Metric {
+            scale: [m_lon, m_lat],
+        }
+    }
+}
+
+/// A camera over the terrain: the view-dependent query of §4.3.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewQuery {
+    /// Eye position: plane coordinates in CRS units, height in metres.
+    pub eye: [f64; 3],
+    /// A point the camera looks at, same units.
+    pub look: [f64; 3],
+    /// Horizontal field of view in degrees.
+    pub fov_deg: f64,
+    /// Viewport width in pixels.
+    pub viewport_px: u32,
+    /// Allowed screen error in pixels.
+    pub pixel_error: f64,
+    pub metric: Metric,
+}
+
+/// The error field of a view: δ = δ_screen · distance / (d·λ), distance measured in the plane.
+#[derive(Clone, Copy, Debug)]
+pub struct ViewField {
+    eye: [f64; 2],
+    scale: [f64; 2],
+    /// Metres of error allowed per metre of distance.
+    slope: f64,
+}
+
+impl ViewField {
+    pub fn at(&self, p: [f64; 2]) -> f64 {
+        let dx = (p[0] - self.eye[0]) * self.scale[0];
+        let dy = (p[1] - self.eye[1]) * self.scale[1];
+        self.slope * dx.hypot(dy)
+    }
+}
+
+impl ErrorField for ViewField {
+    fn range(&self, a: &Aabb) -> (f64, f64) {
+        let near = [
+            self.eye[0].clamp(a.min[0], a.max[0]),
+            self.eye[1].clamp(a.min[1], a.max[1]),
+        ];
+        let far = a
+            .corners()
+            .iter()
+            .map(|&c| self.at(c))
+            .fold(0.0f64, f64::max);
+        (self.at(near), far)
+    }
+}
+
+impl ViewQuery {
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self
+            .eye
+            .iter()
+            .chain(self.look.iter())
+            .all(|v| v.is_finite()))
+        {
+            return Err("eye and look must be finite".into());
+        }
+        if !(self.fov_deg > 0.0 && self.fov_deg < 180.0) {
+            return Err(format!(
+                "fov must lie in (0, 180) degrees, got {}",
+                self.fov_deg
+            ));
+        }
+        if self.viewport_px == 0 {
+            return Err("viewport must be at least one pixel wide".into());
+        }
+        if !(self.pixel_error.is_finite() && self.pixel_error >= 0.0) {
+            return Err(format!("pixel error must be ≥ 0, got {}", self.pixel_error));
+        }
+        Ok(())
+    }
+
+    pub fn field(&self) -> ViewField {
+        let half = (self.fov_deg.to_radians() / 2.0).tan();
+        ViewField {
+            eye: [self.eye[0], self.eye[1]],
+            scale: self.metric.scale,
+            slope: self.pixel_error * 2.0 * half / self.viewport_px as f64,
+        }
+    }
+
+    /// The frustum's footprint on the plane, reaching as far as the data does: a triangle with
+    /// its apex under the eye, or a square under a camera that looks straight down.
+    pub fn footprint(&self, data: &Aabb) -> Roi {
+        let s = self.metric.scale;
+        let e = [self.eye[0] * s[0], self.eye[1] * s[1]];
+        let d = [
+            (self.look[0] - self.eye[0]) * s[0],
+            (self.look[1] - self.eye[1]) * s[1],
+        ];
+        let height = (self.eye[2] - self.look[2]).abs().max(1.0);
+        let half = self.fov_deg.to_radians() / 2.0;
+        let horiz = d[0].hypot(d[1]);
+        let back = |p: [f64; 2]| [p[0] / s[0], p[1] / s[1]];
+        if horiz < 1e-3 * height {
+            let r = height * half.tan() * std::f64::consts::SQRT_2;
+            return Roi {
+                points: vec![
+                    back([e[0] - r, e[1] - r]),
+                    back([e[0] + r, e[1] - r]),
+                    back([e[0] + r, e[1] + r]),
+                    back([e[0] - r, e[1] + r]),
+                ],
+            };
+        }
+        let reach = data
+            .corners()
+            .iter()
+            .map(|c| (c[0] * s[0] - e[0]).hypot(c[1] * s[1] - e[1]))
+            .fold(0.0f64, f64::max)
+            .max(horiz)
+            / half.cos();
+        let dir = [d[0] / horiz, d[1] / horiz];
+        let turn = |a: f64| {
+            let (sn, cs) = a.sin_cos();
+            [dir[0] * cs - dir[1] * sn, dir[0] * sn + dir[1] * cs]
+        };
+        let l = turn(half);
+        let r = turn(-half);
+        Roi {
+            points: vec![
+                back(e),
+                back([e[0] + reach * r[0], e[1] + reach * r[1]]),
+                back([e[0] + reach * l[0], e[1] + reach * l[1]]),
+            ],
+        }
+    }
+}
+
+impl LodIndex {
+    /// Bounds of the boxes of some patches, for callers that need the union.
+    pub fn extent(patches: &[Extracted]) -> Option<Aabb> {
+        patches
+            .iter()
+            .map(|p| p.kernel.aabb())
+            .reduce(|a, b| a.union(&b))
+    }
+
+    /// The boxes of extracted patches, for coverage checks by callers.
+    pub fn boxes_of(&self, patches: &[Extracted]) -> Vec<Arc<PatchBox>> {
+        patches
+            .iter()
+            .filter_map(|p| self.get(p.id).map(|(b, _)| b.clone()))
+            .collect()
+    }
+}

@@ -1,0 +1,12 @@
+//! Patchwork: a terrain database after *Patchwork Terrains* (Rocca, Panozzo, Puppo).
+//!
+//! Data flows read → model → index → store → serve. This crate's modules follow that flow:
+//! [`model`] turns grids into mipmaps and patches, [`index`] keeps the order-independent LOD
+//! space and answers cuts through it, [`resample`] blends the extracted patches into heights,
+//! and [`terrain`] ties them together in memory.
+
+pub mod index;
+pub mod model;
+pub mod read;
+pub mod resample;
+pub mod terrain;

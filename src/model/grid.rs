@@ -1,0 +1,363 @@
+//! Regularly sampled grids in the plane: the common currency between readers, mipmaps and patches.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// Where a grid's samples sit in the store's plane.
+///
+/// Sample `(col, row)` sits at `origin + col·sx·u + row·sy·v`, with `u = (cos θ, sin θ)` and
+/// `v = (sin θ, −cos θ)`. At θ = 0 this is a north-up raster: columns run east, rows run south,
+/// exactly as GDAL places pixel centres.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Georef {
+    /// Position of sample (0, 0), the centre of the first pixel for PixelIsArea rasters.
+    pub origin: [f64; 2],
+    /// Angle of the column axis from the x axis, counter-clockwise, in radians.
+    pub theta: f64,
+    /// Spacing between columns (sX) and between rows (sY), both positive, in CRS units.
+    pub step: [f64; 2],
+}
+
+#[derive(Debug, Error, PartialEq)]
+pub enum GeorefError {
+    #[error("sample spacing must be positive and finite, got {0:?}")]
+    BadStep([f64; 2]),
+    #[error("the geotransform is skewed or mirrored; only rotations are supported")]
+    Skewed,
+    #[error("the georeference has non-finite values")]
+    NotFinite,
+}
+
+impl Georef {
+    pub fn north_up(origin: [f64; 2], step: [f64; 2]) -> Self {
+        Georef {
+            origin,
+            theta: 0.0,
+            step,
+        }
+    }
+
+    /// Builds the georeference from a GDAL geotransform, whose origin is the outer corner of
+    /// pixel (0, 0). A transform that mirrors or skews the axes has no rotated-grid equivalent.
+    pub fn from_geotransform(gt: [f64; 6]) -> Result<Self, GeorefError> {
+        if gt.iter().any(|v| !v.is_finite()) {
+            return Err(GeorefError::NotFinite);
+        }
+        let (cx, cy) = (gt[1], gt[4]);
+        let (rx, ry) = (gt[2], gt[5]);
+        let sx = cx.hypot(cy);
+        let sy = rx.hypot(ry);
+        if sx <= 0.0 || sy <= 0.0 {
+            return Err(GeorefError::BadStep([sx, sy]));
+        }
+        let theta = cy.atan2(cx);
+        let (s, c) = theta.sin_cos();
+        // The row axis must be the column axis turned clockwise by 90°, as in any north-up raster.
+        let tol = 1e-9 * sy;
+        if (rx - sy * s).abs() > tol || (ry + sy * c).abs() > tol {
+            return Err(GeorefError::Skewed);
+        }
+        let origin = [gt[0] + 0.5 * (cx + rx), gt[3] + 0.5 * (cy + ry)];
+        Ok(Georef {
+            origin,
+            theta,
+            step: [sx, sy],
+        })
+    }
+
+    /// The GDAL geotransform of this georeference (pixel corner origin).
+    pub fn geotransform(&self) -> [f64; 6] {
+        let [u, v] = self.axes();
+        let (cx, cy) = (u[0] * self.step[0], u[1] * self.step[0]);
+        let (rx, ry) = (v[0] * self.step[1], v[1] * self.step[1]);
+        [
+            self.origin[0] - 0.5 * (cx + rx),
+            cx,
+            rx,
+            self.origin[1] - 0.5 * (cy + ry),
+            cy,
+            ry,
+        ]
+    }
+
+    /// Unit vectors of the column and row axes.
+    #[inline]
+    pub fn axes(&self) -> [[f64; 2]; 2] {
+        let (s, c) = self.theta.sin_cos();
+        [[c, s], [s, -c]]
+    }
+
+    /// World position of fractional grid coordinates.
+    #[inline]
+    pub fn to_world(&self, col: f64, row: f64) -> [f64; 2] {
+        let [u, v] = self.axes();
+        let a = col * self.step[0];
+        let b = row * self.step[1];
+        [
+            self.origin[0] + a * u[0] + b * v[0],
+            self.origin[1] + a * u[1] + b * v[1],
+        ]
+    }
+
+    /// Fractional grid coordinates of a world position.
+    #[inline]
+    pub fn to_grid(&self, p: [f64; 2]) -> [f64; 2] {
+        let [u, v] = self.axes();
+        let d = [p[0] - self.origin[0], p[1] - self.origin[1]];
+        [
+            (d[0] * u[0] + d[1] * u[1]) / self.step[0],
+            (d[0] * v[0] + d[1] * v[1]) / self.step[1],
+        ]
+    }
+
+    /// The georeference of a grid whose sample (i, j) sits at this grid's (i·f, j·f).
+    pub fn coarsened(&self, factor: f64) -> Georef {
+        Georef {
+            origin: self.origin,
+            theta: self.theta,
+            step: [self.step[0] * factor, self.step[1] * factor],
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), GeorefError> {
+        if !(self.origin.iter().all(|v| v.is_finite()) && self.theta.is_finite()) {
+            return Err(GeorefError::NotFinite);
+        }
+        if !(self.step.iter().all(|s| s.is_finite() && *s > 0.0)) {
+            return Err(GeorefError::BadStep(self.step));
+        }
+        Ok(())
+    }
+}
+
+/// A grid of heights. Nodata is NaN: it is the validity mask, so no void value can leak into
+/// arithmetic without showing up as NaN.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Grid {
+    pub cols: usize,
+    pub rows: usize,
+    /// Row-major heights in metres, NaN where there is no data.
+    pub samples: Vec<f32>,
+    pub georef: Georef,
+}
+
+#[derive(Debug, Error, PartialEq)]
+pub enum GridError {
+    #[error("a grid needs at least 2×2 samples, got {cols}×{rows}")]
+    TooSmall { cols: usize, rows: usize },
+    #[error("{cols}×{rows} samples expected, {got} given")]
+    WrongLength {
+        cols: usize,
+        rows: usize,
+        got: usize,
+    },
+    #[error(transparent)]
+    Georef(#[from] GeorefError),
+}
+
+impl Grid {
+    /// Builds a grid, turning ±inf into nodata: an infinite height is never a measurement.
+    pub fn new(
+        cols: usize,
+        rows: usize,
+        mut samples: Vec<f32>,
+        georef: Georef,
+    ) -> Result<Self, GridError> {
+        if cols < 2 || rows < 2 {
+            return Err(GridError::TooSmall { cols, rows });
+        }
+        if samples.len() != cols * rows {
+            return Err(GridError::WrongLength {
+                cols,
+                rows,
+                got: samples.len(),
+            });
+        }
+        georef.validate()?;
+        for s in samples.iter_mut() {
+            if !s.is_finite() {
+                *s = f32::NAN;
+            }
+        }
+        Ok(Grid {
+            cols,
+            rows,
+            samples,
+            georef,
+        })
+    }
+
+    #[inline]
+    pub fn at(&self, col: usize, row: usize) -> f32 {
+        self.samples[row * self.cols + col]
+    }
+
+    #[inline]
+    pub fn is_valid(&self, col: usize, row: usize) -> bool {
+        !self.at(col, row).is_nan()
+    }
+
+    /// Number of cells along each axis.
+    #[inline]
+    pub fn cells(&self) -> [usize; 2] {
+        [self.cols - 1, self.rows - 1]
+    }
+
+    /// A cell is valid when all four of its corners are: only then is the bilinear surface
+    /// defined over it without inventing heights.
+    #[inline]
+    pub fn cell_valid(&self, c: usize, r: usize) -> bool {
+        let i = r * self.cols + c;
+        !(self.samples[i].is_nan()
+            || self.samples[i + 1].is_nan()
+            || self.samples[i + self.cols].is_nan()
+            || self.samples[i + self.cols + 1].is_nan())
+    }
+
+    pub fn valid_count(&self) -> usize {
+        self.samples.iter().filter(|s| !s.is_nan()).count()
+    }
+
+    /// The cell holding fractional coordinates, and the position inside it, or None outside
+    /// the grid. Points on the last row or column belong to the cell before them.
+    #[inline]
+    pub fn locate(&self, g: [f64; 2]) -> Option<([usize; 2], [f64; 2])> {
+        let [cw, ch] = self.cells();
+        if !(g[0] >= 0.0 && g[1] >= 0.0 && g[0] <= cw as f64 && g[1] <= ch as f64) {
+            return None;
+        }
+        let c = (g[0].floor() as usize).min(cw - 1);
+        let r = (g[1].floor() as usize).min(ch - 1);
+        Some(([c, r], [g[0] - c as f64, g[1] - r as f64]))
+    }
+
+    /// Bilinear height at fractional grid coordinates; None outside the grid or on a cell with
+    /// a void corner.
+    #[inline]
+    pub fn bilinear_grid(&self, g: [f64; 2]) -> Option<f64> {
+        let ([c, r], f) = self.locate(g)?;
+        if let Some(z) = self.bilinear_in_cell(c, r, f) {
+            return Some(z);
+        }
+        // A point on an edge shared with a valid cell belongs to that cell's closed surface.
+        let left = f[0] == 0.0 && c > 0;
+        let up = f[1] == 0.0 && r > 0;
+        let right = f[0] == 1.0 && c + 2 < self.cols;
+        let down = f[1] == 1.0 && r + 2 < self.rows;
+        let cs: &[(isize, f64)] = match (left, right) {
+            (true, _) => &[(0, f[0]), (-1, 1.0)],
+            (_, true) => &[(0, f[0]), (1, 0.0)],
+            _ => &[(0, f[0])],
+        };
+        let rs: &[(isize, f64)] = match (up, down) {
+            (true, _) => &[(0, f[1]), (-1, 1.0)],
+            (_, true) => &[(0, f[1]), (1, 0.0)],
+            _ => &[(0, f[1])],
+        };
+        for &(dc, fc) in cs {
+            for &(dr, fr) in rs {
+                if dc == 0 && dr == 0 {
+                    continue;
+                }
+                let (cc, rr) = ((c as isize + dc) as usize, (r as isize + dr) as usize);
+                if let Some(z) = self.bilinear_in_cell(cc, rr, [fc, fr]) {
+                    return Some(z);
+                }
+            }
+        }
+        None
+    }
+
+    #[inline]
+    pub fn bilinear_in_cell(&self, c: usize, r: usize, f: [f64; 2]) -> Option<f64> {
+        let i = r * self.cols + c;
+        let z00 = self.samples[i] as f64;
+        let z10 = self.samples[i + 1] as f64;
+        let z01 = self.samples[i + self.cols] as f64;
+        let z11 = self.samples[i + self.cols + 1] as f64;
+        let top = z00 + (z10 - z00) * f[0];
+        let bottom = z01 + (z11 - z01) * f[0];
+        let z = top + (bottom - top) * f[1];
+        // NaN corners propagate, so one check covers all four.
+        (!z.is_nan()).then_some(z)
+    }
+
+    /// Bilinear height at a world position.
+    #[inline]
+    pub fn bilinear(&self, p: [f64; 2]) -> Option<f64> {
+        self.bilinear_grid(self.georef.to_grid(p))
+    }
+
+    /// Axis-aligned world bounds of the sample positions.
+    pub fn world_bounds(&self) -> crate::index::geom::Aabb {
+        let c = (self.cols - 1) as f64;
+        let r = (self.rows - 1) as f64;
+        crate::index::geom::Aabb::of_points(&[
+            self.georef.to_world(0.0, 0.0),
+            self.georef.to_world(c, 0.0),
+            self.georef.to_world(0.0, r),
+            self.georef.to_world(c, r),
+        ])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn geotransform_round_trip_follows_gdal_pixel_centres() {
+        let gt = [-119.0, 1.0 / 3600.0, 0.0, 35.0, 0.0, -1.0 / 3600.0];
+        let g = Georef::from_geotransform(gt).unwrap();
+        // GDAL: the centre of pixel (0, 0) is half a pixel in from the corner.
+        assert!((g.origin[0] - (-119.0 + 0.5 / 3600.0)).abs() < 1e-12);
+        assert!((g.origin[1] - (35.0 - 0.5 / 3600.0)).abs() < 1e-12);
+        let back = g.geotransform();
+        for (a, b) in gt.iter().zip(back.iter()) {
+            assert!((a - b).abs() < 1e-12, "{gt:?} vs {back:?}");
+        }
+    }
+
+    #[test]
+    fn rotated_geotransform_round_trips() {
+        let th: f64 = 0.3;
+        let (s, c) = th.sin_cos();
+        let gt = [1000.0, 2.0 * c, 3.0 * s, 5000.0, 2.0 * s, -3.0 * c];
+        let g = Georef::from_geotransform(gt).unwrap();
+        assert!((g.theta - th).abs() < 1e-12);
+        assert!((g.step[0] - 2.0).abs() < 1e-12 && (g.step[1] - 3.0).abs() < 1e-12);
+        let p = g.to_world(7.25, 3.5);
+        let q = g.to_grid(p);
+        assert!((q[0] - 7.25).abs() < 1e-9 && (q[1] - 3.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn mirrored_transform_is_refused() {
+        let gt = [0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        assert_eq!(Georef::from_geotransform(gt), Err(GeorefError::Skewed));
+    }
+
+    #[test]
+    fn bilinear_is_exact_on_samples_and_void_aware() {
+        let g = Georef::north_up([0.0, 10.0], [1.0, 1.0]);
+        let mut s = vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0];
+        let grid = Grid::new(3, 3, s.clone(), g).unwrap();
+        assert_eq!(grid.bilinear([1.0, 9.0]), Some(4.0));
+        assert_eq!(grid.bilinear([2.0, 8.0]), Some(8.0));
+        assert_eq!(grid.bilinear([0.5, 9.5]), Some(2.0));
+        assert_eq!(grid.bilinear([2.01, 8.0]), None);
+        s[0] = f32::NAN;
+        let grid = Grid::new(3, 3, s, g).unwrap();
+        assert_eq!(grid.bilinear([0.5, 9.5]), None);
+        assert_eq!(grid.bilinear([1.5, 8.5]), Some(6.0));
+        // The shared edge of a void cell and a valid one takes the valid cell's surface.
+        assert_eq!(grid.bilinear([1.0, 9.0]), Some(4.0));
+    }
+
+    #[test]
+    fn infinities_become_nodata() {
+        let g = Georef::north_up([0.0, 0.0], [1.0, 1.0]);
+        let grid = Grid::new(2, 2, vec![f32::INFINITY, 1.0, 2.0, f32::NEG_INFINITY], g).unwrap();
+        assert_eq!(grid.valid_count(), 2);
+    }
+}

@@ -1,0 +1,376 @@
+//! Patches: windows of a mipmap level, each with a kernel that tiles the level, and the exact
+//! error of the patch's surface against the survey's own samples.
+
+use super::grid::Grid;
+use super::ids::{PatchId, SurveyId};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// How a level is cut into patches, in whole cells so that windows align with samples.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PatchLayout {
+    /// Kernel side in cells. Kernels of one level tile it without overlap.
+    pub kernel: usize,
+    /// Extension zone around the kernel, in cells, on every side.
+    pub margin: usize,
+}
+
+impl Default for PatchLayout {
+    /// The paper's 32-cell windows around 28-cell kernels (σ ≈ 0.9).
+    fn default() -> Self {
+        PatchLayout {
+            kernel: 28,
+            margin: 2,
+        }
+    }
+}
+
+/// A half-open range of cells `[c0, c1) × [r0, r1)`; as samples it spans `c0..=c1 × r0..=r1`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct CellRect {
+    pub c0: u32,
+    pub r0: u32,
+    pub c1: u32,
+    pub r1: u32,
+}
+
+impl CellRect {
+    pub fn cols(&self) -> u32 {
+        self.c1 - self.c0
+    }
+    pub fn rows(&self) -> u32 {
+        self.r1 - self.r0
+    }
+    pub fn is_empty(&self) -> bool {
+        self.c1 <= self.c0 || self.r1 <= self.r0
+    }
+    /// Whether fractional grid coordinates fall in the closed rectangle.
+    #[inline]
+    pub fn contains_grid(&self, g: [f64; 2]) -> bool {
+        g[0] >= self.c0 as f64
+            && g[0] <= self.c1 as f64
+            && g[1] >= self.r0 as f64
+            && g[1] <= self.r1 as f64
+    }
+}
+
+/// One patch of one level. Samples are not copied: a bilinear patch is a window of its level.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Patch {
+    pub id: PatchId,
+    pub survey: SurveyId,
+    pub level: u8,
+    /// Position of the kernel in the level's kernel tiling.
+    pub index: [u32; 2],
+    pub kernel: CellRect,
+    /// The window clipped to the level's grid.
+    pub window: CellRect,
+    /// Centre and half-size of the unclipped window in level grid units. The blending weight
+    /// uses these, so a kernel edge lying on the grid border still gets a positive weight.
+    pub centre: [f64; 2],
+    pub half: [f64; 2],
+    /// The kernel's valid cells as disjoint rectangles.
+    pub valid: Vec<CellRect>,
+    /// Largest vertical distance to level 0 anywhere in the window (0 for level 0).
+    pub delta: f64,
+    /// ε + δ: the bottom of the patch's box in LOD space.
+    pub error: f64,
+}
+
+/// The function a patch evaluates and the blending weight that goes with it. Bilinear (C0)
+/// patches are the one kind today; bicubic (C2) ones plug in here.
+pub trait PatchFunction: Send + Sync {
+    /// The 1-D blending weight on t ∈ [−1, 1], zero at ±1.
+    fn weight(&self, t: f64) -> f64;
+    /// The patch's height at fractional level-grid coordinates inside its window, or None on void.
+    fn eval(&self, level: &Grid, window: &CellRect, g: [f64; 2]) -> Option<f64>;
+    /// The largest |patch − level 0| over the window where both are defined.
+    fn max_deviation(&self, levels: &[Arc<Grid>], level: usize, window: &CellRect) -> f64;
+}
+
+/// C0 patches: bilinear interpolation of the window's samples, blended with w(t) = 1 − |t|.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Bilinear;
+
+impl PatchFunction for Bilinear {
+    #[inline]
+    fn weight(&self, t: f64) -> f64 {
+        (1.0 - t.abs()).max(0.0)
+    }
+
+    #[inline]
+    fn eval(&self, level: &Grid, window: &CellRect, g: [f64; 2]) -> Option<f64> {
+        if !window.contains_grid(g) {
+            return None;
+        }
+        level.bilinear_grid(g)
+    }
+
+    /// Exact for bilinear patches on aligned mipmaps: coarse cell edges are fine cell edges, so
+    /// on every fine cell both surfaces are bilinear and so is their difference, whose extreme
+    /// lies at a corner, that is at a level-0 sample. Checking every valid level-0 sample under
+    /// every valid coarse cell of the window therefore finds the true maximum.
+    fn max_deviation(&self, levels: &[Arc<Grid>], level: usize, window: &CellRect) -> f64 {
+        if level == 0 {
+            return 0.0;
+        }
+        let coarse = &levels[level];
+        let fine = &levels[0];
+        let f = 1usize << level;
+        let inv = 1.0 / f as f64;
+        let mut worst = 0.0f64;
+        for r in window.r0 as usize..window.r1 as usize {
+            let j0 = r * f;
+            if j0 >= fine.rows {
+                break;
+            }
+            let j1 = ((r + 1) * f).min(fine.rows - 1);
+            for c in window.c0 as usize..window.c1 as usize {
+                let i0 = c * f;
+                if i0 >= fine.cols {
+                    break;
+                }
+                if !coarse.cell_valid(c, r) {
+                    continue;
+                }
+                let i1 = ((c + 1) * f).min(fine.cols - 1);
+                let z00 = coarse.at(c, r) as f64;
+                let z10 = coarse.at(c + 1, r) as f64;
+                let z01 = coarse.at(c, r + 1) as f64;
+                let z11 = coarse.at(c + 1, r + 1) as f64;
+                for j in j0..=j1 {
+                    let fy = (j - j0) as f64 * inv;
+                    let a = z00 + (z01 - z00) * fy;
+                    let b = z10 + (z11 - z10) * fy;
+                    let row = &fine.samples[j * fine.cols..(j + 1) * fine.cols];
+                    for (k, &z) in row[i0..=i1].iter().enumerate() {
+                        if z.is_nan() {
+                            continue;
+                        }
+                        let fx = k as f64 * inv;
+                        let d = (a + (b - a) * fx - z as f64).abs();
+                        worst = worst.max(d);
+                    }
+                }
+            }
+        }
+        worst
+    }
+}
+
+/// The kernel's valid cells, merged into rectangles: row runs that repeat on the next row grow
+/// downwards instead of starting a new rectangle.
+fn valid_rects(level: &Grid, kernel: &CellRect) -> Vec<CellRect> {
+    let mut done = Vec::new();
+    let mut open: Vec<CellRect> = Vec::new();
+    for r in kernel.r0..kernel.r1 {
+        let mut runs = Vec::new();
+        let mut c = kernel.c0;
+        while c < kernel.c1 {
+            if level.cell_valid(c as usize, r as usize) {
+                let start = c;
+                while c < kernel.c1 && level.cell_valid(c as usize, r as usize) {
+                    c += 1;
+                }
+                runs.push((start, c));
+            } else {
+                c += 1;
+            }
+        }
+        let mut next = Vec::with_capacity(runs.len());
+        for (c0, c1) in runs {
+            match open.iter().position(|o| o.c0 == c0 && o.c1 == c1) {
+                Some(k) => {
+                    let mut o = open.swap_remove(k);
+                    o.r1 = r + 1;
+                    next.push(o);
+                }
+                None => next.push(CellRect {
+                    c0,
+                    r0: r,
+                    c1,
+                    r1: r + 1,
+                }),
+            }
+        }
+        done.append(&mut open);
+        open = next;
+    }
+    done.append(&mut open);
+    done.sort_by_key(|c| (c.r0, c.c0));
+    done
+}
+
+/// Cuts every level into patches and measures each patch's error, in parallel.
+///
+/// A patch whose kernel has no valid cell is not made: its window may hold data, but no point
+/// needs it for coverage, so the cutter would only ever discard it.
+pub fn make_patches(
+    survey: SurveyId,
+    accuracy: f64,
+    levels: &[Arc<Grid>],
+    layout: &PatchLayout,
+    func: &dyn PatchFunction,
+) -> Vec<Patch> {
+    let k = layout.kernel as u32;
+    let m = layout.margin as u32;
+    let mut slots = Vec::new();
+    for (lv, g) in levels.iter().enumerate() {
+        let [cw, ch] = g.cells();
+        for pj in 0..(ch as u32).div_ceil(k) {
+            for pi in 0..(cw as u32).div_ceil(k) {
+                slots.push((lv, pi, pj));
+            }
+        }
+    }
+    slots
+        .into_par_iter()
+        .filter_map(|(lv, pi, pj)| {
+            let g = &levels[lv];
+            let [cw, ch] = g.cells();
+            let kernel = CellRect {
+                c0: pi * k,
+                r0: pj * k,
+                c1: ((pi + 1) * k).min(cw as u32),
+                r1: ((pj + 1) * k).min(ch as u32),
+            };
+            let valid = valid_rects(g, &kernel);
+            if valid.is_empty() {
+                return None;
+            }
+            let window = CellRect {
+                c0: kernel.c0.saturating_sub(m),
+                r0: kernel.r0.saturating_sub(m),
+                c1: (kernel.c1 + m).min(cw as u32),
+                r1: (kernel.r1 + m).min(ch as u32),
+            };
+            let delta = func.max_deviation(levels, lv, &window);
+            // Rounding δ up by a few ulps keeps the bound a bound after f32 storage downstream.
+            let delta = if delta > 0.0 {
+                delta * (1.0 + 1e-9) + 1e-6
+            } else {
+                0.0
+            };
+            let half = k as f64 / 2.0 + m as f64;
+            Some(Patch {
+                id: PatchId::derive(survey, lv as u8, [pi, pj]),
+                survey,
+                level: lv as u8,
+                index: [pi, pj],
+                kernel,
+                window,
+                centre: [
+                    (pi * k) as f64 + k as f64 / 2.0,
+                    (pj * k) as f64 + k as f64 / 2.0,
+                ],
+                half: [half, half],
+                valid,
+                delta,
+                error: accuracy + delta,
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::grid::Georef;
+    use crate::model::mipmap;
+
+    fn grid(cols: usize, rows: usize, f: impl Fn(usize, usize) -> f32) -> Arc<Grid> {
+        let s = (0..rows)
+            .flat_map(|r| (0..cols).map(move |c| (c, r)))
+            .map(|(c, r)| f(c, r))
+            .collect();
+        Arc::new(Grid::new(cols, rows, s, Georef::north_up([0.0, 0.0], [1.0, 1.0])).unwrap())
+    }
+
+    #[test]
+    fn kernels_tile_each_level_exactly_once() {
+        let g = grid(100, 61, |c, r| ((c * 7 + r * 3) % 11) as f32);
+        let levels = mipmap::build(g, 28);
+        let patches = make_patches(
+            SurveyId(1),
+            0.0,
+            &levels,
+            &PatchLayout::default(),
+            &Bilinear,
+        );
+        for (lv, level) in levels.iter().enumerate() {
+            let [cw, ch] = level.cells();
+            let mut seen = vec![0u8; cw * ch];
+            for p in patches.iter().filter(|p| p.level as usize == lv) {
+                for r in p.kernel.r0..p.kernel.r1 {
+                    for c in p.kernel.c0..p.kernel.c1 {
+                        seen[r as usize * cw + c as usize] += 1;
+                    }
+                }
+            }
+            assert!(seen.iter().all(|&n| n == 1), "level {lv}");
+        }
+    }
+
+    #[test]
+    fn delta_is_exact_on_a_single_spike() {
+        // One spike in a flat field: the coarse level smooths it, and δ must be the full
+        // distance between the spike and the coarse surface at that sample.
+        let g = grid(9, 9, |c, r| if (c, r) == (3, 3) { 10.0 } else { 0.0 });
+        let levels = vec![g.clone(), Arc::new(mipmap::downsample(&g))];
+        let w = CellRect {
+            c0: 0,
+            r0: 0,
+            c1: 4,
+            r1: 4,
+        };
+        let d = Bilinear.max_deviation(&levels, 1, &w);
+        let coarse_at_spike = levels[1].bilinear_grid([1.5, 1.5]).unwrap();
+        let mut expect = (10.0 - coarse_at_spike).abs();
+        for r in 0..9 {
+            for c in 0..9 {
+                let z = g.at(c, r) as f64;
+                let p = levels[1]
+                    .bilinear_grid([c as f64 / 2.0, r as f64 / 2.0])
+                    .unwrap();
+                expect = expect.max((z - p).abs());
+            }
+        }
+        assert!((d - expect).abs() < 1e-9, "{d} vs {expect}");
+        // And it bounds the difference at arbitrary points, not only at samples.
+        for k in 0..400 {
+            let x = (k % 20) as f64 * 0.4;
+            let y = (k / 20) as f64 * 0.4;
+            let a = g.bilinear_grid([x, y]).unwrap();
+            let b = levels[1].bilinear_grid([x / 2.0, y / 2.0]).unwrap();
+            assert!((a - b).abs() <= d + 1e-9);
+        }
+    }
+
+    #[test]
+    fn valid_rects_cover_exactly_the_valid_cells() {
+        let g = grid(30, 30, |c, r| {
+            if (5..9).contains(&c) && (4..20).contains(&r) || (c + r) % 13 == 0 {
+                f32::NAN
+            } else {
+                1.0
+            }
+        });
+        let k = CellRect {
+            c0: 0,
+            r0: 0,
+            c1: 29,
+            r1: 29,
+        };
+        let rects = valid_rects(&g, &k);
+        for r in 0..29 {
+            for c in 0..29 {
+                let n = rects
+                    .iter()
+                    .filter(|q| (q.c0..q.c1).contains(&c) && (q.r0..q.r1).contains(&r))
+                    .count();
+                assert_eq!(n, usize::from(g.cell_valid(c as usize, r as usize)));
+            }
+        }
+    }
+}

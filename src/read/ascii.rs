@@ -1,0 +1,429 @@
+//! ESRI ASCII grid (`.asc`, also called AAIGrid) reader with optional `.prj` sidecar.
+
+use std::io::{BufRead, BufReader, Read};
+use std::path::Path;
+
+use super::{has_extension, open_regular_file, Raster, RasterReader, ReadError, ReadLimits};
+
+/// Reads ESRI ASCII grids.
+pub struct AsciiGridReader;
+
+impl RasterReader for AsciiGridReader {
+    fn accepts(&self, path: &Path, head: &[u8]) -> bool {
+        let text = String::from_utf8_lossy(head);
+        let starts_with_ncols = text
+            .trim_start()
+            .get(..5)
+            .is_some_and(|s| s.eq_ignore_ascii_case("ncols"));
+        has_extension(path, &["asc"]) || starts_with_ncols
+    }
+
+    fn read(&self, path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
+        read_ascii_grid(path, limits)
+    }
+}
+
+/// Whitespace-separated tokens read straight from the file, so a multi-gigabyte grid never
+/// sits in memory as text and a binary file cannot make us buffer an endless "line".
+struct Tokens<R> {
+    reader: R,
+    token: Vec<u8>,
+}
+
+const MAX_TOKEN: usize = 256;
+
+impl<R: BufRead> Tokens<R> {
+    fn next(&mut self) -> Result<Option<&str>, ReadError> {
+        self.token.clear();
+        loop {
+            let buf = self.reader.fill_buf()?;
+            if buf.is_empty() {
+                break;
+            }
+            let mut used = 0;
+            let mut done = false;
+            for &b in buf {
+                used += 1;
+                if b.is_ascii_whitespace() {
+                    if !self.token.is_empty() {
+                        done = true;
+                        break;
+                    }
+                } else {
+                    self.token.push(b);
+                    if self.token.len() > MAX_TOKEN {
+                        return Err(ReadError::invalid(
+                            "not an ASCII grid: found a word of more than 256 characters",
+                        ));
+                    }
+                }
+            }
+            self.reader.consume(used);
+            if done {
+                break;
+            }
+        }
+        if self.token.is_empty() {
+            return Ok(None);
+        }
+        std::str::from_utf8(&self.token)
+            .map(Some)
+            .map_err(|_| ReadError::invalid("not an ASCII grid: the file contains binary data"))
+    }
+}
+
+#[derive(Default)]
+struct Header {
+    ncols: Option<u64>,
+    nrows: Option<u64>,
+    /// (value, true when it names the centre of the lower-left cell rather than its corner)
+    xll: Option<(f64, bool)>,
+    yll: Option<(f64, bool)>,
+    dx: Option<f64>,
+    dy: Option<f64>,
+    nodata: Option<f64>,
+}
+
+pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
+    let file = open_regular_file(path)?;
+    let mut tokens = Tokens {
+        reader: BufReader::new(file),
+        token: Vec::new(),
+    };
+
+    let mut h = Header::default();
+    // Header lines are "key value"; the first token that is not a key is the first sample.
+    let first_value: Option<String> = loop {
+        let Some(tok) = tokens.next()? else {
+            break None;
+        };
+        let key = tok.to_ascii_lowercase();
+        let is_key = key.starts_with(|c: char| c.is_ascii_alphabetic())
+            && !matches!(key.as_str(), "nan" | "inf" | "infinity");
+        if !is_key {
+            break Some(tok.to_string());
+        }
+        let value = tokens
+            .next()?
+            .ok_or_else(|| {
+                ReadError::invalid(format!("ASCII grid header key {key:?} has no value"))
+            })?
+            .to_string();
+        let num = || {
+            value.parse::<f64>().map_err(|_| {
+                ReadError::invalid(format!(
+                    "ASCII grid header {key} = {value:?} is not a number"
+                ))
+            })
+        };
+        let count = || {
+            value.parse::<u64>().ok().filter(|&n| n > 0).ok_or_else(|| {
+                ReadError::invalid(format!(
+                    "ASCII grid header {key} = {value:?} is not a positive whole number"
+                ))
+            })
+        };
+        match key.as_str() {
+            "ncols" => h.ncols = Some(count()?),
+            "nrows" => h.nrows = Some(count()?),
+            "xllcorner" => h.xll = Some((num()?, false)),
+            "xllcenter" | "xllcentre" => h.xll = Some((num()?, true)),
+            "yllcorner" => h.yll = Some((num()?, false)),
+            "yllcenter" | "yllcentre" => h.yll = Some((num()?, true)),
+            "cellsize" => {
+                let v = num()?;
+                h.dx = Some(v);
+                h.dy = Some(v);
+            }
+            "dx" => h.dx = Some(num()?),
+            "dy" => h.dy = Some(num()?),
+            "nodata_value" | "nodata" => h.nodata = Some(num()?),
+            _ => {
+                return Err(ReadError::invalid(format!(
+                    "unknown ASCII grid header key {key:?}"
+                )));
+            }
+        }
+    };
+
+    let missing = |what: &str| ReadError::invalid(format!("ASCII grid header lacks {what}"));
+    let cols = h.ncols.ok_or_else(|| missing("ncols"))?;
+    let rows = h.nrows.ok_or_else(|| missing("nrows"))?;
+    let (xll, x_centre) = h.xll.ok_or_else(|| missing("xllcorner or xllcenter"))?;
+    let (yll, y_centre) = h.yll.ok_or_else(|| missing("yllcorner or yllcenter"))?;
+    let dx = h.dx.ok_or_else(|| missing("cellsize (or dx)"))?;
+    let dy = h.dy.ok_or_else(|| missing("cellsize (or dy)"))?;
+    if !(dx > 0.0 && dy > 0.0 && dx.is_finite() && dy.is_finite()) {
+        return Err(ReadError::invalid(format!(
+            "ASCII grid cell size must be positive, got {dx} x {dy}"
+        )));
+    }
+    limits.check(cols, rows)?;
+    let (cols, rows) = (cols as usize, rows as usize);
+
+    let x0 = if x_centre { xll - 0.5 * dx } else { xll };
+    let y_bottom = if y_centre { yll - 0.5 * dy } else { yll };
+    let geotransform = [x0, dx, 0.0, y_bottom + rows as f64 * dy, 0.0, -dy];
+
+    // Compared as f32, the precision the samples are kept in, so "-9999" matches "-9999.0".
+    let nodata32 = h.nodata.map(|v| v as f32);
+    let total = cols * rows;
+    let mut samples = Vec::with_capacity(total);
+    if let Some(first) = first_value {
+        samples.push(parse_sample(&first, 0, nodata32)?);
+    }
+    while samples.len() < total {
+        match tokens.next()? {
+            Some(tok) => samples.push(parse_sample(tok, samples.len(), nodata32)?),
+            None => return Err(ReadError::Truncated),
+        }
+    }
+    if tokens.next()?.is_some() {
+        return Err(ReadError::invalid(format!(
+            "ASCII grid has more values than ncols x nrows = {cols} x {rows}"
+        )));
+    }
+
+    Ok(Raster {
+        cols,
+        rows,
+        samples,
+        geotransform,
+        epsg: sidecar_epsg(path)?,
+        nodata: h.nodata,
+    })
+}
+
+fn parse_sample(tok: &str, index: usize, nodata: Option<f32>) -> Result<f32, ReadError> {
+    let v: f32 = tok.parse().map_err(|_| {
+        ReadError::invalid(format!(
+            "ASCII grid value {tok:?} (sample {}) is not a number",
+            index + 1
+        ))
+    })?;
+    Ok(if !v.is_finite() || Some(v) == nodata {
+        f32::NAN
+    } else {
+        v
+    })
+}
+
+/// EPSG code from the `.prj` next to the grid, if there is one and it says.
+fn sidecar_epsg(path: &Path) -> Result<Option<u32>, ReadError> {
+    for ext in ["prj", "PRJ"] {
+        let prj = path.with_extension(ext);
+        if prj.is_file() {
+            let mut text = String::new();
+            // A projection file is a few kilobytes; anything far larger is not one.
+            std::fs::File::open(&prj)?
+                .take(1 << 20)
+                .read_to_string(&mut text)
+                .map_err(|_| ReadError::invalid(format!("{} is not a text file", prj.display())))?;
+            return Ok(epsg_from_wkt(&text));
+        }
+    }
+    Ok(None)
+}
+
+/// EPSG code of a WKT CRS: the AUTHORITY["EPSG",..] (or WKT2 ID["EPSG",..]) attached to the
+/// outermost node, else 4326 for a bare WGS 84 geographic CRS. Nested authorities (datum,
+/// base CRS, units) describe parts, not the CRS itself, and are ignored.
+pub fn epsg_from_wkt(wkt: &str) -> Option<u32> {
+    let bytes = wkt.as_bytes();
+    let mut depth = 0usize;
+    let mut in_quote = false;
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'"' => in_quote = !in_quote,
+            b'[' | b'(' if !in_quote => depth += 1,
+            b']' | b')' if !in_quote => depth = depth.saturating_sub(1),
+            _ if !in_quote && depth == 1 => {
+                let rest = &wkt[i..];
+                let keyword_start = i == 0 || matches!(bytes[i - 1], b',' | b'[' | b'(' | b' ');
+                for kw in ["AUTHORITY[", "ID["] {
+                    if keyword_start
+                        && rest.len() >= kw.len()
+                        && rest[..kw.len()].eq_ignore_ascii_case(kw)
+                    {
+                        if let Some(code) = parse_authority(&rest[kw.len()..]) {
+                            return Some(code);
+                        }
+                    }
+                }
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    let upper = wkt.to_ascii_uppercase();
+    let projected = upper.contains("PROJCS[") || upper.contains("PROJCRS[");
+    let wgs84_geographic = upper.contains("GEOGCS[\"WGS 84\"")
+        || upper.contains("GEOGCS[\"GCS_WGS_1984\"")
+        || upper.contains("GEOGCRS[\"WGS 84\"");
+    (!projected && wgs84_geographic).then_some(4326)
+}
+
+/// `"EPSG","32631"]` or `"EPSG",32631]` → 32631.
+fn parse_authority(args: &str) -> Option<u32> {
+    let end = args.find([']', ')'])?;
+    let mut parts = args[..end].split(',');
+    let name = parts.next()?.trim().trim_matches('"');
+    if !name.eq_ignore_ascii_case("EPSG") {
+        return None;
+    }
+    parts.next()?.trim().trim_matches('"').parse().ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(dir: &tempfile::TempDir, name: &str, text: &str) -> std::path::PathBuf {
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    fn read(path: &Path) -> Result<Raster, ReadError> {
+        AsciiGridReader.read(path, &ReadLimits::default())
+    }
+
+    #[test]
+    fn corner_header_values_and_nodata() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = write(
+            &dir,
+            "g.asc",
+            "NCOLS 3\nNROWS 2\nXLLCORNER 100.0\nYLLCORNER 200\nCELLSIZE 10\nNODATA_value -9999\n\
+             1 2.5 -9999.0\n4 nan 6e1\n",
+        );
+        let r = read(&p).unwrap();
+        assert_eq!((r.cols, r.rows), (3, 2));
+        assert_eq!(r.geotransform, [100.0, 10.0, 0.0, 220.0, 0.0, -10.0]);
+        assert_eq!(r.nodata, Some(-9999.0));
+        assert_eq!(r.epsg, None);
+        assert_eq!(r.get(0, 0), 1.0);
+        assert_eq!(r.get(1, 0), 2.5);
+        assert!(r.get(2, 0).is_nan());
+        assert!(r.get(1, 1).is_nan());
+        assert_eq!(r.get(2, 1), 60.0);
+    }
+
+    #[test]
+    fn centre_header_dx_dy_and_lowercase() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = write(
+            &dir,
+            "c.asc",
+            "ncols 2\r\nnrows 2\r\nxllcenter 0.5\r\nyllcenter 10.25\r\ndx 1\r\ndy 0.5\r\n1 2\r\n3 4",
+        );
+        let r = read(&p).unwrap();
+        // Lower-left cell centre (0.5, 10.25): outer corner (0, 10); top edge 10 + 2 * 0.5.
+        assert_eq!(r.geotransform, [0.0, 1.0, 0.0, 11.0, 0.0, -0.5]);
+        assert_eq!(r.samples, vec![1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(r.nodata, None);
+    }
+
+    #[test]
+    fn prj_sidecar_gives_epsg() {
+        let dir = tempfile::tempdir().unwrap();
+        let grid = "ncols 1\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize 1\n5\n";
+        let cases = [
+            (
+                "wgs",
+                r#"GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]]"#,
+                Some(4326),
+            ),
+            (
+                "esri",
+                r#"GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]],PRIMEM["Greenwich",0.0],UNIT["Degree",0.0174532925199433]]"#,
+                Some(4326),
+            ),
+            (
+                "utm",
+                r#"PROJCS["WGS 84 / UTM zone 31N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563,AUTHORITY["EPSG","7030"]],AUTHORITY["EPSG","6326"]],AUTHORITY["EPSG","4326"]],PROJECTION["Transverse_Mercator"],UNIT["metre",1,AUTHORITY["EPSG","9001"]],AUTHORITY["EPSG","32631"]]"#,
+                Some(32631),
+            ),
+            (
+                "utm_noauth",
+                r#"PROJCS["WGS 84 / UTM zone 31N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],AUTHORITY["EPSG","4326"]],PROJECTION["Transverse_Mercator"]]"#,
+                None,
+            ),
+            (
+                "lambert",
+                r#"GEOGCS["RGF93",DATUM["Reseau_Geodesique_Francais_1993",SPHEROID["GRS 1980",6378137,298.257222101]]]"#,
+                None,
+            ),
+            (
+                "wkt2",
+                r#"PROJCRS["ETRS89 / UTM zone 32N",BASEGEOGCRS["ETRS89",ID["EPSG",4258]],ID["EPSG",25832]]"#,
+                Some(25832),
+            ),
+        ];
+        for (name, wkt, want) in cases {
+            let p = write(&dir, &format!("{name}.asc"), grid);
+            write(&dir, &format!("{name}.prj"), wkt);
+            assert_eq!(read(&p).unwrap().epsg, want, "{name}");
+        }
+    }
+
+    #[test]
+    fn bad_grids_are_refused_with_reasons() {
+        let dir = tempfile::tempdir().unwrap();
+        let cases = [
+            (
+                "short.asc",
+                "ncols 2\nnrows 2\nxllcorner 0\nyllcorner 0\ncellsize 1\n1 2 3\n",
+                "truncated",
+            ),
+            (
+                "long.asc",
+                "ncols 1\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize 1\n1 2\n",
+                "more values",
+            ),
+            (
+                "nocell.asc",
+                "ncols 1\nnrows 1\nxllcorner 0\nyllcorner 0\n1\n",
+                "cellsize",
+            ),
+            (
+                "badnum.asc",
+                "ncols 1\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize 1\n1,5\n",
+                "not a number",
+            ),
+            ("badkey.asc", "ncols 1\nnrows 1\nfoo 3\n", "unknown"),
+            (
+                "zero.asc",
+                "ncols 0\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize 1\n",
+                "positive",
+            ),
+            (
+                "neg.asc",
+                "ncols 1\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize -1\n1\n",
+                "positive",
+            ),
+            (
+                "huge.asc",
+                "ncols 1000000\nnrows 1000000\nxllcorner 0\nyllcorner 0\ncellsize 1\n1\n",
+                "too large",
+            ),
+            ("empty.asc", "", "empty"),
+        ];
+        for (name, text, needle) in cases {
+            let e = read(&write(&dir, name, text)).unwrap_err();
+            assert!(e.to_string().contains(needle), "{name}: {e}");
+        }
+        let binary = dir.path().join("bin.asc");
+        std::fs::write(&binary, [0xffu8; 5000]).unwrap();
+        assert!(read(&binary).is_err());
+    }
+
+    #[test]
+    fn accepts_by_extension_or_header() {
+        let r = AsciiGridReader;
+        assert!(r.accepts(Path::new("a.ASC"), b""));
+        assert!(r.accepts(Path::new("a.txt"), b"  NCOLS 4\n"));
+        assert!(!r.accepts(Path::new("a.txt"), b"hello"));
+    }
+}

@@ -1,0 +1,1293 @@
+//! GeoTIFF and Cloud Optimized GeoTIFF reader built on the pure-Rust `tiff` decoder.
+
+use std::io::{BufReader, Read, Seek};
+use std::panic::{self, AssertUnwindSafe};
+use std::path::Path;
+
+use tiff::decoder::ifd::Value;
+use tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
+use tiff::tags::Tag;
+use tiff::{TiffError, TiffFormatError};
+
+use super::{has_extension, open_regular_file, Raster, RasterReader, ReadError, ReadLimits};
+
+const GEO_KEY_MODEL_TYPE: u16 = 1024;
+const GEO_KEY_RASTER_TYPE: u16 = 1025;
+const GEO_KEY_GEOGRAPHIC_TYPE: u16 = 2048;
+const GEO_KEY_PROJECTED_CS_TYPE: u16 = 3072;
+const RASTER_PIXEL_IS_POINT: u16 = 2;
+const MODEL_TYPE_PROJECTED: u16 = 1;
+const MODEL_TYPE_GEOGRAPHIC: u16 = 2;
+/// GeoTIFF's marker for a CRS described by parameters instead of a code.
+const USER_DEFINED: u16 = 32767;
+
+/// Reads single-band GeoTIFF and COG files (first, full-resolution image only).
+pub struct GeoTiffReader;
+
+impl RasterReader for GeoTiffReader {
+    fn accepts(&self, path: &Path, head: &[u8]) -> bool {
+        is_tiff_signature(head) || has_extension(path, &["tif", "tiff"])
+    }
+
+    fn read(&self, path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
+        read_geotiff(path, limits)
+    }
+}
+
+/// Classic TIFF or BigTIFF, either byte order.
+pub fn is_tiff_signature(head: &[u8]) -> bool {
+    matches!(
+        head.get(..4),
+        Some(b"II*\0" | b"MM\0*" | b"II+\0" | b"MM\0+")
+    )
+}
+
+/// Reads the single band of the first (full-resolution) image of a GeoTIFF or COG.
+pub fn read_geotiff(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
+    let file = open_regular_file(path)?;
+    let file_len = file.metadata()?.len();
+    let reader = BufReader::new(file);
+    // The decoder is fed untrusted bytes and still has internal asserts; a panic there must
+    // become an error for this one file, not take the whole import down.
+    match panic::catch_unwind(AssertUnwindSafe(|| decode(reader, file_len, limits))) {
+        Ok(result) => result,
+        Err(payload) => {
+            let msg = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown reason".to_string());
+            Err(ReadError::invalid(format!(
+                "malformed TIFF: the decoder failed on its contents ({msg})"
+            )))
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum SampleKind {
+    U8,
+    U16,
+    I16,
+    I32,
+    F32,
+    F64,
+}
+
+impl SampleKind {
+    fn bytes(self) -> u64 {
+        match self {
+            SampleKind::U8 => 1,
+            SampleKind::U16 | SampleKind::I16 => 2,
+            SampleKind::I32 | SampleKind::F32 => 4,
+            SampleKind::F64 => 8,
+        }
+    }
+}
+
+fn decode<R: Read + Seek>(
+    reader: R,
+    file_len: u64,
+    limits: &ReadLimits,
+) -> Result<Raster, ReadError> {
+    // Decoder::new loads the first IFD, which in a COG is the full-resolution image; the
+    // overviews and masks chained after it are never visited.
+    let mut dec = Decoder::new(reader).map_err(tiff_error)?;
+    let (width, height) = dec.dimensions().map_err(tiff_error)?;
+    limits.check(u64::from(width), u64::from(height))?;
+    let (cols, rows) = (width as usize, height as usize);
+
+    let kind = sample_kind(&mut dec)?;
+    let (geotransform, epsg) = georeference(&mut dec)?;
+    let nodata = gdal_nodata(&mut dec)?;
+    let sparse = chunk_layout_check(&mut dec, file_len)?;
+
+    // Tags are all read by now, so loosening the decoder's allocation limit can only affect
+    // chunk buffers, whose size we have bounded ourselves from the validated dimensions.
+    let largest_chunk = largest_chunk_samples(&dec, cols, rows, limits)? * kind.bytes();
+    let mut tiff_limits = Limits::default();
+    tiff_limits.decoding_buffer_size = tiff_limits
+        .decoding_buffer_size
+        .max(usize::try_from(largest_chunk).unwrap_or(usize::MAX));
+    tiff_limits.intermediate_buffer_size = tiff_limits
+        .intermediate_buffer_size
+        .max(usize::try_from(file_len).unwrap_or(usize::MAX));
+    let mut dec = dec.with_limits(tiff_limits);
+
+    let samples = read_samples(&mut dec, cols, rows, kind, nodata, &sparse)?;
+    Ok(Raster {
+        cols,
+        rows,
+        samples,
+        geotransform,
+        epsg,
+        nodata,
+    })
+}
+
+fn sample_kind<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<SampleKind, ReadError> {
+    let bands: u16 = dec
+        .find_tag_unsigned(Tag::SamplesPerPixel)
+        .map_err(tiff_error)?
+        .unwrap_or(1);
+    if bands != 1 {
+        // Picking band 1 of a multi-band file would silently import e.g. the red channel of an
+        // RGB picture as terrain; an explicit refusal is safer.
+        return Err(ReadError::unsupported(format!(
+            "the image has {bands} bands (SamplesPerPixel = {bands}); only single-band \
+             elevation rasters are supported"
+        )));
+    }
+    let bits: u16 = dec
+        .find_tag_unsigned_vec::<u16>(Tag::BitsPerSample)
+        .map_err(tiff_error)?
+        .and_then(|v| v.first().copied())
+        .unwrap_or(1);
+    let format: u16 = dec
+        .find_tag_unsigned_vec::<u16>(Tag::SampleFormat)
+        .map_err(tiff_error)?
+        .and_then(|v| v.first().copied())
+        .unwrap_or(1);
+    Ok(match (format, bits) {
+        (1, 8) => SampleKind::U8,
+        (1, 16) => SampleKind::U16,
+        (2, 16) => SampleKind::I16,
+        (2, 32) => SampleKind::I32,
+        (3, 32) => SampleKind::F32,
+        (3, 64) => SampleKind::F64,
+        _ => {
+            let name = match format {
+                1 => "unsigned integer",
+                2 => "signed integer",
+                3 => "floating point",
+                4 => "untyped",
+                5 => "complex integer",
+                6 => "complex floating point",
+                _ => "unknown-format",
+            };
+            return Err(ReadError::unsupported(format!(
+                "{bits}-bit {name} samples (SampleFormat {format}, BitsPerSample {bits}); \
+                 supported sample types are u8, u16, i16, i32, f32 and f64"
+            )));
+        }
+    })
+}
+
+/// Geotransform (GDAL convention, PixelIsArea) and EPSG code from the GeoTIFF tags.
+fn georeference<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+) -> Result<([f64; 6], Option<u32>), ReadError> {
+    let keys = match dec.find_tag(Tag::GeoKeyDirectoryTag).map_err(tiff_error)? {
+        Some(v) => v.into_u16_vec().map_err(|_| {
+            ReadError::invalid("GeoKeyDirectory tag (34735) does not hold SHORT values")
+        })?,
+        None => Vec::new(),
+    };
+    let keys = GeoKeys::parse(&keys);
+
+    let transform = f64_tag(dec, Tag::ModelTransformationTag, "ModelTransformation")?;
+    let scale = f64_tag(dec, Tag::ModelPixelScaleTag, "ModelPixelScale")?;
+    let tiepoint = f64_tag(dec, Tag::ModelTiepointTag, "ModelTiepoint")?;
+
+    // Same precedence as GDAL: a pixel scale with a tiepoint wins over a transformation matrix.
+    let usable_scale = scale.filter(|s| s.len() >= 2 && s[0] != 0.0 && s[1] != 0.0);
+    let mut gt = match (usable_scale, tiepoint, transform) {
+        (Some(s), Some(t), _) if t.len() >= 6 => [
+            t[3] - t[0] * s[0],
+            s[0],
+            0.0,
+            t[4] + t[1] * s[1],
+            0.0,
+            -s[1],
+        ],
+        (_, _, Some(m)) => {
+            if m.len() < 16 {
+                return Err(ReadError::invalid(format!(
+                    "ModelTransformation tag (34264) has {} values instead of 16",
+                    m.len()
+                )));
+            }
+            [m[3], m[0], m[1], m[7], m[4], m[5]]
+        }
+        (None, Some(t), None) if t.len() > 6 => {
+            return Err(ReadError::unsupported(format!(
+                "the image is georeferenced only by {} ground control points, not by a \
+                 regular grid; warp it first (e.g. gdalwarp)",
+                t.len() / 6
+            )));
+        }
+        _ => {
+            return Err(ReadError::unsupported(
+                "the TIFF has no usable georeferencing (neither ModelPixelScale + ModelTiepoint nor \
+                 ModelTransformation tags): it is a plain image, not a GeoTIFF",
+            ));
+        }
+    };
+
+    if keys.get(GEO_KEY_RASTER_TYPE) == Some(RASTER_PIXEL_IS_POINT) {
+        // The tiepoint names the centre of pixel (0,0); GDAL moves the origin to its corner.
+        gt[0] -= 0.5 * (gt[1] + gt[2]);
+        gt[3] -= 0.5 * (gt[4] + gt[5]);
+    }
+    let det = gt[1] * gt[5] - gt[2] * gt[4];
+    if gt.iter().any(|v| !v.is_finite()) || det == 0.0 || !det.is_finite() {
+        return Err(ReadError::invalid(format!(
+            "georeferencing gives a degenerate or non-finite pixel grid: {gt:?}"
+        )));
+    }
+    Ok((gt, keys.epsg()))
+}
+
+fn f64_tag<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    tag: Tag,
+    name: &str,
+) -> Result<Option<Vec<f64>>, ReadError> {
+    let Some(value) = dec.find_tag(tag).map_err(tiff_error)? else {
+        return Ok(None);
+    };
+    // The GeoTIFF spec says DOUBLE, but being lenient about FLOAT or integer writers costs nothing.
+    fn scalar(v: Value) -> Option<f64> {
+        match v {
+            Value::Double(x) => Some(x),
+            Value::Float(x) => Some(f64::from(x)),
+            other => other.into_i64().ok().map(|x| x as f64),
+        }
+    }
+    let values = match value {
+        Value::List(items) => items.into_iter().map(scalar).collect::<Option<Vec<_>>>(),
+        single => scalar(single).map(|x| vec![x]),
+    };
+    values
+        .map(Some)
+        .ok_or_else(|| ReadError::invalid(format!("{name} tag does not hold numbers")))
+}
+
+/// The GeoKeyDirectory, keeping only keys whose value is stored inline (all the ones we use).
+struct GeoKeys(Vec<(u16, u16)>);
+
+impl GeoKeys {
+    fn parse(raw: &[u16]) -> GeoKeys {
+        // Header: version, revision, minor revision, key count; then 4 SHORTs per key.
+        // A short or inconsistent directory keeps what is complete rather than failing the
+        // whole file, since the pixel grid itself does not depend on it.
+        let count = raw.get(3).copied().unwrap_or(0) as usize;
+        let keys = raw
+            .get(4..)
+            .unwrap_or(&[])
+            .chunks_exact(4)
+            .take(count)
+            .filter(|k| k[1] == 0)
+            .map(|k| (k[0], k[3]))
+            .collect();
+        GeoKeys(keys)
+    }
+
+    fn get(&self, id: u16) -> Option<u16> {
+        self.0.iter().find(|(k, _)| *k == id).map(|(_, v)| *v)
+    }
+
+    fn epsg(&self) -> Option<u32> {
+        let code = |id| {
+            self.get(id)
+                .filter(|&v| v != 0 && v != USER_DEFINED)
+                .map(u32::from)
+        };
+        let projected = code(GEO_KEY_PROJECTED_CS_TYPE);
+        let geographic = code(GEO_KEY_GEOGRAPHIC_TYPE);
+        // Projected files usually also carry the base geographic CRS; the model type says which
+        // one the coordinates are in.
+        match self.get(GEO_KEY_MODEL_TYPE) {
+            Some(MODEL_TYPE_PROJECTED) => projected,
+            Some(MODEL_TYPE_GEOGRAPHIC) => geographic,
+            Some(_) => None,
+            None => projected.or(geographic),
+        }
+    }
+}
+
+fn gdal_nodata<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<Option<f64>, ReadError> {
+    let Some(value) = dec.find_tag(Tag::GdalNodata).map_err(tiff_error)? else {
+        return Ok(None);
+    };
+    let Value::Ascii(text) = value else {
+        return Err(ReadError::invalid(
+            "GDAL_NODATA tag (42113) is not an ASCII string",
+        ));
+    };
+    let text = text.trim_matches(|c: char| c == '\0' || c.is_whitespace());
+    if text.is_empty() {
+        return Ok(None);
+    }
+    text.parse::<f64>().map(Some).map_err(|_| {
+        ReadError::invalid(format!(
+            "GDAL_NODATA tag (42113) holds {text:?}, which is not a number"
+        ))
+    })
+}
+
+/// Checks every chunk lies inside the file, so a cut-off download reports `Truncated` up front
+/// instead of a decompressor error halfway through. Returns which chunks are sparse (GDAL's
+/// SPARSE_OK writes offset 0 / byte count 0 for blocks that hold only nodata).
+fn chunk_layout_check<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    file_len: u64,
+) -> Result<Vec<bool>, ReadError> {
+    let (offsets_tag, counts_tag) = match dec.get_chunk_type() {
+        ChunkType::Strip => (Tag::StripOffsets, Tag::StripByteCounts),
+        ChunkType::Tile => (Tag::TileOffsets, Tag::TileByteCounts),
+    };
+    let offsets = dec
+        .find_tag_unsigned_vec::<u64>(offsets_tag)
+        .map_err(tiff_error)?
+        .unwrap_or_default();
+    let counts = dec
+        .find_tag_unsigned_vec::<u64>(counts_tag)
+        .map_err(tiff_error)?
+        .unwrap_or_default();
+    if offsets.len() != counts.len() {
+        return Err(ReadError::invalid(format!(
+            "{} chunk offsets but {} chunk byte counts",
+            offsets.len(),
+            counts.len()
+        )));
+    }
+    let mut sparse = Vec::with_capacity(offsets.len());
+    for (&offset, &count) in offsets.iter().zip(&counts) {
+        if count == 0 {
+            sparse.push(true);
+            continue;
+        }
+        if offset.checked_add(count).is_none_or(|end| end > file_len) {
+            return Err(ReadError::Truncated);
+        }
+        sparse.push(false);
+    }
+    Ok(sparse)
+}
+
+fn largest_chunk_samples<R: Read + Seek>(
+    dec: &Decoder<R>,
+    cols: usize,
+    rows: usize,
+    limits: &ReadLimits,
+) -> Result<u64, ReadError> {
+    let (cw, ch) = dec.chunk_dimensions();
+    let (cw, ch) = (u64::from(cw), u64::from(ch));
+    match dec.get_chunk_type() {
+        ChunkType::Strip => Ok(cols as u64 * ch.min(rows as u64)),
+        ChunkType::Tile => {
+            // Tiles wider than the image are legal but a tile claiming more samples than we
+            // would accept for a whole raster is a corrupt or hostile header.
+            if cw.checked_mul(ch).is_none_or(|n| n > limits.max_samples) {
+                return Err(ReadError::invalid(format!(
+                    "implausible tile size {cw} x {ch}"
+                )));
+            }
+            Ok(cw.min(cols as u64) * ch.min(rows as u64))
+        }
+    }
+}
+
+fn read_samples<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    cols: usize,
+    rows: usize,
+    kind: SampleKind,
+    nodata: Option<f64>,
+    sparse: &[bool],
+) -> Result<Vec<f32>, ReadError> {
+    let chunk_type = dec.get_chunk_type();
+    let count = match chunk_type {
+        ChunkType::Strip => dec.strip_count(),
+        ChunkType::Tile => dec.tile_count(),
+    }
+    .map_err(tiff_error)?;
+    if count as usize != sparse.len() {
+        return Err(ReadError::invalid(format!(
+            "the image needs {count} chunks but the file lists {}",
+            sparse.len()
+        )));
+    }
+    let (cw, ch) = dec.chunk_dimensions();
+    let (cw, ch) = (cw as usize, ch as usize);
+    let across = match chunk_type {
+        ChunkType::Strip => 1,
+        ChunkType::Tile => cols.div_ceil(cw),
+    };
+    // GDAL fills sparse blocks with the nodata value, or 0 when there is none.
+    let sparse_fill = if nodata.is_some() { f32::NAN } else { 0.0 };
+    let convert = Converter::new(kind, nodata);
+
+    let mut out = vec![0f32; cols * rows];
+    for (idx, &is_sparse) in sparse.iter().enumerate() {
+        let x0 = (idx % across) * cw;
+        let y0 = (idx / across).saturating_mul(ch);
+        let (dw, dh) = dec.chunk_data_dimensions(idx as u32);
+        let (dw, dh) = (dw as usize, dh as usize);
+        if x0 + dw > cols || y0.saturating_add(dh) > rows {
+            return Err(ReadError::invalid(format!(
+                "chunk {idx} ({dw} x {dh} at {x0},{y0}) lies outside the {cols} x {rows} image"
+            )));
+        }
+        let rows_out = out[y0 * cols..]
+            .chunks_mut(cols)
+            .take(dh)
+            .map(|row| &mut row[x0..x0 + dw]);
+        if is_sparse {
+            rows_out.for_each(|row| row.fill(sparse_fill));
+            continue;
+        }
+        let chunk = dec.read_chunk(idx as u32).map_err(tiff_error)?;
+        convert.place(chunk, dw, dh, rows_out)?;
+    }
+    Ok(out)
+}
+
+/// Turns decoded samples into f32 with nodata and non-finite values as NaN. Nodata is compared
+/// in the file's own sample type, as GDAL does (a f32 file's nodata is rounded to f32 first).
+struct Converter {
+    kind: SampleKind,
+    nodata: Option<f64>,
+}
+
+impl Converter {
+    fn new(kind: SampleKind, nodata: Option<f64>) -> Self {
+        Converter { kind, nodata }
+    }
+
+    fn int_nodata(&self) -> Option<i64> {
+        self.nodata
+            .filter(|v| v.is_finite() && v.fract() == 0.0)
+            .map(|v| v as i64)
+    }
+
+    fn place<'a>(
+        &self,
+        chunk: DecodingResult,
+        dw: usize,
+        dh: usize,
+        rows: impl Iterator<Item = &'a mut [f32]>,
+    ) -> Result<(), ReadError> {
+        let nd_int = self.int_nodata();
+        let int = |v: i64| {
+            if Some(v) == nd_int {
+                f32::NAN
+            } else {
+                v as f32
+            }
+        };
+        let nd32 = self.nodata.map(|v| v as f32);
+        let nd64 = self.nodata;
+        match (self.kind, chunk) {
+            (SampleKind::U8, DecodingResult::U8(src)) => {
+                copy(&src, dw, dh, rows, |v| int(v.into()))
+            }
+            (SampleKind::U16, DecodingResult::U16(src)) => {
+                copy(&src, dw, dh, rows, |v| int(v.into()))
+            }
+            (SampleKind::I16, DecodingResult::I16(src)) => {
+                copy(&src, dw, dh, rows, |v| int(v.into()))
+            }
+            (SampleKind::I32, DecodingResult::I32(src)) => {
+                copy(&src, dw, dh, rows, |v| int(v.into()))
+            }
+            (SampleKind::F32, DecodingResult::F32(src)) => copy(&src, dw, dh, rows, |v| {
+                if !v.is_finite() || Some(v) == nd32 {
+                    f32::NAN
+                } else {
+                    v
+                }
+            }),
+            (SampleKind::F64, DecodingResult::F64(src)) => copy(&src, dw, dh, rows, |v| {
+                let x = v as f32;
+                if !x.is_finite() || Some(v) == nd64 {
+                    f32::NAN
+                } else {
+                    x
+                }
+            }),
+            (kind, _) => Err(ReadError::invalid(format!(
+                "decoder returned samples of another type than the header's {kind:?}"
+            ))),
+        }
+    }
+}
+
+fn copy<'a, T: Copy>(
+    src: &[T],
+    dw: usize,
+    dh: usize,
+    rows: impl Iterator<Item = &'a mut [f32]>,
+    f: impl Fn(T) -> f32,
+) -> Result<(), ReadError> {
+    if src.len() < dw * dh {
+        return Err(ReadError::invalid(format!(
+            "a {dw} x {dh} chunk decoded to only {} samples",
+            src.len()
+        )));
+    }
+    for (dst, src_row) in rows.zip(src.chunks_exact(dw)) {
+        for (d, &s) in dst.iter_mut().zip(src_row) {
+            *d = f(s);
+        }
+    }
+    Ok(())
+}
+
+fn tiff_error(e: TiffError) -> ReadError {
+    match e {
+        TiffError::IoError(io) => io_error(io),
+        TiffError::FormatError(
+            TiffFormatError::TiffSignatureNotFound | TiffFormatError::TiffSignatureInvalid,
+        ) => ReadError::invalid(
+            "not a TIFF file: it does not start with the TIFF signature (II*\\0 or MM\\0*)",
+        ),
+        TiffError::FormatError(f) => ReadError::invalid(format!("malformed TIFF: {f}")),
+        TiffError::UnsupportedError(u) => ReadError::unsupported(format!("TIFF feature: {u}")),
+        TiffError::LimitsExceeded => ReadError::invalid(
+            "malformed TIFF: a tag or data chunk claims an implausibly large size",
+        ),
+        TiffError::IntSizeError => {
+            ReadError::invalid("malformed TIFF: a size field overflows the platform's integers")
+        }
+        TiffError::UsageError(u) => ReadError::invalid(format!("malformed TIFF layout: {u}")),
+    }
+}
+
+/// Inside the decoder, I/O errors other than end-of-file come from the decompressors and mean
+/// the data is corrupt, which "I/O error" would misdescribe.
+fn io_error(e: std::io::Error) -> ReadError {
+    use std::io::ErrorKind;
+    match e.kind() {
+        ErrorKind::InvalidData | ErrorKind::InvalidInput | ErrorKind::Other => {
+            ReadError::invalid(format!("corrupt compressed image data: {e}"))
+        }
+        _ => e.into(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::read::test_support::{assert_close, assert_gt_close, data_file};
+    use crate::read::write_tiff::{write_geotiff_f32, write_geotiff_i16};
+    use std::path::PathBuf;
+
+    const ARCSEC: f64 = 1.0 / 3600.0;
+
+    fn read(path: &Path) -> Result<Raster, ReadError> {
+        GeoTiffReader.read(path, &ReadLimits::default())
+    }
+
+    fn real(name: &str) -> Raster {
+        read(&data_file(name)).unwrap_or_else(|e| panic!("reading {name}: {e}"))
+    }
+
+    #[test]
+    fn copernicus_cog_tiled_deflate_float_predictor() {
+        let r = real("Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif");
+        assert_eq!((r.cols, r.rows), (3600, 3600));
+        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.nodata, None);
+        // PixelIsPoint with the tiepoint on whole degrees: GDAL reports the half-pixel shift.
+        assert_gt_close(
+            r.geotransform,
+            [
+                -119.0 - 0.5 * ARCSEC,
+                ARCSEC,
+                0.0,
+                35.0 + 0.5 * ARCSEC,
+                0.0,
+                -ARCSEC,
+            ],
+            1e-12,
+        );
+        assert_close(r.geotransform[0], -119.000138889, 1e-9, "origin x");
+        assert_close(r.geotransform[3], 35.000138889, 1e-9, "origin y");
+        assert_eq!(r.nodata_count(), 0);
+        let (min, max) = min_max(&r.samples);
+        assert!((-100.0..0.5).contains(&min), "min {min}");
+        assert!((2000.0..3100.0).contains(&max), "max {max}");
+    }
+
+    #[test]
+    fn copernicus_tiles_line_up_with_nasadem() {
+        // Two independent surveys of the same cell: if any COG tile were decoded into the wrong
+        // place, that tile's typical difference would be hundreds of metres instead of ~0.
+        let cop = real("Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif");
+        let nasa = real("NASADEM_HGT_n34w119.tif");
+        for ty in 0..4 {
+            for tx in 0..4 {
+                let mut diffs = Vec::new();
+                for row in (ty * 1024..((ty + 1) * 1024).min(3600)).step_by(7) {
+                    for col in (tx * 1024..((tx + 1) * 1024).min(3600)).step_by(7) {
+                        let d = cop.get(col, row) - nasa.get(col, row);
+                        if d.is_finite() {
+                            diffs.push(d.abs());
+                        }
+                    }
+                }
+                let mid = diffs.len() / 2;
+                let median = *diffs.select_nth_unstable_by(mid, f32::total_cmp).1;
+                assert!(median < 5.0, "tile ({tx},{ty}) median |diff| {median} m");
+            }
+        }
+    }
+
+    #[test]
+    fn nasadem_i16_pixel_is_point() {
+        let r = real("NASADEM_HGT_n34w119.tif");
+        assert_eq!((r.cols, r.rows), (3601, 3601));
+        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.nodata, Some(-32768.0));
+        assert_gt_close(
+            r.geotransform,
+            [
+                -119.0 - 0.5 * ARCSEC,
+                ARCSEC,
+                0.0,
+                35.0 + 0.5 * ARCSEC,
+                0.0,
+                -ARCSEC,
+            ],
+            1e-12,
+        );
+        assert_eq!(r.nodata_count(), 0, "NASADEM is void-filled");
+    }
+
+    #[test]
+    fn srtm_utm_projected_epsg_and_voids() {
+        let r = real("N44E005_UTM.tif");
+        assert_eq!((r.cols, r.rows), (922, 1262));
+        assert_eq!(r.epsg, Some(32631));
+        assert_eq!(r.nodata, Some(-32768.0));
+        assert_eq!(r.nodata_count(), 74_128);
+        // PixelIsPoint, 90 m.
+        assert_gt_close(
+            r.geotransform,
+            [
+                657641.6582899829 - 45.0,
+                90.0,
+                0.0,
+                4987332.008210683 + 45.0,
+                0.0,
+                -90.0,
+            ],
+            1e-6,
+        );
+    }
+
+    #[test]
+    fn philondenx_nodata_zero_and_nan() {
+        let r = real("dtm_philondenx_32630_nan.tif");
+        assert_eq!((r.cols, r.rows), (512, 512));
+        assert_eq!(r.epsg, Some(32630));
+        assert_eq!(r.nodata, Some(0.0));
+        // 48,798 samples equal to the declared nodata 0 plus one NaN.
+        assert_eq!(r.nodata_count(), 48_799);
+        assert_gt_close(
+            r.geotransform,
+            [708157.0, 1.0, 0.0, 4827432.0, 0.0, -1.0],
+            1e-9,
+        );
+    }
+
+    #[test]
+    fn rhine_deflate_strips_nodata() {
+        let r = real("rhine_elv0.tif");
+        assert_eq!((r.cols, r.rows), (997, 682));
+        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.nodata, Some(-9999.0));
+        // About 49% of the rectangle lies outside the basin.
+        assert_eq!(r.nodata_count(), 330_107);
+        assert_gt_close(
+            r.geotransform,
+            [
+                3.5666666664997138,
+                0.008333333333325754,
+                0.0,
+                52.00833333330708,
+                0.0,
+                -0.008333333333339965,
+            ],
+            1e-12,
+        );
+    }
+
+    #[test]
+    fn lidar_uncompressed_tiles_with_padding() {
+        // 400 x 400 in 128 x 128 tiles: the last tile column and row are partly padding.
+        let r = real("lidar_dem_26915.tif");
+        assert_eq!((r.cols, r.rows), (400, 400));
+        assert_eq!(r.epsg, Some(26915));
+        assert_eq!(r.nodata_count(), 0);
+        let (min, max) = min_max(&r.samples);
+        assert!(min > 0.0 && max < 1000.0, "range {min}..{max}");
+        // Neighbours across the tile seam at column 384 must be as smooth as inside a tile.
+        let seam = (0..400)
+            .map(|row| (r.get(384, row) - r.get(383, row)).abs())
+            .fold(0f32, f32::max);
+        assert!(seam < 5.0, "tile seam jump {seam}");
+    }
+
+    #[test]
+    fn big_hole_file_has_its_declared_nodata() {
+        let r = real("N44E005_big_hole.tif");
+        assert_eq!((r.cols, r.rows), (1201, 1201));
+        assert_eq!(r.epsg, Some(4326));
+        // The file really declares -32678 (sic), and its holes hold that value.
+        assert_eq!(r.nodata, Some(-32678.0));
+        assert_eq!(r.nodata_count(), 490_473);
+    }
+
+    fn min_max(v: &[f32]) -> (f32, f32) {
+        v.iter()
+            .filter(|x| x.is_finite())
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &x| {
+                (lo.min(x), hi.max(x))
+            })
+    }
+
+    // ---- hand-built TIFFs -------------------------------------------------------------------
+
+    enum Val {
+        Short(Vec<u16>),
+        Long(Vec<u32>),
+        Double(Vec<f64>),
+        Ascii(&'static str),
+    }
+
+    /// Builds a little-endian classic TIFF holding `chunks` as strips (or tiles when the tags
+    /// say so); offset/byte-count tags are added here. Lets tests produce layouts, compressions
+    /// and broken headers that the `tiff` encoder cannot write.
+    fn build_tiff(tags: Vec<(u16, Val)>, chunks: &[Vec<u8>], tiled: bool) -> Vec<u8> {
+        let mut out = b"II*\0\0\0\0\0".to_vec();
+        let mut offsets = Vec::new();
+        for c in chunks {
+            offsets.push(out.len() as u32);
+            out.extend_from_slice(c);
+        }
+        let (off_tag, cnt_tag) = if tiled { (324, 325) } else { (273, 279) };
+        let mut tags = tags;
+        if !chunks.is_empty() {
+            tags.push((off_tag, Val::Long(offsets)));
+            tags.push((
+                cnt_tag,
+                Val::Long(chunks.iter().map(|c| c.len() as u32).collect()),
+            ));
+        }
+        tags.sort_by_key(|t| t.0);
+        let encoded: Vec<(u16, u16, u32, Vec<u8>)> = tags
+            .into_iter()
+            .map(|(tag, v)| match v {
+                Val::Short(x) => (
+                    tag,
+                    3,
+                    x.len() as u32,
+                    x.iter().flat_map(|s| s.to_le_bytes()).collect(),
+                ),
+                Val::Long(x) => (
+                    tag,
+                    4,
+                    x.len() as u32,
+                    x.iter().flat_map(|s| s.to_le_bytes()).collect(),
+                ),
+                Val::Double(x) => (
+                    tag,
+                    12,
+                    x.len() as u32,
+                    x.iter().flat_map(|s| s.to_le_bytes()).collect(),
+                ),
+                Val::Ascii(s) => {
+                    let mut b = s.as_bytes().to_vec();
+                    b.push(0);
+                    (tag, 2, b.len() as u32, b)
+                }
+            })
+            .collect();
+        let mut value_at = Vec::new();
+        for (_, _, _, bytes) in &encoded {
+            if bytes.len() > 4 {
+                if out.len() % 2 == 1 {
+                    out.push(0);
+                }
+                value_at.push(out.len() as u32);
+                out.extend_from_slice(bytes);
+            } else {
+                value_at.push(0);
+            }
+        }
+        if out.len() % 2 == 1 {
+            out.push(0);
+        }
+        let ifd = out.len() as u32;
+        out[4..8].copy_from_slice(&ifd.to_le_bytes());
+        out.extend_from_slice(&(encoded.len() as u16).to_le_bytes());
+        for ((tag, ty, count, bytes), at) in encoded.iter().zip(value_at) {
+            out.extend_from_slice(&tag.to_le_bytes());
+            out.extend_from_slice(&ty.to_le_bytes());
+            out.extend_from_slice(&count.to_le_bytes());
+            if bytes.len() > 4 {
+                out.extend_from_slice(&at.to_le_bytes());
+            } else {
+                let mut inline = [0u8; 4];
+                inline[..bytes.len()].copy_from_slice(bytes);
+                out.extend_from_slice(&inline);
+            }
+        }
+        out.extend_from_slice(&0u32.to_le_bytes());
+        out
+    }
+
+    fn geo_tags(origin: (f64, f64), step: f64, epsg: u16) -> Vec<(u16, Val)> {
+        vec![
+            (33550, Val::Double(vec![step, step, 0.0])),
+            (
+                33922,
+                Val::Double(vec![0.0, 0.0, 0.0, origin.0, origin.1, 0.0]),
+            ),
+            (
+                34735,
+                Val::Short(vec![
+                    1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, epsg,
+                ]),
+            ),
+        ]
+    }
+
+    fn image_tags(w: u32, h: u32, bits: u16, format: u16) -> Vec<(u16, Val)> {
+        vec![
+            (256, Val::Long(vec![w])),
+            (257, Val::Long(vec![h])),
+            (258, Val::Short(vec![bits])),
+            (262, Val::Short(vec![1])),
+            (277, Val::Short(vec![1])),
+            (339, Val::Short(vec![format])),
+        ]
+    }
+
+    /// A zstd frame made of raw (stored) blocks: valid zstd without needing a compressor.
+    fn zstd_stored(data: &[u8]) -> Vec<u8> {
+        let mut out = vec![0x28, 0xB5, 0x2F, 0xFD];
+        // Frame header: single segment, 4-byte content size, no checksum, no dictionary.
+        out.push(0b1010_0000);
+        out.extend_from_slice(&(data.len() as u32).to_le_bytes());
+        let blocks: Vec<&[u8]> = data.chunks(100_000).collect();
+        for (i, b) in blocks.iter().enumerate() {
+            let last = u32::from(i + 1 == blocks.len());
+            let header = ((b.len() as u32) << 3) | last;
+            out.extend_from_slice(&header.to_le_bytes()[..3]);
+            out.extend_from_slice(b);
+        }
+        out
+    }
+
+    /// TIFF floating-point predictor (3) for one row of f32 samples: byte planes, MSB first,
+    /// then byte-wise horizontal differencing.
+    fn float_predict_row(row: &[f32]) -> Vec<u8> {
+        let n = row.len();
+        let mut planes = vec![0u8; n * 4];
+        for (i, v) in row.iter().enumerate() {
+            for (b, byte) in v.to_be_bytes().iter().enumerate() {
+                planes[b * n + i] = *byte;
+            }
+        }
+        for i in (1..planes.len()).rev() {
+            planes[i] = planes[i].wrapping_sub(planes[i - 1]);
+        }
+        planes
+    }
+
+    fn write_temp(dir: &tempfile::TempDir, name: &str, bytes: &[u8]) -> PathBuf {
+        let p = dir.path().join(name);
+        std::fs::write(&p, bytes).unwrap();
+        p
+    }
+
+    #[test]
+    fn tiled_zstd_float_predictor_with_padding_and_sparse_tile() {
+        // 20 x 18 image in 16 x 16 tiles: 2 x 2 tiles, right and bottom ones padded.
+        let (w, h, t) = (20usize, 18usize, 16usize);
+        let value = |c: usize, r: usize| (r * 100 + c) as f32 + 0.25;
+        let mut tiles = Vec::new();
+        for ty in 0..2 {
+            for tx in 0..2 {
+                if (tx, ty) == (1, 1) {
+                    tiles.push(Vec::new()); // sparse: offset/bytes 0
+                    continue;
+                }
+                let mut raw = Vec::new();
+                for r in 0..t {
+                    let row: Vec<f32> = (0..t).map(|c| value(tx * t + c, ty * t + r)).collect();
+                    raw.extend(float_predict_row(&row));
+                }
+                tiles.push(zstd_stored(&raw));
+            }
+        }
+        let mut tags = image_tags(w as u32, h as u32, 32, 3);
+        tags.extend(geo_tags((500000.0, 4000000.0), 2.0, 32631));
+        tags.extend([
+            (259, Val::Short(vec![50000])),
+            (317, Val::Short(vec![3])),
+            (322, Val::Long(vec![t as u32])),
+            (323, Val::Long(vec![t as u32])),
+            (42113, Val::Ascii("-9999")),
+        ]);
+        let mut bytes = build_tiff(tags, &tiles, true);
+        // build_tiff gave the sparse tile a real offset; GDAL writes 0 for both.
+        let pos = find_sparse_offset(&bytes, &tiles);
+        bytes[pos..pos + 4].copy_from_slice(&0u32.to_le_bytes());
+
+        let dir = tempfile::tempdir().unwrap();
+        let r = read(&write_temp(&dir, "zstd.tif", &bytes)).unwrap();
+        assert_eq!((r.cols, r.rows, r.epsg), (20, 18, Some(32631)));
+        assert_eq!(r.geotransform, [500000.0, 2.0, 0.0, 4000000.0, 0.0, -2.0]);
+        for row in 0..h {
+            for col in 0..w {
+                let got = r.get(col, row);
+                if col >= t && row >= t {
+                    assert!(got.is_nan(), "sparse tile sample ({col},{row}) = {got}");
+                } else {
+                    assert_eq!(got, value(col, row), "sample ({col},{row})");
+                }
+            }
+        }
+    }
+
+    /// Position of the last TileOffsets entry, which belongs to the sparse tile in the test above.
+    fn find_sparse_offset(bytes: &[u8], tiles: &[Vec<u8>]) -> usize {
+        let ifd = u32::from_le_bytes(bytes[4..8].try_into().unwrap()) as usize;
+        let n = u16::from_le_bytes(bytes[ifd..ifd + 2].try_into().unwrap()) as usize;
+        for i in 0..n {
+            let e = ifd + 2 + i * 12;
+            if u16::from_le_bytes(bytes[e..e + 2].try_into().unwrap()) == 324 {
+                let at = u32::from_le_bytes(bytes[e + 8..e + 12].try_into().unwrap()) as usize;
+                return at + 4 * (tiles.len() - 1);
+            }
+        }
+        panic!("no TileOffsets");
+    }
+
+    #[test]
+    fn zstd_horizontal_predictor_i16_strips_pixel_is_point_transform() {
+        let (w, h) = (5usize, 3usize);
+        let values: Vec<i16> = (0..(w * h) as i16).map(|i| i * 37 - 200).collect();
+        let mut strips = Vec::new();
+        for row in values.chunks(w) {
+            let mut raw = Vec::new();
+            let mut prev = 0i16;
+            for &v in row {
+                raw.extend_from_slice(&v.wrapping_sub(prev).to_le_bytes());
+                prev = v;
+            }
+            strips.push(zstd_stored(&raw));
+        }
+        let mut tags = image_tags(w as u32, h as u32, 16, 2);
+        tags.extend([
+            (259, Val::Short(vec![50000])),
+            (278, Val::Long(vec![1])),
+            (317, Val::Short(vec![2])),
+            // Rotated ModelTransformation, PixelIsPoint, geographic.
+            (
+                34264,
+                Val::Double(vec![
+                    0.5, 0.1, 0.0, 10.0, //
+                    0.2, -0.5, 0.0, 50.0, //
+                    0.0, 0.0, 0.0, 0.0, //
+                    0.0, 0.0, 0.0, 1.0,
+                ]),
+            ),
+            (
+                34735,
+                Val::Short(vec![
+                    1, 1, 0, 3, 1024, 0, 1, 2, 1025, 0, 1, 2, 2048, 0, 1, 4326,
+                ]),
+            ),
+        ]);
+        let dir = tempfile::tempdir().unwrap();
+        let r = read(&write_temp(
+            &dir,
+            "pred2.tif",
+            &build_tiff(tags, &strips, false),
+        ))
+        .unwrap();
+        let expect: Vec<f32> = values.iter().map(|&v| f32::from(v)).collect();
+        assert_eq!(r.samples, expect);
+        assert_eq!(r.epsg, Some(4326));
+        // GDAL: origin -= half a pixel along both pixel axes.
+        assert_gt_close(
+            r.geotransform,
+            [
+                10.0 - 0.5 * (0.5 + 0.1),
+                0.5,
+                0.1,
+                50.0 - 0.5 * (0.2 - 0.5),
+                0.2,
+                -0.5,
+            ],
+            1e-12,
+        );
+    }
+
+    #[test]
+    fn encoder_compressions_round_trip() {
+        use tiff::encoder::{colortype, Compression, DeflateLevel, TiffEncoder};
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (33u32, 21u32);
+        let data: Vec<f32> = (0..w * h).map(|i| (i as f32).sin() * 1000.0).collect();
+        for (name, comp) in [
+            ("none", Compression::Uncompressed),
+            ("lzw", Compression::Lzw),
+            ("packbits", Compression::Packbits),
+            ("deflate", Compression::Deflate(DeflateLevel::Best)),
+        ] {
+            let path = dir.path().join(format!("{name}.tif"));
+            let file = std::fs::File::create(&path).unwrap();
+            let mut enc = TiffEncoder::new(file).unwrap().with_compression(comp);
+            let mut img = enc.new_image::<colortype::Gray32Float>(w, h).unwrap();
+            img.rows_per_strip(4).unwrap();
+            img.encoder()
+                .write_tag(Tag::ModelPixelScaleTag, &[1.0f64, 1.0, 0.0][..])
+                .unwrap();
+            img.encoder()
+                .write_tag(
+                    Tag::ModelTiepointTag,
+                    &[0.0f64, 0.0, 0.0, 0.0, 21.0, 0.0][..],
+                )
+                .unwrap();
+            img.write_data(&data).unwrap();
+            let r = read(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(r.samples, data, "{name}");
+            assert_eq!(r.epsg, None, "{name}");
+        }
+    }
+
+    // ---- bad input --------------------------------------------------------------------------
+
+    fn expect_err(path: &Path) -> ReadError {
+        match read(path) {
+            Ok(r) => panic!("{} read without error: {r:?}", path.display()),
+            Err(e) => {
+                let msg = e.to_string();
+                assert!(msg.len() > 20, "unhelpful message {msg:?}");
+                e
+            }
+        }
+    }
+
+    #[test]
+    fn empty_file_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = expect_err(&write_temp(&dir, "empty.tif", b""));
+        assert!(e.to_string().contains("empty"), "{e}");
+    }
+
+    #[test]
+    fn garbage_named_tif_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let garbage: Vec<u8> = (0..4096u32)
+            .map(|i| (i.wrapping_mul(2654435761) >> 13) as u8)
+            .collect();
+        let e = expect_err(&write_temp(&dir, "garbage.tif", &garbage));
+        assert!(e.to_string().contains("not a TIFF"), "{e}");
+        let e = expect_err(&write_temp(&dir, "short.tif", b"II*"));
+        assert!(
+            matches!(e, ReadError::Truncated | ReadError::Invalid { .. }),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn directory_named_tif_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let sub = dir.path().join("x.tif");
+        std::fs::create_dir(&sub).unwrap();
+        let e = expect_err(&sub);
+        assert!(e.to_string().contains("directory"), "{e}");
+    }
+
+    #[test]
+    fn truncated_real_files_report_truncation() {
+        let dir = tempfile::tempdir().unwrap();
+        for name in [
+            "Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif",
+            "NASADEM_HGT_n34w119.tif",
+            "rhine_elv0.tif",
+        ] {
+            let bytes = std::fs::read(data_file(name)).unwrap();
+            let cut = write_temp(&dir, name, &bytes[..bytes.len() / 2]);
+            let e = expect_err(&cut);
+            assert!(matches!(e, ReadError::Truncated), "{name}: {e}");
+            assert!(e.to_string().contains("truncated"), "{e}");
+        }
+        // Cut inside the header itself.
+        let bytes = std::fs::read(data_file("rhine_elv0.tif")).unwrap();
+        expect_err(&write_temp(&dir, "head.tif", &bytes[..100]));
+    }
+
+    #[test]
+    fn huge_header_is_refused_before_allocating() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut tags = image_tags(1_000_000, 1_000_000, 32, 3);
+        tags.extend(geo_tags((0.0, 0.0), 1.0, 32631));
+        tags.push((278, Val::Long(vec![1_000_000])));
+        // One strip whose data is missing entirely.
+        let bytes = build_tiff(tags, &[vec![0u8; 16]], false);
+        let e = expect_err(&write_temp(&dir, "huge.tif", &bytes));
+        assert!(
+            matches!(
+                e,
+                ReadError::TooLarge {
+                    cols: 1_000_000,
+                    rows: 1_000_000,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+
+        // The same claim with no strip or tile tags at all.
+        let bytes = build_tiff(image_tags(1_000_000, 1_000_000, 32, 3), &[], false);
+        let e = expect_err(&write_temp(&dir, "huge_nodata.tif", &bytes));
+        assert!(matches!(e, ReadError::Invalid { .. }), "{e}");
+
+        // Tighter caller limits apply too.
+        let small = write_temp(&dir, "small.tif", &small_geotiff_bytes(&dir));
+        let e = GeoTiffReader
+            .read(&small, &ReadLimits { max_samples: 10 })
+            .unwrap_err();
+        assert!(matches!(e, ReadError::TooLarge { .. }), "{e}");
+    }
+
+    #[test]
+    fn unsupported_sample_types_and_bands_are_named() {
+        use tiff::encoder::{colortype, TiffEncoder};
+        let dir = tempfile::tempdir().unwrap();
+
+        let rgb = dir.path().join("rgb.tif");
+        TiffEncoder::new(std::fs::File::create(&rgb).unwrap())
+            .unwrap()
+            .write_image::<colortype::RGB8>(4, 4, &[7u8; 48])
+            .unwrap();
+        let e = expect_err(&rgb);
+        assert!(matches!(e, ReadError::Unsupported { .. }), "{e}");
+        assert!(e.to_string().contains("3 bands"), "{e}");
+
+        let u64_path = dir.path().join("u64.tif");
+        TiffEncoder::new(std::fs::File::create(&u64_path).unwrap())
+            .unwrap()
+            .write_image::<colortype::Gray64>(4, 4, &[7u64; 16])
+            .unwrap();
+        let e = expect_err(&u64_path);
+        assert!(e.to_string().contains("64-bit unsigned integer"), "{e}");
+
+        // Hand-made complex float file; the decoder itself cannot represent it.
+        let mut tags = image_tags(2, 2, 64, 6);
+        tags.extend(geo_tags((0.0, 0.0), 1.0, 32631));
+        let bytes = build_tiff(tags, &[vec![0u8; 32]], false);
+        let e = expect_err(&write_temp(&dir, "complex.tif", &bytes));
+        assert!(e.to_string().contains("complex floating point"), "{e}");
+    }
+
+    #[test]
+    fn plain_tiff_without_georeference_is_refused() {
+        use tiff::encoder::{colortype, TiffEncoder};
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("plain.tif");
+        TiffEncoder::new(std::fs::File::create(&path).unwrap())
+            .unwrap()
+            .write_image::<colortype::GrayI16>(3, 3, &[1i16; 9])
+            .unwrap();
+        let e = expect_err(&path);
+        assert!(e.to_string().contains("no usable georeferencing"), "{e}");
+    }
+
+    #[test]
+    fn bad_nodata_tag_is_reported() {
+        let mut tags = image_tags(2, 1, 16, 2);
+        tags.extend(geo_tags((0.0, 0.0), 1.0, 32631));
+        tags.push((42113, Val::Ascii("none")));
+        let dir = tempfile::tempdir().unwrap();
+        let bytes = build_tiff(tags, &[vec![1, 0, 2, 0]], false);
+        let e = expect_err(&write_temp(&dir, "nd.tif", &bytes));
+        assert!(e.to_string().contains("GDAL_NODATA"), "{e}");
+    }
+
+    #[test]
+    fn infinities_become_nan_and_nodata_whitespace_is_trimmed() {
+        let mut tags = image_tags(4, 1, 32, 3);
+        tags.extend(geo_tags((0.0, 0.0), 1.0, 32631));
+        tags.push((42113, Val::Ascii(" -3.4028234663852886e+38 \n")));
+        let data: Vec<u8> = [f32::INFINITY, f32::NEG_INFINITY, f32::MIN, 12.5]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let dir = tempfile::tempdir().unwrap();
+        let r = read(&write_temp(
+            &dir,
+            "inf.tif",
+            &build_tiff(tags, &[data], false),
+        ))
+        .unwrap();
+        assert_eq!(r.nodata, Some(f64::from(f32::MIN)));
+        assert!(r.samples[..3].iter().all(|v| v.is_nan()), "{:?}", r.samples);
+        assert_eq!(r.samples[3], 12.5);
+    }
+
+    fn small_geotiff_bytes(dir: &tempfile::TempDir) -> Vec<u8> {
+        let path = dir.path().join("seed.tif");
+        let samples: Vec<f32> = (0..64).map(|i| i as f32 * 1.5).collect();
+        write_geotiff_f32(
+            &path,
+            8,
+            8,
+            &samples,
+            [600000.0, 30.0, 0.0, 5000000.0, 0.0, -30.0],
+            Some(32631),
+            Some(-9999.0),
+        )
+        .unwrap();
+        std::fs::read(path).unwrap()
+    }
+
+    #[test]
+    fn corrupted_bytes_never_panic_out() {
+        // Deterministic mutation fuzzing of a valid file: every outcome must be Ok or Err.
+        let dir = tempfile::tempdir().unwrap();
+        let seed = small_geotiff_bytes(&dir);
+        let i16_path = dir.path().join("seed16.tif");
+        write_geotiff_i16(
+            &i16_path,
+            4,
+            4,
+            &[5i16; 16],
+            [0.0, 1.0, 0.0, 4.0, 0.0, -1.0],
+            Some(4326),
+            None,
+        )
+        .unwrap();
+        let seeds = [seed, std::fs::read(&i16_path).unwrap()];
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let path = dir.path().join("fuzz.tif");
+        for i in 0..400 {
+            let mut bytes = seeds[i % 2].clone();
+            for _ in 0..1 + next() % 4 {
+                let pos = (next() % bytes.len() as u64) as usize;
+                bytes[pos] = next() as u8;
+            }
+            if next() % 5 == 0 {
+                let keep = (next() % bytes.len() as u64) as usize;
+                bytes.truncate(keep.max(1));
+            }
+            std::fs::write(&path, &bytes).unwrap();
+            let _ = read(&path);
+        }
+    }
+}

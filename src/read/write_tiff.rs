@@ -1,0 +1,325 @@
+//! Minimal GeoTIFF writer (north-up, single band, deflate) for exports and test fixtures.
+
+use std::fs::File;
+use std::io::{BufWriter, Seek, Write};
+use std::path::Path;
+
+use tiff::encoder::colortype::{ColorType, Gray32Float, GrayI16};
+use tiff::encoder::{Compression, DeflateLevel, TiffEncoder, TiffValue};
+use tiff::tags::{Predictor, Tag};
+use tiff::TiffError;
+
+use super::ReadError;
+
+/// Writes an f32 GeoTIFF. NaN samples are written as `nodata` when one is given.
+pub fn write_geotiff_f32(
+    path: &Path,
+    cols: usize,
+    rows: usize,
+    samples: &[f32],
+    geotransform: [f64; 6],
+    epsg: Option<u32>,
+    nodata: Option<f64>,
+) -> Result<(), ReadError> {
+    check_shape(cols, rows, samples.len())?;
+    let data: Vec<f32> = match nodata {
+        // GDAL readers only recognise the declared value, so NaN must become it.
+        Some(nd) if !nd.is_nan() => {
+            // Readers compare nodata after rounding it to the sample type, so rounding is fine;
+            // overflowing to infinity is not.
+            let nd32 = nd as f32;
+            if nd.is_finite() && !nd32.is_finite() {
+                return Err(ReadError::invalid(format!(
+                    "nodata {nd} is outside the range of f32 samples"
+                )));
+            }
+            samples
+                .iter()
+                .map(|&v| if v.is_nan() { nd32 } else { v })
+                .collect()
+        }
+        _ => samples.to_vec(),
+    };
+    // The tiff encoder cannot write the floating-point predictor, and the horizontal one is
+    // integer-only, so floats go through plain deflate.
+    write::<Gray32Float>(
+        path,
+        cols,
+        rows,
+        &data,
+        geotransform,
+        epsg,
+        nodata,
+        Predictor::None,
+    )
+}
+
+/// Writes an i16 GeoTIFF. `nodata` must be a whole number within i16.
+pub fn write_geotiff_i16(
+    path: &Path,
+    cols: usize,
+    rows: usize,
+    samples: &[i16],
+    geotransform: [f64; 6],
+    epsg: Option<u32>,
+    nodata: Option<f64>,
+) -> Result<(), ReadError> {
+    check_shape(cols, rows, samples.len())?;
+    if let Some(nd) = nodata {
+        if nd.fract() != 0.0 || !(f64::from(i16::MIN)..=f64::from(i16::MAX)).contains(&nd) {
+            return Err(ReadError::invalid(format!(
+                "nodata {nd} is not representable in i16 samples"
+            )));
+        }
+    }
+    write::<GrayI16>(
+        path,
+        cols,
+        rows,
+        samples,
+        geotransform,
+        epsg,
+        nodata,
+        Predictor::Horizontal,
+    )
+}
+
+fn check_shape(cols: usize, rows: usize, len: usize) -> Result<(), ReadError> {
+    if cols == 0 || rows == 0 || u32::try_from(cols).is_err() || u32::try_from(rows).is_err() {
+        return Err(ReadError::invalid(format!(
+            "cannot write a {cols} x {rows} raster as a TIFF"
+        )));
+    }
+    if cols.checked_mul(rows) != Some(len) {
+        return Err(ReadError::invalid(format!(
+            "{len} samples given for a {cols} x {rows} raster"
+        )));
+    }
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn write<C: ColorType>(
+    path: &Path,
+    cols: usize,
+    rows: usize,
+    samples: &[C::Inner],
+    gt: [f64; 6],
+    epsg: Option<u32>,
+    nodata: Option<f64>,
+    predictor: Predictor,
+) -> Result<(), ReadError>
+where
+    [C::Inner]: TiffValue,
+{
+    if gt[2] != 0.0 || gt[4] != 0.0 {
+        return Err(ReadError::unsupported(
+            "only north-up rasters can be written (geotransform has rotation terms)",
+        ));
+    }
+    if !(gt[1] > 0.0 && gt[5] < 0.0) || gt.iter().any(|v| !v.is_finite()) {
+        return Err(ReadError::unsupported(format!(
+            "only north-up rasters with positive pixel width and negative pixel height can be \
+             written, got {gt:?}"
+        )));
+    }
+    let geo_keys = geo_key_directory(epsg)?;
+
+    let file = BufWriter::new(File::create(path)?);
+    let mut file = encode::<C, _>(file, cols, rows, samples, gt, &geo_keys, nodata, predictor)
+        .map_err(encode_error)?;
+    // BufWriter swallows errors on drop; a full disk must surface here.
+    file.flush()?;
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn encode<C: ColorType, W: Write + Seek>(
+    out: W,
+    cols: usize,
+    rows: usize,
+    samples: &[C::Inner],
+    gt: [f64; 6],
+    geo_keys: &[u16],
+    nodata: Option<f64>,
+    predictor: Predictor,
+) -> Result<W, TiffError>
+where
+    [C::Inner]: TiffValue,
+{
+    let mut out = out;
+    {
+        let mut tiff = TiffEncoder::new(&mut out)?
+            .with_compression(Compression::Deflate(DeflateLevel::Balanced))
+            .with_predictor(predictor);
+        let mut image = tiff.new_image::<C>(cols as u32, rows as u32)?;
+        let dir = image.encoder();
+        dir.write_tag(Tag::ModelPixelScaleTag, &[gt[1], -gt[5], 0.0][..])?;
+        dir.write_tag(
+            Tag::ModelTiepointTag,
+            &[0.0, 0.0, 0.0, gt[0], gt[3], 0.0][..],
+        )?;
+        dir.write_tag(Tag::GeoKeyDirectoryTag, geo_keys)?;
+        if let Some(nd) = nodata {
+            dir.write_tag(Tag::GdalNodata, format_nodata(nd).as_str())?;
+        }
+        image.write_data(samples)?;
+    }
+    Ok(out)
+}
+
+/// GDAL's spelling, which every GeoTIFF reader parses.
+fn format_nodata(v: f64) -> String {
+    if v.is_nan() {
+        "nan".to_string()
+    } else if v.is_infinite() {
+        if v > 0.0 { "inf" } else { "-inf" }.to_string()
+    } else {
+        // Shortest representation that parses back to exactly this f64.
+        format!("{v}")
+    }
+}
+
+fn geo_key_directory(epsg: Option<u32>) -> Result<Vec<u16>, ReadError> {
+    const PIXEL_IS_AREA: u16 = 1;
+    let mut keys: Vec<[u16; 4]> = Vec::new();
+    if let Some(code) = epsg {
+        let code16 = u16::try_from(code)
+            .ok()
+            .filter(|&c| c != 0 && c != 32767)
+            .ok_or_else(|| {
+                ReadError::unsupported(format!("EPSG:{code} cannot be written as a GeoTIFF key"))
+            })?;
+        // EPSG's geographic 2D CRS codes live in 4000..5000; everything else we write is
+        // treated as projected.
+        let geographic = (4000..5000).contains(&code16);
+        keys.push([1024, 0, 1, if geographic { 2 } else { 1 }]);
+        keys.push([1025, 0, 1, PIXEL_IS_AREA]);
+        keys.push(if geographic {
+            [2048, 0, 1, code16]
+        } else {
+            [3072, 0, 1, code16]
+        });
+    } else {
+        keys.push([1025, 0, 1, PIXEL_IS_AREA]);
+    }
+    let mut dir = vec![1, 1, 0, keys.len() as u16];
+    dir.extend(keys.iter().flatten());
+    Ok(dir)
+}
+
+fn encode_error(e: TiffError) -> ReadError {
+    match e {
+        TiffError::IoError(io) => ReadError::Io(io),
+        other => ReadError::invalid(format!("cannot encode TIFF: {other}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::read::geotiff::read_geotiff;
+    use crate::read::{read_raster, ReadLimits};
+
+    #[test]
+    fn f32_round_trip_with_nodata() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("f.tif");
+        let (cols, rows) = (7, 5);
+        let mut samples: Vec<f32> = (0..cols * rows).map(|i| i as f32 * 0.75 - 3.0).collect();
+        samples[3] = f32::NAN;
+        samples[20] = f32::NAN;
+        let gt = [5.0, 1.0 / 1200.0, 0.0, 45.0, 0.0, -1.0 / 1200.0];
+        write_geotiff_f32(&path, cols, rows, &samples, gt, Some(4326), Some(-9999.0)).unwrap();
+
+        let r = read_raster(&path, &ReadLimits::default()).unwrap();
+        assert_eq!((r.cols, r.rows), (cols, rows));
+        assert_eq!(r.geotransform, gt);
+        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.nodata, Some(-9999.0));
+        for (i, (a, b)) in r.samples.iter().zip(&samples).enumerate() {
+            assert!(
+                a == b || (a.is_nan() && b.is_nan()),
+                "sample {i}: {a} vs {b}"
+            );
+        }
+        assert_eq!(r.nodata_count(), 2);
+    }
+
+    #[test]
+    fn f32_round_trip_nan_nodata_and_no_crs() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("n.tif");
+        let samples = [1.0, f32::NAN, 3.0, 4.0];
+        let gt = [0.0, 2.0, 0.0, 10.0, 0.0, -2.0];
+        write_geotiff_f32(&path, 2, 2, &samples, gt, None, Some(f64::NAN)).unwrap();
+        let r = read_geotiff(&path, &ReadLimits::default()).unwrap();
+        assert!(r.nodata.unwrap().is_nan());
+        assert_eq!(r.epsg, None);
+        assert_eq!(r.geotransform, gt);
+        assert!(r.samples[1].is_nan());
+        assert_eq!(r.samples[3], 4.0);
+    }
+
+    #[test]
+    fn i16_round_trip_projected() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("i.tif");
+        let (cols, rows) = (300, 200);
+        let samples: Vec<i16> = (0..cols * rows)
+            .map(|i| {
+                if i % 97 == 0 {
+                    -32768
+                } else {
+                    (i % 4001) as i16 - 500
+                }
+            })
+            .collect();
+        let gt = [657596.0, 90.0, 0.0, 4987377.0, 0.0, -90.0];
+        write_geotiff_i16(&path, cols, rows, &samples, gt, Some(32631), Some(-32768.0)).unwrap();
+
+        let r = read_raster(&path, &ReadLimits::default()).unwrap();
+        assert_eq!((r.cols, r.rows), (cols, rows));
+        assert_eq!(r.geotransform, gt);
+        assert_eq!(r.epsg, Some(32631));
+        assert_eq!(r.nodata, Some(-32768.0));
+        for (i, (&a, &b)) in r.samples.iter().zip(&samples).enumerate() {
+            if b == -32768 {
+                assert!(a.is_nan(), "sample {i}");
+            } else {
+                assert_eq!(a, f32::from(b), "sample {i}");
+            }
+        }
+    }
+
+    #[test]
+    fn geo_keys_follow_crs_kind() {
+        assert_eq!(
+            geo_key_directory(Some(4326)).unwrap(),
+            vec![1, 1, 0, 3, 1024, 0, 1, 2, 1025, 0, 1, 1, 2048, 0, 1, 4326]
+        );
+        assert_eq!(
+            geo_key_directory(Some(32630)).unwrap(),
+            vec![1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32630]
+        );
+        assert!(geo_key_directory(Some(102100)).is_err());
+    }
+
+    #[test]
+    fn refuses_what_it_cannot_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("x.tif");
+        let north_up = [0.0, 1.0, 0.0, 2.0, 0.0, -1.0];
+        let rotated = [0.0, 1.0, 0.1, 2.0, 0.0, -1.0];
+        let e = write_geotiff_f32(&path, 2, 2, &[0.0; 4], rotated, None, None).unwrap_err();
+        assert!(e.to_string().contains("north-up"), "{e}");
+        let south_up = [0.0, 1.0, 0.0, 2.0, 0.0, 1.0];
+        assert!(write_geotiff_f32(&path, 2, 2, &[0.0; 4], south_up, None, None).is_err());
+        let e = write_geotiff_f32(&path, 2, 2, &[0.0; 3], north_up, None, None).unwrap_err();
+        assert!(e.to_string().contains("3 samples"), "{e}");
+        let e = write_geotiff_i16(&path, 2, 2, &[0; 4], north_up, None, Some(0.5)).unwrap_err();
+        assert!(e.to_string().contains("i16"), "{e}");
+        let e = write_geotiff_f32(&path, 2, 2, &[0.0; 4], north_up, None, Some(1e300)).unwrap_err();
+        assert!(e.to_string().contains("f32"), "{e}");
+    }
+}
