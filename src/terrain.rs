@@ -5,7 +5,7 @@ use crate::index::geom::Aabb;
 use crate::index::lod::{ChangeStats, IndexConfig, LodIndex};
 use crate::index::query::{Extracted, ViewQuery};
 use crate::model::ids::{PatchId, SurveyId};
-use crate::model::patch::Bilinear;
+use crate::model::patch::{Bilinear, Patch};
 use crate::model::survey::Survey;
 use crate::resample::{cpu, PatchSet, ResolvedPatch, SampleGrid};
 use std::collections::HashMap;
@@ -55,6 +55,13 @@ impl Terrain {
         self.surveys.values()
     }
 
+    /// A patch and the survey it belongs to.
+    pub fn patch(&self, id: PatchId) -> Option<(&Arc<Survey>, &Patch)> {
+        let (sid, k) = self.patches.get(&id)?;
+        let s = self.surveys.get(sid)?;
+        Some((s, &s.patches[*k as usize]))
+    }
+
     /// Adds a survey; adding one already present changes nothing.
     pub fn insert(&mut self, s: Arc<Survey>) -> ChangeStats {
         if self.surveys.contains_key(&s.id) {
@@ -91,9 +98,7 @@ impl Terrain {
             patches: ps
                 .iter()
                 .filter_map(|x| {
-                    let (sid, k) = self.patches.get(&x.id)?;
-                    let s = &self.surveys[sid];
-                    let p = &s.patches[*k as usize];
+                    let (s, p) = self.patch(x.id)?;
                     Some(ResolvedPatch::new(s.levels[p.level as usize].clone(), p))
                 })
                 .collect(),

@@ -1,10 +1,15 @@
 //! Nodata-aware mipmaps that stay aligned with the original samples.
 //!
 //! Level k+1 keeps every other sample position of level k and filters it with the separable
-//! [1 2 1]/4 kernel, renormalised over the valid neighbours. Keeping coarse samples on fine
-//! sample positions means every coarse grid line is also a fine grid line, so the difference
-//! between a coarse patch and the original surface is bilinear on each original cell; that is
-//! what lets the patch error δ be exact rather than estimated (see `patch::Bilinear`).
+//! [1 2 1]/4 kernel. Keeping coarse samples on fine sample positions means every coarse grid
+//! line is also a fine grid line, so the difference between a coarse patch and the original
+//! surface is bilinear on each original cell; that is what lets the patch error δ be exact
+//! rather than estimated (see `patch::Bilinear`).
+//!
+//! Voids erode: a coarse sample is valid only when every fine sample under its filter is. So
+//! every valid coarse cell lies over valid original cells, a coarse patch never invents heights
+//! inside a hole, and its δ bounds it everywhere it is evaluated. Samples past the grid's edge
+//! are not voids; the filter is renormalised over the samples that exist.
 
 use super::grid::Grid;
 use rayon::prelude::*;
@@ -32,16 +37,12 @@ pub fn downsample(fine: &Grid) -> Grid {
                         let Some(c) = (2 * i + di).checked_sub(1).filter(|&c| c < fine.cols) else {
                             continue;
                         };
-                        let z = row[c];
-                        if !z.is_nan() {
-                            sum += wi * wj * z as f64;
-                            wsum += wi * wj;
-                        }
+                        // A NaN here makes the sum NaN: the coarse sample is void.
+                        sum += wi * wj * row[c] as f64;
+                        wsum += wi * wj;
                     }
                 }
-                if wsum > 0.0 {
-                    *out = (sum / wsum) as f32;
-                }
+                *out = (sum / wsum) as f32;
             }
         });
     Grid {
@@ -98,10 +99,28 @@ mod tests {
     }
 
     #[test]
-    fn voids_never_enter_the_average() {
-        let g = grid(5, 5, |c, r| if c == 1 && r == 1 { f32::NAN } else { 7.0 });
+    fn voids_erode_and_never_enter_the_average() {
+        let g = grid(7, 7, |c, r| if c == 1 && r == 1 { f32::NAN } else { 7.0 });
         let d = downsample(&g);
-        assert!(d.samples.iter().all(|&z| z == 7.0));
+        // Coarse samples 0 and 1 on each axis see fine sample 1 through the filter.
+        for j in 0..d.rows {
+            for i in 0..d.cols {
+                assert_eq!(d.at(i, j).is_nan(), i < 2 && j < 2, "({i}, {j})");
+                assert!(d.at(i, j).is_nan() || d.at(i, j) == 7.0);
+            }
+        }
+        // Every valid coarse cell lies over valid fine cells only.
+        for r in 0..d.rows - 1 {
+            for c in 0..d.cols - 1 {
+                if d.cell_valid(c, r) {
+                    for fr in 2 * r..2 * r + 2 {
+                        for fc in 2 * c..2 * c + 2 {
+                            assert!(g.cell_valid(fc, fr));
+                        }
+                    }
+                }
+            }
+        }
         let all_void = grid(4, 4, |_, _| f32::NAN);
         assert!(downsample(&all_void).samples.iter().all(|z| z.is_nan()));
     }

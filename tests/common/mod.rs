@@ -1,0 +1,179 @@
+//! Helpers shared by the integration tests: synthetic surveys, and oracles that decide
+//! coverage, minimality and error by brute force, independently of the index's own geometry.
+#![allow(dead_code)]
+
+use patchwork::index::geom::Aabb;
+use patchwork::index::lod::{IndexConfig, PatchBox};
+use patchwork::index::query::Extracted;
+use patchwork::model::grid::{Georef, Grid};
+use patchwork::model::patch::{Bilinear, PatchLayout};
+use patchwork::model::survey::Survey;
+use patchwork::resample::cpu;
+use patchwork::terrain::Terrain;
+use std::cmp::Ordering;
+use std::sync::Arc;
+
+/// Small kernels, so that grids of a few dozen samples still have several levels.
+pub const LAYOUT: PatchLayout = PatchLayout {
+    kernel: 8,
+    margin: 1,
+};
+
+/// A made-up landscape in world coordinates, so that overlapping surveys sample one terrain:
+/// rolling hills, a ridge, and a 40 m cliff along a slanted line.
+pub fn landscape(x: f64, y: f64, seed: u64) -> f32 {
+    let s = (seed % 97) as f64 * 0.37;
+    let hills = 30.0 * (x / 7.0 + s).sin() * (y / 5.0 - s).cos() + 8.0 * (x / 2.3 + y / 3.1).sin();
+    let ridge = 25.0 * (-((x - y * 0.5 - 10.0) / 4.0).powi(2)).exp();
+    let cliff = if x + 0.3 * y > 20.0 + s { 40.0 } else { 0.0 };
+    (200.0 + hills + ridge + cliff) as f32
+}
+
+#[derive(Clone, Debug)]
+pub struct Spec {
+    pub cols: usize,
+    pub rows: usize,
+    pub origin: [f64; 2],
+    pub theta: f64,
+    pub step: [f64; 2],
+    /// Voids as discs (centre col, centre row, radius in cells).
+    pub voids: Vec<(f64, f64, f64)>,
+    pub accuracy: f64,
+    pub seed: u64,
+}
+
+impl Spec {
+    pub fn grid(&self) -> Grid {
+        let g = Georef {
+            origin: self.origin,
+            theta: self.theta,
+            step: self.step,
+        };
+        let mut s = Vec::with_capacity(self.cols * self.rows);
+        for r in 0..self.rows {
+            for c in 0..self.cols {
+                let void = self.voids.iter().any(|&(vc, vr, rad)| {
+                    (c as f64 - vc).powi(2) + (r as f64 - vr).powi(2) <= rad * rad
+                });
+                let p = g.to_world(c as f64, r as f64);
+                s.push(if void {
+                    f32::NAN
+                } else {
+                    landscape(p[0], p[1], self.seed)
+                });
+            }
+        }
+        Grid::new(self.cols, self.rows, s, g).unwrap()
+    }
+
+    pub fn survey(&self) -> Option<Arc<Survey>> {
+        Survey::build(self.grid(), self.accuracy, Some(32631), LAYOUT)
+            .ok()
+            .map(Arc::new)
+    }
+}
+
+pub fn terrain_of(surveys: &[Arc<Survey>]) -> Terrain {
+    let mut t = Terrain::new(IndexConfig::default());
+    for s in surveys {
+        t.insert(s.clone());
+    }
+    t
+}
+
+pub fn bounds_of(surveys: &[Arc<Survey>]) -> Aabb {
+    surveys
+        .iter()
+        .map(|s| s.levels[0].world_bounds())
+        .reduce(|a, b| a.union(&b))
+        .expect("at least one survey")
+}
+
+/// Whether a world point lies in the valid part of an extracted patch's kernel, decided from
+/// the patch's own grid (not from the index's rectangles).
+pub fn in_valid_kernel(t: &Terrain, x: &Extracted, p: [f64; 2]) -> bool {
+    let (s, patch) = t.patch(x.id).expect("extracted patches resolve");
+    let level = &s.levels[patch.level as usize];
+    let g = level.georef.to_grid(p);
+    let tol = 1e-7;
+    patch.valid.iter().any(|r| {
+        g[0] >= r.c0 as f64 - tol
+            && g[0] <= r.c1 as f64 + tol
+            && g[1] >= r.r0 as f64 - tol
+            && g[1] <= r.r1 as f64 + tol
+    })
+}
+
+/// A uniformly random point inside a valid level-0 cell of the survey, from two numbers in [0, 1).
+pub fn valid_point(s: &Survey, a: f64, b: f64, c: f64) -> Option<[f64; 2]> {
+    let g = &s.levels[0];
+    let [cw, ch] = g.cells();
+    let cells: Vec<(usize, usize)> = (0..ch)
+        .flat_map(|r| (0..cw).map(move |c| (c, r)))
+        .filter(|&(c, r)| g.cell_valid(c, r))
+        .collect();
+    if cells.is_empty() {
+        return None;
+    }
+    let (cc, rr) = cells[((a * cells.len() as f64) as usize).min(cells.len() - 1)];
+    Some(g.georef.to_world(cc as f64 + b, rr as f64 + c))
+}
+
+/// Formula 1 over every extracted patch at one point.
+pub fn blended(t: &Terrain, ps: &[Extracted], p: [f64; 2]) -> f32 {
+    let set = t.resolve(ps);
+    let all: Vec<u32> = (0..set.patches.len() as u32).collect();
+    cpu::blend(&set, &all, p, &Bilinear)
+}
+
+/// Heights of every survey with valid data at p.
+pub fn survey_heights(surveys: &[Arc<Survey>], p: [f64; 2]) -> Vec<f64> {
+    surveys
+        .iter()
+        .filter_map(|s| s.levels[0].bilinear(p))
+        .collect()
+}
+
+/// Patches whose valid kernel is entirely covered by valid kernels of extracted patches that
+/// are greater in the global order. Decided by point sampling at the centres of a lattice
+/// fine enough (`cell / 8`) that every piece of the arrangement holds a sample when all grids
+/// share one orientation and their edges sit on a quarter-cell lattice.
+pub fn redundant(t: &Terrain, ps: &[Extracted], lattice: f64) -> Vec<String> {
+    let boxes: Vec<(Extracted, Arc<PatchBox>)> = ps
+        .iter()
+        .map(|x| (x.clone(), t.index().get(x.id).unwrap().0.clone()))
+        .collect();
+    let mut bad = Vec::new();
+    for (x, b) in &boxes {
+        let greater: Vec<&Extracted> = boxes
+            .iter()
+            .filter(|(_, q)| q.order(b) == Ordering::Greater && q.kernel.intersects(&b.kernel))
+            .map(|(y, _)| y)
+            .collect();
+        let mut needed = false;
+        'rects: for r in &b.valid {
+            let a = r.aabb();
+            let nx = (a.width() / lattice).round() as usize;
+            let ny = (a.height() / lattice).round() as usize;
+            for j in 0..ny {
+                for i in 0..nx {
+                    let p = [
+                        a.min[0] + (i as f64 + 0.5) * lattice,
+                        a.min[1] + (j as f64 + 0.5) * lattice,
+                    ];
+                    if !greater.iter().any(|y| in_valid_kernel(t, y, p)) {
+                        needed = true;
+                        break 'rects;
+                    }
+                }
+            }
+        }
+        if !needed {
+            bad.push(format!(
+                "{} (level {}, error {})",
+                x.id, x.level, x.span.min_z
+            ));
+        }
+    }
+    bad
+}

@@ -1,0 +1,184 @@
+//! Property tests of the model's invariants on random sets of small synthetic grids: rotated
+//! ones, different spacings, partial and nested overlaps, voids and a cliff.
+
+mod common;
+
+use common::*;
+use patchwork::index::geom::Aabb;
+use proptest::prelude::*;
+use std::sync::Arc;
+
+/// Any orientation, spacing and position.
+fn any_spec() -> impl Strategy<Value = Spec> {
+    (
+        12usize..40,
+        12usize..40,
+        (-10.0f64..10.0, -10.0f64..10.0),
+        prop_oneof![Just(0.0), 0.0f64..std::f64::consts::TAU],
+        (0.4f64..2.5, 0.4f64..2.5),
+        prop::collection::vec((0.0f64..40.0, 0.0f64..40.0, 1.0f64..6.0), 0..3),
+        prop_oneof![Just(0.0), Just(0.0), Just(0.5), Just(3.0)],
+    )
+        .prop_map(|(cols, rows, origin, theta, step, voids, accuracy)| Spec {
+            cols,
+            rows,
+            origin: [origin.0, origin.1],
+            theta,
+            step: [step.0, step.1],
+            voids,
+            accuracy,
+            seed: 7,
+        })
+}
+
+/// North-up grids whose every edge lies on a quarter-unit lattice, where point sampling
+/// decides coverage exactly.
+fn aligned_spec() -> impl Strategy<Value = Spec> {
+    let step = prop_oneof![Just(0.5), Just(1.0), Just(2.0)];
+    (
+        12usize..36,
+        12usize..36,
+        (-40i32..40, -40i32..40),
+        (step.clone(), step),
+        prop::collection::vec((0.0f64..36.0, 0.0f64..36.0, 1.0f64..5.0), 0..3),
+        prop_oneof![Just(0.0), Just(0.0), Just(1.0)],
+    )
+        .prop_map(|(cols, rows, o, step, voids, accuracy)| Spec {
+            cols,
+            rows,
+            origin: [o.0 as f64 * 0.25, o.1 as f64 * 0.25],
+            theta: 0.0,
+            step: [step.0, step.1],
+            voids,
+            accuracy,
+            seed: 3,
+        })
+}
+
+fn build(specs: &[Spec]) -> Vec<Arc<Survey>> {
+    let mut out: Vec<Arc<Survey>> = specs.iter().filter_map(|s| s.survey()).collect();
+    out.sort_by_key(|s| s.id);
+    out.dedup_by_key(|s| s.id);
+    out
+}
+
+use patchwork::model::survey::Survey;
+
+fn answers(t: &patchwork::terrain::Terrain, roi: &Aabb) -> Vec<Vec<String>> {
+    [0.0, 0.7, 2.0, 6.0, 25.0]
+        .iter()
+        .map(|&e| {
+            t.uniform(roi, e)
+                .iter()
+                .map(|x| format!("{}:{}:{}", x.id, x.span.min_z, x.span.max_z))
+                .collect()
+        })
+        .collect()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
+
+    #[test]
+    fn order_of_insertion_and_retirement_does_not_matter(
+        specs in prop::collection::vec(any_spec(), 2..5),
+        perm in any::<u64>(),
+        victim in any::<prop::sample::Index>(),
+    ) {
+        let surveys = build(&specs);
+        prop_assume!(surveys.len() >= 2);
+        let roi = bounds_of(&surveys);
+        let forward = terrain_of(&surveys);
+
+        // Another order, with a survey retired and inserted again along the way.
+        let mut order = surveys.clone();
+        let n = order.len();
+        for i in (1..n).rev() {
+            order.swap(i, (perm as usize >> (i % 16)) % (i + 1));
+        }
+        let mut shuffled = patchwork::terrain::Terrain::new(Default::default());
+        let v = victim.get(&order).clone();
+        for s in &order {
+            shuffled.insert(s.clone());
+            if s.id == order[0].id {
+                shuffled.insert(v.clone());
+                shuffled.retire(v.id);
+            }
+        }
+        shuffled.insert(v.clone());
+        prop_assert_eq!(forward.index().state(), shuffled.index().state());
+        prop_assert_eq!(answers(&forward, &roi), answers(&shuffled, &roi));
+
+        // Retiring a survey gives exactly the index that never had it.
+        let mut retired = forward.clone();
+        prop_assert!(retired.retire(v.id).is_some());
+        let without: Vec<_> = surveys.iter().filter(|s| s.id != v.id).cloned().collect();
+        let never = terrain_of(&without);
+        prop_assert_eq!(retired.index().state(), never.index().state());
+        prop_assert_eq!(answers(&retired, &roi), answers(&never, &roi));
+        retired.index().check().map_err(TestCaseError::fail)?;
+    }
+
+    #[test]
+    fn every_valid_point_is_covered_at_every_error(
+        specs in prop::collection::vec(any_spec(), 1..5),
+        e in prop_oneof![Just(0.0), 0.0f64..40.0],
+        picks in prop::collection::vec((any::<prop::sample::Index>(), 0.0f64..1.0, 0.0f64..1.0, 0.0f64..1.0), 25),
+    ) {
+        let surveys = build(&specs);
+        prop_assume!(!surveys.is_empty());
+        let t = terrain_of(&surveys);
+        let all = t.uniform(&bounds_of(&surveys), e);
+        for (si, a, b, c) in picks {
+            let s = si.get(&surveys);
+            let Some(p) = valid_point(s, a, b, c) else { continue };
+            prop_assert!(all.iter().any(|x| in_valid_kernel(&t, x, p)), "hole at {:?}, e = {}", p, e);
+            // A small ROI around the point must cover it too.
+            let roi = Aabb::new(p[0] - 0.3, p[1] - 0.3, p[0] + 0.3, p[1] + 0.3);
+            let near = t.uniform(&roi, e);
+            prop_assert!(near.iter().any(|x| in_valid_kernel(&t, x, p)), "hole in ROI at {:?}", p);
+            prop_assert!(!blended(&t, &near, p).is_nan(), "nodata at a covered point {:?}", p);
+        }
+    }
+
+    #[test]
+    fn uniform_cuts_are_minimal(
+        specs in prop::collection::vec(aligned_spec(), 1..4),
+        e in prop_oneof![Just(1.0), 1.0f64..40.0],
+    ) {
+        // Below a survey's accuracy the cut falls back to the best data there is, which is a
+        // different question; minimality is about cuts every survey can meet.
+        let surveys = build(&specs);
+        prop_assume!(!surveys.is_empty());
+        let t = terrain_of(&surveys);
+        let ps = t.uniform(&bounds_of(&surveys), e);
+        let bad = redundant(&t, &ps, 0.125);
+        prop_assert!(bad.is_empty(), "redundant patches at e = {}: {:?}", e, bad);
+    }
+
+    #[test]
+    fn resampled_heights_are_within_the_requested_error(
+        specs in prop::collection::vec(any_spec(), 1..4),
+        e in prop_oneof![Just(0.0), 0.0f64..60.0],
+        picks in prop::collection::vec((any::<prop::sample::Index>(), 0.0f64..1.0, 0.0f64..1.0, 0.0f64..1.0), 30),
+    ) {
+        let surveys = build(&specs);
+        prop_assume!(!surveys.is_empty());
+        let floor = surveys.iter().map(|s| s.accuracy).fold(0.0, f64::max);
+        let e = e.max(floor);
+        let t = terrain_of(&surveys);
+        let ps = t.uniform(&bounds_of(&surveys), e);
+        prop_assert!(ps.iter().all(|x| x.span.min_z <= e));
+        for (si, a, b, c) in picks {
+            let s: &Arc<Survey> = si.get(&surveys);
+            let Some(p) = valid_point(s, a, b, c) else { continue };
+            let h = blended(&t, &ps, p) as f64;
+            let hs = survey_heights(&surveys, p);
+            let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
+            let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            let tol = 1e-3;
+            prop_assert!(h >= lo - e - tol && h <= hi + e + tol,
+                "at {:?}: {} outside [{} − {e}, {} + {e}]", p, h, lo, hi);
+        }
+    }
+}
