@@ -57,6 +57,47 @@ impl Raster {
     }
 }
 
+impl Raster {
+    /// The raster as a model grid. Fails for skewed or mirrored georeferences and rasters of
+    /// fewer than 2×2 samples.
+    pub fn into_grid(self) -> Result<crate::model::grid::Grid, crate::model::grid::GridError> {
+        let georef = crate::model::grid::Georef::from_geotransform(self.geotransform)?;
+        crate::model::grid::Grid::new(self.cols, self.rows, self.samples, georef)
+    }
+
+    /// A window of the raster, georeferenced where it lies.
+    pub fn crop(&self, col: usize, row: usize, cols: usize, rows: usize) -> Raster {
+        assert!(
+            col + cols <= self.cols && row + rows <= self.rows,
+            "crop outside raster"
+        );
+        let samples = (row..row + rows)
+            .flat_map(|r| {
+                self.samples[r * self.cols + col..r * self.cols + col + cols]
+                    .iter()
+                    .copied()
+            })
+            .collect();
+        let gt = self.geotransform;
+        let (c, r) = (col as f64, row as f64);
+        Raster {
+            cols,
+            rows,
+            samples,
+            geotransform: [
+                gt[0] + c * gt[1] + r * gt[2],
+                gt[1],
+                gt[2],
+                gt[3] + c * gt[4] + r * gt[5],
+                gt[4],
+                gt[5],
+            ],
+            epsg: self.epsg,
+            nodata: self.nodata,
+        }
+    }
+}
+
 impl std::fmt::Debug for Raster {
     // The sample vector can hold billions of values; printing it would drown every assertion message.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {

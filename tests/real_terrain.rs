@@ -1,0 +1,247 @@
+//! The model's invariants on real terrain: the overlapping Copernicus and NASADEM pair, an SRTM
+//! tile with voids, and a real crop turned into a rotated grid.
+
+mod common;
+
+use common::*;
+use patchwork::index::geom::Aabb;
+use patchwork::index::lod::IndexConfig;
+use patchwork::model::grid::Georef;
+use patchwork::model::patch::PatchLayout;
+use patchwork::model::survey::Survey;
+use patchwork::read::{read_raster, ReadLimits};
+use patchwork::terrain::Terrain;
+use std::path::Path;
+use std::sync::Arc;
+
+fn crop(name: &str) -> patchwork::model::grid::Grid {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name);
+    read_raster(&path, &ReadLimits::default())
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+        .into_grid()
+        .unwrap()
+}
+
+fn survey(g: patchwork::model::grid::Grid) -> Arc<Survey> {
+    Arc::new(Survey::build(g, 0.0, Some(4326), PatchLayout::default()).unwrap())
+}
+
+struct Real {
+    cop: Arc<Survey>,
+    nasa: Arc<Survey>,
+    srtm: Arc<Survey>,
+    rotated: Arc<Survey>,
+}
+
+fn real() -> Real {
+    let cop = crop("copernicus_n34w119_crop.tif");
+    // The same samples, turned by 25° about the crop's centre: a rotated grid over the pair.
+    let mut rot = cop.clone();
+    let centre = cop.georef.to_world(149.5, 149.5);
+    let theta = 25f64.to_radians();
+    let g = Georef {
+        theta,
+        ..cop.georef
+    };
+    let off = g.to_world(149.5, 149.5);
+    rot.georef = Georef {
+        origin: [
+            g.origin[0] + centre[0] - off[0],
+            g.origin[1] + centre[1] - off[1],
+        ],
+        ..g
+    };
+    Real {
+        cop: survey(cop),
+        nasa: survey(crop("nasadem_n34w119_crop.tif")),
+        srtm: survey(crop("srtm_n44e005_voids_crop.tif")),
+        rotated: survey(rot),
+    }
+}
+
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+#[test]
+fn the_pair_and_the_rotated_crop_give_one_index_in_any_order() {
+    let r = real();
+    let all = [
+        r.cop.clone(),
+        r.nasa.clone(),
+        r.rotated.clone(),
+        r.srtm.clone(),
+    ];
+    let a = terrain_of(&all);
+    let b = terrain_of(&[
+        r.srtm.clone(),
+        r.rotated.clone(),
+        r.nasa.clone(),
+        r.cop.clone(),
+    ]);
+    assert_eq!(a.index().state(), b.index().state());
+    a.index().check().unwrap();
+
+    // insert(A, B, C) then retire(B) equals insert(A, C).
+    let mut c = terrain_of(&[r.cop.clone(), r.nasa.clone(), r.rotated.clone()]);
+    c.retire(r.nasa.id).unwrap();
+    let d = terrain_of(&[r.rotated.clone(), r.cop.clone()]);
+    assert_eq!(c.index().state(), d.index().state());
+    let roi = bounds_of(&[r.cop.clone(), r.nasa.clone()]);
+    for e in [0.0, 2.0, 10.0, 50.0] {
+        assert_eq!(c.uniform(&roi, e), d.uniform(&roi, e), "e = {e}");
+    }
+    c.index().check().unwrap();
+}
+
+#[test]
+fn real_terrain_is_covered_and_within_the_error_everywhere() {
+    let r = real();
+    let surveys = vec![
+        r.cop.clone(),
+        r.nasa.clone(),
+        r.rotated.clone(),
+        r.srtm.clone(),
+    ];
+    let t = terrain_of(&surveys);
+    let mut rng = Rng(42);
+    for e in [0.0, 0.5, 2.0, 5.0, 20.0, 50.0] {
+        for s in &surveys {
+            let roi = s.levels[0].world_bounds();
+            let ps = t.uniform(&roi, e);
+            assert!(ps.iter().all(|x| x.span.min_z <= e));
+            let set = t.resolve(&ps);
+            let all: Vec<u32> = (0..set.patches.len() as u32).collect();
+            let mut worst = 0.0f64;
+            for _ in 0..400 {
+                let p = valid_point(s, rng.next(), rng.next(), rng.next()).unwrap();
+                if !roi.contains_point(p) {
+                    continue;
+                }
+                assert!(
+                    ps.iter().any(|x| in_valid_kernel(&t, x, p)),
+                    "hole at {p:?}, e = {e}"
+                );
+                let h = patchwork::resample::cpu::blend(
+                    &set,
+                    &all,
+                    p,
+                    &patchwork::model::patch::Bilinear,
+                ) as f64;
+                let hs = survey_heights(&surveys, p);
+                let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
+                let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                assert!(
+                    h >= lo - e - 1e-3 && h <= hi + e + 1e-3,
+                    "{h} outside [{lo}, {hi}] ± {e} at {p:?}"
+                );
+                worst = worst.max((lo - h).max(h - hi));
+            }
+            println!("e = {e:>4}: {} patches over survey {}, worst excess over the survey hull {worst:.3} m", ps.len(), s.id);
+        }
+    }
+}
+
+#[test]
+fn cuts_through_the_aligned_pair_are_minimal() {
+    let r = real();
+    let pair = vec![r.cop.clone(), r.nasa.clone()];
+    let t = terrain_of(&pair);
+    let roi = bounds_of(&pair);
+    let lattice = r.cop.levels[0].georef.step[0] / 8.0;
+    for e in [0.0, 1.0, 5.0, 20.0, 100.0] {
+        let ps = t.uniform(&roi, e);
+        let bad = redundant(&t, &ps, lattice);
+        assert!(bad.is_empty(), "e = {e}: {bad:?}");
+        // Where both surveys overlap, level-0 patches tie in area and error and the id picks
+        // one, so the pair costs fewer patches than the two alone. Coarser kernels of the two
+        // crops do not line up, so there both may be needed.
+        let alone: usize = pair
+            .iter()
+            .map(|s| terrain_of(&[s.clone()]).uniform(&roi, e).len())
+            .sum();
+        assert!(
+            ps.len() <= alone,
+            "e = {e}: {} patches for the pair, {alone} apart",
+            ps.len()
+        );
+        if e == 0.0 {
+            assert!(
+                ps.len() < alone,
+                "{} patches for the pair, {alone} apart",
+                ps.len()
+            );
+        }
+    }
+}
+
+#[test]
+fn voids_stay_nodata_and_valid_samples_get_heights() {
+    let r = real();
+    let t = terrain_of(&[r.srtm.clone()]);
+    let g = &r.srtm.levels[0];
+    let roi = g.world_bounds();
+    for e in [0.0, 20.0, 100.0] {
+        let tile = t.tile(&roi, 256, 256, e);
+        let grid = patchwork::resample::SampleGrid::uniform(&roi, 256, 256);
+        let (mut void, mut valid) = (0, 0);
+        for (p, z) in grid.points.iter().zip(&tile.heights) {
+            match g.bilinear(*p) {
+                Some(h) => {
+                    valid += 1;
+                    assert!(!z.is_nan(), "nodata at a valid point {p:?}, e = {e}");
+                    assert!(
+                        (*z as f64 - h).abs() <= e + 1e-3,
+                        "{z} vs {h} at {p:?}, e = {e}"
+                    );
+                }
+                None => {
+                    void += 1;
+                    assert!(
+                        z.is_nan(),
+                        "a made-up height {z} in a void at {p:?}, e = {e}"
+                    );
+                }
+            }
+        }
+        assert!(void > 500 && valid > 50_000, "void {void}, valid {valid}");
+    }
+}
+
+#[test]
+fn a_query_below_every_accuracy_returns_the_best_data_without_holes() {
+    let cop = crop("copernicus_n34w119_crop.tif");
+    let rough = Arc::new(Survey::build(cop, 4.0, Some(4326), PatchLayout::default()).unwrap());
+    let fine = survey(crop("nasadem_n34w119_crop.tif"));
+    let mut t = Terrain::new(IndexConfig::default());
+    t.insert(rough.clone());
+    t.insert(fine.clone());
+    let roi: Aabb = rough.levels[0].world_bounds();
+    let ps = t.uniform(&roi, 1.0);
+    let mut rng = Rng(7);
+    for _ in 0..500 {
+        let p = valid_point(&rough, rng.next(), rng.next(), rng.next()).unwrap();
+        assert!(
+            ps.iter().any(|x| in_valid_kernel(&t, x, p)),
+            "hole at {p:?}"
+        );
+        let covering: Vec<_> = ps.iter().filter(|x| in_valid_kernel(&t, x, p)).collect();
+        // Where the exact survey has data, it is what serves the point.
+        if fine.levels[0].bilinear(p).is_some() {
+            assert!(covering
+                .iter()
+                .any(|x| x.survey == fine.id && x.span.min_z <= 1.0));
+        } else {
+            assert!(covering.iter().all(|x| x.span.min_z >= 4.0));
+        }
+    }
+}
