@@ -167,7 +167,7 @@ fn cuts_through_the_aligned_pair_are_minimal() {
         // crops do not line up, so there both may be needed.
         let alone: usize = pair
             .iter()
-            .map(|s| terrain_of(&[s.clone()]).uniform(&roi, e).len())
+            .map(|s| terrain_of(std::slice::from_ref(s)).uniform(&roi, e).len())
             .sum();
         assert!(
             ps.len() <= alone,
@@ -187,7 +187,7 @@ fn cuts_through_the_aligned_pair_are_minimal() {
 #[test]
 fn voids_stay_nodata_and_valid_samples_get_heights() {
     let r = real();
-    let t = terrain_of(&[r.srtm.clone()]);
+    let t = terrain_of(std::slice::from_ref(&r.srtm));
     let g = &r.srtm.levels[0];
     let roi = g.world_bounds();
     for e in [0.0, 20.0, 100.0] {

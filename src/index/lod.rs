@@ -118,6 +118,8 @@ struct SurveyEntry {
     patches: Vec<PatchId>,
     /// The survey's best error: its accuracy ε, the error of its level-0 patches.
     floor: f64,
+    /// Bounds of its kernels.
+    bounds: Aabb,
 }
 
 #[derive(Clone, Debug)]
@@ -164,6 +166,15 @@ impl LodIndex {
 
     pub fn survey_patches(&self, s: SurveyId) -> Option<&[PatchId]> {
         self.surveys.get(&s).map(|e| e.patches.as_slice())
+    }
+
+    /// Accuracies of the surveys whose bounds meet `area`.
+    pub fn survey_floors_in(&self, area: &Aabb) -> Vec<f64> {
+        self.surveys
+            .values()
+            .filter(|e| e.bounds.intersects(area))
+            .map(|e| e.floor)
+            .collect()
     }
 
     pub fn get(&self, id: PatchId) -> Option<(&Arc<PatchBox>, Span)> {
@@ -330,11 +341,15 @@ impl LodIndex {
             self.slots.insert(b.id, slot);
         }
         let floor = boxes.iter().map(|b| b.min_z).fold(f64::INFINITY, f64::min);
+        let Some(bounds) = boxes.iter().map(|b| b.aabb).reduce(|a, b| a.union(&b)) else {
+            return ChangeStats::default();
+        };
         self.surveys.insert(
             survey,
             SurveyEntry {
                 patches: ids.clone(),
                 floor,
+                bounds,
             },
         );
         let mut todo = self.touched_by(&boxes);

@@ -194,18 +194,6 @@ impl LodIndex {
         let roi = view.footprint(&bounds);
         self.cut(&roi, &field)
     }
-
-    /// Accuracies of the surveys with a box meeting `area`.
-    fn survey_floors_in(&self, area: &Aabb) -> Vec<f64> {
-        let mut seen = HashSet::new();
-        let mut floors = Vec::new();
-        for b in self.boxes_in(area) {
-            if seen.insert(b.survey) {
-                floors.push(self.survey_floor(b.survey).unwrap_or(b.min_z));
-            }
-        }
-        floors
-    }
 }
 
 /// Metres per CRS unit along x and y near a point. Geographic CRSs use the WGS84 ellipsoid's
