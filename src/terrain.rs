@@ -43,6 +43,40 @@ impl Terrain {
         }
     }
 
+    /// Rebuilds a terrain from surveys and the box tops stored with them.
+    pub fn restore(cfg: IndexConfig, surveys: Vec<(Arc<Survey>, HashMap<PatchId, f64>)>) -> Self {
+        let index = LodIndex::restore(
+            cfg,
+            surveys.iter().map(|(s, tops)| {
+                let boxes = s
+                    .boxes()
+                    .into_iter()
+                    .map(|b| {
+                        let top = tops.get(&b.id).copied().unwrap_or(f64::NEG_INFINITY);
+                        (b, top)
+                    })
+                    .collect();
+                (s.id, boxes)
+            }),
+        );
+        let mut t = Terrain {
+            index,
+            surveys: HashMap::new(),
+            patches: HashMap::new(),
+        };
+        for (s, _) in surveys {
+            t.register(s);
+        }
+        t
+    }
+
+    fn register(&mut self, s: Arc<Survey>) {
+        for (k, p) in s.patches.iter().enumerate() {
+            self.patches.insert(p.id, (s.id, k as u32));
+        }
+        self.surveys.insert(s.id, s);
+    }
+
     pub fn index(&self) -> &LodIndex {
         &self.index
     }
@@ -67,11 +101,8 @@ impl Terrain {
         if self.surveys.contains_key(&s.id) {
             return ChangeStats::default();
         }
-        for (k, p) in s.patches.iter().enumerate() {
-            self.patches.insert(p.id, (s.id, k as u32));
-        }
         let stats = self.index.insert_survey(s.id, s.boxes());
-        self.surveys.insert(s.id, s);
+        self.register(s);
         stats
     }
 

@@ -245,3 +245,29 @@ fn a_query_below_every_accuracy_returns_the_best_data_without_holes() {
         }
     }
 }
+
+#[test]
+fn an_index_restored_from_stored_tops_is_the_same_index() {
+    let r = real();
+    let all = [r.cop.clone(), r.nasa.clone(), r.rotated.clone()];
+    let mut t = Terrain::new(IndexConfig::default());
+    let mut tops: std::collections::HashMap<_, std::collections::HashMap<_, _>> =
+        Default::default();
+    for s in &all {
+        // A store writes the moved tops of each change beside the survey.
+        for (id, top) in t.insert(s.clone()).moved {
+            let owner = t.patch(id).unwrap().0.id;
+            tops.entry(owner).or_default().insert(id, top);
+        }
+    }
+    let restored = Terrain::restore(
+        IndexConfig::default(),
+        all.iter()
+            .map(|s| (s.clone(), tops.remove(&s.id).unwrap_or_default()))
+            .collect(),
+    );
+    assert_eq!(restored.index().state(), t.index().state());
+    restored.index().check().unwrap();
+    let roi = bounds_of(&all);
+    assert_eq!(restored.uniform(&roi, 3.0), t.uniform(&roi, 3.0));
+}

@@ -104,13 +104,14 @@ struct Slot {
 }
 
 /// What an insertion or retirement did.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct ChangeStats {
     pub patches: usize,
     /// Boxes whose top was recomputed.
     pub recomputed: usize,
-    /// Boxes whose top actually moved.
-    pub changed: usize,
+    /// Boxes whose top moved (the new ones included), with their new top: what a store must
+    /// write beside the survey to persist the index.
+    pub moved: Vec<(PatchId, f64)>,
 }
 
 #[derive(Clone, Debug)]
@@ -281,12 +282,12 @@ impl LodIndex {
     }
 
     /// Recomputes the tops of `ids` against the current set and moves changed boxes in the tree.
-    fn recompute(&mut self, ids: Vec<PatchId>) -> (usize, usize) {
+    fn recompute(&mut self, ids: Vec<PatchId>) -> (usize, Vec<(PatchId, f64)>) {
         let tops: Vec<(PatchId, f64)> = ids
             .par_iter()
             .filter_map(|id| self.slots.get(id).map(|s| (*id, self.ceiling_of(&s.bx))))
             .collect();
-        let mut changed = 0;
+        let mut moved = Vec::new();
         for (id, top) in &tops {
             let slot = self.slots.get_mut(id).expect("present");
             if slot.max_z.total_cmp(top) != Ordering::Equal {
@@ -295,10 +296,10 @@ impl LodIndex {
                 let new = Self::entry(slot);
                 self.tree.remove(old.id, &old.aabb);
                 self.tree.insert(new);
-                changed += 1;
+                moved.push((*id, *top));
             }
         }
-        (tops.len(), changed)
+        (tops.len(), moved)
     }
 
     /// Patches already present that are smaller than one of `bigs` and meet it: the only ones
@@ -356,11 +357,11 @@ impl LodIndex {
         todo.extend(ids.iter().copied());
         todo.sort_unstable();
         todo.dedup();
-        let (recomputed, changed) = self.recompute(todo);
+        let (recomputed, moved) = self.recompute(todo);
         ChangeStats {
             patches: ids.len(),
             recomputed,
-            changed,
+            moved,
         }
     }
 
@@ -376,12 +377,49 @@ impl LodIndex {
             }
         }
         let todo = self.touched_by(&gone);
-        let (recomputed, changed) = self.recompute(todo);
+        let (recomputed, moved) = self.recompute(todo);
         Some(ChangeStats {
             patches: ids.len(),
             recomputed,
-            changed,
+            moved,
         })
+    }
+
+    /// Rebuilds an index from boxes whose tops were computed before (by a store), without
+    /// running the cutter. `check` tells whether the tops are still right.
+    pub fn restore(
+        cfg: IndexConfig,
+        surveys: impl IntoIterator<Item = (SurveyId, Vec<(PatchBox, f64)>)>,
+    ) -> Self {
+        let mut ix = LodIndex::new(cfg);
+        for (survey, boxes) in surveys {
+            let Some(bounds) = boxes.iter().map(|(b, _)| b.aabb).reduce(|a, b| a.union(&b)) else {
+                continue;
+            };
+            let floor = boxes
+                .iter()
+                .map(|(b, _)| b.min_z)
+                .fold(f64::INFINITY, f64::min);
+            let mut ids = Vec::with_capacity(boxes.len());
+            for (b, max_z) in boxes {
+                let slot = Slot {
+                    bx: Arc::new(b),
+                    max_z,
+                };
+                ix.tree.insert(Self::entry(&slot));
+                ids.push(slot.bx.id);
+                ix.slots.insert(slot.bx.id, slot);
+            }
+            ix.surveys.insert(
+                survey,
+                SurveyEntry {
+                    patches: ids,
+                    floor,
+                    bounds,
+                },
+            );
+        }
+        ix
     }
 
     /// Re-derives every top from scratch and checks the tree: what `verify` runs.
