@@ -189,7 +189,31 @@ fn cpu_resampling(c: &mut Criterion) {
     let t = &pair().terrain;
     let roi = Aabb::new(-118.6, 34.4, -118.5, 34.5);
     let ps = t.uniform(&roi, 5.0);
-    println!("resampling {} patches at e = 5 m", ps.len());
+    // The error the speed is bought with: the tile against the surveys' own surfaces.
+    let p = pair();
+    let tile = t.resample(ps.clone(), &SampleGrid::uniform(&roi, 512, 512));
+    let grid = SampleGrid::uniform(&roi, 512, 512);
+    let (mut worst, mut sq, mut n) = (0.0f64, 0.0f64, 0usize);
+    for (q, z) in grid.points.iter().zip(&tile.heights) {
+        let hs: Vec<f64> = [&p.cop, &p.nasa]
+            .iter()
+            .filter_map(|s| s.levels[0].bilinear(*q))
+            .collect();
+        if hs.is_empty() || z.is_nan() {
+            continue;
+        }
+        let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
+        let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let d = (lo - *z as f64).max(*z as f64 - hi).max(0.0);
+        worst = worst.max(d);
+        sq += d * d;
+        n += 1;
+    }
+    println!(
+        "resampling {} patches at e = 5 m: max error {worst:.3} m, RMS {:.3} m over {n} samples",
+        ps.len(),
+        (sq / n as f64).sqrt()
+    );
     let mut group = c.benchmark_group("cpu_resample");
     group.sample_size(10);
     for n in [256usize, 512, 1024] {
