@@ -51,6 +51,11 @@ fn pair() -> &'static Pair {
         let mut terrain = Terrain::new(IndexConfig::default());
         terrain.insert(cop.clone());
         terrain.insert(nasa.clone());
+        let n0 = cop.levels[0].samples.len() as f64;
+        println!(
+            "mipmap overhead: {:.1}% of level 0",
+            100.0 * (cop.stored_samples() as f64 - n0) / n0
+        );
         println!(
             "pair: {} + {} patches, {} active boxes, quadtree {:?}",
             cop.patches.len(),

@@ -271,3 +271,84 @@ fn an_index_restored_from_stored_tops_is_the_same_index() {
     let roi = bounds_of(&all);
     assert_eq!(restored.uniform(&roi, 3.0), t.uniform(&roi, 3.0));
 }
+
+#[test]
+fn view_cuts_cover_the_footprint_and_coarsen_with_distance() {
+    use patchwork::index::query::{Metric, ViewQuery};
+    use patchwork::resample::SampleGrid;
+    let r = real();
+    let pair = vec![r.cop.clone(), r.nasa.clone()];
+    let t = terrain_of(&pair);
+    let b = bounds_of(&pair);
+    let eye_xy = [b.min[0] + 0.1 * b.width(), b.min[1] + 0.1 * b.height()];
+    let view = |px: f64| ViewQuery {
+        eye: [eye_xy[0], eye_xy[1], 2500.0],
+        look: [b.max[0], b.max[1], 800.0],
+        fov_deg: 60.0,
+        viewport_px: 800,
+        pixel_error: px,
+        metric: Metric::geographic(eye_xy[1]),
+    };
+    let mut last = usize::MAX;
+    for px in [0.5, 1.0, 3.0, 10.0] {
+        let v = view(px);
+        let ps = t.view(&v);
+        assert!(
+            ps.len() <= last,
+            "{px} px: {} patches, more than at a finer error",
+            ps.len()
+        );
+        last = ps.len();
+        // Every patch meets the screen error somewhere on its kernel: its error is at most
+        // the allowed error at the kernel's far corner.
+        let field = v.field();
+        for x in &ps {
+            let far = x
+                .kernel
+                .corners()
+                .iter()
+                .map(|&c| field.at(c))
+                .fold(0.0f64, f64::max);
+            assert!(
+                x.span.min_z <= far + 1e-9,
+                "{px} px: error {} beyond {far}",
+                x.span.min_z
+            );
+        }
+        let footprint = v.footprint(&t.index().bounds().unwrap());
+        let tile = t.view_tile(&v, 200, 150);
+        let grid = SampleGrid::view(&v, 200, 150, v.look[2]);
+        let mut checked = 0;
+        for (p, z) in grid.points.iter().zip(&tile.heights) {
+            if p[0].is_nan() || !footprint.contains_point(*p) {
+                continue;
+            }
+            let hs = survey_heights(&pair, *p);
+            if hs.is_empty() {
+                assert!(z.is_nan(), "a height outside the data at {p:?}");
+                continue;
+            }
+            assert!(
+                ps.iter().any(|x| in_valid_kernel(&t, x, *p)),
+                "hole at {p:?}"
+            );
+            let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
+            let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            // Within the errors of the patches blended there, which the cut bounds by the
+            // field over each patch's kernel.
+            let allowed = ps
+                .iter()
+                .filter(|x| x.window.contains_point(*p))
+                .map(|x| x.span.min_z)
+                .fold(0.0f64, f64::max);
+            let h = *z as f64;
+            assert!(
+                h >= lo - allowed - 1e-3 && h <= hi + allowed + 1e-3,
+                "{h} vs [{lo}, {hi}] ± {allowed}"
+            );
+            checked += 1;
+        }
+        assert!(checked > 1000, "{px} px: only {checked} samples on data");
+        println!("{px} px: {} patches, {checked} samples checked", ps.len());
+    }
+}
