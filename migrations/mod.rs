@@ -1,0 +1,11 @@
+//! Schema migrations, one file per step. See README.md in this folder for the rules.
+//!
+//! This file is compiled as a child of `src/store/migrate.rs`, so `super` is that module.
+
+use super::Step;
+
+mod v0_to_v1;
+
+/// Every step, as (from version, to version, step). `migrate` follows them from the version a
+/// store records up to `migrate::CURRENT`.
+pub(super) const STEPS: &[(u32, u32, Step)] = &[(0, 1, v0_to_v1::run)];

@@ -1,0 +1,176 @@
+//! Compaction: drop what retirements left behind and rewrite the sled files to give the space
+//! back.
+//!
+//! sled reclaims space lazily and never shrinks its files much, so the live keys are copied
+//! into a fresh database beside the store and the directories are swapped:
+//!
+//! 1. copy the live keys into `<dir>.compact` and flush it;
+//! 2. close the store, rename `<dir>` → `<dir>.old`;
+//! 3. rename `<dir>.compact` → `<dir>`;
+//! 4. delete `<dir>.old`.
+//!
+//! [`recover`] runs on every open and finishes or undoes whatever a crash interrupted.
+
+use super::{dir_bytes, keys, sibling, Opened, Status, Store, StoreError};
+use crate::model::ids::{PatchId, SurveyId};
+use std::collections::HashSet;
+use std::path::Path;
+
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct CompactReport {
+    pub bytes_before: u64,
+    pub bytes_after: u64,
+    /// Retired surveys whose samples and patches were removed (their records stay).
+    pub surveys_purged: usize,
+    pub keys_removed: u64,
+    pub keys_kept: u64,
+}
+
+/// Batches of about this many bytes fill the new database, so that a large store is not held
+/// in memory twice.
+const COPY_BATCH_BYTES: usize = 64 << 20;
+
+fn sync_dir(dir: &Path) {
+    // Makes the renames durable. Best effort: not every filesystem lets a directory be synced.
+    if let Some(parent) = dir.parent() {
+        if let Ok(f) = std::fs::File::open(parent) {
+            let _ = f.sync_all();
+        }
+    }
+}
+
+/// Puts the directories back in order after a crash during compaction. Called with the
+/// store's lock held, so no compaction is running.
+pub(super) fn recover(dir: &Path) -> Result<(), StoreError> {
+    let old = sibling(dir, ".old")?;
+    let tmp = sibling(dir, ".compact")?;
+    match (dir.exists(), old.exists()) {
+        // Between the two renames: `.old` is the whole store as it was before compaction.
+        // Rolling back to it loses nothing; the compaction can simply be run again.
+        (false, true) => {
+            if tmp.exists() {
+                std::fs::remove_dir_all(&tmp)?;
+            }
+            std::fs::rename(&old, dir)?;
+            sync_dir(dir);
+        }
+        // After both renames: `<dir>` is the compacted store and `.old` is garbage.
+        (true, true) => std::fs::remove_dir_all(&old)?,
+        (false, false) if tmp.exists() => {
+            // Compaction never leaves this state, so someone moved things by hand: the copy
+            // may be all there is, and deleting it is not ours to decide.
+            return Err(StoreError::Corrupt(format!(
+                "{} is missing but {} exists; if that is the store, rename it back",
+                dir.display(),
+                tmp.display()
+            )));
+        }
+        _ => {}
+    }
+    // A copy that was never swapped in.
+    if dir.exists() && tmp.exists() {
+        std::fs::remove_dir_all(&tmp)?;
+    }
+    Ok(())
+}
+
+impl Store {
+    /// Removes the samples and patches of retired surveys and every key that belongs to no
+    /// active survey, then rewrites the files. Retired surveys keep their records, so
+    /// [`Store::surveys`] still tells what was retired.
+    pub fn compact(self) -> Result<(Opened, CompactReport), StoreError> {
+        let bytes_before = self.disk_bytes();
+        let dir = self.dir.clone();
+        let tmp = sibling(&dir, ".compact")?;
+        let old = sibling(&dir, ".old")?;
+        if tmp.exists() {
+            std::fs::remove_dir_all(&tmp)?;
+        }
+        let records = self.surveys()?;
+        let active: HashSet<SurveyId> = records
+            .iter()
+            .filter(|r| r.status == Status::Active)
+            .map(|r| r.id)
+            .collect();
+        let mut live_patches: HashSet<PatchId> = HashSet::new();
+        for id in &active {
+            live_patches.extend(self.load_patches(*id)?.iter().map(|p| p.id));
+        }
+        let surveys_purged = records
+            .iter()
+            .filter(|r| r.status == Status::Retired)
+            .filter(|r| {
+                self.db.scan_prefix(keys::chunks_of(r.id)).next().is_some()
+                    || matches!(self.db.get(keys::patches(r.id)), Ok(Some(_)))
+            })
+            .count();
+        let live = |k: &[u8]| -> bool {
+            if k.starts_with(keys::META_PREFIX)
+                || k.starts_with(keys::FAILURE_PREFIX)
+                || keys::parse_survey(k).is_some()
+            {
+                return true;
+            }
+            if let Some(id) = keys::parse_patches(k) {
+                return active.contains(&id);
+            }
+            if let Some((id, _, _)) = keys::parse_chunk(k) {
+                return active.contains(&id);
+            }
+            if let Some(id) = keys::parse_top(k) {
+                return live_patches.contains(&id);
+            }
+            false
+        };
+        let (mut kept, mut removed) = (0u64, 0u64);
+        {
+            let fresh = sled::Config::new().path(&tmp).open()?;
+            let mut batch = sled::Batch::default();
+            let mut bytes = 0usize;
+            for kv in self.db.iter() {
+                let (k, v) = kv?;
+                if !live(&k) {
+                    removed += 1;
+                    continue;
+                }
+                kept += 1;
+                bytes += k.len() + v.len();
+                batch.insert(k, v);
+                if bytes >= COPY_BATCH_BYTES {
+                    fresh.apply_batch(std::mem::take(&mut batch))?;
+                    bytes = 0;
+                }
+            }
+            fresh.apply_batch(batch)?;
+            fresh.flush()?;
+        }
+        self.db.flush()?;
+        let Store {
+            db,
+            layout,
+            index,
+            _lock: lock,
+            ..
+        } = self;
+        // Closing sled ends its use of the directory; the lock beside it stays held, so no
+        // other process can open the store while the directories move.
+        drop(db);
+        std::fs::rename(&dir, &old)?;
+        sync_dir(&dir);
+        std::fs::rename(&tmp, &dir)?;
+        sync_dir(&dir);
+        std::fs::remove_dir_all(&old)?;
+        let opened = Store::open_locked(dir.clone(), lock, layout, index)?;
+        let bytes_after = dir_bytes(&dir);
+        Ok((
+            opened,
+            CompactReport {
+                bytes_before,
+                bytes_after,
+                surveys_purged,
+                keys_removed: removed,
+                keys_kept: kept,
+            },
+        ))
+    }
+}

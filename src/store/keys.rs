@@ -1,0 +1,103 @@
+//! Key names. Every key starts with an ASCII prefix, and ids are 16 lowercase hex digits, so a
+//! prefix scan finds one kind of record and keys of one survey sort together, level by level
+//! and band by band.
+
+use crate::model::ids::{PatchId, SurveyId};
+
+pub const SCHEMA: &[u8] = b"meta/schema";
+pub const CRS: &[u8] = b"meta/crs";
+pub const LAYOUT: &[u8] = b"meta/layout";
+pub const INDEX: &[u8] = b"meta/index";
+
+pub const META_PREFIX: &[u8] = b"meta/";
+pub const SURVEY_PREFIX: &[u8] = b"s/";
+pub const PATCHES_PREFIX: &[u8] = b"p/";
+pub const CHUNK_PREFIX: &[u8] = b"c/";
+pub const TOP_PREFIX: &[u8] = b"t/";
+pub const FAILURE_PREFIX: &[u8] = b"f/";
+
+pub fn survey(id: SurveyId) -> Vec<u8> {
+    format!("s/{id}").into_bytes()
+}
+
+pub fn patches(id: SurveyId) -> Vec<u8> {
+    format!("p/{id}").into_bytes()
+}
+
+/// Every chunk of a survey, all levels.
+pub fn chunks_of(id: SurveyId) -> Vec<u8> {
+    format!("c/{id}/").into_bytes()
+}
+
+pub fn chunk(id: SurveyId, level: usize, band: usize) -> Vec<u8> {
+    format!("c/{id}/{level:02}/{band:08}").into_bytes()
+}
+
+pub fn top(id: PatchId) -> Vec<u8> {
+    format!("t/{id}").into_bytes()
+}
+
+pub fn failure(source: &str) -> Vec<u8> {
+    let mut k = FAILURE_PREFIX.to_vec();
+    k.extend_from_slice(source.as_bytes());
+    k
+}
+
+fn hex_id(s: &[u8]) -> Option<u64> {
+    if s.len() != 16
+        || !s
+            .iter()
+            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(b))
+    {
+        return None;
+    }
+    u64::from_str_radix(std::str::from_utf8(s).ok()?, 16).ok()
+}
+
+pub fn parse_survey(k: &[u8]) -> Option<SurveyId> {
+    hex_id(k.strip_prefix(SURVEY_PREFIX)?).map(SurveyId)
+}
+
+pub fn parse_patches(k: &[u8]) -> Option<SurveyId> {
+    hex_id(k.strip_prefix(PATCHES_PREFIX)?).map(SurveyId)
+}
+
+pub fn parse_top(k: &[u8]) -> Option<PatchId> {
+    hex_id(k.strip_prefix(TOP_PREFIX)?).map(PatchId)
+}
+
+/// `c/<survey>/<level:02>/<band:08>` → (survey, level, band).
+pub fn parse_chunk(k: &[u8]) -> Option<(SurveyId, usize, usize)> {
+    let rest = k.strip_prefix(CHUNK_PREFIX)?;
+    if rest.len() != 16 + 1 + 2 + 1 + 8 || rest[16] != b'/' || rest[19] != b'/' {
+        return None;
+    }
+    let id = hex_id(&rest[..16])?;
+    let num = |s: &[u8]| -> Option<usize> {
+        s.iter()
+            .all(u8::is_ascii_digit)
+            .then(|| std::str::from_utf8(s).ok()?.parse().ok())?
+    };
+    Some((SurveyId(id), num(&rest[17..19])?, num(&rest[20..])?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_round_trip() {
+        let s = SurveyId(0x00ab_cdef_0123_4567);
+        let p = PatchId(u64::MAX);
+        assert_eq!(survey(s), b"s/00abcdef01234567");
+        assert_eq!(parse_survey(&survey(s)), Some(s));
+        assert_eq!(parse_patches(&patches(s)), Some(s));
+        assert_eq!(top(p), b"t/ffffffffffffffff");
+        assert_eq!(parse_top(&top(p)), Some(p));
+        assert_eq!(chunk(s, 3, 17), b"c/00abcdef01234567/03/00000017");
+        assert_eq!(parse_chunk(&chunk(s, 3, 17)), Some((s, 3, 17)));
+        assert!(chunk(s, 3, 17).starts_with(&chunks_of(s)));
+        assert_eq!(parse_top(b"t/FFFFFFFFFFFFFFFF"), None);
+        assert_eq!(parse_chunk(b"c/00abcdef01234567/03/0000001x"), None);
+    }
+}

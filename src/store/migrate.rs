@@ -1,0 +1,69 @@
+//! Schema versions and the steps between them. The steps live in the top-level `migrations/`
+//! folder so that a schema change is visible as a file of its own in review.
+
+use super::keys;
+use super::StoreError;
+use crate::index::lod::IndexConfig;
+use crate::model::patch::PatchLayout;
+
+#[path = "../../migrations/mod.rs"]
+mod steps;
+
+/// The schema this binary writes.
+pub const CURRENT: u32 = 1;
+
+/// What a step may need beyond the tree: the settings `open` was called with, which a fresh
+/// store adopts.
+pub struct Ctx {
+    pub layout: PatchLayout,
+    pub index: IndexConfig,
+}
+
+/// A step reads the tree as it is and returns the writes that take it one version further.
+/// The runner adds the version bump to that same batch, so a step is applied whole, bump
+/// included, or not at all, and no step can forget the bump.
+pub type Step = fn(&sled::Tree, &Ctx) -> Result<sled::Batch, String>;
+
+pub(super) fn steps() -> &'static [(u32, u32, Step)] {
+    steps::STEPS
+}
+
+/// The schema version recorded in the tree; 0 when none is (a fresh or foreign directory).
+pub fn version(tree: &sled::Tree) -> Result<u32, StoreError> {
+    match tree.get(keys::SCHEMA)? {
+        None => Ok(0),
+        Some(v) => {
+            let b: [u8; 4] = v.as_ref().try_into().map_err(|_| {
+                StoreError::Corrupt(format!("meta/schema holds {} bytes, not 4", v.len()))
+            })?;
+            Ok(u32::from_le_bytes(b))
+        }
+    }
+}
+
+/// Brings the tree to [`CURRENT`], one flushed step at a time, and returns the steps run.
+pub fn migrate(tree: &sled::Tree, ctx: &Ctx) -> Result<Vec<(u32, u32)>, StoreError> {
+    let mut v = version(tree)?;
+    if v > CURRENT {
+        return Err(StoreError::Newer {
+            found: v,
+            supported: CURRENT,
+        });
+    }
+    let mut ran = Vec::new();
+    while v < CURRENT {
+        let &(from, to, step) = steps()
+            .iter()
+            .find(|(from, to, _)| *from == v && *to > v && *to <= CURRENT)
+            .ok_or_else(|| {
+                StoreError::Corrupt(format!("no migration leads from schema version {v}"))
+            })?;
+        let mut batch = step(tree, ctx).map_err(|msg| StoreError::Migration { from, to, msg })?;
+        batch.insert(keys::SCHEMA, &to.to_le_bytes());
+        tree.apply_batch(batch)?;
+        tree.flush()?;
+        ran.push((from, to));
+        v = to;
+    }
+    Ok(ran)
+}

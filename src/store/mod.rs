@@ -1,0 +1,779 @@
+//! The persistent store: surveys, their samples and the LOD index's box tops, in one sled tree.
+//!
+//! Everything lives in sled's default tree so that one `sled::Batch` can commit a survey, its
+//! samples and every index change it caused atomically. Keys (ids are 16 lowercase hex digits):
+//!
+//! | key | value |
+//! | --- | --- |
+//! | `meta/schema` | `u32` LE: the schema version (see `migrations/`) |
+//! | `meta/crs` | `u32` LE: EPSG code of the store, set by the first survey that has one |
+//! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
+//! | `s/<survey>` | [`SurveyRecord`] (bincode) |
+//! | `p/<survey>` | the survey's `Vec<Patch>` (bincode) |
+//! | `c/<survey>/<level:02>/<band:08>` | LE `f32` samples of [`CHUNK_ROWS`] rows of a level |
+//! | `t/<patch>` | `f64` LE: the patch's box top in the LOD index, for active surveys only |
+//! | `f/<source path>` | [`FailedRecord`] (bincode) |
+//!
+//! Storing the tops is what lets `open` rebuild the index without running the cutter: the
+//! boxes themselves follow from the patches and the level georeferences.
+//!
+//! Besides sled's own lock inside the directory, a store holds an exclusive lock on the file
+//! `<dir>.lock` beside it for as long as it is open. Compaction swaps whole directories, so
+//! the lock that keeps two processes apart must not live inside one of them.
+
+mod compact;
+pub(crate) mod keys;
+mod migrate;
+mod verify;
+
+pub use compact::CompactReport;
+pub use migrate::CURRENT as SCHEMA_VERSION;
+pub use verify::VerifyReport;
+
+use crate::index::lod::{ChangeStats, IndexConfig};
+use crate::model::grid::{Georef, Grid};
+use crate::model::ids::{PatchId, SurveyId};
+use crate::model::patch::{Patch, PatchLayout};
+use crate::model::survey::Survey;
+use crate::terrain::Terrain;
+use fs2::FileExt;
+use rayon::prelude::*;
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+use std::collections::{HashMap, HashSet};
+use std::fs::File;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+use thiserror::Error;
+
+/// Rows of a level per chunk. Bands of whole rows keep a chunk one contiguous slice of the
+/// level's row-major samples; 64 rows of a 3600-column level are under 1 MiB.
+pub const CHUNK_ROWS: usize = 64;
+
+#[derive(Debug, Error)]
+pub enum StoreError {
+    #[error(
+        "the store's schema is version {found}, but this binary supports versions up to \
+         {supported}: open it with a newer patchwork"
+    )]
+    Newer { found: u32, supported: u32 },
+    #[error("the store at {} is in use by another process (is the daemon running?)", dir.display())]
+    Locked { dir: PathBuf },
+    #[error("the store is corrupt: {0}")]
+    Corrupt(String),
+    #[error("migration of the store from schema {from} to {to} failed: {msg}")]
+    Migration { from: u32, to: u32, msg: String },
+    #[error("survey {survey} is in EPSG:{survey_crs}, but the store holds EPSG:{store_crs}")]
+    CrsMismatch {
+        survey: SurveyId,
+        survey_crs: u32,
+        store_crs: u32,
+    },
+    #[error("survey {0} is already stored and active")]
+    Duplicate(SurveyId),
+    #[error("survey {0} is not an active survey of the store")]
+    NotActive(SurveyId),
+    #[error("invalid request: {0}")]
+    Invalid(String),
+    #[error("storage engine: {0}")]
+    Sled(sled::Error),
+    #[error("store I/O: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("could not encode {0}")]
+    Encode(String),
+    #[error("could not decode {0}")]
+    Decode(String),
+}
+
+impl From<sled::Error> for StoreError {
+    fn from(e: sled::Error) -> Self {
+        StoreError::Sled(e)
+    }
+}
+
+/// Whether an error says that another handle holds the directory's lock. sled wraps the
+/// `WouldBlock` from `flock` into an `Other` error with this message, so both are looked for.
+pub fn is_lock_error(e: &std::io::Error) -> bool {
+    e.kind() == std::io::ErrorKind::WouldBlock || e.to_string().contains("could not acquire lock")
+}
+
+/// Turns an error from opening the store at `dir` into a [`StoreError`], recognising a lock
+/// held by another process.
+pub fn open_error(e: sled::Error, dir: &Path) -> StoreError {
+    match e {
+        sled::Error::Io(io) if is_lock_error(&io) => StoreError::Locked {
+            dir: dir.to_path_buf(),
+        },
+        e => StoreError::Sled(e),
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Status {
+    Active,
+    /// Out of the index; its samples stay until the next compaction.
+    Retired,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LevelHeader {
+    pub cols: u64,
+    pub rows: u64,
+    pub georef: Georef,
+}
+
+impl LevelHeader {
+    fn of(g: &Grid) -> Self {
+        LevelHeader {
+            cols: g.cols as u64,
+            rows: g.rows as u64,
+            georef: g.georef,
+        }
+    }
+}
+
+/// Where the time of one ingestion went, in milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct IngestTimings {
+    pub read_ms: f64,
+    pub build_ms: f64,
+    pub index_ms: f64,
+    /// Filled in by the store: encoding, the atomic batch and its flush.
+    pub commit_ms: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurveyRecord {
+    pub id: SurveyId,
+    /// The file it was read from.
+    pub source: String,
+    /// Hex blake3 of the file's bytes; empty when unknown.
+    pub content_id: String,
+    pub accuracy: f64,
+    pub crs: Option<u32>,
+    pub status: Status,
+    pub cols: u64,
+    pub rows: u64,
+    pub georef: Georef,
+    /// Valid level-0 samples.
+    pub samples: u64,
+    /// Level 0 first, as stored in the chunks.
+    pub levels: Vec<LevelHeader>,
+    pub ingest: IngestTimings,
+    pub created_unix: u64,
+}
+
+impl SurveyRecord {
+    /// The record of an active survey read from `source`.
+    pub fn new(
+        s: &Survey,
+        source: impl Into<String>,
+        content_id: impl Into<String>,
+        ingest: IngestTimings,
+    ) -> Self {
+        let l0 = &s.levels[0];
+        SurveyRecord {
+            id: s.id,
+            source: source.into(),
+            content_id: content_id.into(),
+            accuracy: s.accuracy,
+            crs: s.crs,
+            status: Status::Active,
+            cols: l0.cols as u64,
+            rows: l0.rows as u64,
+            georef: l0.georef,
+            samples: l0.valid_count() as u64,
+            levels: s.levels.iter().map(|g| LevelHeader::of(g)).collect(),
+            ingest,
+            created_unix: now_unix(),
+        }
+    }
+}
+
+/// A file that could not be ingested. Size and mtime let a scanner skip it until it changes.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FailedRecord {
+    pub source: String,
+    pub error: String,
+    pub size: u64,
+    pub mtime_unix: u64,
+    pub at_unix: u64,
+}
+
+pub fn now_unix() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0)
+}
+
+/// Hex blake3 of a file's bytes, for [`SurveyRecord::content_id`].
+pub fn file_content_id(path: &Path) -> std::io::Result<String> {
+    let mut f = File::open(path)?;
+    let mut h = blake3::Hasher::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(h.finalize().to_hex().to_string())
+}
+
+pub(crate) fn encode<T: Serialize>(v: &T) -> Result<Vec<u8>, StoreError> {
+    bincode::serde::encode_to_vec(v, bincode::config::standard())
+        .map_err(|e| StoreError::Encode(e.to_string()))
+}
+
+pub(crate) fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, StoreError> {
+    let (v, n) = bincode::serde::decode_from_slice(b, bincode::config::standard())
+        .map_err(|e| StoreError::Decode(format!("{what}: {e}")))?;
+    if n != b.len() {
+        return Err(StoreError::Decode(format!(
+            "{what}: {} bytes left over after the value",
+            b.len() - n
+        )));
+    }
+    Ok(v)
+}
+
+fn decode_f64(b: &[u8], what: &str) -> Result<f64, StoreError> {
+    let a: [u8; 8] = b
+        .try_into()
+        .map_err(|_| StoreError::Decode(format!("{what}: {} bytes, not 8", b.len())))?;
+    Ok(f64::from_le_bytes(a))
+}
+
+fn decode_u32(b: &[u8], what: &str) -> Result<u32, StoreError> {
+    let a: [u8; 4] = b
+        .try_into()
+        .map_err(|_| StoreError::Decode(format!("{what}: {} bytes, not 4", b.len())))?;
+    Ok(u32::from_le_bytes(a))
+}
+
+/// Rows in band `band` of a level with `rows` rows.
+fn band_rows(rows: usize, band: usize) -> usize {
+    CHUNK_ROWS.min(rows - band * CHUNK_ROWS)
+}
+
+fn band_count(rows: usize) -> usize {
+    rows.div_ceil(CHUNK_ROWS)
+}
+
+/// The level's samples, a band of rows at a time.
+fn level_chunks(g: &Grid) -> impl Iterator<Item = (usize, Vec<u8>)> + '_ {
+    g.samples
+        .chunks(CHUNK_ROWS * g.cols)
+        .enumerate()
+        .map(|(band, s)| {
+            let mut b = Vec::with_capacity(4 * s.len());
+            for z in s {
+                b.extend_from_slice(&z.to_le_bytes());
+            }
+            (band, b)
+        })
+}
+
+/// A store's path to a sibling of its directory: `<dir><suffix>`.
+fn sibling(dir: &Path, suffix: &str) -> Result<PathBuf, StoreError> {
+    let name = dir.file_name().ok_or_else(|| {
+        StoreError::Invalid(format!("the store path {} has no name", dir.display()))
+    })?;
+    let mut n = name.to_os_string();
+    n.push(suffix);
+    Ok(dir.with_file_name(n))
+}
+
+/// Takes the exclusive lock that keeps other processes (and other handles in this one) out.
+fn lock(dir: &Path) -> Result<File, StoreError> {
+    let path = sibling(dir, ".lock")?;
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent)?;
+    }
+    let f = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)?;
+    match f.try_lock_exclusive() {
+        Ok(()) => Ok(f),
+        Err(e) if is_lock_error(&e) => Err(StoreError::Locked {
+            dir: dir.to_path_buf(),
+        }),
+        Err(e) => Err(e.into()),
+    }
+}
+
+pub struct Store {
+    db: sled::Db,
+    dir: PathBuf,
+    layout: PatchLayout,
+    index: IndexConfig,
+    crs: RwLock<Option<u32>>,
+    /// Commits read the store (CRS, records) before writing it; one at a time keeps the read
+    /// and the batch consistent.
+    writer: Mutex<()>,
+    migrated: Vec<(u32, u32)>,
+    _lock: File,
+}
+
+pub struct Opened {
+    pub store: Store,
+    pub terrain: Terrain,
+    /// Problems met while loading that did not stop it (missing or orphaned tops): the terrain
+    /// may answer queries wrongly until they are dealt with. `verify` tells more.
+    pub warnings: Vec<String>,
+}
+
+/// The writes a survey commit adds to a batch; kept so that the record can get its commit time.
+struct Staged {
+    key: Vec<u8>,
+    rec: SurveyRecord,
+    crs: Option<u32>,
+}
+
+impl Store {
+    /// Opens or creates the store at `dir`, recovering from an interrupted compaction and
+    /// running migrations, and loads every active survey into a terrain.
+    ///
+    /// `layout` and `index` only apply to a fresh store: an existing one keeps the settings its
+    /// surveys were built and indexed with (see [`Store::layout`], [`Store::index_config`]).
+    pub fn open(dir: &Path, layout: PatchLayout, index: IndexConfig) -> Result<Opened, StoreError> {
+        let dir = std::path::absolute(dir)?;
+        let lock = lock(&dir)?;
+        Self::open_locked(dir, lock, layout, index)
+    }
+
+    fn open_locked(
+        dir: PathBuf,
+        lock: File,
+        layout: PatchLayout,
+        index: IndexConfig,
+    ) -> Result<Opened, StoreError> {
+        compact::recover(&dir)?;
+        let db = sled::Config::new()
+            .path(&dir)
+            .open()
+            .map_err(|e| open_error(e, &dir))?;
+        let migrated = migrate::migrate(&db, &migrate::Ctx { layout, index })?;
+        let get = |k: &[u8]| -> Result<sled::IVec, StoreError> {
+            db.get(k)?.ok_or_else(|| {
+                StoreError::Corrupt(format!("{} is missing", String::from_utf8_lossy(k)))
+            })
+        };
+        let layout: PatchLayout = decode(&get(keys::LAYOUT)?, "meta/layout")?;
+        let index: IndexConfig = decode(&get(keys::INDEX)?, "meta/index")?;
+        let crs = db
+            .get(keys::CRS)?
+            .map(|v| decode_u32(&v, "meta/crs"))
+            .transpose()?;
+        let store = Store {
+            db,
+            dir,
+            layout,
+            index,
+            crs: RwLock::new(crs),
+            writer: Mutex::new(()),
+            migrated,
+            _lock: lock,
+        };
+        let (terrain, warnings) = store.load()?;
+        Ok(Opened {
+            store,
+            terrain,
+            warnings,
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The layout every survey of this store is cut with.
+    pub fn layout(&self) -> PatchLayout {
+        self.layout
+    }
+
+    /// The index settings the stored tops were computed with.
+    pub fn index_config(&self) -> IndexConfig {
+        self.index
+    }
+
+    /// Migration steps this `open` ran, as (from, to).
+    pub fn migrations_run(&self) -> &[(u32, u32)] {
+        &self.migrated
+    }
+
+    pub fn crs(&self) -> Option<u32> {
+        *self.crs.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn load(&self) -> Result<(Terrain, Vec<String>), StoreError> {
+        let active: Vec<SurveyRecord> = self
+            .surveys()?
+            .into_iter()
+            .filter(|r| r.status == Status::Active)
+            .collect();
+        let surveys: Vec<Arc<Survey>> = active
+            .par_iter()
+            .map(|r| self.load_survey(r).map(Arc::new))
+            .collect::<Result<_, _>>()?;
+        let mut tops = self.tops()?;
+        let mut missing = 0usize;
+        let mut first_missing = None;
+        let with_tops: Vec<(Arc<Survey>, HashMap<PatchId, f64>)> = surveys
+            .into_iter()
+            .map(|s| {
+                let mine = s
+                    .patches
+                    .iter()
+                    .filter_map(|p| {
+                        let top = tops.remove(&p.id);
+                        if top.is_none() {
+                            missing += 1;
+                            first_missing.get_or_insert(p.id);
+                        }
+                        Some((p.id, top?))
+                    })
+                    .collect();
+                (s, mine)
+            })
+            .collect();
+        let mut warnings = Vec::new();
+        if let Some(p) = first_missing {
+            warnings.push(format!(
+                "{missing} patches of active surveys have no stored top (first: {p}); they are \
+                 restored as cut to nothing"
+            ));
+        }
+        if let Some(p) = tops.keys().min() {
+            warnings.push(format!(
+                "{} stored tops belong to no active survey (first: {p}); ignored",
+                tops.len()
+            ));
+        }
+        Ok((Terrain::restore(self.index, with_tops), warnings))
+    }
+
+    fn tops(&self) -> Result<HashMap<PatchId, f64>, StoreError> {
+        let mut out = HashMap::new();
+        for kv in self.db.scan_prefix(keys::TOP_PREFIX) {
+            let (k, v) = kv?;
+            let id = keys::parse_top(&k).ok_or_else(|| {
+                StoreError::Corrupt(format!("bad top key {:?}", String::from_utf8_lossy(&k)))
+            })?;
+            out.insert(id, decode_f64(&v, &format!("top of patch {id}"))?);
+        }
+        Ok(out)
+    }
+
+    fn load_patches(&self, id: SurveyId) -> Result<Vec<Patch>, StoreError> {
+        let v = self.db.get(keys::patches(id))?.ok_or_else(|| {
+            StoreError::Corrupt(format!("the patches of survey {id} are missing"))
+        })?;
+        decode(&v, &format!("patches of survey {id}"))
+    }
+
+    /// One level's samples from its chunks.
+    fn load_level(&self, id: SurveyId, level: usize, h: &LevelHeader) -> Result<Grid, StoreError> {
+        let (cols, rows) = (h.cols as usize, h.rows as usize);
+        let mut samples = Vec::with_capacity(cols * rows);
+        for band in 0..band_count(rows) {
+            let want = 4 * cols * band_rows(rows, band);
+            let v = self.db.get(keys::chunk(id, level, band))?.ok_or_else(|| {
+                StoreError::Corrupt(format!(
+                    "chunk {band} of level {level} of survey {id} is missing"
+                ))
+            })?;
+            if v.len() != want {
+                return Err(StoreError::Corrupt(format!(
+                    "chunk {band} of level {level} of survey {id} holds {} bytes, not {want}",
+                    v.len()
+                )));
+            }
+            samples.extend(
+                v.chunks_exact(4)
+                    .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes"))),
+            );
+        }
+        Grid::new(cols, rows, samples, h.georef)
+            .map_err(|e| StoreError::Corrupt(format!("level {level} of survey {id}: {e}")))
+    }
+
+    fn load_survey(&self, r: &SurveyRecord) -> Result<Survey, StoreError> {
+        let patches = self.load_patches(r.id)?;
+        if let Some(p) = patches
+            .iter()
+            .find(|p| p.survey != r.id || p.level as usize >= r.levels.len())
+        {
+            return Err(StoreError::Corrupt(format!(
+                "survey {} lists patch {} of survey {} at level {}, which it does not have",
+                r.id, p.id, p.survey, p.level
+            )));
+        }
+        if r.levels.is_empty() {
+            return Err(StoreError::Corrupt(format!(
+                "survey {} has no levels",
+                r.id
+            )));
+        }
+        let levels = r
+            .levels
+            .iter()
+            .enumerate()
+            .map(|(k, h)| self.load_level(r.id, k, h).map(Arc::new))
+            .collect::<Result<_, _>>()?;
+        Ok(Survey {
+            id: r.id,
+            accuracy: r.accuracy,
+            crs: r.crs,
+            layout: self.layout,
+            levels,
+            patches,
+        })
+    }
+
+    fn record(&self, id: SurveyId) -> Result<Option<SurveyRecord>, StoreError> {
+        self.db
+            .get(keys::survey(id))?
+            .map(|v| decode(&v, &format!("record of survey {id}")))
+            .transpose()
+    }
+
+    /// Adds a survey's writes to `batch`. `crs` is the store's CRS as the batch leaves it.
+    /// `replacing` is a survey the same batch retires, which may be this very one.
+    fn stage_survey(
+        &self,
+        batch: &mut sled::Batch,
+        s: &Survey,
+        rec: &SurveyRecord,
+        change: &ChangeStats,
+        crs: Option<u32>,
+        replacing: Option<SurveyId>,
+    ) -> Result<Staged, StoreError> {
+        if rec.id != s.id {
+            return Err(StoreError::Invalid(format!(
+                "the record is of survey {}, the survey is {}",
+                rec.id, s.id
+            )));
+        }
+        let headers: Vec<LevelHeader> = s.levels.iter().map(|g| LevelHeader::of(g)).collect();
+        if rec.levels != headers
+            || rec.accuracy.to_bits() != s.accuracy.to_bits()
+            || rec.crs != s.crs
+        {
+            return Err(StoreError::Invalid(format!(
+                "the record of survey {} does not describe it (levels, accuracy or CRS differ)",
+                s.id
+            )));
+        }
+        if s.layout != self.layout {
+            return Err(StoreError::Invalid(format!(
+                "survey {} is cut with {:?}, the store with {:?}",
+                s.id, s.layout, self.layout
+            )));
+        }
+        if replacing != Some(s.id) {
+            if let Some(old) = self.record(s.id)? {
+                if old.status == Status::Active {
+                    return Err(StoreError::Duplicate(s.id));
+                }
+            }
+        }
+        let crs = match (crs, s.crs) {
+            (Some(store_crs), Some(survey_crs)) if store_crs != survey_crs => {
+                return Err(StoreError::CrsMismatch {
+                    survey: s.id,
+                    survey_crs,
+                    store_crs,
+                })
+            }
+            (None, Some(c)) => {
+                batch.insert(keys::CRS, &c.to_le_bytes());
+                Some(c)
+            }
+            (c, _) => c,
+        };
+        let mut rec = rec.clone();
+        rec.status = Status::Active;
+        let key = keys::survey(s.id);
+        batch.insert(key.clone(), encode(&rec)?);
+        batch.insert(keys::patches(s.id), encode(&s.patches)?);
+        for (level, g) in s.levels.iter().enumerate() {
+            for (band, bytes) in level_chunks(g) {
+                batch.insert(keys::chunk(s.id, level, band), bytes);
+            }
+        }
+        // A new patch missing from `moved` kept the index's provisional top, which is empty.
+        let moved: HashSet<PatchId> = change.moved.iter().map(|(id, _)| *id).collect();
+        for p in s.patches.iter().filter(|p| !moved.contains(&p.id)) {
+            batch.insert(keys::top(p.id), &f64::NEG_INFINITY.to_le_bytes());
+        }
+        for (id, top) in &change.moved {
+            batch.insert(keys::top(*id), &top.to_le_bytes());
+        }
+        batch.remove(keys::failure(&rec.source));
+        Ok(Staged { key, rec, crs })
+    }
+
+    fn stage_retire(
+        &self,
+        batch: &mut sled::Batch,
+        id: SurveyId,
+        patch_ids: &[PatchId],
+        change: &ChangeStats,
+    ) -> Result<(), StoreError> {
+        let mut rec = match self.record(id)? {
+            Some(r) if r.status == Status::Active => r,
+            _ => return Err(StoreError::NotActive(id)),
+        };
+        rec.status = Status::Retired;
+        batch.insert(keys::survey(id), encode(&rec)?);
+        for p in patch_ids {
+            batch.remove(keys::top(*p));
+        }
+        for (p, top) in &change.moved {
+            batch.insert(keys::top(*p), &top.to_le_bytes());
+        }
+        Ok(())
+    }
+
+    /// Applies a batch and makes it durable before returning.
+    fn apply(&self, batch: sled::Batch) -> Result<(), StoreError> {
+        self.db.apply_batch(batch)?;
+        self.db.flush()?;
+        Ok(())
+    }
+
+    /// Records how long the commit took. The batch is already durable; should this small
+    /// write be lost, the record keeps the caller's figure.
+    fn finish(&self, staged: Staged, t0: Instant) -> Result<(), StoreError> {
+        *self.crs.write().unwrap_or_else(|e| e.into_inner()) = staged.crs;
+        let mut rec = staged.rec;
+        rec.ingest.commit_ms = t0.elapsed().as_secs_f64() * 1e3;
+        self.db.insert(staged.key, encode(&rec)?)?;
+        Ok(())
+    }
+
+    fn lock_writer(&self) -> std::sync::MutexGuard<'_, ()> {
+        self.writer.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Commits an already-built survey: record, patches, chunks, and every top the insertion
+    /// moved (`change` from inserting it into the terrain, which may include patches of other
+    /// surveys) in one batch, then flushes. A failure leaves the store as it was, so the
+    /// caller swaps in the terrain it computed `change` with only on success.
+    pub fn commit_survey(
+        &self,
+        s: &Survey,
+        rec: &SurveyRecord,
+        change: &ChangeStats,
+    ) -> Result<(), StoreError> {
+        let _w = self.lock_writer();
+        let t0 = Instant::now();
+        let mut batch = sled::Batch::default();
+        let staged = self.stage_survey(&mut batch, s, rec, change, self.crs(), None)?;
+        self.apply(batch)?;
+        self.finish(staged, t0)
+    }
+
+    /// Marks a survey retired, drops its tops and writes the tops its retirement moved, in one
+    /// batch. Its samples stay until [`Store::compact`].
+    pub fn commit_retire(
+        &self,
+        id: SurveyId,
+        patch_ids: &[PatchId],
+        change: &ChangeStats,
+    ) -> Result<(), StoreError> {
+        let _w = self.lock_writer();
+        let mut batch = sled::Batch::default();
+        self.stage_retire(&mut batch, id, patch_ids, change)?;
+        self.apply(batch)
+    }
+
+    /// Replaces one survey with another (a file that changed) in one batch: `retire_change`
+    /// from retiring `old`, then `insert_change` from inserting `new` after it.
+    #[allow(clippy::too_many_arguments)]
+    pub fn commit_replace(
+        &self,
+        old: SurveyId,
+        old_patches: &[PatchId],
+        retire_change: &ChangeStats,
+        new: &Survey,
+        rec: &SurveyRecord,
+        insert_change: &ChangeStats,
+    ) -> Result<(), StoreError> {
+        let _w = self.lock_writer();
+        let t0 = Instant::now();
+        // sled batches keep the last write of a key, so the insertion's tops win over the
+        // retirement's, as they do in the terrain.
+        let mut batch = sled::Batch::default();
+        self.stage_retire(&mut batch, old, old_patches, retire_change)?;
+        let staged =
+            self.stage_survey(&mut batch, new, rec, insert_change, self.crs(), Some(old))?;
+        self.apply(batch)?;
+        self.finish(staged, t0)
+    }
+
+    pub fn record_failure(&self, f: &FailedRecord) -> Result<(), StoreError> {
+        self.db.insert(keys::failure(&f.source), encode(f)?)?;
+        self.db.flush()?;
+        Ok(())
+    }
+
+    pub fn clear_failure(&self, source: &str) -> Result<(), StoreError> {
+        self.db.remove(keys::failure(source))?;
+        self.db.flush()?;
+        Ok(())
+    }
+
+    /// Every survey record, active and retired, in id order.
+    pub fn surveys(&self) -> Result<Vec<SurveyRecord>, StoreError> {
+        self.db
+            .scan_prefix(keys::SURVEY_PREFIX)
+            .map(|kv| {
+                let (k, v) = kv?;
+                decode(&v, &format!("record {}", String::from_utf8_lossy(&k)))
+            })
+            .collect()
+    }
+
+    /// Every recorded failure, in source order.
+    pub fn failures(&self) -> Result<Vec<FailedRecord>, StoreError> {
+        self.db
+            .scan_prefix(keys::FAILURE_PREFIX)
+            .map(|kv| {
+                let (k, v) = kv?;
+                decode(&v, &format!("failure {}", String::from_utf8_lossy(&k)))
+            })
+            .collect()
+    }
+
+    /// Bytes of the files under the store's directory.
+    pub fn disk_bytes(&self) -> u64 {
+        dir_bytes(&self.dir)
+    }
+
+    /// The raw tree, for tests and tools that need to look under the records.
+    #[doc(hidden)]
+    pub fn raw(&self) -> &sled::Tree {
+        &self.db
+    }
+}
+
+fn dir_bytes(dir: &Path) -> u64 {
+    let Ok(rd) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    rd.filter_map(Result::ok)
+        .map(|e| match e.file_type() {
+            Ok(t) if t.is_dir() => dir_bytes(&e.path()),
+            Ok(t) if t.is_file() => e.metadata().map(|m| m.len()).unwrap_or(0),
+            _ => 0,
+        })
+        .sum()
+}

@@ -1,0 +1,332 @@
+//! A full check of the store against itself: every key decodes, every active survey is whole,
+//! its samples still hash to its id, and the stored tops are the ones the cutter would give.
+
+use super::{
+    band_count, band_rows, decode, decode_f64, decode_u32, keys, migrate, FailedRecord, Status,
+    Store, StoreError, SurveyRecord,
+};
+use crate::index::lod::{IndexConfig, LodIndex, PatchBox};
+use crate::model::grid::Grid;
+use crate::model::ids::{PatchId, SurveyId};
+use crate::model::patch::{Patch, PatchLayout};
+use crate::model::survey::Survey;
+use std::collections::{BTreeMap, HashMap};
+
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct VerifyReport {
+    pub active: usize,
+    pub retired: usize,
+    pub patches: usize,
+    pub tops: usize,
+    pub chunks: usize,
+    pub failures: usize,
+    pub keys: u64,
+    /// Everything found wrong, one line each; empty for a sound store.
+    pub problems: Vec<String>,
+}
+
+impl VerifyReport {
+    pub fn is_ok(&self) -> bool {
+        self.problems.is_empty()
+    }
+}
+
+/// Stop listing problems of one kind past this many; the count still tells how bad it is.
+const MAX_LISTED: usize = 20;
+
+struct Problems {
+    list: Vec<String>,
+    counts: BTreeMap<&'static str, usize>,
+}
+
+impl Problems {
+    fn add(&mut self, kind: &'static str, msg: String) {
+        let n = self.counts.entry(kind).or_default();
+        *n += 1;
+        if *n <= MAX_LISTED {
+            self.list.push(msg);
+        }
+    }
+
+    fn finish(mut self) -> Vec<String> {
+        for (kind, n) in &self.counts {
+            if *n > MAX_LISTED {
+                self.list.push(format!(
+                    "… and {} more problems of kind {kind}",
+                    n - MAX_LISTED
+                ));
+            }
+        }
+        self.list
+    }
+}
+
+fn key_str(k: &[u8]) -> String {
+    String::from_utf8_lossy(k).into_owned()
+}
+
+impl Store {
+    /// Re-checks the whole store. Problems go in the report; `Err` is only for failing to read.
+    pub fn verify(&self) -> Result<VerifyReport, StoreError> {
+        let mut pr = Problems {
+            list: Vec::new(),
+            counts: BTreeMap::new(),
+        };
+        let mut rep = VerifyReport::default();
+        let mut records: BTreeMap<SurveyId, SurveyRecord> = BTreeMap::new();
+        let mut patches: HashMap<SurveyId, Vec<Patch>> = HashMap::new();
+        // (survey, level, band) → bytes
+        let mut chunks: BTreeMap<(SurveyId, usize, usize), usize> = BTreeMap::new();
+        let mut tops: HashMap<PatchId, f64> = HashMap::new();
+
+        for kv in self.db.iter() {
+            let (k, v) = kv?;
+            rep.keys += 1;
+            if k.starts_with(keys::META_PREFIX) {
+                self.check_meta(&k, &v, &mut pr);
+            } else if let Some(id) = keys::parse_survey(&k) {
+                match decode::<SurveyRecord>(&v, &key_str(&k)) {
+                    Ok(r) if r.id != id => pr.add(
+                        "record",
+                        format!("{} holds the record of {}", key_str(&k), r.id),
+                    ),
+                    Ok(r) => {
+                        records.insert(id, r);
+                    }
+                    Err(e) => pr.add("record", e.to_string()),
+                }
+            } else if let Some(id) = keys::parse_patches(&k) {
+                match decode::<Vec<Patch>>(&v, &key_str(&k)) {
+                    Ok(ps) => {
+                        patches.insert(id, ps);
+                    }
+                    Err(e) => pr.add("patches", e.to_string()),
+                }
+            } else if let Some((id, level, band)) = keys::parse_chunk(&k) {
+                chunks.insert((id, level, band), v.len());
+            } else if let Some(id) = keys::parse_top(&k) {
+                match decode_f64(&v, &key_str(&k)) {
+                    Ok(t) => {
+                        tops.insert(id, t);
+                    }
+                    Err(e) => pr.add("top", e.to_string()),
+                }
+            } else if k.starts_with(keys::FAILURE_PREFIX) {
+                rep.failures += 1;
+                if let Err(e) = decode::<FailedRecord>(&v, &key_str(&k)) {
+                    pr.add("failure", e.to_string());
+                }
+            } else {
+                pr.add("unknown key", format!("unknown key {:?}", key_str(&k)));
+            }
+        }
+        rep.chunks = chunks.len();
+        rep.tops = tops.len();
+
+        let store_crs = self.crs();
+        let mut boxes: Vec<(SurveyId, Vec<(PatchBox, f64)>)> = Vec::new();
+        for (id, r) in &records {
+            if r.status == Status::Retired {
+                rep.retired += 1;
+                continue;
+            }
+            rep.active += 1;
+            if let (Some(c), Some(s)) = (r.crs, store_crs) {
+                if c != s {
+                    pr.add(
+                        "crs",
+                        format!("survey {id} is in EPSG:{c}, the store in EPSG:{s}"),
+                    );
+                }
+            }
+            if r.levels.is_empty() {
+                pr.add("record", format!("survey {id} has no levels"));
+                continue;
+            }
+            self.check_chunks(*id, r, &chunks, &mut pr)?;
+            let Some(ps) = patches.get(id) else {
+                pr.add("patches", format!("survey {id} has no patch list"));
+                continue;
+            };
+            rep.patches += ps.len();
+            // Boxes need only each level's georeference, so the samples are not loaded again.
+            let grids: Vec<Grid> = r
+                .levels
+                .iter()
+                .map(|h| Grid {
+                    cols: h.cols as usize,
+                    rows: h.rows as usize,
+                    samples: Vec::new(),
+                    georef: h.georef,
+                })
+                .collect();
+            let mut bs = Vec::with_capacity(ps.len());
+            for p in ps {
+                if p.survey != *id || p.level as usize >= grids.len() {
+                    pr.add(
+                        "patches",
+                        format!("survey {id} lists patch {} that is not its own", p.id),
+                    );
+                    continue;
+                }
+                let top = match tops.remove(&p.id) {
+                    Some(t) => t,
+                    None => {
+                        pr.add(
+                            "missing top",
+                            format!("patch {} of survey {id} has no top", p.id),
+                        );
+                        f64::NEG_INFINITY
+                    }
+                };
+                bs.push((
+                    PatchBox::new(p, &grids[p.level as usize], self.layout.kernel),
+                    top,
+                ));
+            }
+            boxes.push((*id, bs));
+        }
+        for p in tops.keys() {
+            pr.add(
+                "orphan top",
+                format!("top of patch {p} belongs to no active survey"),
+            );
+        }
+        for (id, _, _) in chunks.keys() {
+            if !records.contains_key(id) {
+                pr.add(
+                    "orphan chunk",
+                    format!("chunks of survey {id}, which has no record"),
+                );
+            }
+        }
+        for id in patches.keys() {
+            if !records.contains_key(id) {
+                pr.add(
+                    "orphan patches",
+                    format!("patches of survey {id}, which has no record"),
+                );
+            }
+        }
+        let index = LodIndex::restore(self.index, boxes);
+        if let Err(e) = index.check() {
+            pr.add("index", format!("the restored index fails its check: {e}"));
+        }
+        rep.problems = pr.finish();
+        Ok(rep)
+    }
+
+    fn check_meta(&self, k: &[u8], v: &[u8], pr: &mut Problems) {
+        let what = key_str(k);
+        let res = match k {
+            keys::SCHEMA => decode_u32(v, &what).map(|n| {
+                (n != migrate::CURRENT).then(|| {
+                    format!(
+                        "schema version {n}, this binary writes {}",
+                        migrate::CURRENT
+                    )
+                })
+            }),
+            keys::CRS => decode_u32(v, &what).map(|_| None),
+            keys::LAYOUT => decode::<PatchLayout>(v, &what).map(|l| {
+                (l != self.layout).then(|| format!("layout {l:?} differs from the open store's"))
+            }),
+            keys::INDEX => decode::<IndexConfig>(v, &what).map(|c| {
+                (c != self.index)
+                    .then(|| format!("index config {c:?} differs from the open store's"))
+            }),
+            _ => Ok(Some(format!("unknown key {what:?}"))),
+        };
+        match res {
+            Ok(None) => {}
+            Ok(Some(msg)) => pr.add("meta", msg),
+            Err(e) => pr.add("meta", e.to_string()),
+        }
+    }
+
+    /// Every band of every level is there with the right size, nothing else is, and level 0
+    /// still hashes to the survey's id.
+    fn check_chunks(
+        &self,
+        id: SurveyId,
+        r: &SurveyRecord,
+        chunks: &BTreeMap<(SurveyId, usize, usize), usize>,
+        pr: &mut Problems,
+    ) -> Result<(), StoreError> {
+        let mut whole = true;
+        for (level, h) in r.levels.iter().enumerate() {
+            let (cols, rows) = (h.cols as usize, h.rows as usize);
+            let n = band_count(rows);
+            for band in 0..n {
+                let want = 4 * cols * band_rows(rows, band);
+                match chunks.get(&(id, level, band)) {
+                    None => {
+                        whole = false;
+                        pr.add(
+                            "missing chunk",
+                            format!("chunk {band} of level {level} of survey {id} is missing"),
+                        )
+                    }
+                    Some(&got) if got != want => {
+                        whole = false;
+                        pr.add(
+                            "chunk size",
+                            format!(
+                                "chunk {band} of level {level} of survey {id} holds {got} bytes, \
+                                 not {want}"
+                            ),
+                        )
+                    }
+                    Some(_) => {}
+                }
+            }
+            let extra = chunks
+                .range((id, level, n)..=(id, level, usize::MAX))
+                .count();
+            if extra > 0 {
+                pr.add(
+                    "extra chunk",
+                    format!("{extra} chunks past the end of level {level} of survey {id}"),
+                );
+            }
+        }
+        let levels = r.levels.len();
+        let beyond = chunks
+            .range((id, levels, 0)..=(id, usize::MAX, usize::MAX))
+            .count();
+        if beyond > 0 {
+            pr.add(
+                "extra chunk",
+                format!("{beyond} chunks of levels survey {id} does not have"),
+            );
+        }
+        if whole {
+            let g = match self.load_level(id, 0, &r.levels[0]) {
+                Ok(g) => g,
+                Err(StoreError::Corrupt(m)) => {
+                    pr.add("level", m);
+                    return Ok(());
+                }
+                Err(e) => return Err(e),
+            };
+            if g.valid_count() as u64 != r.samples {
+                pr.add(
+                    "samples",
+                    format!(
+                        "survey {id} has {} valid samples, its record says {}",
+                        g.valid_count(),
+                        r.samples
+                    ),
+                );
+            }
+            let hashed = Survey::id_of(&g, r.accuracy, r.crs);
+            if hashed != id {
+                pr.add(
+                    "content",
+                    format!("the samples of survey {id} hash to {hashed}: they have changed"),
+                );
+            }
+        }
+        Ok(())
+    }
+}

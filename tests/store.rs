@@ -1,0 +1,655 @@
+//! The store: what is committed comes back as the same terrain, retirements and replacements
+//! persist, verify finds damage, old and newer schemas are handled, compaction gives space
+//! back and survives a crash, and a store in use is refused.
+
+mod common;
+
+use common::*;
+use patchwork::index::geom::Aabb;
+use patchwork::index::lod::IndexConfig;
+use patchwork::model::ids::{PatchId, SurveyId};
+use patchwork::model::survey::Survey;
+use patchwork::store::{
+    open_error, FailedRecord, IngestTimings, Opened, Status, Store, StoreError, SurveyRecord,
+    SCHEMA_VERSION,
+};
+use patchwork::terrain::Terrain;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+fn open(dir: &Path) -> Opened {
+    let o = Store::open(dir, LAYOUT, IndexConfig::default()).expect("store opens");
+    assert!(o.warnings.is_empty(), "{:?}", o.warnings);
+    o
+}
+
+fn store_dir(tmp: &tempfile::TempDir) -> PathBuf {
+    tmp.path().join("store")
+}
+
+/// What the daemon does: change a copy of the terrain, commit, and keep the copy only then.
+fn ingest(store: &Store, t: &mut Terrain, s: &Arc<Survey>, source: &str) {
+    let mut next = t.clone();
+    let change = next.insert(s.clone());
+    let rec = SurveyRecord::new(s, source, "", IngestTimings::default());
+    store.commit_survey(s, &rec, &change).expect("commit");
+    *t = next;
+}
+
+fn patch_ids(t: &Terrain, id: SurveyId) -> Vec<PatchId> {
+    t.survey(id).unwrap().patches.iter().map(|p| p.id).collect()
+}
+
+fn retire(store: &Store, t: &mut Terrain, id: SurveyId) {
+    let mut next = t.clone();
+    let ids = patch_ids(t, id);
+    let change = next.retire(id).expect("present");
+    store.commit_retire(id, &ids, &change).expect("retire");
+    *t = next;
+}
+
+fn spec(cols: usize, rows: usize, origin: [f64; 2], seed: u64, accuracy: f64) -> Spec {
+    Spec {
+        cols,
+        rows,
+        origin,
+        theta: 0.0,
+        step: [1.0, 1.0],
+        voids: vec![(cols as f64 * 0.3, rows as f64 * 0.6, 3.0)],
+        accuracy,
+        seed,
+    }
+}
+
+/// Two overlapping surveys of one terrain, one of them rotated and finer.
+fn pair() -> (Arc<Survey>, Arc<Survey>) {
+    let a = spec(48, 40, [0.0, 0.0], 7, 0.0).survey().unwrap();
+    let b = Spec {
+        cols: 60,
+        rows: 52,
+        origin: [12.0, 6.0],
+        theta: 0.4,
+        step: [0.5, 0.5],
+        voids: vec![(20.0, 20.0, 4.0)],
+        accuracy: 1.0,
+        seed: 7,
+    }
+    .survey()
+    .unwrap();
+    (a, b)
+}
+
+fn answers(t: &Terrain, roi: &Aabb) -> Vec<Vec<patchwork::index::query::Extracted>> {
+    [0.0, 0.5, 2.0, 8.0, 40.0]
+        .iter()
+        .map(|&e| t.uniform(roi, e))
+        .collect()
+}
+
+fn heights(t: &Terrain, roi: &Aabb) -> Vec<u32> {
+    t.tile(roi, 33, 29, 1.0)
+        .heights
+        .iter()
+        .map(|z| z.to_bits())
+        .collect()
+}
+
+fn assert_same(a: &Terrain, b: &Terrain, roi: &Aabb) {
+    assert_eq!(a.index().state(), b.index().state());
+    assert_eq!(answers(a, roi), answers(b, roi));
+    assert_eq!(heights(a, roi), heights(b, roi));
+    let mut ia: Vec<_> = a.surveys().map(|s| s.id).collect();
+    let mut ib: Vec<_> = b.surveys().map(|s| s.id).collect();
+    ia.sort();
+    ib.sort();
+    assert_eq!(ia, ib);
+}
+
+fn assert_verified(store: &Store) {
+    let r = store.verify().unwrap();
+    assert!(r.is_ok(), "{:#?}", r.problems);
+}
+
+#[test]
+fn committed_surveys_come_back_as_the_same_terrain() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, b) = pair();
+    let roi = bounds_of(&[a.clone(), b.clone()]);
+    let mut t = Terrain::new(IndexConfig::default());
+    {
+        let Opened { store, terrain, .. } = open(&dir);
+        assert_eq!(store.migrations_run(), &[(0, 1)]);
+        assert_eq!(terrain.index().len(), 0);
+        ingest(&store, &mut t, &a, "/data/a.tif");
+        ingest(&store, &mut t, &b, "/data/b.tif");
+        assert_eq!(store.crs(), Some(32631));
+        assert_verified(&store);
+    }
+    let Opened { store, terrain, .. } = open(&dir);
+    assert!(store.migrations_run().is_empty());
+    assert_same(&terrain, &t, &roi);
+    assert_same(&terrain, &terrain_of(&[a.clone(), b.clone()]), &roi);
+    terrain.index().check().unwrap();
+    // The samples come back bit for bit, voids included.
+    for s in [&a, &b] {
+        let back = terrain.survey(s.id).unwrap();
+        assert_eq!(back.levels.len(), s.levels.len());
+        for (x, y) in back.levels.iter().zip(&s.levels) {
+            let bits = |g: &patchwork::model::grid::Grid| -> Vec<u32> {
+                g.samples.iter().map(|z| z.to_bits()).collect()
+            };
+            assert_eq!(bits(x), bits(y));
+            assert_eq!(x.georef, y.georef);
+        }
+        assert_eq!(back.patches, s.patches);
+    }
+    let recs = store.surveys().unwrap();
+    assert_eq!(recs.len(), 2);
+    let ra = recs.iter().find(|r| r.id == a.id).unwrap();
+    assert_eq!(ra.source, "/data/a.tif");
+    assert_eq!(ra.status, Status::Active);
+    assert_eq!(ra.samples, a.levels[0].valid_count() as u64);
+    assert!(ra.ingest.commit_ms > 0.0);
+    assert_eq!(store.crs(), Some(32631));
+}
+
+#[test]
+fn a_retired_survey_stays_retired() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, b) = pair();
+    let c = spec(30, 30, [20.0, 10.0], 7, 0.5).survey().unwrap();
+    let roi = bounds_of(&[a.clone(), b.clone(), c.clone()]);
+    let mut t = Terrain::new(IndexConfig::default());
+    {
+        let Opened { store, .. } = open(&dir);
+        for (s, n) in [(&a, "a"), (&b, "b"), (&c, "c")] {
+            ingest(&store, &mut t, s, n);
+        }
+        retire(&store, &mut t, b.id);
+        assert!(matches!(
+            store.commit_retire(b.id, &[], &Default::default()),
+            Err(StoreError::NotActive(_))
+        ));
+        assert_verified(&store);
+    }
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_same(&terrain, &t, &roi);
+    assert_same(&terrain, &terrain_of(&[a.clone(), c.clone()]), &roi);
+    let rb = store
+        .surveys()
+        .unwrap()
+        .into_iter()
+        .find(|r| r.id == b.id)
+        .unwrap();
+    assert_eq!(rb.status, Status::Retired);
+    assert!(terrain.survey(b.id).is_none());
+    assert_verified(&store);
+}
+
+#[test]
+fn a_replacement_is_one_commit() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, b) = pair();
+    // The same file rewritten with other heights.
+    let a2 = spec(48, 40, [0.0, 0.0], 11, 0.0).survey().unwrap();
+    assert_ne!(a.id, a2.id);
+    let roi = bounds_of(&[a.clone(), b.clone()]);
+    let mut t = Terrain::new(IndexConfig::default());
+    {
+        let Opened { store, .. } = open(&dir);
+        ingest(&store, &mut t, &a, "a.tif");
+        ingest(&store, &mut t, &b, "b.tif");
+        let mut next = t.clone();
+        let old = patch_ids(&t, a.id);
+        let retired = next.retire(a.id).unwrap();
+        let inserted = next.insert(a2.clone());
+        let rec = SurveyRecord::new(&a2, "a.tif", "", IngestTimings::default());
+        store
+            .commit_replace(a.id, &old, &retired, &a2, &rec, &inserted)
+            .unwrap();
+        t = next;
+        assert_verified(&store);
+    }
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_same(&terrain, &t, &roi);
+    assert_same(&terrain, &terrain_of(&[b.clone(), a2.clone()]), &roi);
+    let recs = store.surveys().unwrap();
+    let status = |id| recs.iter().find(|r| r.id == id).unwrap().status;
+    assert_eq!(status(a.id), Status::Retired);
+    assert_eq!(status(a2.id), Status::Active);
+}
+
+#[test]
+fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, b) = pair();
+    let mut t = Terrain::new(IndexConfig::default());
+    let Opened { store, .. } = open(&dir);
+    ingest(&store, &mut t, &a, "a");
+    ingest(&store, &mut t, &b, "b");
+    let r = store.verify().unwrap();
+    assert!(r.is_ok(), "{:?}", r.problems);
+    assert_eq!((r.active, r.retired), (2, 0));
+    assert_eq!(r.patches, a.patches.len() + b.patches.len());
+    assert_eq!(r.tops, r.patches);
+
+    let chunk = format!("c/{}/01/00000000", a.id);
+    let saved = store.raw().remove(chunk.as_bytes()).unwrap().unwrap();
+    let r = store.verify().unwrap();
+    assert!(
+        r.problems.iter().any(|p| p.contains("chunk 0 of level 1")),
+        "{:?}",
+        r.problems
+    );
+    store.raw().insert(chunk.as_bytes(), saved).unwrap();
+    assert_verified(&store);
+
+    let top = format!("t/{}", b.patches[3].id);
+    let saved = store.raw().remove(top.as_bytes()).unwrap().unwrap();
+    let r = store.verify().unwrap();
+    assert!(
+        r.problems
+            .iter()
+            .any(|p| p.contains(&b.patches[3].id.to_string()) && p.contains("no top")),
+        "{:?}",
+        r.problems
+    );
+
+    // A top that is there but wrong: only re-deriving the index can tell.
+    store
+        .raw()
+        .insert(top.as_bytes(), &12345.0f64.to_le_bytes())
+        .unwrap();
+    let r = store.verify().unwrap();
+    assert!(
+        r.problems.iter().any(|p| p.contains("wrong top")),
+        "{:?}",
+        r.problems
+    );
+    store.raw().insert(top.as_bytes(), saved).unwrap();
+
+    // A top of a patch that belongs to nothing.
+    store
+        .raw()
+        .insert(b"t/0123456789abcdef", &1.0f64.to_le_bytes())
+        .unwrap();
+    let r = store.verify().unwrap();
+    assert!(
+        r.problems.iter().any(|p| p.contains("0123456789abcdef")),
+        "{:?}",
+        r.problems
+    );
+    store.raw().remove(b"t/0123456789abcdef").unwrap();
+
+    // Samples that changed under the same key.
+    let chunk0 = format!("c/{}/00/00000000", a.id);
+    let mut bytes = store
+        .raw()
+        .get(chunk0.as_bytes())
+        .unwrap()
+        .unwrap()
+        .to_vec();
+    bytes[100] ^= 1;
+    store.raw().insert(chunk0.as_bytes(), bytes).unwrap();
+    let r = store.verify().unwrap();
+    assert!(
+        r.problems.iter().any(|p| p.contains("have changed")),
+        "{:?}",
+        r.problems
+    );
+}
+
+#[test]
+fn a_newer_schema_is_refused_naming_both_versions() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    {
+        let Opened { store, .. } = open(&dir);
+        store
+            .raw()
+            .insert(b"meta/schema", &99u32.to_le_bytes())
+            .unwrap();
+        store.raw().flush().unwrap();
+    }
+    let err = Store::open(&dir, LAYOUT, IndexConfig::default())
+        .err()
+        .expect("refused");
+    assert!(
+        matches!(err, StoreError::Newer { found: 99, supported } if supported == SCHEMA_VERSION)
+    );
+    let msg = err.to_string();
+    assert!(
+        msg.contains("99") && msg.contains(&SCHEMA_VERSION.to_string()),
+        "{msg}"
+    );
+}
+
+#[test]
+fn a_directory_with_data_but_no_schema_is_not_adopted() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    {
+        let db = sled::open(&dir).unwrap();
+        db.insert(b"something", b"else").unwrap();
+        db.flush().unwrap();
+    }
+    let err = Store::open(&dir, LAYOUT, IndexConfig::default())
+        .err()
+        .expect("refused");
+    assert!(matches!(err, StoreError::Migration { from: 0, to: 1, .. }));
+    assert!(err.to_string().contains("not a Patchwork store"), "{err}");
+}
+
+#[test]
+fn settings_of_an_existing_store_win() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    drop(open(&dir));
+    let other = patchwork::model::patch::PatchLayout {
+        kernel: 16,
+        margin: 2,
+    };
+    let cfg = IndexConfig {
+        max_error: 500.0,
+        node_capacity: 8,
+    };
+    let Opened { store, .. } = Store::open(&dir, other, cfg).unwrap();
+    assert_eq!(store.layout(), LAYOUT);
+    assert_eq!(store.index_config(), IndexConfig::default());
+}
+
+#[test]
+fn a_failed_commit_changes_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, b) = pair();
+    let mut t = Terrain::new(IndexConfig::default());
+    let Opened { store, .. } = open(&dir);
+    ingest(&store, &mut t, &a, "a");
+    // Another CRS cannot join the store.
+    let foreign = Arc::new(
+        Survey::build(
+            spec(30, 30, [5.0, 5.0], 3, 0.0).grid(),
+            0.0,
+            Some(4326),
+            LAYOUT,
+        )
+        .unwrap(),
+    );
+    let mut next = t.clone();
+    let change = next.insert(foreign.clone());
+    let rec = SurveyRecord::new(&foreign, "f", "", IngestTimings::default());
+    let err = store.commit_survey(&foreign, &rec, &change).unwrap_err();
+    assert!(matches!(
+        err,
+        StoreError::CrsMismatch {
+            survey_crs: 4326,
+            store_crs: 32631,
+            ..
+        }
+    ));
+    // Committing the same survey twice would overwrite its tops with nothing.
+    let rec = SurveyRecord::new(&a, "a", "", IngestTimings::default());
+    let err = store
+        .commit_survey(&a, &rec, &Default::default())
+        .unwrap_err();
+    assert!(matches!(err, StoreError::Duplicate(id) if id == a.id));
+    // A record of another survey is refused.
+    let rec = SurveyRecord::new(&a, "b", "", IngestTimings::default());
+    let mut nb = t.clone();
+    let change = nb.insert(b.clone());
+    assert!(matches!(
+        store.commit_survey(&b, &rec, &change),
+        Err(StoreError::Invalid(_))
+    ));
+    assert_eq!(store.surveys().unwrap().len(), 1);
+    assert_verified(&store);
+}
+
+#[test]
+fn failures_are_recorded_listed_and_cleared() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, _) = pair();
+    let f = |source: &str| FailedRecord {
+        source: source.into(),
+        error: "not a GeoTIFF".into(),
+        size: 1234,
+        mtime_unix: 1_700_000_000,
+        at_unix: 1_700_000_100,
+    };
+    {
+        let Opened { store, .. } = open(&dir);
+        store.record_failure(&f("/in/b.tif")).unwrap();
+        store.record_failure(&f("/in/a.tif")).unwrap();
+        store.record_failure(&f("/in/c.tif")).unwrap();
+        store.clear_failure("/in/c.tif").unwrap();
+        // Clearing what is not there is fine.
+        store.clear_failure("/in/zzz.tif").unwrap();
+    }
+    let Opened { store, .. } = open(&dir);
+    assert_eq!(
+        store.failures().unwrap(),
+        vec![f("/in/a.tif"), f("/in/b.tif")]
+    );
+    // A file that finally ingests loses its failure in the same commit.
+    let mut t = Terrain::new(IndexConfig::default());
+    ingest(&store, &mut t, &a, "/in/a.tif");
+    assert_eq!(store.failures().unwrap(), vec![f("/in/b.tif")]);
+    let r = store.verify().unwrap();
+    assert!(r.is_ok() && r.failures == 1, "{r:?}");
+}
+
+fn big(k: u64) -> Arc<Survey> {
+    let s = Spec {
+        cols: 200,
+        rows: 200,
+        origin: [(k % 3) as f64 * 60.0, (k / 3) as f64 * 60.0],
+        theta: 0.0,
+        step: [1.0, 1.0],
+        voids: vec![(50.0, 120.0, 6.0)],
+        accuracy: 0.5 * k as f64,
+        seed: k,
+    };
+    s.survey().unwrap()
+}
+
+/// A store of six 200×200 surveys, five of them retired, and the terrain it should load as.
+fn retired_store(dir: &Path) -> (Vec<Arc<Survey>>, Terrain) {
+    let surveys: Vec<Arc<Survey>> = (0..6).map(big).collect();
+    let Opened { store, .. } = open(dir);
+    let mut t = Terrain::new(IndexConfig::default());
+    for (k, s) in surveys.iter().enumerate() {
+        ingest(&store, &mut t, s, &format!("/in/{k}.tif"));
+    }
+    for s in &surveys[1..] {
+        retire(&store, &mut t, s.id);
+    }
+    assert_verified(&store);
+    (surveys, t)
+}
+
+#[test]
+fn compaction_gives_space_back_and_keeps_the_answers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (surveys, t) = retired_store(&dir);
+    let roi = bounds_of(&surveys);
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_same(&terrain, &t, &roi);
+    let before = store.disk_bytes();
+    let started = Instant::now();
+    let (Opened { store, terrain, .. }, rep) = store.compact().unwrap();
+    eprintln!("compaction: {rep:?} in {:?}", started.elapsed());
+    assert_eq!(rep.bytes_before, before);
+    assert_eq!(rep.surveys_purged, 5);
+    assert!(
+        rep.bytes_after < rep.bytes_before,
+        "{} → {}",
+        rep.bytes_before,
+        rep.bytes_after
+    );
+    assert_eq!(store.disk_bytes(), rep.bytes_after);
+    assert_same(&terrain, &t, &roi);
+    assert_verified(&store);
+    for s in &surveys[1..] {
+        let chunk = format!("c/{}/00/00000000", s.id);
+        assert!(store.raw().get(chunk.as_bytes()).unwrap().is_none());
+    }
+    // Retired records stay, as history.
+    assert_eq!(store.surveys().unwrap().len(), 6);
+    assert!(!tmp.path().join("store.old").exists());
+    assert!(!tmp.path().join("store.compact").exists());
+    drop(store);
+    // And what compaction wrote opens again.
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_same(&terrain, &t, &roi);
+    // Compacting a compact store changes nothing.
+    let (Opened { terrain, .. }, rep) = store.compact().unwrap();
+    assert_eq!((rep.surveys_purged, rep.keys_removed), (0, 0));
+    assert_same(&terrain, &t, &roi);
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let p = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &p);
+        } else {
+            std::fs::copy(e.path(), p).unwrap();
+        }
+    }
+}
+
+#[test]
+fn open_recovers_from_a_crash_at_any_step_of_compaction() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, b) = pair();
+    let mut t = Terrain::new(IndexConfig::default());
+    {
+        let Opened { store, .. } = open(&dir);
+        ingest(&store, &mut t, &a, "a");
+        ingest(&store, &mut t, &b, "b");
+    }
+    let roi = bounds_of(&[a.clone(), b.clone()]);
+    let old = tmp.path().join("store.old");
+    let compact = tmp.path().join("store.compact");
+    let pristine = tmp.path().join("pristine");
+    copy_dir(&dir, &pristine);
+    let junk = |p: &Path| {
+        std::fs::create_dir_all(p).unwrap();
+        std::fs::write(p.join("db"), b"half a database").unwrap();
+    };
+    let check = |what: &str| {
+        let Opened { store, terrain, .. } = open(&dir);
+        assert_same(&terrain, &t, &roi);
+        assert_verified(&store);
+        assert!(!old.exists(), "{what}: .old left");
+        assert!(!compact.exists(), "{what}: .compact left");
+    };
+
+    // During the copy: a partial `.compact` beside the store.
+    junk(&compact);
+    check("copy");
+    // Between the renames, with and without the copy.
+    std::fs::rename(&dir, &old).unwrap();
+    junk(&compact);
+    check("between renames");
+    std::fs::rename(&dir, &old).unwrap();
+    check("between renames, copy gone");
+    // After both renames, before `.old` is deleted.
+    copy_dir(&pristine, &old);
+    check("after renames");
+    // Only the copy: not ours to guess.
+    std::fs::rename(&dir, &compact).unwrap();
+    let err = Store::open(&dir, LAYOUT, IndexConfig::default())
+        .err()
+        .expect("refused");
+    assert!(matches!(err, StoreError::Corrupt(_)), "{err}");
+    std::fs::rename(&compact, &dir).unwrap();
+    check("copy renamed back");
+}
+
+#[test]
+fn a_store_in_use_is_refused_with_a_helpful_message() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let first = open(&dir);
+    let err = Store::open(&dir, LAYOUT, IndexConfig::default())
+        .err()
+        .expect("locked");
+    assert!(matches!(err, StoreError::Locked { .. }), "{err}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("in use by another process") && msg.contains("is the daemon running?"),
+        "{msg}"
+    );
+    assert!(msg.contains(&dir.display().to_string()), "{msg}");
+
+    // Another process: this test binary again, running only the helper below.
+    let out = std::process::Command::new(std::env::current_exe().unwrap())
+        .args([
+            "--exact",
+            "store_child_opens",
+            "--nocapture",
+            "--test-threads=1",
+        ])
+        .env("PATCHWORK_STORE_CHILD", &dir)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("child: locked"), "{text}");
+
+    drop(first);
+    drop(open(&dir));
+}
+
+/// The other process of the test above; does nothing when run on its own.
+#[test]
+fn store_child_opens() {
+    let Some(dir) = std::env::var_os("PATCHWORK_STORE_CHILD") else {
+        return;
+    };
+    match Store::open(Path::new(&dir), LAYOUT, IndexConfig::default()) {
+        Err(StoreError::Locked { .. }) => println!("child: locked"),
+        Err(e) => println!("child: other error {e}"),
+        Ok(_) => println!("child: opened"),
+    }
+}
+
+#[test]
+fn sled_lock_errors_are_recognised() {
+    let e = sled::Error::Io(std::io::Error::other(
+        "could not acquire lock on \"/x/db\": Os { code: 11, kind: WouldBlock }",
+    ));
+    let err = open_error(e, Path::new("/x"));
+    assert_eq!(
+        err.to_string(),
+        "the store at /x is in use by another process (is the daemon running?)"
+    );
+    let e = sled::Error::Io(std::io::Error::from(std::io::ErrorKind::WouldBlock));
+    assert!(matches!(
+        open_error(e, Path::new("/x")),
+        StoreError::Locked { .. }
+    ));
+    let e = sled::Error::Io(std::io::Error::from(std::io::ErrorKind::PermissionDenied));
+    assert!(matches!(
+        open_error(e, Path::new("/x")),
+        StoreError::Sled(_)
+    ));
+}
+
+#[test]
+fn a_store_can_be_shared_between_threads() {
+    fn shared<T: Send + Sync>() {}
+    shared::<Store>();
+    shared::<Opened>();
+}
