@@ -1,13 +1,19 @@
 //! Patchwork: a terrain database after *Patchwork Terrains* (Rocca, Panozzo, Puppo).
 //!
-//! Data flows read → model → index → store → serve. This crate's modules follow that flow:
-//! [`model`] turns grids into mipmaps and patches, [`index`] keeps the order-independent LOD
-//! space and answers cuts through it, [`resample`] blends the extracted patches into heights,
-//! [`terrain`] ties them together in memory, and [`store`] keeps them on disk.
+//! Data flows read → model → index → store → serve, and so do the modules: [`read`] decodes
+//! DEM files, [`model`] turns grids into mipmaps and patches, [`index`] keeps the
+//! order-independent LOD space and answers cuts through it, [`resample`] blends extracted
+//! patches into heights, [`terrain`] ties them together in memory, [`store`] keeps them on
+//! disk, and [`engine`], [`watch`] and [`serve`] make the daemon.
 
+pub mod config;
+pub mod engine;
 pub mod index;
+pub mod ingest;
 pub mod model;
 pub mod read;
 pub mod resample;
+pub mod serve;
 pub mod store;
 pub mod terrain;
+pub mod watch;

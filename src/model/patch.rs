@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 /// How a level is cut into patches, in whole cells so that windows align with samples.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct PatchLayout {
     /// Kernel side in cells. Kernels of one level tile it without overlap.
     pub kernel: usize,

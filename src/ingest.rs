@@ -1,0 +1,132 @@
+//! From a file to a survey: read, apply the sidecar, check the CRS, build the model.
+
+use crate::config::parse_epsg;
+use crate::model::patch::PatchLayout;
+use crate::model::survey::{Survey, SurveyError};
+use crate::read::{read_raster, ReadError, ReadLimits};
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum IngestError {
+    #[error("{0}")]
+    Read(#[from] ReadError),
+    #[error("sidecar {path}: {message}")]
+    Sidecar { path: PathBuf, message: String },
+    #[error("the file has no CRS: add a sidecar {sidecar} with crs = \"EPSG:…\"")]
+    NoCrs { sidecar: PathBuf },
+    #[error("the file is in EPSG:{file} but the store is in EPSG:{store}; reproject it first")]
+    CrsMismatch { file: u32, store: u32 },
+    #[error("georeference: {0}")]
+    Grid(#[from] crate::model::grid::GridError),
+    #[error("{0}")]
+    Survey(#[from] SurveyError),
+    #[error("{path} is not a regular file")]
+    NotAFile { path: PathBuf },
+}
+
+/// What `<file>.toml` beside a DEM may say.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Sidecar {
+    accuracy_m: Option<f64>,
+    crs: Option<String>,
+}
+
+/// How a survey was made, for its record.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Timings {
+    pub read_ms: u64,
+    pub build_ms: u64,
+}
+
+pub fn sidecar_path(path: &Path) -> PathBuf {
+    let mut s = path.as_os_str().to_owned();
+    s.push(".toml");
+    PathBuf::from(s)
+}
+
+fn read_sidecar(path: &Path) -> Result<Sidecar, IngestError> {
+    let side = sidecar_path(path);
+    match std::fs::read_to_string(&side) {
+        Ok(text) => toml::from_str(&text).map_err(|e| IngestError::Sidecar {
+            path: side,
+            message: e.to_string(),
+        }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Sidecar::default()),
+        Err(e) => Err(IngestError::Sidecar {
+            path: side,
+            message: e.to_string(),
+        }),
+    }
+}
+
+/// The settings an ingest needs from the store and the config.
+#[derive(Clone, Debug)]
+pub struct IngestSettings {
+    /// `--accuracy` from the caller, which a sidecar overrides.
+    pub accuracy: Option<f64>,
+    pub default_accuracy: f64,
+    /// The store's CRS, once it has one.
+    pub store_crs: Option<u32>,
+    pub layout: PatchLayout,
+    pub max_samples: u64,
+}
+
+/// Reads and models one file. Pure of the store: nothing is written.
+pub fn prepare(path: &Path, s: &IngestSettings) -> Result<(Survey, Timings), IngestError> {
+    if !path.is_file() {
+        return Err(IngestError::NotAFile { path: path.into() });
+    }
+    let side = read_sidecar(path)?;
+    let t0 = Instant::now();
+    let raster = read_raster(
+        path,
+        &ReadLimits {
+            max_samples: s.max_samples,
+        },
+    )?;
+    let read_ms = t0.elapsed().as_millis() as u64;
+    let crs = match side.crs.as_deref() {
+        Some(c) => Some(parse_epsg(c).ok_or_else(|| IngestError::Sidecar {
+            path: sidecar_path(path),
+            message: format!("crs must look like \"EPSG:4326\", got {c:?}"),
+        })?),
+        None => raster.epsg,
+    };
+    let crs = crs.ok_or_else(|| IngestError::NoCrs {
+        sidecar: sidecar_path(path),
+    })?;
+    if let Some(store) = s.store_crs {
+        if store != crs {
+            return Err(IngestError::CrsMismatch { file: crs, store });
+        }
+    }
+    let accuracy = side.accuracy_m.or(s.accuracy).unwrap_or(s.default_accuracy);
+    let t1 = Instant::now();
+    let grid = raster.into_grid()?;
+    let survey = Survey::build(grid, accuracy, Some(crs), s.layout)?;
+    Ok((
+        survey,
+        Timings {
+            read_ms,
+            build_ms: t1.elapsed().as_millis() as u64,
+        },
+    ))
+}
+
+/// Names the watcher leaves alone: files still being written or editor droppings.
+pub fn is_temporary(path: &Path) -> bool {
+    let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
+        return true;
+    };
+    name.starts_with(".~")
+        || name.starts_with('.')
+        || name.ends_with(".part")
+        || name.ends_with(".tmp")
+        || name.ends_with(".toml")
+        || name.ends_with(".prj")
+        || name.ends_with('~')
+}

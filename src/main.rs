@@ -1,0 +1,570 @@
+//! `patchwork`: the daemon and its command line.
+
+use clap::{Args, Parser, Subcommand};
+use patchwork::config::Config;
+use patchwork::engine::Engine;
+use patchwork::serve::proto::{
+    self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
+};
+use patchwork::serve::{api, grpc};
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+use tonic::transport::Channel;
+
+#[derive(Parser)]
+#[command(
+    name = "patchwork",
+    version,
+    about = "A terrain database of overlapping DEM surveys"
+)]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Args, Clone)]
+struct Target {
+    /// The daemon to talk to.
+    #[arg(
+        long,
+        env = "PATCHWORK_SERVER",
+        default_value = "http://127.0.0.1:50051"
+    )]
+    server: String,
+    /// Open the store in DIR directly instead of talking to a daemon.
+    #[arg(long, value_name = "DIR")]
+    data_dir: Option<PathBuf>,
+    /// Config for direct mode (layout, limits); defaults otherwise.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Run the daemon: watch the inbox and serve the gRPC API.
+    Serve {
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+    },
+    /// Ingest files now.
+    Ingest {
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// Accuracy ε in metres for files without a sidecar.
+        #[arg(long, value_name = "M")]
+        accuracy: Option<f64>,
+        #[command(flatten)]
+        target: Target,
+    },
+    /// List surveys, failed files included.
+    Surveys {
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Retire a survey by id or source path.
+    Retire {
+        id_or_source: String,
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Store statistics.
+    Stats {
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Re-check the store and the index.
+    Verify {
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Remove retired surveys for good and give disk space back.
+    Compact {
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Patches for a region and error, or for a view.
+    Query {
+        #[command(flatten)]
+        cut: CutArgs,
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Resample a north-up tile and write it as GeoTIFF (.tif) or numpy (.npy).
+    Tile {
+        #[arg(long, value_name = "XMIN,YMIN,XMAX,YMAX", allow_hyphen_values = true)]
+        roi: String,
+        #[arg(long, value_name = "WxH")]
+        size: String,
+        #[arg(long, value_name = "E", default_value_t = 0.0)]
+        error: f64,
+        #[arg(long, value_name = "auto|cpu|gpu", default_value = "auto")]
+        backend: String,
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+        #[command(flatten)]
+        target: Target,
+    },
+}
+
+#[derive(Args, Clone)]
+struct CutArgs {
+    #[arg(long, value_name = "XMIN,YMIN,XMAX,YMAX", allow_hyphen_values = true)]
+    roi: Option<String>,
+    #[arg(long, value_name = "E")]
+    error: Option<f64>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    eye: Option<String>,
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    look: Option<String>,
+    #[arg(long, value_name = "DEG", default_value_t = 60.0)]
+    fov: f64,
+    #[arg(long, value_name = "PX", default_value_t = 1024)]
+    viewport: u32,
+    #[arg(long, value_name = "P", default_value_t = 1.0)]
+    pixel_error: f64,
+}
+
+type Fail = Box<dyn std::error::Error>;
+
+fn numbers<const N: usize>(s: &str, what: &str) -> Result<[f64; N], Fail> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("{what}: expected {N} comma-separated numbers, got {s:?}"))?;
+    v.try_into()
+        .map_err(|_| format!("{what}: expected {N} comma-separated numbers, got {s:?}").into())
+}
+
+fn rect(s: &str) -> Result<pb::Rect, Fail> {
+    let [xmin, ymin, xmax, ymax] = numbers::<4>(s, "--roi")?;
+    Ok(pb::Rect {
+        xmin,
+        ymin,
+        xmax,
+        ymax,
+    })
+}
+
+/// The daemon, or the store opened in this process.
+enum Client {
+    Remote {
+        terrain: Box<TerrainClient<Channel>>,
+        admin: Box<AdminClient<Channel>>,
+    },
+    Local(Arc<Engine>),
+}
+
+impl Client {
+    async fn connect(t: &Target) -> Result<Client, Fail> {
+        if let Some(dir) = &t.data_dir {
+            let mut cfg = Config::load(t.config.as_deref())?;
+            cfg.data_dir = dir.clone();
+            let engine = tokio::task::spawn_blocking(move || Engine::open(cfg)).await??;
+            return Ok(Client::Local(Arc::new(engine)));
+        }
+        let ch = Channel::from_shared(t.server.clone())?.connect().await.map_err(|e| {
+            format!("cannot reach the daemon at {}: {e}; start it with `patchwork serve`, or use --data-dir DIR", t.server)
+        })?;
+        Ok(Client::Remote {
+            terrain: Box::new(TerrainClient::new(ch.clone()).max_decoding_message_size(1 << 30)),
+            admin: Box::new(AdminClient::new(ch)),
+        })
+    }
+}
+
+/// Runs one request either way: over gRPC, or through the same dispatcher the daemon uses.
+macro_rules! call {
+    ($client:expr, $svc:ident . $rpc:ident($req:expr), $local:expr) => {
+        match $client {
+            Client::Remote { $svc, .. } => $svc
+                .$rpc($req)
+                .await
+                .map(|r| r.into_inner())
+                .map_err(|s| -> Fail { s.message().to_string().into() }),
+            Client::Local(engine) => {
+                let engine = engine.clone();
+                tokio::task::spawn_blocking(move || $local(&engine))
+                    .await?
+                    .map_err(|e| -> Fail { e.to_string().into() })
+            }
+        }
+    };
+}
+
+fn view_of(c: &CutArgs) -> Result<Option<pb::ViewCut>, Fail> {
+    match (&c.eye, &c.look) {
+        (Some(e), Some(l)) => {
+            let [ex, ey, ez] = numbers::<3>(e, "--eye")?;
+            let [lx, ly, lz] = numbers::<3>(l, "--look")?;
+            Ok(Some(pb::ViewCut {
+                eye_x: ex,
+                eye_y: ey,
+                eye_z: ez,
+                look_x: lx,
+                look_y: ly,
+                look_z: lz,
+                fov_deg: c.fov,
+                viewport_px: c.viewport,
+                pixel_error: c.pixel_error,
+            }))
+        }
+        (None, None) => Ok(None),
+        _ => Err("a view needs both --eye and --look".into()),
+    }
+}
+
+fn write_tile(out: &Path, t: &pb::Tile, roi: &pb::Rect) -> Result<(), Fail> {
+    match out.extension().and_then(|e| e.to_str()) {
+        Some("tif") | Some("tiff") => {
+            let gt = [
+                roi.xmin,
+                (roi.xmax - roi.xmin) / t.width as f64,
+                0.0,
+                roi.ymax,
+                0.0,
+                -(roi.ymax - roi.ymin) / t.height as f64,
+            ];
+            patchwork::read::write_tiff::write_geotiff_f32(
+                out,
+                t.width as usize,
+                t.height as usize,
+                &t.heights,
+                gt,
+                (t.crs != 0).then_some(t.crs),
+                Some(-9999.0),
+            )?;
+        }
+        Some("npy") => {
+            let header = format!(
+                "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}), }}",
+                t.height, t.width
+            );
+            let pad = 64 - (10 + header.len() + 1) % 64;
+            let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+            bytes.extend_from_slice(&((header.len() + pad + 1) as u16).to_le_bytes());
+            bytes.extend_from_slice(header.as_bytes());
+            bytes.extend(std::iter::repeat_n(b' ', pad));
+            bytes.push(b'\n');
+            for z in &t.heights {
+                bytes.extend_from_slice(&z.to_le_bytes());
+            }
+            std::fs::write(out, bytes)?;
+        }
+        _ => return Err(format!("--out {}: use a .tif or .npy name", out.display()).into()),
+    }
+    Ok(())
+}
+
+async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
+    let cfg = Config::load(config.as_deref())?;
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_new(&cfg.log).unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .init();
+    std::fs::create_dir_all(&cfg.data_dir)?;
+    let listen = cfg.listen.clone();
+    let engine = Arc::new(tokio::task::spawn_blocking(move || Engine::open(cfg)).await??);
+    let listener = tokio::net::TcpListener::bind(&listen)
+        .await
+        .map_err(|e| format!("cannot listen on {listen}: {e}"))?;
+    tracing::info!(address = %listener.local_addr()?, data = %engine.config().data_dir.display(), inbox = ?engine.config().inbox, "serving");
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let watcher = tokio::spawn(patchwork::watch::run(engine.clone(), stop_rx));
+    let shutdown = async move {
+        let ctrl_c = tokio::signal::ctrl_c();
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+            .expect("signal handler");
+        tokio::select! { _ = ctrl_c => {}, _ = term.recv() => {} }
+        tracing::info!("shutting down");
+        let _ = stop_tx.send(true);
+    };
+    grpc::serve(engine, listener, shutdown)
+        .await
+        .map_err(|e| -> Fail { e.to_string().into() })?;
+    let _ = watcher.await;
+    Ok(())
+}
+
+async fn run(cli: Cli) -> Result<(), Fail> {
+    match cli.cmd {
+        Cmd::Serve { config } => serve(config).await,
+        Cmd::Ingest {
+            files,
+            accuracy,
+            target,
+        } => {
+            let mut c = Client::connect(&target).await?;
+            let bar = indicatif::ProgressBar::new(files.len() as u64);
+            let mut failed = 0;
+            for f in files {
+                let path = patchwork::engine::source_name(&f);
+                let req = pb::IngestRequest {
+                    paths: vec![path],
+                    accuracy_m: accuracy,
+                };
+                let r = req.clone();
+                let reply = call!(&mut c, admin.ingest(req), move |e: &Engine| api::ingest(
+                    e, &r
+                ))?;
+                for r in reply.results {
+                    if r.outcome == "failed" {
+                        failed += 1;
+                        bar.println(format!("failed    {}: {}", r.source, r.error));
+                    } else {
+                        bar.println(format!(
+                            "{:<9} {} {:016x} ({} samples, {:.2} s)",
+                            r.outcome, r.source, r.survey, r.samples, r.seconds
+                        ));
+                    }
+                }
+                bar.inc(1);
+            }
+            bar.finish_and_clear();
+            if failed > 0 {
+                return Err(format!("{failed} file(s) failed").into());
+            }
+            Ok(())
+        }
+        Cmd::Surveys { json, target } => {
+            let mut c = Client::connect(&target).await?;
+            let list = call!(
+                &mut c,
+                admin.list_surveys(pb::ListSurveysRequest {}),
+                api::list_surveys
+            )?;
+            if json {
+                let v: Vec<_> = list
+                    .surveys
+                    .iter()
+                    .map(|s| {
+                        json!({
+                            "id": s.id, "source": s.source, "status": s.status,
+                            "error": (s.status == "failed").then_some(&s.error),
+                            "accuracy_m": s.accuracy_m, "samples": s.samples, "patches": s.patches,
+                        })
+                    })
+                    .collect();
+                println!("{}", serde_json::to_string_pretty(&v)?);
+            } else {
+                for s in &list.surveys {
+                    match s.status.as_str() {
+                        "failed" => println!("{:<16}  failed   {}  {}", "-", s.source, s.error),
+                        st => println!(
+                            "{:<16}  {:<7}  {}  ε={} m  {} samples  {} patches",
+                            s.id, st, s.source, s.accuracy_m, s.samples, s.patches
+                        ),
+                    }
+                }
+            }
+            Ok(())
+        }
+        Cmd::Retire {
+            id_or_source,
+            target,
+        } => {
+            let mut c = Client::connect(&target).await?;
+            let source = if Path::new(&id_or_source).exists() {
+                patchwork::engine::source_name(Path::new(&id_or_source))
+            } else {
+                id_or_source
+            };
+            let req = pb::RetireRequest {
+                id_or_source: source,
+            };
+            let r = req.clone();
+            let reply = call!(&mut c, admin.retire(req), move |e: &Engine| api::retire(
+                e, &r
+            ))?;
+            println!("retired {} ({} patches)", reply.id, reply.patches);
+            Ok(())
+        }
+        Cmd::Stats { json, target } => {
+            let mut c = Client::connect(&target).await?;
+            let s = call!(&mut c, admin.stats(pb::StatsRequest {}), api::stats)?;
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&json!({
+                        "surveys": s.surveys, "retired": s.retired, "failed": s.failed, "patches": s.patches,
+                        "active_boxes": s.active_boxes, "samples": s.samples, "disk_bytes": s.disk_bytes,
+                        "crs": (s.crs != 0).then(|| format!("EPSG:{}", s.crs)), "backend": s.backend, "quadtree_nodes": s.quadtree_nodes,
+                    }))?
+                );
+            } else {
+                println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {}\nbackend {}",
+                    s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes,
+                    if s.crs == 0 { "none yet".to_string() } else { format!("EPSG:{}", s.crs) }, s.backend);
+            }
+            Ok(())
+        }
+        Cmd::Verify { target } => {
+            let mut c = Client::connect(&target).await?;
+            let v = call!(&mut c, admin.verify(pb::VerifyRequest {}), api::verify)?;
+            for p in &v.problems {
+                println!("problem: {p}");
+            }
+            if v.ok {
+                println!("ok: {} surveys, {} patches", v.surveys, v.patches);
+                Ok(())
+            } else {
+                Err(format!("{} problem(s) found", v.problems.len()).into())
+            }
+        }
+        Cmd::Compact { target } => {
+            let mut c = Client::connect(&target).await?;
+            let spinner = indicatif::ProgressBar::new_spinner();
+            spinner.set_message("compacting");
+            spinner.enable_steady_tick(std::time::Duration::from_millis(120));
+            let r = call!(&mut c, admin.compact(pb::CompactRequest {}), api::compact)?;
+            spinner.finish_and_clear();
+            println!(
+                "compacted: {} → {} bytes, {} retired surveys removed",
+                r.bytes_before, r.bytes_after, r.surveys_removed
+            );
+            Ok(())
+        }
+        Cmd::Query { cut, json, target } => {
+            let mut c = Client::connect(&target).await?;
+            let q = match (view_of(&cut)?, &cut.roi) {
+                (Some(v), None) => pb::PatchQuery {
+                    cut: Some(pb::patch_query::Cut::View(v)),
+                    batch_size: 0,
+                },
+                (None, Some(roi)) => pb::PatchQuery {
+                    cut: Some(pb::patch_query::Cut::Uniform(pb::UniformCut {
+                        roi: Some(rect(roi)?),
+                        error: cut.error.ok_or("--roi needs --error")?,
+                    })),
+                    batch_size: 0,
+                },
+                _ => return Err("give either --roi with --error, or --eye and --look".into()),
+            };
+            let patches: Vec<pb::Patch> = match &mut c {
+                Client::Remote { terrain, .. } => {
+                    let mut s = terrain
+                        .query_patches(q)
+                        .await
+                        .map_err(|s| -> Fail { s.message().to_string().into() })?
+                        .into_inner();
+                    let mut all = Vec::new();
+                    while let Some(b) = s
+                        .message()
+                        .await
+                        .map_err(|s| -> Fail { s.message().to_string().into() })?
+                    {
+                        all.extend(b.patches);
+                    }
+                    all
+                }
+                Client::Local(e) => api::query_patches(e, &q)
+                    .map_err(|e| -> Fail { e.to_string().into() })?
+                    .into_iter()
+                    .flat_map(|b| b.patches)
+                    .collect(),
+            };
+            if json {
+                let v: Vec<_> = patches.iter().map(|p| {
+                    let b = p.bounds.unwrap_or_default();
+                    json!({"id": format!("{:016x}", p.id), "survey": format!("{:016x}", p.survey), "level": p.level,
+                           "error": p.error, "max_error": p.max_error, "bounds": [b.xmin, b.ymin, b.xmax, b.ymax]})
+                }).collect();
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&json!({ "patches": v }))?
+                );
+            } else {
+                for p in &patches {
+                    let b = p.bounds.unwrap_or_default();
+                    println!(
+                        "{:016x}  survey {:016x}  level {}  error {:.3}..{:.3} m  [{}, {}, {}, {}]",
+                        p.id,
+                        p.survey,
+                        p.level,
+                        p.error,
+                        p.max_error,
+                        b.xmin,
+                        b.ymin,
+                        b.xmax,
+                        b.ymax
+                    );
+                }
+                println!("{} patches", patches.len());
+            }
+            Ok(())
+        }
+        Cmd::Tile {
+            roi,
+            size,
+            error,
+            backend,
+            out,
+            target,
+        } => {
+            let mut c = Client::connect(&target).await?;
+            let roi = rect(&roi)?;
+            let (w, h) = size
+                .split_once(['x', 'X'])
+                .and_then(|(a, b)| Some((a.parse::<u32>().ok()?, b.parse::<u32>().ok()?)))
+                .ok_or_else(|| format!("--size: expected WxH, e.g. 512x512, got {size:?}"))?;
+            let backend = match backend.as_str() {
+                "auto" => pb::Backend::Auto,
+                "cpu" => pb::Backend::Cpu,
+                "gpu" => pb::Backend::Gpu,
+                other => return Err(format!("--backend: {other:?} is not auto, cpu or gpu").into()),
+            };
+            let req = pb::TileRequest {
+                cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
+                    roi: Some(roi),
+                    error,
+                })),
+                width: w,
+                height: h,
+                backend: backend as i32,
+            };
+            let r = req;
+            let t = call!(&mut c, terrain.resample_tile(req), move |e: &Engine| {
+                api::resample_tile(e, &r)
+            })?;
+            write_tile(&out, &t, &roi)?;
+            let valid = t.valid.iter().filter(|&&v| v == 1).count();
+            println!(
+                "wrote {} ({}×{}, {} valid samples, {} patches, max error {:.3} m, {})",
+                out.display(),
+                t.width,
+                t.height,
+                valid,
+                t.patches,
+                t.max_error,
+                t.backend
+            );
+            Ok(())
+        }
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("tokio runtime");
+    match rt.block_on(run(cli)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("patchwork: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

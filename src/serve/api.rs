@@ -1,0 +1,119 @@
+//! Requests to replies: the dispatcher between the API and the engine. The gRPC handlers run
+//! these on a blocking thread; the CLI's `--data-dir` mode calls them directly.
+
+use super::convert;
+use super::proto as pb;
+use crate::engine::{Cut, Engine, EngineError};
+use std::path::Path;
+
+fn cut_of(
+    engine: &Engine,
+    u: Option<&pb::UniformCut>,
+    v: Option<&pb::ViewCut>,
+) -> Result<Cut, EngineError> {
+    match (u, v) {
+        (Some(u), None) => convert::uniform_cut(u),
+        (None, Some(v)) => convert::view_cut(engine, v),
+        _ => Err(EngineError::Invalid(
+            "give exactly one cut: uniform (roi + error) or view".into(),
+        )),
+    }
+}
+
+pub fn query_patches(
+    engine: &Engine,
+    r: &pb::PatchQuery,
+) -> Result<Vec<pb::PatchBatch>, EngineError> {
+    let (u, v) = match &r.cut {
+        Some(pb::patch_query::Cut::Uniform(u)) => (Some(u), None),
+        Some(pb::patch_query::Cut::View(v)) => (None, Some(v)),
+        None => (None, None),
+    };
+    let cut = cut_of(engine, u, v)?;
+    let (t, ps) = engine.query(&cut)?;
+    let size = if r.batch_size == 0 {
+        256
+    } else {
+        r.batch_size as usize
+    };
+    Ok(ps
+        .chunks(size)
+        .map(|c| pb::PatchBatch {
+            patches: c.iter().filter_map(|x| convert::patch(&t, x)).collect(),
+        })
+        .collect())
+}
+
+pub fn resample_tile(engine: &Engine, r: &pb::TileRequest) -> Result<pb::Tile, EngineError> {
+    let (u, v) = match &r.cut {
+        Some(pb::tile_request::Cut::Uniform(u)) => (Some(u), None),
+        Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
+        None => (None, None),
+    };
+    let cut = cut_of(engine, u, v)?;
+    let backend = convert::backend(r.backend)?;
+    let (tile, used) = engine.tile(&cut, r.width, r.height, backend)?;
+    Ok(convert::tile(&tile, used, engine.crs()))
+}
+
+pub fn sample_heights(engine: &Engine, r: &pb::SampleRequest) -> Result<pb::Samples, EngineError> {
+    let pts: Vec<[f64; 2]> = r.points.iter().map(|p| [p.x, p.y]).collect();
+    let heights = engine.sample(&pts, r.error)?;
+    Ok(pb::Samples {
+        valid: heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
+        heights,
+    })
+}
+
+pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply, EngineError> {
+    if let Some(a) = r.accuracy_m {
+        if !(a.is_finite() && a >= 0.0) {
+            return Err(EngineError::Invalid(format!(
+                "accuracy must be ≥ 0 m, got {a}"
+            )));
+        }
+    }
+    Ok(pb::IngestReply {
+        results: r
+            .paths
+            .iter()
+            .map(|p| convert::ingested(&engine.ingest(Path::new(p), r.accuracy_m)))
+            .collect(),
+    })
+}
+
+pub fn list_surveys(engine: &Engine) -> Result<pb::SurveyList, EngineError> {
+    let (records, failures) = engine.surveys()?;
+    Ok(convert::surveys(&engine.snapshot(), &records, &failures))
+}
+
+pub fn retire(engine: &Engine, r: &pb::RetireRequest) -> Result<pb::RetireReply, EngineError> {
+    let (id, patches) = engine.retire(&r.id_or_source)?;
+    Ok(pb::RetireReply {
+        id: id.to_string(),
+        patches: patches as u32,
+    })
+}
+
+pub fn stats(engine: &Engine) -> Result<pb::StatsReply, EngineError> {
+    Ok(convert::stats(&engine.stats()?))
+}
+
+pub fn verify(engine: &Engine) -> Result<pb::VerifyReply, EngineError> {
+    let v = engine.verify()?;
+    Ok(pb::VerifyReply {
+        ok: v.problems.is_empty(),
+        problems: v.problems.clone(),
+        surveys: v.active as u32,
+        patches: v.patches as u64,
+    })
+}
+
+pub fn compact(engine: &Engine) -> Result<pb::CompactReply, EngineError> {
+    let c = engine.compact()?;
+    Ok(pb::CompactReply {
+        bytes_before: c.bytes_before,
+        bytes_after: c.bytes_after,
+        surveys_removed: c.surveys_purged as u32,
+    })
+}

@@ -1,0 +1,167 @@
+//! Engine results as API messages. The server and the CLI's direct mode share these, so both
+//! print the same thing.
+
+use super::proto as pb;
+use crate::engine::{Backend, Cut, Engine, EngineError, Event, Ingested, Stats};
+use crate::index::geom::Aabb;
+use crate::index::query::Extracted;
+use crate::store::{FailedRecord, Status, SurveyRecord};
+use crate::terrain::{Terrain, Tile};
+
+pub fn rect(b: &Aabb) -> pb::Rect {
+    pb::Rect {
+        xmin: b.min[0],
+        ymin: b.min[1],
+        xmax: b.max[0],
+        ymax: b.max[1],
+    }
+}
+
+pub fn aabb(r: &Option<pb::Rect>) -> Result<Aabb, EngineError> {
+    let r = r
+        .as_ref()
+        .ok_or_else(|| EngineError::Invalid("the request needs a region (roi)".into()))?;
+    Ok(Aabb::new(r.xmin, r.ymin, r.xmax, r.ymax))
+}
+
+pub fn uniform_cut(c: &pb::UniformCut) -> Result<Cut, EngineError> {
+    Ok(Cut::Uniform {
+        roi: aabb(&c.roi)?,
+        error: c.error,
+    })
+}
+
+pub fn view_cut(engine: &Engine, v: &pb::ViewCut) -> Result<Cut, EngineError> {
+    Ok(Cut::View(engine.view_query(
+        [v.eye_x, v.eye_y, v.eye_z],
+        [v.look_x, v.look_y, v.look_z],
+        v.fov_deg,
+        v.viewport_px,
+        v.pixel_error,
+    )?))
+}
+
+pub fn backend(b: i32) -> Result<Backend, EngineError> {
+    match pb::Backend::try_from(b) {
+        Ok(pb::Backend::Auto) => Ok(Backend::Auto),
+        Ok(pb::Backend::Cpu) => Ok(Backend::Cpu),
+        Ok(pb::Backend::Gpu) => Ok(Backend::Gpu),
+        Err(_) => Err(EngineError::Invalid(format!(
+            "unknown backend {b}: use auto, cpu or gpu"
+        ))),
+    }
+}
+
+/// A patch with its window's samples, ready to send.
+pub fn patch(t: &Terrain, x: &Extracted) -> Option<pb::Patch> {
+    let (s, p) = t.patch(x.id)?;
+    let level = &s.levels[p.level as usize];
+    let w = p.window;
+    let cols = w.cols() + 1;
+    let rows = w.rows() + 1;
+    let mut samples = Vec::with_capacity((cols * rows) as usize);
+    for r in w.r0..=w.r1 {
+        let start = r as usize * level.cols + w.c0 as usize;
+        samples.extend_from_slice(&level.samples[start..start + cols as usize]);
+    }
+    let o = level.georef.to_world(w.c0 as f64, w.r0 as f64);
+    Some(pb::Patch {
+        id: x.id.0,
+        survey: x.survey.0,
+        level: x.level as u32,
+        error: x.span.min_z,
+        max_error: x.span.max_z,
+        bounds: Some(rect(&x.kernel.aabb())),
+        frame: Some(pb::Frame {
+            origin_x: o[0],
+            origin_y: o[1],
+            theta: level.georef.theta,
+            step_x: level.georef.step[0],
+            step_y: level.georef.step[1],
+        }),
+        cols,
+        rows,
+        samples,
+        kernel_c0: p.kernel.c0 - w.c0,
+        kernel_r0: p.kernel.r0 - w.r0,
+        kernel_c1: p.kernel.c1 - w.c0,
+        kernel_r1: p.kernel.r1 - w.r0,
+    })
+}
+
+pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {
+    pb::Tile {
+        width: t.width as u32,
+        height: t.height as u32,
+        valid: t.heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
+        heights: t.heights.clone(),
+        patches: t.patches.len() as u32,
+        backend: backend.into(),
+        crs: crs.unwrap_or(0),
+        max_error: t.patches.iter().map(|p| p.span.min_z).fold(0.0, f64::max),
+    }
+}
+
+pub fn ingested(i: &Ingested) -> pb::IngestResult {
+    pb::IngestResult {
+        source: i.source.clone(),
+        outcome: i.outcome.into(),
+        survey: i.survey.map(|s| s.0).unwrap_or(0),
+        error: i.error.clone(),
+        samples: i.samples,
+        seconds: i.seconds,
+    }
+}
+
+pub fn surveys(t: &Terrain, records: &[SurveyRecord], failures: &[FailedRecord]) -> pb::SurveyList {
+    let mut out: Vec<pb::SurveyInfo> = records
+        .iter()
+        .map(|r| pb::SurveyInfo {
+            id: r.id.to_string(),
+            source: r.source.clone(),
+            status: match r.status {
+                Status::Active => "active".into(),
+                Status::Retired => "retired".into(),
+            },
+            error: String::new(),
+            accuracy_m: r.accuracy,
+            samples: r.samples,
+            crs: r.crs.unwrap_or(0),
+            patches: t.index().survey_patches(r.id).map_or(0, |p| p.len() as u32),
+        })
+        .collect();
+    out.extend(failures.iter().map(|f| pb::SurveyInfo {
+        id: String::new(),
+        source: f.source.clone(),
+        status: "failed".into(),
+        error: f.error.clone(),
+        ..Default::default()
+    }));
+    out.sort_by(|a, b| a.source.cmp(&b.source).then(a.id.cmp(&b.id)));
+    pb::SurveyList { surveys: out }
+}
+
+pub fn stats(s: &Stats) -> pb::StatsReply {
+    pb::StatsReply {
+        surveys: s.surveys,
+        retired: s.retired,
+        failed: s.failed,
+        patches: s.patches,
+        active_boxes: s.active_boxes,
+        samples: s.samples,
+        disk_bytes: s.disk_bytes,
+        crs: s.crs.unwrap_or(0),
+        backend: s.backend.into(),
+        quadtree_nodes: s.quadtree_nodes,
+    }
+}
+
+pub fn event(e: &Event) -> pb::ChangeEvent {
+    pb::ChangeEvent {
+        kind: e.kind.into(),
+        survey: e.survey.map(|s| s.0).unwrap_or(0),
+        source: e.source.clone(),
+        error: e.error.clone(),
+        at_unix: e.at_unix,
+    }
+}

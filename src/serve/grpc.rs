@@ -1,0 +1,193 @@
+//! The gRPC services: each handler runs the dispatcher on a blocking thread under the request
+//! deadline and maps errors in `status`.
+
+use super::proto::{self as pb, admin_server, terrain_server};
+use super::{api, convert, status};
+use crate::engine::{Engine, EngineError};
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status};
+
+#[derive(Clone)]
+pub struct Service {
+    engine: Arc<Engine>,
+}
+
+impl Service {
+    pub fn new(engine: Arc<Engine>) -> Self {
+        Service { engine }
+    }
+
+    /// Runs `f` off the async threads, within the configured deadline.
+    async fn run<T, F>(&self, f: F) -> Result<T, Status>
+    where
+        T: Send + 'static,
+        F: FnOnce(&Engine) -> Result<T, EngineError> + Send + 'static,
+    {
+        let engine = self.engine.clone();
+        let ms = engine.config().limits.deadline_ms;
+        let job = tokio::task::spawn_blocking(move || f(&engine));
+        match tokio::time::timeout(Duration::from_millis(ms), job).await {
+            Ok(Ok(r)) => r.map_err(status::to_status),
+            Ok(Err(e)) => Err(Status::internal(format!("the request failed: {e}"))),
+            Err(_) => Err(status::deadline(ms)),
+        }
+    }
+}
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
+
+#[tonic::async_trait]
+impl terrain_server::Terrain for Service {
+    type QueryPatchesStream = BoxStream<pb::PatchBatch>;
+    type SubscribeStream = BoxStream<pb::ChangeEvent>;
+
+    async fn query_patches(
+        &self,
+        r: Request<pb::PatchQuery>,
+    ) -> Result<Response<Self::QueryPatchesStream>, Status> {
+        let r = r.into_inner();
+        let batches = self.run(move |e| api::query_patches(e, &r)).await?;
+        Ok(Response::new(Box::pin(tokio_stream::iter(
+            batches.into_iter().map(Ok),
+        ))))
+    }
+
+    async fn resample_tile(
+        &self,
+        r: Request<pb::TileRequest>,
+    ) -> Result<Response<pb::Tile>, Status> {
+        let r = r.into_inner();
+        self.run(move |e| api::resample_tile(e, &r))
+            .await
+            .map(Response::new)
+    }
+
+    async fn sample_heights(
+        &self,
+        r: Request<pb::SampleRequest>,
+    ) -> Result<Response<pb::Samples>, Status> {
+        let r = r.into_inner();
+        self.run(move |e| api::sample_heights(e, &r))
+            .await
+            .map(Response::new)
+    }
+
+    async fn subscribe(
+        &self,
+        _: Request<pb::SubscribeRequest>,
+    ) -> Result<Response<Self::SubscribeStream>, Status> {
+        let rx = self.engine.subscribe();
+        let s = tokio_stream::wrappers::BroadcastStream::new(rx)
+            .filter_map(|e| e.ok().map(|e| Ok(convert::event(&e))));
+        Ok(Response::new(Box::pin(s)))
+    }
+}
+
+#[tonic::async_trait]
+impl admin_server::Admin for Service {
+    async fn ingest(
+        &self,
+        r: Request<pb::IngestRequest>,
+    ) -> Result<Response<pb::IngestReply>, Status> {
+        let r = r.into_inner();
+        // Ingestion is allowed to outlast the query deadline: big files take time.
+        let engine = self.engine.clone();
+        tokio::task::spawn_blocking(move || api::ingest(&engine, &r))
+            .await
+            .map_err(|e| Status::internal(e.to_string()))?
+            .map(Response::new)
+            .map_err(status::to_status)
+    }
+
+    async fn list_surveys(
+        &self,
+        _: Request<pb::ListSurveysRequest>,
+    ) -> Result<Response<pb::SurveyList>, Status> {
+        self.run(api::list_surveys).await.map(Response::new)
+    }
+
+    async fn retire(
+        &self,
+        r: Request<pb::RetireRequest>,
+    ) -> Result<Response<pb::RetireReply>, Status> {
+        let r = r.into_inner();
+        self.run(move |e| api::retire(e, &r))
+            .await
+            .map(Response::new)
+    }
+
+    async fn stats(
+        &self,
+        _: Request<pb::StatsRequest>,
+    ) -> Result<Response<pb::StatsReply>, Status> {
+        self.run(api::stats).await.map(Response::new)
+    }
+
+    async fn verify(
+        &self,
+        _: Request<pb::VerifyRequest>,
+    ) -> Result<Response<pb::VerifyReply>, Status> {
+        let engine = self.engine.clone();
+        tokio::task::spawn_blocking(move || api::verify(&engine))
+            .await
+            .map_err(|e| Status::internal(e.to_string()))?
+            .map(Response::new)
+            .map_err(status::to_status)
+    }
+
+    async fn compact(
+        &self,
+        _: Request<pb::CompactRequest>,
+    ) -> Result<Response<pb::CompactReply>, Status> {
+        let engine = self.engine.clone();
+        tokio::task::spawn_blocking(move || api::compact(&engine))
+            .await
+            .map_err(|e| Status::internal(e.to_string()))?
+            .map(Response::new)
+            .map_err(status::to_status)
+    }
+}
+
+/// Serves the API, health (`grpc.health.v1`) and reflection (v1 and v1alpha) until `shutdown`.
+pub async fn serve(
+    engine: Arc<Engine>,
+    listener: tokio::net::TcpListener,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let svc = Service::new(engine);
+    let (health, health_svc) = tonic_health::server::health_reporter();
+    health
+        .set_serving::<terrain_server::TerrainServer<Service>>()
+        .await;
+    health
+        .set_serving::<admin_server::AdminServer<Service>>()
+        .await;
+    health
+        .set_service_status("", tonic_health::ServingStatus::Serving)
+        .await;
+    let reflection_v1 = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(pb::DESCRIPTOR)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let reflection_v1alpha = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(pb::DESCRIPTOR)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1alpha()?;
+    let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
+    tonic::transport::Server::builder()
+        .add_service(health_svc)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
+        .add_service(
+            terrain_server::TerrainServer::new(svc.clone())
+                .max_decoding_message_size(64 << 20)
+                .max_encoding_message_size(256 << 20),
+        )
+        .add_service(admin_server::AdminServer::new(svc))
+        .serve_with_incoming_shutdown(incoming, shutdown)
+        .await?;
+    Ok(())
+}

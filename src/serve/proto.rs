@@ -1,0 +1,7 @@
+//! Code generated from `proto/patchwork/v1`.
+#![allow(clippy::all, missing_docs)]
+
+tonic::include_proto!("patchwork.v1");
+
+/// The encoded descriptors, for the reflection service.
+pub const DESCRIPTOR: &[u8] = tonic::include_file_descriptor_set!("patchwork_descriptor");
