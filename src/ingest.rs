@@ -23,8 +23,15 @@ pub enum IngestError {
     Grid(#[from] crate::model::grid::GridError),
     #[error("{0}")]
     Survey(#[from] SurveyError),
+    #[error("{path} is a directory, not a DEM file")]
+    Directory { path: PathBuf },
     #[error("{path} is not a regular file")]
     NotAFile { path: PathBuf },
+    #[error("cannot read {path}: {source}")]
+    Unreadable {
+        path: PathBuf,
+        source: std::io::Error,
+    },
 }
 
 /// What `<file>.toml` beside a DEM may say.
@@ -77,9 +84,21 @@ pub struct IngestSettings {
 
 /// Reads and models one file. Pure of the store: nothing is written.
 pub fn prepare(path: &Path, s: &IngestSettings) -> Result<(Survey, Timings), IngestError> {
-    if !path.is_file() {
+    let meta = std::fs::metadata(path).map_err(|source| IngestError::Unreadable {
+        path: path.into(),
+        source,
+    })?;
+    if meta.is_dir() {
+        return Err(IngestError::Directory { path: path.into() });
+    }
+    if !meta.is_file() {
         return Err(IngestError::NotAFile { path: path.into() });
     }
+    // Opening it now gives a clear message for a file we may not read.
+    std::fs::File::open(path).map_err(|source| IngestError::Unreadable {
+        path: path.into(),
+        source,
+    })?;
     let side = read_sidecar(path)?;
     let t0 = Instant::now();
     let raster = read_raster(

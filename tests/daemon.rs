@@ -1,0 +1,396 @@
+//! The daemon end to end: the real binary on a free loopback port, real files dropped into a
+//! temporary inbox, the real CLI talking to it.
+
+use patchwork::read::write_tiff::write_geotiff_f32;
+use serde_json::Value;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_patchwork");
+
+fn crop(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+struct Daemon {
+    child: Option<Child>,
+    root: PathBuf,
+    port: u16,
+}
+
+impl Daemon {
+    /// Starts a daemon whose store and inbox live under `root`.
+    fn start(root: &Path) -> Daemon {
+        std::fs::create_dir_all(root.join("inbox")).unwrap();
+        let port = free_port();
+        let log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(root.join("serve.log"))
+            .unwrap();
+        let child = Command::new(BIN)
+            .arg("serve")
+            .env("PATCHWORK_DATA_DIR", root.join("data"))
+            .env("PATCHWORK_INBOX", root.join("inbox"))
+            .env("PATCHWORK_LISTEN", format!("127.0.0.1:{port}"))
+            .env("PATCHWORK_SETTLE_MS", "400")
+            .env("PATCHWORK_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        let d = Daemon {
+            child: Some(child),
+            root: root.into(),
+            port,
+        };
+        let t0 = Instant::now();
+        while !d.cli(&["stats"]).status.success() {
+            assert!(
+                t0.elapsed() < Duration::from_secs(30),
+                "the daemon did not come up: {}",
+                d.log()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        d
+    }
+
+    fn inbox(&self) -> PathBuf {
+        self.root.join("inbox")
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(self.root.join("serve.log")).unwrap_or_default()
+    }
+
+    fn cli(&self, args: &[&str]) -> Output {
+        Command::new(BIN)
+            .args(args)
+            .arg(format!("--server=http://127.0.0.1:{}", self.port))
+            .output()
+            .unwrap()
+    }
+
+    fn json(&self, args: &[&str]) -> Value {
+        let out = self.cli(args);
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice(&out.stdout).unwrap()
+    }
+
+    fn surveys(&self) -> Vec<Value> {
+        self.json(&["surveys", "--json"])
+            .as_array()
+            .unwrap()
+            .clone()
+    }
+
+    /// Waits until the survey list satisfies `ok`.
+    fn wait(&self, what: &str, ok: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+        let t0 = Instant::now();
+        loop {
+            let s = self.surveys();
+            if ok(&s) {
+                return s;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(60),
+                "timed out waiting for {what}: {s:#?}\n{}",
+                self.log()
+            );
+            std::thread::sleep(Duration::from_millis(150));
+        }
+    }
+
+    fn stop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            unsafe_kill(c.id(), "TERM");
+            let _ = c.wait();
+        }
+    }
+
+    fn kill9(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        self.kill9();
+    }
+}
+
+fn unsafe_kill(pid: u32, sig: &str) {
+    let _ = Command::new("kill")
+        .arg(format!("-{sig}"))
+        .arg(pid.to_string())
+        .status();
+}
+
+fn count(s: &[Value], status: &str) -> usize {
+    s.iter().filter(|v| v["status"] == status).count()
+}
+
+/// Copies a file in small pieces with pauses shorter than the settle time, as a slow network
+/// copy would: the daemon must not take the half-written file.
+fn copy_slowly(from: &Path, to: &Path) {
+    let bytes = std::fs::read(from).unwrap();
+    let mut f = std::fs::File::create(to).unwrap();
+    for piece in bytes.chunks(bytes.len() / 6 + 1) {
+        f.write_all(piece).unwrap();
+        f.flush().unwrap();
+        std::thread::sleep(Duration::from_millis(150));
+    }
+}
+
+/// Publishes a file the usual way: write elsewhere, rename into the inbox.
+fn drop_by_rename(from: &Path, inbox: &Path, name: &str) {
+    let tmp = inbox.join(format!("{name}.part"));
+    std::fs::copy(from, &tmp).unwrap();
+    std::fs::rename(&tmp, inbox.join(name)).unwrap();
+}
+
+fn answers(d: &Daemon) -> Vec<Value> {
+    let mut out = Vec::new();
+    for roi in [
+        "-119,34.5,-118.9,34.6",
+        "-118.98,34.52,-118.95,34.55",
+        "5.2,44.9,5.4,45.0",
+    ] {
+        for e in ["0", "3", "20"] {
+            out.push(d.json(&["query", "--roi", roi, "--error", e, "--json"]));
+        }
+    }
+    out
+}
+
+#[test]
+fn any_drop_order_and_restarts_give_identical_answers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let files = [
+        "copernicus_n34w119_crop.tif",
+        "nasadem_n34w119_crop.tif",
+        "srtm_n44e005_voids_crop.tif",
+    ];
+
+    let mut a = Daemon::start(&tmp.path().join("a"));
+    for f in files {
+        drop_by_rename(&crop(f), &a.inbox(), f);
+    }
+    a.wait("three surveys in a", |s| count(s, "active") == 3);
+
+    let b = Daemon::start(&tmp.path().join("b"));
+    copy_slowly(&crop(files[2]), &b.inbox().join(files[2]));
+    copy_slowly(&crop(files[1]), &b.inbox().join(files[1]));
+    std::fs::copy(crop(files[0]), b.inbox().join(files[0])).unwrap();
+    let sb = b.wait("three surveys in b", |s| count(s, "active") == 3);
+    assert_eq!(
+        count(&sb, "failed"),
+        0,
+        "a half-copied file was taken: {sb:#?}"
+    );
+
+    let reference = answers(&a);
+    assert!(reference
+        .iter()
+        .any(|v| !v["patches"].as_array().unwrap().is_empty()));
+    assert_eq!(reference, answers(&b));
+
+    // A clean restart and a kill -9 both keep everything.
+    a.stop();
+    let a = Daemon::start(&tmp.path().join("a"));
+    assert_eq!(reference, answers(&a));
+    let mut a = a;
+    a.kill9();
+    let a = Daemon::start(&tmp.path().join("a"));
+    assert_eq!(reference, answers(&a));
+    assert_eq!(count(&a.surveys(), "active"), 3);
+}
+
+#[test]
+fn replacing_and_deleting_a_file_retire_the_right_survey() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "area.tif");
+    drop_by_rename(
+        &crop("srtm_n44e005_voids_crop.tif"),
+        &d.inbox(),
+        "other.tif",
+    );
+    let s = d.wait("two surveys", |s| count(s, "active") == 2);
+    let first = s
+        .iter()
+        .find(|v| v["source"].as_str().unwrap().ends_with("area.tif"))
+        .unwrap()["id"]
+        .clone();
+
+    // New content under the same name: the old survey retires, the new one is active.
+    drop_by_rename(&crop("nasadem_n34w119_crop.tif"), &d.inbox(), "area.tif");
+    let s = d.wait("the replacement", |s| {
+        count(s, "retired") == 1 && count(s, "active") == 2
+    });
+    let retired = s.iter().find(|v| v["status"] == "retired").unwrap();
+    assert_eq!(retired["id"], first);
+    let now = s
+        .iter()
+        .find(|v| v["status"] == "active" && v["source"].as_str().unwrap().ends_with("area.tif"))
+        .unwrap();
+    assert_ne!(now["id"], first);
+
+    // Deleting the file retires what it held, and only that.
+    std::fs::remove_file(d.inbox().join("area.tif")).unwrap();
+    let s = d.wait("the deletion", |s| count(s, "retired") == 2);
+    let active: Vec<_> = s.iter().filter(|v| v["status"] == "active").collect();
+    assert_eq!(active.len(), 1);
+    assert!(active[0]["source"].as_str().unwrap().ends_with("other.tif"));
+    let v = d.json(&["stats", "--json"]);
+    assert_eq!(v["surveys"], 1);
+}
+
+/// A little-endian TIFF header with the given size and sample type and no pixel data.
+fn bare_tiff(width: u32, height: u32, bits: u16, format: u16) -> Vec<u8> {
+    let entries: Vec<(u16, u16, u32)> = vec![
+        (256, 4, width),
+        (257, 4, height),
+        (258, 3, bits as u32),
+        (259, 3, 1),
+        (262, 3, 1),
+        (273, 4, 0),
+        (277, 3, 1),
+        (278, 4, height),
+        (279, 4, 0),
+        (339, 3, format as u32),
+    ];
+    let mut b = b"II*\0".to_vec();
+    b.extend_from_slice(&8u32.to_le_bytes());
+    b.extend_from_slice(&(entries.len() as u16).to_le_bytes());
+    for (tag, ty, v) in entries {
+        b.extend_from_slice(&tag.to_le_bytes());
+        b.extend_from_slice(&ty.to_le_bytes());
+        b.extend_from_slice(&1u32.to_le_bytes());
+        if ty == 3 {
+            b.extend_from_slice(&(v as u16).to_le_bytes());
+            b.extend_from_slice(&[0, 0]);
+        } else {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    b.extend_from_slice(&0u32.to_le_bytes());
+    b
+}
+
+fn small_geotiff(path: &Path, samples: &[f32], epsg: u32) {
+    let n = (samples.len() as f64).sqrt() as usize;
+    let gt = [500_000.0, 30.0, 0.0, 4_900_000.0, 0.0, -30.0];
+    write_geotiff_f32(path, n, n, samples, gt, Some(epsg), Some(-9999.0)).unwrap();
+}
+
+#[test]
+fn bad_files_are_reported_and_the_daemon_keeps_serving() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "good.tif");
+    d.wait("the good file", |s| count(s, "active") == 1);
+    let before = answers(&d);
+
+    let inbox = d.inbox();
+    let stage = tmp.path().join("stage");
+    std::fs::create_dir_all(&stage).unwrap();
+    let good = std::fs::read(crop("copernicus_n34w119_crop.tif")).unwrap();
+    std::fs::write(stage.join("empty.tif"), b"").unwrap();
+    std::fs::write(stage.join("truncated.tif"), &good[..good.len() / 2]).unwrap();
+    std::fs::write(
+        stage.join("garbage.tif"),
+        (0..5000u32)
+            .map(|i| (i * 7919 % 251) as u8)
+            .collect::<Vec<_>>(),
+    )
+    .unwrap();
+    std::fs::write(
+        stage.join("huge.tif"),
+        bare_tiff(1_000_000, 1_000_000, 16, 2),
+    )
+    .unwrap();
+    std::fs::write(stage.join("u64.tif"), bare_tiff(64, 64, 64, 1)).unwrap();
+    small_geotiff(&stage.join("allvoid.tif"), &[f32::NAN; 64 * 64], 4326);
+    small_geotiff(
+        &stage.join("nonfinite.tif"),
+        &[f32::NAN, f32::INFINITY, f32::NEG_INFINITY, f32::NAN].repeat(16 * 16),
+        4326,
+    );
+    small_geotiff(
+        &stage.join("utm.tif"),
+        &(0..64 * 64).map(|i| i as f32).collect::<Vec<_>>(),
+        32631,
+    );
+    for f in std::fs::read_dir(&stage).unwrap().flatten() {
+        std::fs::rename(f.path(), inbox.join(f.file_name())).unwrap();
+    }
+    std::fs::create_dir(inbox.join("folder.tif")).unwrap();
+    std::os::unix::fs::symlink(tmp.path().join("nowhere.tif"), inbox.join("dangling.tif")).unwrap();
+
+    let expect = [
+        ("empty.tif", "empty"),
+        ("truncated.tif", "truncated"),
+        ("garbage.tif", "TIFF"),
+        ("huge.tif", "1000000"),
+        ("u64.tif", "64-bit"),
+        ("allvoid.tif", "nodata"),
+        ("nonfinite.tif", "nodata"),
+        ("utm.tif", "EPSG:32631"),
+        ("folder.tif", "directory"),
+        ("dangling.tif", "cannot read"),
+    ];
+    let s = d.wait("every bad file to be reported", |s| {
+        count(s, "failed") == expect.len()
+    });
+    for (name, needle) in expect {
+        let rec = s
+            .iter()
+            .find(|v| v["source"].as_str().unwrap().ends_with(name))
+            .unwrap_or_else(|| panic!("{name} not listed: {s:#?}"));
+        assert_eq!(rec["status"], "failed", "{name}");
+        let msg = rec["error"].as_str().unwrap();
+        assert!(
+            msg.to_lowercase().contains(&needle.to_lowercase()),
+            "{name}: {msg:?} does not mention {needle:?}"
+        );
+    }
+    assert!(s
+        .iter()
+        .find(|v| v["source"].as_str().unwrap().ends_with("utm.tif"))
+        .unwrap()["error"]
+        .as_str()
+        .unwrap()
+        .contains("EPSG:4326"));
+    // Nothing stored was touched, and the daemon still answers.
+    assert_eq!(before, answers(&d));
+    assert!(d.cli(&["verify"]).status.success());
+    // A failed file is not retried until it changes; when it does, it is.
+    std::thread::sleep(Duration::from_millis(1200));
+    assert_eq!(count(&d.surveys(), "failed"), expect.len());
+    std::fs::remove_file(inbox.join("empty.tif")).unwrap();
+    drop_by_rename(&crop("nasadem_n34w119_crop.tif"), &inbox, "empty.tif");
+    d.wait("the repaired file", |s| {
+        count(s, "active") == 2 && count(s, "failed") == expect.len() - 1
+    });
+}
