@@ -2,6 +2,8 @@
 //! coverage, minimality and error by brute force, independently of the index's own geometry.
 #![allow(dead_code)]
 
+pub mod daemon;
+
 use patchwork::index::geom::Aabb;
 use patchwork::index::lod::{IndexConfig, PatchBox};
 use patchwork::index::query::Extracted;
