@@ -307,6 +307,14 @@ async fn run(cli: Cli) -> Result<(), Fail> {
         } => {
             let mut c = Client::connect(&target).await?;
             let bar = indicatif::ProgressBar::new(files.len() as u64);
+            // A hidden bar (no terminal) swallows its own println: print plainly then.
+            let say = |line: String| {
+                if bar.is_hidden() {
+                    println!("{line}");
+                } else {
+                    bar.println(line);
+                }
+            };
             let mut failed = 0;
             for f in files {
                 let path = patchwork::engine::source_name(&f);
@@ -321,9 +329,9 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 for r in reply.results {
                     if r.outcome == "failed" {
                         failed += 1;
-                        bar.println(format!("failed    {}: {}", r.source, r.error));
+                        say(format!("failed    {}: {}", r.source, r.error));
                     } else {
-                        bar.println(format!(
+                        say(format!(
                             "{:<9} {} {:016x} ({} samples, {:.2} s)",
                             r.outcome, r.source, r.survey, r.samples, r.seconds
                         ));

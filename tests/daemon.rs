@@ -234,3 +234,81 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
         count(s, "active") == 2 && count(s, "failed") == expect.len() - 1
     });
 }
+
+fn shared(name: &str) -> std::path::PathBuf {
+    std::env::var_os("PATCHWORK_SHARED_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"))
+        .join(name)
+}
+
+#[test]
+fn kill_9_during_ingest_loses_nothing_and_the_inbox_catches_up() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("store");
+    std::fs::create_dir_all(root.join("inbox")).unwrap();
+    let big = shared("NASADEM_HGT_n34w119.tif");
+    assert!(big.exists(), "{} is missing", big.display());
+    let mut seed = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64;
+    let mut rnd = move || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 33) % 1000
+    };
+    let names = ["big.tif", "c1.tif", "c2.tif"];
+    for round in 0..4 {
+        // Each round brings new files, so that ingestion is under way when the kill lands.
+        let mut d = Daemon::start(&root);
+        let dir = d.inbox();
+        match round % 2 {
+            0 => {
+                let _ = std::fs::remove_file(dir.join(names[1]));
+                drop_by_rename(&big, &dir, names[0]);
+                drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &dir, names[1]);
+            }
+            _ => {
+                let _ = std::fs::remove_file(dir.join(names[0]));
+                drop_by_rename(&crop("srtm_n44e005_voids_crop.tif"), &dir, names[2]);
+                drop_by_rename(&big, &dir, names[0]);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(100 + 2 * rnd()));
+        d.kill9();
+
+        // The store opens and verifies; every survey in it is whole.
+        let d = Daemon::start(&root);
+        let v = d.cli(&["verify"]);
+        assert!(v.status.success(), "round {round}: {}{}", String::from_utf8_lossy(&v.stdout), String::from_utf8_lossy(&v.stderr));
+        // And what the kill interrupted is ingested again from the inbox.
+        let present: Vec<_> = names.iter().filter(|n| dir.join(n).exists()).collect();
+        let s = d.wait("the inbox to be caught up", |s| {
+            present.iter().all(|n| s.iter().any(|v| v["status"] == "active" && v["source"].as_str().unwrap().ends_with(*n)))
+        });
+        assert_eq!(count(&s, "failed"), 0, "round {round}: {s:#?}");
+        assert!(d.cli(&["verify"]).status.success());
+    }
+}
+
+#[test]
+fn compaction_shrinks_the_store_and_keeps_every_answer() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    for f in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif", "srtm_n44e005_voids_crop.tif"] {
+        drop_by_rename(&crop(f), &d.inbox(), f);
+    }
+    d.wait("three surveys", |s| count(s, "active") == 3);
+    for f in ["copernicus_n34w119_crop.tif", "srtm_n44e005_voids_crop.tif"] {
+        let source = d.inbox().canonicalize().unwrap().join(f);
+        let out = d.cli(&["retire", source.to_str().unwrap()]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    }
+    let before = answers(&d);
+    let size = |d: &Daemon| d.json(&["stats", "--json"])["disk_bytes"].as_u64().unwrap();
+    let bytes_before = size(&d);
+    let out = d.cli(&["compact"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let bytes_after = size(&d);
+    assert!(bytes_after < bytes_before, "{bytes_before} → {bytes_after} bytes");
+    assert_eq!(before, answers(&d));
+    assert!(d.cli(&["verify"]).status.success());
+    println!("compaction: {bytes_before} → {bytes_after} bytes");
+}

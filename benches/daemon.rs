@@ -1,0 +1,106 @@
+//! Figures of the daemon end to end, over loopback gRPC:
+//! - ingest throughput of Copernicus N34W119, in samples/s from the file dropped to committed;
+//! - store size against input size;
+//! - p50 and p99 latency of a 512² tile at 5 m.
+//!
+//! cargo bench --bench daemon            (PATCHWORK_BENCH_REQUESTS sets the tile count)
+
+use patchwork::serve::proto::{self as pb, admin_client::AdminClient, terrain_client::TerrainClient};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn shared(name: &str) -> PathBuf {
+    std::env::var_os("PATCHWORK_SHARED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"))
+        .join(name)
+}
+
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
+#[tokio::main]
+async fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // `cargo bench` passes criterion-style flags; this program takes none.
+    let tmp = tempfile::tempdir()?;
+    let inbox = tmp.path().join("inbox");
+    std::fs::create_dir_all(&inbox)?;
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_patchwork"))
+        .arg("serve")
+        .env("PATCHWORK_DATA_DIR", tmp.path().join("data"))
+        .env("PATCHWORK_INBOX", &inbox)
+        .env("PATCHWORK_LISTEN", format!("127.0.0.1:{port}"))
+        .env("PATCHWORK_LOG", "warn")
+        .stdout(Stdio::null())
+        .spawn()?;
+    let url = format!("http://127.0.0.1:{port}");
+    let channel = loop {
+        match tonic::transport::Channel::from_shared(url.clone())?.connect().await {
+            Ok(c) => break c,
+            Err(_) => tokio::time::sleep(Duration::from_millis(100)).await,
+        }
+    };
+    let mut admin = AdminClient::new(channel.clone());
+    let mut terrain = TerrainClient::new(channel).max_decoding_message_size(1 << 30);
+
+    let src = shared("Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif");
+    let input_bytes = std::fs::metadata(&src)?.len();
+    let staged = inbox.join("copernicus.tif.part");
+    std::fs::copy(&src, &staged)?;
+    let t0 = Instant::now();
+    std::fs::rename(&staged, inbox.join("copernicus.tif"))?;
+    let samples = loop {
+        let list = admin.list_surveys(pb::ListSurveysRequest {}).await?.into_inner();
+        if let Some(s) = list.surveys.iter().find(|s| s.status == "active") {
+            break s.samples;
+        }
+        if let Some(f) = list.surveys.iter().find(|s| s.status == "failed") {
+            return Err(format!("ingest failed: {}", f.error).into());
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    let ingest = t0.elapsed().as_secs_f64();
+    let stats = admin.stats(pb::StatsRequest {}).await?.into_inner();
+    println!("ingest: {samples} samples in {ingest:.2} s from drop to committed: {:.1} M samples/s", samples as f64 / ingest / 1e6);
+    println!(
+        "store: {} bytes on disk for a {} byte input ({:.2}×) and {} bytes of raw f32 samples ({:.2}×)",
+        stats.disk_bytes,
+        input_bytes,
+        stats.disk_bytes as f64 / input_bytes as f64,
+        samples * 4,
+        stats.disk_bytes as f64 / (samples * 4) as f64
+    );
+
+    let n: usize = std::env::var("PATCHWORK_BENCH_REQUESTS").ok().and_then(|v| v.parse().ok()).unwrap_or(200);
+    let roi = pb::Rect { xmin: -118.7, ymin: 34.3, xmax: -118.6, ymax: 34.4 };
+    let req = pb::TileRequest {
+        cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut { roi: Some(roi), error: 5.0 })),
+        width: 512,
+        height: 512,
+        backend: pb::Backend::Cpu as i32,
+    };
+    let mut ms = Vec::with_capacity(n);
+    let mut last = None;
+    for _ in 0..n {
+        let t = Instant::now();
+        let tile = terrain.resample_tile(req).await?.into_inner();
+        ms.push(t.elapsed().as_secs_f64() * 1e3);
+        last = Some(tile);
+    }
+    ms.sort_by(f64::total_cmp);
+    let tile = last.expect("at least one request");
+    println!(
+        "tile 512² at 5 m over loopback gRPC: p50 {:.2} ms, p99 {:.2} ms over {n} requests ({} patches, max patch error {:.2} m, {} valid samples)",
+        quantile(&ms, 0.5),
+        quantile(&ms, 0.99),
+        tile.patches,
+        tile.max_error,
+        tile.valid.iter().filter(|&&v| v == 1).count()
+    );
+    let _ = child.kill();
+    let _ = child.wait();
+    Ok(())
+}
