@@ -5,7 +5,9 @@
 //!
 //! cargo bench --bench daemon            (PATCHWORK_BENCH_REQUESTS sets the tile count)
 
-use patchwork::serve::proto::{self as pb, admin_client::AdminClient, terrain_client::TerrainClient};
+use patchwork::serve::proto::{
+    self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
+};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -27,7 +29,9 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let tmp = tempfile::tempdir()?;
     let inbox = tmp.path().join("inbox");
     std::fs::create_dir_all(&inbox)?;
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
     let mut child = Command::new(env!("CARGO_BIN_EXE_patchwork"))
         .arg("serve")
         .env("PATCHWORK_DATA_DIR", tmp.path().join("data"))
@@ -38,7 +42,10 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         .spawn()?;
     let url = format!("http://127.0.0.1:{port}");
     let channel = loop {
-        match tonic::transport::Channel::from_shared(url.clone())?.connect().await {
+        match tonic::transport::Channel::from_shared(url.clone())?
+            .connect()
+            .await
+        {
             Ok(c) => break c,
             Err(_) => tokio::time::sleep(Duration::from_millis(100)).await,
         }
@@ -53,7 +60,10 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let t0 = Instant::now();
     std::fs::rename(&staged, inbox.join("copernicus.tif"))?;
     let samples = loop {
-        let list = admin.list_surveys(pb::ListSurveysRequest {}).await?.into_inner();
+        let list = admin
+            .list_surveys(pb::ListSurveysRequest {})
+            .await?
+            .into_inner();
         if let Some(s) = list.surveys.iter().find(|s| s.status == "active") {
             break s.samples;
         }
@@ -64,7 +74,10 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let ingest = t0.elapsed().as_secs_f64();
     let stats = admin.stats(pb::StatsRequest {}).await?.into_inner();
-    println!("ingest: {samples} samples in {ingest:.2} s from drop to committed: {:.1} M samples/s", samples as f64 / ingest / 1e6);
+    println!(
+        "ingest: {samples} samples in {ingest:.2} s from drop to committed: {:.1} M samples/s",
+        samples as f64 / ingest / 1e6
+    );
     println!(
         "store: {} bytes on disk for a {} byte input ({:.2}×) and {} bytes of raw f32 samples ({:.2}×)",
         stats.disk_bytes,
@@ -74,10 +87,21 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         stats.disk_bytes as f64 / (samples * 4) as f64
     );
 
-    let n: usize = std::env::var("PATCHWORK_BENCH_REQUESTS").ok().and_then(|v| v.parse().ok()).unwrap_or(200);
-    let roi = pb::Rect { xmin: -118.7, ymin: 34.3, xmax: -118.6, ymax: 34.4 };
+    let n: usize = std::env::var("PATCHWORK_BENCH_REQUESTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(200);
+    let roi = pb::Rect {
+        xmin: -118.7,
+        ymin: 34.3,
+        xmax: -118.6,
+        ymax: 34.4,
+    };
     let req = pb::TileRequest {
-        cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut { roi: Some(roi), error: 5.0 })),
+        cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
+            roi: Some(roi),
+            error: 5.0,
+        })),
         width: 512,
         height: 512,
         backend: pb::Backend::Cpu as i32,

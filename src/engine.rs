@@ -256,6 +256,11 @@ impl Engine {
         let current = self.snapshot();
         let previous = self.active_from(source)?;
         if current.survey(survey.id).is_some() {
+            // The content is already served (from this path or a copy elsewhere); what this
+            // path held before, if anything else, is gone.
+            if let Some(old) = previous.filter(|o| o.id != survey.id) {
+                self.retire_locked(&current, &old)?;
+            }
             self.with_store(|s| s.clear_failure(source))?;
             return Ok(("unchanged", survey.id, samples));
         }
@@ -306,19 +311,24 @@ impl Engine {
                     "no active survey has id or source {id_or_source:?}; `patchwork surveys` lists them"
                 ))
             })?;
-        let current = self.snapshot();
+        let n = self.retire_locked(&self.snapshot(), rec)?;
+        Ok((rec.id, n))
+    }
+
+    /// Retires `rec` from `current`; the caller holds the writer lock.
+    fn retire_locked(&self, current: &Terrain, rec: &SurveyRecord) -> Result<usize, EngineError> {
         let patches: Vec<_> = current
             .index()
             .survey_patches(rec.id)
             .map(|p| p.to_vec())
             .unwrap_or_default();
-        let mut next = (*current).clone();
+        let mut next = current.clone();
         let change = next.retire(rec.id).unwrap_or_default();
         self.with_store(|s| s.commit_retire(rec.id, &patches, &change))?;
         self.publish(next);
         tracing::info!(survey = %rec.id, source = %rec.source, "retired");
         self.emit("retired", Some(rec.id), &rec.source, "");
-        Ok((rec.id, patches.len()))
+        Ok(patches.len())
     }
 
     pub fn surveys(&self) -> Result<(Vec<SurveyRecord>, Vec<FailedRecord>), EngineError> {

@@ -170,6 +170,10 @@ impl Reconciler {
                 if let Err(e) = self.engine.retire(&r.source) {
                     tracing::warn!(source = %r.source, error = %e, "could not retire a deleted file's survey");
                 }
+                // A copy of the same content elsewhere in the inbox was "unchanged" when it
+                // arrived; it must now bring the survey back, so look at it again.
+                let size = self.done.get(&r.source).copied().flatten().map(|s| s.0);
+                self.done.retain(|_, st| st.map(|s| s.0) != size);
             }
         }
     }

@@ -249,9 +249,14 @@ fn kill_9_during_ingest_loses_nothing_and_the_inbox_catches_up() {
     std::fs::create_dir_all(root.join("inbox")).unwrap();
     let big = shared("NASADEM_HGT_n34w119.tif");
     assert!(big.exists(), "{} is missing", big.display());
-    let mut seed = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64;
+    let mut seed = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as u64;
     let mut rnd = move || {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (seed >> 33) % 1000
     };
     let names = ["big.tif", "c1.tif", "c2.tif"];
@@ -277,11 +282,19 @@ fn kill_9_during_ingest_loses_nothing_and_the_inbox_catches_up() {
         // The store opens and verifies; every survey in it is whole.
         let d = Daemon::start(&root);
         let v = d.cli(&["verify"]);
-        assert!(v.status.success(), "round {round}: {}{}", String::from_utf8_lossy(&v.stdout), String::from_utf8_lossy(&v.stderr));
+        assert!(
+            v.status.success(),
+            "round {round}: {}{}",
+            String::from_utf8_lossy(&v.stdout),
+            String::from_utf8_lossy(&v.stderr)
+        );
         // And what the kill interrupted is ingested again from the inbox.
         let present: Vec<_> = names.iter().filter(|n| dir.join(n).exists()).collect();
         let s = d.wait("the inbox to be caught up", |s| {
-            present.iter().all(|n| s.iter().any(|v| v["status"] == "active" && v["source"].as_str().unwrap().ends_with(*n)))
+            present.iter().all(|n| {
+                s.iter()
+                    .any(|v| v["status"] == "active" && v["source"].as_str().unwrap().ends_with(*n))
+            })
         });
         assert_eq!(count(&s, "failed"), 0, "round {round}: {s:#?}");
         assert!(d.cli(&["verify"]).status.success());
@@ -292,23 +305,69 @@ fn kill_9_during_ingest_loses_nothing_and_the_inbox_catches_up() {
 fn compaction_shrinks_the_store_and_keeps_every_answer() {
     let tmp = tempfile::tempdir().unwrap();
     let d = Daemon::start(tmp.path());
-    for f in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif", "srtm_n44e005_voids_crop.tif"] {
+    for f in [
+        "copernicus_n34w119_crop.tif",
+        "nasadem_n34w119_crop.tif",
+        "srtm_n44e005_voids_crop.tif",
+    ] {
         drop_by_rename(&crop(f), &d.inbox(), f);
     }
     d.wait("three surveys", |s| count(s, "active") == 3);
     for f in ["copernicus_n34w119_crop.tif", "srtm_n44e005_voids_crop.tif"] {
         let source = d.inbox().canonicalize().unwrap().join(f);
         let out = d.cli(&["retire", source.to_str().unwrap()]);
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
     }
     let before = answers(&d);
     let size = |d: &Daemon| d.json(&["stats", "--json"])["disk_bytes"].as_u64().unwrap();
     let bytes_before = size(&d);
     let out = d.cli(&["compact"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let bytes_after = size(&d);
-    assert!(bytes_after < bytes_before, "{bytes_before} → {bytes_after} bytes");
+    assert!(
+        bytes_after < bytes_before,
+        "{bytes_before} → {bytes_after} bytes"
+    );
     assert_eq!(before, answers(&d));
     assert!(d.cli(&["verify"]).status.success());
     println!("compaction: {bytes_before} → {bytes_after} bytes");
+}
+
+#[test]
+fn a_copy_under_another_name_keeps_the_survey_when_the_first_goes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(
+        &crop("copernicus_n34w119_crop.tif"),
+        &d.inbox(),
+        "first.tif",
+    );
+    let s = d.wait("the first copy", |s| count(s, "active") == 1);
+    let id = s[0]["id"].clone();
+    drop_by_rename(
+        &crop("copernicus_n34w119_crop.tif"),
+        &d.inbox(),
+        "second.tif",
+    );
+    std::thread::sleep(Duration::from_millis(1500));
+    // Identical content is one survey.
+    assert_eq!(count(&d.surveys(), "active"), 1);
+    std::fs::remove_file(d.inbox().join("first.tif")).unwrap();
+    let s = d.wait("the copy to take over", |s| {
+        s.iter().any(|v| {
+            v["status"] == "active" && v["source"].as_str().unwrap().ends_with("second.tif")
+        })
+    });
+    let active: Vec<_> = s.iter().filter(|v| v["status"] == "active").collect();
+    assert_eq!(active.len(), 1);
+    assert_eq!(active[0]["id"], id);
+    assert!(d.cli(&["verify"]).status.success());
 }
