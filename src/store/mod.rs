@@ -288,6 +288,25 @@ fn sibling(dir: &Path, suffix: &str) -> Result<PathBuf, StoreError> {
     Ok(dir.with_file_name(n))
 }
 
+/// Opens sled's database in `dir`, once this process holds `<dir>.lock`. Holding it means no
+/// other handle is open, so a lock that sled still finds held belongs to a handle of this
+/// process that was just dropped: sled releases its lock from a background thread, a moment
+/// later. Waiting a little for that is safe; waiting on another process never happens here.
+fn open_sled(dir: &Path) -> Result<sled::Db, StoreError> {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    loop {
+        match sled::Config::new().path(dir).open() {
+            Ok(db) => return Ok(db),
+            Err(sled::Error::Io(io))
+                if is_lock_error(&io) && std::time::Instant::now() < deadline =>
+            {
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+            Err(e) => return Err(open_error(e, dir)),
+        }
+    }
+}
+
 /// Takes the exclusive lock that keeps other processes (and other handles in this one) out.
 fn lock(dir: &Path) -> Result<File, StoreError> {
     let path = sibling(dir, ".lock")?;
@@ -355,10 +374,7 @@ impl Store {
         index: IndexConfig,
     ) -> Result<Opened, StoreError> {
         compact::recover(&dir)?;
-        let db = sled::Config::new()
-            .path(&dir)
-            .open()
-            .map_err(|e| open_error(e, &dir))?;
+        let db = open_sled(&dir)?;
         let migrated = migrate::migrate(&db, &migrate::Ctx { layout, index })?;
         let get = |k: &[u8]| -> Result<sled::IVec, StoreError> {
             db.get(k)?.ok_or_else(|| {
