@@ -371,3 +371,154 @@ fn a_copy_under_another_name_keeps_the_survey_when_the_first_goes() {
     assert_eq!(active[0]["id"], id);
     assert!(d.cli(&["verify"]).status.success());
 }
+
+#[test]
+fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
+    use patchwork::serve::proto::{self as pb, terrain_client::TerrainClient};
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let url = format!("http://127.0.0.1:{}", d.port);
+        let mut t = TerrainClient::connect(url)
+            .await
+            .unwrap()
+            .max_decoding_message_size(1 << 30);
+        let mut events = t
+            .subscribe(pb::SubscribeRequest {})
+            .await
+            .unwrap()
+            .into_inner();
+
+        drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "a.tif");
+        let e = tokio::time::timeout(Duration::from_secs(30), events.message())
+            .await
+            .unwrap()
+            .unwrap()
+            .unwrap();
+        assert_eq!(e.kind, "inserted");
+        assert!(e.source.ends_with("a.tif"));
+
+        // Heights at points are the survey's own at e = 0, and nodata off the data.
+        let grid =
+            patchwork::read::read_raster(&crop("copernicus_n34w119_crop.tif"), &Default::default())
+                .unwrap()
+                .into_grid()
+                .unwrap();
+        let pts: Vec<[f64; 2]> = (0..50)
+            .map(|k| {
+                grid.georef
+                    .to_world(3.7 + 5.3 * k as f64, 250.2 - 4.1 * k as f64)
+            })
+            .chain([[0.0, 0.0]])
+            .collect();
+        let req = pb::SampleRequest {
+            points: pts.iter().map(|p| pb::Point { x: p[0], y: p[1] }).collect(),
+            error: 0.0,
+        };
+        let s = t.sample_heights(req).await.unwrap().into_inner();
+        for (p, (z, v)) in pts.iter().zip(s.heights.iter().zip(&s.valid)) {
+            match grid.bilinear(*p) {
+                Some(h) => assert!(
+                    *v == 1 && (*z as f64 - h).abs() < 1e-3,
+                    "{z} vs {h} at {p:?}"
+                ),
+                None => assert_eq!(*v, 0),
+            }
+        }
+
+        // A view cut streams patches, fewer at a coarser pixel error.
+        let view = |px: f64| pb::PatchQuery {
+            cut: Some(pb::patch_query::Cut::View(pb::ViewCut {
+                eye_x: -119.0,
+                eye_y: 34.45,
+                eye_z: 2000.0,
+                look_x: -118.92,
+                look_y: 34.54,
+                look_z: 500.0,
+                fov_deg: 60.0,
+                viewport_px: 1024,
+                pixel_error: px,
+            })),
+            batch_size: 16,
+        };
+        let mut counts = Vec::new();
+        for px in [1.0, 8.0] {
+            let mut st = t.query_patches(view(px)).await.unwrap().into_inner();
+            let mut n = 0;
+            while let Some(b) = st.message().await.unwrap() {
+                assert!(b.patches.len() <= 16);
+                for p in &b.patches {
+                    assert_eq!(p.samples.len() as u32, p.cols * p.rows);
+                }
+                n += b.patches.len();
+            }
+            counts.push(n);
+        }
+        assert!(counts[0] > counts[1] && counts[1] > 0, "{counts:?}");
+
+        // Wrong requests say what to change.
+        let tile = |w: u32, roi: pb::Rect, backend: pb::Backend| pb::TileRequest {
+            cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
+                roi: Some(roi),
+                error: 1.0,
+            })),
+            width: w,
+            height: w,
+            backend: backend as i32,
+        };
+        let roi = pb::Rect {
+            xmin: -119.0,
+            ymin: 34.46,
+            xmax: -118.95,
+            ymax: 34.5,
+        };
+        let big = t
+            .resample_tile(tile(8192, roi, pb::Backend::Cpu))
+            .await
+            .unwrap_err();
+        assert_eq!(big.code(), tonic::Code::ResourceExhausted);
+        assert!(big.message().contains("smaller tile"), "{}", big.message());
+        let flipped = pb::Rect {
+            xmin: 1.0,
+            ymin: 0.0,
+            xmax: 0.0,
+            ymax: 1.0,
+        };
+        let bad = t
+            .resample_tile(tile(64, flipped, pb::Backend::Cpu))
+            .await
+            .unwrap_err();
+        assert_eq!(bad.code(), tonic::Code::InvalidArgument);
+        assert!(bad.message().contains("xmin < xmax"), "{}", bad.message());
+        let none = t
+            .resample_tile(pb::TileRequest {
+                cut: None,
+                width: 8,
+                height: 8,
+                backend: 0,
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(none.code(), tonic::Code::InvalidArgument);
+        let ok = t
+            .resample_tile(tile(64, roi, pb::Backend::Auto))
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(ok.heights.len(), 64 * 64);
+        assert!(ok.valid.iter().any(|&v| v == 1));
+    });
+    // The view form of the CLI.
+    let v = d.json(&[
+        "query",
+        "--eye",
+        "-119,34.45,2000",
+        "--look",
+        "-118.92,34.54,500",
+        "--pixel-error",
+        "2",
+        "--json",
+    ]);
+    assert!(!v["patches"].as_array().unwrap().is_empty());
+}
