@@ -6,6 +6,7 @@
 //! patches into heights, [`terrain`] ties them together in memory, [`store`] keeps them on
 //! disk, and [`engine`], [`watch`] and [`serve`] make the daemon.
 
+pub mod bench;
 pub mod config;
 pub mod engine;
 pub mod index;

@@ -97,6 +97,21 @@ enum Cmd {
         #[command(flatten)]
         target: Target,
     },
+    /// Measure speed against accuracy on real surveys, with GDAL on the same tiles.
+    Bench {
+        /// Surveys to ingest; by default the Copernicus + NASADEM N34W119 pair and N44E005.hgt
+        /// from the shared data folder (the committed crops with --smoke).
+        files: Vec<PathBuf>,
+        /// Where the CSV, charts and tiles go.
+        #[arg(long, default_value = "docs/bench")]
+        out: PathBuf,
+        /// A run of a few seconds that proves the bench still works.
+        #[arg(long)]
+        smoke: bool,
+        /// Skip the GDAL comparison (it needs python3 with rasterio).
+        #[arg(long)]
+        no_gdal: bool,
+    },
     /// Resample a north-up tile and write it as GeoTIFF (.tif) or numpy (.npy).
     Tile {
         #[arg(long, value_name = "XMIN,YMIN,XMAX,YMAX", allow_hyphen_values = true)]
@@ -297,8 +312,65 @@ async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     Ok(())
 }
 
+fn bench(files: Vec<PathBuf>, out: PathBuf, smoke: bool, no_gdal: bool) -> Result<(), Fail> {
+    let files = if !files.is_empty() {
+        files
+    } else if smoke {
+        [
+            "copernicus_n34w119_crop.tif",
+            "nasadem_n34w119_crop.tif",
+            "srtm_n44e005_voids_crop.tif",
+        ]
+        .iter()
+        .map(|f| Path::new("tests/data").join(f))
+        .collect()
+    } else {
+        let shared = std::env::var_os("PATCHWORK_SHARED_DATA")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("../shared/data"));
+        [
+            "Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif",
+            "NASADEM_HGT_n34w119.tif",
+            "N44E005.hgt",
+        ]
+        .iter()
+        .map(|f| shared.join(f))
+        .collect()
+    };
+    patchwork::bench::run(&patchwork::bench::Options {
+        files,
+        out: out.clone(),
+        smoke,
+    })?;
+    if !no_gdal {
+        let status = std::process::Command::new("python3")
+            .arg("bench/gdal_compare.py")
+            .arg(out.join("tiles/manifest.json"))
+            .arg(out.join("gdal.csv"))
+            .status()
+            .map_err(|e| {
+                format!("cannot run python3 for the GDAL comparison: {e}; use --no-gdal to skip it")
+            })?;
+        if !status.success() {
+            return Err("the GDAL comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
+        }
+    }
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
 async fn run(cli: Cli) -> Result<(), Fail> {
     match cli.cmd {
+        Cmd::Bench {
+            files,
+            out,
+            smoke,
+            no_gdal,
+        } => tokio::task::spawn_blocking(move || {
+            bench(files, out, smoke, no_gdal).map_err(|e| e.to_string())
+        })
+        .await?
+        .map_err(Into::into),
         Cmd::Serve { config } => serve(config).await,
         Cmd::Ingest {
             files,

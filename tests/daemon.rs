@@ -507,7 +507,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
             .unwrap()
             .into_inner();
         assert_eq!(ok.heights.len(), 64 * 64);
-        assert!(ok.valid.iter().any(|&v| v == 1));
+        assert!(ok.valid.contains(&1));
     });
     // The view form of the CLI.
     let v = d.json(&[

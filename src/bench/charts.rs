@@ -1,0 +1,329 @@
+//! The bench's charts, drawn once for PNG and once for SVG from the same code, and the map in
+//! the style of the paper's Fig. 5.
+
+use super::{Report, ERRORS};
+use crate::index::geom::Aabb;
+use crate::resample::SampleGrid;
+use crate::terrain::Terrain;
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use std::path::Path;
+use std::sync::OnceLock;
+
+type Fail = Box<dyn std::error::Error>;
+
+fn fonts() {
+    static DONE: OnceLock<()> = OnceLock::new();
+    DONE.get_or_init(|| {
+        // Embedded so that charts render the same on any machine, fonts installed or not.
+        let _ = plotters::style::register_font(
+            "sans-serif",
+            FontStyle::Normal,
+            include_bytes!("font/DejaVuSans.ttf"),
+        );
+    });
+}
+
+struct Chart<'a> {
+    title: &'a str,
+    x: &'a str,
+    y: &'a str,
+    series: Vec<(String, Vec<(f64, f64)>)>,
+    log_y: bool,
+    /// Draw y = x: the bound a measured error must stay under.
+    diagonal: bool,
+}
+
+const COLORS: [RGBColor; 6] = [
+    RGBColor(31, 119, 180),
+    RGBColor(255, 127, 14),
+    RGBColor(44, 160, 44),
+    RGBColor(214, 39, 40),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+];
+
+fn draw_chart<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, c: &Chart) -> Result<(), String> {
+    let e = |x: DrawingAreaErrorKind<DB::ErrorType>| format!("{x:?}");
+    root.fill(&WHITE).map_err(e)?;
+    let pts = c.series.iter().flat_map(|(_, p)| p.iter());
+    let xmax = pts.clone().map(|p| p.0).fold(1e-9, f64::max) * 1.05;
+    let (ymin, ymax) = pts
+        .filter(|p| !c.log_y || p.1 > 0.0)
+        .fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+            (a.min(p.1), b.max(p.1))
+        });
+    let ymax = if c.diagonal { ymax.max(xmax) } else { ymax } * 1.1 + 1e-9;
+    let mut b = ChartBuilder::on(&root);
+    b.caption(c.title, ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(70);
+    let lines = |series: &[(String, Vec<(f64, f64)>)]| series.to_vec();
+    if c.log_y {
+        let lo = if ymin.is_finite() { ymin / 1.5 } else { 1e-3 };
+        let mut ch = b
+            .build_cartesian_2d(0.0..xmax, (lo..ymax).log_scale())
+            .map_err(e)?;
+        ch.configure_mesh()
+            .x_desc(c.x)
+            .y_desc(c.y)
+            .label_style(("sans-serif", 13))
+            .draw()
+            .map_err(e)?;
+        for (i, (name, p)) in lines(&c.series).into_iter().enumerate() {
+            let col = COLORS[i % COLORS.len()];
+            let p: Vec<_> = p.into_iter().filter(|q| q.1 > 0.0).collect();
+            ch.draw_series(LineSeries::new(p.clone(), col.stroke_width(2)))
+                .map_err(e)?
+                .label(name)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2))
+                });
+            ch.draw_series(p.into_iter().map(|q| Circle::new(q, 3, col.filled())))
+                .map_err(e)?;
+        }
+        ch.configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 13))
+            .draw()
+            .map_err(e)?;
+    } else {
+        let mut ch = b.build_cartesian_2d(0.0..xmax, 0.0..ymax).map_err(e)?;
+        ch.configure_mesh()
+            .x_desc(c.x)
+            .y_desc(c.y)
+            .label_style(("sans-serif", 13))
+            .draw()
+            .map_err(e)?;
+        if c.diagonal {
+            ch.draw_series(LineSeries::new(
+                vec![(0.0, 0.0), (xmax, xmax)],
+                BLACK.stroke_width(1),
+            ))
+            .map_err(e)?
+            .label("bound: y = e")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+        }
+        for (i, (name, p)) in lines(&c.series).into_iter().enumerate() {
+            let col = COLORS[i % COLORS.len()];
+            ch.draw_series(LineSeries::new(p.clone(), col.stroke_width(2)))
+                .map_err(e)?
+                .label(name)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2))
+                });
+            ch.draw_series(p.into_iter().map(|q| Circle::new(q, 3, col.filled())))
+                .map_err(e)?;
+        }
+        ch.configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 13))
+            .draw()
+            .map_err(e)?;
+    }
+    root.present().map_err(e)?;
+    Ok(())
+}
+
+fn both(out: &Path, name: &str, c: &Chart) -> Result<(), Fail> {
+    let size = (820, 520);
+    draw_chart(
+        BitMapBackend::new(&out.join(format!("{name}.png")), size).into_drawing_area(),
+        c,
+    )?;
+    draw_chart(
+        SVGBackend::new(&out.join(format!("{name}.svg")), size).into_drawing_area(),
+        c,
+    )?;
+    Ok(())
+}
+
+pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) -> Result<(), Fail> {
+    fonts();
+    let by_roi = |f: &dyn Fn(&super::UniformRow) -> f64| -> Vec<(String, Vec<(f64, f64)>)> {
+        ["small", "medium", "large"]
+            .iter()
+            .map(|roi| {
+                let p = r
+                    .uniform
+                    .iter()
+                    .filter(|u| u.roi == *roi)
+                    .map(|u| (u.error, f(u)))
+                    .collect();
+                (format!("{roi} ROI"), p)
+            })
+            .collect()
+    };
+    let mut time = by_roi(&|u| u.query_ms);
+    for s in &mut time {
+        s.0 = format!("query, {}", s.0);
+    }
+    let mut resample = by_roi(&|u| u.resample_ms);
+    for s in &mut resample {
+        s.0 = format!("resample {}², {}", r.uniform[0].tile, s.0);
+    }
+    time.extend(resample);
+    both(
+        out,
+        "time_vs_error",
+        &Chart {
+            title: "Time against requested error",
+            x: "requested error e (m)",
+            y: "median time (ms)",
+            series: time,
+            log_y: true,
+            diagonal: false,
+        },
+    )?;
+    both(
+        out,
+        "patches_vs_error",
+        &Chart {
+            title: "Patches against requested error",
+            x: "requested error e (m)",
+            y: "patches returned",
+            series: by_roi(&|u| u.patches as f64),
+            log_y: true,
+            diagonal: false,
+        },
+    )?;
+    let mut acc = Vec::new();
+    for (name, f) in [
+        (
+            "max",
+            (|u: &super::UniformRow| u.max_err) as fn(&super::UniformRow) -> f64,
+        ),
+        ("RMS", |u: &super::UniformRow| u.rms_err),
+    ] {
+        for (roi, p) in by_roi(&f) {
+            acc.push((format!("{name}, {roi}"), p));
+        }
+    }
+    both(
+        out,
+        "error_vs_requested",
+        &Chart {
+            title: "Measured error of the resampled tiles",
+            x: "requested error e (m)",
+            y: "measured error (m)",
+            series: acc,
+            log_y: false,
+            diagonal: true,
+        },
+    )?;
+    let view_t = vec![(
+        "median query time (ms)".to_string(),
+        r.view.iter().map(|v| (v.pixel_error, v.query_ms)).collect(),
+    )];
+    both(
+        out,
+        "view_time",
+        &Chart {
+            title: "View-dependent queries along a flight",
+            x: "screen error (pixels)",
+            y: "ms",
+            series: view_t,
+            log_y: false,
+            diagonal: false,
+        },
+    )?;
+    let view_p = vec![(
+        "patches per view".to_string(),
+        r.view.iter().map(|v| (v.pixel_error, v.patches)).collect(),
+    )];
+    both(
+        out,
+        "view_patches",
+        &Chart {
+            title: "Patches per view along a flight",
+            x: "screen error (pixels)",
+            y: "patches",
+            series: view_p,
+            log_y: false,
+            diagonal: false,
+        },
+    )?;
+    map(out, t, map_roi, if smoke { 96 } else { 420 })?;
+    let _ = ERRORS;
+    Ok(())
+}
+
+/// Hillshade coloured by the level of the patch that represents each point, at three errors,
+/// as in the paper's Fig. 5: red for the finest patches, blue for the largest.
+fn map(out: &Path, t: &Terrain, roi: &Aabb, n: usize) -> Result<(), Fail> {
+    let errors = [5.0, 20.0, 50.0];
+    let path = out.join("patch_map.png");
+    let root =
+        BitMapBackend::new(&path, ((n * 3 + 40) as u32, (n + 50) as u32)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| format!("{e:?}"))?;
+    let grid = SampleGrid::uniform(roi, n, n);
+    let metric = match t.surveys().next().and_then(|s| s.crs) {
+        Some(c) if crate::engine::is_geographic(c) => {
+            crate::index::query::Metric::geographic((roi.min[1] + roi.max[1]) / 2.0)
+        }
+        _ => crate::index::query::Metric::PROJECTED,
+    };
+    let dx = roi.width() / n as f64 * metric.scale[0];
+    let dy = roi.height() / n as f64 * metric.scale[1];
+    for (k, &e) in errors.iter().enumerate() {
+        let ps = t.uniform(roi, e);
+        let tile = t.resample(ps.clone(), &grid);
+        let levels: Vec<u8> = grid
+            .points
+            .iter()
+            .map(|p| {
+                ps.iter()
+                    .filter(|x| x.kernel.contains_point(*p))
+                    .map(|x| x.level)
+                    .max()
+                    .unwrap_or(0)
+            })
+            .collect();
+        let top = levels.iter().copied().max().unwrap_or(0).max(1) as f64;
+        let h = |i: usize, j: usize| tile.heights[j.min(n - 1) * n + i.min(n - 1)] as f64;
+        let area = root.margin(30, 10, (10 + k * (n + 10)) as i32, 0);
+        area.draw(&Text::new(
+            format!("e = {e} m: {} patches", ps.len()),
+            (0, -22),
+            ("sans-serif", 15),
+        ))
+        .map_err(|e| format!("{e:?}"))?;
+        for j in 0..n {
+            for i in 0..n {
+                let z = h(i, j);
+                if z.is_nan() {
+                    continue;
+                }
+                let gx = (h(i + 1, j) - h(i.saturating_sub(1), j)) / (2.0 * dx);
+                let gy = (h(i, j.saturating_sub(1)) - h(i, j + 1)) / (2.0 * dy);
+                let (gx, gy) = (
+                    if gx.is_nan() { 0.0 } else { gx },
+                    if gy.is_nan() { 0.0 } else { gy },
+                );
+                // Light from the north-west, 45° up.
+                let shade =
+                    ((1.0 + gx * 0.5 - gy * 0.5) / (1.0 + gx * gx + gy * gy).sqrt() / 1.2247)
+                        .clamp(0.0, 1.0);
+                let f = levels[j * n + i] as f64 / top;
+                let base = [
+                    230.0 * (1.0 - f) + 30.0 * f,
+                    60.0 + 80.0 * (1.0 - (2.0 * f - 1.0).abs()),
+                    40.0 * (1.0 - f) + 220.0 * f,
+                ];
+                let s = 0.35 + 0.65 * shade;
+                let col = RGBColor(
+                    (base[0] * s) as u8,
+                    (base[1] * s) as u8,
+                    (base[2] * s) as u8,
+                );
+                area.draw_pixel((i as i32, j as i32), &col)
+                    .map_err(|e| format!("{e:?}"))?;
+            }
+        }
+    }
+    root.present().map_err(|e| format!("{e:?}"))?;
+    Ok(())
+}

@@ -1,0 +1,367 @@
+//! `patchwork bench`: speed beside accuracy, on real surveys, with GDAL on the same tiles.
+//!
+//! Ingests the surveys into a temporary store, then measures uniform cuts over three ROIs at
+//! a range of errors (query time, patches, bytes on the wire, resample time, samples, and the
+//! measured error of each tile against the surveys' own surfaces), view-dependent cuts along a
+//! flight path, ingest throughput and store size. Writes CSV and charts, and the tiles GDAL
+//! is compared on.
+
+pub mod charts;
+
+use crate::config::Config;
+use crate::engine::{Cut, Engine};
+use crate::index::geom::Aabb;
+use crate::index::query::{Metric, ViewQuery};
+use crate::resample::SampleGrid;
+use crate::serve::convert;
+use crate::terrain::Terrain;
+use prost::Message;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+pub const ERRORS: [f64; 9] = [0.0, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0];
+pub const PIXEL_ERRORS: [f64; 4] = [0.5, 1.0, 2.0, 4.0];
+
+#[derive(Clone, Debug)]
+pub struct Options {
+    pub files: Vec<PathBuf>,
+    pub out: PathBuf,
+    /// A few seconds' worth: small tiles, one repeat, fewer errors.
+    pub smoke: bool,
+}
+
+#[derive(Clone, Debug)]
+pub struct UniformRow {
+    pub roi: &'static str,
+    pub error: f64,
+    pub query_ms: f64,
+    pub patches: usize,
+    pub wire_bytes: usize,
+    pub tile: usize,
+    pub resample_ms: f64,
+    pub samples: usize,
+    pub max_err: f64,
+    pub rms_err: f64,
+    pub over: usize,
+}
+
+#[derive(Clone, Debug)]
+pub struct ViewRow {
+    pub pixel_error: f64,
+    pub query_ms: f64,
+    pub patches: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct IngestRow {
+    pub file: String,
+    pub samples: u64,
+    pub seconds: f64,
+    pub input_bytes: u64,
+}
+
+pub struct Report {
+    pub uniform: Vec<UniformRow>,
+    pub view: Vec<ViewRow>,
+    pub ingest: Vec<IngestRow>,
+    pub disk_bytes: u64,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+    let mut times = Vec::with_capacity(repeats);
+    let mut last = None;
+    for _ in 0..repeats.max(1) {
+        let t = Instant::now();
+        last = Some(f());
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    (median(times), last.expect("ran once"))
+}
+
+/// Per sample, the lowest and highest height of the surveys with data there: the point
+/// reference. With one survey both are its bilinear surface; where surveys overlap, the bound
+/// holds against the range they span.
+pub fn reference(t: &Terrain, grid: &SampleGrid) -> (Vec<f32>, Vec<f32>) {
+    let surveys: Vec<_> = t.surveys().cloned().collect();
+    grid.points
+        .iter()
+        .map(|p| {
+            let hs = surveys.iter().filter_map(|s| s.levels[0].bilinear(*p));
+            let (lo, hi) = hs.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), h| {
+                (a.min(h), b.max(h))
+            });
+            if lo.is_finite() {
+                (lo as f32, hi as f32)
+            } else {
+                (f32::NAN, f32::NAN)
+            }
+        })
+        .unzip()
+}
+
+/// Distance of each valid height outside the reference range.
+pub fn errors(heights: &[f32], lo: &[f32], hi: &[f32]) -> Vec<f64> {
+    heights
+        .iter()
+        .zip(lo.iter().zip(hi))
+        .filter(|(h, (l, _))| !h.is_nan() && !l.is_nan())
+        .map(|(h, (l, u))| ((*l - *h).max(*h - *u).max(0.0)) as f64)
+        .collect()
+}
+
+/// Writes a float32 numpy array (`shape` rows × cols).
+pub fn write_npy(path: &Path, rows: usize, cols: usize, data: &[f32]) -> std::io::Result<()> {
+    let header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({rows}, {cols}), }}");
+    let pad = 64 - (10 + header.len() + 1) % 64;
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend_from_slice(&((header.len() + pad + 1) as u16).to_le_bytes());
+    bytes.extend_from_slice(header.as_bytes());
+    bytes.extend(std::iter::repeat_n(b' ', pad));
+    bytes.push(b'\n');
+    for z in data {
+        bytes.extend_from_slice(&z.to_le_bytes());
+    }
+    std::fs::write(path, bytes)
+}
+
+fn square(c: [f64; 2], half: f64) -> Aabb {
+    Aabb::new(c[0] - half, c[1] - half, c[0] + half, c[1] + half)
+}
+
+pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
+    std::fs::create_dir_all(opts.out.join("tiles"))?;
+    let tmp = tempfile::tempdir()?;
+    let cfg = Config {
+        data_dir: tmp.path().join("data"),
+        inbox: vec![],
+        ..Config::default()
+    };
+    let engine = Engine::open(cfg)?;
+    let mut ingest = Vec::new();
+    for f in &opts.files {
+        let r = engine.ingest(f, None);
+        if r.outcome == "failed" {
+            return Err(format!("{}: {}", f.display(), r.error).into());
+        }
+        println!(
+            "ingested {} ({} samples, {:.2} s)",
+            f.display(),
+            r.samples,
+            r.seconds
+        );
+        ingest.push(IngestRow {
+            file: f
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            samples: r.samples,
+            seconds: r.seconds,
+            input_bytes: std::fs::metadata(f)?.len(),
+        });
+    }
+    let disk_bytes = engine.stats()?.disk_bytes;
+    let t = engine.snapshot();
+    let first = t
+        .surveys()
+        .max_by_key(|s| s.levels[0].samples.len())
+        .ok_or("no survey was ingested")?
+        .levels[0]
+        .world_bounds();
+    let c = [
+        (first.min[0] + first.max[0]) / 2.0,
+        (first.min[1] + first.max[1]) / 2.0,
+    ];
+    let span = first.width().min(first.height());
+    let rois = [
+        ("small", square(c, span / 50.0)),
+        ("medium", square(c, span / 10.0)),
+        ("large", square(c, span / 2.0)),
+    ];
+    let (repeats, tile_side) = if opts.smoke { (1, 64) } else { (5, 512) };
+    let errors_used: Vec<f64> = if opts.smoke {
+        vec![0.0, 5.0, 50.0]
+    } else {
+        ERRORS.to_vec()
+    };
+
+    let mut uniform = Vec::new();
+    let mut manifest = Vec::new();
+    for (name, roi) in &rois {
+        let grid = SampleGrid::uniform(roi, tile_side, tile_side);
+        let (lo, hi) = reference(&t, &grid);
+        for &e in &errors_used {
+            let cut = Cut::Uniform {
+                roi: *roi,
+                error: e,
+            };
+            let (query_ms, (_, ps)) = timed(repeats, || engine.query(&cut).expect("query"));
+            let wire_bytes = ps
+                .iter()
+                .filter_map(|x| convert::patch(&t, x))
+                .map(|p| p.encoded_len())
+                .sum();
+            let (resample_ms, tile) = timed(repeats.min(3), || t.resample(ps.clone(), &grid));
+            let errs = errors(&tile.heights, &lo, &hi);
+            let over = errs.iter().filter(|&&d| d > e + 1e-3).count();
+            let row = UniformRow {
+                roi: name,
+                error: e,
+                query_ms,
+                patches: ps.len(),
+                wire_bytes,
+                tile: tile_side,
+                resample_ms,
+                samples: tile.heights.iter().filter(|z| !z.is_nan()).count(),
+                max_err: errs.iter().cloned().fold(0.0, f64::max),
+                rms_err: (errs.iter().map(|d| d * d).sum::<f64>() / errs.len().max(1) as f64)
+                    .sqrt(),
+                over,
+            };
+            println!(
+                "{name:>6} e = {e:>5} m: query {query_ms:.3} ms, {} patches, {} bytes, resample {resample_ms:.2} ms, max error {:.3} m, RMS {:.3} m, {over} over e",
+                row.patches, row.wire_bytes, row.max_err, row.rms_err
+            );
+            uniform.push(row);
+        }
+        // The tiles GDAL is compared on: the medium ROI, two sizes, three errors.
+        if *name == "medium" {
+            let sizes: &[usize] = if opts.smoke { &[64] } else { &[512, 1024] };
+            for &n in sizes {
+                let grid = SampleGrid::uniform(roi, n, n);
+                let (lo, hi) = reference(&t, &grid);
+                let stem = format!("medium_{n}");
+                write_npy(&opts.out.join(format!("tiles/{stem}_lo.npy")), n, n, &lo)?;
+                write_npy(&opts.out.join(format!("tiles/{stem}_hi.npy")), n, n, &hi)?;
+                for e in [0.0, 5.0, 20.0] {
+                    let (ms, tile) = timed(repeats.min(3), || {
+                        let (_, ps) = engine
+                            .query(&Cut::Uniform {
+                                roi: *roi,
+                                error: e,
+                            })
+                            .expect("query");
+                        t.resample(ps, &grid)
+                    });
+                    let file = format!("{stem}_e{e}.npy");
+                    write_npy(&opts.out.join("tiles").join(&file), n, n, &tile.heights)?;
+                    manifest.push(serde_json::json!({
+                        "size": n, "error": e, "ours": file, "ours_ms": ms,
+                        "lo": format!("{stem}_lo.npy"), "hi": format!("{stem}_hi.npy"),
+                        "roi": [roi.min[0], roi.min[1], roi.max[0], roi.max[1]],
+                    }));
+                }
+            }
+        }
+    }
+    let crs = engine.crs().unwrap_or(0);
+    std::fs::write(
+        opts.out.join("tiles/manifest.json"),
+        serde_json::to_string_pretty(&serde_json::json!({
+            "crs": format!("EPSG:{crs}"),
+            "sources": opts.files.iter().map(|f| std::path::absolute(f).unwrap_or(f.clone())).collect::<Vec<_>>(),
+            "tiles": manifest,
+        }))?,
+    )?;
+
+    // A flight along the survey's diagonal, 1,500 m up, looking ahead.
+    let metric = match engine.crs() {
+        Some(c) if crate::engine::is_geographic(c) => Metric::geographic(c_lat(&first)),
+        _ => Metric::PROJECTED,
+    };
+    let stops = if opts.smoke { 2 } else { 8 };
+    let mut view = Vec::new();
+    for &px in &PIXEL_ERRORS {
+        let (mut times, mut counts) = (Vec::new(), Vec::new());
+        for k in 0..stops {
+            let f = 0.1 + 0.5 * k as f64 / stops as f64;
+            let at = |g: f64| {
+                [
+                    first.min[0] + g * first.width(),
+                    first.min[1] + g * first.height(),
+                ]
+            };
+            let (e, l) = (at(f), at(f + 0.3));
+            let v = ViewQuery {
+                eye: [e[0], e[1], 1500.0],
+                look: [l[0], l[1], 300.0],
+                fov_deg: 60.0,
+                viewport_px: 1024,
+                pixel_error: px,
+                metric,
+            };
+            let (ms, ps) = timed(repeats, || t.view(&v));
+            times.push(ms);
+            counts.push(ps.len() as f64);
+        }
+        let row = ViewRow {
+            pixel_error: px,
+            query_ms: median(times),
+            patches: counts.iter().sum::<f64>() / counts.len() as f64,
+        };
+        println!(
+            "view {px} px: {:.3} ms, {:.0} patches",
+            row.query_ms, row.patches
+        );
+        view.push(row);
+    }
+    let report = Report {
+        uniform,
+        view,
+        ingest,
+        disk_bytes,
+    };
+    write_csv(&opts.out, &report)?;
+    charts::draw(&opts.out, &report, &t, &rois[1].1, opts.smoke)?;
+    Ok(report)
+}
+
+fn c_lat(b: &Aabb) -> f64 {
+    (b.min[1] + b.max[1]) / 2.0
+}
+
+fn write_csv(out: &Path, r: &Report) -> std::io::Result<()> {
+    let mut s = String::from("roi,error_m,query_ms,patches,wire_bytes,tile,resample_ms,samples,max_error_m,rms_error_m,samples_over_error\n");
+    for u in &r.uniform {
+        let _ = writeln!(
+            s,
+            "{},{},{:.4},{},{},{},{:.3},{},{:.4},{:.4},{}",
+            u.roi,
+            u.error,
+            u.query_ms,
+            u.patches,
+            u.wire_bytes,
+            u.tile,
+            u.resample_ms,
+            u.samples,
+            u.max_err,
+            u.rms_err,
+            u.over
+        );
+    }
+    std::fs::write(out.join("uniform.csv"), s)?;
+    let mut s = String::from("pixel_error,query_ms,patches\n");
+    for v in &r.view {
+        let _ = writeln!(s, "{},{:.4},{:.1}", v.pixel_error, v.query_ms, v.patches);
+    }
+    std::fs::write(out.join("view.csv"), s)?;
+    let mut s = String::from("file,samples,seconds,samples_per_s,input_bytes\n");
+    for i in &r.ingest {
+        let _ = writeln!(
+            s,
+            "{},{},{:.3},{:.0},{}",
+            i.file,
+            i.samples,
+            i.seconds,
+            i.samples as f64 / i.seconds,
+            i.input_bytes
+        );
+    }
+    let _ = writeln!(s, "# store size on disk: {} bytes", r.disk_bytes);
+    std::fs::write(out.join("ingest.csv"), s)
+}
