@@ -284,7 +284,12 @@ fn map(out: &Path, t: &Terrain, roi: &Aabb, n: usize) -> Result<(), Fail> {
             .collect();
         let h = |i: usize, j: usize| tile.heights[j.min(n - 1) * n + i.min(n - 1)] as f64;
         let x0 = 10 + k * (n + 10);
-        root.draw(&Text::new(format!("e = {e} m: {} patches", ps.len()), (x0 as i32, 8), ("sans-serif", 15))).map_err(|e| format!("{e:?}"))?;
+        root.draw(&Text::new(
+            format!("e = {e} m: {} patches", ps.len()),
+            (x0 as i32, 8),
+            ("sans-serif", 15),
+        ))
+        .map_err(|e| format!("{e:?}"))?;
         let area = root.margin(30, 20, x0 as i32, 0);
         for j in 0..n {
             for i in 0..n {
@@ -318,9 +323,18 @@ fn map(out: &Path, t: &Terrain, roi: &Aabb, n: usize) -> Result<(), Fail> {
     for lv in 0..=MAX_LEVEL {
         let x = 10 + lv as i32 * 110;
         let y = (n + 32) as i32;
-        root.draw(&Rectangle::new([(x, y), (x + 14, y + 14)], level_colour(lv).filled())).map_err(|e| format!("{e:?}"))?;
+        root.draw(&Rectangle::new(
+            [(x, y), (x + 14, y + 14)],
+            level_colour(lv).filled(),
+        ))
+        .map_err(|e| format!("{e:?}"))?;
         let side = 28u32 << lv;
-        root.draw(&Text::new(format!("level {lv} ({side} cells)"), (x + 18, y), ("sans-serif", 12))).map_err(|e| format!("{e:?}"))?;
+        root.draw(&Text::new(
+            format!("level {lv} ({side} cells)"),
+            (x + 18, y),
+            ("sans-serif", 12),
+        ))
+        .map_err(|e| format!("{e:?}"))?;
     }
     root.present().map_err(|e| format!("{e:?}"))?;
     Ok(())
@@ -330,9 +344,18 @@ const MAX_LEVEL: u8 = 7;
 
 /// Red for the finest patches through yellow to blue for the largest.
 fn level_colour(level: u8) -> RGBColor {
-    const STOPS: [(u8, u8, u8); 5] = [(215, 48, 39), (252, 141, 89), (254, 224, 144), (145, 191, 219), (69, 117, 180)];
+    const STOPS: [(u8, u8, u8); 5] = [
+        (215, 48, 39),
+        (252, 141, 89),
+        (254, 224, 144),
+        (145, 191, 219),
+        (69, 117, 180),
+    ];
     let f = (level.min(MAX_LEVEL) as f64 / MAX_LEVEL as f64) * (STOPS.len() - 1) as f64;
-    let (i, t) = ((f.floor() as usize).min(STOPS.len() - 2), f - f.floor().min((STOPS.len() - 2) as f64));
+    let (i, t) = (
+        (f.floor() as usize).min(STOPS.len() - 2),
+        f - f.floor().min((STOPS.len() - 2) as f64),
+    );
     let mix = |a: u8, b: u8| (a as f64 + (b as f64 - a as f64) * t) as u8;
     let (a, b) = (STOPS[i], STOPS[i + 1]);
     RGBColor(mix(a.0, b.0), mix(a.1, b.1), mix(a.2, b.2))
