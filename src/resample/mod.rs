@@ -1,11 +1,13 @@
 //! Resampling extracted patches into heights (§5): sample grids, resolved patches, and the
-//! CPU implementation.
+//! CPU and GPU implementations.
 
 pub mod cpu;
+pub mod gpu;
 
 use crate::index::geom::Aabb;
 use crate::index::query::ViewQuery;
 use crate::model::grid::Grid;
+use crate::model::ids::PatchId;
 use crate::model::patch::{CellRect, Patch};
 use std::sync::Arc;
 
@@ -127,6 +129,9 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 /// once per request.
 #[derive(Clone, Debug)]
 pub struct ResolvedPatch {
+    /// Identifies the window's samples, so a device that already holds them need not upload
+    /// them again.
+    pub id: PatchId,
     pub level: Arc<Grid>,
     pub kernel: CellRect,
     pub window: CellRect,
@@ -153,6 +158,7 @@ impl ResolvedPatch {
         };
         let window = crate::index::geom::ORect::from_cells(&g, &p.window);
         ResolvedPatch {
+            id: p.id,
             kernel: p.kernel,
             window: p.window,
             centre: p.centre,
@@ -170,13 +176,30 @@ impl ResolvedPatch {
         }
     }
 
+    /// Level grid coordinates of a world point. Coordinates within [`SNAP`] of a grid line are
+    /// put on it: a sample grid aligned with a level puts points on its lines, where validity
+    /// changes, and rounding noise must not decide which side they fall on (nor may it differ
+    /// between the CPU and the GPU).
     #[inline]
     pub fn to_grid(&self, p: [f64; 2]) -> [f64; 2] {
         let d = [p[0] - self.origin[0], p[1] - self.origin[1]];
         [
-            (d[0] * self.u[0] + d[1] * self.u[1]) * self.inv_step[0],
-            (d[0] * self.v[0] + d[1] * self.v[1]) * self.inv_step[1],
+            snap((d[0] * self.u[0] + d[1] * self.u[1]) * self.inv_step[0]),
+            snap((d[0] * self.v[0] + d[1] * self.v[1]) * self.inv_step[1]),
         ]
+    }
+}
+
+/// How close to a grid line, in cells, a sample counts as on it.
+pub const SNAP: f64 = 1e-9;
+
+#[inline]
+fn snap(x: f64) -> f64 {
+    let n = x.round();
+    if (x - n).abs() < SNAP {
+        n
+    } else {
+        x
     }
 }
 

@@ -1,0 +1,223 @@
+// Formula 1 on the GPU: the same sums as `cpu::blend`, one invocation per output sample, one
+// workgroup per BLOCK × BLOCK block of samples, visiting only the patches in that block's bin.
+//
+// Positions arrive as (hi, lo) f32 pairs relative to a tile origin, and grid coordinates are
+// formed as (hi, lo) pairs with error-free sums and products: they carry about 48 bits, so
+// that the cell, the position inside it and the side of every edge test come out as with f64.
+// Heights arrive relative to a per-patch base, and the result is returned relative to the base
+// of the first patch that contributed: f32 then only ever holds height differences.
+
+// Samples at or above this are void, as are sample points whose x is.
+const VOID: f32 = 3.0e38;
+
+const KIND_BILINEAR: u32 = 0u;
+
+// Grid coordinates this close to a line are put on it, as `ResolvedPatch::to_grid` does.
+const SNAP: f32 = 1e-9;
+
+struct Params {
+    width: u32,
+    height: u32,
+    blocks_x: u32,
+    _pad: u32,
+}
+
+// Grid coordinates below are local to the patch's uploaded samples: the window grown by one
+// cell where the level has one, because the edge rule may look at the cell beyond the window.
+struct Patch {
+    // World position of the first uploaded sample minus the tile origin, as hi + lo.
+    origin_hi: vec2<f32>,
+    origin_lo: vec2<f32>,
+    // The column and row axes divided by the spacing: grid coordinate = dot(axis, d).
+    col_hi: vec2<f32>,
+    col_lo: vec2<f32>,
+    row_hi: vec2<f32>,
+    row_lo: vec2<f32>,
+    centre: vec2<f32>,
+    inv_half: vec2<f32>,
+    norm: f32,
+    base: f32,
+    _pad: vec2<f32>,
+    // (c0, r0, c1, r1), closed, in local grid coordinates.
+    window: vec4<f32>,
+    kernel: vec4<f32>,
+    offset: u32,
+    cols: u32,
+    rows: u32,
+    kind: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read> patches: array<Patch>;
+@group(0) @binding(3) var<storage, read> samples: array<f32>;
+@group(0) @binding(4) var<storage, read> bin_offsets: array<u32>;
+@group(0) @binding(5) var<storage, read> bins: array<u32>;
+// (height relative to the reference base, the reference base).
+@group(0) @binding(6) var<storage, read_write> heights: array<vec2<f32>>;
+@group(0) @binding(7) var<storage, read_write> valid: array<u32>;
+
+// The 1-D blending weight of a patch kind on t in [-1, 1].
+fn weight(kind: u32, t: f32) -> f32 {
+    switch kind {
+        case KIND_BILINEAR, default: {
+            return max(1.0 - abs(t), 0.0);
+        }
+    }
+}
+
+fn at(q: Patch, c: u32, r: u32) -> f32 {
+    return samples[q.offset + r * q.cols + c];
+}
+
+// Bilinear height in one cell, as (z, 1) or (0, 0) when a corner is void.
+fn in_cell(q: Patch, c: u32, r: u32, f: vec2<f32>) -> vec2<f32> {
+    let z00 = at(q, c, r);
+    let z10 = at(q, c + 1u, r);
+    let z01 = at(q, c, r + 1u);
+    let z11 = at(q, c + 1u, r + 1u);
+    if max(max(z00, z10), max(z01, z11)) >= VOID {
+        return vec2<f32>(0.0, 0.0);
+    }
+    let top = z00 + (z10 - z00) * f.x;
+    let bottom = z01 + (z11 - z01) * f.x;
+    return vec2<f32>(top + (bottom - top) * f.y, 1.0);
+}
+
+// `Bilinear::eval`: `Grid::bilinear_grid` inside the closed window, at the grid coordinates
+// gh + gl.
+fn bilinear(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec2<f32> {
+    let w = q.window;
+    if any(((gh - w.xy) + gl) < vec2<f32>(0.0)) || any(((gh - w.zw) + gl) > vec2<f32>(0.0)) {
+        return vec2<f32>(0.0, 0.0);
+    }
+    // `Grid::locate`: a point on the last line belongs to the cell before it. The uploaded
+    // samples end at the level's last line or one cell past the window, so clamping to the
+    // last uploaded cell is the same rule.
+    let cells = vec2<f32>(f32(q.cols - 1u), f32(q.rows - 1u));
+    var cf = floor(gh);
+    cf = select(cf, cf - 1.0, ((gh - cf) + gl) < vec2<f32>(0.0));
+    cf = min(cf, cells - 1.0);
+    let c = u32(cf.x);
+    let r = u32(cf.y);
+    let f = (gh - cf) + gl;
+    var z = in_cell(q, c, r, f);
+    if z.y > 0.0 {
+        return z;
+    }
+    // A point on an edge shared with a valid cell uses that cell, in the CPU's order. The
+    // right and lower neighbours never apply: f reaches 1 only on the level's last line.
+    let left = f.x == 0.0 && c > 0u;
+    let up = f.y == 0.0 && r > 0u;
+    if up {
+        z = in_cell(q, c, r - 1u, vec2<f32>(f.x, 1.0));
+        if z.y > 0.0 {
+            return z;
+        }
+    }
+    if left {
+        z = in_cell(q, c - 1u, r, vec2<f32>(1.0, f.y));
+        if z.y > 0.0 {
+            return z;
+        }
+        if up {
+            z = in_cell(q, c - 1u, r - 1u, vec2<f32>(1.0, 1.0));
+            if z.y > 0.0 {
+                return z;
+            }
+        }
+    }
+    return vec2<f32>(0.0, 0.0);
+}
+
+// The patch's height relative to its base, as (z, 1), or (0, 0) where it has none.
+fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec2<f32> {
+    switch q.kind {
+        case KIND_BILINEAR, default: {
+            return bilinear(q, gh, gl);
+        }
+    }
+}
+
+// a + b exactly, as (sum, error).
+fn two_sum(a: f32, b: f32) -> vec2<f32> {
+    let s = a + b;
+    let bb = s - a;
+    return vec2<f32>(s, (a - (s - bb)) + (b - bb));
+}
+
+// a · b exactly, as (product, error).
+fn two_prod(a: f32, b: f32) -> vec2<f32> {
+    let p = a * b;
+    return vec2<f32>(p, fma(a, b, -p));
+}
+
+// dot(d, axis) for d = dh + dl and axis = ah + al, as (hi, lo).
+fn coord(dh: vec2<f32>, dl: vec2<f32>, ah: vec2<f32>, al: vec2<f32>) -> vec2<f32> {
+    let px = two_prod(dh.x, ah.x);
+    let py = two_prod(dh.y, ah.y);
+    let s = two_sum(px.x, py.x);
+    let lo = s.y + px.y + py.y + (dh.x * al.x + dh.y * al.y) + (dl.x * ah.x + dl.y * ah.y);
+    return two_sum(s.x, lo);
+}
+
+@compute @workgroup_size(16, 16, 1)
+fn main(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(workgroup_id) wid: vec3<u32>,
+) {
+    if gid.x >= params.width || gid.y >= params.height {
+        return;
+    }
+    let i = gid.y * params.width + gid.x;
+    heights[i] = vec2<f32>(0.0, 0.0);
+    valid[i] = 0u;
+    let pt = points[i];
+    if pt.x >= VOID {
+        return;
+    }
+    let block = wid.y * params.blocks_x + wid.x;
+    let end = bin_offsets[block + 1u];
+    var sum = 0.0;
+    var wsum = 0.0;
+    var covered = false;
+    var have_ref = false;
+    var zref = 0.0;
+    for (var b = bin_offsets[block]; b < end; b++) {
+        let q = patches[bins[b]];
+        let sx = two_sum(pt.x, -q.origin_hi.x);
+        let sy = two_sum(pt.y, -q.origin_hi.y);
+        let dh = vec2<f32>(sx.x, sy.x);
+        let dl = vec2<f32>(sx.y, sy.y) + (pt.zw - q.origin_lo);
+        let cx = coord(dh, dl, q.col_hi, q.col_lo);
+        let cy = coord(dh, dl, q.row_hi, q.row_lo);
+        var gh = vec2<f32>(cx.x, cy.x);
+        var gl = vec2<f32>(cx.y, cy.y);
+        let n = round(gh);
+        let on_line = abs((gh - n) + gl) < vec2<f32>(SNAP);
+        gh = select(gh, n, on_line);
+        gl = select(gl, vec2<f32>(0.0), on_line);
+        let t = ((gh - q.centre) + gl) * q.inv_half;
+        if abs(t.x) >= 1.0 || abs(t.y) >= 1.0 {
+            continue;
+        }
+        let z = eval_patch(q, gh, gl);
+        if z.y == 0.0 {
+            continue;
+        }
+        if !have_ref {
+            zref = q.base;
+            have_ref = true;
+        }
+        let w = weight(q.kind, t.x) * weight(q.kind, t.y) * q.norm;
+        sum += w * (z.x + (q.base - zref));
+        wsum += w;
+        let k = q.kernel;
+        covered = covered || (all(((gh - k.xy) + gl) >= vec2<f32>(0.0))
+            && all(((gh - k.zw) + gl) <= vec2<f32>(0.0)));
+    }
+    if covered && wsum > 0.0 {
+        heights[i] = vec2<f32>(sum / wsum, zref);
+        valid[i] = 1u;
+    }
+}

@@ -1,0 +1,312 @@
+//! The GPU resampler against the CPU one: the same nodata mask and heights within 1 mm, on
+//! synthetic rotated grids with voids and on the committed real crops, for uniform and
+//! view-dependent sample grids.
+//!
+//! Without a GPU adapter these tests say so and pass, unless PATCHWORK_REQUIRE_GPU=1 (as CI
+//! sets it, with a software Vulkan driver installed), where they fail.
+
+mod common;
+
+use common::*;
+use patchwork::index::geom::Aabb;
+use patchwork::index::query::{Metric, ViewQuery};
+use patchwork::model::grid::{Georef, Grid};
+use patchwork::model::patch::{Bilinear, PatchLayout};
+use patchwork::model::survey::Survey;
+use patchwork::read::{read_raster, ReadLimits};
+use patchwork::resample::gpu::GpuResampler;
+use patchwork::resample::{cpu, SampleGrid};
+use patchwork::terrain::Terrain;
+use std::path::Path;
+use std::sync::Arc;
+
+const TOLERANCE: f64 = 1e-3;
+
+fn gpu() -> Option<GpuResampler> {
+    match GpuResampler::new() {
+        Ok(g) => {
+            println!("GPU adapter: {}", g.adapter());
+            Some(g)
+        }
+        Err(e) => {
+            if std::env::var("PATCHWORK_REQUIRE_GPU").as_deref() == Ok("1") {
+                panic!("PATCHWORK_REQUIRE_GPU=1 but there is no usable GPU: {e}");
+            }
+            println!("GPU path NOT exercised: no adapter ({e})");
+            None
+        }
+    }
+}
+
+/// Resamples on both and checks the masks are identical; returns the largest difference.
+fn compare(
+    g: &mut GpuResampler,
+    t: &Terrain,
+    ps: Vec<patchwork::index::query::Extracted>,
+    grid: &SampleGrid,
+    what: &str,
+) -> f64 {
+    let set = t.resolve(&ps);
+    let want = cpu::resample(&set, grid, &Bilinear);
+    let got = g
+        .resample(&set, grid)
+        .unwrap_or_else(|e| panic!("{what}: {e}"));
+    assert_eq!(got.len(), want.len());
+    let mut worst = 0.0f64;
+    let mut valid = 0;
+    for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+        assert_eq!(
+            a.is_nan(),
+            b.is_nan(),
+            "{what}: mask differs at sample {k} ({:?}): gpu {a}, cpu {b}",
+            grid.points[k]
+        );
+        if !a.is_nan() {
+            valid += 1;
+            worst = worst.max((*a as f64 - *b as f64).abs());
+        }
+    }
+    assert!(
+        worst <= TOLERANCE,
+        "{what}: the GPU is {worst} m off the CPU"
+    );
+    println!(
+        "{what}: {} patches, {valid} of {} samples valid, max |gpu − cpu| = {:.3e} m",
+        set.patches.len(),
+        want.len(),
+        worst
+    );
+    worst
+}
+
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn range(&mut self, a: f64, b: f64) -> f64 {
+        a + (b - a) * self.next()
+    }
+}
+
+fn random_spec(rng: &mut Rng, seed: u64) -> Spec {
+    let cols = rng.range(12.0, 70.0) as usize;
+    let rows = rng.range(12.0, 70.0) as usize;
+    let voids = (0..(rng.next() * 4.0) as usize)
+        .map(|_| {
+            (
+                rng.range(0.0, cols as f64),
+                rng.range(0.0, rows as f64),
+                rng.range(0.5, 6.0),
+            )
+        })
+        .collect();
+    // Quarter turns and arbitrary angles, so rotated grids meet north-up ones.
+    let theta = if rng.next() < 0.3 {
+        0.0
+    } else {
+        rng.range(0.0, std::f64::consts::TAU)
+    };
+    Spec {
+        cols,
+        rows,
+        origin: [rng.range(-10.0, 10.0), rng.range(-10.0, 10.0)],
+        theta,
+        step: [rng.range(0.4, 1.5), rng.range(0.4, 1.5)],
+        voids,
+        accuracy: [0.0, 0.5, 2.0][(rng.next() * 3.0) as usize],
+        seed,
+    }
+}
+
+#[test]
+fn gpu_matches_cpu_on_random_synthetic_sets() {
+    let Some(mut g) = gpu() else { return };
+    let mut rng = Rng(2024);
+    let mut worst = 0.0f64;
+    for case in 0..12 {
+        let surveys: Vec<Arc<Survey>> = (0..1 + (rng.next() * 4.0) as usize)
+            .filter_map(|_| random_spec(&mut rng, 7).survey())
+            .collect();
+        if surveys.is_empty() {
+            continue;
+        }
+        let t = terrain_of(&surveys);
+        let roi = bounds_of(&surveys);
+        for e in [0.0, 1.0, 5.0, 30.0] {
+            // Sizes that are not multiples of the block, so partial blocks are exercised.
+            let (w, h) = (37 + case * 7, 53 + case * 3);
+            let grid = SampleGrid::uniform(&roi, w, h);
+            let what = format!("synthetic case {case}, {} surveys, e = {e}", surveys.len());
+            worst = worst.max(compare(&mut g, &t, t.uniform(&roi, e), &grid, &what));
+        }
+        let c = [
+            0.5 * (roi.min[0] + roi.max[0]),
+            0.5 * (roi.min[1] + roi.max[1]),
+        ];
+        let v = ViewQuery {
+            eye: [roi.min[0] - 5.0, roi.min[1] - 5.0, 320.0],
+            look: [c[0], c[1], 200.0],
+            fov_deg: 70.0,
+            viewport_px: 300,
+            pixel_error: 1.0,
+            metric: Metric::PROJECTED,
+        };
+        let grid = SampleGrid::view(&v, 90, 70, v.look[2]);
+        let what = format!("synthetic case {case}, view");
+        worst = worst.max(compare(&mut g, &t, t.view(&v), &grid, &what));
+    }
+    println!("synthetic sets: max |gpu − cpu| = {worst:.3e} m");
+}
+
+fn crop(name: &str) -> Grid {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name);
+    read_raster(&path, &ReadLimits::default())
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+        .into_grid()
+        .unwrap()
+}
+
+fn survey(g: Grid) -> Arc<Survey> {
+    Arc::new(Survey::build(g, 0.0, Some(4326), PatchLayout::default()).unwrap())
+}
+
+/// The Copernicus crop turned by 25° about its centre.
+fn rotated(cop: &Grid) -> Grid {
+    let mut rot = cop.clone();
+    let centre = cop.georef.to_world(149.5, 149.5);
+    let g = Georef {
+        theta: 25f64.to_radians(),
+        ..cop.georef
+    };
+    let off = g.to_world(149.5, 149.5);
+    rot.georef = Georef {
+        origin: [
+            g.origin[0] + centre[0] - off[0],
+            g.origin[1] + centre[1] - off[1],
+        ],
+        ..g
+    };
+    rot
+}
+
+#[test]
+fn gpu_matches_cpu_on_the_real_crops() {
+    let Some(mut g) = gpu() else { return };
+    let cop = crop("copernicus_n34w119_crop.tif");
+    let surveys = vec![
+        survey(rotated(&cop)),
+        survey(cop),
+        survey(crop("nasadem_n34w119_crop.tif")),
+        survey(crop("srtm_n44e005_voids_crop.tif")),
+    ];
+    let t = terrain_of(&surveys);
+    let mut worst = 0.0f64;
+    for s in &surveys {
+        let roi = s.levels[0].world_bounds();
+        for (e, size) in [(0.0, 256), (2.0, 200), (5.0, 256), (20.0, 128), (100.0, 64)] {
+            let grid = SampleGrid::uniform(&roi, size, size);
+            let what = format!("survey {} at e = {e}, {size}²", s.id);
+            worst = worst.max(compare(&mut g, &t, t.uniform(&roi, e), &grid, &what));
+        }
+    }
+    // A view over the N34W119 pair from a corner, looking across it.
+    let pair = [surveys[1].clone(), surveys[2].clone()];
+    let b: Aabb = bounds_of(&pair);
+    let eye = [b.min[0] + 0.1 * b.width(), b.min[1] + 0.1 * b.height()];
+    for px in [0.5, 2.0, 8.0] {
+        let v = ViewQuery {
+            eye: [eye[0], eye[1], 2500.0],
+            look: [b.max[0], b.max[1], 800.0],
+            fov_deg: 60.0,
+            viewport_px: 800,
+            pixel_error: px,
+            metric: Metric::geographic(eye[1]),
+        };
+        let grid = SampleGrid::view(&v, 240, 160, v.look[2]);
+        let what = format!("view at {px} px");
+        worst = worst.max(compare(&mut g, &t, t.view(&v), &grid, &what));
+    }
+    println!("real crops: max |gpu − cpu| = {worst:.3e} m");
+}
+
+#[test]
+fn gpu_keeps_a_millimetre_near_nine_kilometres() {
+    let Some(mut g) = gpu() else { return };
+    // The Copernicus crop lifted so its peaks sit just under 9,000 m, where an f32 height
+    // has a spacing of 0.98 mm.
+    let mut cop = crop("copernicus_n34w119_crop.tif");
+    let top = cop.samples.iter().cloned().fold(f32::MIN, f32::max);
+    let lift = 8999.0 - top as f64;
+    for z in cop.samples.iter_mut() {
+        *z = (*z as f64 + lift) as f32;
+    }
+    let surveys = vec![survey(rotated(&cop)), survey(cop)];
+    let t = terrain_of(&surveys);
+    let roi = bounds_of(&surveys);
+    let mut worst = 0.0f64;
+    for e in [0.0, 10.0, 50.0] {
+        let grid = SampleGrid::uniform(&roi, 300, 300);
+        let what = format!("lifted by {lift:.0} m, e = {e}");
+        worst = worst.max(compare(&mut g, &t, t.uniform(&roi, e), &grid, &what));
+    }
+    println!("near 9 km: max |gpu − cpu| = {worst:.3e} m");
+}
+
+#[test]
+fn gpu_uploads_shared_patches_once_and_survives_eviction() {
+    let Some(mut g) = gpu() else { return };
+    let cop = crop("copernicus_n34w119_crop.tif");
+    let s = survey(cop);
+    let t = terrain_of(std::slice::from_ref(&s));
+    let roi = s.levels[0].world_bounds();
+    let ps = t.uniform(&roi, 0.0);
+    let set = t.resolve(&ps);
+    let grid = SampleGrid::uniform(&roi, 128, 128);
+    let (a, first) = g.resample_timed(&set, &grid).unwrap();
+    assert_eq!(first.uploaded_patches, set.patches.len());
+    let (b, again) = g.resample_timed(&set, &grid).unwrap();
+    assert_eq!(again.uploaded_patches, 0, "{again:?}");
+    assert_eq!(again.cached_patches, set.patches.len());
+    assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+    // Half the tile shares its patches with the whole one.
+    let half = Aabb {
+        min: roi.min,
+        max: [0.5 * (roi.min[0] + roi.max[0]), roi.max[1]],
+    };
+    let (_, part) = g
+        .resample_timed(
+            &t.resolve(&t.uniform(&half, 0.0)),
+            &SampleGrid::uniform(&half, 64, 128),
+        )
+        .unwrap();
+    assert_eq!(part.uploaded_patches, 0, "{part:?}");
+
+    // An arena too small for two requests empties itself between them and stays right.
+    let mut small = GpuResampler::with_budget(64 << 10).unwrap();
+    let coarse = t.resolve(&t.uniform(&roi, 50.0));
+    for (set, what) in [(&set, "fine"), (&coarse, "coarse"), (&set, "fine again")] {
+        let want = cpu::resample(set, &grid, &Bilinear);
+        let (got, tm) = small.resample_timed(set, &grid).unwrap();
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| {
+                assert_eq!(a.is_nan(), b.is_nan());
+                if a.is_nan() {
+                    0.0
+                } else {
+                    (*a as f64 - *b as f64).abs()
+                }
+            })
+            .fold(0.0, f64::max);
+        assert!(worst <= TOLERANCE, "{what}: {worst}");
+        println!("small arena, {what}: {tm:?}");
+    }
+}
