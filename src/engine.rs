@@ -12,6 +12,7 @@ use crate::index::query::{Extracted, Metric, ViewQuery};
 use crate::ingest::{prepare, IngestError, IngestSettings};
 use crate::model::ids::SurveyId;
 use crate::model::survey::Survey;
+use crate::resample::gpu::{GpuError, GpuResampler};
 use crate::resample::SampleGrid;
 use crate::store::{
     file_content_id, now_unix, FailedRecord, IngestTimings, Status, Store, StoreError, SurveyRecord,
@@ -90,7 +91,8 @@ pub struct Stats {
     pub samples: u64,
     pub disk_bytes: u64,
     pub crs: Option<u32>,
-    pub backend: &'static str,
+    /// "cpu", or "gpu (adapter)".
+    pub backend: String,
     pub quadtree_nodes: u32,
 }
 
@@ -101,6 +103,8 @@ pub struct Engine {
     /// Serialises writers; readers never take it.
     writer: Mutex<()>,
     events: broadcast::Sender<Event>,
+    /// The GPU resampler, when the daemon opened one; dropped if the device is lost.
+    gpu: Mutex<Option<GpuResampler>>,
 }
 
 /// Whether an EPSG code names a geographic (longitude/latitude) CRS.
@@ -129,7 +133,27 @@ impl Engine {
             terrain: RwLock::new(Arc::new(opened.terrain)),
             writer: Mutex::new(()),
             events,
+            gpu: Mutex::new(None),
         })
+    }
+
+    /// Opens the GPU device the daemon resamples on, once, at start-up. Without an adapter
+    /// the daemon says so and resamples on the CPU.
+    pub fn enable_gpu(&self) {
+        match GpuResampler::new() {
+            Ok(g) => {
+                tracing::info!(adapter = %g.adapter(), "resampling on the GPU");
+                *self.gpu.lock().expect("gpu lock") = Some(g);
+            }
+            Err(e) => tracing::info!(reason = %e, "no GPU device: resampling on the CPU"),
+        }
+    }
+
+    fn backend_name(&self) -> String {
+        match self.gpu.lock().expect("gpu lock").as_ref() {
+            Some(g) => format!("gpu ({})", g.adapter()),
+            None => "cpu".into(),
+        }
     }
 
     pub fn config(&self) -> &Config {
@@ -351,7 +375,7 @@ impl Engine {
             samples: active.iter().map(|r| r.samples).sum(),
             disk_bytes: self.with_store(|s| Ok(s.disk_bytes()))?,
             crs: self.crs(),
-            backend: "cpu",
+            backend: self.backend_name(),
             quadtree_nodes: t.index().tree_stats().nodes as u32,
         })
     }
@@ -462,17 +486,43 @@ impl Engine {
                 "a {width}×{height} tile has {n} samples, more than the limit of {max}: ask for a smaller tile"
             )));
         }
-        if backend == Backend::Gpu {
-            return Err(EngineError::Unavailable(
-                "backend gpu was asked for, but this daemon has no GPU device; use auto or cpu"
-                    .into(),
-            ));
-        }
         let (t, ps) = self.query(cut)?;
         let grid = match cut {
             Cut::Uniform { roi, .. } => SampleGrid::uniform(roi, width as usize, height as usize),
             Cut::View(v) => SampleGrid::view(v, width as usize, height as usize, v.look[2]),
         };
+        if backend != Backend::Cpu {
+            let mut gpu = self.gpu.lock().expect("gpu lock");
+            match gpu.as_mut() {
+                Some(g) => match g.resample(&t.resolve(&ps), &grid) {
+                    Ok(heights) => {
+                        let tile = Tile {
+                            width: grid.width,
+                            height: grid.height,
+                            heights,
+                            patches: ps,
+                        };
+                        return Ok((tile, "gpu"));
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "GPU resampling failed; this request and later ones use the CPU");
+                        if matches!(e, GpuError::Lost(_) | GpuError::Device(_)) {
+                            *gpu = None;
+                        }
+                        if backend == Backend::Gpu {
+                            return Err(EngineError::Unavailable(format!(
+                                "GPU resampling failed: {e}"
+                            )));
+                        }
+                    }
+                },
+                None if backend == Backend::Gpu => return Err(EngineError::Unavailable(
+                    "backend gpu was asked for, but this daemon has no GPU device; use auto or cpu"
+                        .into(),
+                )),
+                None => {}
+            }
+        }
         Ok((t.resample(ps, &grid), "cpu"))
     }
 

@@ -290,7 +290,14 @@ async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
         .init();
     std::fs::create_dir_all(&cfg.data_dir)?;
     let listen = cfg.listen.clone();
-    let engine = Arc::new(tokio::task::spawn_blocking(move || Engine::open(cfg)).await??);
+    let engine = Arc::new(
+        tokio::task::spawn_blocking(move || {
+            let e = Engine::open(cfg)?;
+            e.enable_gpu();
+            Ok::<_, patchwork::engine::EngineError>(e)
+        })
+        .await??,
+    );
     let listener = tokio::net::TcpListener::bind(&listen)
         .await
         .map_err(|e| format!("cannot listen on {listen}: {e}"))?;

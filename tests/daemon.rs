@@ -522,3 +522,74 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
     ]);
     assert!(!v["patches"].as_array().unwrap().is_empty());
 }
+
+#[test]
+fn daemon_tiles_on_the_gpu_match_the_cpu_and_gpu_without_a_device_is_refused() {
+    use patchwork::serve::proto::{self as pb, terrain_client::TerrainClient};
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "a.tif");
+    d.wait("the survey", |s| count(s, "active") == 1);
+    let backend = d.json(&["stats", "--json"])["backend"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let required = std::env::var("PATCHWORK_REQUIRE_GPU").as_deref() == Ok("1");
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let mut t = TerrainClient::connect(format!("http://127.0.0.1:{}", d.port))
+            .await
+            .unwrap();
+        let tile = |b: pb::Backend, e: f64| pb::TileRequest {
+            cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
+                roi: Some(pb::Rect {
+                    xmin: -119.0,
+                    ymin: 34.46,
+                    xmax: -118.92,
+                    ymax: 34.54,
+                }),
+                error: e,
+            })),
+            width: 300,
+            height: 200,
+            backend: b as i32,
+        };
+        if !backend.starts_with("gpu") {
+            assert!(
+                !required,
+                "PATCHWORK_REQUIRE_GPU=1 but the daemon resamples on {backend}"
+            );
+            println!("GPU path NOT exercised: the daemon has no GPU device ({backend})");
+            let err = t
+                .resample_tile(tile(pb::Backend::Gpu, 0.0))
+                .await
+                .unwrap_err();
+            assert_eq!(err.code(), tonic::Code::FailedPrecondition);
+            assert!(err.message().contains("no GPU device"), "{}", err.message());
+            return;
+        }
+        for e in [0.0, 5.0, 30.0] {
+            let g = t
+                .resample_tile(tile(pb::Backend::Gpu, e))
+                .await
+                .unwrap()
+                .into_inner();
+            let c = t
+                .resample_tile(tile(pb::Backend::Cpu, e))
+                .await
+                .unwrap()
+                .into_inner();
+            assert_eq!((g.backend.as_str(), c.backend.as_str()), ("gpu", "cpu"));
+            assert_eq!(g.valid, c.valid, "e = {e}: masks differ");
+            let worst = g
+                .heights
+                .iter()
+                .zip(&c.heights)
+                .filter(|(a, _)| !a.is_nan())
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            assert!(worst <= 1e-3, "e = {e}: GPU and CPU differ by {worst} m");
+            println!("daemon on {backend}: e = {e} m, max |GPU − CPU| = {worst} m");
+        }
+    });
+}

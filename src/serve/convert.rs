@@ -151,7 +151,7 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         samples: s.samples,
         disk_bytes: s.disk_bytes,
         crs: s.crs.unwrap_or(0),
-        backend: s.backend.into(),
+        backend: s.backend.clone(),
         quadtree_nodes: s.quadtree_nodes,
     }
 }
