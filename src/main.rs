@@ -259,20 +259,7 @@ fn write_tile(out: &Path, t: &pb::Tile, roi: &pb::Rect) -> Result<(), Fail> {
             )?;
         }
         Some("npy") => {
-            let header = format!(
-                "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}), }}",
-                t.height, t.width
-            );
-            let pad = 64 - (10 + header.len() + 1) % 64;
-            let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
-            bytes.extend_from_slice(&((header.len() + pad + 1) as u16).to_le_bytes());
-            bytes.extend_from_slice(header.as_bytes());
-            bytes.extend(std::iter::repeat_n(b' ', pad));
-            bytes.push(b'\n');
-            for z in &t.heights {
-                bytes.extend_from_slice(&z.to_le_bytes());
-            }
-            std::fs::write(out, bytes)?;
+            patchwork::bench::write_npy(out, t.height as usize, t.width as usize, &t.heights)?
         }
         _ => return Err(format!("--out {}: use a .tif or .npy name", out.display()).into()),
     }
