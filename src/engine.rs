@@ -291,6 +291,7 @@ impl Engine {
         let survey = Arc::new(survey);
         let mut next = (*current).clone();
         let t1 = Instant::now();
+        let rec = |s: &Arc<Survey>| record(s, source, &content, timings, t1);
         let outcome = match &previous {
             Some(old) => {
                 let old_patches: Vec<_> = current
@@ -300,7 +301,7 @@ impl Engine {
                     .unwrap_or_default();
                 let retire: ChangeStats = next.retire(old.id).unwrap_or_default();
                 let insert = next.insert(survey.clone());
-                let rec = record(&survey, source, &content, timings, t1);
+                let rec = rec(&survey);
                 self.with_store(|s| {
                     s.commit_replace(old.id, &old_patches, &retire, &survey, &rec, &insert)
                 })?;
@@ -308,12 +309,12 @@ impl Engine {
             }
             None => {
                 let insert = next.insert(survey.clone());
-                let rec = record(&survey, source, &content, timings, t1);
+                let rec = rec(&survey);
                 self.with_store(|s| s.commit_survey(&survey, &rec, &insert))?;
                 "inserted"
             }
         };
-        self.with_store(|s| s.clear_failure(source))?;
+        // The commit cleared any failure recorded for this source in the same batch.
         self.publish(next);
         Ok((outcome, survey.id, samples))
     }

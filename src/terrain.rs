@@ -21,12 +21,6 @@ pub struct Tile {
     pub patches: Vec<Extracted>,
 }
 
-impl Tile {
-    pub fn valid(&self) -> impl Iterator<Item = bool> + '_ {
-        self.heights.iter().map(|z| !z.is_nan())
-    }
-}
-
 #[derive(Clone, Debug)]
 pub struct Terrain {
     index: LodIndex,

@@ -10,14 +10,11 @@ mod common;
 use common::*;
 use patchwork::index::geom::Aabb;
 use patchwork::index::query::{Metric, ViewQuery};
-use patchwork::model::grid::{Georef, Grid};
-use patchwork::model::patch::{Bilinear, PatchLayout};
+use patchwork::model::patch::Bilinear;
 use patchwork::model::survey::Survey;
-use patchwork::read::{read_raster, ReadLimits};
 use patchwork::resample::gpu::GpuResampler;
 use patchwork::resample::{cpu, SampleGrid};
 use patchwork::terrain::Terrain;
-use std::path::Path;
 use std::sync::Arc;
 
 const TOLERANCE: f64 = 1e-3;
@@ -163,48 +160,15 @@ fn gpu_matches_cpu_on_random_synthetic_sets() {
     println!("synthetic sets: max |gpu − cpu| = {worst:.3e} m");
 }
 
-fn crop(name: &str) -> Grid {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name);
-    read_raster(&path, &ReadLimits::default())
-        .unwrap_or_else(|e| panic!("{name}: {e}"))
-        .into_grid()
-        .unwrap()
-}
-
-fn survey(g: Grid) -> Arc<Survey> {
-    Arc::new(Survey::build(g, 0.0, Some(4326), PatchLayout::default()).unwrap())
-}
-
-/// The Copernicus crop turned by 25° about its centre.
-fn rotated(cop: &Grid) -> Grid {
-    let mut rot = cop.clone();
-    let centre = cop.georef.to_world(149.5, 149.5);
-    let g = Georef {
-        theta: 25f64.to_radians(),
-        ..cop.georef
-    };
-    let off = g.to_world(149.5, 149.5);
-    rot.georef = Georef {
-        origin: [
-            g.origin[0] + centre[0] - off[0],
-            g.origin[1] + centre[1] - off[1],
-        ],
-        ..g
-    };
-    rot
-}
-
 #[test]
 fn gpu_matches_cpu_on_the_real_crops() {
     let Some(mut g) = gpu() else { return };
-    let cop = crop("copernicus_n34w119_crop.tif");
+    let cop = real_crop("copernicus_n34w119_crop.tif");
     let surveys = vec![
-        survey(rotated(&cop)),
-        survey(cop),
-        survey(crop("nasadem_n34w119_crop.tif")),
-        survey(crop("srtm_n44e005_voids_crop.tif")),
+        real_survey(turned(&cop, 25.0)),
+        real_survey(cop),
+        real_survey(real_crop("nasadem_n34w119_crop.tif")),
+        real_survey(real_crop("srtm_n44e005_voids_crop.tif")),
     ];
     let t = terrain_of(&surveys);
     let mut worst = 0.0f64;
@@ -241,13 +205,13 @@ fn gpu_keeps_a_millimetre_near_nine_kilometres() {
     let Some(mut g) = gpu() else { return };
     // The Copernicus crop lifted so its peaks sit just under 9,000 m, where an f32 height
     // has a spacing of 0.98 mm.
-    let mut cop = crop("copernicus_n34w119_crop.tif");
+    let mut cop = real_crop("copernicus_n34w119_crop.tif");
     let top = cop.samples.iter().cloned().fold(f32::MIN, f32::max);
     let lift = 8999.0 - top as f64;
     for z in cop.samples.iter_mut() {
         *z = (*z as f64 + lift) as f32;
     }
-    let surveys = vec![survey(rotated(&cop)), survey(cop)];
+    let surveys = vec![real_survey(turned(&cop, 25.0)), real_survey(cop)];
     let t = terrain_of(&surveys);
     let roi = bounds_of(&surveys);
     let mut worst = 0.0f64;
@@ -262,8 +226,8 @@ fn gpu_keeps_a_millimetre_near_nine_kilometres() {
 #[test]
 fn gpu_uploads_shared_patches_once_and_survives_eviction() {
     let Some(mut g) = gpu() else { return };
-    let cop = crop("copernicus_n34w119_crop.tif");
-    let s = survey(cop);
+    let cop = real_crop("copernicus_n34w119_crop.tif");
+    let s = real_survey(cop);
     let t = terrain_of(std::slice::from_ref(&s));
     let roi = s.levels[0].world_bounds();
     let ps = t.uniform(&roi, 0.0);

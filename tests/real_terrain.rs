@@ -6,27 +6,10 @@ mod common;
 use common::*;
 use patchwork::index::geom::Aabb;
 use patchwork::index::lod::IndexConfig;
-use patchwork::model::grid::Georef;
 use patchwork::model::patch::PatchLayout;
 use patchwork::model::survey::Survey;
-use patchwork::read::{read_raster, ReadLimits};
 use patchwork::terrain::Terrain;
-use std::path::Path;
 use std::sync::Arc;
-
-fn crop(name: &str) -> patchwork::model::grid::Grid {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name);
-    read_raster(&path, &ReadLimits::default())
-        .unwrap_or_else(|e| panic!("{name}: {e}"))
-        .into_grid()
-        .unwrap()
-}
-
-fn survey(g: patchwork::model::grid::Grid) -> Arc<Survey> {
-    Arc::new(Survey::build(g, 0.0, Some(4326), PatchLayout::default()).unwrap())
-}
 
 struct Real {
     cop: Arc<Survey>,
@@ -36,28 +19,13 @@ struct Real {
 }
 
 fn real() -> Real {
-    let cop = crop("copernicus_n34w119_crop.tif");
-    // The same samples, turned by 25° about the crop's centre: a rotated grid over the pair.
-    let mut rot = cop.clone();
-    let centre = cop.georef.to_world(149.5, 149.5);
-    let theta = 25f64.to_radians();
-    let g = Georef {
-        theta,
-        ..cop.georef
-    };
-    let off = g.to_world(149.5, 149.5);
-    rot.georef = Georef {
-        origin: [
-            g.origin[0] + centre[0] - off[0],
-            g.origin[1] + centre[1] - off[1],
-        ],
-        ..g
-    };
+    let cop = real_crop("copernicus_n34w119_crop.tif");
+    let rotated = real_survey(turned(&cop, 25.0));
     Real {
-        cop: survey(cop),
-        nasa: survey(crop("nasadem_n34w119_crop.tif")),
-        srtm: survey(crop("srtm_n44e005_voids_crop.tif")),
-        rotated: survey(rot),
+        cop: real_survey(cop),
+        nasa: real_survey(real_crop("nasadem_n34w119_crop.tif")),
+        srtm: real_survey(real_crop("srtm_n44e005_voids_crop.tif")),
+        rotated,
     }
 }
 
@@ -219,9 +187,9 @@ fn voids_stay_nodata_and_valid_samples_get_heights() {
 
 #[test]
 fn a_query_below_every_accuracy_returns_the_best_data_without_holes() {
-    let cop = crop("copernicus_n34w119_crop.tif");
+    let cop = real_crop("copernicus_n34w119_crop.tif");
     let rough = Arc::new(Survey::build(cop, 4.0, Some(4326), PatchLayout::default()).unwrap());
-    let fine = survey(crop("nasadem_n34w119_crop.tif"));
+    let fine = real_survey(real_crop("nasadem_n34w119_crop.tif"));
     let mut t = Terrain::new(IndexConfig::default());
     t.insert(rough.clone());
     t.insert(fine.clone());

@@ -6,7 +6,6 @@ use super::lod::{LodIndex, PatchBox, Span};
 use crate::model::ids::{PatchId, SurveyId};
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
-use std::sync::Arc;
 
 /// A patch returned by a query.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -345,23 +344,5 @@ impl ViewQuery {
                 back([e[0] + reach * l[0], e[1] + reach * l[1]]),
             ],
         }
-    }
-}
-
-impl LodIndex {
-    /// Bounds of the boxes of some patches, for callers that need the union.
-    pub fn extent(patches: &[Extracted]) -> Option<Aabb> {
-        patches
-            .iter()
-            .map(|p| p.kernel.aabb())
-            .reduce(|a, b| a.union(&b))
-    }
-
-    /// The boxes of extracted patches, for coverage checks by callers.
-    pub fn boxes_of(&self, patches: &[Extracted]) -> Vec<Arc<PatchBox>> {
-        patches
-            .iter()
-            .filter_map(|p| self.get(p.id).map(|(b, _)| b.clone()))
-            .collect()
     }
 }

@@ -35,6 +35,20 @@ impl Service {
             Err(_) => Err(status::deadline(ms)),
         }
     }
+
+    /// Runs `f` off the async threads with no deadline: ingestion, verification and
+    /// compaction take as long as the data needs.
+    async fn run_long<T, F>(&self, f: F) -> Result<T, Status>
+    where
+        T: Send + 'static,
+        F: FnOnce(&Engine) -> Result<T, EngineError> + Send + 'static,
+    {
+        let engine = self.engine.clone();
+        tokio::task::spawn_blocking(move || f(&engine))
+            .await
+            .map_err(|e| Status::internal(format!("the request failed: {e}")))?
+            .map_err(status::to_status)
+    }
 }
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
@@ -93,13 +107,9 @@ impl admin_server::Admin for Service {
         r: Request<pb::IngestRequest>,
     ) -> Result<Response<pb::IngestReply>, Status> {
         let r = r.into_inner();
-        // Ingestion is allowed to outlast the query deadline: big files take time.
-        let engine = self.engine.clone();
-        tokio::task::spawn_blocking(move || api::ingest(&engine, &r))
+        self.run_long(move |e| api::ingest(e, &r))
             .await
-            .map_err(|e| Status::internal(e.to_string()))?
             .map(Response::new)
-            .map_err(status::to_status)
     }
 
     async fn list_surveys(
@@ -130,24 +140,14 @@ impl admin_server::Admin for Service {
         &self,
         _: Request<pb::VerifyRequest>,
     ) -> Result<Response<pb::VerifyReply>, Status> {
-        let engine = self.engine.clone();
-        tokio::task::spawn_blocking(move || api::verify(&engine))
-            .await
-            .map_err(|e| Status::internal(e.to_string()))?
-            .map(Response::new)
-            .map_err(status::to_status)
+        self.run_long(api::verify).await.map(Response::new)
     }
 
     async fn compact(
         &self,
         _: Request<pb::CompactRequest>,
     ) -> Result<Response<pb::CompactReply>, Status> {
-        let engine = self.engine.clone();
-        tokio::task::spawn_blocking(move || api::compact(&engine))
-            .await
-            .map_err(|e| Status::internal(e.to_string()))?
-            .map(Response::new)
-            .map_err(status::to_status)
+        self.run_long(api::compact).await.map(Response::new)
     }
 }
 

@@ -179,3 +179,40 @@ pub fn redundant(t: &Terrain, ps: &[Extracted], lattice: f64) -> Vec<String> {
     }
     bad
 }
+
+/// One of the real-terrain crops committed under `tests/data/`, as a grid.
+pub fn real_crop(name: &str) -> Grid {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name);
+    patchwork::read::read_raster(&path, &Default::default())
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+        .into_grid()
+        .unwrap()
+}
+
+/// The same samples turned by `degrees` about the grid's centre: a rotated grid over the
+/// original.
+pub fn turned(grid: &Grid, degrees: f64) -> Grid {
+    let mid = [(grid.cols - 1) as f64 / 2.0, (grid.rows - 1) as f64 / 2.0];
+    let centre = grid.georef.to_world(mid[0], mid[1]);
+    let g = Georef {
+        theta: degrees.to_radians(),
+        ..grid.georef
+    };
+    let off = g.to_world(mid[0], mid[1]);
+    let mut out = grid.clone();
+    out.georef = Georef {
+        origin: [
+            g.origin[0] + centre[0] - off[0],
+            g.origin[1] + centre[1] - off[1],
+        ],
+        ..g
+    };
+    out
+}
+
+/// A real crop as a survey: exact (ε = 0), EPSG:4326, the default patch layout.
+pub fn real_survey(g: Grid) -> Arc<Survey> {
+    Arc::new(Survey::build(g, 0.0, Some(4326), PatchLayout::default()).unwrap())
+}
