@@ -9,7 +9,7 @@
 
 use patchwork::index::geom::Aabb;
 use patchwork::index::lod::IndexConfig;
-use patchwork::model::patch::{Bilinear, PatchLayout};
+use patchwork::model::patch::PatchLayout;
 use patchwork::model::survey::Survey;
 use patchwork::read::{read_raster, ReadLimits};
 use patchwork::resample::gpu::{GpuResampler, GpuTimings};
@@ -90,7 +90,7 @@ fn main() {
                 let grid = SampleGrid::uniform(&roi, n, n);
                 let samples = (n * n) as f64;
                 let t1 = Instant::now();
-                let want = cpu::resample(&set, &grid, &Bilinear);
+                let want = cpu::resample(&set, &grid);
                 let cpu_s = t1.elapsed().as_secs_f64();
 
                 // A fresh cache, so the first request is cold.

@@ -42,6 +42,7 @@ fn ingest(store: &Store, terrain: &mut Terrain, path: &Path) -> Arc<Survey> {
         &s,
         path.display().to_string(),
         content,
+        patchwork::model::accuracy::AccuracySource::Flag,
         IngestTimings {
             read_ms,
             build_ms,
@@ -50,7 +51,7 @@ fn ingest(store: &Store, terrain: &mut Terrain, path: &Path) -> Arc<Survey> {
         },
     );
     let t = Instant::now();
-    store.commit_survey(&s, &rec, &change).unwrap();
+    store.commit_survey(&s, &rec, &change, &[]).unwrap();
     let commit_ms = ms(t);
     *terrain = next;
     println!(

@@ -5,7 +5,8 @@
 use super::Step;
 
 mod v0_to_v1;
+mod v1_to_v2;
 
 /// Every step, as (from version, to version, step). `migrate` follows them from the version a
 /// store records up to `migrate::CURRENT`.
-pub(super) const STEPS: &[(u32, u32, Step)] = &[(0, 1, v0_to_v1::run)];
+pub(super) const STEPS: &[(u32, u32, Step)] = &[(0, 1, v0_to_v1::run), (1, 2, v1_to_v2::run)];

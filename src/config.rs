@@ -16,6 +16,51 @@ pub enum OnDelete {
     Keep,
 }
 
+/// The ε given to files with no sidecar and no `--accuracy`: a number of metres, or `"auto"`
+/// to estimate it from each survey's own samples.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum DefaultAccuracy {
+    Auto,
+    Metres(f64),
+}
+
+impl std::str::FromStr for DefaultAccuracy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let t = s.trim();
+        if t.eq_ignore_ascii_case("auto") {
+            return Ok(DefaultAccuracy::Auto);
+        }
+        t.parse()
+            .map(DefaultAccuracy::Metres)
+            .map_err(|_| format!("{s:?} is neither \"auto\" nor a number of metres"))
+    }
+}
+
+impl Serialize for DefaultAccuracy {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            DefaultAccuracy::Auto => s.serialize_str("auto"),
+            DefaultAccuracy::Metres(m) => s.serialize_f64(*m),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for DefaultAccuracy {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Number(f64),
+            Text(String),
+        }
+        match Raw::deserialize(d)? {
+            Raw::Number(m) => Ok(DefaultAccuracy::Metres(m)),
+            Raw::Text(t) => t.parse().map_err(serde::de::Error::custom),
+        }
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Limits {
@@ -49,8 +94,8 @@ pub struct Config {
     pub data_dir: PathBuf,
     pub inbox: Vec<PathBuf>,
     pub listen: String,
-    /// ε for files with no sidecar and no `--accuracy`, in metres.
-    pub accuracy_m: f64,
+    /// ε for files with no sidecar and no `--accuracy`.
+    pub accuracy_m: DefaultAccuracy,
     /// The store's CRS as "EPSG:n"; unset adopts the first survey's.
     pub crs: Option<String>,
     /// How long a file's size and mtime must stay unchanged before it is ingested.
@@ -69,7 +114,7 @@ impl Default for Config {
             data_dir: PathBuf::from("./data"),
             inbox: vec![PathBuf::from("./inbox")],
             listen: "127.0.0.1:50051".into(),
-            accuracy_m: 0.0,
+            accuracy_m: DefaultAccuracy::Auto,
             crs: None,
             settle_ms: 1500,
             on_delete: OnDelete::Retire,
@@ -149,7 +194,10 @@ impl Config {
             self.listen = v;
         }
         if let Some(v) = get("PATCHWORK_ACCURACY_M") {
-            self.accuracy_m = num("PATCHWORK_ACCURACY_M", &v)?;
+            self.accuracy_m = v.parse().map_err(|message| ConfigError::Env {
+                var: "PATCHWORK_ACCURACY_M".into(),
+                message,
+            })?;
         }
         if let Some(v) = get("PATCHWORK_CRS") {
             self.crs = Some(v);
@@ -176,11 +224,13 @@ impl Config {
     }
 
     pub fn validate(&self) -> Result<(), ConfigError> {
-        if !(self.accuracy_m.is_finite() && self.accuracy_m >= 0.0) {
-            return Err(ConfigError::Invalid(format!(
-                "accuracy_m must be ≥ 0, got {}",
-                self.accuracy_m
-            )));
+        if let DefaultAccuracy::Metres(m) = self.accuracy_m {
+            if !(m.is_finite() && m >= 0.0 && m < self.index.max_error) {
+                return Err(ConfigError::Invalid(format!(
+                    "accuracy_m must be \"auto\" or a number of metres in [0, index.max_error = {}), got {m}",
+                    self.index.max_error
+                )));
+            }
         }
         if let Some(c) = &self.crs {
             if parse_epsg(c).is_none() {
@@ -233,6 +283,13 @@ mod tests {
         };
         c.apply_env(env).unwrap();
         assert_eq!(c.inbox, vec![PathBuf::from("/a"), PathBuf::from("/b")]);
+        let acc =
+            |v: &'static str| move |k: &str| (k == "PATCHWORK_ACCURACY_M").then(|| v.to_string());
+        c.apply_env(acc("2.5")).unwrap();
+        assert_eq!(c.accuracy_m, DefaultAccuracy::Metres(2.5));
+        c.apply_env(acc("AUTO")).unwrap();
+        assert_eq!(c.accuracy_m, DefaultAccuracy::Auto);
+        assert!(c.apply_env(acc("fine")).is_err());
         assert_eq!(c.listen, "127.0.0.1:1");
         assert_eq!(c.on_delete, OnDelete::Keep);
         let bad = |k: &str| (k == "PATCHWORK_SETTLE_MS").then(|| "soon".to_string());

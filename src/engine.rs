@@ -10,14 +10,18 @@ use crate::index::geom::Aabb;
 use crate::index::lod::ChangeStats;
 use crate::index::query::{Extracted, Metric, ViewQuery};
 use crate::ingest::{prepare, IngestError, IngestSettings};
+use crate::model::accuracy::{AccuracySource, Deviation};
 use crate::model::ids::SurveyId;
 use crate::model::survey::Survey;
 use crate::resample::gpu::{GpuError, GpuResampler};
+pub use crate::resample::Backend;
 use crate::resample::SampleGrid;
 use crate::store::{
     file_content_id, now_unix, FailedRecord, IngestTimings, Status, Store, StoreError, SurveyRecord,
 };
 use crate::terrain::{Terrain, Tile};
+use rayon::prelude::*;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::Instant;
@@ -43,27 +47,70 @@ pub enum EngineError {
     Store(#[from] StoreError),
 }
 
+/// What happened to a file or a survey.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    Inserted,
+    /// The same path held another survey, which this one replaced in one commit.
+    Replaced,
+    /// The content is already served; nothing changed.
+    Unchanged,
+    Retired,
+    Failed,
+}
+
+impl Outcome {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Outcome::Inserted => "inserted",
+            Outcome::Replaced => "replaced",
+            Outcome::Unchanged => "unchanged",
+            Outcome::Retired => "retired",
+            Outcome::Failed => "failed",
+        }
+    }
+}
+
+/// Two surveys that disagree by more than their accuracies allow where they overlap.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Conflict {
+    /// The other survey.
+    pub survey: SurveyId,
+    pub max_m: f64,
+    pub rms_m: f64,
+}
+
 /// A change to the store, for subscribers.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Event {
-    /// "inserted", "retired", "replaced" or "failed".
-    pub kind: &'static str,
+    pub kind: Outcome,
     pub survey: Option<SurveyId>,
     pub source: String,
     pub error: String,
     pub at_unix: u64,
+    /// For an inserted or replacing survey, the surveys it conflicts with.
+    pub conflicts: Vec<Conflict>,
 }
 
 /// The outcome of ingesting one file.
 #[derive(Clone, Debug)]
 pub struct Ingested {
     pub source: String,
-    /// "inserted", "replaced", "unchanged" or "failed".
-    pub outcome: &'static str,
+    pub outcome: Outcome,
     pub survey: Option<SurveyId>,
     pub error: String,
     pub samples: u64,
     pub seconds: f64,
+    pub conflicts: Vec<Conflict>,
+}
+
+/// The store's surveys with their failures and conflicts.
+#[derive(Clone, Debug, Default)]
+pub struct SurveyListing {
+    pub records: Vec<SurveyRecord>,
+    pub failures: Vec<FailedRecord>,
+    /// Conflicts of each active survey, in the other survey's id order.
+    pub conflicts: HashMap<SurveyId, Vec<Conflict>>,
 }
 
 /// A query's cut through LOD space.
@@ -71,13 +118,6 @@ pub struct Ingested {
 pub enum Cut {
     Uniform { roi: Aabb, error: f64 },
     View(ViewQuery),
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Backend {
-    Auto,
-    Cpu,
-    Gpu,
 }
 
 /// A store and the figures `stats` reports.
@@ -184,7 +224,14 @@ impl Engine {
         *self.terrain.write().expect("terrain lock") = Arc::new(t);
     }
 
-    fn emit(&self, kind: &'static str, survey: Option<SurveyId>, source: &str, error: &str) {
+    fn emit(
+        &self,
+        kind: Outcome,
+        survey: Option<SurveyId>,
+        source: &str,
+        error: &str,
+        conflicts: Vec<Conflict>,
+    ) {
         // Nobody listening is fine.
         let _ = self.events.send(Event {
             kind,
@@ -192,6 +239,7 @@ impl Engine {
             source: source.into(),
             error: error.into(),
             at_unix: now_unix(),
+            conflicts,
         });
     }
 
@@ -218,10 +266,10 @@ impl Engine {
         let result = self.ingest_inner(path, &source, accuracy);
         let seconds = t0.elapsed().as_secs_f64();
         match result {
-            Ok((outcome, survey, samples)) => {
-                if outcome != "unchanged" {
-                    tracing::info!(%source, survey = %survey, outcome, seconds, "ingested");
-                    self.emit(outcome, Some(survey), &source, "");
+            Ok((outcome, survey, samples, conflicts)) => {
+                if outcome != Outcome::Unchanged {
+                    tracing::info!(%source, survey = %survey, outcome = outcome.as_str(), seconds, conflicts = conflicts.len(), "ingested");
+                    self.emit(outcome, Some(survey), &source, "", conflicts.clone());
                 }
                 Ingested {
                     source,
@@ -230,6 +278,7 @@ impl Engine {
                     error: String::new(),
                     samples,
                     seconds,
+                    conflicts,
                 }
             }
             Err(e) => {
@@ -246,14 +295,15 @@ impl Engine {
                 if let Err(e) = self.with_store(|s| s.record_failure(&rec)) {
                     tracing::error!(%source, error = %e, "could not record the failure");
                 }
-                self.emit("failed", None, &source, &error);
+                self.emit(Outcome::Failed, None, &source, &error, Vec::new());
                 Ingested {
                     source,
-                    outcome: "failed",
+                    outcome: Outcome::Failed,
                     survey: None,
                     error,
                     samples: 0,
                     seconds,
+                    conflicts: Vec::new(),
                 }
             }
         }
@@ -264,16 +314,18 @@ impl Engine {
         path: &Path,
         source: &str,
         accuracy: Option<f64>,
-    ) -> Result<(&'static str, SurveyId, u64), EngineError> {
+    ) -> Result<(Outcome, SurveyId, u64, Vec<Conflict>), EngineError> {
         let settings = IngestSettings {
             accuracy,
             default_accuracy: self.cfg.accuracy_m,
+            max_accuracy: self.cfg.index.max_error,
             store_crs: self.crs(),
             // An existing store keeps the layout its tops were computed with.
             layout: self.with_store(|s| Ok(s.layout()))?,
             max_samples: self.cfg.limits.max_file_samples,
         };
-        let (survey, timings) = prepare(path, &settings).map_err(ingest_error)?;
+        let prepared = prepare(path, &settings).map_err(ingest_error)?;
+        let survey = prepared.survey;
         let samples = survey.levels[0].valid_count() as u64;
         let content = file_content_id(path).map_err(|e| EngineError::Invalid(e.to_string()))?;
         let _w = self.writer.lock().expect("writer lock");
@@ -286,12 +338,13 @@ impl Engine {
                 self.retire_locked(&current, &old)?;
             }
             self.with_store(|s| s.clear_failure(source))?;
-            return Ok(("unchanged", survey.id, samples));
+            return Ok((Outcome::Unchanged, survey.id, samples, Vec::new()));
         }
         let survey = Arc::new(survey);
         let mut next = (*current).clone();
         let t1 = Instant::now();
-        let rec = |s: &Arc<Survey>| record(s, source, &content, timings, t1);
+        let rec =
+            |s: &Arc<Survey>| record(s, source, &content, prepared.source, prepared.timings, t1);
         let outcome = match &previous {
             Some(old) => {
                 let old_patches: Vec<_> = current
@@ -301,22 +354,39 @@ impl Engine {
                     .unwrap_or_default();
                 let retire: ChangeStats = next.retire(old.id).unwrap_or_default();
                 let insert = next.insert(survey.clone());
+                let overlaps = overlaps_with(&next, &survey);
                 let rec = rec(&survey);
                 self.with_store(|s| {
-                    s.commit_replace(old.id, &old_patches, &retire, &survey, &rec, &insert)
+                    s.commit_replace(
+                        old.id,
+                        &old_patches,
+                        &retire,
+                        &survey,
+                        &rec,
+                        &insert,
+                        &overlaps,
+                    )
                 })?;
-                "replaced"
+                (Outcome::Replaced, overlaps)
             }
             None => {
                 let insert = next.insert(survey.clone());
+                let overlaps = overlaps_with(&next, &survey);
                 let rec = rec(&survey);
-                self.with_store(|s| s.commit_survey(&survey, &rec, &insert))?;
-                "inserted"
+                self.with_store(|s| s.commit_survey(&survey, &rec, &insert, &overlaps))?;
+                (Outcome::Inserted, overlaps)
             }
         };
         // The commit cleared any failure recorded for this source in the same batch.
         self.publish(next);
-        Ok((outcome, survey.id, samples))
+        let (outcome, overlaps) = outcome;
+        let records = self.with_store(|s| s.surveys())?;
+        let accuracy = |id: SurveyId| records.iter().find(|r| r.id == id).map(|r| r.accuracy);
+        let conflicts = overlaps
+            .iter()
+            .filter_map(|(o, d)| conflict(survey.accuracy, accuracy(*o)?, *o, d))
+            .collect();
+        Ok((outcome, survey.id, samples, conflicts))
     }
 
     /// Retires a survey named by id or by the source path it came from.
@@ -352,16 +422,45 @@ impl Engine {
         self.with_store(|s| s.commit_retire(rec.id, &patches, &change))?;
         self.publish(next);
         tracing::info!(survey = %rec.id, source = %rec.source, "retired");
-        self.emit("retired", Some(rec.id), &rec.source, "");
+        self.emit(Outcome::Retired, Some(rec.id), &rec.source, "", Vec::new());
         Ok(patches.len())
     }
 
-    pub fn surveys(&self) -> Result<(Vec<SurveyRecord>, Vec<FailedRecord>), EngineError> {
+    /// Every survey record and the failed files.
+    pub fn records(&self) -> Result<(Vec<SurveyRecord>, Vec<FailedRecord>), EngineError> {
         self.with_store(|s| Ok((s.surveys()?, s.failures()?)))
     }
 
+    /// Every survey record, the failed files, and each active survey's conflicts.
+    pub fn surveys(&self) -> Result<SurveyListing, EngineError> {
+        self.with_store(|s| {
+            let records = s.surveys()?;
+            let accuracy: HashMap<SurveyId, f64> = records
+                .iter()
+                .filter(|r| r.status == Status::Active)
+                .map(|r| (r.id, r.accuracy))
+                .collect();
+            let mut conflicts = HashMap::new();
+            for (id, a) in &accuracy {
+                let mine: Vec<Conflict> = s
+                    .overlaps(*id)?
+                    .iter()
+                    .filter_map(|(o, d)| conflict(*a, *accuracy.get(o)?, *o, d))
+                    .collect();
+                if !mine.is_empty() {
+                    conflicts.insert(*id, mine);
+                }
+            }
+            Ok(SurveyListing {
+                records,
+                failures: s.failures()?,
+                conflicts,
+            })
+        })
+    }
+
     pub fn stats(&self) -> Result<Stats, EngineError> {
-        let (records, failures) = self.surveys()?;
+        let (records, failures) = self.records()?;
         let t = self.snapshot();
         let active: Vec<_> = records
             .iter()
@@ -445,11 +544,7 @@ impl Engine {
         let ps = match cut {
             Cut::Uniform { roi, error } => {
                 check_roi(roi)?;
-                if !(error.is_finite() && *error >= 0.0) {
-                    return Err(EngineError::Invalid(format!(
-                        "error must be a number of metres ≥ 0, got {error}"
-                    )));
-                }
+                check_error(*error)?;
                 t.uniform(roi, *error)
             }
             Cut::View(v) => {
@@ -527,7 +622,7 @@ impl Engine {
         Ok((t.resample(ps, &grid), "cpu"))
     }
 
-    /// Heights at points, at error `e`.
+    /// Heights at points, at error `e`: what any tile holding the same points gives there.
     pub fn sample(&self, points: &[[f64; 2]], e: f64) -> Result<Vec<f32>, EngineError> {
         if points.len() as u64 > self.cfg.limits.max_points {
             return Err(EngineError::TooLarge(format!(
@@ -536,24 +631,44 @@ impl Engine {
                 self.cfg.limits.max_points
             )));
         }
-        if points.is_empty() {
-            return Ok(Vec::new());
-        }
         if points
             .iter()
             .any(|p| !(p[0].is_finite() && p[1].is_finite()))
         {
             return Err(EngineError::Invalid("points must be finite".into()));
         }
-        let roi = Aabb::of_points(points);
-        let (t, ps) = self.query(&Cut::Uniform { roi, error: e })?;
-        let grid = SampleGrid {
-            width: points.len(),
-            height: 1,
-            points: points.to_vec(),
-        };
-        Ok(t.resample(ps, &grid).heights)
+        check_error(e)?;
+        Ok(self.snapshot().sample(points, e))
     }
+}
+
+/// How a new survey disagrees with every survey of the terrain it overlaps.
+fn overlaps_with(t: &crate::terrain::Terrain, s: &Survey) -> Vec<(SurveyId, Deviation)> {
+    let others: Vec<&Arc<Survey>> = t.surveys().filter(|o| o.id != s.id).collect();
+    let mut out: Vec<(SurveyId, Deviation)> = others
+        .par_iter()
+        .filter_map(|o| s.overlap(o).map(|d| (o.id, d)))
+        .collect();
+    out.sort_by_key(|(id, _)| *id);
+    out
+}
+
+/// A conflict, when two surveys of accuracies `a` and `b` disagree by more than a + b.
+fn conflict(a: f64, b: f64, other: SurveyId, d: &Deviation) -> Option<Conflict> {
+    (d.max_m > a + b).then_some(Conflict {
+        survey: other,
+        max_m: d.max_m,
+        rms_m: d.rms_m,
+    })
+}
+
+fn check_error(e: f64) -> Result<(), EngineError> {
+    if !(e.is_finite() && e >= 0.0) {
+        return Err(EngineError::Invalid(format!(
+            "error must be a number of metres ≥ 0, got {e}"
+        )));
+    }
+    Ok(())
 }
 
 fn check_roi(roi: &Aabb) -> Result<(), EngineError> {
@@ -574,6 +689,7 @@ fn record(
     s: &Survey,
     source: &str,
     content: &str,
+    accuracy_source: AccuracySource,
     t: crate::ingest::Timings,
     index_start: Instant,
 ) -> SurveyRecord {
@@ -581,6 +697,7 @@ fn record(
         s,
         source,
         content,
+        accuracy_source,
         IngestTimings {
             read_ms: t.read_ms as f64,
             build_ms: t.build_ms as f64,

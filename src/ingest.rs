@@ -1,6 +1,7 @@
 //! From a file to a survey: read, apply the sidecar, check the CRS, build the model.
 
-use crate::config::parse_epsg;
+use crate::config::{parse_epsg, DefaultAccuracy};
+use crate::model::accuracy::{AccuracySource, AccuracySpec};
 use crate::model::patch::PatchLayout;
 use crate::model::survey::{Survey, SurveyError};
 use crate::read::{read_raster, ReadError, ReadLimits};
@@ -17,6 +18,30 @@ pub enum IngestError {
     Sidecar { path: PathBuf, message: String },
     #[error("the file has no CRS: add a sidecar {sidecar} with crs = \"EPSG:…\"")]
     NoCrs { sidecar: PathBuf },
+    #[error(
+        "the file's CRS is {found}, which matches no EPSG code Patchwork knows: add a sidecar \
+         {sidecar} with crs = \"EPSG:…\" naming it"
+    )]
+    UnknownCrs { found: String, sidecar: PathBuf },
+    #[error(
+        "sidecar {sidecar} says crs = EPSG:{sidecar_crs}, but the file itself is in \
+         EPSG:{file_crs}; remove the sidecar's crs or fix the file"
+    )]
+    CrsConflict {
+        sidecar: PathBuf,
+        sidecar_crs: u32,
+        file_crs: u32,
+    },
+    #[error(
+        "accuracy {value} m (from the {given_by}) is refused: it must be a number of metres in \
+         [0, {max}), the top of LOD space (index.max_error); a survey that inaccurate would \
+         never serve any answer"
+    )]
+    BadAccuracy {
+        value: f64,
+        given_by: &'static str,
+        max: f64,
+    },
     #[error("the file is in EPSG:{file} but the store is in EPSG:{store}; reproject it first")]
     CrsMismatch { file: u32, store: u32 },
     #[error("georeference: {0}")]
@@ -75,15 +100,50 @@ fn read_sidecar(path: &Path) -> Result<Sidecar, IngestError> {
 pub struct IngestSettings {
     /// `--accuracy` from the caller, which a sidecar overrides.
     pub accuracy: Option<f64>,
-    pub default_accuracy: f64,
+    pub default_accuracy: DefaultAccuracy,
+    /// Accuracies must stay below this: the top of LOD space.
+    pub max_accuracy: f64,
     /// The store's CRS, once it has one.
     pub store_crs: Option<u32>,
     pub layout: PatchLayout,
     pub max_samples: u64,
 }
 
+/// A file read and modelled.
+#[derive(Clone, Debug)]
+pub struct Prepared {
+    pub survey: Survey,
+    pub source: AccuracySource,
+    pub timings: Timings,
+}
+
+/// ε as the sidecar, the caller and the config decide it, in that order.
+fn accuracy(
+    side: &Sidecar,
+    s: &IngestSettings,
+) -> Result<(AccuracySpec, AccuracySource), IngestError> {
+    let (spec, source) = match (side.accuracy_m, s.accuracy, s.default_accuracy) {
+        (Some(a), _, _) => (AccuracySpec::Fixed(a), AccuracySource::Sidecar),
+        (None, Some(a), _) => (AccuracySpec::Fixed(a), AccuracySource::Flag),
+        (None, None, DefaultAccuracy::Metres(a)) => {
+            (AccuracySpec::Fixed(a), AccuracySource::Config)
+        }
+        (None, None, DefaultAccuracy::Auto) => (AccuracySpec::Auto, AccuracySource::Estimated),
+    };
+    if let AccuracySpec::Fixed(a) = spec {
+        if !(a.is_finite() && a >= 0.0 && a < s.max_accuracy) {
+            return Err(IngestError::BadAccuracy {
+                value: a,
+                given_by: source.as_str(),
+                max: s.max_accuracy,
+            });
+        }
+    }
+    Ok((spec, source))
+}
+
 /// Reads and models one file. Pure of the store: nothing is written.
-pub fn prepare(path: &Path, s: &IngestSettings) -> Result<(Survey, Timings), IngestError> {
+pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError> {
     let meta = std::fs::metadata(path).map_err(|source| IngestError::Unreadable {
         path: path.into(),
         source,
@@ -100,6 +160,7 @@ pub fn prepare(path: &Path, s: &IngestSettings) -> Result<(Survey, Timings), Ing
         source,
     })?;
     let side = read_sidecar(path)?;
+    let (spec, source) = accuracy(&side, s)?;
     let t0 = Instant::now();
     let raster = read_raster(
         path,
@@ -108,32 +169,53 @@ pub fn prepare(path: &Path, s: &IngestSettings) -> Result<(Survey, Timings), Ing
         },
     )?;
     let read_ms = t0.elapsed().as_millis() as u64;
-    let crs = match side.crs.as_deref() {
-        Some(c) => Some(parse_epsg(c).ok_or_else(|| IngestError::Sidecar {
-            path: sidecar_path(path),
-            message: format!("crs must look like \"EPSG:4326\", got {c:?}"),
-        })?),
-        None => raster.epsg,
+    let side_crs = side
+        .crs
+        .as_deref()
+        .map(|c| {
+            parse_epsg(c).ok_or_else(|| IngestError::Sidecar {
+                path: sidecar_path(path),
+                message: format!("crs must look like \"EPSG:4326\", got {c:?}"),
+            })
+        })
+        .transpose()?;
+    let crs = match (side_crs, raster.epsg, raster.crs_name.as_ref()) {
+        (Some(sc), Some(fc), _) if sc != fc => {
+            return Err(IngestError::CrsConflict {
+                sidecar: sidecar_path(path),
+                sidecar_crs: sc,
+                file_crs: fc,
+            })
+        }
+        (Some(c), _, _) | (None, Some(c), _) => c,
+        (None, None, Some(name)) => {
+            return Err(IngestError::UnknownCrs {
+                found: name.clone(),
+                sidecar: sidecar_path(path),
+            })
+        }
+        (None, None, None) => {
+            return Err(IngestError::NoCrs {
+                sidecar: sidecar_path(path),
+            })
+        }
     };
-    let crs = crs.ok_or_else(|| IngestError::NoCrs {
-        sidecar: sidecar_path(path),
-    })?;
     if let Some(store) = s.store_crs {
         if store != crs {
             return Err(IngestError::CrsMismatch { file: crs, store });
         }
     }
-    let accuracy = side.accuracy_m.or(s.accuracy).unwrap_or(s.default_accuracy);
     let t1 = Instant::now();
     let grid = raster.into_grid()?;
-    let survey = Survey::build(grid, accuracy, Some(crs), s.layout)?;
-    Ok((
+    let survey = Survey::build(grid, spec, Some(crs), s.layout)?;
+    Ok(Prepared {
         survey,
-        Timings {
+        source,
+        timings: Timings {
             read_ms,
             build_ms: t1.elapsed().as_millis() as u64,
         },
-    ))
+    })
 }
 
 /// Names the watcher leaves alone: files still being written or editor droppings.

@@ -98,7 +98,7 @@ impl Reconciler {
     /// At start-up: a stored survey whose file still has the same content, and a failure whose
     /// file has not changed, need nothing; everything else is reconciled by the first pass.
     pub fn startup(&mut self) {
-        let Ok((records, failures)) = self.engine.surveys() else {
+        let Ok((records, failures)) = self.engine.records() else {
             return;
         };
         let on_disk = scan(&self.dirs);
@@ -146,7 +146,7 @@ impl Reconciler {
             entry.renamed |= renamed;
             if entry.renamed || now.duration_since(entry.since) >= self.settle {
                 let r = self.engine.ingest(p, None);
-                tracing::debug!(source = %r.source, outcome = r.outcome, "reconciled");
+                tracing::debug!(source = %r.source, outcome = r.outcome.as_str(), "reconciled");
                 self.done.insert(source, *stamp);
                 self.pending.remove(p);
             }
@@ -160,7 +160,7 @@ impl Reconciler {
     }
 
     fn retire_missing(&mut self, on_disk: &HashMap<PathBuf, Option<(u64, u64)>>) {
-        let Ok((records, _)) = self.engine.surveys() else {
+        let Ok((records, _)) = self.engine.records() else {
             return;
         };
         for r in records.iter().filter(|r| r.status == Status::Active) {

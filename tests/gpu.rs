@@ -10,7 +10,6 @@ mod common;
 use common::*;
 use patchwork::index::geom::Aabb;
 use patchwork::index::query::{Metric, ViewQuery};
-use patchwork::model::patch::Bilinear;
 use patchwork::model::survey::Survey;
 use patchwork::resample::gpu::GpuResampler;
 use patchwork::resample::{cpu, SampleGrid};
@@ -44,7 +43,7 @@ fn compare(
     what: &str,
 ) -> f64 {
     let set = t.resolve(&ps);
-    let want = cpu::resample(&set, grid, &Bilinear);
+    let want = cpu::resample(&set, grid);
     let got = g
         .resample(&set, grid)
         .unwrap_or_else(|e| panic!("{what}: {e}"));
@@ -256,7 +255,7 @@ fn gpu_uploads_shared_patches_once_and_survives_eviction() {
     let mut small = GpuResampler::with_budget(64 << 10).unwrap();
     let coarse = t.resolve(&t.uniform(&roi, 50.0));
     for (set, what) in [(&set, "fine"), (&coarse, "coarse"), (&set, "fine again")] {
-        let want = cpu::resample(set, &grid, &Bilinear);
+        let want = cpu::resample(set, &grid);
         let (got, tm) = small.resample_timed(set, &grid).unwrap();
         let worst = got
             .iter()

@@ -146,14 +146,17 @@ proptest! {
         specs in prop::collection::vec(aligned_spec(), 1..4),
         e in prop_oneof![Just(1.0), 1.0f64..40.0],
     ) {
-        // Below a survey's accuracy the cut falls back to the best data there is, which is a
-        // different question; minimality is about cuts every survey can meet.
+        // The cut proper is minimal in the paper's sense; where it falls back below the data's
+        // accuracy, every fallback patch is the most accurate data somewhere.
         let surveys = build(&specs);
         prop_assume!(!surveys.is_empty());
         let t = terrain_of(&surveys);
         let ps = t.uniform(&bounds_of(&surveys), e);
-        let bad = redundant(&t, &ps, 0.125);
+        let (cut, fallback): (Vec<_>, Vec<_>) = ps.iter().cloned().partition(|x| !x.fallback);
+        let bad = redundant(&t, &cut, 0.125);
         prop_assert!(bad.is_empty(), "redundant patches at e = {}: {:?}", e, bad);
+        let bad = needless_fallback(&t, &ps, &fallback, 0.125);
+        prop_assert!(bad.is_empty(), "needless fallback patches at e = {}: {:?}", e, bad);
     }
 
     #[test]
@@ -168,7 +171,7 @@ proptest! {
         let e = e.max(floor);
         let t = terrain_of(&surveys);
         let ps = t.uniform(&bounds_of(&surveys), e);
-        prop_assert!(ps.iter().all(|x| x.span.min_z <= e));
+        prop_assert!(ps.iter().all(|x| (x.span.min_z <= e) != x.fallback));
         for (si, a, b, c) in picks {
             let s: &Arc<Survey> = si.get(&surveys);
             let Some(p) = valid_point(s, a, b, c) else { continue };

@@ -86,7 +86,7 @@ fn real_terrain_is_covered_and_within_the_error_everywhere() {
         for s in &surveys {
             let roi = s.levels[0].world_bounds();
             let ps = t.uniform(&roi, e);
-            assert!(ps.iter().all(|x| x.span.min_z <= e));
+            assert!(ps.iter().all(|x| (x.span.min_z <= e) != x.fallback));
             let set = t.resolve(&ps);
             let all: Vec<u32> = (0..set.patches.len() as u32).collect();
             let mut worst = 0.0f64;
@@ -99,12 +99,7 @@ fn real_terrain_is_covered_and_within_the_error_everywhere() {
                     ps.iter().any(|x| in_valid_kernel(&t, x, p)),
                     "hole at {p:?}, e = {e}"
                 );
-                let h = patchwork::resample::cpu::blend(
-                    &set,
-                    &all,
-                    p,
-                    &patchwork::model::patch::Bilinear,
-                ) as f64;
+                let h = patchwork::resample::cpu::blend(&set, &all, p) as f64;
                 let hs = survey_heights(&surveys, p);
                 let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
                 let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
@@ -157,14 +152,15 @@ fn voids_stay_nodata_and_valid_samples_get_heights() {
     let r = real();
     let t = terrain_of(std::slice::from_ref(&r.srtm));
     let g = &r.srtm.levels[0];
-    let roi = g.world_bounds();
+    // Half a pixel beyond the outer samples: the raster's own footprint.
+    let roi = pixel_bounds(g);
     for e in [0.0, 20.0, 100.0] {
         let tile = t.tile(&roi, 256, 256, e);
         let grid = patchwork::resample::SampleGrid::uniform(&roi, 256, 256);
-        let (mut void, mut valid) = (0, 0);
+        let (mut void, mut valid, mut edge) = (0, 0, 0);
         for (p, z) in grid.points.iter().zip(&tile.heights) {
-            match g.bilinear(*p) {
-                Some(h) => {
+            match (g.bilinear(*p), pixel_valid(g, *p)) {
+                (Some(h), _) => {
                     valid += 1;
                     assert!(!z.is_nan(), "nodata at a valid point {p:?}, e = {e}");
                     assert!(
@@ -172,7 +168,17 @@ fn voids_stay_nodata_and_valid_samples_get_heights() {
                         "{z} vs {h} at {p:?}, e = {e}"
                     );
                 }
-                None => {
+                (None, true) => {
+                    // In a pixel of data but no whole cell: a border or the edge of a void.
+                    edge += 1;
+                    assert!(!z.is_nan(), "nodata in a valid pixel at {p:?}, e = {e}");
+                    let (lo, hi) = neighbourhood_range(g, *p);
+                    assert!(
+                        *z as f64 >= lo - e - 1e-3 && *z as f64 <= hi + e + 1e-3,
+                        "{z} outside the nearby samples [{lo}, {hi}] at {p:?}, e = {e}"
+                    );
+                }
+                (None, false) => {
                     void += 1;
                     assert!(
                         z.is_nan(),
@@ -181,7 +187,10 @@ fn voids_stay_nodata_and_valid_samples_get_heights() {
                 }
             }
         }
-        assert!(void > 500 && valid > 50_000, "void {void}, valid {valid}");
+        assert!(
+            void > 500 && valid > 50_000 && edge > 500,
+            "void {void}, valid {valid}, edge {edge}"
+        );
     }
 }
 
@@ -219,21 +228,22 @@ fn an_index_restored_from_stored_tops_is_the_same_index() {
     let r = real();
     let all = [r.cop.clone(), r.nasa.clone(), r.rotated.clone()];
     let mut t = Terrain::new(IndexConfig::default());
-    let mut tops: std::collections::HashMap<_, std::collections::HashMap<_, _>> =
-        Default::default();
+    let mut states = std::collections::HashMap::new();
     for s in &all {
-        // A store writes the moved tops of each change beside the survey.
-        for (id, top) in t.insert(s.clone()).moved {
-            let owner = t.patch(id).unwrap().0.id;
-            tops.entry(owner).or_default().insert(id, top);
+        // A store writes the moved states of each change and drops the removed ones.
+        let change = t.insert(s.clone());
+        for id in &change.removed {
+            states.remove(id);
         }
+        states.extend(change.moved);
     }
-    let restored = Terrain::restore(
-        IndexConfig::default(),
-        all.iter()
-            .map(|s| (s.clone(), tops.remove(&s.id).unwrap_or_default()))
-            .collect(),
+    let (restored, missing) = Terrain::restore(IndexConfig::default(), all.to_vec(), &states);
+    assert!(
+        missing.is_empty(),
+        "{} patches without a state",
+        missing.len()
     );
+    assert_eq!(states.len(), t.index().len(), "stale states were written");
     assert_eq!(restored.index().state(), t.index().state());
     restored.index().check().unwrap();
     let roi = bounds_of(&all);
@@ -268,9 +278,10 @@ fn view_cuts_cover_the_footprint_and_coarsen_with_distance() {
         );
         last = ps.len();
         // Every patch meets the screen error somewhere on its kernel: its error is at most
-        // the allowed error at the kernel's far corner.
+        // the allowed error at the kernel's far corner. Fallback patches are the best data
+        // where nothing meets it.
         let field = v.field();
-        for x in &ps {
+        for x in ps.iter().filter(|x| !x.fallback) {
             let far = x
                 .kernel
                 .corners()
@@ -319,4 +330,43 @@ fn view_cuts_cover_the_footprint_and_coarsen_with_distance() {
         assert!(checked > 1000, "{px} px: only {checked} samples on data");
         println!("{px} px: {} patches, {checked} samples checked", ps.len());
     }
+}
+
+#[test]
+fn estimated_accuracies_and_edge_patches_do_not_depend_on_order() {
+    // Copernicus and NASADEM share a lattice, so their borders make edge patches together.
+    let auto = |n: &str| {
+        Arc::new(
+            Survey::build(
+                real_crop(n),
+                patchwork::model::accuracy::AccuracySpec::Auto,
+                Some(4326),
+                PatchLayout::default(),
+            )
+            .unwrap(),
+        )
+    };
+    let c = auto("copernicus_n34w119_crop.tif");
+    let n = auto("nasadem_n34w119_crop.tif");
+    let s = auto("srtm_n44e005_voids_crop.tif");
+    let a = terrain_of(&[c.clone(), n.clone(), s.clone()]);
+    let b = terrain_of(&[s.clone(), n.clone(), c.clone()]);
+    assert_eq!(a.index().state(), b.index().state());
+    let edges = |t: &Terrain| {
+        let mut v: Vec<_> = t.edges().map(|e| e.owner).collect();
+        v.sort();
+        v
+    };
+    assert_eq!(edges(&a), edges(&b));
+    assert!(
+        a.edges().any(|e| e.members.len() == 2),
+        "no shared edge patch"
+    );
+    a.index().check().unwrap();
+    // Retiring one gives the terrain that never had it, edge patches included.
+    let mut r = a.clone();
+    r.retire(n.id).unwrap();
+    let never = terrain_of(&[s.clone(), c.clone()]);
+    assert_eq!(r.index().state(), never.index().state());
+    assert_eq!(edges(&r), edges(&never));
 }

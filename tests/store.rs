@@ -7,6 +7,7 @@ mod common;
 use common::*;
 use patchwork::index::geom::Aabb;
 use patchwork::index::lod::IndexConfig;
+use patchwork::model::accuracy::AccuracySource;
 use patchwork::model::ids::{PatchId, SurveyId};
 use patchwork::model::survey::Survey;
 use patchwork::store::{
@@ -14,6 +15,13 @@ use patchwork::store::{
     SCHEMA_VERSION,
 };
 use patchwork::terrain::Terrain;
+
+/// A box state as the store writes it: the top, then the exposure byte.
+fn state_bytes(top: f64, exposed: bool) -> Vec<u8> {
+    let mut b = top.to_le_bytes().to_vec();
+    b.push(u8::from(exposed));
+    b
+}
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
@@ -32,8 +40,14 @@ fn store_dir(tmp: &tempfile::TempDir) -> PathBuf {
 fn ingest(store: &Store, t: &mut Terrain, s: &Arc<Survey>, source: &str) {
     let mut next = t.clone();
     let change = next.insert(s.clone());
-    let rec = SurveyRecord::new(s, source, "", IngestTimings::default());
-    store.commit_survey(s, &rec, &change).expect("commit");
+    let rec = SurveyRecord::new(
+        s,
+        source,
+        "",
+        AccuracySource::Flag,
+        IngestTimings::default(),
+    );
+    store.commit_survey(s, &rec, &change, &[]).expect("commit");
     *t = next;
 }
 
@@ -120,7 +134,7 @@ fn committed_surveys_come_back_as_the_same_terrain() {
     let mut t = Terrain::new(IndexConfig::default());
     {
         let Opened { store, terrain, .. } = open(&dir);
-        assert_eq!(store.migrations_run(), &[(0, 1)]);
+        assert_eq!(store.migrations_run(), &[(0, 1), (1, 2)]);
         assert_eq!(terrain.index().len(), 0);
         ingest(&store, &mut t, &a, "/data/a.tif");
         ingest(&store, &mut t, &b, "/data/b.tif");
@@ -207,9 +221,15 @@ fn a_replacement_is_one_commit() {
         let old = patch_ids(&t, a.id);
         let retired = next.retire(a.id).unwrap();
         let inserted = next.insert(a2.clone());
-        let rec = SurveyRecord::new(&a2, "a.tif", "", IngestTimings::default());
+        let rec = SurveyRecord::new(
+            &a2,
+            "a.tif",
+            "",
+            AccuracySource::Flag,
+            IngestTimings::default(),
+        );
         store
-            .commit_replace(a.id, &old, &retired, &a2, &rec, &inserted)
+            .commit_replace(a.id, &old, &retired, &a2, &rec, &inserted, &[])
             .unwrap();
         t = next;
         assert_verified(&store);
@@ -236,7 +256,9 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     assert!(r.is_ok(), "{:?}", r.problems);
     assert_eq!((r.active, r.retired), (2, 0));
     assert_eq!(r.patches, a.patches.len() + b.patches.len());
-    assert_eq!(r.tops, r.patches);
+    // A state for every patch, the edge patches along the surveys' borders among them.
+    assert_eq!(r.tops, t.index().len());
+    assert!(r.tops > r.patches);
 
     let chunk = format!("c/{}/01/00000000", a.id);
     let saved = store.raw().remove(chunk.as_bytes()).unwrap().unwrap();
@@ -263,7 +285,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     // A top that is there but wrong: only re-deriving the index can tell.
     store
         .raw()
-        .insert(top.as_bytes(), &12345.0f64.to_le_bytes())
+        .insert(top.as_bytes(), state_bytes(12345.0, false))
         .unwrap();
     let r = store.verify().unwrap();
     assert!(
@@ -276,7 +298,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     // A top of a patch that belongs to nothing.
     store
         .raw()
-        .insert(b"t/0123456789abcdef", &1.0f64.to_le_bytes())
+        .insert(b"t/0123456789abcdef", state_bytes(1.0, false))
         .unwrap();
     let r = store.verify().unwrap();
     assert!(
@@ -383,8 +405,16 @@ fn a_failed_commit_changes_nothing() {
     );
     let mut next = t.clone();
     let change = next.insert(foreign.clone());
-    let rec = SurveyRecord::new(&foreign, "f", "", IngestTimings::default());
-    let err = store.commit_survey(&foreign, &rec, &change).unwrap_err();
+    let rec = SurveyRecord::new(
+        &foreign,
+        "f",
+        "",
+        AccuracySource::Flag,
+        IngestTimings::default(),
+    );
+    let err = store
+        .commit_survey(&foreign, &rec, &change, &[])
+        .unwrap_err();
     assert!(matches!(
         err,
         StoreError::CrsMismatch {
@@ -394,17 +424,17 @@ fn a_failed_commit_changes_nothing() {
         }
     ));
     // Committing the same survey twice would overwrite its tops with nothing.
-    let rec = SurveyRecord::new(&a, "a", "", IngestTimings::default());
+    let rec = SurveyRecord::new(&a, "a", "", AccuracySource::Flag, IngestTimings::default());
     let err = store
-        .commit_survey(&a, &rec, &Default::default())
+        .commit_survey(&a, &rec, &Default::default(), &[])
         .unwrap_err();
     assert!(matches!(err, StoreError::Duplicate(id) if id == a.id));
     // A record of another survey is refused.
-    let rec = SurveyRecord::new(&a, "b", "", IngestTimings::default());
+    let rec = SurveyRecord::new(&a, "b", "", AccuracySource::Flag, IngestTimings::default());
     let mut nb = t.clone();
     let change = nb.insert(b.clone());
     assert!(matches!(
-        store.commit_survey(&b, &rec, &change),
+        store.commit_survey(&b, &rec, &change, &[]),
         Err(StoreError::Invalid(_))
     ));
     assert_eq!(store.surveys().unwrap().len(), 1);

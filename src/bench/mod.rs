@@ -146,7 +146,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     let mut ingest = Vec::new();
     for f in &opts.files {
         let r = engine.ingest(f, None);
-        if r.outcome == "failed" {
+        if r.outcome == crate::engine::Outcome::Failed {
             return Err(format!("{}: {}", f.display(), r.error).into());
         }
         println!(

@@ -118,6 +118,17 @@ impl ORect {
         }
     }
 
+    /// The world rectangle spanned by fractional grid coordinates (c0, r0, c1, r1).
+    pub fn from_grid(g: &Georef, r: [f64; 4]) -> ORect {
+        let [u, v] = g.axes();
+        ORect {
+            origin: g.to_world(r[0], r[1]),
+            u,
+            v,
+            size: [(r[2] - r[0]) * g.step[0], (r[3] - r[1]) * g.step[1]],
+        }
+    }
+
     pub fn from_aabb(b: &Aabb) -> ORect {
         ORect {
             origin: b.min,

@@ -8,10 +8,17 @@
 //! patch a change can touch therefore gives the same index for the same set of surveys,
 //! whatever the order of insertions and retirements, and retiring a survey restores every
 //! patch it had cut.
+//!
+//! Beside its top, each box carries whether it is *exposed*: whether some of its valid kernel
+//! is covered by no more accurate patch. Where a query asks for more accuracy than any survey
+//! has, it falls back to the most accurate data at each point, and the exposed boxes are
+//! exactly the patches that are that somewhere. Exposure is a pure function of the set of
+//! patches too, recomputed for the same neighbourhood of a change as the tops.
 
 use super::cover::covered_all;
 use super::geom::{Aabb, ORect};
 use super::quadtree::{Entry, MsQuadtree, TreeStats};
+use crate::model::edge::EdgePatch;
 use crate::model::grid::Grid;
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::patch::Patch;
@@ -43,6 +50,7 @@ impl Default for IndexConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PatchBox {
     pub id: PatchId,
+    /// The unit the patch is inserted and retired with: its survey, or its edge patch's owner.
     pub survey: SurveyId,
     pub level: u8,
     /// Nominal kernel area, the first key of the global order.
@@ -51,15 +59,19 @@ pub struct PatchBox {
     pub min_z: f64,
     pub kernel: ORect,
     pub valid: Vec<ORect>,
+    /// Where the patch can contribute to a blend.
     pub window: ORect,
     /// Bounds of the kernel.
     pub aabb: Aabb,
+    /// Bounds of the window.
+    pub window_aabb: Aabb,
 }
 
 impl PatchBox {
     pub fn new(p: &Patch, level: &Grid, kernel_cells: usize) -> Self {
         let g = &level.georef;
         let kernel = ORect::from_cells(g, &p.kernel);
+        let window = ORect::from_cells(g, &p.window);
         let side = kernel_cells as f64;
         PatchBox {
             id: p.id,
@@ -69,8 +81,30 @@ impl PatchBox {
             min_z: p.error,
             kernel,
             valid: p.valid.iter().map(|c| ORect::from_cells(g, c)).collect(),
-            window: ORect::from_cells(g, &p.window),
+            window,
             aabb: kernel.aabb(),
+            window_aabb: window.aabb(),
+        }
+    }
+
+    /// The box of an edge patch. Its nominal area is a level-0 kernel's, since it is cut on
+    /// the same tiles.
+    pub fn edge(e: &EdgePatch) -> Self {
+        let g = &e.grid.georef;
+        let kernel = ORect::from_cells(g, &e.kernel);
+        let window = ORect::from_cells(g, &e.window);
+        let side = e.kernel.cols() as f64;
+        PatchBox {
+            id: e.id,
+            survey: e.owner,
+            level: 0,
+            area: side * g.step[0] * side * g.step[1],
+            min_z: e.error,
+            kernel,
+            valid: e.valid.iter().map(|r| ORect::from_grid(g, *r)).collect(),
+            window,
+            aabb: kernel.aabb(),
+            window_aabb: window.aabb(),
         }
     }
 
@@ -82,6 +116,16 @@ impl PatchBox {
             .total_cmp(&o.area)
             .then(o.min_z.total_cmp(&self.min_z))
             .then(self.id.cmp(&o.id))
+    }
+
+    /// Whether this box is more accurate than `o`: a smaller error, or the same error and
+    /// greater in the global order. A total order, so that of two equal patches one serves.
+    pub fn more_accurate(&self, o: &PatchBox) -> bool {
+        match self.min_z.total_cmp(&o.min_z) {
+            Ordering::Less => true,
+            Ordering::Greater => false,
+            Ordering::Equal => self.order(o) == Ordering::Greater,
+        }
     }
 }
 
@@ -98,30 +142,67 @@ impl Span {
     }
 }
 
+/// What the index derives for a box from the set of patches, and what a store keeps of it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoxState {
+    /// The top of the box's z-span.
+    pub top: f64,
+    /// Whether part of its valid kernel is covered by no more accurate patch: there, it is
+    /// the most accurate data there is, which a cut below its error falls back to.
+    pub exposed: bool,
+}
+
+impl BoxState {
+    /// The state of a box the index has not computed yet: empty, and nowhere the best.
+    pub const EMPTY: BoxState = BoxState {
+        top: f64::NEG_INFINITY,
+        exposed: false,
+    };
+
+    fn same(&self, o: &BoxState) -> bool {
+        self.top.total_cmp(&o.top) == Ordering::Equal && self.exposed == o.exposed
+    }
+}
+
 #[derive(Clone, Debug)]
 struct Slot {
     bx: Arc<PatchBox>,
-    max_z: f64,
+    state: BoxState,
 }
 
 /// What an insertion or retirement did.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ChangeStats {
+    /// Boxes added.
     pub patches: usize,
-    /// Boxes whose top was recomputed.
+    /// Boxes whose state was recomputed.
     pub recomputed: usize,
-    /// Boxes whose top moved (the new ones included), with their new top: what a store must
-    /// write beside the survey to persist the index.
-    pub moved: Vec<(PatchId, f64)>,
+    /// Boxes whose state changed, every added box among them, with their new state: what a
+    /// store must write to persist the index.
+    pub moved: Vec<(PatchId, BoxState)>,
+    /// Boxes removed.
+    pub removed: Vec<PatchId>,
+}
+
+impl ChangeStats {
+    /// This change followed by `later`, as one change.
+    pub fn then(mut self, later: ChangeStats) -> ChangeStats {
+        let gone: HashSet<PatchId> = later.removed.iter().copied().collect();
+        let now: HashSet<PatchId> = later.moved.iter().map(|(id, _)| *id).collect();
+        self.moved
+            .retain(|(id, _)| !gone.contains(id) && !now.contains(id));
+        self.moved.extend(later.moved);
+        self.removed.retain(|id| !now.contains(id));
+        self.removed.extend(later.removed);
+        self.patches += later.patches;
+        self.recomputed += later.recomputed;
+        self
+    }
 }
 
 #[derive(Clone, Debug)]
 struct SurveyEntry {
     patches: Vec<PatchId>,
-    /// The survey's best error: its accuracy ε, the error of its level-0 patches.
-    floor: f64,
-    /// Bounds of its kernels.
-    bounds: Aabb,
 }
 
 #[derive(Clone, Debug)]
@@ -130,6 +211,9 @@ pub struct LodIndex {
     slots: HashMap<PatchId, Slot>,
     surveys: HashMap<SurveyId, SurveyEntry>,
     tree: MsQuadtree,
+    /// The widest window bounds ever added: how far a kernel can reach past a point stored
+    /// near it. Never shrinks; only the pruning of view cuts reads it.
+    reach: f64,
 }
 
 impl LodIndex {
@@ -139,7 +223,19 @@ impl LodIndex {
             slots: HashMap::new(),
             surveys: HashMap::new(),
             tree: MsQuadtree::new(cfg.node_capacity),
+            reach: 0.0,
         }
+    }
+
+    pub(crate) fn reach(&self) -> f64 {
+        self.reach
+    }
+
+    fn grow_reach(&mut self, b: &PatchBox) {
+        self.reach = self
+            .reach
+            .max(b.window_aabb.width())
+            .max(b.window_aabb.height());
     }
 
     pub fn config(&self) -> &IndexConfig {
@@ -162,21 +258,8 @@ impl LodIndex {
         self.surveys.keys().copied()
     }
 
-    pub fn survey_floor(&self, s: SurveyId) -> Option<f64> {
-        self.surveys.get(&s).map(|e| e.floor)
-    }
-
     pub fn survey_patches(&self, s: SurveyId) -> Option<&[PatchId]> {
         self.surveys.get(&s).map(|e| e.patches.as_slice())
-    }
-
-    /// Accuracies of the surveys whose bounds meet `area`.
-    pub fn survey_floors_in(&self, area: &Aabb) -> Vec<f64> {
-        self.surveys
-            .values()
-            .filter(|e| e.bounds.intersects(area))
-            .map(|e| e.floor)
-            .collect()
     }
 
     pub fn get(&self, id: PatchId) -> Option<(&Arc<PatchBox>, Span)> {
@@ -185,10 +268,14 @@ impl LodIndex {
                 &s.bx,
                 Span {
                     min_z: s.bx.min_z,
-                    max_z: s.max_z,
+                    max_z: s.state.top,
                 },
             )
         })
+    }
+
+    pub fn state_of(&self, id: PatchId) -> Option<BoxState> {
+        self.slots.get(&id).map(|s| s.state)
     }
 
     pub fn tree_stats(&self) -> TreeStats {
@@ -203,36 +290,43 @@ impl LodIndex {
         &self.tree
     }
 
-    /// Every box and its span, in id order: two indexes over the same surveys give equal maps.
-    pub fn state(&self) -> BTreeMap<PatchId, Span> {
+    /// Every box and its state, in id order: two indexes over the same surveys give equal maps.
+    pub fn state(&self) -> BTreeMap<PatchId, (Span, bool)> {
         self.slots
             .iter()
             .map(|(id, s)| {
                 (
                     *id,
-                    Span {
-                        min_z: s.bx.min_z,
-                        max_z: s.max_z,
-                    },
+                    (
+                        Span {
+                            min_z: s.bx.min_z,
+                            max_z: s.state.top,
+                        },
+                        s.state.exposed,
+                    ),
                 )
             })
             .collect()
     }
 
     pub fn active_count(&self) -> usize {
-        self.slots.values().filter(|s| s.max_z > s.bx.min_z).count()
+        self.slots
+            .values()
+            .filter(|s| s.state.top > s.bx.min_z)
+            .count()
     }
 
     fn entry(slot: &Slot) -> Entry {
         Entry {
             id: slot.bx.id,
-            ceiling: slot.max_z,
+            ceiling: slot.state.top,
             floor: slot.bx.min_z,
-            aabb: slot.bx.aabb,
+            exposed: slot.state.exposed,
+            aabb: slot.bx.window_aabb,
         }
     }
 
-    /// Boxes whose kernel bounds meet `area`, each once, in id order.
+    /// Boxes whose window bounds meet `area`, each once, in id order.
     pub(crate) fn boxes_in(&self, area: &Aabb) -> Vec<&Arc<PatchBox>> {
         let mut ids = Vec::new();
         self.tree.for_each_in(area, |e| ids.push(e.id));
@@ -241,16 +335,20 @@ impl LodIndex {
         ids.iter().map(|id| &self.slots[id].bx).collect()
     }
 
+    /// Boxes other than `p` whose kernels meet `p`'s and that `keep` accepts.
+    fn neighbours(&self, p: &PatchBox, keep: impl Fn(&PatchBox) -> bool) -> Vec<&Arc<PatchBox>> {
+        self.boxes_in(&p.aabb)
+            .into_iter()
+            .filter(|q| q.id != p.id && q.kernel.intersects(&p.kernel) && keep(q))
+            .collect()
+    }
+
     /// Algorithm 1, over every greater patch present. Candidates are taken in order of error
     /// (ties by id, so the answer never depends on iteration order); coverage is monotone in
     /// the set, so a binary search over the distinct errors finds the first that covers.
     fn ceiling_of(&self, p: &PatchBox) -> f64 {
         let top = self.cfg.max_error;
-        let mut cands: Vec<&Arc<PatchBox>> = self
-            .boxes_in(&p.aabb)
-            .into_iter()
-            .filter(|q| q.order(p) == Ordering::Greater && q.kernel.intersects(&p.kernel))
-            .collect();
+        let mut cands = self.neighbours(p, |q| q.order(p) == Ordering::Greater);
         if cands.is_empty() {
             return top;
         }
@@ -282,36 +380,61 @@ impl LodIndex {
         z.min(top)
     }
 
-    /// Recomputes the tops of `ids` against the current set and moves changed boxes in the tree.
-    fn recompute(&mut self, ids: Vec<PatchId>) -> (usize, Vec<(PatchId, f64)>) {
-        let tops: Vec<(PatchId, f64)> = ids
+    /// Whether some of `p`'s valid kernel is covered by no more accurate patch. Like the top,
+    /// a pure function of the set of patches.
+    fn exposed(&self, p: &PatchBox) -> bool {
+        let better: Vec<ORect> = self
+            .neighbours(p, |q| q.more_accurate(p))
+            .into_iter()
+            .flat_map(|q| q.valid.iter().copied())
+            .collect();
+        !covered_all(&p.valid, &better)
+    }
+
+    fn derive(&self, p: &PatchBox) -> BoxState {
+        BoxState {
+            top: self.ceiling_of(p),
+            exposed: self.exposed(p),
+        }
+    }
+
+    /// Recomputes the state of `ids` against the current set and moves changed boxes in the
+    /// tree. `fresh` boxes are reported whether or not their provisional state changed.
+    fn recompute(
+        &mut self,
+        ids: Vec<PatchId>,
+        fresh: &HashSet<PatchId>,
+    ) -> (usize, Vec<(PatchId, BoxState)>) {
+        let states: Vec<(PatchId, BoxState)> = ids
             .par_iter()
-            .filter_map(|id| self.slots.get(id).map(|s| (*id, self.ceiling_of(&s.bx))))
+            .filter_map(|id| self.slots.get(id).map(|s| (*id, self.derive(&s.bx))))
             .collect();
         let mut moved = Vec::new();
-        for (id, top) in &tops {
+        for (id, state) in &states {
             let slot = self.slots.get_mut(id).expect("present");
-            if slot.max_z.total_cmp(top) != Ordering::Equal {
+            let changed = !slot.state.same(state);
+            if changed {
                 let old = Self::entry(slot);
-                slot.max_z = *top;
+                slot.state = *state;
                 let new = Self::entry(slot);
                 self.tree.remove(old.id, &old.aabb);
                 self.tree.insert(new);
-                moved.push((*id, *top));
+            }
+            if changed || fresh.contains(id) {
+                moved.push((*id, *state));
             }
         }
-        (tops.len(), moved)
+        (states.len(), moved)
     }
 
-    /// Patches already present that are smaller than one of `bigs` and meet it: the only ones
-    /// whose top `bigs` can move.
-    fn touched_by(&self, bigs: &[Arc<PatchBox>]) -> Vec<PatchId> {
-        let set: HashSet<PatchId> = bigs
+    /// Boxes already present whose state a change to `changed` can move: smaller ones that
+    /// meet them (their tops) and less accurate ones that meet them (their exposure).
+    fn touched_by(&self, changed: &[Arc<PatchBox>]) -> Vec<PatchId> {
+        let set: HashSet<PatchId> = changed
             .par_iter()
             .flat_map_iter(|b| {
-                self.boxes_in(&b.aabb)
+                self.neighbours(b, |q| q.order(b) == Ordering::Less || b.more_accurate(q))
                     .into_iter()
-                    .filter(|q| q.order(b) == Ordering::Less && q.kernel.intersects(&b.kernel))
                     .map(|q| q.id)
                     .collect::<Vec<_>>()
             })
@@ -321,123 +444,122 @@ impl LodIndex {
         v
     }
 
-    /// Adds a survey's patches (Algorithm 2 for all of them at once). Adding a survey that is
-    /// already present changes nothing.
-    pub fn insert_survey(&mut self, survey: SurveyId, boxes: Vec<PatchBox>) -> ChangeStats {
-        if self.surveys.contains_key(&survey) {
-            return ChangeStats::default();
-        }
-        let boxes: Vec<Arc<PatchBox>> = boxes
-            .into_iter()
-            .filter(|b| !self.slots.contains_key(&b.id))
-            .map(Arc::new)
-            .collect();
-        let ids: Vec<PatchId> = boxes.iter().map(|b| b.id).collect();
-        for b in &boxes {
-            // Provisionally empty; the recomputation below gives the real top.
-            let slot = Slot {
-                bx: b.clone(),
-                max_z: f64::NEG_INFINITY,
+    /// Removes the patches of the units in `remove`, adds those of `insert`, and recomputes
+    /// every box the change can touch, once (Algorithm 2 for all of them at once). Removing an
+    /// absent unit or adding a present one changes nothing.
+    pub fn apply(
+        &mut self,
+        remove: &[SurveyId],
+        insert: Vec<(SurveyId, Vec<PatchBox>)>,
+    ) -> ChangeStats {
+        let mut changed: Vec<Arc<PatchBox>> = Vec::new();
+        let mut removed = Vec::new();
+        for s in remove {
+            let Some(entry) = self.surveys.remove(s) else {
+                continue;
             };
-            self.tree.insert(Self::entry(&slot));
-            self.slots.insert(b.id, slot);
+            for id in entry.patches {
+                if let Some(slot) = self.slots.remove(&id) {
+                    self.tree.remove(id, &slot.bx.window_aabb);
+                    removed.push(id);
+                    changed.push(slot.bx);
+                }
+            }
         }
-        let floor = boxes.iter().map(|b| b.min_z).fold(f64::INFINITY, f64::min);
-        let Some(bounds) = boxes.iter().map(|b| b.aabb).reduce(|a, b| a.union(&b)) else {
-            return ChangeStats::default();
-        };
-        self.surveys.insert(
-            survey,
-            SurveyEntry {
-                patches: ids.clone(),
-                floor,
-                bounds,
-            },
-        );
-        let mut todo = self.touched_by(&boxes);
-        todo.extend(ids.iter().copied());
+        let mut fresh = HashSet::new();
+        for (survey, boxes) in insert {
+            if self.surveys.contains_key(&survey) {
+                continue;
+            }
+            let mut ids = Vec::with_capacity(boxes.len());
+            for b in boxes {
+                if self.slots.contains_key(&b.id) {
+                    continue;
+                }
+                // Provisionally empty; the recomputation below gives the real state.
+                self.grow_reach(&b);
+                let slot = Slot {
+                    bx: Arc::new(b),
+                    state: BoxState::EMPTY,
+                };
+                self.tree.insert(Self::entry(&slot));
+                ids.push(slot.bx.id);
+                fresh.insert(slot.bx.id);
+                changed.push(slot.bx.clone());
+                self.slots.insert(slot.bx.id, slot);
+            }
+            self.surveys.insert(survey, SurveyEntry { patches: ids });
+        }
+        // A box removed and added again in one change (same content) is simply recomputed.
+        removed.retain(|id| !fresh.contains(id));
+        let mut todo = self.touched_by(&changed);
+        todo.extend(fresh.iter().copied());
         todo.sort_unstable();
         todo.dedup();
-        let (recomputed, moved) = self.recompute(todo);
+        let (recomputed, moved) = self.recompute(todo, &fresh);
         ChangeStats {
-            patches: ids.len(),
+            patches: fresh.len(),
             recomputed,
             moved,
+            removed,
         }
+    }
+
+    /// Adds a survey's patches. Adding a survey that is already present changes nothing.
+    pub fn insert_survey(&mut self, survey: SurveyId, boxes: Vec<PatchBox>) -> ChangeStats {
+        self.apply(&[], vec![(survey, boxes)])
     }
 
     /// Removes a survey's patches and restores every box they had cut. Returns None when the
     /// survey is not present.
     pub fn retire_survey(&mut self, survey: SurveyId) -> Option<ChangeStats> {
-        let ids = self.surveys.remove(&survey)?.patches;
-        let mut gone = Vec::with_capacity(ids.len());
-        for id in &ids {
-            if let Some(slot) = self.slots.remove(id) {
-                self.tree.remove(*id, &slot.bx.aabb);
-                gone.push(slot.bx);
-            }
-        }
-        let todo = self.touched_by(&gone);
-        let (recomputed, moved) = self.recompute(todo);
-        Some(ChangeStats {
-            patches: ids.len(),
-            recomputed,
-            moved,
-        })
+        self.contains_survey(survey)
+            .then(|| self.apply(&[survey], Vec::new()))
     }
 
-    /// Rebuilds an index from boxes whose tops were computed before (by a store), without
-    /// running the cutter. `check` tells whether the tops are still right.
+    /// Rebuilds an index from boxes whose states were computed before (by a store), without
+    /// running the cutter. `check` tells whether the states are still right.
     pub fn restore(
         cfg: IndexConfig,
-        surveys: impl IntoIterator<Item = (SurveyId, Vec<(PatchBox, f64)>)>,
+        surveys: impl IntoIterator<Item = (SurveyId, Vec<(PatchBox, BoxState)>)>,
     ) -> Self {
         let mut ix = LodIndex::new(cfg);
         for (survey, boxes) in surveys {
-            let Some(bounds) = boxes.iter().map(|(b, _)| b.aabb).reduce(|a, b| a.union(&b)) else {
-                continue;
-            };
-            let floor = boxes
-                .iter()
-                .map(|(b, _)| b.min_z)
-                .fold(f64::INFINITY, f64::min);
             let mut ids = Vec::with_capacity(boxes.len());
-            for (b, max_z) in boxes {
+            for (b, state) in boxes {
+                ix.grow_reach(&b);
                 let slot = Slot {
                     bx: Arc::new(b),
-                    max_z,
+                    state,
                 };
                 ix.tree.insert(Self::entry(&slot));
                 ids.push(slot.bx.id);
                 ix.slots.insert(slot.bx.id, slot);
             }
-            ix.surveys.insert(
-                survey,
-                SurveyEntry {
-                    patches: ids,
-                    floor,
-                    bounds,
-                },
-            );
+            ix.surveys.insert(survey, SurveyEntry { patches: ids });
         }
         ix
     }
 
-    /// Re-derives every top from scratch and checks the tree: what `verify` runs.
+    /// Re-derives every box's state from scratch and checks the tree: what `verify` runs.
     pub fn check(&self) -> Result<(), String> {
         self.tree.check()?;
         let bad: Vec<String> = self
             .slots
             .par_iter()
             .filter_map(|(id, s)| {
-                let top = self.ceiling_of(&s.bx);
-                (top.total_cmp(&s.max_z) != Ordering::Equal)
-                    .then(|| format!("patch {id}: top {} should be {top}", s.max_z))
+                let want = self.derive(&s.bx);
+                (!want.same(&s.state)).then(|| {
+                    format!(
+                        "patch {id}: top {} exposed {} should be {} {}",
+                        s.state.top, s.state.exposed, want.top, want.exposed
+                    )
+                })
             })
             .collect();
         if let Some(first) = bad.first() {
             return Err(format!(
-                "{} boxes have a wrong top; first: {first}",
+                "{} boxes have a wrong top or exposure; first: {first}",
                 bad.len()
             ));
         }

@@ -23,6 +23,9 @@ pub struct Entry {
     pub ceiling: f64,
     /// Bottom of the box's z-span: the patch's error.
     pub floor: f64,
+    /// Whether the box is the most accurate data somewhere (see `lod`).
+    pub exposed: bool,
+    /// Bounds of the box's window, where the patch reaches.
     pub aabb: Aabb,
 }
 
@@ -171,7 +174,7 @@ impl Node {
                 // Every later entry, and everything below this node, is finer than needed.
                 return;
             }
-            if e.floor <= hi && e.aabb.intersects(area) {
+            if (e.floor <= hi || e.exposed) && e.aabb.intersects(area) {
                 f(e);
             }
         }
@@ -278,7 +281,8 @@ impl MsQuadtree {
     }
 
     /// Entries over `area` whose z-span meets the query surface, where `range` bounds the
-    /// surface's z over a region. Possibly more than once; callers refine and deduplicate.
+    /// surface's z over a region, and exposed entries above it (a query's fallback below the
+    /// data's accuracy). Possibly more than once; callers refine and deduplicate.
     pub fn cut<'a>(
         &'a self,
         area: &Aabb,
@@ -355,6 +359,7 @@ mod tests {
             id: PatchId(id),
             ceiling,
             floor: 0.0,
+            exposed: false,
             aabb: Aabb::new(x, y, x + s, y + s),
         }
     }

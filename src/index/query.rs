@@ -1,11 +1,9 @@
 //! Cuts through LOD space (§4.3): uniform, view-dependent, and any error field.
 
-use super::cover::covered_all;
 use super::geom::{Aabb, ORect};
 use super::lod::{LodIndex, PatchBox, Span};
 use crate::model::ids::{PatchId, SurveyId};
 use serde::{Deserialize, Serialize};
-use std::collections::HashSet;
 
 /// A patch returned by a query.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -16,10 +14,13 @@ pub struct Extracted {
     pub span: Span,
     pub kernel: ORect,
     pub window: ORect,
+    /// Taken because no data is as accurate as the cut asks somewhere in its kernel, and it is
+    /// the most accurate data there: blended only where nothing the cut asked for is.
+    pub fallback: bool,
 }
 
 impl Extracted {
-    fn of(b: &PatchBox, span: Span) -> Self {
+    fn of(b: &PatchBox, span: Span, fallback: bool) -> Self {
         Extracted {
             id: b.id,
             survey: b.survey,
@@ -27,6 +28,7 @@ impl Extracted {
             span,
             kernel: b.kernel,
             window: b.window,
+            fallback,
         }
     }
 }
@@ -109,78 +111,55 @@ impl Roi {
 }
 
 impl LodIndex {
-    /// Boxes whose z-span meets the field over the ROI, in id order.
+    /// The cut through LOD space along `field`: every patch that reaches into the ROI (its
+    /// window meets it) and whose z-span meets the field over its kernel, and, where no data
+    /// is as accurate as the field asks, the most accurate data there is (exposed boxes with
+    /// an error above the field), marked as fallback. Each patch is judged on its whole
+    /// kernel, never on the part inside the ROI, so whether a patch is taken does not depend
+    /// on the ROI: a point gets the same patches from any ROI that holds it.
     pub fn cut(&self, roi: &Roi, field: &dyn ErrorField) -> Vec<Extracted> {
         let area = roi.aabb();
+        // Kernels reach past the node that stores them: the field's range over the node grown
+        // by the widest window bounds it over every kernel the node can hold.
+        let reach = self.reach();
         let mut ids = Vec::new();
         self.tree().cut(
             &area,
-            |a| field.range(a),
-            |e| {
-                if e.is_active() {
-                    ids.push(e.id);
-                }
+            |a| {
+                field.range(&Aabb::new(
+                    a.min[0] - reach,
+                    a.min[1] - reach,
+                    a.max[0] + reach,
+                    a.max[1] + reach,
+                ))
             },
+            |e| ids.push(e.id),
         );
         ids.sort_unstable();
         ids.dedup();
         ids.into_iter()
             .filter_map(|id| {
                 let (b, span) = self.get(id)?;
-                if !roi.intersects(&b.kernel) {
+                if !roi.intersects(&b.window) {
                     return None;
                 }
-                let (lo, hi) = field.range(&b.aabb.intersection(&area)?);
-                (b.min_z <= hi && span.max_z > lo).then(|| Extracted::of(b, span))
+                let (lo, hi) = field.range(&b.aabb);
+                if b.min_z <= hi && span.max_z > lo {
+                    return Some(Extracted::of(b, span, false));
+                }
+                let exposed = self.state_of(id).is_some_and(|s| s.exposed);
+                (exposed && span.is_active() && b.min_z > lo).then(|| Extracted::of(b, span, true))
             })
             .collect()
     }
 
     /// The uniform cut at error `e` over a rectangle. Where no data is as accurate as `e`, the
-    /// most accurate data there is returned instead of a hole; each patch carries its own error.
+    /// most accurate data there is comes back instead of a hole; each patch carries its own
+    /// error. At or above the top of LOD space, the coarsest cut.
     pub fn uniform(&self, roi: &Aabb, e: f64) -> Vec<Extracted> {
-        let e = e.max(0.0);
-        let region = Roi::rect(roi);
-        let mut out = self.cut(&region, &Uniform(e));
-        let mut floors: Vec<f64> = self
-            .survey_floors_in(roi)
-            .into_iter()
-            .filter(|&f| f > e)
-            .collect();
-        if floors.is_empty() {
-            return out;
-        }
-        floors.sort_by(f64::total_cmp);
-        floors.dedup();
-        // Raise the cut through each coarser accuracy in turn, keeping only patches that reach
-        // somewhere the finer cuts left bare.
-        let mut chosen: HashSet<PatchId> = out.iter().map(|x| x.id).collect();
-        for z in floors {
-            let clip = ORect::from_aabb(roi);
-            for cand in self.cut(&region, &Uniform(z)) {
-                if chosen.contains(&cand.id) {
-                    continue;
-                }
-                let (b, _) = self.get(cand.id).expect("just extracted");
-                let targets: Vec<ORect> = b
-                    .valid
-                    .iter()
-                    .filter(|v| v.intersects(&clip))
-                    .copied()
-                    .collect();
-                let near: Vec<ORect> = out
-                    .iter()
-                    .filter(|x| x.kernel.intersects(&b.kernel))
-                    .flat_map(|x| self.get(x.id).expect("present").0.valid.iter().copied())
-                    .collect();
-                if !covered_all(&targets, &near) {
-                    chosen.insert(cand.id);
-                    out.push(cand);
-                }
-            }
-        }
-        out.sort_by_key(|x| x.id);
-        out
+        let top = self.config().max_error;
+        let e = e.max(0.0).min(top - top.abs() * 1e-12);
+        self.cut(&Roi::rect(roi), &Uniform(e))
     }
 
     /// The view-dependent cut: a skewed plane of constant screen error, clipped to the view's

@@ -1,7 +1,10 @@
 //! The model: grids, mipmaps and patches. Pure computation, no I/O.
 
+pub mod accuracy;
+pub mod edge;
 pub mod grid;
 pub mod ids;
+pub mod lattice;
 pub mod mipmap;
 pub mod patch;
 pub mod survey;

@@ -1,6 +1,7 @@
 //! Patches: windows of a mipmap level, each with a kernel that tiles the level, and the exact
 //! error of the patch's surface against the survey's own samples.
 
+use super::accuracy::KernelAccuracy;
 use super::grid::Grid;
 use super::ids::{PatchId, SurveyId};
 use rayon::prelude::*;
@@ -203,24 +204,118 @@ fn valid_rects(level: &Grid, kernel: &CellRect) -> Vec<CellRect> {
     done
 }
 
+/// How one level's cells are cut into kernels of `kernel × kernel` cells. Kernel boundaries
+/// fall where `offset + c` is a multiple of `kernel`: level 0 takes its offset from the
+/// canonical index of its lattice, so that surveys of one lattice cut it into the same tiles
+/// (their patches then weigh a shared point alike), and coarser levels start at their own
+/// first sample.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Tiling {
+    pub cells: [usize; 2],
+    pub kernel: u32,
+    pub offset: [i64; 2],
+}
+
+impl Tiling {
+    pub fn new(cells: [usize; 2], kernel: usize, offset: [i64; 2]) -> Self {
+        Tiling {
+            cells,
+            kernel: kernel as u32,
+            offset,
+        }
+    }
+
+    /// The tile of the first kernel along each axis, in lattice tile numbers.
+    pub fn first_tile(&self) -> [i64; 2] {
+        self.offset
+            .map(|o| crate::model::lattice::tile_of(o, self.kernel as usize))
+    }
+
+    /// Kernels along each axis.
+    pub fn counts(&self) -> [usize; 2] {
+        let k = self.kernel as i64;
+        let f = self.first_tile();
+        [0, 1].map(|a| {
+            let last = (self.offset[a] + self.cells[a].max(1) as i64 - 1).div_euclid(k);
+            (last - f[a] + 1) as usize
+        })
+    }
+
+    /// The cells of the kernel at local position `k`, clipped to the level.
+    pub fn kernel(&self, k: [u32; 2]) -> CellRect {
+        let (c0, c1) = self.span(0, k[0]);
+        let (r0, r1) = self.span(1, k[1]);
+        CellRect { c0, r0, c1, r1 }
+    }
+
+    fn span(&self, axis: usize, k: u32) -> (u32, u32) {
+        let kk = self.kernel as i64;
+        let start = (self.first_tile()[axis] + k as i64) * kk - self.offset[axis];
+        let lo = start.max(0) as u32;
+        let hi = (start + kk).min(self.cells[axis] as i64) as u32;
+        (lo, hi)
+    }
+
+    /// The local position of the kernel holding cell (c, r).
+    #[inline]
+    pub fn kernel_at(&self, c: u32, r: u32) -> [u32; 2] {
+        let k = self.kernel as i64;
+        let f = self.first_tile();
+        [
+            ((self.offset[0] + c as i64).div_euclid(k) - f[0]) as u32,
+            ((self.offset[1] + r as i64).div_euclid(k) - f[1]) as u32,
+        ]
+    }
+
+    /// Centre of the unclipped kernel at local position `k`, in level grid units.
+    pub fn centre(&self, k: [u32; 2]) -> [f64; 2] {
+        let kk = self.kernel as i64;
+        let f = self.first_tile();
+        [0, 1].map(|a| ((f[a] + k[a] as i64) * kk - self.offset[a]) as f64 + kk as f64 / 2.0)
+    }
+
+    /// A kernel grown by `margin` cells on every side, clipped to the level.
+    pub fn window(&self, kernel: &CellRect, margin: u32) -> CellRect {
+        CellRect {
+            c0: kernel.c0.saturating_sub(margin),
+            r0: kernel.r0.saturating_sub(margin),
+            c1: (kernel.c1 + margin).min(self.cells[0] as u32),
+            r1: (kernel.r1 + margin).min(self.cells[1] as u32),
+        }
+    }
+}
+
 /// Cuts every level into patches and measures each patch's error, in parallel.
 ///
-/// A patch whose kernel has no valid cell is not made: its window may hold data, but no point
-/// needs it for coverage, so the cutter would only ever discard it.
+/// `tiling0` cuts level 0; coarser levels are cut from their first sample. A patch's error is
+/// the largest ε of the level-0 kernels under its window plus its own δ. A patch whose kernel
+/// has no valid cell is not made: its window may hold data, but no point needs it for
+/// coverage, so the cutter would only ever discard it.
 pub fn make_patches(
     survey: SurveyId,
-    accuracy: f64,
+    accuracy: &KernelAccuracy,
     levels: &[Arc<Grid>],
+    tiling0: &Tiling,
     layout: &PatchLayout,
     func: &dyn PatchFunction,
 ) -> Vec<Patch> {
-    let k = layout.kernel as u32;
     let m = layout.margin as u32;
+    let tilings: Vec<Tiling> = levels
+        .iter()
+        .enumerate()
+        .map(|(lv, g)| {
+            if lv == 0 {
+                *tiling0
+            } else {
+                Tiling::new(g.cells(), layout.kernel, [0, 0])
+            }
+        })
+        .collect();
     let mut slots = Vec::new();
-    for (lv, g) in levels.iter().enumerate() {
-        let [cw, ch] = g.cells();
-        for pj in 0..(ch as u32).div_ceil(k) {
-            for pi in 0..(cw as u32).div_ceil(k) {
+    for (lv, t) in tilings.iter().enumerate() {
+        let [nx, ny] = t.counts();
+        for pj in 0..ny as u32 {
+            for pi in 0..nx as u32 {
                 slots.push((lv, pi, pj));
             }
         }
@@ -229,23 +324,16 @@ pub fn make_patches(
         .into_par_iter()
         .filter_map(|(lv, pi, pj)| {
             let g = &levels[lv];
-            let [cw, ch] = g.cells();
-            let kernel = CellRect {
-                c0: pi * k,
-                r0: pj * k,
-                c1: ((pi + 1) * k).min(cw as u32),
-                r1: ((pj + 1) * k).min(ch as u32),
-            };
+            let t = &tilings[lv];
+            let kernel = t.kernel([pi, pj]);
+            if kernel.is_empty() {
+                return None;
+            }
             let valid = valid_rects(g, &kernel);
             if valid.is_empty() {
                 return None;
             }
-            let window = CellRect {
-                c0: kernel.c0.saturating_sub(m),
-                r0: kernel.r0.saturating_sub(m),
-                c1: (kernel.c1 + m).min(cw as u32),
-                r1: (kernel.r1 + m).min(ch as u32),
-            };
+            let window = t.window(&kernel, m);
             let delta = func.max_deviation(levels, lv, &window);
             // Rounding δ up by a few ulps keeps the bound a bound after f32 storage downstream.
             let delta = if delta > 0.0 {
@@ -253,7 +341,17 @@ pub fn make_patches(
             } else {
                 0.0
             };
-            let half = k as f64 / 2.0 + m as f64;
+            // The level-0 cells under the window, for the ε they were measured with.
+            let f = 1u32 << lv;
+            let [cw, ch] = levels[0].cells();
+            let under = CellRect {
+                c0: window.c0 * f,
+                r0: window.r0 * f,
+                c1: (window.c1 * f).min(cw as u32),
+                r1: (window.r1 * f).min(ch as u32),
+            };
+            let eps = accuracy.max_over(tiling0, &under);
+            let half = layout.kernel as f64 / 2.0 + m as f64;
             Some(Patch {
                 id: PatchId::derive(survey, lv as u8, [pi, pj]),
                 survey,
@@ -261,14 +359,11 @@ pub fn make_patches(
                 index: [pi, pj],
                 kernel,
                 window,
-                centre: [
-                    (pi * k) as f64 + k as f64 / 2.0,
-                    (pj * k) as f64 + k as f64 / 2.0,
-                ],
+                centre: t.centre([pi, pj]),
                 half: [half, half],
                 valid,
                 delta,
-                error: accuracy + delta,
+                error: eps + delta,
             })
         })
         .collect()
@@ -292,10 +387,12 @@ mod tests {
     fn kernels_tile_each_level_exactly_once() {
         let g = grid(100, 61, |c, r| ((c * 7 + r * 3) % 11) as f32);
         let levels = mipmap::build(g, 28);
+        let t0 = Tiling::new(levels[0].cells(), 28, [-5, 17]);
         let patches = make_patches(
             SurveyId(1),
-            0.0,
+            &KernelAccuracy::constant(&t0, 0.0),
             &levels,
+            &t0,
             &PatchLayout::default(),
             &Bilinear,
         );

@@ -1,9 +1,11 @@
 //! A survey: one grid, its mipmap and its patches, ready for the index.
 
+use super::accuracy::{self, AccuracySpec, KernelAccuracy};
 use super::grid::Grid;
 use super::ids::{hash64, SurveyId};
+use super::lattice::Lattice;
 use super::mipmap;
-use super::patch::{make_patches, Bilinear, Patch, PatchLayout};
+use super::patch::{make_patches, Bilinear, Patch, PatchLayout, Tiling};
 use crate::index::lod::PatchBox;
 use std::sync::Arc;
 use thiserror::Error;
@@ -21,11 +23,16 @@ pub enum SurveyError {
 #[derive(Clone, Debug)]
 pub struct Survey {
     pub id: SurveyId,
-    /// ε, in metres.
+    /// ε, in metres: the largest over the survey's kernels.
     pub accuracy: f64,
+    pub spec: AccuracySpec,
     /// EPSG code of the survey's horizontal CRS, where known.
     pub crs: Option<u32>,
     pub layout: PatchLayout,
+    /// How level 0 is cut into kernels.
+    pub tiling: Tiling,
+    /// ε of every level-0 kernel.
+    pub kernel_accuracy: KernelAccuracy,
     /// Level 0 first.
     pub levels: Vec<Arc<Grid>>,
     pub patches: Vec<Patch>,
@@ -33,23 +40,21 @@ pub struct Survey {
 
 impl Survey {
     /// The id of a survey's content. Two files with the same samples, georeference, CRS and
-    /// accuracy are the same survey.
-    pub fn id_of(grid: &Grid, accuracy: f64, crs: Option<u32>) -> SurveyId {
+    /// accuracy (or both with an estimated one) are the same survey.
+    pub fn id_of(grid: &Grid, spec: AccuracySpec, crs: Option<u32>) -> SurveyId {
         let mut h = blake3::Hasher::new();
         h.update(b"patchwork.survey.v1");
         h.update(&(grid.cols as u64).to_le_bytes());
         h.update(&(grid.rows as u64).to_le_bytes());
         let g = &grid.georef;
-        for v in [
-            g.origin[0],
-            g.origin[1],
-            g.theta,
-            g.step[0],
-            g.step[1],
-            accuracy,
-        ] {
+        for v in [g.origin[0], g.origin[1], g.theta, g.step[0], g.step[1]] {
             h.update(&v.to_bits().to_le_bytes());
         }
+        match spec {
+            AccuracySpec::Fixed(a) => h.update(&a.to_bits().to_le_bytes()),
+            // The estimate is a function of the samples, so the samples name it.
+            AccuracySpec::Auto => h.update(b"auto.v1"),
+        };
         h.update(&crs.unwrap_or(0).to_le_bytes());
         // One NaN bit pattern for every void, so that how a file spelled nodata does not matter.
         let mut buf = Vec::with_capacity(4 * 4096);
@@ -64,15 +69,24 @@ impl Survey {
         SurveyId(hash64(h))
     }
 
+    /// The level-0 tiling of a grid: kernels on its lattice's canonical tiles.
+    pub fn tiling_of(grid: &Grid, layout: &PatchLayout) -> Tiling {
+        let lattice = Lattice::of(&grid.georef);
+        Tiling::new(grid.cells(), layout.kernel, lattice.index_of(&grid.georef))
+    }
+
     /// Builds the mipmap and the patches with their errors.
     pub fn build(
         grid: Grid,
-        accuracy: f64,
+        spec: impl Into<AccuracySpec>,
         crs: Option<u32>,
         layout: PatchLayout,
     ) -> Result<Survey, SurveyError> {
-        if !(accuracy.is_finite() && accuracy >= 0.0) {
-            return Err(SurveyError::BadAccuracy(accuracy));
+        let spec = spec.into();
+        if let AccuracySpec::Fixed(a) = spec {
+            if !(a.is_finite() && a >= 0.0) {
+                return Err(SurveyError::BadAccuracy(a));
+            }
         }
         if layout.kernel == 0 {
             return Err(SurveyError::BadLayout(layout.kernel));
@@ -80,17 +94,62 @@ impl Survey {
         if grid.valid_count() == 0 {
             return Err(SurveyError::AllNodata);
         }
-        let id = Self::id_of(&grid, accuracy, crs);
+        let id = Self::id_of(&grid, spec, crs);
+        let tiling = Self::tiling_of(&grid, &layout);
+        let kernel_accuracy = match spec {
+            AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
+            AccuracySpec::Auto => accuracy::estimate(&grid, &tiling, layout.margin as u32).kernels,
+        };
         let levels = mipmap::build(Arc::new(grid), layout.kernel);
-        let patches = make_patches(id, accuracy, &levels, &layout, &Bilinear);
+        let patches = make_patches(id, &kernel_accuracy, &levels, &tiling, &layout, &Bilinear);
         Ok(Survey {
             id,
-            accuracy,
+            accuracy: kernel_accuracy.max(),
+            spec,
             crs,
             layout,
+            tiling,
+            kernel_accuracy,
             levels,
             patches,
         })
+    }
+
+    /// A survey as a store kept it: its levels, patches, tiling and kernels' ε.
+    #[allow(clippy::too_many_arguments)]
+    pub fn restore(
+        id: SurveyId,
+        spec: AccuracySpec,
+        crs: Option<u32>,
+        layout: PatchLayout,
+        tiling: Tiling,
+        kernel_accuracy: KernelAccuracy,
+        levels: Vec<Arc<Grid>>,
+        patches: Vec<Patch>,
+    ) -> Survey {
+        Survey {
+            id,
+            accuracy: kernel_accuracy.max(),
+            spec,
+            crs,
+            layout,
+            tiling,
+            kernel_accuracy,
+            levels,
+            patches,
+        }
+    }
+
+    /// ε at level-0 sample (c, r): the largest of the kernels it is a corner of.
+    pub fn accuracy_at(&self, c: usize, r: usize) -> f64 {
+        let [cw, ch] = self.levels[0].cells();
+        let cell = super::patch::CellRect {
+            c0: (c as u32).saturating_sub(1),
+            r0: (r as u32).saturating_sub(1),
+            c1: (c as u32 + 1).min(cw as u32),
+            r1: (r as u32 + 1).min(ch as u32),
+        };
+        self.kernel_accuracy.max_over(&self.tiling, &cell)
     }
 
     /// The patches as LOD-space boxes.
@@ -99,6 +158,31 @@ impl Survey {
             .iter()
             .map(|p| PatchBox::new(p, &self.levels[p.level as usize], self.layout.kernel))
             .collect()
+    }
+
+    /// Area of one level-0 cell.
+    pub fn cell_area(&self) -> f64 {
+        let s = self.levels[0].georef.step;
+        s[0] * s[1]
+    }
+
+    /// How this survey and `o` disagree where they overlap, measured at the samples of the
+    /// finer of the two (the smaller cell; at equal cells the smaller id) against the other's
+    /// surface, so that the figure is the same whichever was inserted first.
+    pub fn overlap(&self, o: &Survey) -> Option<accuracy::Deviation> {
+        if !self.levels[0]
+            .world_bounds()
+            .intersects(&o.levels[0].world_bounds())
+        {
+            return None;
+        }
+        let self_finer = self
+            .cell_area()
+            .total_cmp(&o.cell_area())
+            .then(self.id.cmp(&o.id))
+            .is_lt();
+        let (fine, coarse) = if self_finer { (self, o) } else { (o, self) };
+        accuracy::deviation(&fine.levels[0], &coarse.levels[0])
     }
 
     /// Samples in every level, the mipmap's storage cost.

@@ -184,12 +184,14 @@ pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadE
         )));
     }
 
+    let (epsg, crs_name) = sidecar_crs(path)?;
     Ok(Raster {
         cols,
         rows,
         samples,
         geotransform,
-        epsg: sidecar_epsg(path)?,
+        epsg,
+        crs_name,
         nodata: h.nodata,
     })
 }
@@ -208,8 +210,9 @@ fn parse_sample(tok: &str, index: usize, nodata: Option<f32>) -> Result<f32, Rea
     })
 }
 
-/// EPSG code from the `.prj` next to the grid, if there is one and it says.
-fn sidecar_epsg(path: &Path) -> Result<Option<u32>, ReadError> {
+/// The CRS of the `.prj` next to the grid, if there is one: its EPSG code, or the name of a
+/// CRS it describes that has none.
+fn sidecar_crs(path: &Path) -> Result<(Option<u32>, Option<String>), ReadError> {
     for ext in ["prj", "PRJ"] {
         let prj = path.with_extension(ext);
         if prj.is_file() {
@@ -219,60 +222,13 @@ fn sidecar_epsg(path: &Path) -> Result<Option<u32>, ReadError> {
                 .take(1 << 20)
                 .read_to_string(&mut text)
                 .map_err(|_| ReadError::invalid(format!("{} is not a text file", prj.display())))?;
-            return Ok(epsg_from_wkt(&text));
+            return Ok(match super::crs::epsg_from_wkt(&text) {
+                Ok(c) => (Some(c), None),
+                Err(name) => (None, Some(name)),
+            });
         }
     }
-    Ok(None)
-}
-
-/// EPSG code of a WKT CRS: the AUTHORITY["EPSG",..] (or WKT2 ID["EPSG",..]) attached to the
-/// outermost node, else 4326 for a bare WGS 84 geographic CRS. Nested authorities (datum,
-/// base CRS, units) describe parts, not the CRS itself, and are ignored.
-pub fn epsg_from_wkt(wkt: &str) -> Option<u32> {
-    let bytes = wkt.as_bytes();
-    let mut depth = 0usize;
-    let mut in_quote = false;
-    let mut i = 0;
-    while i < bytes.len() {
-        match bytes[i] {
-            b'"' => in_quote = !in_quote,
-            b'[' | b'(' if !in_quote => depth += 1,
-            b']' | b')' if !in_quote => depth = depth.saturating_sub(1),
-            _ if !in_quote && depth == 1 => {
-                let rest = &wkt[i..];
-                let keyword_start = i == 0 || matches!(bytes[i - 1], b',' | b'[' | b'(' | b' ');
-                for kw in ["AUTHORITY[", "ID["] {
-                    if keyword_start
-                        && rest.len() >= kw.len()
-                        && rest[..kw.len()].eq_ignore_ascii_case(kw)
-                    {
-                        if let Some(code) = parse_authority(&rest[kw.len()..]) {
-                            return Some(code);
-                        }
-                    }
-                }
-            }
-            _ => {}
-        }
-        i += 1;
-    }
-    let upper = wkt.to_ascii_uppercase();
-    let projected = upper.contains("PROJCS[") || upper.contains("PROJCRS[");
-    let wgs84_geographic = upper.contains("GEOGCS[\"WGS 84\"")
-        || upper.contains("GEOGCS[\"GCS_WGS_1984\"")
-        || upper.contains("GEOGCRS[\"WGS 84\"");
-    (!projected && wgs84_geographic).then_some(4326)
-}
-
-/// `"EPSG","32631"]` or `"EPSG",32631]` → 32631.
-fn parse_authority(args: &str) -> Option<u32> {
-    let end = args.find([']', ')'])?;
-    let mut parts = args[..end].split(',');
-    let name = parts.next()?.trim().trim_matches('"');
-    if !name.eq_ignore_ascii_case("EPSG") {
-        return None;
-    }
-    parts.next()?.trim().trim_matches('"').parse().ok()
+    Ok((None, None))
 }
 
 #[cfg(test)]
@@ -348,7 +304,8 @@ mod tests {
             (
                 "utm_noauth",
                 r#"PROJCS["WGS 84 / UTM zone 31N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],AUTHORITY["EPSG","4326"]],PROJECTION["Transverse_Mercator"]]"#,
-                None,
+                // No code of its own: its name and datum make it WGS 84 / UTM 31N.
+                Some(32631),
             ),
             (
                 "lambert",
@@ -364,8 +321,13 @@ mod tests {
         for (name, wkt, want) in cases {
             let p = write(&dir, &format!("{name}.asc"), grid);
             write(&dir, &format!("{name}.prj"), wkt);
-            assert_eq!(read(&p).unwrap().epsg, want, "{name}");
+            let r = read(&p).unwrap();
+            assert_eq!(r.epsg, want, "{name}");
+            // What has no code is named, so that the error can say what was found.
+            assert_eq!(r.crs_name.is_some(), want.is_none(), "{name}");
         }
+        let p = dir.path().join("lambert.asc");
+        assert_eq!(read(&p).unwrap().crs_name.as_deref(), Some("RGF93"));
     }
 
     #[test]

@@ -9,6 +9,7 @@ use tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
 use tiff::tags::Tag;
 use tiff::{TiffError, TiffFormatError};
 
+use super::crs::{epsg_from_wkt, utm_from_parameters, utm_in_text, Datum};
 use super::{has_extension, open_regular_file, Raster, RasterReader, ReadError, ReadLimits};
 
 const GEO_KEY_MODEL_TYPE: u16 = 1024;
@@ -98,7 +99,7 @@ fn decode<R: Read + Seek>(
     let (cols, rows) = (width as usize, height as usize);
 
     let kind = sample_kind(&mut dec)?;
-    let (geotransform, epsg) = georeference(&mut dec)?;
+    let (geotransform, (epsg, crs_name)) = georeference(&mut dec)?;
     let nodata = gdal_nodata(&mut dec)?;
     let sparse = chunk_layout_check(&mut dec, file_len)?;
 
@@ -121,6 +122,7 @@ fn decode<R: Read + Seek>(
         samples,
         geotransform,
         epsg,
+        crs_name,
         nodata,
     })
 }
@@ -173,17 +175,27 @@ fn sample_kind<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<SampleKind, ReadE
     })
 }
 
-/// Geotransform (GDAL convention, PixelIsArea) and EPSG code from the GeoTIFF tags.
-fn georeference<R: Read + Seek>(
-    dec: &mut Decoder<R>,
-) -> Result<([f64; 6], Option<u32>), ReadError> {
+/// The CRS a GeoTIFF names: its EPSG code, or the name of one it describes without a code.
+type FileCrs = (Option<u32>, Option<String>);
+
+/// Geotransform (GDAL convention, PixelIsArea) and CRS from the GeoTIFF tags.
+fn georeference<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<([f64; 6], FileCrs), ReadError> {
     let keys = match dec.find_tag(Tag::GeoKeyDirectoryTag).map_err(tiff_error)? {
         Some(v) => v.into_u16_vec().map_err(|_| {
             ReadError::invalid("GeoKeyDirectory tag (34735) does not hold SHORT values")
         })?,
         None => Vec::new(),
     };
-    let keys = GeoKeys::parse(&keys);
+    // Parameters stored outside the directory; a bad one only costs the CRS's name.
+    let doubles = f64_tag(dec, Tag::GeoDoubleParamsTag, "GeoDoubleParams")
+        .ok()
+        .flatten()
+        .unwrap_or_default();
+    let ascii = match dec.find_tag(Tag::GeoAsciiParamsTag) {
+        Ok(Some(Value::Ascii(t))) => t,
+        _ => String::new(),
+    };
+    let keys = GeoKeys::parse(&keys, &doubles, &ascii);
 
     let transform = f64_tag(dec, Tag::ModelTransformationTag, "ModelTransformation")?;
     let scale = f64_tag(dec, Tag::ModelPixelScaleTag, "ModelPixelScale")?;
@@ -235,7 +247,7 @@ fn georeference<R: Read + Seek>(
             "georeferencing gives a degenerate or non-finite pixel grid: {gt:?}"
         )));
     }
-    Ok((gt, keys.epsg()))
+    Ok((gt, keys.crs()))
 }
 
 fn f64_tag<R: Read + Seek>(
@@ -263,28 +275,73 @@ fn f64_tag<R: Read + Seek>(
         .ok_or_else(|| ReadError::invalid(format!("{name} tag does not hold numbers")))
 }
 
-/// The GeoKeyDirectory, keeping only keys whose value is stored inline (all the ones we use).
-struct GeoKeys(Vec<(u16, u16)>);
+/// The GeoKeyDirectory: SHORT keys stored inline, and the DOUBLE and ASCII ones stored in
+/// their parameter tags.
+struct GeoKeys {
+    short: Vec<(u16, u16)>,
+    double: Vec<(u16, f64)>,
+    ascii: Vec<(u16, String)>,
+}
+
+const GEO_KEY_CITATION: u16 = 1026;
+const GEO_KEY_GEODETIC_DATUM: u16 = 2050;
+const GEO_KEY_PCS_CITATION: u16 = 3073;
+const GEO_KEY_PROJECTION: u16 = 3074;
+const GEO_KEY_COORD_TRANS: u16 = 3075;
+const GEO_KEY_NAT_ORIGIN_LONG: u16 = 3080;
+const GEO_KEY_NAT_ORIGIN_LAT: u16 = 3081;
+const GEO_KEY_FALSE_EASTING: u16 = 3082;
+const GEO_KEY_FALSE_NORTHING: u16 = 3083;
+const GEO_KEY_CENTER_LONG: u16 = 3088;
+const GEO_KEY_SCALE_AT_NAT_ORIGIN: u16 = 3092;
+const CT_TRANSVERSE_MERCATOR: u16 = 1;
 
 impl GeoKeys {
-    fn parse(raw: &[u16]) -> GeoKeys {
+    fn parse(raw: &[u16], doubles: &[f64], ascii: &str) -> GeoKeys {
         // Header: version, revision, minor revision, key count; then 4 SHORTs per key.
         // A short or inconsistent directory keeps what is complete rather than failing the
         // whole file, since the pixel grid itself does not depend on it.
         let count = raw.get(3).copied().unwrap_or(0) as usize;
-        let keys = raw
-            .get(4..)
-            .unwrap_or(&[])
-            .chunks_exact(4)
-            .take(count)
-            .filter(|k| k[1] == 0)
-            .map(|k| (k[0], k[3]))
-            .collect();
-        GeoKeys(keys)
+        let mut keys = GeoKeys {
+            short: Vec::new(),
+            double: Vec::new(),
+            ascii: Vec::new(),
+        };
+        for k in raw.get(4..).unwrap_or(&[]).chunks_exact(4).take(count) {
+            let (id, loc, n, at) = (k[0], k[1], k[2] as usize, k[3] as usize);
+            match loc {
+                0 => keys.short.push((id, k[3])),
+                34736 => {
+                    if let Some(&v) = doubles.get(at).filter(|_| n >= 1) {
+                        keys.double.push((id, v));
+                    }
+                }
+                34737 => {
+                    if let Some(t) = ascii.get(at..at + n) {
+                        let t = t.trim_end_matches(['|', '\0']).trim().to_string();
+                        keys.ascii.push((id, t));
+                    }
+                }
+                _ => {}
+            }
+        }
+        keys
     }
 
     fn get(&self, id: u16) -> Option<u16> {
-        self.0.iter().find(|(k, _)| *k == id).map(|(_, v)| *v)
+        self.short.iter().find(|(k, _)| *k == id).map(|(_, v)| *v)
+    }
+
+    fn double(&self, id: u16) -> Option<f64> {
+        self.double.iter().find(|(k, _)| *k == id).map(|(_, v)| *v)
+    }
+
+    fn text(&self, id: u16) -> Option<&str> {
+        self.ascii
+            .iter()
+            .find(|(k, _)| *k == id)
+            .map(|(_, v)| v.as_str())
+            .filter(|t| !t.is_empty())
     }
 
     fn epsg(&self) -> Option<u32> {
@@ -302,6 +359,84 @@ impl GeoKeys {
             Some(MODEL_TYPE_GEOGRAPHIC) => geographic,
             Some(_) => None,
             None => projected.or(geographic),
+        }
+    }
+
+    /// The datum, from the geographic CRS or datum codes, else from the citations.
+    fn datum(&self) -> Option<Datum> {
+        match self
+            .get(GEO_KEY_GEOGRAPHIC_TYPE)
+            .or(self.get(GEO_KEY_GEODETIC_DATUM))
+        {
+            Some(4326 | 6326) => Some(Datum::Wgs84),
+            Some(4269 | 6269) => Some(Datum::Nad83),
+            Some(4258 | 6258) => Some(Datum::Etrs89),
+            _ => [GEO_KEY_PCS_CITATION, GEO_KEY_CITATION]
+                .iter()
+                .find_map(|&k| self.text(k).and_then(Datum::in_text)),
+        }
+    }
+
+    /// The EPSG code, or what a CRS without one is called. A user-defined projection is
+    /// recognised when it is a UTM zone, by its projection code, its parameters or its
+    /// citation.
+    fn crs(&self) -> (Option<u32>, Option<String>) {
+        if let Some(c) = self.epsg() {
+            return (Some(c), None);
+        }
+        let citation = [GEO_KEY_PCS_CITATION, GEO_KEY_CITATION]
+            .iter()
+            .find_map(|&k| self.text(k));
+        let model = self.get(GEO_KEY_MODEL_TYPE);
+        let projected = model == Some(MODEL_TYPE_PROJECTED)
+            || (model.is_none() && self.get(GEO_KEY_PROJECTED_CS_TYPE).is_some());
+        if !projected {
+            if model == Some(MODEL_TYPE_GEOGRAPHIC) {
+                return match self.datum() {
+                    Some(d) => (Some(d.geographic()), None),
+                    None => (
+                        None,
+                        Some(citation.unwrap_or("a user-defined geographic CRS").into()),
+                    ),
+                };
+            }
+            return (None, None);
+        }
+        // GDAL writes a whole WKT into the citation when it has nothing better.
+        if let Some(w) = citation.and_then(|c| c.find("PROJCS[").map(|i| &c[i..])) {
+            if let Ok(code) = epsg_from_wkt(w) {
+                return (Some(code), None);
+            }
+        }
+        let utm = match self.get(GEO_KEY_PROJECTION) {
+            Some(p @ 16001..=16060) => Some((u32::from(p - 16000), true)),
+            Some(p @ 16101..=16160) => Some((u32::from(p - 16100), false)),
+            _ => None,
+        }
+        .or_else(|| {
+            (self.get(GEO_KEY_COORD_TRANS) == Some(CT_TRANSVERSE_MERCATOR))
+                .then(|| {
+                    utm_from_parameters(
+                        self.double(GEO_KEY_NAT_ORIGIN_LONG)
+                            .or(self.double(GEO_KEY_CENTER_LONG))?,
+                        self.double(GEO_KEY_SCALE_AT_NAT_ORIGIN)?,
+                        self.double(GEO_KEY_FALSE_EASTING)?,
+                        self.double(GEO_KEY_FALSE_NORTHING)?,
+                        self.double(GEO_KEY_NAT_ORIGIN_LAT).unwrap_or(0.0),
+                    )
+                })
+                .flatten()
+        })
+        .or_else(|| citation.and_then(utm_in_text));
+        match (self.datum(), utm) {
+            (Some(d), Some((zone, north))) => match d.utm(zone, north) {
+                Some(c) => (Some(c), None),
+                None => (None, citation.map(String::from)),
+            },
+            _ => (
+                None,
+                Some(citation.unwrap_or("a user-defined projected CRS").into()),
+            ),
         }
     }
 }

@@ -110,6 +110,7 @@ pub fn read_hgt(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
         samples,
         geotransform,
         epsg: Some(4326),
+        crs_name: None,
         nodata: Some(f64::from(HGT_VOID)),
     })
 }

@@ -2,6 +2,7 @@
 //! [`Raster`], plus a small GeoTIFF writer used for exports and test fixtures.
 
 pub mod ascii;
+pub mod crs;
 pub mod geotiff;
 pub mod hgt;
 pub mod write_tiff;
@@ -30,6 +31,9 @@ pub struct Raster {
     pub geotransform: [f64; 6],
     /// EPSG code of the horizontal CRS if the file says (e.g. 4326, 32631), else None.
     pub epsg: Option<u32>,
+    /// The name of a CRS the file describes but no EPSG code could be found for, so that the
+    /// error can say what was there.
+    pub crs_name: Option<String>,
     /// The declared nodata value if any (already applied: such samples are NaN in `samples`).
     pub nodata: Option<f64>,
 }
@@ -93,6 +97,7 @@ impl Raster {
                 gt[5],
             ],
             epsg: self.epsg,
+            crs_name: self.crs_name.clone(),
             nodata: self.nodata,
         }
     }

@@ -46,8 +46,7 @@
 //! f32 spacing, ≤ 0.98 mm. The tests measure ≤ 1 spacing on the crops lifted to 9 km and on
 //! synthetic sets, and ≤ 7 spacings (0.85 mm at ~1.5 km) on a coarse cut of the rotated crop.
 
-use super::{cpu, PatchSet, ResolvedPatch, SampleGrid, BLOCK};
-use crate::engine::Backend;
+use super::{cpu, Backend, PatchSet, ResolvedPatch, SampleGrid, Surface, BLOCK};
 use crate::model::ids::PatchId;
 use bytemuck::{Pod, Zeroable};
 use std::collections::HashMap;
@@ -61,6 +60,10 @@ const VOID: f32 = f32::MAX;
 
 /// The patch kinds the shader evaluates; bicubic (C2) patches get the next number.
 pub const KIND_BILINEAR: u32 = 0;
+pub const KIND_EDGE: u32 = 1;
+
+/// `PATCH_FALLBACK` in the shader.
+const PATCH_FALLBACK: u32 = 1;
 
 /// Byte budget of the sample arena before it is emptied and refilled.
 pub const DEFAULT_ARENA_BYTES: u64 = 256 << 20;
@@ -93,7 +96,8 @@ struct GpuPatch {
     inv_half: [f32; 2],
     norm: f32,
     base: f32,
-    _pad: [f32; 2],
+    rank: u32,
+    flags: u32,
     window: [f32; 4],
     kernel: [f32; 4],
     offset: u32,
@@ -108,7 +112,7 @@ struct Params {
     width: u32,
     height: u32,
     blocks_x: u32,
-    _pad: u32,
+    has_fallback: u32,
 }
 
 /// Where a patch's samples sit in the arena: its window grown by one cell where the level has
@@ -298,7 +302,7 @@ impl GpuResampler {
     }
 
     /// Heights at every point of the grid, NaN where no valid kernel reaches: what
-    /// [`cpu::resample`] with [`crate::model::patch::Bilinear`] returns, to f32 rounding.
+    /// [`cpu::resample`] returns, to f32 rounding.
     pub fn resample(&mut self, set: &PatchSet, grid: &SampleGrid) -> Result<Vec<f32>, GpuError> {
         self.resample_timed(set, grid).map(|(h, _)| h)
     }
@@ -380,7 +384,7 @@ impl GpuResampler {
             width: grid.width as u32,
             height: grid.height as u32,
             blocks_x: bx as u32,
-            _pad: 0,
+            has_fallback: u32::from(set.has_fallback),
         };
         let init = |label, contents: &[u8], usage| {
             self.device
@@ -501,7 +505,7 @@ impl GpuResampler {
             set.patches
                 .iter()
                 .filter(|p| !cache.contains_key(&p.id) && seen.insert(p.id))
-                .map(|p| extent(p).len())
+                .map(|p| extent(p).len(p))
                 .sum::<u64>()
         };
         let mut need = missing(&self.cache);
@@ -640,7 +644,8 @@ fn arena_buffer(device: &wgpu::Device, len: u64) -> wgpu::Buffer {
     })
 }
 
-/// The level samples a patch uploads: its window plus one cell on every side the level has.
+/// The samples a patch uploads: a survey patch's window plus one cell on every side its level
+/// has (the edge rule may look at the cell beyond the window), or an edge patch's whole grid.
 struct Extent {
     c0: u32,
     r0: u32,
@@ -649,13 +654,26 @@ struct Extent {
 }
 
 impl Extent {
-    fn len(&self) -> u64 {
-        self.cols as u64 * self.rows as u64
+    /// f32 slots in the arena: edge patches add a flag word per sample.
+    fn len(&self, p: &ResolvedPatch) -> u64 {
+        let n = self.cols as u64 * self.rows as u64;
+        match p.surface {
+            Surface::Bilinear(_) => n,
+            Surface::Edge(_) => 2 * n,
+        }
     }
 }
 
 fn extent(p: &ResolvedPatch) -> Extent {
-    let [cw, ch] = p.level.cells();
+    let [cw, ch] = p.surface.cells();
+    if let Surface::Edge(_) = p.surface {
+        return Extent {
+            c0: 0,
+            r0: 0,
+            cols: cw as u32 + 1,
+            rows: ch as u32 + 1,
+        };
+    }
     let w = p.window;
     let c0 = w.c0.saturating_sub(1);
     let r0 = w.r0.saturating_sub(1);
@@ -669,12 +687,16 @@ fn extent(p: &ResolvedPatch) -> Extent {
     }
 }
 
-/// Appends a patch's samples relative to its base, voids as [`VOID`].
+/// Appends a patch's samples relative to its base, voids as [`VOID`], and an edge patch's
+/// flags after them.
 fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     let e = extent(p);
-    let g = &p.level;
+    let (heights, cols, flags): (&[f32], usize, Option<&[u8]>) = match &p.surface {
+        Surface::Bilinear(g) => (&g.samples, g.cols, None),
+        Surface::Edge(g) => (&g.heights, g.cols, Some(&g.flags)),
+    };
     let rows = || (e.r0..e.r0 + e.rows).map(|r| r as usize);
-    let row = |r: usize| &g.samples[r * g.cols + e.c0 as usize..][..e.cols as usize];
+    let row = |r: usize| &heights[r * cols + e.c0 as usize..][..e.cols as usize];
     let (lo, hi) = rows()
         .flat_map(row)
         .filter(|z| !z.is_nan())
@@ -694,6 +716,15 @@ fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
                 (z as f64 - base as f64) as f32
             }
         }));
+    }
+    if let Some(flags) = flags {
+        for r in rows() {
+            data.extend(
+                flags[r * cols + e.c0 as usize..][..e.cols as usize]
+                    .iter()
+                    .map(|&f| f32::from(f)),
+            );
+        }
     }
     Uploaded {
         offset,
@@ -739,7 +770,8 @@ fn gpu_patch(p: &ResolvedPatch, a: &Uploaded, origin: [f64; 2], max_norm: f64) -
         row_lo,
         centre: [(p.centre[0] - c0) as f32, (p.centre[1] - r0) as f32],
         inv_half: f2(p.inv_half),
-        _pad: [0.0; 2],
+        rank: p.rank,
+        flags: if p.fallback { PATCH_FALLBACK } else { 0 },
         // Only ratios of weights matter; scaling keeps them far from f32's range limits.
         norm: (p.norm / max_norm) as f32,
         base: a.base,
@@ -748,6 +780,9 @@ fn gpu_patch(p: &ResolvedPatch, a: &Uploaded, origin: [f64; 2], max_norm: f64) -
         offset: a.offset,
         cols: a.cols,
         rows: a.rows,
-        kind: KIND_BILINEAR,
+        kind: match p.surface {
+            Surface::Bilinear(_) => KIND_BILINEAR,
+            Surface::Edge(_) => KIND_EDGE,
+        },
     }
 }

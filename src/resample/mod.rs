@@ -4,12 +4,21 @@
 pub mod cpu;
 pub mod gpu;
 
-use crate::index::geom::Aabb;
+use crate::index::geom::{Aabb, ORect};
 use crate::index::query::ViewQuery;
-use crate::model::grid::Grid;
+use crate::model::edge::{EdgeGrid, EdgePatch};
+use crate::model::grid::{Georef, Grid};
 use crate::model::ids::PatchId;
 use crate::model::patch::{CellRect, Patch};
 use std::sync::Arc;
+
+/// Where a tile is resampled: `Auto` takes the GPU when the daemon has one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    Auto,
+    Cpu,
+    Gpu,
+}
 
 /// Output samples per block side when binning patches.
 pub const BLOCK: usize = 16;
@@ -125,14 +134,50 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     ]
 }
 
-/// A patch ready to evaluate: its level grid and everything per-sample work needs, computed
+/// What a patch evaluates.
+#[derive(Clone, Debug)]
+pub enum Surface {
+    /// A window of a mipmap level, bilinear on its valid cells.
+    Bilinear(Arc<Grid>),
+    /// An edge patch's filled samples (see [`crate::model::edge`]).
+    Edge(Arc<EdgeGrid>),
+}
+
+impl Surface {
+    pub fn georef(&self) -> &Georef {
+        match self {
+            Surface::Bilinear(g) => &g.georef,
+            Surface::Edge(e) => &e.georef,
+        }
+    }
+
+    /// Cells along each axis.
+    pub fn cells(&self) -> [usize; 2] {
+        match self {
+            Surface::Bilinear(g) => g.cells(),
+            Surface::Edge(e) => [e.cols - 1, e.rows - 1],
+        }
+    }
+}
+
+/// A patch's answer at a point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    pub z: f64,
+    /// Scales the patch's blend weight (1 but for edge patches).
+    pub weight: f64,
+    /// Whether the point lies in the valid part of the patch's kernel.
+    pub covered: bool,
+}
+
+/// A patch ready to evaluate: its samples and everything per-sample work needs, computed
 /// once per request.
 #[derive(Clone, Debug)]
 pub struct ResolvedPatch {
     /// Identifies the window's samples, so a device that already holds them need not upload
     /// them again.
     pub id: PatchId,
-    pub level: Arc<Grid>,
+    pub surface: Surface,
     pub kernel: CellRect,
     pub window: CellRect,
     pub centre: [f64; 2],
@@ -140,43 +185,88 @@ pub struct ResolvedPatch {
     /// 1 / (dx·dy): the weight's unit volume, in world units.
     pub norm: f64,
     pub window_aabb: Aabb,
-    origin: [f64; 2],
-    u: [f64; 2],
-    v: [f64; 2],
-    inv_step: [f64; 2],
+    /// The patch's error, for the fallback's tiers.
+    pub error: f64,
+    /// See [`crate::index::query::Extracted::fallback`].
+    pub fallback: bool,
+    /// Among the fallback patches of its set, the rank of its error (equal errors share one):
+    /// at a point no cut patch covers, the fallback patches of the best rank covering it are
+    /// blended, with any of better rank that reach it.
+    pub rank: u32,
+    pub(crate) origin: [f64; 2],
+    pub(crate) u: [f64; 2],
+    pub(crate) v: [f64; 2],
+    pub(crate) inv_step: [f64; 2],
 }
 
 impl ResolvedPatch {
-    pub fn new(level: Arc<Grid>, p: &Patch) -> Self {
-        let g = level.georef;
+    #[allow(clippy::too_many_arguments)]
+    fn make(
+        id: PatchId,
+        surface: Surface,
+        kernel: CellRect,
+        window: CellRect,
+        centre: [f64; 2],
+        half: [f64; 2],
+        error: f64,
+        fallback: bool,
+    ) -> Self {
+        let g = *surface.georef();
         let [u, v] = g.axes();
-        let nominal = crate::index::geom::ORect {
-            origin: g.to_world(p.centre[0] - p.half[0], p.centre[1] - p.half[1]),
+        let nominal = ORect {
+            origin: g.to_world(centre[0] - half[0], centre[1] - half[1]),
             u,
             v,
-            size: [2.0 * p.half[0] * g.step[0], 2.0 * p.half[1] * g.step[1]],
+            size: [2.0 * half[0] * g.step[0], 2.0 * half[1] * g.step[1]],
         };
-        let window = crate::index::geom::ORect::from_cells(&g, &p.window);
+        let w = ORect::from_cells(&g, &window);
         ResolvedPatch {
-            id: p.id,
-            kernel: p.kernel,
-            window: p.window,
-            centre: p.centre,
-            inv_half: [1.0 / p.half[0], 1.0 / p.half[1]],
-            norm: 1.0 / (p.half[0] * g.step[0] * p.half[1] * g.step[1]),
-            window_aabb: window
-                .aabb()
-                .intersection(&nominal.aabb())
-                .unwrap_or(window.aabb()),
+            id,
+            kernel,
+            window,
+            centre,
+            inv_half: [1.0 / half[0], 1.0 / half[1]],
+            norm: 1.0 / (half[0] * g.step[0] * half[1] * g.step[1]),
+            window_aabb: w.aabb().intersection(&nominal.aabb()).unwrap_or(w.aabb()),
+            error,
+            fallback,
+            rank: 0,
             origin: g.origin,
             u,
             v,
             inv_step: [1.0 / g.step[0], 1.0 / g.step[1]],
-            level,
+            surface,
         }
     }
 
-    /// Level grid coordinates of a world point. Coordinates within [`SNAP`] of a grid line are
+    /// A survey's patch on its level.
+    pub fn new(level: Arc<Grid>, p: &Patch, fallback: bool) -> Self {
+        Self::make(
+            p.id,
+            Surface::Bilinear(level),
+            p.kernel,
+            p.window,
+            p.centre,
+            p.half,
+            p.error,
+            fallback,
+        )
+    }
+
+    pub fn edge(e: &EdgePatch, fallback: bool) -> Self {
+        Self::make(
+            e.id,
+            Surface::Edge(e.grid.clone()),
+            e.kernel,
+            e.window,
+            e.centre,
+            e.half,
+            e.error,
+            fallback,
+        )
+    }
+
+    /// Grid coordinates of a world point. Coordinates within [`SNAP`] of a grid line are
     /// put on it: a sample grid aligned with a level puts points on its lines, where validity
     /// changes, and rounding noise must not decide which side they fall on (nor may it differ
     /// between the CPU and the GPU).
@@ -188,9 +278,43 @@ impl ResolvedPatch {
             snap((d[0] * self.v[0] + d[1] * self.v[1]) * self.inv_step[1]),
         ]
     }
+
+    /// The patch's blend weight and answer at a world point; None where it does not reach.
+    #[inline]
+    pub fn at(&self, p: [f64; 2]) -> Option<(f64, Hit)> {
+        let g = self.to_grid(p);
+        let tx = (g[0] - self.centre[0]) * self.inv_half[0];
+        let ty = (g[1] - self.centre[1]) * self.inv_half[1];
+        if tx.abs() >= 1.0 || ty.abs() >= 1.0 {
+            return None;
+        }
+        let hit = match &self.surface {
+            Surface::Bilinear(level) => {
+                if !self.window.contains_grid(g) {
+                    return None;
+                }
+                Hit {
+                    z: level.bilinear_grid(g)?,
+                    weight: 1.0,
+                    covered: self.kernel.contains_grid(g),
+                }
+            }
+            Surface::Edge(e) => {
+                let s = e.eval(g)?;
+                Hit {
+                    z: s.z,
+                    weight: s.weight,
+                    covered: self.kernel.contains_grid(g),
+                }
+            }
+        };
+        let w = (1.0 - tx.abs()) * (1.0 - ty.abs()) * self.norm * hit.weight;
+        Some((w, hit))
+    }
 }
 
-/// How close to a grid line, in cells, a sample counts as on it.
+/// How close to a grid line (or a line halfway between two), in cells, a sample counts as
+/// on it.
 pub const SNAP: f64 = 1e-9;
 
 #[inline]
@@ -207,4 +331,26 @@ fn snap(x: f64) -> f64 {
 #[derive(Clone, Debug, Default)]
 pub struct PatchSet {
     pub patches: Vec<ResolvedPatch>,
+    /// Whether any patch is a fallback, so that blending must mind tiers.
+    pub has_fallback: bool,
+}
+
+impl PatchSet {
+    /// The set, with the fallback patches ranked by error.
+    pub fn new(mut patches: Vec<ResolvedPatch>) -> Self {
+        let mut errors: Vec<f64> = patches
+            .iter()
+            .filter(|p| p.fallback)
+            .map(|p| p.error)
+            .collect();
+        errors.sort_by(f64::total_cmp);
+        errors.dedup();
+        for p in patches.iter_mut().filter(|p| p.fallback) {
+            p.rank = errors.partition_point(|&e| e < p.error) as u32;
+        }
+        PatchSet {
+            has_fallback: !errors.is_empty(),
+            patches,
+        }
+    }
 }

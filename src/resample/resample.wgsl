@@ -1,5 +1,7 @@
 // Formula 1 on the GPU: the same sums as `cpu::blend`, one invocation per output sample, one
 // workgroup per BLOCK × BLOCK block of samples, visiting only the patches in that block's bin.
+// Where a set holds fallback patches, a first pass over the bin finds the tier that serves the
+// sample (see `cpu.rs`) and the second blends that tier.
 //
 // Positions arrive as (hi, lo) f32 pairs relative to a tile origin, and grid coordinates are
 // formed as (hi, lo) pairs with error-free sums and products: they carry about 48 bits, so
@@ -11,6 +13,17 @@
 const VOID: f32 = 3.0e38;
 
 const KIND_BILINEAR: u32 = 0u;
+const KIND_EDGE: u32 = 1u;
+
+// Edge patches store a flag word per sample after their heights, as a small whole number.
+const FLAG_VALID: u32 = 1u;
+const FLAG_EDGE_CELL: u32 = 2u;
+
+// Patch flags.
+const PATCH_FALLBACK: u32 = 1u;
+
+// `edge::MIN_WEIGHT`.
+const MIN_WEIGHT: f32 = 1e-6;
 
 // Grid coordinates this close to a line are put on it, as `ResolvedPatch::to_grid` does.
 const SNAP: f32 = 1e-9;
@@ -19,7 +32,7 @@ struct Params {
     width: u32,
     height: u32,
     blocks_x: u32,
-    _pad: u32,
+    has_fallback: u32,
 }
 
 // Grid coordinates below are local to the patch's uploaded samples: the window grown by one
@@ -37,7 +50,9 @@ struct Patch {
     inv_half: vec2<f32>,
     norm: f32,
     base: f32,
-    _pad: vec2<f32>,
+    // Rank among the fallback patches, and PATCH_* flags.
+    rank: u32,
+    flags: u32,
     // (c0, r0, c1, r1), closed, in local grid coordinates.
     window: vec4<f32>,
     kernel: vec4<f32>,
@@ -130,13 +145,147 @@ fn bilinear(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec2<f32> {
     return vec2<f32>(0.0, 0.0);
 }
 
-// The patch's height relative to its base, as (z, 1), or (0, 0) where it has none.
-fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec2<f32> {
-    switch q.kind {
-        case KIND_BILINEAR, default: {
-            return bilinear(q, gh, gl);
+fn flag(q: Patch, c: u32, r: u32) -> u32 {
+    return u32(samples[q.offset + q.cols * q.rows + r * q.cols + c]);
+}
+
+// `edge::ramp`: twice the distance to the nearest void corner's pixel, at most 1.
+fn ramp(v: vec4<bool>, f: vec2<f32>) -> f32 {
+    var r = 1.0;
+    for (var k = 0u; k < 4u; k++) {
+        if v[k] {
+            continue;
+        }
+        let s = vec2<f32>(f32(k & 1u), f32(k >> 1u));
+        let d = max(abs(f - s) - 0.5, vec2<f32>(0.0));
+        r = min(r, 2.0 * max(d.x, d.y));
+    }
+    return r;
+}
+
+// `EdgeGrid::in_cell`: the surface in one edge cell as (z, weight, 1, 1), or zeros outside the
+// pixels of valid corners. `d` is the point's offset from the cell's middle lines, in hi/lo
+// precision, for the pixel test.
+fn edge_cell(q: Patch, c: u32, r: u32, f: vec2<f32>, d: vec2<f32>) -> vec4<f32> {
+    let v = vec4<bool>(
+        (flag(q, c, r) & FLAG_VALID) != 0u,
+        (flag(q, c + 1u, r) & FLAG_VALID) != 0u,
+        (flag(q, c, r + 1u) & FLAG_VALID) != 0u,
+        (flag(q, c + 1u, r + 1u) & FLAG_VALID) != 0u,
+    );
+    let tie = abs(d) <= vec2<f32>(SNAP);
+    let lo = tie | (d < vec2<f32>(0.0));
+    let hi = tie | (d > vec2<f32>(0.0));
+    let valid = (lo.x && lo.y && v[0]) || (hi.x && lo.y && v[1]) || (lo.x && hi.y && v[2])
+        || (hi.x && hi.y && v[3]);
+    if !valid {
+        return vec4<f32>(0.0);
+    }
+    let z00 = at(q, c, r);
+    let z10 = at(q, c + 1u, r);
+    let z01 = at(q, c, r + 1u);
+    let z11 = at(q, c + 1u, r + 1u);
+    let n = u32(v[0]) + u32(v[1]) + u32(v[2]) + u32(v[3]);
+    var z: f32;
+    if n == 4u {
+        let top = z00 + (z10 - z00) * f.x;
+        let bottom = z01 + (z11 - z01) * f.x;
+        z = top + (bottom - top) * f.y;
+    } else if (n == 3u && (!v[0] || !v[3])) || (n == 2u && v[1] && v[2]) {
+        if f.x + f.y <= 1.0 {
+            z = z00 + (z10 - z00) * f.x + (z01 - z00) * f.y;
+        } else {
+            z = z11 + (z01 - z11) * (1.0 - f.x) + (z10 - z11) * (1.0 - f.y);
+        }
+    } else if f.x >= f.y {
+        z = z00 + (z10 - z00) * f.x + (z11 - z10) * f.y;
+    } else {
+        z = z00 + (z11 - z01) * f.x + (z01 - z00) * f.y;
+    }
+    return vec4<f32>(z, max(ramp(v, f), MIN_WEIGHT), 1.0, 1.0);
+}
+
+fn is_edge(q: Patch, c: u32, r: u32) -> bool {
+    return (flag(q, c, r) & FLAG_EDGE_CELL) != 0u;
+}
+
+// `EdgeGrid::eval` at the grid coordinates gh + gl: (z, weight, 1, 1), or zeros outside every
+// edge cell and every valid pixel.
+fn edge(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
+    let cells = vec2<f32>(f32(q.cols - 1u), f32(q.rows - 1u));
+    if any((gh + gl) < vec2<f32>(0.0)) || any(((gh - cells) + gl) > vec2<f32>(0.0)) {
+        return vec4<f32>(0.0);
+    }
+    var cf = floor(gh);
+    cf = select(cf, cf - 1.0, ((gh - cf) + gl) < vec2<f32>(0.0));
+    cf = min(cf, cells - 1.0);
+    let c = u32(cf.x);
+    let r = u32(cf.y);
+    let f = (gh - cf) + gl;
+    let d = ((gh - cf) - 0.5) + gl;
+    if is_edge(q, c, r) {
+        return edge_cell(q, c, r, f, d);
+    }
+    let left = f.x == 0.0 && c > 0u;
+    let up = f.y == 0.0 && r > 0u;
+    if up && is_edge(q, c, r - 1u) {
+        return edge_cell(q, c, r - 1u, vec2<f32>(f.x, 1.0), vec2<f32>(d.x, 0.5));
+    }
+    if left {
+        if is_edge(q, c - 1u, r) {
+            return edge_cell(q, c - 1u, r, vec2<f32>(1.0, f.y), vec2<f32>(0.5, d.y));
+        }
+        if up && is_edge(q, c - 1u, r - 1u) {
+            return edge_cell(q, c - 1u, r - 1u, vec2<f32>(1.0, 1.0), vec2<f32>(0.5, 0.5));
         }
     }
+    return vec4<f32>(0.0);
+}
+
+fn in_kernel(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> bool {
+    let k = q.kernel;
+    return all(((gh - k.xy) + gl) >= vec2<f32>(0.0)) && all(((gh - k.zw) + gl) <= vec2<f32>(0.0));
+}
+
+// The patch at grid coordinates gh + gl: (height relative to its base, weight factor,
+// covered, 1), or zeros where it has none.
+fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
+    switch q.kind {
+        case KIND_EDGE: {
+            let e = edge(q, gh, gl);
+            return vec4<f32>(e.x, e.y, select(0.0, 1.0, in_kernel(q, gh, gl)), e.w);
+        }
+        case KIND_BILINEAR, default: {
+            let z = bilinear(q, gh, gl);
+            return vec4<f32>(z.x, 1.0, select(0.0, 1.0, in_kernel(q, gh, gl)), z.y);
+        }
+    }
+}
+
+// The patch's weight and answer at a tile point: (weight, height, covered, reaches).
+fn sample_patch(q: Patch, pt: vec4<f32>) -> vec4<f32> {
+    let sx = two_sum(pt.x, -q.origin_hi.x);
+    let sy = two_sum(pt.y, -q.origin_hi.y);
+    let dh = vec2<f32>(sx.x, sy.x);
+    let dl = vec2<f32>(sx.y, sy.y) + (pt.zw - q.origin_lo);
+    let cx = coord(dh, dl, q.col_hi, q.col_lo);
+    let cy = coord(dh, dl, q.row_hi, q.row_lo);
+    var gh = vec2<f32>(cx.x, cy.x);
+    var gl = vec2<f32>(cx.y, cy.y);
+    let n = round(gh);
+    let on_line = abs((gh - n) + gl) < vec2<f32>(SNAP);
+    gh = select(gh, n, on_line);
+    gl = select(gl, vec2<f32>(0.0), on_line);
+    let t = ((gh - q.centre) + gl) * q.inv_half;
+    if abs(t.x) >= 1.0 || abs(t.y) >= 1.0 {
+        return vec4<f32>(0.0);
+    }
+    let e = eval_patch(q, gh, gl);
+    if e.w == 0.0 {
+        return vec4<f32>(0.0);
+    }
+    let w = weight(q.kind, t.x) * weight(q.kind, t.y) * q.norm * e.y;
+    return vec4<f32>(w, e.x, e.z, 1.0);
 }
 
 // a + b exactly, as (sum, error).
@@ -177,44 +326,46 @@ fn main(
         return;
     }
     let block = wid.y * params.blocks_x + wid.x;
+    let first = bin_offsets[block];
     let end = bin_offsets[block + 1u];
+    // The tier: whether a cut patch covers the sample, else the best fallback rank that does.
+    var cut_covers = false;
+    var best = 0xffffffffu;
+    if params.has_fallback != 0u {
+        for (var b = first; b < end; b++) {
+            let q = patches[bins[b]];
+            let s = sample_patch(q, pt);
+            if s.w == 0.0 || s.z == 0.0 {
+                continue;
+            }
+            if (q.flags & PATCH_FALLBACK) == 0u {
+                cut_covers = true;
+            } else {
+                best = min(best, q.rank);
+            }
+        }
+    }
     var sum = 0.0;
     var wsum = 0.0;
     var covered = false;
     var have_ref = false;
     var zref = 0.0;
-    for (var b = bin_offsets[block]; b < end; b++) {
+    for (var b = first; b < end; b++) {
         let q = patches[bins[b]];
-        let sx = two_sum(pt.x, -q.origin_hi.x);
-        let sy = two_sum(pt.y, -q.origin_hi.y);
-        let dh = vec2<f32>(sx.x, sy.x);
-        let dl = vec2<f32>(sx.y, sy.y) + (pt.zw - q.origin_lo);
-        let cx = coord(dh, dl, q.col_hi, q.col_lo);
-        let cy = coord(dh, dl, q.row_hi, q.row_lo);
-        var gh = vec2<f32>(cx.x, cy.x);
-        var gl = vec2<f32>(cx.y, cy.y);
-        let n = round(gh);
-        let on_line = abs((gh - n) + gl) < vec2<f32>(SNAP);
-        gh = select(gh, n, on_line);
-        gl = select(gl, vec2<f32>(0.0), on_line);
-        let t = ((gh - q.centre) + gl) * q.inv_half;
-        if abs(t.x) >= 1.0 || abs(t.y) >= 1.0 {
+        if (q.flags & PATCH_FALLBACK) != 0u && (cut_covers || q.rank > best) {
             continue;
         }
-        let z = eval_patch(q, gh, gl);
-        if z.y == 0.0 {
+        let s = sample_patch(q, pt);
+        if s.w == 0.0 {
             continue;
         }
         if !have_ref {
             zref = q.base;
             have_ref = true;
         }
-        let w = weight(q.kind, t.x) * weight(q.kind, t.y) * q.norm;
-        sum += w * (z.x + (q.base - zref));
-        wsum += w;
-        let k = q.kernel;
-        covered = covered || (all(((gh - k.xy) + gl) >= vec2<f32>(0.0))
-            && all(((gh - k.zw) + gl) <= vec2<f32>(0.0)));
+        sum += s.x * (s.y + (q.base - zref));
+        wsum += s.x;
+        covered = covered || s.z != 0.0;
     }
     if covered && wsum > 0.0 {
         heights[i] = vec2<f32>(sum / wsum, zref);

@@ -83,8 +83,7 @@ pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply,
 }
 
 pub fn list_surveys(engine: &Engine) -> Result<pb::SurveyList, EngineError> {
-    let (records, failures) = engine.surveys()?;
-    Ok(convert::surveys(&engine.snapshot(), &records, &failures))
+    Ok(convert::surveys(&engine.snapshot(), &engine.surveys()?))
 }
 
 pub fn retire(engine: &Engine, r: &pb::RetireRequest) -> Result<pb::RetireReply, EngineError> {

@@ -2,11 +2,15 @@
 //! print the same thing.
 
 use super::proto as pb;
-use crate::engine::{Backend, Cut, Engine, EngineError, Event, Ingested, Stats};
+use crate::engine::{
+    Backend, Conflict, Cut, Engine, EngineError, Event, Ingested, Stats, SurveyListing,
+};
 use crate::index::geom::Aabb;
 use crate::index::query::Extracted;
-use crate::store::{FailedRecord, Status, SurveyRecord};
-use crate::terrain::{Terrain, Tile};
+use crate::model::grid::Georef;
+use crate::model::patch::CellRect;
+use crate::store::Status;
+use crate::terrain::{PatchRef, Terrain, Tile};
 
 pub fn rect(b: &Aabb) -> pb::Rect {
     pb::Rect {
@@ -54,17 +58,42 @@ pub fn backend(b: i32) -> Result<Backend, EngineError> {
 
 /// A patch with its window's samples, ready to send.
 pub fn patch(t: &Terrain, x: &Extracted) -> Option<pb::Patch> {
-    let (s, p) = t.patch(x.id)?;
-    let level = &s.levels[p.level as usize];
-    let w = p.window;
-    let cols = w.cols() + 1;
-    let rows = w.rows() + 1;
-    let mut samples = Vec::with_capacity((cols * rows) as usize);
-    for r in w.r0..=w.r1 {
-        let start = r as usize * level.cols + w.c0 as usize;
-        samples.extend_from_slice(&level.samples[start..start + cols as usize]);
-    }
-    let o = level.georef.to_world(w.c0 as f64, w.r0 as f64);
+    let (georef, w, kernel, samples, flags, kind): (
+        Georef,
+        CellRect,
+        CellRect,
+        Vec<f32>,
+        Vec<u8>,
+        _,
+    ) = match t.patch(x.id)? {
+        PatchRef::Survey(s, p) => {
+            let level = &s.levels[p.level as usize];
+            let w = p.window;
+            let cols = (w.cols() + 1) as usize;
+            let mut samples = Vec::with_capacity(cols * (w.rows() + 1) as usize);
+            for r in w.r0..=w.r1 {
+                let start = r as usize * level.cols + w.c0 as usize;
+                samples.extend_from_slice(&level.samples[start..start + cols]);
+            }
+            (
+                level.georef,
+                w,
+                p.kernel,
+                samples,
+                Vec::new(),
+                pb::PatchKind::Bilinear,
+            )
+        }
+        PatchRef::Edge(e) => (
+            e.grid.georef,
+            e.window,
+            e.kernel,
+            e.grid.heights.clone(),
+            e.grid.flags.clone(),
+            pb::PatchKind::Edge,
+        ),
+    };
+    let o = georef.to_world(w.c0 as f64, w.r0 as f64);
     Some(pb::Patch {
         id: x.id.0,
         survey: x.survey.0,
@@ -75,17 +104,20 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Option<pb::Patch> {
         frame: Some(pb::Frame {
             origin_x: o[0],
             origin_y: o[1],
-            theta: level.georef.theta,
-            step_x: level.georef.step[0],
-            step_y: level.georef.step[1],
+            theta: georef.theta,
+            step_x: georef.step[0],
+            step_y: georef.step[1],
         }),
-        cols,
-        rows,
+        cols: w.cols() + 1,
+        rows: w.rows() + 1,
         samples,
-        kernel_c0: p.kernel.c0 - w.c0,
-        kernel_r0: p.kernel.r0 - w.r0,
-        kernel_c1: p.kernel.c1 - w.c0,
-        kernel_r1: p.kernel.r1 - w.r0,
+        kernel_c0: kernel.c0 - w.c0,
+        kernel_r0: kernel.r0 - w.r0,
+        kernel_c1: kernel.c1 - w.c0,
+        kernel_r1: kernel.r1 - w.r0,
+        kind: kind as i32,
+        flags,
+        fallback: x.fallback,
     })
 }
 
@@ -102,19 +134,31 @@ pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {
     }
 }
 
+pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
+    cs.iter()
+        .map(|c| pb::Conflict {
+            survey: c.survey.to_string(),
+            max_m: c.max_m,
+            rms_m: c.rms_m,
+        })
+        .collect()
+}
+
 pub fn ingested(i: &Ingested) -> pb::IngestResult {
     pb::IngestResult {
         source: i.source.clone(),
-        outcome: i.outcome.into(),
+        outcome: i.outcome.as_str().into(),
         survey: i.survey.map(|s| s.0).unwrap_or(0),
         error: i.error.clone(),
         samples: i.samples,
         seconds: i.seconds,
+        conflicts: conflicts(&i.conflicts),
     }
 }
 
-pub fn surveys(t: &Terrain, records: &[SurveyRecord], failures: &[FailedRecord]) -> pb::SurveyList {
-    let mut out: Vec<pb::SurveyInfo> = records
+pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
+    let mut out: Vec<pb::SurveyInfo> = l
+        .records
         .iter()
         .map(|r| pb::SurveyInfo {
             id: r.id.to_string(),
@@ -125,12 +169,18 @@ pub fn surveys(t: &Terrain, records: &[SurveyRecord], failures: &[FailedRecord])
             },
             error: String::new(),
             accuracy_m: r.accuracy,
+            accuracy_source: r.accuracy_source.as_str().into(),
             samples: r.samples,
             crs: r.crs.unwrap_or(0),
             patches: t.index().survey_patches(r.id).map_or(0, |p| p.len() as u32),
+            conflicts: l
+                .conflicts
+                .get(&r.id)
+                .map(|c| conflicts(c))
+                .unwrap_or_default(),
         })
         .collect();
-    out.extend(failures.iter().map(|f| pb::SurveyInfo {
+    out.extend(l.failures.iter().map(|f| pb::SurveyInfo {
         id: String::new(),
         source: f.source.clone(),
         status: "failed".into(),
@@ -158,10 +208,11 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
 
 pub fn event(e: &Event) -> pb::ChangeEvent {
     pb::ChangeEvent {
-        kind: e.kind.into(),
+        kind: e.kind.as_str().into(),
         survey: e.survey.map(|s| s.0).unwrap_or(0),
         source: e.source.clone(),
         error: e.error.clone(),
         at_unix: e.at_unix,
+        conflicts: conflicts(&e.conflicts),
     }
 }

@@ -92,9 +92,13 @@ impl Store {
             .filter(|r| r.status == Status::Active)
             .map(|r| r.id)
             .collect();
-        let mut live_patches: HashSet<PatchId> = HashSet::new();
-        for id in &active {
-            live_patches.extend(self.load_patches(*id)?.iter().map(|p| p.id));
+        // Tops are written and removed with the changes that make them, so the only ones left
+        // to drop are those of retired surveys' patches that a crash or an older version kept.
+        let mut dead_patches: HashSet<PatchId> = HashSet::new();
+        for r in records.iter().filter(|r| r.status == Status::Retired) {
+            if let Ok(ps) = self.load_patches(r.id) {
+                dead_patches.extend(ps.iter().map(|p| p.id));
+            }
         }
         let surveys_purged = records
             .iter()
@@ -102,6 +106,7 @@ impl Store {
             .filter(|r| {
                 self.db.scan_prefix(keys::chunks_of(r.id)).next().is_some()
                     || matches!(self.db.get(keys::patches(r.id)), Ok(Some(_)))
+                    || matches!(self.db.get(keys::accuracy(r.id)), Ok(Some(_)))
             })
             .count();
         let live = |k: &[u8]| -> bool {
@@ -111,14 +116,17 @@ impl Store {
             {
                 return true;
             }
-            if let Some(id) = keys::parse_patches(k) {
+            if let Some(id) = keys::parse_patches(k).or_else(|| keys::parse_accuracy(k)) {
                 return active.contains(&id);
             }
             if let Some((id, _, _)) = keys::parse_chunk(k) {
                 return active.contains(&id);
             }
             if let Some(id) = keys::parse_top(k) {
-                return live_patches.contains(&id);
+                return !dead_patches.contains(&id);
+            }
+            if let Some((a, b)) = keys::parse_overlap(k) {
+                return active.contains(&a) && active.contains(&b);
             }
             false
         };

@@ -8,6 +8,9 @@ pub const SCHEMA: &[u8] = b"meta/schema";
 pub const CRS: &[u8] = b"meta/crs";
 pub const LAYOUT: &[u8] = b"meta/layout";
 pub const INDEX: &[u8] = b"meta/index";
+/// Present when the index must be derived again from the surveys on the next open (a
+/// migration that changed what the index keeps writes it).
+pub const REBUILD: &[u8] = b"meta/rebuild";
 
 pub const META_PREFIX: &[u8] = b"meta/";
 pub const SURVEY_PREFIX: &[u8] = b"s/";
@@ -15,6 +18,8 @@ pub const PATCHES_PREFIX: &[u8] = b"p/";
 pub const CHUNK_PREFIX: &[u8] = b"c/";
 pub const TOP_PREFIX: &[u8] = b"t/";
 pub const FAILURE_PREFIX: &[u8] = b"f/";
+pub const OVERLAP_PREFIX: &[u8] = b"o/";
+pub const ACCURACY_PREFIX: &[u8] = b"a/";
 
 pub fn survey(id: SurveyId) -> Vec<u8> {
     format!("s/{id}").into_bytes()
@@ -22,6 +27,10 @@ pub fn survey(id: SurveyId) -> Vec<u8> {
 
 pub fn patches(id: SurveyId) -> Vec<u8> {
     format!("p/{id}").into_bytes()
+}
+
+pub fn accuracy(id: SurveyId) -> Vec<u8> {
+    format!("a/{id}").into_bytes()
 }
 
 /// Every chunk of a survey, all levels.
@@ -35,6 +44,16 @@ pub fn chunk(id: SurveyId, level: usize, band: usize) -> Vec<u8> {
 
 pub fn top(id: PatchId) -> Vec<u8> {
     format!("t/{id}").into_bytes()
+}
+
+/// How survey `b` disagrees with survey `a`; stored under both orders.
+pub fn overlap(a: SurveyId, b: SurveyId) -> Vec<u8> {
+    format!("o/{a}/{b}").into_bytes()
+}
+
+/// Every overlap of a survey.
+pub fn overlaps_of(a: SurveyId) -> Vec<u8> {
+    format!("o/{a}/").into_bytes()
 }
 
 pub fn failure(source: &str) -> Vec<u8> {
@@ -58,8 +77,24 @@ pub fn parse_survey(k: &[u8]) -> Option<SurveyId> {
     hex_id(k.strip_prefix(SURVEY_PREFIX)?).map(SurveyId)
 }
 
+pub fn parse_accuracy(k: &[u8]) -> Option<SurveyId> {
+    hex_id(k.strip_prefix(ACCURACY_PREFIX)?).map(SurveyId)
+}
+
 pub fn parse_patches(k: &[u8]) -> Option<SurveyId> {
     hex_id(k.strip_prefix(PATCHES_PREFIX)?).map(SurveyId)
+}
+
+/// `o/<a>/<b>` → (a, b).
+pub fn parse_overlap(k: &[u8]) -> Option<(SurveyId, SurveyId)> {
+    let rest = k.strip_prefix(OVERLAP_PREFIX)?;
+    if rest.len() != 33 || rest[16] != b'/' {
+        return None;
+    }
+    Some((
+        SurveyId(hex_id(&rest[..16])?),
+        SurveyId(hex_id(&rest[17..])?),
+    ))
 }
 
 pub fn parse_top(k: &[u8]) -> Option<PatchId> {
@@ -92,12 +127,16 @@ mod tests {
         assert_eq!(survey(s), b"s/00abcdef01234567");
         assert_eq!(parse_survey(&survey(s)), Some(s));
         assert_eq!(parse_patches(&patches(s)), Some(s));
+        assert_eq!(parse_accuracy(&accuracy(s)), Some(s));
         assert_eq!(top(p), b"t/ffffffffffffffff");
         assert_eq!(parse_top(&top(p)), Some(p));
         assert_eq!(chunk(s, 3, 17), b"c/00abcdef01234567/03/00000017");
         assert_eq!(parse_chunk(&chunk(s, 3, 17)), Some((s, 3, 17)));
         assert!(chunk(s, 3, 17).starts_with(&chunks_of(s)));
         assert_eq!(parse_top(b"t/FFFFFFFFFFFFFFFF"), None);
+        let q = SurveyId(7);
+        assert_eq!(parse_overlap(&overlap(s, q)), Some((s, q)));
+        assert!(overlap(s, q).starts_with(&overlaps_of(s)));
         assert_eq!(parse_chunk(b"c/00abcdef01234567/03/0000001x"), None);
     }
 }

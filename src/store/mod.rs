@@ -10,12 +10,16 @@
 //! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
 //! | `s/<survey>` | [`SurveyRecord`] (bincode) |
 //! | `p/<survey>` | the survey's `Vec<Patch>` (bincode) |
+//! | `a/<survey>` | the [`KernelAccuracy`] of a survey whose ε was estimated (bincode) |
 //! | `c/<survey>/<level:02>/<band:08>` | LE `f32` samples of [`CHUNK_ROWS`] rows of a level |
-//! | `t/<patch>` | `f64` LE: the patch's box top in the LOD index, for active surveys only |
+//! | `t/<patch>` | the patch's [`BoxState`] in the LOD index: `f64` LE top, then a byte that is 1 when the box is exposed; for active surveys' patches and the edge patches they call for |
+//! | `o/<survey>/<other>` | [`Deviation`] (bincode): how two surveys disagree where they overlap, under both orders |
 //! | `f/<source path>` | [`FailedRecord`] (bincode) |
+//! | `meta/rebuild` | present when the next open must derive the index again from the surveys |
 //!
-//! Storing the tops is what lets `open` rebuild the index without running the cutter: the
-//! boxes themselves follow from the patches and the level georeferences.
+//! Storing the box states is what lets `open` rebuild the index without running the cutter:
+//! the boxes themselves follow from the patches and the level georeferences, and the edge
+//! patches from the surveys' samples.
 //!
 //! Besides sled's own lock inside the directory, a store holds an exclusive lock on the file
 //! `<dir>.lock` beside it for as long as it is open. Compaction swaps whole directories, so
@@ -30,17 +34,18 @@ pub use compact::CompactReport;
 pub use migrate::CURRENT as SCHEMA_VERSION;
 pub use verify::VerifyReport;
 
-use crate::index::lod::{ChangeStats, IndexConfig};
+use crate::index::lod::{BoxState, ChangeStats, IndexConfig};
+use crate::model::accuracy::{AccuracySource, AccuracySpec, Deviation, KernelAccuracy};
 use crate::model::grid::{Georef, Grid};
 use crate::model::ids::{PatchId, SurveyId};
-use crate::model::patch::{Patch, PatchLayout};
+use crate::model::patch::{Patch, PatchLayout, Tiling};
 use crate::model::survey::Survey;
 use crate::terrain::Terrain;
 use fs2::FileExt;
 use rayon::prelude::*;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -151,7 +156,9 @@ pub struct SurveyRecord {
     pub source: String,
     /// Hex blake3 of the file's bytes; empty when unknown.
     pub content_id: String,
+    /// ε in metres: the largest of the survey's kernels'.
     pub accuracy: f64,
+    pub accuracy_source: AccuracySource,
     pub crs: Option<u32>,
     pub status: Status,
     pub cols: u64,
@@ -161,6 +168,8 @@ pub struct SurveyRecord {
     pub samples: u64,
     /// Level 0 first, as stored in the chunks.
     pub levels: Vec<LevelHeader>,
+    /// Where level 0's kernel boundaries fall (see [`Tiling`]).
+    pub tiling_offset: [i64; 2],
     pub ingest: IngestTimings,
     pub created_unix: u64,
 }
@@ -171,6 +180,7 @@ impl SurveyRecord {
         s: &Survey,
         source: impl Into<String>,
         content_id: impl Into<String>,
+        accuracy_source: AccuracySource,
         ingest: IngestTimings,
     ) -> Self {
         let l0 = &s.levels[0];
@@ -179,6 +189,11 @@ impl SurveyRecord {
             source: source.into(),
             content_id: content_id.into(),
             accuracy: s.accuracy,
+            accuracy_source: if s.spec == AccuracySpec::Auto {
+                AccuracySource::Estimated
+            } else {
+                accuracy_source
+            },
             crs: s.crs,
             status: Status::Active,
             cols: l0.cols as u64,
@@ -186,8 +201,17 @@ impl SurveyRecord {
             georef: l0.georef,
             samples: l0.valid_count() as u64,
             levels: s.levels.iter().map(|g| LevelHeader::of(g)).collect(),
+            tiling_offset: s.tiling.offset,
             ingest,
             created_unix: now_unix(),
+        }
+    }
+
+    /// How the survey's ε was decided, as its id hashes it.
+    pub fn spec(&self) -> AccuracySpec {
+        match self.accuracy_source {
+            AccuracySource::Estimated => AccuracySpec::Auto,
+            _ => AccuracySpec::Fixed(self.accuracy),
         }
     }
 }
@@ -241,11 +265,23 @@ pub(crate) fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, Sto
     Ok(v)
 }
 
-fn decode_f64(b: &[u8], what: &str) -> Result<f64, StoreError> {
-    let a: [u8; 8] = b
-        .try_into()
-        .map_err(|_| StoreError::Decode(format!("{what}: {} bytes, not 8", b.len())))?;
-    Ok(f64::from_le_bytes(a))
+pub(crate) fn encode_state(s: &BoxState) -> [u8; 9] {
+    let mut b = [0u8; 9];
+    b[..8].copy_from_slice(&s.top.to_le_bytes());
+    b[8] = u8::from(s.exposed);
+    b
+}
+
+pub(crate) fn decode_state(b: &[u8], what: &str) -> Result<BoxState, StoreError> {
+    let bad = || StoreError::Decode(format!("{what}: {} bytes, not a top and a flag", b.len()));
+    let a: [u8; 9] = b.try_into().map_err(|_| bad())?;
+    if a[8] > 1 {
+        return Err(bad());
+    }
+    Ok(BoxState {
+        top: f64::from_le_bytes(a[..8].try_into().expect("8 bytes")),
+        exposed: a[8] == 1,
+    })
 }
 
 fn decode_u32(b: &[u8], what: &str) -> Result<u32, StoreError> {
@@ -438,51 +474,72 @@ impl Store {
             .par_iter()
             .map(|r| self.load_survey(r).map(Arc::new))
             .collect::<Result<_, _>>()?;
-        let mut tops = self.tops()?;
-        let mut missing = 0usize;
-        let mut first_missing = None;
-        let with_tops: Vec<(Arc<Survey>, HashMap<PatchId, f64>)> = surveys
-            .into_iter()
-            .map(|s| {
-                let mine = s
-                    .patches
-                    .iter()
-                    .filter_map(|p| {
-                        let top = tops.remove(&p.id);
-                        if top.is_none() {
-                            missing += 1;
-                            first_missing.get_or_insert(p.id);
-                        }
-                        Some((p.id, top?))
-                    })
-                    .collect();
-                (s, mine)
-            })
-            .collect();
+        if self.db.get(keys::REBUILD)?.is_some() {
+            return Ok((self.rebuild(surveys)?, Vec::new()));
+        }
+        let mut states = self.states()?;
+        let (terrain, missing) = Terrain::restore(self.index, surveys, &states);
+        for id in terrain.index().state().keys() {
+            states.remove(id);
+        }
         let mut warnings = Vec::new();
-        if let Some(p) = first_missing {
+        if let Some(p) = missing.first() {
             warnings.push(format!(
-                "{missing} patches of active surveys have no stored top (first: {p}); they are \
-                 restored as cut to nothing"
+                "{} patches of active surveys have no stored top (first: {p}); they are \
+                 restored as cut to nothing",
+                missing.len()
             ));
         }
-        if let Some(p) = tops.keys().min() {
+        if let Some(p) = states.keys().min() {
             warnings.push(format!(
-                "{} stored tops belong to no active survey (first: {p}); ignored",
-                tops.len()
+                "{} stored tops belong to no patch of the terrain (first: {p}); ignored",
+                states.len()
             ));
         }
-        Ok((Terrain::restore(self.index, with_tops), warnings))
+        Ok((terrain, warnings))
     }
 
-    fn tops(&self) -> Result<HashMap<PatchId, f64>, StoreError> {
+    /// Derives the index again from the surveys, inserting them in id order, and writes every
+    /// box state and overlap in one batch: what an open does after a migration that changed
+    /// what the index keeps. The result does not depend on the order, which only fixes the
+    /// work done.
+    fn rebuild(&self, mut surveys: Vec<Arc<Survey>>) -> Result<Terrain, StoreError> {
+        surveys.sort_by_key(|s| s.id);
+        let mut t = Terrain::new(self.index);
+        let mut batch = sled::Batch::default();
+        for kv in self.db.scan_prefix(keys::TOP_PREFIX) {
+            batch.remove(kv?.0);
+        }
+        for s in &surveys {
+            for o in t.surveys() {
+                if let Some(d) = s.overlap(o) {
+                    let v = encode(&d)?;
+                    batch.insert(keys::overlap(s.id, o.id), v.clone());
+                    batch.insert(keys::overlap(o.id, s.id), v);
+                }
+            }
+            t.insert(s.clone());
+        }
+        for (id, (span, exposed)) in t.index().state() {
+            let st = BoxState {
+                top: span.max_z,
+                exposed,
+            };
+            batch.insert(keys::top(id), &encode_state(&st));
+        }
+        batch.remove(keys::REBUILD);
+        self.apply(batch)?;
+        Ok(t)
+    }
+
+    fn states(&self) -> Result<HashMap<PatchId, BoxState>, StoreError> {
         let mut out = HashMap::new();
         for kv in self.db.scan_prefix(keys::TOP_PREFIX) {
             let (k, v) = kv?;
             let id = keys::parse_top(&k).ok_or_else(|| {
                 StoreError::Corrupt(format!("bad top key {:?}", String::from_utf8_lossy(&k)))
             })?;
-            out.insert(id, decode_f64(&v, &format!("top of patch {id}"))?);
+            out.insert(id, decode_state(&v, &format!("top of patch {id}"))?);
         }
         Ok(out)
     }
@@ -537,20 +594,41 @@ impl Store {
                 r.id
             )));
         }
-        let levels = r
+        let levels: Vec<Arc<Grid>> = r
             .levels
             .iter()
             .enumerate()
             .map(|(k, h)| self.load_level(r.id, k, h).map(Arc::new))
             .collect::<Result<_, _>>()?;
-        Ok(Survey {
-            id: r.id,
-            accuracy: r.accuracy,
-            crs: r.crs,
-            layout: self.layout,
+        let tiling = Tiling::new(levels[0].cells(), self.layout.kernel, r.tiling_offset);
+        let kernel_accuracy = match r.spec() {
+            AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
+            AccuracySpec::Auto => {
+                let v = self.db.get(keys::accuracy(r.id))?.ok_or_else(|| {
+                    StoreError::Corrupt(format!("the accuracies of survey {} are missing", r.id))
+                })?;
+                let k: KernelAccuracy = decode(&v, &format!("accuracies of survey {}", r.id))?;
+                if k.dims != tiling.counts() {
+                    return Err(StoreError::Corrupt(format!(
+                        "survey {} has {:?} kernel accuracies for {:?} kernels",
+                        r.id,
+                        k.dims,
+                        tiling.counts()
+                    )));
+                }
+                k
+            }
+        };
+        Ok(Survey::restore(
+            r.id,
+            r.spec(),
+            r.crs,
+            self.layout,
+            tiling,
+            kernel_accuracy,
             levels,
             patches,
-        })
+        ))
     }
 
     fn record(&self, id: SurveyId) -> Result<Option<SurveyRecord>, StoreError> {
@@ -562,12 +640,14 @@ impl Store {
 
     /// Adds a survey's writes to `batch`. `crs` is the store's CRS as the batch leaves it.
     /// `replacing` is a survey the same batch retires, which may be this very one.
+    #[allow(clippy::too_many_arguments)]
     fn stage_survey(
         &self,
         batch: &mut sled::Batch,
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
+        overlaps: &[(SurveyId, Deviation)],
         crs: Option<u32>,
         replacing: Option<SurveyId>,
     ) -> Result<Staged, StoreError> {
@@ -619,18 +699,19 @@ impl Store {
         let key = keys::survey(s.id);
         batch.insert(key.clone(), encode(&rec)?);
         batch.insert(keys::patches(s.id), encode(&s.patches)?);
+        if s.spec == AccuracySpec::Auto {
+            batch.insert(keys::accuracy(s.id), encode(&s.kernel_accuracy)?);
+        }
         for (level, g) in s.levels.iter().enumerate() {
             for (band, bytes) in level_chunks(g) {
                 batch.insert(keys::chunk(s.id, level, band), bytes);
             }
         }
-        // A new patch missing from `moved` kept the index's provisional top, which is empty.
-        let moved: HashSet<PatchId> = change.moved.iter().map(|(id, _)| *id).collect();
-        for p in s.patches.iter().filter(|p| !moved.contains(&p.id)) {
-            batch.insert(keys::top(p.id), &f64::NEG_INFINITY.to_le_bytes());
-        }
-        for (id, top) in &change.moved {
-            batch.insert(keys::top(*id), &top.to_le_bytes());
+        stage_change(batch, change);
+        for (other, d) in overlaps {
+            let v = encode(d)?;
+            batch.insert(keys::overlap(s.id, *other), v.clone());
+            batch.insert(keys::overlap(*other, s.id), v);
         }
         batch.remove(keys::failure(&rec.source));
         Ok(Staged { key, rec, crs })
@@ -652,8 +733,13 @@ impl Store {
         for p in patch_ids {
             batch.remove(keys::top(*p));
         }
-        for (p, top) in &change.moved {
-            batch.insert(keys::top(*p), &top.to_le_bytes());
+        stage_change(batch, change);
+        for kv in self.db.scan_prefix(keys::overlaps_of(id)) {
+            let (k, _) = kv?;
+            if let Some((_, other)) = keys::parse_overlap(&k) {
+                batch.remove(k);
+                batch.remove(keys::overlap(other, id));
+            }
         }
         Ok(())
     }
@@ -688,11 +774,12 @@ impl Store {
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
+        overlaps: &[(SurveyId, Deviation)],
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let t0 = Instant::now();
         let mut batch = sled::Batch::default();
-        let staged = self.stage_survey(&mut batch, s, rec, change, self.crs(), None)?;
+        let staged = self.stage_survey(&mut batch, s, rec, change, overlaps, self.crs(), None)?;
         self.apply(batch)?;
         self.finish(staged, t0)
     }
@@ -722,6 +809,7 @@ impl Store {
         new: &Survey,
         rec: &SurveyRecord,
         insert_change: &ChangeStats,
+        overlaps: &[(SurveyId, Deviation)],
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let t0 = Instant::now();
@@ -729,8 +817,15 @@ impl Store {
         // retirement's, as they do in the terrain.
         let mut batch = sled::Batch::default();
         self.stage_retire(&mut batch, old, old_patches, retire_change)?;
-        let staged =
-            self.stage_survey(&mut batch, new, rec, insert_change, self.crs(), Some(old))?;
+        let staged = self.stage_survey(
+            &mut batch,
+            new,
+            rec,
+            insert_change,
+            overlaps,
+            self.crs(),
+            Some(old),
+        )?;
         self.apply(batch)?;
         self.finish(staged, t0)
     }
@@ -758,6 +853,26 @@ impl Store {
             .collect()
     }
 
+    /// How every survey that overlaps `id` disagrees with it, in id order.
+    pub fn overlaps(&self, id: SurveyId) -> Result<Vec<(SurveyId, Deviation)>, StoreError> {
+        self.db
+            .scan_prefix(keys::overlaps_of(id))
+            .map(|kv| {
+                let (k, v) = kv?;
+                let (_, other) = keys::parse_overlap(&k).ok_or_else(|| {
+                    StoreError::Corrupt(format!(
+                        "bad overlap key {:?}",
+                        String::from_utf8_lossy(&k)
+                    ))
+                })?;
+                Ok((
+                    other,
+                    decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?,
+                ))
+            })
+            .collect()
+    }
+
     /// Every recorded failure, in source order.
     pub fn failures(&self) -> Result<Vec<FailedRecord>, StoreError> {
         self.db
@@ -778,6 +893,16 @@ impl Store {
     #[doc(hidden)]
     pub fn raw(&self) -> &sled::Tree {
         &self.db
+    }
+}
+
+/// The box states a change moved, and the removal of the boxes it removed.
+fn stage_change(batch: &mut sled::Batch, change: &ChangeStats) {
+    for id in &change.removed {
+        batch.remove(keys::top(*id));
+    }
+    for (id, st) in &change.moved {
+        batch.insert(keys::top(*id), &encode_state(st));
     }
 }
 

@@ -1,16 +1,19 @@
 //! A full check of the store against itself: every key decodes, every active survey is whole,
-//! its samples still hash to its id, and the stored tops are the ones the cutter would give.
+//! its samples still hash to its id, and the stored box states are the ones the index would
+//! derive, for the surveys' patches and for the edge patches derived from their samples.
 
 use super::{
-    band_count, band_rows, decode, decode_f64, decode_u32, keys, migrate, FailedRecord, Status,
+    band_count, band_rows, decode, decode_state, decode_u32, keys, migrate, FailedRecord, Status,
     Store, StoreError, SurveyRecord,
 };
-use crate::index::lod::{IndexConfig, LodIndex, PatchBox};
-use crate::model::grid::Grid;
+use crate::index::lod::{BoxState, IndexConfig};
+use crate::model::accuracy::Deviation;
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::patch::{Patch, PatchLayout};
 use crate::model::survey::Survey;
+use crate::terrain::Terrain;
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct VerifyReport {
@@ -77,7 +80,9 @@ impl Store {
         let mut patches: HashMap<SurveyId, Vec<Patch>> = HashMap::new();
         // (survey, level, band) → bytes
         let mut chunks: BTreeMap<(SurveyId, usize, usize), usize> = BTreeMap::new();
-        let mut tops: HashMap<PatchId, f64> = HashMap::new();
+        let mut tops: HashMap<PatchId, BoxState> = HashMap::new();
+        let mut overlaps: Vec<(SurveyId, SurveyId)> = Vec::new();
+        let mut accuracies: Vec<SurveyId> = Vec::new();
 
         for kv in self.db.iter() {
             let (k, v) = kv?;
@@ -105,11 +110,18 @@ impl Store {
             } else if let Some((id, level, band)) = keys::parse_chunk(&k) {
                 chunks.insert((id, level, band), v.len());
             } else if let Some(id) = keys::parse_top(&k) {
-                match decode_f64(&v, &key_str(&k)) {
+                match decode_state(&v, &key_str(&k)) {
                     Ok(t) => {
                         tops.insert(id, t);
                     }
                     Err(e) => pr.add("top", e.to_string()),
+                }
+            } else if let Some(id) = keys::parse_accuracy(&k) {
+                accuracies.push(id);
+            } else if let Some(pair) = keys::parse_overlap(&k) {
+                match decode::<Deviation>(&v, &key_str(&k)) {
+                    Ok(_) => overlaps.push(pair),
+                    Err(e) => pr.add("overlap", e.to_string()),
                 }
             } else if k.starts_with(keys::FAILURE_PREFIX) {
                 rep.failures += 1;
@@ -124,7 +136,7 @@ impl Store {
         rep.tops = tops.len();
 
         let store_crs = self.crs();
-        let mut boxes: Vec<(SurveyId, Vec<(PatchBox, f64)>)> = Vec::new();
+        let mut whole: Vec<Arc<Survey>> = Vec::new();
         for (id, r) in &records {
             if r.status == Status::Retired {
                 rep.retired += 1;
@@ -143,60 +155,53 @@ impl Store {
                 pr.add("record", format!("survey {id} has no levels"));
                 continue;
             }
-            self.check_chunks(*id, r, &chunks, &mut pr)?;
+            let chunks_ok = self.check_chunks(*id, r, &chunks, &mut pr)?;
             let Some(ps) = patches.get(id) else {
                 pr.add("patches", format!("survey {id} has no patch list"));
                 continue;
             };
             rep.patches += ps.len();
-            // Boxes need only each level's georeference, so the samples are not loaded again.
-            let grids: Vec<Grid> = r
-                .levels
+            if let Some(p) = ps
                 .iter()
-                .map(|h| Grid {
-                    cols: h.cols as usize,
-                    rows: h.rows as usize,
-                    samples: Vec::new(),
-                    georef: h.georef,
-                })
-                .collect();
-            let mut bs = Vec::with_capacity(ps.len());
-            for p in ps {
-                if p.survey != *id || p.level as usize >= grids.len() {
-                    pr.add(
-                        "patches",
-                        format!("survey {id} lists patch {} that is not its own", p.id),
-                    );
-                    continue;
-                }
-                let top = match tops.remove(&p.id) {
-                    Some(t) => t,
-                    None => {
-                        pr.add(
-                            "missing top",
-                            format!("patch {} of survey {id} has no top", p.id),
-                        );
-                        f64::NEG_INFINITY
-                    }
-                };
-                bs.push((
-                    PatchBox::new(p, &grids[p.level as usize], self.layout.kernel),
-                    top,
-                ));
+                .find(|p| p.survey != *id || p.level as usize >= r.levels.len())
+            {
+                pr.add(
+                    "patches",
+                    format!("survey {id} lists patch {} that is not its own", p.id),
+                );
+                continue;
             }
-            boxes.push((*id, bs));
+            if chunks_ok {
+                match self.load_survey(r) {
+                    Ok(s) => whole.push(Arc::new(s)),
+                    Err(StoreError::Corrupt(m)) => pr.add("level", m),
+                    Err(e) => return Err(e),
+                }
+            }
         }
-        for p in tops.keys() {
-            pr.add(
-                "orphan top",
-                format!("top of patch {p} belongs to no active survey"),
-            );
+        for (a, b) in &overlaps {
+            let active =
+                |id: &SurveyId| records.get(id).is_some_and(|r| r.status == Status::Active);
+            if !(active(a) && active(b)) {
+                pr.add(
+                    "orphan overlap",
+                    format!("the overlap of {a} and {b} names a survey that is not active"),
+                );
+            }
         }
         for (id, _, _) in chunks.keys() {
             if !records.contains_key(id) {
                 pr.add(
                     "orphan chunk",
                     format!("chunks of survey {id}, which has no record"),
+                );
+            }
+        }
+        for id in &accuracies {
+            if !records.contains_key(id) {
+                pr.add(
+                    "orphan accuracies",
+                    format!("kernel accuracies of survey {id}, which has no record"),
                 );
             }
         }
@@ -208,8 +213,30 @@ impl Store {
                 );
             }
         }
-        let index = LodIndex::restore(self.index, boxes);
-        if let Err(e) = index.check() {
+        if self.db.get(keys::REBUILD)?.is_some() {
+            // The index is derived on the next open; there are no states to check yet.
+            rep.problems = pr.finish();
+            return Ok(rep);
+        }
+        let complete = whole.len() == rep.active;
+        let (terrain, missing) = Terrain::restore(self.index, whole, &tops);
+        for p in &missing {
+            pr.add("missing top", format!("patch {p} has no top"));
+        }
+        for id in terrain.index().state().keys() {
+            tops.remove(id);
+        }
+        // With a survey missing, the edge patches it would have called for cannot be told
+        // apart from orphans, so only a complete store is checked for them.
+        if complete {
+            for p in tops.keys() {
+                pr.add(
+                    "orphan top",
+                    format!("top of patch {p} belongs to no patch of the terrain"),
+                );
+            }
+        }
+        if let Err(e) = terrain.index().check() {
             pr.add("index", format!("the restored index fails its check: {e}"));
         }
         rep.problems = pr.finish();
@@ -231,6 +258,7 @@ impl Store {
             keys::LAYOUT => decode::<PatchLayout>(v, &what).map(|l| {
                 (l != self.layout).then(|| format!("layout {l:?} differs from the open store's"))
             }),
+            keys::REBUILD => Ok(None),
             keys::INDEX => decode::<IndexConfig>(v, &what).map(|c| {
                 (c != self.index)
                     .then(|| format!("index config {c:?} differs from the open store's"))
@@ -245,14 +273,14 @@ impl Store {
     }
 
     /// Every band of every level is there with the right size, nothing else is, and level 0
-    /// still hashes to the survey's id.
+    /// still hashes to the survey's id. Returns whether the samples can be loaded.
     fn check_chunks(
         &self,
         id: SurveyId,
         r: &SurveyRecord,
         chunks: &BTreeMap<(SurveyId, usize, usize), usize>,
         pr: &mut Problems,
-    ) -> Result<(), StoreError> {
+    ) -> Result<bool, StoreError> {
         let mut whole = true;
         for (level, h) in r.levels.iter().enumerate() {
             let (cols, rows) = (h.cols as usize, h.rows as usize);
@@ -305,7 +333,7 @@ impl Store {
                 Ok(g) => g,
                 Err(StoreError::Corrupt(m)) => {
                     pr.add("level", m);
-                    return Ok(());
+                    return Ok(false);
                 }
                 Err(e) => return Err(e),
             };
@@ -319,7 +347,7 @@ impl Store {
                     ),
                 );
             }
-            let hashed = Survey::id_of(&g, r.accuracy, r.crs);
+            let hashed = Survey::id_of(&g, r.spec(), r.crs);
             if hashed != id {
                 pr.add(
                     "content",
@@ -327,6 +355,6 @@ impl Store {
                 );
             }
         }
-        Ok(())
+        Ok(whole)
     }
 }

@@ -8,10 +8,10 @@ use patchwork::index::geom::Aabb;
 use patchwork::index::lod::{IndexConfig, PatchBox};
 use patchwork::index::query::Extracted;
 use patchwork::model::grid::{Georef, Grid};
-use patchwork::model::patch::{Bilinear, PatchLayout};
+use patchwork::model::patch::PatchLayout;
 use patchwork::model::survey::Survey;
 use patchwork::resample::cpu;
-use patchwork::terrain::Terrain;
+use patchwork::terrain::{PatchRef, Terrain};
 use std::cmp::Ordering;
 use std::sync::Arc;
 
@@ -94,16 +94,28 @@ pub fn bounds_of(surveys: &[Arc<Survey>]) -> Aabb {
 /// Whether a world point lies in the valid part of an extracted patch's kernel, decided from
 /// the patch's own grid (not from the index's rectangles).
 pub fn in_valid_kernel(t: &Terrain, x: &Extracted, p: [f64; 2]) -> bool {
-    let (s, patch) = t.patch(x.id).expect("extracted patches resolve");
-    let level = &s.levels[patch.level as usize];
-    let g = level.georef.to_grid(p);
     let tol = 1e-7;
-    patch.valid.iter().any(|r| {
-        g[0] >= r.c0 as f64 - tol
-            && g[0] <= r.c1 as f64 + tol
-            && g[1] >= r.r0 as f64 - tol
-            && g[1] <= r.r1 as f64 + tol
-    })
+    match t.patch(x.id).expect("extracted patches resolve") {
+        PatchRef::Survey(s, patch) => {
+            let level = &s.levels[patch.level as usize];
+            let g = level.georef.to_grid(p);
+            patch.valid.iter().any(|r| {
+                g[0] >= r.c0 as f64 - tol
+                    && g[0] <= r.c1 as f64 + tol
+                    && g[1] >= r.r0 as f64 - tol
+                    && g[1] <= r.r1 as f64 + tol
+            })
+        }
+        PatchRef::Edge(e) => {
+            let g = e.grid.georef.to_grid(p);
+            let k = e.kernel;
+            let inside = g[0] >= k.c0 as f64 - tol
+                && g[0] <= k.c1 as f64 + tol
+                && g[1] >= k.r0 as f64 - tol
+                && g[1] <= k.r1 as f64 + tol;
+            inside && e.grid.eval(g).is_some()
+        }
+    }
 }
 
 /// A uniformly random point inside a valid level-0 cell of the survey, from two numbers in [0, 1).
@@ -121,18 +133,82 @@ pub fn valid_point(s: &Survey, a: f64, b: f64, c: f64) -> Option<[f64; 2]> {
     Some(g.georef.to_world(cc as f64 + b, rr as f64 + c))
 }
 
+/// The outer edges of a grid's pixels: half a cell beyond its outer samples, as GDAL sees a
+/// north-up raster.
+pub fn pixel_bounds(g: &Grid) -> Aabb {
+    let c = g.cols as f64 - 0.5;
+    let r = g.rows as f64 - 0.5;
+    Aabb::of_points(&[
+        g.georef.to_world(-0.5, -0.5),
+        g.georef.to_world(c, -0.5),
+        g.georef.to_world(-0.5, r),
+        g.georef.to_world(c, r),
+    ])
+}
+
+/// Whether a point lies in a valid sample's pixel: within half a cell of it along both axes
+/// (on a pixel edge, either pixel counts). Decided from the samples alone.
+pub fn pixel_valid(g: &Grid, p: [f64; 2]) -> bool {
+    let q = g.georef.to_grid(p);
+    let tol = 1e-9;
+    let around = |x: f64, n: usize| -> Vec<usize> {
+        let lo = (x - 0.5 - tol).ceil().max(0.0);
+        let hi = (x + 0.5 + tol).floor().min(n as f64 - 1.0);
+        if lo > hi {
+            return Vec::new();
+        }
+        (lo as usize..=hi as usize).collect()
+    };
+    around(q[0], g.cols)
+        .iter()
+        .any(|&c| around(q[1], g.rows).iter().any(|&r| g.is_valid(c, r)))
+}
+
+/// The lowest and highest valid sample within a cell and a half of a point: the range any
+/// interpolation near it may take.
+pub fn neighbourhood_range(g: &Grid, p: [f64; 2]) -> (f64, f64) {
+    let q = g.georef.to_grid(p);
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    let span = |x: f64, n: usize| {
+        let a = (x - 1.5).floor().max(0.0) as usize;
+        let b = ((x + 1.5).ceil().max(0.0) as usize).min(n - 1);
+        a..=b
+    };
+    for r in span(q[1], g.rows) {
+        for c in span(q[0], g.cols) {
+            if g.is_valid(c, r) {
+                let z = g.at(c, r) as f64;
+                lo = lo.min(z);
+                hi = hi.max(z);
+            }
+        }
+    }
+    (lo, hi)
+}
+
 /// Formula 1 over every extracted patch at one point.
 pub fn blended(t: &Terrain, ps: &[Extracted], p: [f64; 2]) -> f32 {
     let set = t.resolve(ps);
     let all: Vec<u32> = (0..set.patches.len() as u32).collect();
-    cpu::blend(&set, &all, p, &Bilinear)
+    cpu::blend(&set, &all, p)
 }
 
-/// Heights of every survey with valid data at p.
+/// Heights of every survey with valid data at p: its bilinear height in a whole cell, or in
+/// a valid pixel without one (a border, the edge of a void) the range of the samples near.
 pub fn survey_heights(surveys: &[Arc<Survey>], p: [f64; 2]) -> Vec<f64> {
     surveys
         .iter()
-        .filter_map(|s| s.levels[0].bilinear(p))
+        .flat_map(|s| {
+            let g = &s.levels[0];
+            match g.bilinear(p) {
+                Some(h) => vec![h],
+                None if pixel_valid(g, p) => {
+                    let (lo, hi) = neighbourhood_range(g, p);
+                    vec![lo, hi]
+                }
+                None => Vec::new(),
+            }
+        })
         .collect()
 }
 
@@ -175,6 +251,48 @@ pub fn redundant(t: &Terrain, ps: &[Extracted], lattice: f64) -> Vec<String> {
                 "{} (level {}, error {})",
                 x.id, x.level, x.span.min_z
             ));
+        }
+    }
+    bad
+}
+
+/// Fallback patches with no point of their valid kernel outside every more accurate
+/// extracted patch: nowhere the best data, so the fallback had no reason to take them.
+/// Decided by point sampling, as [`redundant`].
+pub fn needless_fallback(
+    t: &Terrain,
+    all: &[Extracted],
+    fallback: &[Extracted],
+    lattice: f64,
+) -> Vec<String> {
+    let boxes: Vec<(Extracted, Arc<PatchBox>)> = all
+        .iter()
+        .map(|x| (x.clone(), t.index().get(x.id).unwrap().0.clone()))
+        .collect();
+    let mut bad = Vec::new();
+    for x in fallback {
+        let b = t.index().get(x.id).unwrap().0.clone();
+        let better: Vec<&Extracted> = boxes
+            .iter()
+            .filter(|(_, q)| q.more_accurate(&b) && q.kernel.intersects(&b.kernel))
+            .map(|(y, _)| y)
+            .collect();
+        let needed = b.valid.iter().any(|r| {
+            let a = r.aabb();
+            let nx = (a.width() / lattice).round().max(1.0) as usize;
+            let ny = (a.height() / lattice).round().max(1.0) as usize;
+            (0..ny).any(|j| {
+                (0..nx).any(|i| {
+                    let p = [
+                        a.min[0] + (i as f64 + 0.5) * a.width() / nx as f64,
+                        a.min[1] + (j as f64 + 0.5) * a.height() / ny as f64,
+                    ];
+                    !better.iter().any(|y| in_valid_kernel(t, y, p))
+                })
+            })
+        });
+        if !needed {
+            bad.push(format!("{} (error {})", x.id, x.span.min_z));
         }
     }
     bad

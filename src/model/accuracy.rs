@@ -1,0 +1,291 @@
+//! A survey's accuracy ε: given (a sidecar, a flag, the config) or estimated from its own
+//! samples, and kept per level-0 kernel so that rough ground gets a larger ε than smooth.
+//!
+//! # The estimate
+//!
+//! ε is the largest error made by evaluating the grid's bilinear surface instead of the ground
+//! it sampled. The ground is unknown, but the grid can be compared with coarser copies of
+//! itself: dropping every other sample and interpolating the rest back gives an error d₂ that
+//! is known exactly at every dropped sample, and dropping three in four gives d₄. Interpolation
+//! error grows like a power of the spacing, d(h) ∝ h^α: α = 2 on smooth ground (curvature) and
+//! closer to 1 on rough, fractal ground. So the ratio of the two gives α for the survey, and
+//! the grid's own error, one halving finer than d₂, is d₂ / 2^α.
+//!
+//! α comes from the RMS of d₂ and d₄ over the whole survey, which is stable; the scale comes
+//! from the largest d₂ in each kernel's window, which is local. `docs/MODEL.md` shows the
+//! estimate against the measured error of decimated copies of real surveys.
+
+use super::grid::Grid;
+use super::patch::{CellRect, Tiling};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Where a survey's ε came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AccuracySource {
+    /// `accuracy_m` in the file's `<file>.toml`.
+    Sidecar,
+    /// `--accuracy` on the command line, or `accuracy_m` in an Ingest request.
+    Flag,
+    /// A number in the config's `accuracy_m`.
+    Config,
+    /// Estimated from the survey's own samples (`accuracy_m = "auto"`).
+    Estimated,
+    /// Stored before the store recorded where accuracies came from.
+    Unknown,
+}
+
+impl AccuracySource {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            AccuracySource::Sidecar => "sidecar",
+            AccuracySource::Flag => "flag",
+            AccuracySource::Config => "config",
+            AccuracySource::Estimated => "estimated",
+            AccuracySource::Unknown => "unknown",
+        }
+    }
+}
+
+/// How a survey's ε is decided.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum AccuracySpec {
+    /// The same ε, in metres, everywhere.
+    Fixed(f64),
+    /// Estimated per kernel from the samples.
+    Auto,
+}
+
+impl From<f64> for AccuracySpec {
+    fn from(v: f64) -> Self {
+        AccuracySpec::Fixed(v)
+    }
+}
+
+/// ε for every kernel of a level-0 tiling, row-major over the tiling's kernels.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct KernelAccuracy {
+    /// Kernels per row and per column.
+    pub dims: [usize; 2],
+    pub values: Vec<f64>,
+}
+
+impl KernelAccuracy {
+    pub fn constant(tiling: &Tiling, v: f64) -> Self {
+        let dims = tiling.counts();
+        KernelAccuracy {
+            dims,
+            values: vec![v; dims[0] * dims[1]],
+        }
+    }
+
+    /// ε of the kernel at local position `k`.
+    #[inline]
+    pub fn at(&self, k: [u32; 2]) -> f64 {
+        self.values[k[1] as usize * self.dims[0] + k[0] as usize]
+    }
+
+    /// The largest ε of the kernels that meet a rectangle of level-0 cells.
+    pub fn max_over(&self, tiling: &Tiling, cells: &CellRect) -> f64 {
+        let [a0, b0] = tiling.kernel_at(cells.c0, cells.r0);
+        let [a1, b1] = tiling.kernel_at(
+            cells.c1.saturating_sub(1).max(cells.c0),
+            cells.r1.saturating_sub(1).max(cells.r0),
+        );
+        let mut m = 0.0f64;
+        for b in b0..=b1 {
+            for a in a0..=a1 {
+                m = m.max(self.at([a, b]));
+            }
+        }
+        m
+    }
+
+    /// The survey's ε: the largest of its kernels', since ε bounds the error everywhere.
+    pub fn max(&self) -> f64 {
+        self.values.iter().copied().fold(0.0, f64::max)
+    }
+}
+
+/// What the estimator found, for reports and charts.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Estimate {
+    /// The exponent of interpolation error against spacing, in [1, 2].
+    pub alpha: f64,
+    /// RMS error of the grid decimated by 2 and by 4, at the samples each drops.
+    pub rms2: f64,
+    pub rms4: f64,
+    pub kernels: KernelAccuracy,
+}
+
+/// The difference between z(c, r) and the bilinear surface through the samples of the grid
+/// decimated by `f`, or None where that surface is undefined or (c, r) is one of its samples.
+#[inline]
+fn decimation_error(g: &Grid, f: usize, c: usize, r: usize) -> Option<f64> {
+    if c.is_multiple_of(f) && r.is_multiple_of(f) {
+        return None;
+    }
+    let (i, j) = (c / f * f, r / f * f);
+    if i + f >= g.cols || j + f >= g.rows {
+        return None;
+    }
+    let z = g.at(c, r) as f64;
+    let (z00, z10) = (g.at(i, j) as f64, g.at(i + f, j) as f64);
+    let (z01, z11) = (g.at(i, j + f) as f64, g.at(i + f, j + f) as f64);
+    let fx = (c - i) as f64 / f as f64;
+    let fy = (r - j) as f64 / f as f64;
+    let top = z00 + (z10 - z00) * fx;
+    let bottom = z01 + (z11 - z01) * fx;
+    let d = (top + (bottom - top) * fy - z).abs();
+    // Any void corner or sample makes d NaN.
+    (!d.is_nan()).then_some(d)
+}
+
+/// Estimates ε for every kernel of `tiling` over level 0, with windows `margin` cells wider
+/// than their kernels (the part of the grid each patch evaluates).
+pub fn estimate(g: &Grid, tiling: &Tiling, margin: u32) -> Estimate {
+    // Per row: sums of squares and counts for both factors, and the largest d₂ per column.
+    let rows: Vec<(f64, u64, f64, u64, Vec<f32>)> = (0..g.rows)
+        .into_par_iter()
+        .map(|r| {
+            let mut out = (0.0, 0u64, 0.0, 0u64, vec![f32::NAN; g.cols]);
+            for c in 0..g.cols {
+                if let Some(d) = decimation_error(g, 2, c, r) {
+                    out.0 += d * d;
+                    out.1 += 1;
+                    out.4[c] = d as f32;
+                }
+                if let Some(d) = decimation_error(g, 4, c, r) {
+                    out.2 += d * d;
+                    out.3 += 1;
+                }
+            }
+            out
+        })
+        .collect();
+    let (s2, n2, s4, n4) = rows.iter().fold((0.0, 0, 0.0, 0), |a, r| {
+        (a.0 + r.0, a.1 + r.1, a.2 + r.2, a.3 + r.3)
+    });
+    let rms2 = if n2 > 0 { (s2 / n2 as f64).sqrt() } else { 0.0 };
+    let rms4 = if n4 > 0 { (s4 / n4 as f64).sqrt() } else { 0.0 };
+    let alpha = if rms2 > 0.0 && rms4 > 0.0 {
+        (rms4 / rms2).log2().clamp(1.0, 2.0)
+    } else {
+        2.0
+    };
+    let scale = 1.0 / 2f64.powf(alpha);
+    let dims = tiling.counts();
+    let values: Vec<Option<f64>> = (0..dims[0] * dims[1])
+        .into_par_iter()
+        .map(|k| {
+            let kernel = tiling.kernel([(k % dims[0]) as u32, (k / dims[0]) as u32]);
+            let w = tiling.window(&kernel, margin);
+            let mut worst: Option<f64> = None;
+            for row in &rows[w.r0 as usize..=w.r1 as usize] {
+                for &d in &row.4[w.c0 as usize..=w.c1 as usize] {
+                    if !d.is_nan() {
+                        worst = Some(worst.unwrap_or(0.0).max(d as f64));
+                    }
+                }
+            }
+            worst.map(|d| d * scale)
+        })
+        .collect();
+    // A kernel too thin or too void to measure takes the survey's largest estimate: ε must
+    // bound the error, so an unknown one is not assumed small.
+    let fallback = values.iter().flatten().copied().fold(0.0, f64::max);
+    let values = values.into_iter().map(|v| v.unwrap_or(fallback)).collect();
+    Estimate {
+        alpha,
+        rms2,
+        rms4,
+        kernels: KernelAccuracy { dims, values },
+    }
+}
+
+/// How far one grid's surface is from another's samples: the largest and RMS difference
+/// between `other`'s bilinear surface and every valid sample of `grid` where that surface is
+/// defined, and how many samples that was.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Deviation {
+    pub max_m: f64,
+    pub rms_m: f64,
+    pub samples: u64,
+}
+
+/// The deviation of `other` from `grid`'s samples; None where they share no ground.
+pub fn deviation(grid: &Grid, other: &Grid) -> Option<Deviation> {
+    // Only the samples of `grid` under `other`'s bounds can meet it.
+    let b = other.world_bounds();
+    let corners = b.corners().map(|p| grid.georef.to_grid(p));
+    let lo = |k: usize| corners.iter().map(|c| c[k]).fold(f64::INFINITY, f64::min);
+    let hi = |k: usize| {
+        corners
+            .iter()
+            .map(|c| c[k])
+            .fold(f64::NEG_INFINITY, f64::max)
+    };
+    let range = |k: usize, n: usize| {
+        let a = lo(k).floor().max(0.0);
+        let z = hi(k).ceil().min(n as f64 - 1.0);
+        (a <= z).then_some((a as usize, z as usize))
+    };
+    let (c0, c1) = range(0, grid.cols)?;
+    let (r0, r1) = range(1, grid.rows)?;
+    let (worst, sum, n) = (r0..=r1)
+        .into_par_iter()
+        .map(|r| {
+            let mut acc = (0.0f64, 0.0f64, 0u64);
+            for c in c0..=c1 {
+                let z = grid.at(c, r);
+                if z.is_nan() {
+                    continue;
+                }
+                let p = grid.georef.to_world(c as f64, r as f64);
+                if let Some(h) = other.bilinear(p) {
+                    let d = (h - z as f64).abs();
+                    acc = (acc.0.max(d), acc.1 + d * d, acc.2 + 1);
+                }
+            }
+            acc
+        })
+        .reduce(
+            || (0.0, 0.0, 0),
+            |a, b| (a.0.max(b.0), a.1 + b.1, a.2 + b.2),
+        );
+    (n > 0).then(|| Deviation {
+        max_m: worst,
+        rms_m: (sum / n as f64).sqrt(),
+        samples: n,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::grid::Georef;
+
+    fn grid(n: usize, f: impl Fn(f64, f64) -> f64) -> Grid {
+        let s = (0..n * n)
+            .map(|k| f((k % n) as f64, (k / n) as f64) as f32)
+            .collect();
+        Grid::new(n, n, s, Georef::north_up([0.0, 0.0], [1.0, 1.0])).unwrap()
+    }
+
+    #[test]
+    fn a_plane_is_exact_and_a_paraboloid_is_quadratic() {
+        let plane = grid(60, |x, y| 3.0 * x - 2.0 * y + 7.0);
+        let t = Tiling::new(plane.cells(), 28, [0, 0]);
+        let e = estimate(&plane, &t, 2);
+        assert!(e.kernels.max() < 1e-4, "{e:?}");
+        let bowl = grid(60, |x, y| 0.05 * (x * x + y * y));
+        let e = estimate(&bowl, &t, 2);
+        assert!((e.alpha - 2.0).abs() < 0.05, "α = {}", e.alpha);
+        // The bilinear error of a paraboloid over a unit cell is (a/4)(1/2·1/2)·2 at its centre.
+        let truth = 0.05 * 0.25 * 2.0;
+        for &v in &e.kernels.values {
+            assert!((v - truth).abs() < 0.2 * truth, "{v} vs {truth}");
+        }
+    }
+}
