@@ -42,6 +42,20 @@ fn holiest(r: &Raster) -> (usize, usize) {
     (best.0, best.1)
 }
 
+/// The `side`-sample window whose void fraction is nearest `fraction`.
+fn voided(r: &Raster, side: usize, fraction: f64) -> (usize, usize) {
+    let mut best = (0, 0, f64::INFINITY);
+    for row in (0..r.rows - side).step_by(25) {
+        for col in (0..r.cols - side).step_by(25) {
+            let f = r.crop(col, row, side, side).nodata_count() as f64 / (side * side) as f64;
+            if (f - fraction).abs() < best.2 {
+                best = (col, row, (f - fraction).abs());
+            }
+        }
+    }
+    (best.0, best.1)
+}
+
 fn i16s(r: &Raster) -> Vec<i16> {
     r.samples
         .iter()
@@ -106,5 +120,25 @@ fn main() {
     println!(
         "N44E005 crop at col {col}, row {row} with {} voids",
         h.nodata_count()
+    );
+
+    // Three quarters void: what is left of the ground below 1,000 m, in pieces.
+    let holes = read("N44E005_big_hole.tif");
+    let side = 200;
+    let (col, row) = voided(&holes, side, 0.76);
+    let v = holes.crop(col, row, side, side);
+    write_geotiff_i16(
+        &out("srtm_n44e005_big_hole_crop.tif"),
+        side,
+        side,
+        &i16s(&v),
+        v.geotransform,
+        v.epsg,
+        Some(-32768.0),
+    )
+    .unwrap();
+    println!(
+        "N44E005_big_hole crop at col {col}, row {row}: {:.1}% void",
+        100.0 * v.nodata_count() as f64 / (side * side) as f64
     );
 }
