@@ -273,3 +273,54 @@ fn gpu_uploads_shared_patches_once_and_survives_eviction() {
         println!("small arena, {what}: {tm:?}");
     }
 }
+
+#[test]
+fn gpu_matches_cpu_where_surveys_meet() {
+    let Some(mut g) = gpu() else { return };
+    let cop = real_crop("copernicus_n34w119_crop.tif");
+    let mut worst = 0.0f64;
+    let mut check = |t: &Terrain, roi: &Aabb, w: usize, h: usize, e: f64, what: &str| {
+        let grid = SampleGrid::uniform(roi, w, h);
+        let what = format!("{what}, {w}×{h}, e = {e}");
+        worst = worst.max(compare(&mut g, t, t.uniform(roi, e), &grid, &what));
+    };
+    // Four tiles of one mosaic: seams interpolated across by edge patches.
+    let pieces: Vec<_> = [(0, 0), (150, 0), (0, 150), (150, 150)]
+        .iter()
+        .map(|&(c, r)| survey_with(window(&cop, c, r, 150, 150), 1.0))
+        .collect();
+    let mosaic = terrain_of(&pieces);
+    let all = pixel_bounds(&cop);
+    for (w, h) in [(347, 311), (600, 600)] {
+        check(&mosaic, &all, w, h, 0.0, "mosaic");
+    }
+    // Samples on the pixel edges and corners, where the pixel test ties.
+    let step = cop.georef.step;
+    let corners = Aabb::new(
+        all.min[0] + step[0] / 2.0,
+        all.min[1] + step[1] / 2.0,
+        all.max[0] + step[0] / 2.0,
+        all.max[1] + step[1] / 2.0,
+    );
+    check(&mosaic, &corners, 300, 300, 0.0, "mosaic at pixel corners");
+    // Three quarters void, and scattered soundings: triangles, fills and the pixel test.
+    for (name, grid) in [
+        ("big hole", real_crop("srtm_n44e005_big_hole_crop.tif")),
+        ("soundings", sparse(&cop, 0.25, 11)),
+    ] {
+        let s = survey_with(grid.clone(), patchwork::model::accuracy::AccuracySpec::Auto);
+        let t = terrain_of(std::slice::from_ref(&s));
+        let roi = pixel_bounds(&grid);
+        for e in [0.0, 20.0] {
+            check(&t, &roi, 2 * grid.cols + 1, 2 * grid.rows + 3, e, name);
+        }
+    }
+    // An ε = 2 survey inside an ε = 20 one: fallback tiers below 20 m.
+    let fine = survey_with(window(&cop, 60, 50, 180, 200), 2.0);
+    let coarse = survey_with(decimate(&cop, 2), 20.0);
+    let t = terrain_of(&[fine, coarse]);
+    for e in [0.0, 2.0, 10.0, 25.0] {
+        check(&t, &all, 256, 256, e, "ε 2 in ε 20");
+    }
+    println!("where surveys meet: max |gpu − cpu| = {worst:.3e} m");
+}

@@ -17,7 +17,14 @@ fn any_spec() -> impl Strategy<Value = Spec> {
         prop_oneof![Just(0.0), 0.0f64..std::f64::consts::TAU],
         (0.4f64..2.5, 0.4f64..2.5),
         prop::collection::vec((0.0f64..40.0, 0.0f64..40.0, 1.0f64..6.0), 0..3),
-        prop_oneof![Just(0.0), Just(0.0), Just(0.5), Just(3.0)],
+        prop_oneof![
+            Just(0.0),
+            Just(0.0),
+            Just(0.5),
+            Just(3.0),
+            Just(8.0),
+            Just(-1.0)
+        ],
     )
         .prop_map(|(cols, rows, origin, theta, step, voids, accuracy)| Spec {
             cols,
@@ -63,6 +70,17 @@ fn build(specs: &[Spec]) -> Vec<Arc<Survey>> {
 }
 
 use patchwork::model::survey::Survey;
+
+/// ε of a survey at a point of one of its whole cells: its kernel's.
+fn accuracy_at(s: &Survey, p: [f64; 2]) -> Option<f64> {
+    let g = &s.levels[0];
+    let q = g.georef.to_grid(p);
+    g.bilinear_grid(q)?;
+    let [cw, ch] = g.cells();
+    let c = (q[0].floor().max(0.0) as usize).min(cw - 1) as u32;
+    let r = (q[1].floor().max(0.0) as usize).min(ch - 1) as u32;
+    Some(s.kernel_accuracy.at(s.tiling.kernel_at(c, r)))
+}
 
 fn answers(t: &patchwork::terrain::Terrain, roi: &Aabb) -> Vec<Vec<String>> {
     [0.0, 0.7, 2.0, 6.0, 25.0]
@@ -160,28 +178,100 @@ proptest! {
     }
 
     #[test]
+    fn a_height_does_not_depend_on_the_tile_that_holds_it(
+        specs in prop::collection::vec(any_spec(), 1..4),
+        e in prop_oneof![Just(0.0), 0.0f64..30.0],
+        size in (4usize..28, 4usize..28),
+        split in (0.0f64..1.0, 0.0f64..1.0),
+        frame in (0.0f64..0.5, 0.0f64..0.5, 0.3f64..1.0, 0.3f64..1.0),
+    ) {
+        // Surveys of different accuracies (estimated ones among them) over and beside each
+        // other; a tile, and the four sub-tiles a cut at one of its pixel boundaries makes.
+        let surveys = build(&specs);
+        prop_assume!(!surveys.is_empty());
+        let t = terrain_of(&surveys);
+        let b = bounds_of(&surveys);
+        let roi = Aabb::new(
+            b.min[0] + frame.0 * b.width(),
+            b.min[1] + frame.1 * b.height(),
+            b.min[0] + (frame.0 + frame.2 * (1.0 - frame.0)) * b.width(),
+            b.min[1] + (frame.1 + frame.3 * (1.0 - frame.1)) * b.height(),
+        );
+        let (w, h) = size;
+        let big = t.tile(&roi, w, h, e).heights;
+        let sx = 1 + (split.0 * (w - 1) as f64) as usize;
+        let sy = 1 + (split.1 * (h - 1) as f64) as usize;
+        let (dx, dy) = (roi.width() / w as f64, roi.height() / h as f64);
+        for (a0, a1) in [(0, sx), (sx, w)] {
+            for (b0, b1) in [(0, sy), (sy, h)] {
+                if a0 == a1 || b0 == b1 {
+                    continue;
+                }
+                // Rows run north to south.
+                let sub_roi = Aabb::new(
+                    roi.min[0] + a0 as f64 * dx,
+                    roi.max[1] - b1 as f64 * dy,
+                    roi.min[0] + a1 as f64 * dx,
+                    roi.max[1] - b0 as f64 * dy,
+                );
+                let sub = t.tile(&sub_roi, a1 - a0, b1 - b0, e).heights;
+                for j in b0..b1 {
+                    for i in a0..a1 {
+                        let x = big[j * w + i];
+                        let y = sub[(j - b0) * (a1 - a0) + (i - a0)];
+                        prop_assert_eq!(x.is_nan(), y.is_nan(), "mask at ({}, {}), e = {}", i, j, e);
+                        if !x.is_nan() {
+                            let step = f32::from_bits(x.abs().to_bits() + 1) - x.abs();
+                            prop_assert!((x - y).abs() <= 1e-4f32.max(step),
+                                "{} vs {} at ({}, {}), e = {}", x, y, i, j, e);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
     fn resampled_heights_are_within_the_requested_error(
         specs in prop::collection::vec(any_spec(), 1..4),
         e in prop_oneof![Just(0.0), 0.0f64..60.0],
         picks in prop::collection::vec((any::<prop::sample::Index>(), 0.0f64..1.0, 0.0f64..1.0, 0.0f64..1.0), 30),
     ) {
+        // Where a survey as accurate as e has data, the height is within e of the surveys
+        // there; elsewhere within the error of the most accurate patch that covers the point.
         let surveys = build(&specs);
         prop_assume!(!surveys.is_empty());
-        let floor = surveys.iter().map(|s| s.accuracy).fold(0.0, f64::max);
-        let e = e.max(floor);
         let t = terrain_of(&surveys);
         let ps = t.uniform(&bounds_of(&surveys), e);
         prop_assert!(ps.iter().all(|x| (x.span.min_z <= e) != x.fallback));
         for (si, a, b, c) in picks {
             let s: &Arc<Survey> = si.get(&surveys);
             let Some(p) = valid_point(s, a, b, c) else { continue };
+            let best = ps
+                .iter()
+                .filter(|x| in_valid_kernel(&t, x, p))
+                .map(|x| x.span.min_z)
+                .fold(f64::INFINITY, f64::min);
+            prop_assert!(best.is_finite(), "no patch covers {:?}", p);
+            // The surveys as accurate as e at p bound the answer by e; without one, all of
+            // them by the error of the best patch there.
+            let accurate: Vec<Arc<Survey>> = surveys
+                .iter()
+                .filter(|s| accuracy_at(s, p).is_some_and(|a| a <= e))
+                .cloned()
+                .collect();
+            let (pool, bound) = if accurate.is_empty() {
+                (surveys.clone(), e.max(best))
+            } else {
+                (accurate, e)
+            };
             let h = blended(&t, &ps, p) as f64;
-            let hs = survey_heights(&surveys, p);
+            let hs = survey_heights(&pool, p);
             let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
             let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
             let tol = 1e-3;
-            prop_assert!(h >= lo - e - tol && h <= hi + e + tol,
-                "at {:?}: {} outside [{} − {e}, {} + {e}]", p, h, lo, hi);
+            prop_assert!(h >= lo - bound - tol && h <= hi + bound + tol,
+                "at {:?}: {} outside [{} − {bound}, {} + {bound}], e = {e}", p, h, lo, hi);
         }
     }
 }

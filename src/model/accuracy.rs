@@ -192,10 +192,29 @@ pub fn estimate(g: &Grid, tiling: &Tiling, margin: u32) -> Estimate {
             worst.map(|d| d * scale)
         })
         .collect();
-    // A kernel too thin or too void to measure takes the survey's largest estimate: ε must
-    // bound the error, so an unknown one is not assumed small.
-    let fallback = values.iter().flatten().copied().fold(0.0, f64::max);
-    let values = values.into_iter().map(|v| v.unwrap_or(fallback)).collect();
+    // A kernel too thin or too void to measure takes the largest estimate of its measured
+    // neighbours (ε must bound the error, so an unknown one is not assumed small), or, with
+    // none, the survey's median.
+    let mut measured: Vec<f64> = values.iter().flatten().copied().collect();
+    measured.sort_by(f64::total_cmp);
+    let median = measured.get(measured.len() / 2).copied().unwrap_or(0.0);
+    let at = |a: i64, b: i64| -> Option<f64> {
+        (a >= 0 && b >= 0 && (a as usize) < dims[0] && (b as usize) < dims[1])
+            .then(|| values[b as usize * dims[0] + a as usize])
+            .flatten()
+    };
+    let values = (0..dims[0] * dims[1])
+        .map(|k| {
+            values[k].unwrap_or_else(|| {
+                let (a, b) = ((k % dims[0]) as i64, (k / dims[0]) as i64);
+                let near = (-1..=1)
+                    .flat_map(|db| (-1..=1).map(move |da| (a + da, b + db)))
+                    .filter_map(|(x, y)| at(x, y))
+                    .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))));
+                near.unwrap_or(median)
+            })
+        })
+        .collect();
     Estimate {
         alpha,
         rms2,

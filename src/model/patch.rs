@@ -287,8 +287,9 @@ impl Tiling {
 
 /// Cuts every level into patches and measures each patch's error, in parallel.
 ///
-/// `tiling0` cuts level 0; coarser levels are cut from their first sample. A patch's error is
-/// the largest ε of the level-0 kernels under its window plus its own δ. A patch whose kernel
+/// `tiling0` cuts level 0; coarser levels are cut from their first sample. A level-0 patch's
+/// error is its kernel's ε; a coarser patch's is the largest ε of the level-0 kernels under its
+/// window plus its own δ. A patch whose kernel
 /// has no valid cell is not made: its window may hold data, but no point needs it for
 /// coverage, so the cutter would only ever discard it.
 pub fn make_patches(
@@ -341,16 +342,23 @@ pub fn make_patches(
             } else {
                 0.0
             };
-            // The level-0 cells under the window, for the ε they were measured with.
-            let f = 1u32 << lv;
-            let [cw, ch] = levels[0].cells();
-            let under = CellRect {
-                c0: window.c0 * f,
-                r0: window.r0 * f,
-                c1: (window.c1 * f).min(cw as u32),
-                r1: (window.r1 * f).min(ch as u32),
+            // A level-0 patch is the survey's own surface everywhere in its window, so its
+            // kernel's ε is its error: in its extension zone it blends with patches of the
+            // same surface. A coarser one departs from that surface, and answers for the
+            // ground under its whole window.
+            let eps = if lv == 0 {
+                accuracy.at([pi, pj])
+            } else {
+                let f = 1u32 << lv;
+                let [cw, ch] = levels[0].cells();
+                let under = CellRect {
+                    c0: window.c0 * f,
+                    r0: window.r0 * f,
+                    c1: (window.c1 * f).min(cw as u32),
+                    r1: (window.r1 * f).min(ch as u32),
+                };
+                accuracy.max_over(tiling0, &under)
             };
-            let eps = accuracy.max_over(tiling0, &under);
             let half = layout.kernel as f64 / 2.0 + m as f64;
             Some(Patch {
                 id: PatchId::derive(survey, lv as u8, [pi, pj]),

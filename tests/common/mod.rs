@@ -40,6 +40,7 @@ pub struct Spec {
     pub step: [f64; 2],
     /// Voids as discs (centre col, centre row, radius in cells).
     pub voids: Vec<(f64, f64, f64)>,
+    /// ε in metres; a negative value asks for it to be estimated from the samples.
     pub accuracy: f64,
     pub seed: u64,
 }
@@ -69,7 +70,12 @@ impl Spec {
     }
 
     pub fn survey(&self) -> Option<Arc<Survey>> {
-        Survey::build(self.grid(), self.accuracy, Some(32631), LAYOUT)
+        let spec = if self.accuracy < 0.0 {
+            patchwork::model::accuracy::AccuracySpec::Auto
+        } else {
+            self.accuracy.into()
+        };
+        Survey::build(self.grid(), spec, Some(32631), LAYOUT)
             .ok()
             .map(Arc::new)
     }
@@ -307,6 +313,60 @@ pub fn real_crop(name: &str) -> Grid {
         .unwrap_or_else(|e| panic!("{name}: {e}"))
         .into_grid()
         .unwrap()
+}
+
+/// A window of a grid, georeferenced where it lies.
+pub fn window(g: &Grid, c0: usize, r0: usize, cols: usize, rows: usize) -> Grid {
+    let mut s = Vec::with_capacity(cols * rows);
+    for r in r0..r0 + rows {
+        s.extend_from_slice(&g.samples[r * g.cols + c0..r * g.cols + c0 + cols]);
+    }
+    let georef = Georef {
+        origin: g.georef.to_world(c0 as f64, r0 as f64),
+        ..g.georef
+    };
+    Grid::new(cols, rows, s, georef).unwrap()
+}
+
+/// Every `k`-th sample of a grid from the first: a coarser survey of the same ground.
+pub fn decimate(g: &Grid, k: usize) -> Grid {
+    let cols = (g.cols - 1) / k + 1;
+    let rows = (g.rows - 1) / k + 1;
+    let mut s = Vec::with_capacity(cols * rows);
+    for r in 0..rows {
+        for c in 0..cols {
+            s.push(g.at(c * k, r * k));
+        }
+    }
+    let georef = Georef {
+        step: [g.georef.step[0] * k as f64, g.georef.step[1] * k as f64],
+        ..g.georef
+    };
+    Grid::new(cols, rows, s, georef).unwrap()
+}
+
+/// A grid with only a `keep` fraction of its samples left, chosen by a seeded hash: scattered
+/// soundings rather than whole cells.
+pub fn sparse(g: &Grid, keep: f64, seed: u64) -> Grid {
+    let mut out = g.clone();
+    for (k, z) in out.samples.iter_mut().enumerate() {
+        let mut h = (k as u64 ^ seed).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        h ^= h >> 29;
+        h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        h ^= h >> 32;
+        if (h >> 11) as f64 / (1u64 << 53) as f64 >= keep {
+            *z = f32::NAN;
+        }
+    }
+    out
+}
+
+/// A survey of a grid with the given ε (a number, or `AccuracySpec::Auto`), EPSG:4326.
+pub fn survey_with(
+    g: Grid,
+    spec: impl Into<patchwork::model::accuracy::AccuracySpec>,
+) -> Arc<Survey> {
+    Arc::new(Survey::build(g, spec, Some(4326), PatchLayout::default()).unwrap())
 }
 
 /// The same samples turned by `degrees` about the grid's centre: a rotated grid over the
