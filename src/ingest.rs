@@ -231,3 +231,88 @@ pub fn is_temporary(path: &Path) -> bool {
         || name.ends_with(".prj")
         || name.ends_with('~')
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn settings() -> IngestSettings {
+        IngestSettings {
+            accuracy: None,
+            default_accuracy: DefaultAccuracy::Auto,
+            max_accuracy: 10_000.0,
+            store_crs: None,
+            layout: PatchLayout::default(),
+            max_samples: 1 << 20,
+        }
+    }
+
+    /// A 4×4 ESRI ASCII grid, with a `.prj` holding `wkt` if given.
+    fn grid(dir: &Path, name: &str, wkt: Option<&str>) -> PathBuf {
+        let p = dir.join(name);
+        let mut text =
+            "ncols 4\nnrows 4\nxllcorner 500000\nyllcorner 4000000\ncellsize 30\n".to_string();
+        for r in 0..4 {
+            text += &format!("{} {} {} {}\n", r, r + 1, 2 * r, 3);
+        }
+        std::fs::write(&p, text).unwrap();
+        if let Some(w) = wkt {
+            std::fs::write(p.with_extension("prj"), w).unwrap();
+        }
+        p
+    }
+
+    #[test]
+    fn accuracy_comes_from_sidecar_flag_or_config_and_must_stay_below_the_top() {
+        let dir = tempfile::tempdir().unwrap();
+        let utm = r#"PROJCS["WGS_1984_UTM_Zone_31N",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]]],PROJECTION["Transverse_Mercator"],PARAMETER["False_Easting",500000.0],PARAMETER["False_Northing",0.0],PARAMETER["Central_Meridian",3.0],PARAMETER["Scale_Factor",0.9996],PARAMETER["Latitude_Of_Origin",0.0],UNIT["Meter",1.0]]"#;
+        let p = grid(dir.path(), "a.asc", Some(utm));
+        let mut s = settings();
+        let got = prepare(&p, &s).unwrap();
+        assert_eq!(got.source, AccuracySource::Estimated);
+        assert_eq!(got.survey.crs, Some(32631), "the ESRI UTM zone resolves");
+        s.default_accuracy = DefaultAccuracy::Metres(3.0);
+        assert_eq!(prepare(&p, &s).unwrap().source, AccuracySource::Config);
+        s.accuracy = Some(2.0);
+        let got = prepare(&p, &s).unwrap();
+        assert_eq!(
+            (got.source, got.survey.accuracy),
+            (AccuracySource::Flag, 2.0)
+        );
+        std::fs::write(sidecar_path(&p), "accuracy_m = 0.5\n").unwrap();
+        let got = prepare(&p, &s).unwrap();
+        assert_eq!(
+            (got.source, got.survey.accuracy),
+            (AccuracySource::Sidecar, 0.5)
+        );
+        for bad in ["1e308", "10000.0", "-1.0", "nan"] {
+            std::fs::write(sidecar_path(&p), format!("accuracy_m = {bad}\n")).unwrap();
+            let e = prepare(&p, &s).unwrap_err().to_string();
+            assert!(e.contains("refused") && e.contains("sidecar"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_crs_is_resolved_named_or_refused_when_the_sidecar_contradicts_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let lambert = r#"PROJCS["RGF93_Lambert_93",GEOGCS["GCS_RGF_1993",DATUM["D_RGF_1993",SPHEROID["GRS_1980",6378137.0,298.257222101]]],PROJECTION["Lambert_Conformal_Conic"]]"#;
+        let p = grid(dir.path(), "l.asc", Some(lambert));
+        let e = prepare(&p, &settings()).unwrap_err().to_string();
+        assert!(e.contains("RGF93_Lambert_93") && e.contains("crs"), "{e}");
+        // A sidecar may name the code for a CRS the file only describes...
+        std::fs::write(sidecar_path(&p), "crs = \"EPSG:2154\"\n").unwrap();
+        assert_eq!(prepare(&p, &settings()).unwrap().survey.crs, Some(2154));
+        // ...but not contradict one the file states.
+        let q = grid(
+            dir.path(),
+            "g.asc",
+            Some(r#"GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]]"#),
+        );
+        std::fs::write(sidecar_path(&q), "crs = \"EPSG:32630\"\n").unwrap();
+        let e = prepare(&q, &settings()).unwrap_err().to_string();
+        assert!(e.contains("EPSG:32630") && e.contains("EPSG:4326"), "{e}");
+        let none = grid(dir.path(), "n.asc", None);
+        let e = prepare(&none, &settings()).unwrap_err().to_string();
+        assert!(e.contains("has no CRS"), "{e}");
+    }
+}

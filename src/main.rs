@@ -7,7 +7,7 @@ use patchwork::serve::proto::{
     self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
 };
 use patchwork::serve::{api, grpc};
-use serde_json::json;
+use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -401,6 +401,12 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                             "{:<9} {} {:016x} ({} samples, {:.2} s)",
                             r.outcome, r.source, r.survey, r.samples, r.seconds
                         ));
+                        for c in &r.conflicts {
+                            say(format!(
+                                "          conflicts with {}: up to {:.2} m apart, {:.2} m RMS",
+                                c.survey, c.max_m, c.rms_m
+                            ));
+                        }
                     }
                 }
                 bar.inc(1);
@@ -419,26 +425,30 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 api::list_surveys
             )?;
             if json {
-                let v: Vec<_> = list
-                    .surveys
-                    .iter()
-                    .map(|s| {
-                        json!({
-                            "id": s.id, "source": s.source, "status": s.status,
-                            "error": (s.status == "failed").then_some(&s.error),
-                            "accuracy_m": s.accuracy_m, "samples": s.samples, "patches": s.patches,
-                        })
-                    })
-                    .collect();
+                let v: Vec<SurveyJson> = list.surveys.iter().map(SurveyJson::of).collect();
                 println!("{}", serde_json::to_string_pretty(&v)?);
             } else {
                 for s in &list.surveys {
                     match s.status.as_str() {
                         "failed" => println!("{:<16}  failed   {}  {}", "-", s.source, s.error),
-                        st => println!(
-                            "{:<16}  {:<7}  {}  ε={} m  {} samples  {} patches",
-                            s.id, st, s.source, s.accuracy_m, s.samples, s.patches
-                        ),
+                        st => {
+                            println!(
+                                "{:<16}  {:<7}  {}  ε={:.3} m ({})  {} samples  {} patches",
+                                s.id,
+                                st,
+                                s.source,
+                                s.accuracy_m,
+                                s.accuracy_source,
+                                s.samples,
+                                s.patches
+                            );
+                            for c in &s.conflicts {
+                                println!(
+                                    "{:<16}  conflicts with {}: up to {:.2} m apart, {:.2} m RMS",
+                                    "", c.survey, c.max_m, c.rms_m
+                                );
+                            }
+                        }
                     }
                 }
             }
@@ -468,14 +478,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             let mut c = Client::connect(&target).await?;
             let s = call!(&mut c, admin.stats(pb::StatsRequest {}), api::stats)?;
             if json {
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&json!({
-                        "surveys": s.surveys, "retired": s.retired, "failed": s.failed, "patches": s.patches,
-                        "active_boxes": s.active_boxes, "samples": s.samples, "disk_bytes": s.disk_bytes,
-                        "crs": (s.crs != 0).then(|| format!("EPSG:{}", s.crs)), "backend": s.backend, "quadtree_nodes": s.quadtree_nodes,
-                    }))?
-                );
+                println!("{}", serde_json::to_string_pretty(&StatsJson::of(&s))?);
             } else {
                 println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {}\nbackend {}",
                     s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes,
@@ -549,15 +552,10 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                     .collect(),
             };
             if json {
-                let v: Vec<_> = patches.iter().map(|p| {
-                    let b = p.bounds.unwrap_or_default();
-                    json!({"id": format!("{:016x}", p.id), "survey": format!("{:016x}", p.survey), "level": p.level,
-                           "error": p.error, "max_error": p.max_error, "bounds": [b.xmin, b.ymin, b.xmax, b.ymax]})
-                }).collect();
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&json!({ "patches": v }))?
-                );
+                let v = QueryJson {
+                    patches: patches.iter().map(PatchJson::of).collect(),
+                };
+                println!("{}", serde_json::to_string_pretty(&v)?);
             } else {
                 for p in &patches {
                     let b = p.bounds.unwrap_or_default();
@@ -624,6 +622,121 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 t.backend
             );
             Ok(())
+        }
+    }
+}
+
+/// `surveys --json`: one object per survey or failed file. The README documents each field.
+#[derive(Serialize)]
+struct SurveyJson<'a> {
+    id: &'a str,
+    source: &'a str,
+    status: &'a str,
+    error: Option<&'a str>,
+    accuracy_m: f64,
+    accuracy_source: Option<&'a str>,
+    samples: u64,
+    patches: u32,
+    conflicts: Vec<ConflictJson<'a>>,
+}
+
+#[derive(Serialize)]
+struct ConflictJson<'a> {
+    survey: &'a str,
+    max_m: f64,
+    rms_m: f64,
+}
+
+impl<'a> SurveyJson<'a> {
+    fn of(s: &'a pb::SurveyInfo) -> Self {
+        let failed = s.status == "failed";
+        SurveyJson {
+            id: &s.id,
+            source: &s.source,
+            status: &s.status,
+            error: failed.then_some(s.error.as_str()),
+            accuracy_m: s.accuracy_m,
+            accuracy_source: (!failed).then_some(s.accuracy_source.as_str()),
+            samples: s.samples,
+            patches: s.patches,
+            conflicts: s
+                .conflicts
+                .iter()
+                .map(|c| ConflictJson {
+                    survey: &c.survey,
+                    max_m: c.max_m,
+                    rms_m: c.rms_m,
+                })
+                .collect(),
+        }
+    }
+}
+
+/// `stats --json`.
+#[derive(Serialize)]
+struct StatsJson<'a> {
+    surveys: u32,
+    retired: u32,
+    failed: u32,
+    patches: u64,
+    active_boxes: u64,
+    samples: u64,
+    disk_bytes: u64,
+    crs: Option<String>,
+    backend: &'a str,
+    quadtree_nodes: u32,
+}
+
+impl<'a> StatsJson<'a> {
+    fn of(s: &'a pb::StatsReply) -> Self {
+        StatsJson {
+            surveys: s.surveys,
+            retired: s.retired,
+            failed: s.failed,
+            patches: s.patches,
+            active_boxes: s.active_boxes,
+            samples: s.samples,
+            disk_bytes: s.disk_bytes,
+            crs: (s.crs != 0).then(|| format!("EPSG:{}", s.crs)),
+            backend: &s.backend,
+            quadtree_nodes: s.quadtree_nodes,
+        }
+    }
+}
+
+/// `query --json`.
+#[derive(Serialize)]
+struct QueryJson {
+    patches: Vec<PatchJson>,
+}
+
+#[derive(Serialize)]
+struct PatchJson {
+    id: String,
+    survey: String,
+    level: u32,
+    kind: &'static str,
+    error: f64,
+    max_error: f64,
+    fallback: bool,
+    bounds: [f64; 4],
+}
+
+impl PatchJson {
+    fn of(p: &pb::Patch) -> Self {
+        let b = p.bounds.unwrap_or_default();
+        PatchJson {
+            id: format!("{:016x}", p.id),
+            survey: format!("{:016x}", p.survey),
+            level: p.level,
+            kind: match pb::PatchKind::try_from(p.kind) {
+                Ok(pb::PatchKind::Edge) => "edge",
+                _ => "bilinear",
+            },
+            error: p.error,
+            max_error: p.max_error,
+            fallback: p.fallback,
+            bounds: [b.xmin, b.ymin, b.xmax, b.ymax],
         }
     }
 }

@@ -182,6 +182,12 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
         &(0..64 * 64).map(|i| i as f32).collect::<Vec<_>>(),
         32631,
     );
+    // Good samples under sidecars that cannot be right: an accuracy past the top of LOD
+    // space, and a CRS that contradicts the file's own.
+    std::fs::write(stage.join("inaccurate.tif"), &good).unwrap();
+    std::fs::write(inbox.join("inaccurate.tif.toml"), "accuracy_m = 1e308\n").unwrap();
+    std::fs::write(stage.join("mislabelled.tif"), &good).unwrap();
+    std::fs::write(inbox.join("mislabelled.tif.toml"), "crs = \"EPSG:32630\"\n").unwrap();
     for f in std::fs::read_dir(&stage).unwrap().flatten() {
         std::fs::rename(f.path(), inbox.join(f.file_name())).unwrap();
     }
@@ -199,6 +205,8 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
         ("utm.tif", "EPSG:32631"),
         ("folder.tif", "directory"),
         ("dangling.tif", "cannot read"),
+        ("inaccurate.tif", "refused"),
+        ("mislabelled.tif", "EPSG:32630"),
     ];
     let s = d.wait("every bad file to be reported", |s| {
         count(s, "failed") == expect.len()
@@ -222,6 +230,11 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
         .as_str()
         .unwrap()
         .contains("EPSG:4326"));
+    let mislabelled = s
+        .iter()
+        .find(|v| v["source"].as_str().unwrap().ends_with("mislabelled.tif"))
+        .unwrap();
+    assert!(mislabelled["error"].as_str().unwrap().contains("EPSG:4326"));
     // Nothing stored was touched, and the daemon still answers.
     assert_eq!(before, answers(&d));
     assert!(d.cli(&["verify"]).status.success());
@@ -426,6 +439,101 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
                 None => assert_eq!(*v, 0),
             }
         }
+
+        // One point, and points sharing an x or a y, are answered like any others.
+        let along: Vec<[f64; 2]> = (0..12)
+            .map(|k| grid.georef.to_world(40.0, 10.0 + 20.0 * k as f64))
+            .chain((0..12).map(|k| grid.georef.to_world(10.0 + 20.0 * k as f64, 40.0)))
+            .collect();
+        for pts in [&along[..1], &along[..12], &along[12..]] {
+            let req = pb::SampleRequest {
+                points: pts.iter().map(|p| pb::Point { x: p[0], y: p[1] }).collect(),
+                error: 0.0,
+            };
+            let s = t.sample_heights(req).await.unwrap().into_inner();
+            for (p, z) in pts.iter().zip(&s.heights) {
+                let h = grid.bilinear(*p).unwrap();
+                assert!((*z as f64 - h).abs() < 1e-3, "{z} vs {h} at {p:?}");
+            }
+        }
+
+        // At or past the top of LOD space, the coarsest cut.
+        let b = grid.world_bounds();
+        let coarsest = |e: f64| pb::PatchQuery {
+            cut: Some(pb::patch_query::Cut::Uniform(pb::UniformCut {
+                roi: Some(pb::Rect {
+                    xmin: b.min[0],
+                    ymin: b.min[1],
+                    xmax: b.max[0],
+                    ymax: b.max[1],
+                }),
+                error: e,
+            })),
+            batch_size: 0,
+        };
+        for e in [10_000.0, 1e12] {
+            let mut st = t.query_patches(coarsest(e)).await.unwrap().into_inner();
+            let mut n = 0;
+            while let Some(batch) = st.message().await.unwrap() {
+                n += batch.patches.len();
+            }
+            assert!(n > 0, "e = {e}: no patches");
+        }
+
+        // A survey that disagrees with the first by far more than both accuracies: a copy of
+        // part of it with a 60 m mound, given ε = 1 m by its sidecar.
+        let (c0, r0, n) = (50usize, 50usize, 100usize);
+        let mut mound = Vec::with_capacity(n * n);
+        for r in r0..r0 + n {
+            for c in c0..c0 + n {
+                let lift = if (20..40).contains(&(c - c0)) && (20..40).contains(&(r - r0)) {
+                    60.0
+                } else {
+                    0.0
+                };
+                mound.push(grid.at(c, r) + lift);
+            }
+        }
+        let stage = tmp.path().join("mound.tif");
+        let o = grid.georef.to_world(c0 as f64 - 0.5, r0 as f64 - 0.5);
+        let st = grid.georef.step;
+        write_geotiff_f32(
+            &stage,
+            n,
+            n,
+            &mound,
+            [o[0], st[0], 0.0, o[1], 0.0, -st[1]],
+            Some(4326),
+            None,
+        )
+        .unwrap();
+        std::fs::write(d.inbox().join("mound.tif.toml"), "accuracy_m = 1.0\n").unwrap();
+        std::fs::rename(&stage, d.inbox().join("mound.tif")).unwrap();
+        let first = e.survey;
+        let e = tokio::time::timeout(Duration::from_secs(30), events.message())
+            .await
+            .unwrap()
+            .unwrap()
+            .unwrap();
+        assert_eq!(e.kind, "inserted");
+        assert_eq!(e.conflicts.len(), 1, "{e:?}");
+        assert_eq!(e.conflicts[0].survey, format!("{first:016x}"));
+        assert!((e.conflicts[0].max_m - 60.0).abs() < 1.0, "{e:?}");
+        let list = d.surveys();
+        let of = |name: &str| {
+            list.iter()
+                .find(|v| v["source"].as_str().unwrap().ends_with(name))
+                .unwrap()
+                .clone()
+        };
+        let (a, m) = (of("a.tif"), of("mound.tif"));
+        assert_eq!(a["accuracy_source"], "estimated");
+        assert_eq!(m["accuracy_source"], "sidecar");
+        assert_eq!(m["accuracy_m"], 1.0);
+        assert_eq!(a["conflicts"][0]["survey"], m["id"]);
+        assert_eq!(m["conflicts"][0]["survey"], a["id"]);
+        let rms = m["conflicts"][0]["rms_m"].as_f64().unwrap();
+        assert!(rms > 1.0 && rms < 60.0, "{m}");
 
         // A view cut streams patches, fewer at a coarser pixel error.
         let view = |px: f64| pb::PatchQuery {

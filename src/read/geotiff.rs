@@ -1262,6 +1262,74 @@ mod tests {
     }
 
     #[test]
+    fn user_defined_utm_projections_get_their_epsg_code_or_are_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let tiff = |name: &str, keys: Vec<u16>, doubles: Vec<f64>, ascii: &'static str| {
+            let mut tags = image_tags(2, 2, 32, 3);
+            tags.push((278, Val::Long(vec![2])));
+            tags.push((33550, Val::Double(vec![30.0, 30.0, 0.0])));
+            tags.push((
+                33922,
+                Val::Double(vec![0.0, 0.0, 0.0, 500_000.0, 4_000_000.0, 0.0]),
+            ));
+            let mut dir_keys = vec![1, 1, 0, (keys.len() / 4) as u16];
+            dir_keys.extend(keys);
+            tags.push((34735, Val::Short(dir_keys)));
+            if !doubles.is_empty() {
+                tags.push((34736, Val::Double(doubles)));
+            }
+            if !ascii.is_empty() {
+                tags.push((34737, Val::Ascii(ascii)));
+            }
+            let strip: Vec<u8> = [1.0f32, 2.0, 3.0, 4.0]
+                .iter()
+                .flat_map(|v| v.to_le_bytes())
+                .collect();
+            read(&write_temp(&dir, name, &build_tiff(tags, &[strip], false))).unwrap()
+        };
+        // ProjectedCSType user-defined, ProjectionGeoKey = UTM zone 31 north, on WGS 84.
+        let r = tiff(
+            "code.tif",
+            vec![
+                1024, 0, 1, 1, 2048, 0, 1, 4326, 3072, 0, 1, 32767, 3074, 0, 1, 16031,
+            ],
+            vec![],
+            "",
+        );
+        assert_eq!((r.epsg, r.crs_name), (Some(32631), None));
+        // Transverse Mercator given by its parameters: UTM 31N.
+        let r = tiff(
+            "params.tif",
+            vec![
+                1024, 0, 1, 1, 2048, 0, 1, 4326, 3072, 0, 1, 32767, 3075, 0, 1, 1, 3080, 34736, 1,
+                0, 3081, 34736, 1, 1, 3082, 34736, 1, 2, 3083, 34736, 1, 3, 3092, 34736, 1, 4,
+            ],
+            vec![3.0, 0.0, 500_000.0, 0.0, 0.9996],
+            "",
+        );
+        assert_eq!(r.epsg, Some(32631));
+        // Only a citation, as GDAL writes for a WKT it cannot encode: UTM 33S on WGS 84.
+        let r = tiff(
+            "cited.tif",
+            vec![1024, 0, 1, 1, 1026, 34737, 22, 0, 3072, 0, 1, 32767],
+            vec![],
+            "WGS 84 / UTM zone 33S|",
+        );
+        assert_eq!(r.epsg, Some(32733));
+        // A projection we do not know is named, not reported as missing.
+        let r = tiff(
+            "lambert.tif",
+            vec![
+                1024, 0, 1, 1, 1026, 34737, 19, 0, 3072, 0, 1, 32767, 3075, 0, 1, 8,
+            ],
+            vec![],
+            "RGF93 / Lambert-93|",
+        );
+        assert_eq!(r.epsg, None);
+        assert_eq!(r.crs_name.as_deref(), Some("RGF93 / Lambert-93"));
+    }
+
+    #[test]
     fn huge_header_is_refused_before_allocating() {
         let dir = tempfile::tempdir().unwrap();
         let mut tags = image_tags(1_000_000, 1_000_000, 32, 3);
