@@ -73,12 +73,13 @@ impl GroupMember {
     /// The tiles whose edge patches can read this survey's samples, as inclusive ranges.
     fn tile_range(&self) -> [[i64; 2]; 2] {
         let l = &self.survey.layout;
+        let side = edge::tile_side(l);
         let reach = l.margin as i64 + 1;
         let g = &self.survey.levels[0];
         let span = |a: usize, n: usize| {
             [
-                tile_of(self.index[a] - reach, l.kernel) - 1,
-                tile_of(self.index[a] + n as i64 - 1 + reach, l.kernel),
+                tile_of(self.index[a] - reach, side) - 1,
+                tile_of(self.index[a] + n as i64 - 1 + reach, side),
             ]
         };
         [span(0, g.cols), span(1, g.rows)]

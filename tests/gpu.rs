@@ -1,6 +1,9 @@
-//! The GPU resampler against the CPU one: the same nodata mask and heights within 1 mm, on
-//! synthetic rotated grids with voids and on the committed real crops, for uniform and
-//! view-dependent sample grids.
+//! The GPU resampler against the CPU one: the same nodata mask and heights within 1 mm (two
+//! f32 steps of the height, which is 2 mm above 8,192 m), plus 2·10⁻⁵ of the spread of the
+//! heights blended at the point (see `src/resample/gpu.rs`: where the weight ramp at a survey's
+//! edge blends surveys hundreds of metres apart, the f32 weight's rounding shows), on synthetic
+//! rotated grids with voids, on the committed real crops, and where surveys meet, for uniform
+//! and view-dependent sample grids.
 //!
 //! Without a GPU adapter these tests say so and pass, unless PATCHWORK_REQUIRE_GPU=1 (as CI
 //! sets it, with a software Vulkan driver installed), where they fail.
@@ -47,6 +50,21 @@ fn compare(
     let got = g
         .resample(&set, grid)
         .unwrap_or_else(|e| panic!("{what}: {e}"));
+    let bins = cpu::bin(&set.patches, grid);
+    let bx = grid.width.div_ceil(patchwork::resample::BLOCK);
+    // The spread of the heights the patches reaching a point give there.
+    let spread = |k: usize| {
+        let p = grid.points[k];
+        let bin = &bins[(k / grid.width / patchwork::resample::BLOCK) * bx
+            + (k % grid.width) / patchwork::resample::BLOCK];
+        let zs = bin
+            .iter()
+            .filter_map(|&i| set.patches[i as usize].at(p).map(|(_, h)| h.z));
+        let (lo, hi) = zs.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), z| {
+            (a.min(z), b.max(z))
+        });
+        (hi - lo).max(0.0)
+    };
     assert_eq!(got.len(), want.len());
     let mut worst = 0.0f64;
     let mut valid = 0;
@@ -59,13 +77,17 @@ fn compare(
         );
         if !a.is_nan() {
             valid += 1;
-            worst = worst.max((*a as f64 - *b as f64).abs());
+            let d = (*a as f64 - *b as f64).abs();
+            let step = (f32::from_bits(b.abs().to_bits() + 1) - b.abs()) as f64;
+            let tol = TOLERANCE.max(2.0 * step);
+            assert!(
+                d <= tol || d <= tol + 2e-5 * spread(k),
+                "{what}: the GPU is {d} m off the CPU at sample {k} (height {b}, spread {})",
+                spread(k)
+            );
+            worst = worst.max(d);
         }
     }
-    assert!(
-        worst <= TOLERANCE,
-        "{what}: the GPU is {worst} m off the CPU"
-    );
     println!(
         "{what}: {} patches, {valid} of {} samples valid, max |gpu − cpu| = {:.3e} m",
         set.patches.len(),

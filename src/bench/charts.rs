@@ -32,6 +32,8 @@ struct Chart<'a> {
     log_y: bool,
     /// Draw y = x: the bound a measured error must stay under.
     diagonal: bool,
+    /// Points only, no lines between them: a scatter.
+    scatter: bool,
 }
 
 const COLORS: [RGBColor; 6] = [
@@ -108,6 +110,16 @@ fn draw_chart<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, c: &Chart) -> Re
         }
         for (i, (name, p)) in lines(&c.series).into_iter().enumerate() {
             let col = COLORS[i % COLORS.len()];
+            if c.scatter {
+                ch.draw_series(
+                    p.into_iter()
+                        .map(|q| Circle::new(q, 2, col.mix(0.6).filled())),
+                )
+                .map_err(e)?
+                .label(name)
+                .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
+                continue;
+            }
             ch.draw_series(LineSeries::new(p.clone(), col.stroke_width(2)))
                 .map_err(e)?
                 .label(name)
@@ -176,6 +188,7 @@ pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) ->
             series: time,
             log_y: true,
             diagonal: false,
+            scatter: false,
         },
     )?;
     both(
@@ -188,6 +201,7 @@ pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) ->
             series: by_roi(&|u| u.patches as f64),
             log_y: true,
             diagonal: false,
+            scatter: false,
         },
     )?;
     let mut acc = Vec::new();
@@ -212,6 +226,7 @@ pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) ->
             series: acc,
             log_y: false,
             diagonal: true,
+            scatter: false,
         },
     )?;
     let view_t = vec![(
@@ -228,6 +243,7 @@ pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) ->
             series: view_t,
             log_y: false,
             diagonal: false,
+            scatter: false,
         },
     )?;
     let view_p = vec![(
@@ -244,6 +260,72 @@ pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) ->
             series: view_p,
             log_y: false,
             diagonal: false,
+            scatter: false,
+        },
+    )?;
+    let sc = &r.scenes;
+    let mixed = |scene: &str, f: fn(&super::meet::MixedRow) -> f64| -> Vec<(f64, f64)> {
+        sc.mixed
+            .iter()
+            .filter(|m| m.scene == scene)
+            .map(|m| (m.error, f(m)))
+            .collect()
+    };
+    both(
+        out,
+        "mixed_error_vs_requested",
+        &Chart {
+            title: "Error against the finer survey where surveys overlap",
+            x: "requested error e (m)",
+            y: "measured error (m)",
+            series: vec![
+                (
+                    "30 m + 90 m copy (ε estimated): max".into(),
+                    mixed("copies", |m| m.max_err),
+                ),
+                (
+                    "30 m + 90 m copy: RMS".into(),
+                    mixed("copies", |m| m.rms_err),
+                ),
+                (
+                    "ε 2 m inside ε 20 m: max over the ε 2 m survey".into(),
+                    mixed("nested", |m| m.max_err),
+                ),
+                (
+                    "ε 2 m inside ε 20 m: RMS".into(),
+                    mixed("nested", |m| m.rms_err),
+                ),
+            ],
+            log_y: false,
+            diagonal: true,
+            scatter: false,
+        },
+    )?;
+    let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
+    for c in &sc.copies {
+        series.push((
+            format!(
+                "copy by {}: survey ε {:.1} m, measured {:.1} m",
+                c.factor, c.estimated, c.measured_max
+            ),
+            sc.estimator
+                .iter()
+                .filter(|e| e.factor == c.factor)
+                .map(|e| (e.measured, e.estimated))
+                .collect(),
+        ));
+    }
+    both(
+        out,
+        "estimator",
+        &Chart {
+            title: "Estimated ε against measured error, per kernel of decimated copies",
+            x: "largest deviation from the original in the kernel (m)",
+            y: "estimated ε (m)",
+            series,
+            log_y: false,
+            diagonal: true,
+            scatter: true,
         },
     )?;
     map(out, t, map_roi, if smoke { 96 } else { 420 })?;

@@ -7,6 +7,7 @@
 //! is compared on.
 
 pub mod charts;
+pub mod meet;
 
 use crate::config::Config;
 use crate::engine::{Cut, Engine};
@@ -66,6 +67,7 @@ pub struct Report {
     pub view: Vec<ViewRow>,
     pub ingest: Vec<IngestRow>,
     pub disk_bytes: u64,
+    pub scenes: meet::Scenes,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -144,8 +146,10 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     };
     let engine = Engine::open(cfg)?;
     let mut ingest = Vec::new();
+    let mut first_survey = None;
     for f in &opts.files {
         let r = engine.ingest(f, None);
+        first_survey = first_survey.or(r.survey);
         if r.outcome == crate::engine::Outcome::Failed {
             return Err(format!("{}: {}", f.display(), r.error).into());
         }
@@ -310,11 +314,38 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         );
         view.push(row);
     }
+    // Where surveys meet, made from the first file's survey (its middle, at most 1,800
+    // samples a side, so the scenes take seconds).
+    let base = first_survey
+        .and_then(|id| t.survey(id))
+        .ok_or("no survey was ingested")?;
+    let g = &base.levels[0];
+    let side = g.cols.min(g.rows).min(if opts.smoke { 300 } else { 1800 });
+    let g = g.window((g.cols - side) / 2, (g.rows - side) / 2, side, side);
+    let scenes = meet::run(&g, base.crs, tile_side, &errors_used)?;
+    for m in &scenes.mixed {
+        println!(
+            "{:>6} e = {:>5} m: {} patches ({} of the finer survey), max error {:.3} m, RMS {:.3} m, sub-tiles within {:.2e} m",
+            m.scene, m.error, m.patches, m.finer, m.max_err, m.rms_err, m.split_diff
+        );
+    }
+    for c in &scenes.copies {
+        println!(
+            "copy by {}: estimated ε {:.2} m, measured {:.2} m max, {:.2} m RMS",
+            c.factor, c.estimated, c.measured_max, c.measured_rms
+        );
+    }
+    println!(
+        "mosaic of four: {:.2e} m from the whole at e = 0, {} samples open at the seams",
+        scenes.mosaic.0, scenes.mosaic.1
+    );
+    meet::write_csv(&opts.out, &scenes)?;
     let report = Report {
         uniform,
         view,
         ingest,
         disk_bytes,
+        scenes,
     };
     write_csv(&opts.out, &report)?;
     charts::draw(&opts.out, &report, &t, &rois[1].1, opts.smoke)?;

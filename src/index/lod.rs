@@ -93,7 +93,7 @@ impl PatchBox {
         let g = &e.grid.georef;
         let kernel = ORect::from_cells(g, &e.kernel);
         let window = ORect::from_cells(g, &e.window);
-        let side = e.kernel.cols() as f64;
+        let side = e.kernel_cells as f64;
         PatchBox {
             id: e.id,
             survey: e.owner,
@@ -211,9 +211,6 @@ pub struct LodIndex {
     slots: HashMap<PatchId, Slot>,
     surveys: HashMap<SurveyId, SurveyEntry>,
     tree: MsQuadtree,
-    /// The widest window bounds ever added: how far a kernel can reach past a point stored
-    /// near it. Never shrinks; only the pruning of view cuts reads it.
-    reach: f64,
 }
 
 impl LodIndex {
@@ -223,19 +220,7 @@ impl LodIndex {
             slots: HashMap::new(),
             surveys: HashMap::new(),
             tree: MsQuadtree::new(cfg.node_capacity),
-            reach: 0.0,
         }
-    }
-
-    pub(crate) fn reach(&self) -> f64 {
-        self.reach
-    }
-
-    fn grow_reach(&mut self, b: &PatchBox) {
-        self.reach = self
-            .reach
-            .max(b.window_aabb.width())
-            .max(b.window_aabb.height());
     }
 
     pub fn config(&self) -> &IndexConfig {
@@ -477,7 +462,6 @@ impl LodIndex {
                     continue;
                 }
                 // Provisionally empty; the recomputation below gives the real state.
-                self.grow_reach(&b);
                 let slot = Slot {
                     bx: Arc::new(b),
                     state: BoxState::EMPTY,
@@ -527,7 +511,6 @@ impl LodIndex {
         for (survey, boxes) in surveys {
             let mut ids = Vec::with_capacity(boxes.len());
             for (b, state) in boxes {
-                ix.grow_reach(&b);
                 let slot = Slot {
                     bx: Arc::new(b),
                     state,

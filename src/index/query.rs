@@ -112,29 +112,18 @@ impl Roi {
 
 impl LodIndex {
     /// The cut through LOD space along `field`: every patch that reaches into the ROI (its
-    /// window meets it) and whose z-span meets the field over its kernel, and, where no data
-    /// is as accurate as the field asks, the most accurate data there is (exposed boxes with
-    /// an error above the field), marked as fallback. Each patch is judged on its whole
-    /// kernel, never on the part inside the ROI, so whether a patch is taken does not depend
-    /// on the ROI: a point gets the same patches from any ROI that holds it.
+    /// window meets it) and whose z-span meets the field there, and, where no data is as
+    /// accurate as the field asks, the most accurate data there is (exposed boxes with an error
+    /// above the field), marked as fallback. A patch is judged on its kernel, as in the paper;
+    /// one whose window alone reaches the ROI, on its whole kernel. A uniform field is the
+    /// same everywhere, so
+    /// whether a patch is taken then does not depend on the ROI: a point gets the same patches
+    /// from any ROI that holds it.
     pub fn cut(&self, roi: &Roi, field: &dyn ErrorField) -> Vec<Extracted> {
         let area = roi.aabb();
-        // Kernels reach past the node that stores them: the field's range over the node grown
-        // by the widest window bounds it over every kernel the node can hold.
-        let reach = self.reach();
         let mut ids = Vec::new();
-        self.tree().cut(
-            &area,
-            |a| {
-                field.range(&Aabb::new(
-                    a.min[0] - reach,
-                    a.min[1] - reach,
-                    a.max[0] + reach,
-                    a.max[1] + reach,
-                ))
-            },
-            |e| ids.push(e.id),
-        );
+        self.tree()
+            .cut(&area, |a| field.range(a), |e| ids.push(e.id));
         ids.sort_unstable();
         ids.dedup();
         ids.into_iter()
@@ -143,7 +132,8 @@ impl LodIndex {
                 if !roi.intersects(&b.window) {
                     return None;
                 }
-                let (lo, hi) = field.range(&b.aabb);
+                // Judged on its kernel, within the ROI where the kernel reaches into it.
+                let (lo, hi) = field.range(&b.aabb.intersection(&area).unwrap_or(b.aabb));
                 if b.min_z <= hi && span.max_z > lo {
                     return Some(Extracted::of(b, span, false));
                 }

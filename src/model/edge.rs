@@ -42,6 +42,17 @@ use super::survey::Survey;
 use crate::resample::SNAP;
 use std::sync::Arc;
 
+/// Kernels per side of an edge patch's tile. Edge cells are thin (a survey's outer ring, the
+/// rims of its holes), so a tile of several kernels holds few of them, and its grid is cut
+/// down to where they are; fewer, larger edge patches keep a cut's patch count near what the
+/// surveys' own patches need.
+pub const EDGE_TILE: usize = 4;
+
+/// The side, in lattice cells, of the tiles edge patches are cut on.
+pub fn tile_side(layout: &PatchLayout) -> usize {
+    layout.kernel * EDGE_TILE
+}
+
 /// The sample holds data (it is not a filled void).
 pub const VALID: u8 = 1;
 /// The cell whose top-left corner this sample is belongs to the edge patch.
@@ -207,14 +218,16 @@ pub struct EdgePatch {
     /// The unit the index inserts and retires; derived from the tile and the surveys used.
     pub owner: SurveyId,
     pub id: PatchId,
-    /// The lattice tile, in the lattice's canonical tile numbers.
+    /// The lattice tile, in the lattice's canonical tile numbers of [`tile_side`] cells.
     pub tile: [i64; 2],
     /// The surveys of the lattice whose samples reach the tile, in id order.
     pub members: Vec<SurveyId>,
-    /// The tile's cells, in grid cells.
+    /// The tile's cells that the grid holds, in grid cells.
     pub kernel: CellRect,
-    /// The kernel and its extension zone: the whole grid.
+    /// The kernel and its extension zone, cut to the edge cells: the whole grid.
     pub window: CellRect,
+    /// The level-0 kernel side, in cells: edge patches are ordered with level-0 patches.
+    pub kernel_cells: u32,
     pub centre: [f64; 2],
     pub half: [f64; 2],
     /// Where the kernel holds data, as rectangles of grid coordinates (c0, r0, c1, r1) whose
@@ -260,7 +273,8 @@ impl Member<'_> {
 pub fn edge_tiles(m: &Member, layout: &PatchLayout) -> Vec<[i64; 2]> {
     use rayon::prelude::*;
     let g = m.grid();
-    let k = layout.kernel as i64;
+    let side = tile_side(layout);
+    let k = side as i64;
     let reach = layout.margin as i64 + 1;
     let valid = |c: i64, r: i64| {
         c >= 0
@@ -282,11 +296,8 @@ pub fn edge_tiles(m: &Member, layout: &PatchLayout) -> Vec<[i64; 2]> {
                     continue;
                 }
                 let (i, j) = (m.index[0] + c, m.index[1] + r);
-                for tj in tile_of(j - reach, layout.kernel) - 1..=tile_of(j + reach, layout.kernel)
-                {
-                    for ti in
-                        tile_of(i - reach, layout.kernel) - 1..=tile_of(i + reach, layout.kernel)
-                    {
+                for tj in tile_of(j - reach, side) - 1..=tile_of(j + reach, side) {
+                    for ti in tile_of(i - reach, side) - 1..=tile_of(i + reach, side) {
                         if tile_reaches(ti, i, k, reach) && tile_reaches(tj, j, k, reach) {
                             out.push([ti, tj]);
                         }
@@ -312,7 +323,7 @@ fn tile_reaches(t: i64, i: i64, k: i64, reach: i64) -> bool {
 /// The edge patch of one lattice tile, from the surveys of the lattice; None when no cell of
 /// the tile needs one.
 pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option<EdgePatch> {
-    let k = layout.kernel as i64;
+    let k = tile_side(layout) as i64;
     let m = layout.margin as i64;
     // The window's first sample, and the samples one ring wider (for fills and slopes).
     let (i0, j0) = (tile[0] * k - m, tile[1] * k - m);
@@ -350,13 +361,16 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
             }
         }
     }
-    let at = |a: usize, b: usize| z[(b + 1) * ext + a + 1];
     let ok = |a: isize, b: isize| !z[((b + 1) as usize) * ext + (a + 1) as usize].is_nan();
+    let at = |a: isize, b: isize| z[((b + 1) as usize) * ext + (a + 1) as usize] as f64;
 
     // Cells a single survey has whole are its own patches' business.
     let cells = n - 1;
     let mut edge = vec![false; cells * cells];
+    let (km, kk) = (m as usize, (m + k) as usize);
     let mut any_in_kernel = false;
+    // Bounds of the edge cells: the grid is cut down to them.
+    let (mut a_lo, mut b_lo, mut a_hi, mut b_hi) = (usize::MAX, usize::MAX, 0, 0);
     for b in 0..cells {
         for a in 0..cells {
             let corner = [(0, 0), (1, 0), (0, 1), (1, 1)]
@@ -373,8 +387,9 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
             });
             if !whole {
                 edge[b * cells + a] = true;
-                let (km, kk) = (m as usize, (m + k) as usize);
                 any_in_kernel |= (km..kk).contains(&a) && (km..kk).contains(&b);
+                (a_lo, b_lo) = (a_lo.min(a), b_lo.min(b));
+                (a_hi, b_hi) = (a_hi.max(a + 1), b_hi.max(b + 1));
             }
         }
     }
@@ -382,65 +397,24 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
         return None;
     }
 
-    // Heights: data where valid, the mean of valid neighbours at void corners.
-    let mut heights = vec![f32::NAN; n * n];
-    let mut flags = vec![0u8; n * n];
-    for b in 0..n {
-        for a in 0..n {
-            let (ai, bi) = (a as isize, b as isize);
-            let k2 = b * n + a;
-            if ok(ai, bi) {
-                heights[k2] = at(a, b);
-                flags[k2] |= VALID;
-                continue;
-            }
-            let mean = |ns: &[(isize, isize)]| {
-                let vals: Vec<f64> = ns
-                    .iter()
-                    .filter(|&&(da, db)| ok(ai + da, bi + db))
-                    .map(|&(da, db)| {
-                        z[((bi + db + 1) as usize) * ext + (ai + da + 1) as usize] as f64
-                    })
-                    .collect();
-                (!vals.is_empty()).then(|| vals.iter().sum::<f64>() / vals.len() as f64)
-            };
-            if let Some(v) = mean(&[(-1, 0), (1, 0), (0, -1), (0, 1)])
-                .or_else(|| mean(&[(-1, -1), (1, -1), (-1, 1), (1, 1)]))
-            {
-                heights[k2] = v as f32;
-            }
-        }
-    }
-    for b in 0..cells {
-        for a in 0..cells {
-            if edge[b * cells + a] {
-                flags[b * n + a] |= EDGE_CELL;
-            }
-        }
-    }
-
     // The error: ε of the samples used, plus a cell's height change where a corner is void.
     let slope = |a: usize, b: usize| -> f64 {
         let (ai, bi) = (a as isize, b as isize);
-        let h = at(a, b) as f64;
+        let h = at(ai, bi);
         [(-1, 0), (1, 0), (0, -1), (0, 1)]
             .iter()
             .filter(|&&(da, db)| ok(ai + da, bi + db))
-            .map(|&(da, db)| {
-                (z[((bi + db + 1) as usize) * ext + (ai + da + 1) as usize] as f64 - h).abs()
-            })
+            .map(|&(da, db)| (at(ai + da, bi + db) - h).abs())
             .fold(0.0, f64::max)
     };
     let mut error = 0.0f64;
-    for b in 0..cells {
-        for a in 0..cells {
+    for b in b_lo..b_hi {
+        for a in a_lo..a_hi {
             if !edge[b * cells + a] {
                 continue;
             }
-            let corners = [(a, b), (a + 1, b), (a, b + 1), (a + 1, b + 1)];
-            let valid: Vec<(usize, usize)> = corners
-                .iter()
-                .copied()
+            let valid: Vec<(usize, usize)> = [(a, b), (a + 1, b), (a, b + 1), (a + 1, b + 1)]
+                .into_iter()
                 .filter(|&(ca, cb)| ok(ca as isize, cb as isize))
                 .collect();
             let e = valid
@@ -459,61 +433,104 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
         }
     }
 
-    // Where the kernel is data: the quarter of each edge cell nearest a valid corner.
-    let kk = k as usize;
-    let km = m as usize;
+    // The grid: the samples of the edge cells, voids filled from their valid neighbours.
+    let (cols, rows) = (a_hi - a_lo + 1, b_hi - b_lo + 1);
+    let mut heights = vec![f32::NAN; cols * rows];
+    let mut flags = vec![0u8; cols * rows];
+    for y in 0..rows {
+        for x in 0..cols {
+            let (ai, bi) = ((a_lo + x) as isize, (b_lo + y) as isize);
+            let k2 = y * cols + x;
+            if ok(ai, bi) {
+                heights[k2] = at(ai, bi) as f32;
+                flags[k2] |= VALID;
+            } else {
+                let mean = |ns: &[(isize, isize)]| {
+                    let vals: Vec<f64> = ns
+                        .iter()
+                        .filter(|&&(da, db)| ok(ai + da, bi + db))
+                        .map(|&(da, db)| at(ai + da, bi + db))
+                        .collect();
+                    (!vals.is_empty()).then(|| vals.iter().sum::<f64>() / vals.len() as f64)
+                };
+                if let Some(v) = mean(&[(-1, 0), (1, 0), (0, -1), (0, 1)])
+                    .or_else(|| mean(&[(-1, -1), (1, -1), (-1, 1), (1, 1)]))
+                {
+                    heights[k2] = v as f32;
+                }
+            }
+            let (a, b) = (a_lo + x, b_lo + y);
+            if a < a_hi && b < b_hi && edge[b * cells + a] {
+                flags[k2] |= EDGE_CELL;
+            }
+        }
+    }
+
+    // The kernel, in grid cells, and where it is data: the quarter of each edge cell nearest
+    // a valid corner.
+    let clip = |v: usize, lo: usize, hi: usize| (v.clamp(lo, hi) - lo) as u32;
+    let kernel = CellRect {
+        c0: clip(km, a_lo, a_hi),
+        r0: clip(km, b_lo, b_hi),
+        c1: clip(kk, a_lo, a_hi),
+        r1: clip(kk, b_lo, b_hi),
+    };
+    let (qa, qb) = (kernel.c0 as usize + a_lo, kernel.r0 as usize + b_lo);
     let half_valid = |ha: usize, hb: usize| {
-        let (a, b) = (km + ha / 2, km + hb / 2);
+        let (a, b) = (qa + ha / 2, qb + hb / 2);
         edge[b * cells + a] && ok((a + ha % 2) as isize, (b + hb % 2) as isize)
     };
-    let valid = half_rects(2 * kk, half_valid)
-        .into_iter()
-        .map(|[a0, b0, a1, b1]| {
-            [
-                km as f64 + a0 as f64 / 2.0,
-                km as f64 + b0 as f64 / 2.0,
-                km as f64 + a1 as f64 / 2.0,
-                km as f64 + b1 as f64 / 2.0,
-            ]
-        })
-        .collect();
+    let valid = half_rects(
+        2 * kernel.cols() as usize,
+        2 * kernel.rows() as usize,
+        half_valid,
+    )
+    .into_iter()
+    .map(|[a0, b0, a1, b1]| {
+        [
+            kernel.c0 as f64 + a0 as f64 / 2.0,
+            kernel.r0 as f64 + b0 as f64 / 2.0,
+            kernel.c0 as f64 + a1 as f64 / 2.0,
+            kernel.r0 as f64 + b1 as f64 / 2.0,
+        ]
+    })
+    .collect();
 
     // Positions come from the survey with the smallest id, so they never depend on order.
     let first = used[0];
-    let origin = first.survey.levels[0]
-        .georef
-        .to_world((i0 - first.index[0]) as f64, (j0 - first.index[1]) as f64);
+    let origin = first.survey.levels[0].georef.to_world(
+        (i0 + a_lo as i64 - first.index[0]) as f64,
+        (j0 + b_lo as i64 - first.index[1]) as f64,
+    );
     let georef = Georef {
         origin,
         ..first.survey.levels[0].georef
     };
     let ids: Vec<SurveyId> = used.iter().map(|mb| mb.survey.id).collect();
-    let owner = owner_id(tile, &ids);
-    let c = cells as u32;
+    let owner = owner_id(tile, k, &ids);
     Some(EdgePatch {
         owner,
         id: PatchId::derive(owner, 0, [0, 0]),
         tile,
         members: ids,
-        kernel: CellRect {
-            c0: km as u32,
-            r0: km as u32,
-            c1: (km + kk) as u32,
-            r1: (km + kk) as u32,
-        },
+        kernel,
         window: CellRect {
             c0: 0,
             r0: 0,
-            c1: c,
-            r1: c,
+            c1: (cols - 1) as u32,
+            r1: (rows - 1) as u32,
         },
-        centre: [km as f64 + kk as f64 / 2.0; 2],
-        half: [kk as f64 / 2.0 + km as f64; 2],
+        kernel_cells: layout.kernel as u32,
+        centre: [
+            km as f64 + k as f64 / 2.0 - a_lo as f64,
+            km as f64 + k as f64 / 2.0 - b_lo as f64,
+        ],
+        half: [k as f64 / 2.0 + km as f64; 2],
         valid,
         error,
         grid: Arc::new(EdgeGrid {
-            cols: n,
-            rows: n,
+            cols,
+            rows,
             heights,
             flags,
             georef,
@@ -522,9 +539,10 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
 }
 
 /// The id of a tile's edge patch: its tile and the surveys it was made from.
-fn owner_id(tile: [i64; 2], members: &[SurveyId]) -> SurveyId {
+fn owner_id(tile: [i64; 2], side: i64, members: &[SurveyId]) -> SurveyId {
     let mut h = blake3::Hasher::new();
     h.update(b"patchwork.edge.v1");
+    h.update(&side.to_le_bytes());
     h.update(&tile[0].to_le_bytes());
     h.update(&tile[1].to_le_bytes());
     for m in members {
@@ -533,18 +551,18 @@ fn owner_id(tile: [i64; 2], members: &[SurveyId]) -> SurveyId {
     SurveyId(hash64(h))
 }
 
-/// The true cells of a `side × side` boolean grid as disjoint rectangles [a0, b0, a1, b1):
+/// The true cells of a `cols × rows` boolean grid as disjoint rectangles [a0, b0, a1, b1):
 /// row runs that repeat on the next row grow downwards.
-fn half_rects(side: usize, on: impl Fn(usize, usize) -> bool) -> Vec<[usize; 4]> {
+fn half_rects(cols: usize, rows: usize, on: impl Fn(usize, usize) -> bool) -> Vec<[usize; 4]> {
     let mut done = Vec::new();
     let mut open: Vec<[usize; 4]> = Vec::new();
-    for b in 0..side {
+    for b in 0..rows {
         let mut runs = Vec::new();
         let mut a = 0;
-        while a < side {
+        while a < cols {
             if on(a, b) {
                 let s = a;
-                while a < side && on(a, b) {
+                while a < cols && on(a, b) {
                     a += 1;
                 }
                 runs.push((s, a));
@@ -607,7 +625,7 @@ mod tests {
     #[test]
     fn half_rects_cover_exactly() {
         let on = |a: usize, b: usize| !(a + 2 * b).is_multiple_of(5) && a < 7;
-        let rects = half_rects(9, on);
+        let rects = half_rects(9, 9, on);
         for b in 0..9 {
             for a in 0..9 {
                 let n = rects

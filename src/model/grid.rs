@@ -288,6 +288,44 @@ impl Grid {
         self.bilinear_grid(self.georef.to_grid(p))
     }
 
+    /// The samples `[c0, c0 + cols) × [r0, r0 + rows)`, georeferenced where they lie.
+    pub fn window(&self, c0: usize, r0: usize, cols: usize, rows: usize) -> Grid {
+        assert!(
+            c0 + cols <= self.cols && r0 + rows <= self.rows,
+            "window outside the grid"
+        );
+        let mut samples = Vec::with_capacity(cols * rows);
+        for r in r0..r0 + rows {
+            samples.extend_from_slice(&self.samples[r * self.cols + c0..r * self.cols + c0 + cols]);
+        }
+        Grid {
+            cols,
+            rows,
+            samples,
+            georef: Georef {
+                origin: self.georef.to_world(c0 as f64, r0 as f64),
+                ..self.georef
+            },
+        }
+    }
+
+    /// Every `k`-th sample from the first, along both axes: a coarser survey of the same
+    /// ground, with no filtering.
+    pub fn decimated(&self, k: usize) -> Grid {
+        let cols = (self.cols - 1) / k + 1;
+        let rows = (self.rows - 1) / k + 1;
+        let mut samples = Vec::with_capacity(cols * rows);
+        for r in 0..rows {
+            samples.extend((0..cols).map(|c| self.at(c * k, r * k)));
+        }
+        Grid {
+            cols,
+            rows,
+            samples,
+            georef: self.georef.coarsened(k as f64),
+        }
+    }
+
     /// Axis-aligned world bounds of the sample positions.
     pub fn world_bounds(&self) -> crate::index::geom::Aabb {
         let c = (self.cols - 1) as f64;

@@ -184,6 +184,11 @@ pub struct ResolvedPatch {
     pub inv_half: [f64; 2],
     /// 1 / (dx·dy): the weight's unit volume, in world units.
     pub norm: f64,
+    /// 0 for the paper's tent, w(t) = 1 − |t|. For edge patches, half / margin: the weight is
+    /// min(1, (1 − |t|)·flat), flat over the kernel and falling to 0 across the extension
+    /// zone, so that the large tiles of edge patches weigh their kernel fully (and an f32
+    /// evaluation of the weight keeps its precision there).
+    pub flat: f64,
     pub window_aabb: Aabb,
     /// The patch's error, for the fallback's tiers.
     pub error: f64,
@@ -227,6 +232,7 @@ impl ResolvedPatch {
             centre,
             inv_half: [1.0 / half[0], 1.0 / half[1]],
             norm: 1.0 / (half[0] * g.step[0] * half[1] * g.step[1]),
+            flat: 0.0,
             window_aabb: w.aabb().intersection(&nominal.aabb()).unwrap_or(w.aabb()),
             error,
             fallback,
@@ -254,7 +260,8 @@ impl ResolvedPatch {
     }
 
     pub fn edge(e: &EdgePatch, fallback: bool) -> Self {
-        Self::make(
+        let kernel_half = (e.kernel_cells as usize * crate::model::edge::EDGE_TILE) as f64 / 2.0;
+        let mut p = Self::make(
             e.id,
             Surface::Edge(e.grid.clone()),
             e.kernel,
@@ -263,7 +270,20 @@ impl ResolvedPatch {
             e.half,
             e.error,
             fallback,
-        )
+        );
+        p.flat = e.half[0] / (e.half[0] - kernel_half);
+        p
+    }
+
+    /// The 1-D blend weight at t ∈ (−1, 1).
+    #[inline]
+    fn weight(&self, t: f64) -> f64 {
+        let w = 1.0 - t.abs();
+        if self.flat > 0.0 {
+            (w * self.flat).min(1.0)
+        } else {
+            w
+        }
     }
 
     /// Grid coordinates of a world point. Coordinates within [`SNAP`] of a grid line are
@@ -308,7 +328,7 @@ impl ResolvedPatch {
                 }
             }
         };
-        let w = (1.0 - tx.abs()) * (1.0 - ty.abs()) * self.norm * hit.weight;
+        let w = self.weight(tx) * self.weight(ty) * self.norm * hit.weight;
         Some((w, hit))
     }
 }

@@ -60,6 +60,11 @@ struct Patch {
     cols: u32,
     rows: u32,
     kind: u32,
+    // `ResolvedPatch::flat`: 0 for the tent, else the slope of a weight flat on the kernel.
+    flat: f32,
+    _pad0: f32,
+    _pad1: f32,
+    _pad2: f32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -72,13 +77,14 @@ struct Patch {
 @group(0) @binding(6) var<storage, read_write> heights: array<vec2<f32>>;
 @group(0) @binding(7) var<storage, read_write> valid: array<u32>;
 
-// The 1-D blending weight of a patch kind on t in [-1, 1].
-fn weight(kind: u32, t: f32) -> f32 {
-    switch kind {
-        case KIND_BILINEAR, default: {
-            return max(1.0 - abs(t), 0.0);
-        }
+// The 1-D blending weight on t in [-1, 1]: the tent, or for edge patches one flat on the
+// kernel (`ResolvedPatch::weight`).
+fn weight(q: Patch, t: f32) -> f32 {
+    let w = max(1.0 - abs(t), 0.0);
+    if q.flat > 0.0 {
+        return min(w * q.flat, 1.0);
     }
+    return w;
 }
 
 fn at(q: Patch, c: u32, r: u32) -> f32 {
@@ -149,16 +155,18 @@ fn flag(q: Patch, c: u32, r: u32) -> u32 {
     return u32(samples[q.offset + q.cols * q.rows + r * q.cols + c]);
 }
 
-// `edge::ramp`: twice the distance to the nearest void corner's pixel, at most 1.
-fn ramp(v: vec4<bool>, f: vec2<f32>) -> f32 {
+// `edge::ramp`: twice the distance to the nearest void corner's pixel, at most 1. From the
+// offset d = f − 0.5, which carries the hi/lo precision: |f − s| − 0.5 is d for s = 0 and −d
+// for s = 1, so a ramp of 10⁻⁶ near a pixel edge keeps its relative precision.
+fn ramp(v: vec4<bool>, d: vec2<f32>) -> f32 {
     var r = 1.0;
     for (var k = 0u; k < 4u; k++) {
         if v[k] {
             continue;
         }
-        let s = vec2<f32>(f32(k & 1u), f32(k >> 1u));
-        let d = max(abs(f - s) - 0.5, vec2<f32>(0.0));
-        r = min(r, 2.0 * max(d.x, d.y));
+        let sign = vec2<f32>(select(1.0, -1.0, (k & 1u) != 0u), select(1.0, -1.0, (k >> 1u) != 0u));
+        let e = max(sign * d, vec2<f32>(0.0));
+        r = min(r, 2.0 * max(e.x, e.y));
     }
     return r;
 }
@@ -202,7 +210,7 @@ fn edge_cell(q: Patch, c: u32, r: u32, f: vec2<f32>, d: vec2<f32>) -> vec4<f32> 
     } else {
         z = z00 + (z11 - z01) * f.x + (z01 - z00) * f.y;
     }
-    return vec4<f32>(z, max(ramp(v, f), MIN_WEIGHT), 1.0, 1.0);
+    return vec4<f32>(z, max(ramp(v, d), MIN_WEIGHT), 1.0, 1.0);
 }
 
 fn is_edge(q: Patch, c: u32, r: u32) -> bool {
@@ -284,7 +292,7 @@ fn sample_patch(q: Patch, pt: vec4<f32>) -> vec4<f32> {
     if e.w == 0.0 {
         return vec4<f32>(0.0);
     }
-    let w = weight(q.kind, t.x) * weight(q.kind, t.y) * q.norm * e.y;
+    let w = weight(q, t.x) * weight(q, t.y) * q.norm * e.y;
     return vec4<f32>(w, e.x, e.z, 1.0);
 }
 

@@ -317,32 +317,12 @@ pub fn real_crop(name: &str) -> Grid {
 
 /// A window of a grid, georeferenced where it lies.
 pub fn window(g: &Grid, c0: usize, r0: usize, cols: usize, rows: usize) -> Grid {
-    let mut s = Vec::with_capacity(cols * rows);
-    for r in r0..r0 + rows {
-        s.extend_from_slice(&g.samples[r * g.cols + c0..r * g.cols + c0 + cols]);
-    }
-    let georef = Georef {
-        origin: g.georef.to_world(c0 as f64, r0 as f64),
-        ..g.georef
-    };
-    Grid::new(cols, rows, s, georef).unwrap()
+    g.window(c0, r0, cols, rows)
 }
 
 /// Every `k`-th sample of a grid from the first: a coarser survey of the same ground.
 pub fn decimate(g: &Grid, k: usize) -> Grid {
-    let cols = (g.cols - 1) / k + 1;
-    let rows = (g.rows - 1) / k + 1;
-    let mut s = Vec::with_capacity(cols * rows);
-    for r in 0..rows {
-        for c in 0..cols {
-            s.push(g.at(c * k, r * k));
-        }
-    }
-    let georef = Georef {
-        step: [g.georef.step[0] * k as f64, g.georef.step[1] * k as f64],
-        ..g.georef
-    };
-    Grid::new(cols, rows, s, georef).unwrap()
+    g.decimated(k)
 }
 
 /// A grid with only a `keep` fraction of its samples left, chosen by a seeded hash: scattered
