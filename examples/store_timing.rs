@@ -127,7 +127,8 @@ fn main() {
     );
 
     let t = Instant::now();
-    let (Opened { store, .. }, rep) = store.compact().unwrap();
+    let live = terrain.index().state().into_keys().collect();
+    let (Opened { store, .. }, rep) = store.compact(&live).unwrap();
     println!(
         "compact: {:.0} ms (reopen included), {:.1} → {:.1} MiB",
         ms(t),

@@ -494,7 +494,8 @@ impl Engine {
             .take()
             .ok_or_else(|| EngineError::Unavailable("the store is being compacted".into()))?;
         let dir = store.path().to_path_buf();
-        match store.compact() {
+        let live = self.snapshot().index().state().into_keys().collect();
+        match store.compact(&live) {
             Ok((opened, report)) => {
                 *self.store.lock().expect("store lock") = Some(opened.store);
                 self.publish(opened.terrain);

@@ -33,7 +33,7 @@ pub enum IngestError {
         file_crs: u32,
     },
     #[error(
-        "accuracy {value} m (from the {given_by}) is refused: it must be a number of metres in \
+        "accuracy {value} m ({given_by}) is refused: it must be a number of metres in \
          [0, {max}), the top of LOD space (index.max_error); a survey that inaccurate would \
          never serve any answer"
     )]
@@ -208,6 +208,13 @@ pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError>
     let t1 = Instant::now();
     let grid = raster.into_grid()?;
     let survey = Survey::build(grid, spec, Some(crs), s.layout)?;
+    if survey.accuracy >= s.max_accuracy {
+        return Err(IngestError::BadAccuracy {
+            value: survey.accuracy,
+            given_by: source.as_str(),
+            max: s.max_accuracy,
+        });
+    }
     Ok(Prepared {
         survey,
         source,

@@ -514,7 +514,8 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
     assert_same(&terrain, &t, &roi);
     let before = store.disk_bytes();
     let started = Instant::now();
-    let (Opened { store, terrain, .. }, rep) = store.compact().unwrap();
+    let live = terrain.index().state().into_keys().collect();
+    let (Opened { store, terrain, .. }, rep) = store.compact(&live).unwrap();
     eprintln!("compaction: {rep:?} in {:?}", started.elapsed());
     assert_eq!(rep.bytes_before, before);
     assert_eq!(rep.surveys_purged, 5);
@@ -540,7 +541,8 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_same(&terrain, &t, &roi);
     // Compacting a compact store changes nothing.
-    let (Opened { terrain, .. }, rep) = store.compact().unwrap();
+    let live = terrain.index().state().into_keys().collect();
+    let (Opened { terrain, .. }, rep) = store.compact(&live).unwrap();
     assert_eq!((rep.surveys_purged, rep.keys_removed), (0, 0));
     assert_same(&terrain, &t, &roi);
 }

@@ -329,6 +329,10 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
             m.scene, m.error, m.patches, m.finer, m.max_err, m.rms_err, m.split_diff
         );
     }
+    println!(
+        "copies: the finer survey's ε {:.2} m, its 90 m copy's {:.2} m",
+        scenes.copies_accuracy.0, scenes.copies_accuracy.1
+    );
     for c in &scenes.copies {
         println!(
             "copy by {}: estimated ε {:.2} m, measured {:.2} m max, {:.2} m RMS",

@@ -87,8 +87,8 @@ impl PatchBox {
         }
     }
 
-    /// The box of an edge patch. Its nominal area is a level-0 kernel's, since it is cut on
-    /// the same tiles.
+    /// The box of an edge patch. Its nominal area is a level-0 kernel's, whatever its tile's
+    /// size: its samples are level 0's, so it is ordered with level-0 patches.
     pub fn edge(e: &EdgePatch) -> Self {
         let g = &e.grid.georef;
         let kernel = ORect::from_cells(g, &e.kernel);
@@ -182,22 +182,6 @@ pub struct ChangeStats {
     pub moved: Vec<(PatchId, BoxState)>,
     /// Boxes removed.
     pub removed: Vec<PatchId>,
-}
-
-impl ChangeStats {
-    /// This change followed by `later`, as one change.
-    pub fn then(mut self, later: ChangeStats) -> ChangeStats {
-        let gone: HashSet<PatchId> = later.removed.iter().copied().collect();
-        let now: HashSet<PatchId> = later.moved.iter().map(|(id, _)| *id).collect();
-        self.moved
-            .retain(|(id, _)| !gone.contains(id) && !now.contains(id));
-        self.moved.extend(later.moved);
-        self.removed.retain(|id| !now.contains(id));
-        self.removed.extend(later.removed);
-        self.patches += later.patches;
-        self.recomputed += later.recomputed;
-        self
-    }
 }
 
 #[derive(Clone, Debug)]

@@ -134,7 +134,7 @@ impl LodIndex {
                 }
                 // Judged on its kernel, within the ROI where the kernel reaches into it.
                 let (lo, hi) = field.range(&b.aabb.intersection(&area).unwrap_or(b.aabb));
-                if b.min_z <= hi && span.max_z > lo {
+                if span.is_active() && b.min_z <= hi && span.max_z > lo {
                     return Some(Extracted::of(b, span, false));
                 }
                 let exposed = self.state_of(id).is_some_and(|s| s.exposed);

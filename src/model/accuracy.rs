@@ -195,10 +195,14 @@ pub fn estimate(g: &Grid, tiling: &Tiling, margin: u32) -> Estimate {
         .collect();
     // A kernel too thin or too void to measure takes the largest estimate of its measured
     // neighbours (ε must bound the error, so an unknown one is not assumed small), or, with
-    // none, the survey's median.
+    // none, the survey's median; a survey with nothing to measure, half its largest step
+    // between neighbouring samples.
     let mut measured: Vec<f64> = values.iter().flatten().copied().collect();
     measured.sort_by(f64::total_cmp);
-    let median = measured.get(measured.len() / 2).copied().unwrap_or(0.0);
+    let median = measured
+        .get(measured.len() / 2)
+        .copied()
+        .unwrap_or_else(|| 0.5 * largest_step(g));
     let at = |a: i64, b: i64| -> Option<f64> {
         (a >= 0 && b >= 0 && (a as usize) < dims[0] && (b as usize) < dims[1])
             .then(|| values[b as usize * dims[0] + a as usize])
@@ -221,6 +225,36 @@ pub fn estimate(g: &Grid, tiling: &Tiling, margin: u32) -> Estimate {
         rms2,
         rms4,
         kernels: KernelAccuracy { dims, values },
+    }
+}
+
+/// The largest height difference between two valid samples side by side, or, with no two
+/// side by side, the spread of the valid heights: a scale for ground the decimation cannot
+/// measure.
+fn largest_step(g: &Grid) -> f64 {
+    let (mut step, mut lo, mut hi) = (0.0f64, f64::INFINITY, f64::NEG_INFINITY);
+    let mut pairs = false;
+    for r in 0..g.rows {
+        for c in 0..g.cols {
+            let z = g.at(c, r);
+            if z.is_nan() {
+                continue;
+            }
+            (lo, hi) = (lo.min(z as f64), hi.max(z as f64));
+            for (dc, dr) in [(1, 0), (0, 1)] {
+                if c + dc < g.cols && r + dr < g.rows && g.is_valid(c + dc, r + dr) {
+                    pairs = true;
+                    step = step.max((g.at(c + dc, r + dr) - z).abs() as f64);
+                }
+            }
+        }
+    }
+    if pairs {
+        step
+    } else if hi >= lo {
+        hi - lo
+    } else {
+        0.0
     }
 }
 
@@ -291,6 +325,20 @@ mod tests {
             .map(|k| f((k % n) as f64, (k / n) as f64) as f32)
             .collect();
         Grid::new(n, n, s, Georef::north_up([0.0, 0.0], [1.0, 1.0])).unwrap()
+    }
+
+    #[test]
+    fn a_grid_too_small_to_measure_is_not_taken_as_exact() {
+        let g = Grid::new(
+            2,
+            6,
+            vec![0.0, 4.0, 1.0, 5.0, 2.0, 6.0, 3.0, 9.0, 4.0, 8.0, 5.0, 7.0],
+            Georef::north_up([0.0, 0.0], [1.0, 1.0]),
+        )
+        .unwrap();
+        let e = estimate(&g, &Tiling::new(g.cells(), 28, [0, 0]), 2);
+        // Nothing is decimated away, so half the largest step between neighbours: 6 m / 2.
+        assert_eq!(e.kernels.max(), 3.0);
     }
 
     #[test]

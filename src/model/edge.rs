@@ -140,8 +140,9 @@ impl EdgeGrid {
     }
 }
 
-/// Twice the distance (along the nearer axis) from a point to the nearest void corner's
-/// pixel, at most 1. Only the cell's own corners have pixels within half a cell of it.
+/// Twice the distance from a point to the nearest void corner's pixel (the larger of the
+/// distances along the two axes, as for a square), at most 1. Only the cell's own corners
+/// have pixels within half a cell of it.
 #[inline]
 pub fn ramp(v: [bool; 4], f: [f64; 2]) -> f64 {
     let mut r = 1.0f64;
@@ -228,6 +229,9 @@ pub struct EdgePatch {
     pub window: CellRect,
     /// The level-0 kernel side, in cells: edge patches are ordered with level-0 patches.
     pub kernel_cells: u32,
+    /// The slope of the blend weight, flat over the kernel: half / margin (see
+    /// `ResolvedPatch::flat`).
+    pub flat: f64,
     pub centre: [f64; 2],
     pub half: [f64; 2],
     /// Where the kernel holds data, as rectangles of grid coordinates (c0, r0, c1, r1) whose
@@ -521,6 +525,7 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
             r1: (rows - 1) as u32,
         },
         kernel_cells: layout.kernel as u32,
+        flat: (k as f64 / 2.0 + km as f64) / km as f64,
         centre: [
             km as f64 + k as f64 / 2.0 - a_lo as f64,
             km as f64 + k as f64 / 2.0 - b_lo as f64,

@@ -21,7 +21,8 @@ const PHASE_TOL: f64 = 1e-6;
 pub struct Lattice {
     pub theta: f64,
     pub step: [f64; 2],
-    /// Where the lattice sits along each axis, as a fraction of a step in [−10⁻⁶, 1 − 10⁻⁶).
+    /// Where the lattice sits along each axis, as a fraction of a step in [10⁻⁶, 1 − 10⁻⁶], or
+    /// 0.
     phase: [f64; 2],
 }
 
@@ -30,9 +31,10 @@ impl Lattice {
         let p = axis_coords(g, g.origin);
         let phase = p.map(|x| {
             let f = x - x.floor();
-            // Fractions a hair below 1 are the same phase as 0: keep one spelling of it.
-            if f > 1.0 - PHASE_TOL {
-                f - 1.0
+            // A phase within the tolerance of a whole step is 0 exactly, so that two grids of
+            // one lattice whose noise falls on either side of it get the same indices.
+            if f < PHASE_TOL || f > 1.0 - PHASE_TOL {
+                0.0
             } else {
                 f
             }

@@ -38,10 +38,10 @@ impl Datum {
         }
     }
 
-    /// The datum a name or citation mentions, if one of ours.
+    /// The datum a name or citation mentions, if one of ours. A TOWGS84[...] node names the
+    /// transformation to WGS 84, not the datum, so it is left out.
     pub fn in_text(text: &str) -> Option<Datum> {
-        // NAD83 and ETRS89 definitions often carry TOWGS84[...], so they are looked for first.
-        let t = squash(text);
+        let t = squash(&without_towgs84(text));
         if t.contains("nad83") || t.contains("northamericandatum1983") {
             Some(Datum::Nad83)
         } else if t.contains("etrs89")
@@ -58,6 +58,20 @@ impl Datum {
             None
         }
     }
+}
+
+/// The text with every TOWGS84[...] node removed.
+fn without_towgs84(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let upper = text.to_ascii_uppercase();
+    let mut i = 0;
+    while let Some(k) = upper[i..].find("TOWGS84[") {
+        out.push_str(&text[i..i + k]);
+        let rest = i + k;
+        i = upper[rest..].find(']').map_or(text.len(), |e| rest + e + 1);
+    }
+    out.push_str(&text[i..]);
+    out
 }
 
 /// Lower-case letters and digits only: "WGS_1984_UTM_Zone_31N" and "WGS 84 / UTM zone 31N"
@@ -249,6 +263,9 @@ mod tests {
         assert_eq!(epsg_from_wkt(with_id), Ok(32630));
         let geo = r#"GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]]]"#;
         assert_eq!(epsg_from_wkt(geo), Ok(4326));
+        // A datum of its own with a transformation to WGS 84 is not WGS 84.
+        let ed50 = r#"PROJCS["ED50 / UTM zone 31N",GEOGCS["ED50",DATUM["European_Datum_1950",SPHEROID["International 1924",6378388,297],TOWGS84[-87,-98,-121,0,0,0,0]]],PROJECTION["Transverse_Mercator"]]"#;
+        assert_eq!(epsg_from_wkt(ed50), Err("ED50 / UTM zone 31N".to_string()));
     }
 
     #[test]

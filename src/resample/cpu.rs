@@ -5,7 +5,8 @@
 //! Where a cut falls back below the data's accuracy, patches come in tiers: the cut's own
 //! patches, then the fallback patches ranked by error. At a point some cut patch covers, only
 //! the cut's patches blend; elsewhere the best-ranked fallback patch that covers the point
-//! sets the tier, and the patches of that rank or better blend. A point's height then depends
+//! sets the tier, and the fallback patches of that rank or better blend with the cut's
+//! patches that reach the point (which are more accurate still). A point's height then depends
 //! only on the point and the patches that reach it, never on the ROI, and it is within the
 //! error of the most accurate data that covers it.
 
@@ -38,12 +39,13 @@ pub fn resample(set: &PatchSet, grid: &SampleGrid) -> Vec<f32> {
         .enumerate()
         .for_each(|(j, row)| {
             let pts = &grid.points[j * grid.width..(j + 1) * grid.width];
+            let mut tiers = Vec::with_capacity(8);
             for (i, (o, &p)) in row.iter_mut().zip(pts).enumerate() {
                 if p[0].is_nan() {
                     continue;
                 }
                 let bin = &bins[(j / BLOCK) * bx + i / BLOCK];
-                *o = blend(set, bin, p);
+                *o = blend_with(set, bin, p, &mut tiers);
             }
         });
     out
@@ -81,12 +83,14 @@ impl Tier {
     }
 }
 
-/// Distinct fallback ranks one point can keep apart; more is handled by a second pass.
-const RANKS: usize = 16;
-
 /// Formula 1 at one point.
-#[inline]
 pub fn blend(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
+    blend_with(set, bin, p, &mut Vec::new())
+}
+
+/// Formula 1 at one point, with `tiers` as scratch space for the fallback ranks that reach it.
+#[inline]
+fn blend_with(set: &PatchSet, bin: &[u32], p: [f64; 2], tiers: &mut Vec<(u32, Tier)>) -> f32 {
     let mut cut = Tier::default();
     if !set.has_fallback {
         for &k in bin {
@@ -96,8 +100,7 @@ pub fn blend(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
         }
         return cut.height();
     }
-    let mut tiers: [(u32, Tier); RANKS] = [(u32::MAX, Tier::default()); RANKS];
-    let mut n = 0;
+    tiers.clear();
     for &k in bin {
         let q = &set.patches[k as usize];
         let Some((w, h)) = q.at(p) else {
@@ -107,50 +110,23 @@ pub fn blend(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
             cut.add(w, h.z, h.covered);
             continue;
         }
-        match tiers[..n].iter_mut().find(|t| t.0 == q.rank) {
+        match tiers.iter_mut().find(|t| t.0 == q.rank) {
             Some(t) => t.1.add(w, h.z, h.covered),
-            None if n < RANKS => {
-                tiers[n].0 = q.rank;
-                tiers[n].1.add(w, h.z, h.covered);
-                n += 1;
+            None => {
+                let mut t = Tier::default();
+                t.add(w, h.z, h.covered);
+                tiers.push((q.rank, t));
             }
-            None => return blend_two_pass(set, bin, p),
         }
     }
     if cut.covered {
         return cut.height();
     }
-    let Some(best) = tiers[..n].iter().filter(|t| t.1.covered).map(|t| t.0).min() else {
+    let Some(best) = tiers.iter().filter(|t| t.1.covered).map(|t| t.0).min() else {
         return f32::NAN;
     };
-    for t in tiers[..n].iter().filter(|t| t.0 <= best) {
+    for t in tiers.iter().filter(|t| t.0 <= best) {
         cut.merge(&t.1);
     }
     cut.height()
-}
-
-/// The tiered blend for a point that more fallback ranks reach than [`blend`] keeps apart.
-#[cold]
-fn blend_two_pass(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
-    let hits: Vec<(&ResolvedPatch, f64, super::Hit)> = bin
-        .iter()
-        .filter_map(|&k| {
-            let q = &set.patches[k as usize];
-            q.at(p).map(|(w, h)| (q, w, h))
-        })
-        .collect();
-    let cut_covers = hits.iter().any(|(q, _, h)| !q.fallback && h.covered);
-    let best = hits
-        .iter()
-        .filter(|(q, _, h)| q.fallback && h.covered)
-        .map(|(q, _, _)| q.rank)
-        .min();
-    let mut t = Tier::default();
-    for (q, w, h) in &hits {
-        let take = !q.fallback || (!cut_covers && best.is_some_and(|b| q.rank <= b));
-        if take {
-            t.add(*w, h.z, h.covered);
-        }
-    }
-    t.height()
 }

@@ -260,7 +260,6 @@ impl ResolvedPatch {
     }
 
     pub fn edge(e: &EdgePatch, fallback: bool) -> Self {
-        let kernel_half = (e.kernel_cells as usize * crate::model::edge::EDGE_TILE) as f64 / 2.0;
         let mut p = Self::make(
             e.id,
             Surface::Edge(e.grid.clone()),
@@ -271,7 +270,7 @@ impl ResolvedPatch {
             e.error,
             fallback,
         );
-        p.flat = e.half[0] / (e.half[0] - kernel_half);
+        p.flat = e.flat;
         p
     }
 

@@ -76,9 +76,11 @@ pub(super) fn recover(dir: &Path) -> Result<(), StoreError> {
 
 impl Store {
     /// Removes the samples and patches of retired surveys and every key that belongs to no
-    /// active survey, then rewrites the files. Retired surveys keep their records, so
-    /// [`Store::surveys`] still tells what was retired.
-    pub fn compact(self) -> Result<(Opened, CompactReport), StoreError> {
+    /// active survey, then rewrites the files. `live` holds the patches of the terrain the
+    /// store holds (its surveys' and the edge patches they call for): only their box states
+    /// are kept. Retired surveys keep their records, so [`Store::surveys`] still tells what
+    /// was retired.
+    pub fn compact(self, live: &HashSet<PatchId>) -> Result<(Opened, CompactReport), StoreError> {
         let bytes_before = self.disk_bytes();
         let dir = self.dir.clone();
         let tmp = sibling(&dir, ".compact")?;
@@ -92,14 +94,7 @@ impl Store {
             .filter(|r| r.status == Status::Active)
             .map(|r| r.id)
             .collect();
-        // Tops are written and removed with the changes that make them, so the only ones left
-        // to drop are those of retired surveys' patches that a crash or an older version kept.
-        let mut dead_patches: HashSet<PatchId> = HashSet::new();
-        for r in records.iter().filter(|r| r.status == Status::Retired) {
-            if let Ok(ps) = self.load_patches(r.id) {
-                dead_patches.extend(ps.iter().map(|p| p.id));
-            }
-        }
+
         let surveys_purged = records
             .iter()
             .filter(|r| r.status == Status::Retired)
@@ -123,7 +118,7 @@ impl Store {
                 return active.contains(&id);
             }
             if let Some(id) = keys::parse_top(k) {
-                return !dead_patches.contains(&id);
+                return live.contains(&id);
             }
             if let Some((a, b)) = keys::parse_overlap(k) {
                 return active.contains(&a) && active.contains(&b);

@@ -478,17 +478,20 @@ impl Store {
             return Ok((self.rebuild(surveys)?, Vec::new()));
         }
         let mut states = self.states()?;
-        let (terrain, missing) = Terrain::restore(self.index, surveys, &states);
-        for id in terrain.index().state().keys() {
-            states.remove(id);
-        }
+        let (terrain, missing) = Terrain::restore(self.index, surveys.clone(), &states);
         let mut warnings = Vec::new();
         if let Some(p) = missing.first() {
+            // A patch without a state would be a hole; deriving the index again costs an
+            // insertion per survey and writes every state.
             warnings.push(format!(
-                "{} patches of active surveys have no stored top (first: {p}); they are \
-                 restored as cut to nothing",
+                "{} patches had no stored top (first: {p}); the index was derived again from \
+                 the surveys",
                 missing.len()
             ));
+            return Ok((self.rebuild(surveys)?, warnings));
+        }
+        for id in terrain.index().state().keys() {
+            states.remove(id);
         }
         if let Some(p) = states.keys().min() {
             warnings.push(format!(

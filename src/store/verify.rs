@@ -218,26 +218,26 @@ impl Store {
             rep.problems = pr.finish();
             return Ok(rep);
         }
-        let complete = whole.len() == rep.active;
-        let (terrain, missing) = Terrain::restore(self.index, whole, &tops);
-        for p in &missing {
-            pr.add("missing top", format!("patch {p} has no top"));
-        }
-        for id in terrain.index().state().keys() {
-            tops.remove(id);
-        }
-        // With a survey missing, the edge patches it would have called for cannot be told
-        // apart from orphans, so only a complete store is checked for them.
-        if complete {
+        // Without every active survey the index cannot be derived as the store holds it (its
+        // neighbours' tops and the edge patches depend on the missing one): what is wrong with
+        // the surveys is reported above, and the index is checked once they are whole.
+        if whole.len() == rep.active {
+            let (terrain, missing) = Terrain::restore(self.index, whole, &tops);
+            for p in &missing {
+                pr.add("missing top", format!("patch {p} has no top"));
+            }
+            for id in terrain.index().state().keys() {
+                tops.remove(id);
+            }
             for p in tops.keys() {
                 pr.add(
                     "orphan top",
                     format!("top of patch {p} belongs to no patch of the terrain"),
                 );
             }
-        }
-        if let Err(e) = terrain.index().check() {
-            pr.add("index", format!("the restored index fails its check: {e}"));
+            if let Err(e) = terrain.index().check() {
+                pr.add("index", format!("the restored index fails its check: {e}"));
+            }
         }
         rep.problems = pr.finish();
         Ok(rep)
