@@ -33,7 +33,7 @@ impl Lattice {
             let f = x - x.floor();
             // A phase within the tolerance of a whole step is 0 exactly, so that two grids of
             // one lattice whose noise falls on either side of it get the same indices.
-            if f < PHASE_TOL || f > 1.0 - PHASE_TOL {
+            if !(PHASE_TOL..=1.0 - PHASE_TOL).contains(&f) {
                 0.0
             } else {
                 f
