@@ -312,12 +312,17 @@ impl LodIndex {
             .collect()
     }
 
-    /// Algorithm 1, over every greater patch present. Candidates are taken in order of error
-    /// (ties by id, so the answer never depends on iteration order); coverage is monotone in
-    /// the set, so a binary search over the distinct errors finds the first that covers.
-    fn ceiling_of(&self, p: &PatchBox) -> f64 {
+    /// Algorithm 1, over every greater patch present among `near` (the patches whose kernels
+    /// meet `p`'s). Candidates are taken in order of error (ties by id, so the answer never
+    /// depends on iteration order); coverage is monotone in the set, so a binary search over
+    /// the distinct errors finds the first that covers.
+    fn ceiling_of(&self, p: &PatchBox, near: &[&Arc<PatchBox>]) -> f64 {
         let top = self.cfg.max_error;
-        let mut cands = self.neighbours(p, |q| q.order(p) == Ordering::Greater);
+        let mut cands: Vec<&Arc<PatchBox>> = near
+            .iter()
+            .copied()
+            .filter(|q| q.order(p) == Ordering::Greater)
+            .collect();
         if cands.is_empty() {
             return top;
         }
@@ -349,22 +354,24 @@ impl LodIndex {
         z.min(top)
     }
 
-    /// Whether some of `p`'s valid kernel is covered by no more accurate patch. Like the top,
-    /// a pure function of the set of patches.
-    fn exposed(&self, p: &PatchBox) -> bool {
-        let better: Vec<ORect> = self
-            .neighbours(p, |q| q.more_accurate(p))
-            .into_iter()
+    /// Whether some of `p`'s valid kernel is covered by no more accurate patch among `near`.
+    /// Like the top, a pure function of the set of patches.
+    fn exposed(&self, p: &PatchBox, near: &[&Arc<PatchBox>]) -> bool {
+        let better: Vec<ORect> = near
+            .iter()
+            .filter(|q| q.more_accurate(p))
             .flat_map(|q| q.valid.iter().copied())
             .collect();
-        !covered_all(&p.valid, &better)
+        better.is_empty() || !covered_all(&p.valid, &better)
     }
 
     fn derive(&self, p: &PatchBox) -> BoxState {
-        BoxState {
-            top: self.ceiling_of(p),
-            exposed: self.exposed(p),
-        }
+        let near = self.neighbours(p, |_| true);
+        let top = self.ceiling_of(p, &near);
+        // A box cut to nothing is covered by greater patches no less accurate than itself,
+        // which are more accurate in the total order: it is exposed nowhere.
+        let exposed = top > p.min_z && self.exposed(p, &near);
+        BoxState { top, exposed }
     }
 
     /// Recomputes the state of `ids` against the current set and moves changed boxes in the
