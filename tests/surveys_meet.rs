@@ -349,3 +349,39 @@ fn the_edges_of_the_input_space_have_answers() {
         assert!((z - g.at(k * 7, 33)).abs() < 1e-3);
     }
 }
+
+#[test]
+fn surveys_on_different_lattices_with_less_than_a_cell_between_them_leave_no_gap() {
+    // The west half at 30 m, and the east half as a 90 m survey whose first sample is two fine
+    // cells past the fine survey's last: 0.67 of its own cells, so their pixels meet.
+    let whole = cop();
+    let west = window(&whole, 0, 0, 150, 300);
+    let east = decimate(&window(&whole, 151, 0, 149, 300), 3);
+    for spec in [1.0, 5.0] {
+        let w = survey_with(west.clone(), spec);
+        let e = survey_with(east.clone(), 3.0 * spec);
+        let t = terrain_of(&[w.clone(), e.clone()]);
+        // A band across the join, finer than either survey, out to the outer pixel rows.
+        let roi = pixels(&whole, 120.0, 0.0, 180.0, 298.0);
+        for err in [0.0, spec, 3.0 * spec, 50.0] {
+            let tile = t.tile(&roi, 240, 200, err);
+            let grid = SampleGrid::uniform(&roi, 240, 200);
+            // Each patch is within its error of its own survey, and the blend is convex.
+            let bound = tile
+                .patches
+                .iter()
+                .map(|x| x.span.min_z)
+                .fold(0.0, f64::max);
+            for (p, z) in grid.points.iter().zip(&tile.heights) {
+                assert!(!z.is_nan(), "a gap at {p:?}, e = {err}");
+                let hs = survey_heights(&[w.clone(), e.clone()], *p);
+                let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
+                let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                assert!(
+                    (*z as f64) >= lo - bound - 1e-3 && (*z as f64) <= hi + bound + 1e-3,
+                    "{z} outside [{lo}, {hi}] ± {bound} at {p:?}"
+                );
+            }
+        }
+    }
+}

@@ -102,9 +102,8 @@ impl Survey {
         };
         let levels = mipmap::build(Arc::new(grid), layout.kernel);
         let patches = make_patches(id, &kernel_accuracy, &levels, &tiling, &layout, &Bilinear);
-        Ok(Survey {
+        Ok(Self::restore(
             id,
-            accuracy: kernel_accuracy.max(),
             spec,
             crs,
             layout,
@@ -112,10 +111,10 @@ impl Survey {
             kernel_accuracy,
             levels,
             patches,
-        })
+        ))
     }
 
-    /// A survey as a store kept it: its levels, patches, tiling and kernels' ε.
+    /// A survey from its parts: as [`Survey::build`] makes them, or as a store kept them.
     #[allow(clippy::too_many_arguments)]
     pub fn restore(
         id: SurveyId,
