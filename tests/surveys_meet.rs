@@ -312,6 +312,7 @@ fn no_valid_sample_is_lost_and_no_void_is_filled() {
     let soundings = sparse(&cop(), 0.25, 11);
     let valid = soundings.valid_count();
     let loose = nothing_lost_nothing_invented(soundings);
+    println!("soundings: {loose} of {valid} valid samples are in no whole cell");
     assert!(
         loose * 3 > valid,
         "only {loose} of {valid} samples are outside whole cells"
