@@ -72,8 +72,13 @@ pub struct Limits {
     pub max_points: u64,
     /// Longest a request may run, in milliseconds.
     pub deadline_ms: u64,
-    /// Largest raster accepted, in samples; larger headers are refused before reading.
-    pub max_file_samples: u64,
+    /// Most memory one file's decoded raster may take, in MiB; larger headers are refused
+    /// before anything is read.
+    pub max_ingest_mb: u64,
+    /// Heights outside [min_height_m, max_height_m] are not terrain in metres: a file holding
+    /// any is refused.
+    pub min_height_m: f64,
+    pub max_height_m: f64,
 }
 
 impl Default for Limits {
@@ -83,7 +88,9 @@ impl Default for Limits {
             max_patches: 250_000,
             max_points: 1_000_000,
             deadline_ms: 30_000,
-            max_file_samples: 1 << 31,
+            max_ingest_mb: 4096,
+            min_height_m: -12_000.0,
+            max_height_m: 9_000.0,
         }
     }
 }
@@ -242,6 +249,14 @@ impl Config {
         if self.patches.kernel < 2 || self.patches.margin < 1 {
             return Err(ConfigError::Invalid(
                 "patches.kernel must be ≥ 2 cells and patches.margin ≥ 1".into(),
+            ));
+        }
+        let l = &self.limits;
+        if !(l.min_height_m < l.max_height_m) || l.max_ingest_mb == 0 {
+            return Err(ConfigError::Invalid(
+                "limits.min_height_m must be below limits.max_height_m, and \
+                 limits.max_ingest_mb at least 1"
+                    .into(),
             ));
         }
         if self.index.max_error.is_nan()

@@ -322,7 +322,8 @@ impl Engine {
             store_crs: self.crs(),
             // An existing store keeps the layout its tops were computed with.
             layout: self.with_store(|s| Ok(s.layout()))?,
-            max_samples: self.cfg.limits.max_file_samples,
+            read_limits: crate::read::ReadLimits::mb(self.cfg.limits.max_ingest_mb),
+            heights: (self.cfg.limits.min_height_m, self.cfg.limits.max_height_m),
         };
         let prepared = prepare(path, &settings).map_err(ingest_error)?;
         let survey = prepared.survey;

@@ -48,6 +48,18 @@ pub enum IngestError {
     Grid(#[from] crate::model::grid::GridError),
     #[error("{0}")]
     Survey(#[from] SurveyError),
+    #[error(
+        "{outside} of the valid samples lie outside the plausible heights [{lo}, {hi}] m (they \
+         range from {min} to {max} m): the file is not elevation in metres, or its nodata \
+         value is not declared; limits.min_height_m and limits.max_height_m set the range"
+    )]
+    Implausible {
+        outside: u64,
+        lo: f64,
+        hi: f64,
+        min: f32,
+        max: f32,
+    },
     #[error("{path} is a directory, not a DEM file")]
     Directory { path: PathBuf },
     #[error("{path} is not a regular file")]
@@ -81,18 +93,49 @@ pub fn sidecar_path(path: &Path) -> PathBuf {
 }
 
 fn read_sidecar(path: &Path) -> Result<Sidecar, IngestError> {
+    /// A sidecar is a line or two; anything far larger is not one.
+    const MOST: u64 = 64 << 10;
     let side = sidecar_path(path);
-    match std::fs::read_to_string(&side) {
-        Ok(text) => toml::from_str(&text).map_err(|e| IngestError::Sidecar {
-            path: side,
-            message: e.to_string(),
-        }),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Sidecar::default()),
-        Err(e) => Err(IngestError::Sidecar {
-            path: side,
-            message: e.to_string(),
-        }),
+    let bad = |message: String| IngestError::Sidecar {
+        path: side.clone(),
+        message,
+    };
+    let file = match std::fs::File::open(&side) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Sidecar::default()),
+        Err(e) => return Err(bad(e.to_string())),
+    };
+    let mut bytes = Vec::new();
+    std::io::Read::read_to_end(&mut std::io::Read::take(file, MOST + 1), &mut bytes)
+        .map_err(|e| bad(e.to_string()))?;
+    if bytes.len() as u64 > MOST {
+        return Err(bad(format!(
+            "larger than {} KiB, so not a sidecar",
+            MOST >> 10
+        )));
     }
+    let text = String::from_utf8(bytes).map_err(|_| bad("not UTF-8 text".into()))?;
+    toml::from_str(&text).map_err(|e| bad(toml_error(&text, &e)))
+}
+
+/// Where and why a sidecar failed to parse, without quoting it: the TOML error's own text
+/// repeats the offending line, and the sidecar could be any file.
+fn toml_error(text: &str, e: &toml::de::Error) -> String {
+    let line = e
+        .span()
+        .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
+    let at = line.map(|l| format!(" at line {l}")).unwrap_or_default();
+    let msg = e.message();
+    let what = if msg.starts_with("unknown field") {
+        "a key other than accuracy_m and crs"
+    } else if msg.starts_with("invalid type") {
+        "a value of the wrong type (accuracy_m is a number, crs a string like \"EPSG:4326\")"
+    } else {
+        "something that is not TOML"
+    };
+    format!(
+        "the sidecar has {what}{at}; it may set accuracy_m = <metres> and crs = \"EPSG:<code>\""
+    )
 }
 
 /// The settings an ingest needs from the store and the config.
@@ -106,7 +149,9 @@ pub struct IngestSettings {
     /// The store's CRS, once it has one.
     pub store_crs: Option<u32>,
     pub layout: PatchLayout,
-    pub max_samples: u64,
+    pub read_limits: ReadLimits,
+    /// Plausible heights, in metres: a file with a valid sample outside is refused.
+    pub heights: (f64, f64),
 }
 
 /// A file read and modelled.
@@ -162,20 +207,16 @@ pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError>
     let side = read_sidecar(path)?;
     let (spec, source) = accuracy(&side, s)?;
     let t0 = Instant::now();
-    let raster = read_raster(
-        path,
-        &ReadLimits {
-            max_samples: s.max_samples,
-        },
-    )?;
+    let raster = read_raster(path, &s.read_limits)?;
     let read_ms = t0.elapsed().as_millis() as u64;
+    check_heights(&raster.samples, s.heights)?;
     let side_crs = side
         .crs
         .as_deref()
         .map(|c| {
             parse_epsg(c).ok_or_else(|| IngestError::Sidecar {
                 path: sidecar_path(path),
-                message: format!("crs must look like \"EPSG:4326\", got {c:?}"),
+                message: "crs must look like \"EPSG:4326\"".into(),
             })
         })
         .transpose()?;
@@ -225,6 +266,30 @@ pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError>
     })
 }
 
+/// Refuses samples that cannot be heights on Earth in metres: random bytes, feet, or an
+/// undeclared nodata value such as -32767, which would otherwise be served as a pit.
+fn check_heights(samples: &[f32], (lo, hi): (f64, f64)) -> Result<(), IngestError> {
+    let (lo32, hi32) = (lo as f32, hi as f32);
+    let (mut outside, mut min, mut max) = (0u64, f32::INFINITY, f32::NEG_INFINITY);
+    for &z in samples.iter().filter(|z| !z.is_nan()) {
+        if z < lo32 || z > hi32 {
+            outside += 1;
+        }
+        min = min.min(z);
+        max = max.max(z);
+    }
+    if outside > 0 {
+        return Err(IngestError::Implausible {
+            outside,
+            lo,
+            hi,
+            min,
+            max,
+        });
+    }
+    Ok(())
+}
+
 /// Names the watcher leaves alone: files still being written or editor droppings.
 pub fn is_temporary(path: &Path) -> bool {
     let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
@@ -250,7 +315,8 @@ mod tests {
             max_accuracy: 10_000.0,
             store_crs: None,
             layout: PatchLayout::default(),
-            max_samples: 1 << 20,
+            read_limits: ReadLimits::mb(64),
+            heights: (-12_000.0, 9_000.0),
         }
     }
 
@@ -297,6 +363,55 @@ mod tests {
             let e = prepare(&p, &s).unwrap_err().to_string();
             assert!(e.contains("refused") && e.contains("sidecar"), "{bad}: {e}");
         }
+    }
+
+    #[test]
+    fn implausible_heights_and_bad_sidecars_are_refused_without_quoting_them() {
+        let dir = tempfile::tempdir().unwrap();
+        // Random bytes of the size of an SRTM3 tile.
+        let hgt = dir.path().join("N44E005.hgt");
+        let mut state = 0x2545_F491_4F6C_DD1Du64;
+        let bytes: Vec<u8> = (0..2_884_802)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state as u8
+            })
+            .collect();
+        std::fs::write(&hgt, bytes).unwrap();
+        let e = prepare(&hgt, &settings()).unwrap_err().to_string();
+        assert!(e.contains("plausible heights [-12000, 9000] m"), "{e}");
+        let mut wide = settings();
+        wide.heights = (-40_000.0, 40_000.0);
+        if let Err(e) = prepare(&hgt, &wide) {
+            assert!(
+                !e.to_string().contains("plausible"),
+                "a wider range lets them in: {e}"
+            );
+        }
+
+        let p = grid(
+            dir.path(),
+            "a.asc",
+            Some(r#"GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]]"#),
+        );
+        for text in [
+            "secret = 1\n",
+            "accuracy_m = \"secret\"\n",
+            "secret\n",
+            "crs = \"secret\"\n",
+        ] {
+            std::fs::write(sidecar_path(&p), text).unwrap();
+            let e = prepare(&p, &settings()).unwrap_err().to_string();
+            assert!(
+                e.contains("sidecar") && !e.contains("secret"),
+                "{text:?}: {e}"
+            );
+        }
+        std::fs::write(sidecar_path(&p), vec![b'#'; 100_000]).unwrap();
+        let e = prepare(&p, &settings()).unwrap_err().to_string();
+        assert!(e.contains("not a sidecar"), "{e}");
     }
 
     #[test]

@@ -72,6 +72,23 @@ impl<R: BufRead> Tokens<R> {
     }
 }
 
+/// The header keys of an ESRI ASCII grid (lowercase).
+const HEADER_KEYS: [&str; 13] = [
+    "ncols",
+    "nrows",
+    "xllcorner",
+    "xllcenter",
+    "xllcentre",
+    "yllcorner",
+    "yllcenter",
+    "yllcentre",
+    "cellsize",
+    "dx",
+    "dy",
+    "nodata_value",
+    "nodata",
+];
+
 #[derive(Default)]
 struct Header {
     ncols: Option<u64>,
@@ -86,6 +103,7 @@ struct Header {
 
 pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
     let file = open_regular_file(path)?;
+    let file_len = file.metadata()?.len();
     let mut tokens = Tokens {
         reader: BufReader::new(file),
         token: Vec::new(),
@@ -93,37 +111,44 @@ pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadE
 
     let mut h = Header::default();
     // Header lines are "key value"; the first token that is not a key is the first sample.
+    // Nothing read from the file is echoed in an error: a file that is not a grid may hold
+    // anything.
+    let mut words = 0;
     let first_value: Option<String> = loop {
         let Some(tok) = tokens.next()? else {
             break None;
         };
+        words += 1;
         let key = tok.to_ascii_lowercase();
         let is_key = key.starts_with(|c: char| c.is_ascii_alphabetic())
             && !matches!(key.as_str(), "nan" | "inf" | "infinity");
         if !is_key {
             break Some(tok.to_string());
         }
+        let Some(key) = HEADER_KEYS.iter().copied().find(|k| *k == key) else {
+            return Err(ReadError::invalid(format!(
+                "not an ASCII grid: word {words} of the header is none of the keys {}",
+                HEADER_KEYS.join(", ")
+            )));
+        };
         let value = tokens
             .next()?
-            .ok_or_else(|| {
-                ReadError::invalid(format!("ASCII grid header key {key:?} has no value"))
-            })?
+            .ok_or_else(|| ReadError::invalid(format!("ASCII grid header {key} has no value")))?
             .to_string();
+        words += 1;
         let num = || {
-            value.parse::<f64>().map_err(|_| {
-                ReadError::invalid(format!(
-                    "ASCII grid header {key} = {value:?} is not a number"
-                ))
-            })
+            value
+                .parse::<f64>()
+                .map_err(|_| ReadError::invalid(format!("ASCII grid header {key} is not a number")))
         };
         let count = || {
             value.parse::<u64>().ok().filter(|&n| n > 0).ok_or_else(|| {
                 ReadError::invalid(format!(
-                    "ASCII grid header {key} = {value:?} is not a positive whole number"
+                    "ASCII grid header {key} is not a positive whole number"
                 ))
             })
         };
-        match key.as_str() {
+        match key {
             "ncols" => h.ncols = Some(count()?),
             "nrows" => h.nrows = Some(count()?),
             "xllcorner" => h.xll = Some((num()?, false)),
@@ -137,12 +162,7 @@ pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadE
             }
             "dx" => h.dx = Some(num()?),
             "dy" => h.dy = Some(num()?),
-            "nodata_value" | "nodata" => h.nodata = Some(num()?),
-            _ => {
-                return Err(ReadError::invalid(format!(
-                    "unknown ASCII grid header key {key:?}"
-                )));
-            }
+            _ => h.nodata = Some(num()?),
         }
     };
 
@@ -159,6 +179,8 @@ pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadE
         )));
     }
     limits.check(cols, rows)?;
+    // Every sample takes at least a character and a separator.
+    limits.check_fillable(cols, rows, file_len.div_ceil(2))?;
     let (cols, rows) = (cols as usize, rows as usize);
 
     let x0 = if x_centre { xll - 0.5 * dx } else { xll };
@@ -198,10 +220,7 @@ pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadE
 
 fn parse_sample(tok: &str, index: usize, nodata: Option<f32>) -> Result<f32, ReadError> {
     let v: f32 = tok.parse().map_err(|_| {
-        ReadError::invalid(format!(
-            "ASCII grid value {tok:?} (sample {}) is not a number",
-            index + 1
-        ))
+        ReadError::invalid(format!("ASCII grid sample {} is not a number", index + 1))
     })?;
     Ok(if !v.is_finite() || Some(v) == nodata {
         f32::NAN
@@ -354,7 +373,16 @@ mod tests {
                 "ncols 1\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize 1\n1,5\n",
                 "not a number",
             ),
-            ("badkey.asc", "ncols 1\nnrows 1\nfoo 3\n", "unknown"),
+            (
+                "badkey.asc",
+                "ncols 1\nnrows 1\nfoo 3\n",
+                "word 5 of the header",
+            ),
+            (
+                "claims.asc",
+                "ncols 2000\nnrows 2000\nxllcorner 0\nyllcorner 0\ncellsize 1\n1 2 3\n",
+                "can fill at most",
+            ),
             (
                 "zero.asc",
                 "ncols 0\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize 1\n",
@@ -379,6 +407,25 @@ mod tests {
         let binary = dir.path().join("bin.asc");
         std::fs::write(&binary, [0xffu8; 5000]).unwrap();
         assert!(read(&binary).is_err());
+    }
+
+    #[test]
+    fn errors_never_echo_what_the_file_holds() {
+        let dir = tempfile::tempdir().unwrap();
+        for text in [
+            "secret hunter2\n",
+            "ncols secret\n",
+            "ncols 1\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize secret\n",
+            "ncols 1\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize 1\nsecret\n",
+            "ncols 2\nnrows 1\nxllcorner 0\nyllcorner 0\ncellsize 1\n1 secret\n",
+            "secret",
+        ] {
+            let e = read(&write(&dir, "x.asc", text)).unwrap_err().to_string();
+            assert!(
+                !e.contains("secret") && !e.contains("hunter2"),
+                "{text:?}: {e}"
+            );
+        }
     }
 
     #[test]

@@ -101,11 +101,17 @@ fn decode<R: Read + Seek>(
     let kind = sample_kind(&mut dec)?;
     let (geotransform, (epsg, crs_name)) = georeference(&mut dec)?;
     let nodata = gdal_nodata(&mut dec)?;
-    let sparse = chunk_layout_check(&mut dec, file_len)?;
+    let (sparse, present) = chunk_layout_check(&mut dec, file_len)?;
+    let expansion = codec_expansion(&mut dec)?;
+    limits.check_fillable(
+        u64::from(width),
+        u64::from(height),
+        present.saturating_mul(expansion) / kind.bytes(),
+    )?;
 
     // Tags are all read by now, so loosening the decoder's allocation limit can only affect
     // chunk buffers, whose size we have bounded ourselves from the validated dimensions.
-    let largest_chunk = largest_chunk_samples(&dec, cols, rows, limits)? * kind.bytes();
+    let largest_chunk = largest_chunk_samples(&dec, cols, rows)? * kind.bytes();
     let mut tiff_limits = Limits::default();
     tiff_limits.decoding_buffer_size = tiff_limits
         .decoding_buffer_size
@@ -461,13 +467,33 @@ fn gdal_nodata<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<Option<f64>, Read
     })
 }
 
+/// The most bytes one byte of compressed data can decode to, for each compression the
+/// decoder knows; the bound a header's claims are held to before anything is allocated.
+/// PackBits turns 2 bytes into 128; an LZW code (9 to 12 bits) expands to at most 4096 bytes;
+/// deflate's ratio is at most 1032:1; a zstd RLE block turns 4 bytes into 128 KiB.
+fn codec_expansion<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<u64, ReadError> {
+    let code: u16 = dec
+        .find_tag_unsigned(Tag::Compression)
+        .map_err(tiff_error)?
+        .unwrap_or(1);
+    Ok(match code {
+        1 => 1,
+        32773 => 64,
+        5 => 4096,
+        8 | 32946 => 1032,
+        // zstd, and codecs the decoder will refuse anyway.
+        _ => 32768,
+    })
+}
+
 /// Checks every chunk lies inside the file, so a cut-off download reports `Truncated` up front
 /// instead of a decompressor error halfway through. Returns which chunks are sparse (GDAL's
-/// SPARSE_OK writes offset 0 / byte count 0 for blocks that hold only nodata).
+/// SPARSE_OK writes offset 0 / byte count 0 for blocks that hold only nodata) and how many
+/// bytes of image data the other chunks hold.
 fn chunk_layout_check<R: Read + Seek>(
     dec: &mut Decoder<R>,
     file_len: u64,
-) -> Result<Vec<bool>, ReadError> {
+) -> Result<(Vec<bool>, u64), ReadError> {
     let (offsets_tag, counts_tag) = match dec.get_chunk_type() {
         ChunkType::Strip => (Tag::StripOffsets, Tag::StripByteCounts),
         ChunkType::Tile => (Tag::TileOffsets, Tag::TileByteCounts),
@@ -488,6 +514,7 @@ fn chunk_layout_check<R: Read + Seek>(
         )));
     }
     let mut sparse = Vec::with_capacity(offsets.len());
+    let mut present = 0u64;
     for (&offset, &count) in offsets.iter().zip(&counts) {
         if count == 0 {
             sparse.push(true);
@@ -496,25 +523,26 @@ fn chunk_layout_check<R: Read + Seek>(
         if offset.checked_add(count).is_none_or(|end| end > file_len) {
             return Err(ReadError::Truncated);
         }
+        present += count;
         sparse.push(false);
     }
-    Ok(sparse)
+    Ok((sparse, present))
 }
 
 fn largest_chunk_samples<R: Read + Seek>(
     dec: &Decoder<R>,
     cols: usize,
     rows: usize,
-    limits: &ReadLimits,
 ) -> Result<u64, ReadError> {
     let (cw, ch) = dec.chunk_dimensions();
     let (cw, ch) = (u64::from(cw), u64::from(ch));
     match dec.get_chunk_type() {
         ChunkType::Strip => Ok(cols as u64 * ch.min(rows as u64)),
         ChunkType::Tile => {
-            // Tiles wider than the image are legal but a tile claiming more samples than we
-            // would accept for a whole raster is a corrupt or hostile header.
-            if cw.checked_mul(ch).is_none_or(|n| n > limits.max_samples) {
+            // Tiles wider than the image are legal, but a tile many times the image's size
+            // is a corrupt or hostile header.
+            let most = (cols as u64).max(4096) * (rows as u64).max(4096);
+            if cw.checked_mul(ch).is_none_or(|n| n > most) {
                 return Err(ReadError::invalid(format!(
                     "implausible tile size {cw} x {ch}"
                 )));
@@ -1358,9 +1386,46 @@ mod tests {
         // Tighter caller limits apply too.
         let small = write_temp(&dir, "small.tif", &small_geotiff_bytes(&dir));
         let e = GeoTiffReader
-            .read(&small, &ReadLimits { max_samples: 10 })
+            .read(&small, &ReadLimits { max_bytes: 40 })
             .unwrap_err();
         assert!(matches!(e, ReadError::TooLarge { .. }), "{e}");
+    }
+
+    #[test]
+    fn a_few_bytes_claiming_a_huge_raster_are_refused_at_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let raster = |w: u32, compression: u16| {
+            let mut tags = image_tags(w, w, 32, 3);
+            tags.extend(geo_tags((0.0, 0.0), 1.0, 32631));
+            tags.push((259, Val::Short(vec![compression])));
+            tags.push((278, Val::Long(vec![w])));
+            tags
+        };
+        // One sparse strip: StripOffsets = 0, StripByteCounts = 0.
+        let mut tags = raster(20_000, 1);
+        tags.push((273, Val::Long(vec![0])));
+        tags.push((279, Val::Long(vec![0])));
+        let bytes = build_tiff(tags, &[], false);
+        assert!(bytes.len() < 300, "{} bytes", bytes.len());
+        let t0 = std::time::Instant::now();
+        let e = expect_err(&write_temp(&dir, "sparse.tif", &bytes));
+        assert!(t0.elapsed().as_millis() < 100, "took {:?}", t0.elapsed());
+        assert!(e.to_string().contains("can fill at most 0"), "{e}");
+        // A compressed strip can only expand so far: 16 bytes of zstd fill 128 Ki samples.
+        let bytes = build_tiff(raster(20_000, 50000), &[vec![0u8; 16]], false);
+        let e = expect_err(&write_temp(&dir, "zstd.tif", &bytes));
+        assert!(e.to_string().contains("can fill at most 131072"), "{e}");
+        // A raster small enough to cost nothing is still read, sparse or not.
+        let mut tags = raster(64, 1);
+        tags.push((273, Val::Long(vec![0])));
+        tags.push((279, Val::Long(vec![0])));
+        let r = read(&write_temp(
+            &dir,
+            "small.tif",
+            &build_tiff(tags, &[], false),
+        ))
+        .unwrap();
+        assert_eq!((r.cols, r.rows), (64, 64));
     }
 
     #[test]

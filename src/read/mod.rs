@@ -125,8 +125,11 @@ pub enum ReadError {
     Unsupported { what: String },
     #[error("invalid raster file: {what}")]
     Invalid { what: String },
-    #[error("raster is too large: {cols} x {rows} samples exceeds the limit of {limit} samples")]
-    TooLarge { cols: u64, rows: u64, limit: u64 },
+    #[error(
+        "raster is too large: {cols} x {rows} samples need more memory than the limit of \
+         {limit_mb} MiB (limits.max_ingest_mb)"
+    )]
+    TooLarge { cols: u64, rows: u64, limit_mb: u64 },
     #[error("I/O error: {0}")]
     Io(#[source] std::io::Error),
 }
@@ -155,29 +158,61 @@ impl ReadError {
 /// Resource limits applied while reading untrusted files.
 #[derive(Clone, Debug)]
 pub struct ReadLimits {
-    /// Largest cols * rows accepted; checked against the header before any sample buffer exists.
-    pub max_samples: u64,
+    /// Most bytes the decoded raster (`f32` samples) may take. Checked against the header
+    /// before any sample buffer exists.
+    pub max_bytes: u64,
 }
 
 impl Default for ReadLimits {
     fn default() -> Self {
-        ReadLimits {
-            max_samples: 1 << 31,
-        }
+        ReadLimits { max_bytes: 4 << 30 }
     }
 }
 
+/// Bytes of the decoded raster, which holds one `f32` a sample.
+const SAMPLE_BYTES: u64 = 4;
+
 impl ReadLimits {
-    /// Refuses a raster whose header claims more samples than allowed.
+    /// Limits of `mb` mebibytes.
+    pub fn mb(mb: u64) -> Self {
+        ReadLimits {
+            max_bytes: mb.saturating_mul(1 << 20),
+        }
+    }
+
+    /// Refuses a raster whose header claims more samples than the limit allows.
     pub fn check(&self, cols: u64, rows: u64) -> Result<(), ReadError> {
         match cols.checked_mul(rows) {
-            Some(n) if n <= self.max_samples && usize::try_from(n).is_ok() => Ok(()),
+            Some(n)
+                if n.checked_mul(SAMPLE_BYTES)
+                    .is_some_and(|b| b <= self.max_bytes)
+                    && usize::try_from(n).is_ok() =>
+            {
+                Ok(())
+            }
             _ => Err(ReadError::TooLarge {
                 cols,
                 rows,
-                limit: self.max_samples,
+                limit_mb: self.max_bytes >> 20,
             }),
         }
+    }
+
+    /// Refuses a header that declares more samples than the data in the file can fill:
+    /// `fillable` samples at most, whatever the codec does. This is what keeps a few hundred
+    /// bytes from claiming gigabytes.
+    pub fn check_fillable(&self, cols: u64, rows: u64, fillable: u64) -> Result<(), ReadError> {
+        // A small raster costs nothing to allocate, whatever its file holds.
+        const FREE: u64 = 1 << 18;
+        let n = cols.saturating_mul(rows);
+        if n > fillable.max(FREE) {
+            return Err(ReadError::Invalid {
+                what: format!(
+                    "the header declares {cols} x {rows} samples, but the image data in the                      file can fill at most {fillable} of them"
+                ),
+            });
+        }
+        Ok(())
     }
 }
 
@@ -289,11 +324,21 @@ mod tests {
     #[test]
     fn limits_refuse_overflowing_and_large_headers() {
         let limits = ReadLimits::default();
-        assert!(limits.check(46_340, 46_340).is_ok());
+        assert!(limits.check(32_768, 32_768).is_ok());
+        assert!(limits.check(32_768, 32_769).is_err());
         let err = limits.check(1_000_000, 1_000_000).unwrap_err();
         assert!(matches!(err, ReadError::TooLarge { .. }));
         assert!(err.to_string().contains("1000000 x 1000000"), "{err}");
         assert!(limits.check(u64::MAX, 2).is_err());
+        assert!(ReadLimits::mb(1).check(512, 512).is_ok());
+        assert!(ReadLimits::mb(1).check(512, 513).is_err());
+        // Data for a quarter of the samples cannot fill the whole raster.
+        assert!(limits.check_fillable(2000, 2000, 1_000_000).is_err());
+        assert!(limits.check_fillable(2000, 2000, 4_000_000).is_ok());
+        assert!(
+            limits.check_fillable(100, 100, 0).is_ok(),
+            "small rasters are free"
+        );
     }
 
     #[test]
