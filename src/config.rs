@@ -252,7 +252,8 @@ impl Config {
             ));
         }
         let l = &self.limits;
-        if !(l.min_height_m < l.max_height_m) || l.max_ingest_mb == 0 {
+        let ordered = l.min_height_m < l.max_height_m;
+        if !ordered || l.max_ingest_mb == 0 {
             return Err(ConfigError::Invalid(
                 "limits.min_height_m must be below limits.max_height_m, and \
                  limits.max_ingest_mb at least 1"
