@@ -119,7 +119,7 @@ fn main() {
     let change = next.retire(cop.id).unwrap();
     let index_ms = ms(t);
     let t = Instant::now();
-    store.commit_retire(cop.id, &ids, &change).unwrap();
+    store.commit_retire(cop.id, &ids, &change, false).unwrap();
     println!(
         "retire Copernicus: index {index_ms:.0} ms, commit {:.0} ms, {} tops moved",
         ms(t),

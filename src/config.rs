@@ -61,6 +61,42 @@ impl<'de> Deserialize<'de> for DefaultAccuracy {
     }
 }
 
+/// A token, kept out of debug output and logs.
+#[derive(Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct Secret(pub String);
+
+impl std::fmt::Debug for Secret {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Secret(…)")
+    }
+}
+
+impl Secret {
+    pub fn expose(&self) -> &str {
+        &self.0
+    }
+}
+
+/// How the store uses its disk.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Storage {
+    /// Free space every write leaves on the store's disk, in MiB.
+    pub min_free_mb: u64,
+    /// Size of the reserve file beside the store, in MiB; 0 keeps none.
+    pub reserve_mb: u64,
+}
+
+impl Default for Storage {
+    fn default() -> Self {
+        Storage {
+            min_free_mb: 64,
+            reserve_mb: 64,
+        }
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Limits {
@@ -79,6 +115,10 @@ pub struct Limits {
     /// any is refused.
     pub min_height_m: f64,
     pub max_height_m: f64,
+    /// Most paths in one Ingest request.
+    pub max_ingest_paths: u64,
+    /// Most failed files remembered; the oldest records go first.
+    pub max_failures: u64,
 }
 
 impl Default for Limits {
@@ -91,6 +131,8 @@ impl Default for Limits {
             max_ingest_mb: 4096,
             min_height_m: -12_000.0,
             max_height_m: 9_000.0,
+            max_ingest_paths: 256,
+            max_failures: 1000,
         }
     }
 }
@@ -100,7 +142,16 @@ impl Default for Limits {
 pub struct Config {
     pub data_dir: PathBuf,
     pub inbox: Vec<PathBuf>,
+    /// Folders besides the inbox that Ingest requests may name files in.
+    pub ingest_roots: Vec<PathBuf>,
     pub listen: String,
+    /// Bearer token for the Admin service (and for reads too).
+    pub admin_token: Option<Secret>,
+    /// Bearer token for the Terrain service; unset leaves reads open.
+    pub read_token: Option<Secret>,
+    /// PEM certificate chain and private key: both set serves TLS.
+    pub tls_cert: Option<PathBuf>,
+    pub tls_key: Option<PathBuf>,
     /// ε for files with no sidecar and no `--accuracy`.
     pub accuracy_m: DefaultAccuracy,
     /// The store's CRS as "EPSG:n"; unset adopts the first survey's.
@@ -111,6 +162,7 @@ pub struct Config {
     /// Log filter, e.g. "info" or "patchwork=debug".
     pub log: String,
     pub limits: Limits,
+    pub storage: Storage,
     pub index: IndexConfig,
     pub patches: PatchLayout,
 }
@@ -120,13 +172,19 @@ impl Default for Config {
         Config {
             data_dir: PathBuf::from("./data"),
             inbox: vec![PathBuf::from("./inbox")],
+            ingest_roots: Vec::new(),
             listen: "127.0.0.1:50051".into(),
+            admin_token: None,
+            read_token: None,
+            tls_cert: None,
+            tls_key: None,
             accuracy_m: DefaultAccuracy::Auto,
             crs: None,
             settle_ms: 1500,
             on_delete: OnDelete::Retire,
             log: "info".into(),
             limits: Limits::default(),
+            storage: Storage::default(),
             index: IndexConfig::default(),
             patches: PatchLayout::default(),
         }
@@ -146,6 +204,11 @@ pub enum ConfigError {
     Env { var: String, message: String },
     #[error("{0}")]
     Invalid(String),
+}
+
+/// Whether a token can travel in an HTTP header and is long enough not to be guessed.
+pub fn valid_token(t: &str) -> bool {
+    (16..=1024).contains(&t.len()) && t.bytes().all(|b| b.is_ascii_graphic())
 }
 
 /// Parses "EPSG:4326" (or a bare number).
@@ -197,8 +260,28 @@ impl Config {
                 .map(PathBuf::from)
                 .collect();
         }
+        if let Some(v) = get("PATCHWORK_INGEST_ROOTS") {
+            self.ingest_roots = v
+                .split(':')
+                .filter(|s| !s.is_empty())
+                .map(PathBuf::from)
+                .collect();
+        }
         if let Some(v) = get("PATCHWORK_LISTEN") {
             self.listen = v;
+        }
+        // An empty value unsets a token, so that a config file's can be switched off.
+        if let Some(v) = get("PATCHWORK_ADMIN_TOKEN") {
+            self.admin_token = (!v.is_empty()).then_some(Secret(v));
+        }
+        if let Some(v) = get("PATCHWORK_READ_TOKEN") {
+            self.read_token = (!v.is_empty()).then_some(Secret(v));
+        }
+        if let Some(v) = get("PATCHWORK_TLS_CERT") {
+            self.tls_cert = Some(v.into());
+        }
+        if let Some(v) = get("PATCHWORK_TLS_KEY") {
+            self.tls_key = Some(v.into());
         }
         if let Some(v) = get("PATCHWORK_ACCURACY_M") {
             self.accuracy_m = v.parse().map_err(|message| ConfigError::Env {
@@ -253,11 +336,26 @@ impl Config {
         }
         let l = &self.limits;
         let ordered = l.min_height_m < l.max_height_m;
-        if !ordered || l.max_ingest_mb == 0 {
+        if !ordered || l.max_ingest_mb == 0 || l.max_failures == 0 || l.max_ingest_paths == 0 {
             return Err(ConfigError::Invalid(
                 "limits.min_height_m must be below limits.max_height_m, and \
-                 limits.max_ingest_mb at least 1"
+                 limits.max_ingest_mb, max_failures and max_ingest_paths at least 1"
                     .into(),
+            ));
+        }
+        for (name, t) in [
+            ("admin_token", &self.admin_token),
+            ("read_token", &self.read_token),
+        ] {
+            if t.as_ref().is_some_and(|t| !valid_token(t.expose())) {
+                return Err(ConfigError::Invalid(format!(
+                    "{name} must be 16 to 1024 printable ASCII characters without spaces"
+                )));
+            }
+        }
+        if self.tls_cert.is_some() != self.tls_key.is_some() {
+            return Err(ConfigError::Invalid(
+                "TLS needs both tls_cert and tls_key (PEM files)".into(),
             ));
         }
         if self.index.max_error.is_nan()

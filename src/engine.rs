@@ -1,29 +1,38 @@
-//! The engine behind the server and the CLI: one store, one terrain snapshot, one writer.
+//! The engine behind the server and the CLI: one store, one published state, one writer.
 //!
-//! Queries take the current snapshot (an `Arc<Terrain>`) and never wait for a writer. A writer
-//! computes the next terrain on a copy, commits the change to the store in one batch, and only
-//! then publishes the copy, so readers see the old state or the new one, never half of a
-//! change, and a failed commit leaves both as they were.
+//! Readers take the published state, the terrain and the catalog of records beside it, and
+//! never touch the store or wait for a writer. The writer owns the store: it computes the next
+//! terrain on a copy, commits the change in one batch, and only then publishes the copy with
+//! the catalog read back from the store, so readers see the old state or the new one, never
+//! half of a change, and a failed commit leaves both as they were.
+//!
+//! A write that would not fit on the disk is refused before sled sees it (see
+//! [`crate::store::space`]). Should sled fail all the same (an I/O error, or a disk another
+//! process filled in the meantime), its handle is unusable from then on, so the engine stops
+//! writing, says why, and keeps serving reads from what it has published.
 
 use crate::config::Config;
 use crate::index::geom::Aabb;
 use crate::index::lod::ChangeStats;
 use crate::index::query::{Extracted, Metric, ViewQuery};
-use crate::ingest::{prepare, IngestError, IngestSettings};
+use crate::ingest::{check_file, prepare, sidecar_path, IngestSettings};
 use crate::model::accuracy::{AccuracySource, Deviation};
 use crate::model::ids::SurveyId;
 use crate::model::survey::Survey;
+use crate::read::ascii::PRJ_EXTENSIONS;
+use crate::read::ReadLimits;
 use crate::resample::gpu::{GpuError, GpuResampler};
 pub use crate::resample::Backend;
 use crate::resample::SampleGrid;
 use crate::store::{
-    file_content_id, now_unix, FailedRecord, IngestTimings, Status, Store, StoreError, SurveyRecord,
+    file_content_id, now_unix, Catalog, DiskSpace, FailedRecord, IngestTimings, SpaceGuard, Store,
+    StoreError, SurveyRecord, SystemDisk,
 };
 use crate::terrain::{Terrain, Tile};
 use rayon::prelude::*;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::time::Instant;
 use thiserror::Error;
 use tokio::sync::broadcast;
@@ -43,6 +52,12 @@ pub enum EngineError {
     /// The request is fine but cannot be served in this state (no GPU, say).
     #[error("{0}")]
     Unavailable(String),
+    /// The store failed under a write and takes no more until the daemon restarts.
+    #[error(
+        "the store failed on a disk error and takes no writes until the daemon restarts \
+         (reads go on): {0}"
+    )]
+    StoreFailed(String),
     #[error("{0}")]
     Store(#[from] StoreError),
 }
@@ -53,7 +68,7 @@ pub enum Outcome {
     Inserted,
     /// The same path held another survey, which this one replaced in one commit.
     Replaced,
-    /// The content is already served; nothing changed.
+    /// The content is already served, or was retired by hand; nothing changed.
     Unchanged,
     Retired,
     Failed,
@@ -69,6 +84,15 @@ impl Outcome {
             Outcome::Failed => "failed",
         }
     }
+}
+
+/// Who asked for a file to be ingested.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Origin {
+    /// The inbox watcher: a file retired by hand stays retired until its content changes.
+    Inbox,
+    /// A client naming the file: it comes back even if it was retired by hand.
+    Request,
 }
 
 /// Two surveys that disagree by more than their accuracies allow where they overlap.
@@ -134,14 +158,32 @@ pub struct Stats {
     /// "cpu", or "gpu (adapter)".
     pub backend: String,
     pub quadtree_nodes: u32,
+    /// Why writes are refused now (a full disk, a failed store); None when they are not.
+    pub read_only: Option<String>,
 }
+
+/// What readers see: a terrain and the catalog of the same commit.
+struct Published {
+    terrain: Arc<Terrain>,
+    catalog: Arc<Catalog>,
+}
+
+/// The one message for a path that may not be ingested, whatever is or is not there: a
+/// client must not learn about files outside the folders it was given.
+pub const REFUSED_PATH: &str = "not a file this daemon may ingest: a path must lead, symlinks \
+     followed, to a file inside the inbox folders or ingest_roots";
 
 pub struct Engine {
     cfg: Config,
-    store: Mutex<Option<Store>>,
-    terrain: RwLock<Arc<Terrain>>,
-    /// Serialises writers; readers never take it.
-    writer: Mutex<()>,
+    published: RwLock<Published>,
+    /// The writer owns the store: every write, and verification, holds it. `None` only when
+    /// a compaction could not reopen the store.
+    writer: Mutex<Option<Store>>,
+    /// Set once the store failed under a write: sled cannot recover its handle.
+    broken: OnceLock<String>,
+    /// The store's directory and space rules, for `stats` without the writer.
+    dir: PathBuf,
+    guard: SpaceGuard,
     events: broadcast::Sender<Event>,
     /// The GPU resampler, when the daemon opened one; dropped if the device is lost.
     gpu: Mutex<Option<GpuResampler>>,
@@ -154,7 +196,17 @@ pub fn is_geographic(epsg: u32) -> bool {
 
 impl Engine {
     pub fn open(cfg: Config) -> Result<Engine, EngineError> {
-        let opened = Store::open(&cfg.data_dir, cfg.patches, cfg.index)?;
+        Self::open_on(cfg, Arc::new(SystemDisk))
+    }
+
+    /// [`Engine::open`] with free space measured by `disk`.
+    pub fn open_on(cfg: Config, disk: Arc<dyn DiskSpace>) -> Result<Engine, EngineError> {
+        let guard = SpaceGuard {
+            disk,
+            min_free: cfg.storage.min_free_mb << 20,
+            reserve: cfg.storage.reserve_mb << 20,
+        };
+        let opened = Store::open_with(&cfg.data_dir, cfg.patches, cfg.index, guard.clone())?;
         for w in &opened.warnings {
             tracing::warn!(warning = %w, "store opened with a problem; `patchwork verify` tells more");
         }
@@ -166,12 +218,21 @@ impl Engine {
                 )));
             }
         }
+        if let Err(e) = opened.store.writable() {
+            tracing::warn!(reason = %e, "serving read-only: writes resume once the disk has room");
+        }
+        let catalog = opened.store.catalog()?;
         let (events, _) = broadcast::channel(1024);
         Ok(Engine {
+            dir: opened.store.path().to_path_buf(),
+            guard,
+            published: RwLock::new(Published {
+                terrain: Arc::new(opened.terrain),
+                catalog: Arc::new(catalog),
+            }),
+            writer: Mutex::new(Some(opened.store)),
+            broken: OnceLock::new(),
             cfg,
-            store: Mutex::new(Some(opened.store)),
-            terrain: RwLock::new(Arc::new(opened.terrain)),
-            writer: Mutex::new(()),
             events,
             gpu: Mutex::new(None),
         })
@@ -200,28 +261,67 @@ impl Engine {
         &self.cfg
     }
 
-    /// The current state; cheap, and stable for as long as the caller holds it.
+    /// The current terrain; cheap, and stable for as long as the caller holds it.
     pub fn snapshot(&self) -> Arc<Terrain> {
-        self.terrain.read().expect("terrain lock").clone()
+        self.published.read().expect("state lock").terrain.clone()
+    }
+
+    /// The records, failures, overlaps and pins of the current terrain.
+    pub fn catalog(&self) -> Arc<Catalog> {
+        self.published.read().expect("state lock").catalog.clone()
     }
 
     pub fn subscribe(&self) -> broadcast::Receiver<Event> {
         self.events.subscribe()
     }
 
-    fn with_store<T>(
+    /// Runs `f` as the writer. `f` returns the terrain it committed, if it changed it; that
+    /// terrain is published with the catalog as the store now holds it.
+    fn write<T>(
         &self,
-        f: impl FnOnce(&Store) -> Result<T, StoreError>,
+        f: impl FnOnce(&Store, &Arc<Terrain>) -> Result<(T, Option<Terrain>), StoreError>,
     ) -> Result<T, EngineError> {
-        let guard = self.store.lock().expect("store lock");
-        let store = guard
-            .as_ref()
-            .ok_or_else(|| EngineError::Unavailable("the store is being compacted".into()))?;
-        Ok(f(store)?)
+        if let Some(why) = self.broken.get() {
+            return Err(EngineError::StoreFailed(why.clone()));
+        }
+        let guard = self.writer.lock().unwrap_or_else(|e| e.into_inner());
+        let store = guard.as_ref().ok_or_else(|| {
+            EngineError::Unavailable(
+                "the store could not be reopened after compaction; restart the daemon".into(),
+            )
+        })?;
+        let current = self.snapshot();
+        let (v, next) = f(store, &current).map_err(|e| self.failed(e))?;
+        let catalog = store.catalog().map_err(|e| self.failed(e))?;
+        let mut p = self.published.write().expect("state lock");
+        if let Some(t) = next {
+            p.terrain = Arc::new(t);
+        }
+        p.catalog = Arc::new(catalog);
+        drop(p);
+        if let Err(e) = store.guard().restore(store.path()) {
+            tracing::warn!(error = %e, "could not make the store's reserve file");
+        }
+        Ok(v)
     }
 
-    fn publish(&self, t: Terrain) {
-        *self.terrain.write().expect("terrain lock") = Arc::new(t);
+    /// Notes a store error; one from sled's I/O leaves its handle unusable.
+    fn failed(&self, e: StoreError) -> EngineError {
+        if let StoreError::Sled(sled::Error::Io(io)) = &e {
+            let why = io.to_string();
+            if self.broken.set(why.clone()).is_ok() {
+                tracing::error!(error = %why, "the store failed under a write: no more writes until restart; reads go on");
+            }
+            return EngineError::StoreFailed(why);
+        }
+        EngineError::Store(e)
+    }
+
+    fn publish(&self, terrain: Terrain, catalog: Catalog) {
+        *self.published.write().expect("state lock") = Published {
+            terrain: Arc::new(terrain),
+            catalog: Arc::new(catalog),
+        };
     }
 
     fn emit(
@@ -244,34 +344,73 @@ impl Engine {
     }
 
     pub fn crs(&self) -> Option<u32> {
-        self.cfg
-            .crs_epsg()
-            .or_else(|| self.with_store(|s| Ok(s.crs())).ok().flatten())
+        self.cfg.crs_epsg().or(self.catalog().crs)
     }
 
-    /// The record of the active survey read from `source`, if any.
-    fn active_from(&self, source: &str) -> Result<Option<SurveyRecord>, EngineError> {
-        Ok(self
-            .with_store(|s| s.surveys())?
-            .into_iter()
-            .find(|r| r.status == Status::Active && r.source == source))
+    /// The folders files may be ingested from, as they resolve now: a folder that appears
+    /// later (a share mounted late) counts from then on.
+    fn roots(&self) -> Vec<PathBuf> {
+        self.cfg
+            .inbox
+            .iter()
+            .chain(&self.cfg.ingest_roots)
+            .filter_map(|d| d.canonicalize().ok())
+            .collect()
+    }
+
+    /// Whether `path` may be ingested: it and its sidecars resolve, symlinks followed, inside
+    /// the inbox folders or `ingest_roots`.
+    fn confined(&self, path: &Path) -> bool {
+        let roots = self.roots();
+        let inside = |p: &Path| {
+            p.canonicalize()
+                .is_ok_and(|real| roots.iter().any(|r| real.starts_with(r)))
+        };
+        let sidecars_inside = std::iter::once(sidecar_path(path))
+            .chain(PRJ_EXTENSIONS.iter().map(|e| path.with_extension(e)))
+            .filter(|s| s.symlink_metadata().is_ok())
+            .all(|s| inside(&s));
+        inside(path) && sidecars_inside
     }
 
     /// Ingests one file: a new survey, a replacement for the survey the same path held, or
-    /// nothing when the content is already present. A bad file is recorded as a failure and
-    /// leaves everything stored as it was.
-    pub fn ingest(&self, path: &Path, accuracy: Option<f64>) -> Ingested {
+    /// nothing when the content is already present. A bad file is a failed outcome, recorded
+    /// when it lies where files may be ingested from, and leaves everything stored as it was.
+    /// An error is the store's: the file was not at fault, and may be tried again later.
+    pub fn ingest(
+        &self,
+        path: &Path,
+        accuracy: Option<f64>,
+        origin: Origin,
+    ) -> Result<Ingested, EngineError> {
         let t0 = Instant::now();
         let source = source_name(path);
-        let result = self.ingest_inner(path, &source, accuracy);
-        let seconds = t0.elapsed().as_secs_f64();
-        match result {
+        let failed = |error: String| Ingested {
+            source: source.clone(),
+            outcome: Outcome::Failed,
+            survey: None,
+            error,
+            samples: 0,
+            seconds: t0.elapsed().as_secs_f64(),
+            conflicts: Vec::new(),
+        };
+        if !self.confined(path) {
+            tracing::warn!(source = ?source, "refused a path outside the ingest folders");
+            // A name in the inbox that leads outside (or nowhere) is a bad file like any
+            // other; a client's path is not remembered, or clients could fill the store.
+            if origin == Origin::Inbox {
+                self.record_failure(path, &source, REFUSED_PATH);
+            }
+            return Ok(failed(REFUSED_PATH.into()));
+        }
+        match self.ingest_inner(path, &source, accuracy, origin) {
             Ok((outcome, survey, samples, conflicts)) => {
+                let seconds = t0.elapsed().as_secs_f64();
                 if outcome != Outcome::Unchanged {
-                    tracing::info!(%source, survey = %survey, outcome = outcome.as_str(), seconds, conflicts = conflicts.len(), "ingested");
+                    tracing::info!(source = ?source, survey = %survey, outcome = outcome.as_str(), seconds, conflicts = conflicts.len(), "ingested");
                     self.emit(outcome, Some(survey), &source, "", conflicts.clone());
                 }
-                Ingested {
+                Ok(Ingested {
                     source,
                     outcome,
                     survey: Some(survey),
@@ -279,33 +418,39 @@ impl Engine {
                     samples,
                     seconds,
                     conflicts,
-                }
+                })
             }
-            Err(e) => {
-                let error = e.to_string();
-                tracing::warn!(%source, %error, "ingest failed");
-                let (size, mtime_unix) = size_mtime(path).unwrap_or((0, 0));
-                let rec = FailedRecord {
-                    source: source.clone(),
-                    error: error.clone(),
-                    size,
-                    mtime_unix,
-                    at_unix: now_unix(),
-                };
-                if let Err(e) = self.with_store(|s| s.record_failure(&rec)) {
-                    tracing::error!(%source, error = %e, "could not record the failure");
-                }
+            Err(Refusal::Store(e)) => {
+                tracing::warn!(source = ?source, error = %e, "ingest deferred: the store cannot take it now");
+                Err(e)
+            }
+            Err(Refusal::File(error)) => {
+                tracing::warn!(source = ?source, error = %error, "ingest failed");
+                self.record_failure(path, &source, &error);
                 self.emit(Outcome::Failed, None, &source, &error, Vec::new());
-                Ingested {
-                    source,
-                    outcome: Outcome::Failed,
-                    survey: None,
-                    error,
-                    samples: 0,
-                    seconds,
-                    conflicts: Vec::new(),
-                }
+                Ok(failed(error))
             }
+        }
+    }
+
+    /// Remembers a file that failed, so that the inbox does not try it again until it
+    /// changes. Only names that are there are remembered: one with nothing behind it would
+    /// only fill the store.
+    fn record_failure(&self, path: &Path, source: &str, error: &str) {
+        if path.symlink_metadata().is_err() {
+            return;
+        }
+        let (size, mtime_unix) = size_mtime(path).unwrap_or((0, 0));
+        let rec = FailedRecord {
+            source: source.into(),
+            error: error.into(),
+            size,
+            mtime_unix,
+            at_unix: now_unix(),
+        };
+        let keep = self.cfg.limits.max_failures as usize;
+        if let Err(e) = self.write(|s, _| Ok((s.record_failure(&rec, keep)?, None))) {
+            tracing::warn!(source = ?source, error = %e, "could not record the failure");
         }
     }
 
@@ -314,75 +459,115 @@ impl Engine {
         path: &Path,
         source: &str,
         accuracy: Option<f64>,
-    ) -> Result<(Outcome, SurveyId, u64, Vec<Conflict>), EngineError> {
+        origin: Origin,
+    ) -> Result<(Outcome, SurveyId, u64, Vec<Conflict>), Refusal> {
+        // Reading and modelling a file only to be refused at the commit would be wasted.
+        if let Some(why) = self.broken.get() {
+            return Err(Refusal::Store(EngineError::StoreFailed(why.clone())));
+        }
+        self.guard
+            .check(&self.dir, 0)
+            .map_err(|e| Refusal::Store(e.into()))?;
+        let file = |e: &dyn std::fmt::Display| Refusal::File(e.to_string());
+        check_file(path).map_err(|e| file(&e))?;
+        let content = file_content_id(path).map_err(|e| file(&e))?;
+        let catalog = self.catalog();
+        if origin == Origin::Inbox {
+            // The inbox leaves alone a file whose survey is served as it is, or was retired
+            // by hand, until its content changes.
+            let kept = catalog
+                .active_from(source)
+                .filter(|r| r.content_id == content)
+                .or_else(|| {
+                    (catalog.pins.get(source) == Some(&content))
+                        .then(|| {
+                            catalog
+                                .records
+                                .iter()
+                                .rev()
+                                .find(|r| r.source == source && r.content_id == content)
+                        })
+                        .flatten()
+                });
+            if let Some(r) = kept {
+                return Ok((Outcome::Unchanged, r.id, r.samples, Vec::new()));
+            }
+        }
         let settings = IngestSettings {
             accuracy,
             default_accuracy: self.cfg.accuracy_m,
             max_accuracy: self.cfg.index.max_error,
             store_crs: self.crs(),
             // An existing store keeps the layout its tops were computed with.
-            layout: self.with_store(|s| Ok(s.layout()))?,
-            read_limits: crate::read::ReadLimits::mb(self.cfg.limits.max_ingest_mb),
+            layout: catalog.layout,
+            read_limits: ReadLimits::mb(self.cfg.limits.max_ingest_mb),
             heights: (self.cfg.limits.min_height_m, self.cfg.limits.max_height_m),
         };
-        let prepared = prepare(path, &settings).map_err(ingest_error)?;
-        let survey = prepared.survey;
+        let prepared = prepare(path, &settings).map_err(|e| file(&e))?;
+        let survey = Arc::new(prepared.survey);
         let samples = survey.levels[0].valid_count() as u64;
-        let content = file_content_id(path).map_err(|e| EngineError::Invalid(e.to_string()))?;
-        let _w = self.writer.lock().expect("writer lock");
-        let current = self.snapshot();
-        let previous = self.active_from(source)?;
-        if current.survey(survey.id).is_some() {
-            // The content is already served (from this path or a copy elsewhere); what this
-            // path held before, if anything else, is gone.
-            if let Some(old) = previous.filter(|o| o.id != survey.id) {
-                self.retire_locked(&current, &old)?;
-            }
-            self.with_store(|s| s.clear_failure(source))?;
-            return Ok((Outcome::Unchanged, survey.id, samples, Vec::new()));
-        }
-        let survey = Arc::new(survey);
-        let mut next = (*current).clone();
         let t1 = Instant::now();
-        let rec =
-            |s: &Arc<Survey>| record(s, source, &content, prepared.source, prepared.timings, t1);
-        let outcome = match &previous {
-            Some(old) => {
-                let old_patches: Vec<_> = current
-                    .index()
-                    .survey_patches(old.id)
-                    .map(|p| p.to_vec())
-                    .unwrap_or_default();
-                let retire: ChangeStats = next.retire(old.id).unwrap_or_default();
-                let insert = next.insert(survey.clone());
-                let overlaps = overlaps_with(&next, &survey);
-                let rec = rec(&survey);
-                self.with_store(|s| {
-                    s.commit_replace(
-                        old.id,
-                        &old_patches,
-                        &retire,
-                        &survey,
-                        &rec,
-                        &insert,
-                        &overlaps,
-                    )
-                })?;
-                (Outcome::Replaced, overlaps)
-            }
-            None => {
-                let insert = next.insert(survey.clone());
-                let overlaps = overlaps_with(&next, &survey);
-                let rec = rec(&survey);
-                self.with_store(|s| s.commit_survey(&survey, &rec, &insert, &overlaps))?;
-                (Outcome::Inserted, overlaps)
-            }
+        let (outcome, overlaps) = self
+            .write(|store, current| {
+                let previous = store_active_from(store, source)?;
+                if current.survey(survey.id).is_some() {
+                    // The content is already served (from this path or a copy elsewhere);
+                    // what this path held before, if anything else, is gone.
+                    let next = match previous.filter(|o| o.id != survey.id) {
+                        Some(old) => Some(retire_in(store, current, &old, false)?),
+                        None => None,
+                    };
+                    store.clear_failure(source)?;
+                    return Ok(((Outcome::Unchanged, Vec::new()), next));
+                }
+                let mut next = (**current).clone();
+                let rec = record(
+                    &survey,
+                    source,
+                    &content,
+                    prepared.source,
+                    prepared.timings,
+                    t1,
+                );
+                let outcome = match &previous {
+                    Some(old) => {
+                        let old_patches: Vec<_> = current
+                            .index()
+                            .survey_patches(old.id)
+                            .map(|p| p.to_vec())
+                            .unwrap_or_default();
+                        let retire: ChangeStats = next.retire(old.id).unwrap_or_default();
+                        let insert = next.insert(survey.clone());
+                        let overlaps = overlaps_with(&next, &survey);
+                        store.commit_replace(
+                            old.id,
+                            &old_patches,
+                            &retire,
+                            &survey,
+                            &rec,
+                            &insert,
+                            &overlaps,
+                        )?;
+                        (Outcome::Replaced, overlaps)
+                    }
+                    None => {
+                        let insert = next.insert(survey.clone());
+                        let overlaps = overlaps_with(&next, &survey);
+                        store.commit_survey(&survey, &rec, &insert, &overlaps)?;
+                        (Outcome::Inserted, overlaps)
+                    }
+                };
+                Ok((outcome, Some(next)))
+            })
+            .map_err(Refusal::Store)?;
+        let catalog = self.catalog();
+        let accuracy = |id: SurveyId| {
+            catalog
+                .records
+                .iter()
+                .find(|r| r.id == id)
+                .map(|r| r.accuracy)
         };
-        // The commit cleared any failure recorded for this source in the same batch.
-        self.publish(next);
-        let (outcome, overlaps) = outcome;
-        let records = self.with_store(|s| s.surveys())?;
-        let accuracy = |id: SurveyId| records.iter().find(|r| r.id == id).map(|r| r.accuracy);
         let conflicts = overlaps
             .iter()
             .filter_map(|(o, d)| conflict(survey.accuracy, accuracy(*o)?, *o, d))
@@ -390,126 +575,161 @@ impl Engine {
         Ok((outcome, survey.id, samples, conflicts))
     }
 
-    /// Retires a survey named by id or by the source path it came from.
+    /// Retires a survey named by id or by the source path it came from, at a client's
+    /// request. Should its file still be in place with the same content, the inbox leaves
+    /// it retired until the content changes.
     pub fn retire(&self, id_or_source: &str) -> Result<(SurveyId, usize), EngineError> {
-        let _w = self.writer.lock().expect("writer lock");
-        let records = self.with_store(|s| s.surveys())?;
         let wanted = id_or_source.parse::<SurveyId>().ok();
         let absolute = source_name(Path::new(id_or_source));
-        let rec = records
-            .iter()
-            .find(|r| {
-                r.status == Status::Active
-                    && (Some(r.id) == wanted || r.source == id_or_source || r.source == absolute)
-            })
+        let catalog = self.catalog();
+        let rec = catalog
+            .active()
+            .find(|r| Some(r.id) == wanted || r.source == id_or_source || r.source == absolute)
+            .cloned()
             .ok_or_else(|| {
                 EngineError::NotFound(format!(
-                    "no active survey has id or source {id_or_source:?}; `patchwork surveys` lists them"
+                    "no active survey has id or source {}; `patchwork surveys` lists them",
+                    quote_short(id_or_source)
                 ))
             })?;
-        let n = self.retire_locked(&self.snapshot(), rec)?;
+        let still_there =
+            file_content_id(Path::new(&rec.source)).is_ok_and(|c| c == rec.content_id);
+        let n = self.retire_record(&rec, still_there)?;
         Ok((rec.id, n))
     }
 
-    /// Retires `rec` from `current`; the caller holds the writer lock.
-    fn retire_locked(&self, current: &Terrain, rec: &SurveyRecord) -> Result<usize, EngineError> {
-        let patches: Vec<_> = current
-            .index()
-            .survey_patches(rec.id)
-            .map(|p| p.to_vec())
-            .unwrap_or_default();
-        let mut next = current.clone();
-        let change = next.retire(rec.id).unwrap_or_default();
-        self.with_store(|s| s.commit_retire(rec.id, &patches, &change))?;
-        self.publish(next);
-        tracing::info!(survey = %rec.id, source = %rec.source, "retired");
+    /// Retires the survey of a file seen deleted from the inbox.
+    pub fn retire_deleted(&self, source: &str) -> Result<(), EngineError> {
+        if let Some(rec) = self.catalog().active_from(source).cloned() {
+            self.retire_record(&rec, false)?;
+        } else if self.catalog().pins.contains_key(source) {
+            // The file of a survey retired by hand is gone: the pin has nothing to hold.
+            self.write(|s, _| Ok((s.unpin(source)?, None)))?;
+        }
+        Ok(())
+    }
+
+    fn retire_record(&self, rec: &SurveyRecord, pin: bool) -> Result<usize, EngineError> {
+        let n = self.write(|store, current| {
+            // Another writer may have retired it since the catalog was read.
+            if store_active_from(store, &rec.source)?.is_none_or(|r| r.id != rec.id) {
+                return Err(StoreError::NotActive(rec.id));
+            }
+            let n = current
+                .index()
+                .survey_patches(rec.id)
+                .map_or(0, |p| p.len());
+            let next = retire_in(store, current, rec, pin)?;
+            Ok((n, Some(next)))
+        })?;
+        tracing::info!(survey = %rec.id, source = ?rec.source, pinned = pin, "retired");
         self.emit(Outcome::Retired, Some(rec.id), &rec.source, "", Vec::new());
-        Ok(patches.len())
+        Ok(n)
+    }
+
+    /// Removes the failure recorded for `source`; whether there was one.
+    pub fn forget(&self, source: &str) -> Result<bool, EngineError> {
+        let absolute = source_name(Path::new(source));
+        self.write(|s, _| {
+            let forgot = s.forget_failure(source)? || s.forget_failure(&absolute)?;
+            Ok((forgot, None))
+        })
     }
 
     /// Every survey record and the failed files.
-    pub fn records(&self) -> Result<(Vec<SurveyRecord>, Vec<FailedRecord>), EngineError> {
-        self.with_store(|s| Ok((s.surveys()?, s.failures()?)))
+    pub fn records(&self) -> (Vec<SurveyRecord>, Vec<FailedRecord>) {
+        let c = self.catalog();
+        (c.records.clone(), c.failures.clone())
     }
 
     /// Every survey record, the failed files, and each active survey's conflicts.
-    pub fn surveys(&self) -> Result<SurveyListing, EngineError> {
-        self.with_store(|s| {
-            let records = s.surveys()?;
-            let accuracy: HashMap<SurveyId, f64> = records
-                .iter()
-                .filter(|r| r.status == Status::Active)
-                .map(|r| (r.id, r.accuracy))
+    pub fn surveys(&self) -> SurveyListing {
+        let c = self.catalog();
+        let accuracy: HashMap<SurveyId, f64> = c.active().map(|r| (r.id, r.accuracy)).collect();
+        let mut conflicts = HashMap::new();
+        for (id, a) in &accuracy {
+            let mut mine: Vec<Conflict> = c
+                .overlaps
+                .get(id)
+                .into_iter()
+                .flatten()
+                .filter_map(|(o, d)| conflict(*a, *accuracy.get(o)?, *o, d))
                 .collect();
-            let mut conflicts = HashMap::new();
-            for (id, a) in &accuracy {
-                let mine: Vec<Conflict> = s
-                    .overlaps(*id)?
-                    .iter()
-                    .filter_map(|(o, d)| conflict(*a, *accuracy.get(o)?, *o, d))
-                    .collect();
-                if !mine.is_empty() {
-                    conflicts.insert(*id, mine);
-                }
+            mine.sort_by_key(|c| c.survey);
+            if !mine.is_empty() {
+                conflicts.insert(*id, mine);
             }
-            Ok(SurveyListing {
-                records,
-                failures: s.failures()?,
-                conflicts,
-            })
-        })
+        }
+        SurveyListing {
+            records: c.records.clone(),
+            failures: c.failures.clone(),
+            conflicts,
+        }
     }
 
-    pub fn stats(&self) -> Result<Stats, EngineError> {
-        let (records, failures) = self.records()?;
+    /// Why writes are refused now, if they are.
+    pub fn read_only(&self) -> Option<String> {
+        if let Some(why) = self.broken.get() {
+            return Some(EngineError::StoreFailed(why.clone()).to_string());
+        }
+        self.guard.check(&self.dir, 0).err().map(|e| e.to_string())
+    }
+
+    pub fn stats(&self) -> Stats {
+        let c = self.catalog();
         let t = self.snapshot();
-        let active: Vec<_> = records
-            .iter()
-            .filter(|r| r.status == Status::Active)
-            .collect();
-        Ok(Stats {
+        let active: Vec<_> = c.active().collect();
+        Stats {
             surveys: active.len() as u32,
-            retired: (records.len() - active.len()) as u32,
-            failed: failures.len() as u32,
+            retired: (c.records.len() - active.len()) as u32,
+            failed: c.failures.len() as u32,
             patches: t.index().len() as u64,
             active_boxes: t.index().active_count() as u64,
             samples: active.iter().map(|r| r.samples).sum(),
-            disk_bytes: self.with_store(|s| Ok(s.disk_bytes()))?,
+            disk_bytes: crate::store::dir_bytes(&self.dir),
             crs: self.crs(),
             backend: self.backend_name(),
             quadtree_nodes: t.index().tree_stats().nodes as u32,
-        })
+            read_only: self.read_only(),
+        }
     }
 
     pub fn verify(&self) -> Result<crate::store::VerifyReport, EngineError> {
-        self.with_store(|s| s.verify())
+        let guard = self.writer.lock().unwrap_or_else(|e| e.into_inner());
+        let store = guard
+            .as_ref()
+            .ok_or_else(|| EngineError::Unavailable("the store is not open".into()))?;
+        Ok(store.verify()?)
     }
 
     /// Physically removes retired surveys and rewrites the store's files.
     pub fn compact(&self) -> Result<crate::store::CompactReport, EngineError> {
-        let _w = self.writer.lock().expect("writer lock");
-        let store = self
-            .store
-            .lock()
-            .expect("store lock")
-            .take()
-            .ok_or_else(|| EngineError::Unavailable("the store is being compacted".into()))?;
-        let dir = store.path().to_path_buf();
-        let live = self.snapshot().index().state().into_keys().collect();
-        match store.compact(&live) {
-            Ok((opened, report)) => {
-                *self.store.lock().expect("store lock") = Some(opened.store);
-                self.publish(opened.terrain);
-                Ok(report)
-            }
-            Err(e) => {
-                // Compaction leaves the old files in place on failure: reopen them.
-                let opened = Store::open(&dir, self.cfg.patches, self.cfg.index)?;
-                *self.store.lock().expect("store lock") = Some(opened.store);
-                self.publish(opened.terrain);
-                Err(e.into())
-            }
+        if let Some(why) = self.broken.get() {
+            return Err(EngineError::StoreFailed(why.clone()));
         }
+        let mut guard = self.writer.lock().unwrap_or_else(|e| e.into_inner());
+        let store = guard
+            .take()
+            .ok_or_else(|| EngineError::Unavailable("the store is not open".into()))?;
+        let live = self.snapshot().index().state().into_keys().collect();
+        let result = store.compact(&live);
+        let (opened, report) = match result {
+            Ok((opened, report)) => (opened, Ok(report)),
+            // Compaction leaves the old files in place on failure: reopen them.
+            Err(e) => {
+                let opened = Store::open_with(
+                    &self.dir,
+                    self.cfg.patches,
+                    self.cfg.index,
+                    self.guard.clone(),
+                )?;
+                (opened, Err(e.into()))
+            }
+        };
+        let catalog = opened.store.catalog()?;
+        self.publish(opened.terrain, catalog);
+        *guard = Some(opened.store);
+        report
     }
 
     fn metric_at(&self, lat: f64) -> Metric {
@@ -683,8 +903,46 @@ fn check_roi(roi: &Aabb) -> Result<(), EngineError> {
     Ok(())
 }
 
-fn ingest_error(e: IngestError) -> EngineError {
-    EngineError::Invalid(e.to_string())
+/// Why an ingest did not happen: the file's fault, or the store's.
+enum Refusal {
+    File(String),
+    Store(EngineError),
+}
+
+/// The active survey `source` holds, as the store has it.
+fn store_active_from(store: &Store, source: &str) -> Result<Option<SurveyRecord>, StoreError> {
+    Ok(store
+        .surveys()?
+        .into_iter()
+        .find(|r| r.status == crate::store::Status::Active && r.source == source))
+}
+
+/// Commits the retirement of `rec` from `current` and returns the terrain without it.
+fn retire_in(
+    store: &Store,
+    current: &Terrain,
+    rec: &SurveyRecord,
+    pin: bool,
+) -> Result<Terrain, StoreError> {
+    let patches: Vec<_> = current
+        .index()
+        .survey_patches(rec.id)
+        .map(|p| p.to_vec())
+        .unwrap_or_default();
+    let mut next = current.clone();
+    let change = next.retire(rec.id).unwrap_or_default();
+    store.commit_retire(rec.id, &patches, &change, pin)?;
+    Ok(next)
+}
+
+/// A client's string for an error message: quoted, control characters escaped, and cut short,
+/// so that a megabyte of input does not come back in the reply.
+pub fn quote_short(s: &str) -> String {
+    const MOST: usize = 120;
+    match s.char_indices().nth(MOST) {
+        Some((cut, _)) => format!("{:?}… ({} bytes)", &s[..cut], s.len()),
+        None => format!("{s:?}"),
+    }
 }
 
 fn record(

@@ -187,8 +187,8 @@ fn accuracy(
     Ok((spec, source))
 }
 
-/// Reads and models one file. Pure of the store: nothing is written.
-pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError> {
+/// Refuses what is not a regular file that can be opened, with a message that says which.
+pub fn check_file(path: &Path) -> Result<(), IngestError> {
     let meta = std::fs::metadata(path).map_err(|source| IngestError::Unreadable {
         path: path.into(),
         source,
@@ -204,6 +204,12 @@ pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError>
         path: path.into(),
         source,
     })?;
+    Ok(())
+}
+
+/// Reads and models one file. Pure of the store: nothing is written.
+pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError> {
+    check_file(path)?;
     let side = read_sidecar(path)?;
     let (spec, source) = accuracy(&side, s)?;
     let t0 = Instant::now();

@@ -1,16 +1,22 @@
-//! The inbox watcher. File-system events only wake the reconciler, through a bounded channel;
-//! the reconciler then diffs the inbox against what it has seen and what the store holds, so
-//! a burst of events, a full channel or changes made while the daemon was down all end in the
-//! same place: a store that matches the inbox.
+//! The inbox watcher, in three parts: a trigger (file-system events and a timer) that only
+//! wakes the reconciler; discovery, which lists what the inbox folders hold; and a sink (the
+//! engine) that takes the files and retirements the reconciler decides on. A burst of events,
+//! a full channel or changes made while the daemon was down all end in the same place: a
+//! store that matches the inbox.
 //!
 //! A file is ingested once its size and mtime have stayed the same for `settle_ms`, or at once
 //! when it arrived by rename (the usual way to publish a finished file). A file that fails is
-//! recorded once and not retried until its size or mtime changes.
+//! recorded once and not retried until its size or mtime changes; one the store could not take
+//! (a full disk) is tried again on a later pass.
+//!
+//! Only a file seen missing from a folder that is there retires its survey. A folder that is
+//! gone, or empty while surveys came from it (a share not mounted yet), retires nothing: the
+//! watcher warns, keeps the surveys, and watches the folder again once it is back.
 
 use crate::config::OnDelete;
-use crate::engine::{size_mtime, source_name, Engine};
+use crate::engine::{size_mtime, source_name, Engine, EngineError, Ingested, Origin};
 use crate::ingest::is_temporary;
-use crate::store::Status;
+use crate::store::{file_content_id, Catalog};
 use notify::event::{EventKind, ModifyKind, RenameMode};
 use notify_debouncer_full::{new_debouncer, DebounceEventResult};
 use std::collections::{HashMap, HashSet};
@@ -18,6 +24,29 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
+
+/// Where the reconciler's decisions go: the engine, or a fake in tests.
+pub trait Sink: Send + Sync + 'static {
+    fn catalog(&self) -> Arc<Catalog>;
+    /// Ingests a file found in the inbox. An error is the store's: try again later.
+    fn ingest(&self, path: &Path) -> Result<Ingested, EngineError>;
+    /// Retires the survey of a file seen deleted.
+    fn retire_deleted(&self, source: &str) -> Result<(), EngineError>;
+}
+
+impl Sink for Engine {
+    fn catalog(&self) -> Arc<Catalog> {
+        Engine::catalog(self)
+    }
+
+    fn ingest(&self, path: &Path) -> Result<Ingested, EngineError> {
+        Engine::ingest(self, path, None, Origin::Inbox)
+    }
+
+    fn retire_deleted(&self, source: &str) -> Result<(), EngineError> {
+        Engine::retire_deleted(self, source)
+    }
+}
 
 /// Extensions of files the readers take. A directory with one of these names is a candidate
 /// too, so that it is reported rather than silently skipped.
@@ -29,15 +58,12 @@ fn is_dem_name(p: &Path) -> bool {
         .is_some_and(|e| DEM_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
 }
 
-enum Wake {
-    Changed,
-    Renamed(Vec<PathBuf>),
-}
+/// A file's size and mtime, by which the watcher tells whether it changed.
+type Stamp = Option<(u64, u64)>;
 
-/// Every candidate under the inbox folders, with its size and mtime (None when unreadable).
-fn scan(dirs: &[PathBuf]) -> HashMap<PathBuf, Option<(u64, u64)>> {
-    let mut out = HashMap::new();
-    let mut stack: Vec<PathBuf> = dirs.to_vec();
+/// Every candidate under `dir`, with its stamp (None when unreadable).
+fn scan(dir: &Path, out: &mut HashMap<PathBuf, Stamp>) {
+    let mut stack = vec![dir.to_path_buf()];
     while let Some(dir) = stack.pop() {
         let Ok(entries) = std::fs::read_dir(&dir) else {
             continue;
@@ -58,73 +84,143 @@ fn scan(dirs: &[PathBuf]) -> HashMap<PathBuf, Option<(u64, u64)>> {
             }
         }
     }
-    out
+}
+
+/// One inbox folder as configured, and where it resolves while it is there.
+struct Root {
+    configured: PathBuf,
+    /// The resolved folder, while it is there to be trusted.
+    real: Option<PathBuf>,
+}
+
+/// What discovery found: the candidates under the folders that are there, and the folders.
+struct Discovered {
+    files: HashMap<PathBuf, Stamp>,
+    /// Resolved folders that are there.
+    present: Vec<PathBuf>,
+}
+
+/// Resolves `root`, and says whether it can be trusted to list what the inbox holds: it must
+/// exist, and not be empty while surveys came from it (an unmounted share's mount point).
+fn resolve(root: &Path, catalog: &Catalog) -> Option<PathBuf> {
+    let real = root.canonicalize().ok()?;
+    let mut entries = std::fs::read_dir(&real).ok()?;
+    if entries.next().is_none()
+        && catalog
+            .active()
+            .any(|r| Path::new(&r.source).starts_with(&real))
+    {
+        return None;
+    }
+    Some(real)
 }
 
 struct Pending {
-    stamp: Option<(u64, u64)>,
+    stamp: Stamp,
     since: Instant,
     renamed: bool,
 }
 
-pub struct Reconciler {
-    engine: Arc<Engine>,
-    dirs: Vec<PathBuf>,
+pub struct Reconciler<S: Sink> {
+    sink: Arc<S>,
+    roots: Vec<Root>,
     settle: Duration,
+    on_delete: OnDelete,
     /// What each source looked like when it was last ingested or failed.
-    done: HashMap<String, Option<(u64, u64)>>,
+    done: HashMap<String, Stamp>,
     pending: HashMap<PathBuf, Pending>,
     renamed: HashSet<PathBuf>,
 }
 
-impl Reconciler {
-    pub fn new(engine: Arc<Engine>) -> Self {
-        let cfg = engine.config();
-        let dirs = cfg
-            .inbox
-            .iter()
-            .map(|d| d.canonicalize().unwrap_or_else(|_| d.clone()))
-            .collect();
+impl<S: Sink> Reconciler<S> {
+    pub fn new(sink: Arc<S>, inbox: &[PathBuf], settle: Duration, on_delete: OnDelete) -> Self {
         Reconciler {
-            settle: Duration::from_millis(cfg.settle_ms),
-            engine,
-            dirs,
+            sink,
+            roots: inbox
+                .iter()
+                .map(|d| Root {
+                    configured: d.clone(),
+                    real: None,
+                })
+                .collect(),
+            settle,
+            on_delete,
             done: HashMap::new(),
             pending: HashMap::new(),
             renamed: HashSet::new(),
         }
     }
 
-    /// At start-up: a stored survey whose file still has the same content, and a failure whose
-    /// file has not changed, need nothing; everything else is reconciled by the first pass.
-    pub fn startup(&mut self) {
-        let Ok((records, failures)) = self.engine.records() else {
-            return;
-        };
-        let on_disk = scan(&self.dirs);
-        for r in records.iter().filter(|r| r.status == Status::Active) {
-            let p = PathBuf::from(&r.source);
-            if let Some(stamp) = on_disk.get(&p) {
-                let same = crate::store::file_content_id(&p).is_ok_and(|c| c == r.content_id);
-                if same {
-                    self.done.insert(r.source.clone(), *stamp);
+    /// Lists the folders that are there and what they hold. Returns the folders that came
+    /// back (or appeared) since the last look, which the trigger must watch again.
+    fn discover(&mut self, catalog: &Catalog) -> (Discovered, Vec<PathBuf>) {
+        let mut files = HashMap::new();
+        let mut present = Vec::new();
+        let mut back = Vec::new();
+        for root in &mut self.roots {
+            let now = resolve(&root.configured, catalog);
+            match (&root.real, &now) {
+                (None, Some(real)) => {
+                    tracing::info!(dir = ?root.configured, "inbox folder is there: watching it");
+                    back.push(real.clone());
                 }
+                (Some(_), None) => tracing::warn!(
+                    dir = ?root.configured,
+                    "inbox folder is gone or empty: its surveys stay, and watching resumes once it is back"
+                ),
+                _ => {}
+            }
+            if let Some(real) = &now {
+                scan(real, &mut files);
+                present.push(real.clone());
+            }
+            root.real = now;
+        }
+        (Discovered { files, present }, back)
+    }
+
+    /// Whether every inbox folder is there.
+    pub fn all_present(&self) -> bool {
+        self.roots.iter().all(|r| r.real.is_some())
+    }
+
+    /// At start-up: a stored survey whose file still has the same content, a file retired by
+    /// hand whose content has not changed, and a failure whose file has not changed need
+    /// nothing; everything else is reconciled by the first pass. Returns the folders there.
+    pub fn startup(&mut self) -> Vec<PathBuf> {
+        let catalog = self.sink.catalog();
+        let (found, _) = self.discover(&catalog);
+        for (p, stamp) in &found.files {
+            let source = source_name(p);
+            let content = || file_content_id(p).ok();
+            let served = catalog.active_from(&source).map(|r| r.content_id.clone());
+            let pinned = catalog.pins.get(&source).cloned();
+            let failed = catalog
+                .failures
+                .iter()
+                .any(|f| f.source == source && Some((f.size, f.mtime_unix)) == *stamp);
+            if failed
+                || ((served.is_some() || pinned.is_some()) && {
+                    let c = content();
+                    c.is_some() && (c == served || c == pinned)
+                })
+            {
+                self.done.insert(source, *stamp);
             }
         }
-        for f in failures {
-            if on_disk.get(Path::new(&f.source)) == Some(&Some((f.size, f.mtime_unix))) {
-                self.done
-                    .insert(f.source.clone(), Some((f.size, f.mtime_unix)));
-            }
+        for root in self.roots.iter().filter(|r| r.real.is_none()) {
+            tracing::warn!(dir = ?root.configured, "inbox folder is missing or empty: its surveys stay until it is back");
         }
+        found.present
     }
 
     /// One pass: ingest what is ready, retire what is gone. Returns whether anything is still
-    /// waiting to settle.
-    pub fn pass(&mut self) -> bool {
+    /// waiting to settle, and the folders to watch again.
+    pub fn pass(&mut self) -> (bool, Vec<PathBuf>) {
         let now = Instant::now();
-        let on_disk = scan(&self.dirs);
-        for (p, stamp) in &on_disk {
+        let catalog = self.sink.catalog();
+        let (found, back) = self.discover(&catalog);
+        for (p, stamp) in &found.files {
             let source = source_name(p);
             if self.done.get(&source) == Some(stamp) {
                 self.pending.remove(p);
@@ -145,45 +241,76 @@ impl Reconciler {
             }
             entry.renamed |= renamed;
             if entry.renamed || now.duration_since(entry.since) >= self.settle {
-                let r = self.engine.ingest(p, None);
-                tracing::debug!(source = %r.source, outcome = r.outcome.as_str(), "reconciled");
-                self.done.insert(source, *stamp);
                 self.pending.remove(p);
+                match self.sink.ingest(p) {
+                    Ok(r) => {
+                        tracing::debug!(source = ?r.source, outcome = r.outcome.as_str(), "reconciled");
+                        self.done.insert(source, *stamp);
+                    }
+                    // Not the file's fault: a later pass tries it again.
+                    Err(e) => tracing::debug!(source = ?source, error = %e, "ingest deferred"),
+                }
             }
         }
-        self.pending.retain(|p, _| on_disk.contains_key(p));
-        if self.engine.config().on_delete == OnDelete::Retire {
-            self.retire_missing(&on_disk);
+        self.pending.retain(|p, _| found.files.contains_key(p));
+        if self.on_delete == OnDelete::Retire {
+            self.retire_missing(&found);
         }
-        self.done.retain(|s, _| on_disk.contains_key(Path::new(s)));
-        !self.pending.is_empty()
+        // Files under a folder that is away keep their entries: they are not gone.
+        self.done.retain(|s, _| {
+            let p = Path::new(s);
+            found.files.contains_key(p) || !found.present.iter().any(|r| p.starts_with(r))
+        });
+        (!self.pending.is_empty(), back)
     }
 
-    fn retire_missing(&mut self, on_disk: &HashMap<PathBuf, Option<(u64, u64)>>) {
-        let Ok((records, _)) = self.engine.records() else {
-            return;
+    fn retire_missing(&mut self, found: &Discovered) {
+        let catalog = self.sink.catalog();
+        let gone = |source: &str| {
+            let p = Path::new(source);
+            found.present.iter().any(|r| p.starts_with(r)) && !found.files.contains_key(p)
         };
-        for r in records.iter().filter(|r| r.status == Status::Active) {
-            let p = Path::new(&r.source);
-            let in_inbox = self.dirs.iter().any(|d| p.starts_with(d));
-            if in_inbox && !on_disk.contains_key(p) {
-                if let Err(e) = self.engine.retire(&r.source) {
-                    tracing::warn!(source = %r.source, error = %e, "could not retire a deleted file's survey");
-                }
-                // A copy of the same content elsewhere in the inbox was "unchanged" when it
-                // arrived; it must now bring the survey back, so look at it again.
-                let size = self.done.get(&r.source).copied().flatten().map(|s| s.0);
-                self.done.retain(|_, st| st.map(|s| s.0) != size);
+        let sources: Vec<String> = catalog
+            .active()
+            .map(|r| r.source.clone())
+            .chain(catalog.pins.keys().cloned())
+            .filter(|s| gone(s))
+            .collect();
+        for source in sources {
+            if let Err(e) = self.sink.retire_deleted(&source) {
+                tracing::warn!(source = ?source, error = %e, "could not retire a deleted file's survey");
+                continue;
             }
+            // A copy of the same content elsewhere in the inbox was "unchanged" when it
+            // arrived; it must now bring the survey back, so look at it again.
+            let size = self.done.get(&source).copied().flatten().map(|s| s.0);
+            self.done.retain(|_, st| st.map(|s| s.0) != size);
+            self.done.remove(&source);
         }
     }
 }
 
+/// How often the inbox is listed without an event: a slow pass catches what the watcher
+/// misses (network shares, overflow); a folder that is away is looked for more often.
+const IDLE_PASS: Duration = Duration::from_secs(30);
+const ABSENT_PASS: Duration = Duration::from_secs(2);
+
 /// Watches the inbox folders until `shutdown` resolves.
 pub async fn run(engine: Arc<Engine>, mut shutdown: tokio::sync::watch::Receiver<bool>) {
-    for d in &engine.config().inbox {
+    let cfg = engine.config();
+    let catalog = engine.catalog();
+    for d in cfg.inbox.iter().filter(|d| !d.exists()) {
+        // A missing folder is made on first run; one that surveys came from is away (an
+        // unmounted share, say) and is waited for, or files would land beside the mount.
+        let abs = std::path::absolute(d).unwrap_or_else(|_| d.clone());
+        if catalog
+            .active()
+            .any(|r| Path::new(&r.source).starts_with(&abs))
+        {
+            continue;
+        }
         if let Err(e) = std::fs::create_dir_all(d) {
-            tracing::error!(dir = %d.display(), error = %e, "cannot create the inbox folder");
+            tracing::error!(dir = ?d, error = %e, "cannot create the inbox folder");
         }
     }
     let (tx, mut rx) = mpsc::channel::<Wake>(64);
@@ -214,39 +341,57 @@ pub async fn run(engine: Arc<Engine>, mut shutdown: tokio::sync::watch::Receiver
             });
         },
     ) {
-        Ok(d) => d,
+        Ok(d) => Some(d),
         Err(e) => {
-            tracing::error!(error = %e, "cannot watch the inbox; only start-up and periodic scans will run");
-            return;
+            tracing::error!(error = %e, "cannot watch the inbox; only periodic scans will run");
+            None
         }
     };
-    let mut rec = Reconciler::new(engine.clone());
-    for d in &rec.dirs {
-        if let Err(e) = debouncer.watch(d, notify::RecursiveMode::Recursive) {
-            tracing::error!(dir = %d.display(), error = %e, "cannot watch the inbox folder");
+    let mut watch = |dirs: Vec<PathBuf>| {
+        if let Some(d) = debouncer.as_mut() {
+            for dir in dirs {
+                if let Err(e) = d.watch(&dir, notify::RecursiveMode::Recursive) {
+                    tracing::error!(dir = ?dir, error = %e, "cannot watch the inbox folder");
+                }
+            }
         }
-    }
-    let mut rec = tokio::task::spawn_blocking(move || {
-        rec.startup();
-        rec
+    };
+    let mut rec = Reconciler::new(
+        engine.clone(),
+        &cfg.inbox,
+        Duration::from_millis(cfg.settle_ms),
+        cfg.on_delete,
+    );
+    let (r, present) = tokio::task::spawn_blocking(move || {
+        let present = rec.startup();
+        (rec, present)
     })
     .await
     .expect("start-up scan");
-    let tick = Duration::from_millis((engine.config().settle_ms / 2).clamp(100, 2000));
-    // A slow periodic pass catches anything the watcher misses (network shares, overflow).
-    let mut idle = tokio::time::interval(Duration::from_secs(30));
+    rec = r;
+    watch(present);
+    let tick = Duration::from_millis((cfg.settle_ms / 2).clamp(100, 2000));
+    let mut last_pass = Instant::now();
     let mut waiting = true;
     loop {
         if waiting || !rx.is_empty() {
-            let (r, more) = tokio::task::spawn_blocking(move || {
-                let more = rec.pass();
-                (rec, more)
+            let (r, (more, back)) = tokio::task::spawn_blocking(move || {
+                let out = rec.pass();
+                (rec, out)
             })
             .await
             .expect("reconcile pass");
             rec = r;
+            watch(back);
             waiting = more;
+            last_pass = Instant::now();
         }
+        let idle = if rec.all_present() {
+            IDLE_PASS
+        } else {
+            ABSENT_PASS
+        };
+        let next_idle = idle.saturating_sub(last_pass.elapsed());
         tokio::select! {
             _ = shutdown.changed() => break,
             w = rx.recv() => match w {
@@ -255,7 +400,12 @@ pub async fn run(engine: Arc<Engine>, mut shutdown: tokio::sync::watch::Receiver
                 None => break,
             },
             _ = tokio::time::sleep(tick), if waiting => {},
-            _ = idle.tick() => waiting = true,
+            _ = tokio::time::sleep(next_idle) => waiting = true,
         }
     }
+}
+
+enum Wake {
+    Changed,
+    Renamed(Vec<PathBuf>),
 }

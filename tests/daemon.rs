@@ -193,6 +193,13 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
     }
     std::fs::create_dir(inbox.join("folder.tif")).unwrap();
     std::os::unix::fs::symlink(tmp.path().join("nowhere.tif"), inbox.join("dangling.tif")).unwrap();
+    // A link out of the inbox, to a good file, gets the same message as one that leads
+    // nowhere: the inbox is no window onto the rest of the disk.
+    std::os::unix::fs::symlink(
+        crop("copernicus_n34w119_crop.tif"),
+        inbox.join("outside.tif"),
+    )
+    .unwrap();
 
     let expect = [
         ("empty.tif", "empty"),
@@ -204,7 +211,8 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
         ("nonfinite.tif", "nodata"),
         ("utm.tif", "EPSG:32631"),
         ("folder.tif", "directory"),
-        ("dangling.tif", "cannot read"),
+        ("dangling.tif", "symlinks followed"),
+        ("outside.tif", "symlinks followed"),
         ("inaccurate.tif", "refused"),
         ("mislabelled.tif", "EPSG:32630"),
     ];

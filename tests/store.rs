@@ -11,8 +11,8 @@ use patchwork::model::accuracy::AccuracySource;
 use patchwork::model::ids::{PatchId, SurveyId};
 use patchwork::model::survey::Survey;
 use patchwork::store::{
-    open_error, FailedRecord, IngestTimings, Opened, Status, Store, StoreError, SurveyRecord,
-    SCHEMA_VERSION,
+    open_error, DiskSpace, FailedRecord, IngestTimings, Opened, SpaceGuard, Status, Store,
+    StoreError, SurveyRecord, SCHEMA_VERSION,
 };
 use patchwork::terrain::Terrain;
 
@@ -59,7 +59,9 @@ fn retire(store: &Store, t: &mut Terrain, id: SurveyId) {
     let mut next = t.clone();
     let ids = patch_ids(t, id);
     let change = next.retire(id).expect("present");
-    store.commit_retire(id, &ids, &change).expect("retire");
+    store
+        .commit_retire(id, &ids, &change, false)
+        .expect("retire");
     *t = next;
 }
 
@@ -184,7 +186,7 @@ fn a_retired_survey_stays_retired() {
         }
         retire(&store, &mut t, b.id);
         assert!(matches!(
-            store.commit_retire(b.id, &[], &Default::default()),
+            store.commit_retire(b.id, &[], &Default::default(), false),
             Err(StoreError::NotActive(_))
         ));
         assert_verified(&store);
@@ -455,9 +457,9 @@ fn failures_are_recorded_listed_and_cleared() {
     };
     {
         let Opened { store, .. } = open(&dir);
-        store.record_failure(&f("/in/b.tif")).unwrap();
-        store.record_failure(&f("/in/a.tif")).unwrap();
-        store.record_failure(&f("/in/c.tif")).unwrap();
+        store.record_failure(&f("/in/b.tif"), 100).unwrap();
+        store.record_failure(&f("/in/a.tif"), 100).unwrap();
+        store.record_failure(&f("/in/c.tif"), 100).unwrap();
         store.clear_failure("/in/c.tif").unwrap();
         // Clearing what is not there is fine.
         store.clear_failure("/in/zzz.tif").unwrap();
@@ -473,6 +475,146 @@ fn failures_are_recorded_listed_and_cleared() {
     assert_eq!(store.failures().unwrap(), vec![f("/in/b.tif")]);
     let r = store.verify().unwrap();
     assert!(r.is_ok() && r.failures == 1, "{r:?}");
+}
+
+#[test]
+fn failure_records_are_one_a_path_and_bounded_and_can_be_forgotten() {
+    let tmp = tempfile::tempdir().unwrap();
+    let Opened { store, .. } = open(&store_dir(&tmp));
+    let f = |source: &str, at_unix: u64| FailedRecord {
+        source: source.into(),
+        error: "not a GeoTIFF".into(),
+        size: 1,
+        mtime_unix: 1,
+        at_unix,
+    };
+    for i in 0..50 {
+        store
+            .record_failure(&f(&format!("/in/{i:02}.tif"), i), 10)
+            .unwrap();
+        // The same path again replaces its record.
+        store
+            .record_failure(&f(&format!("/in/{i:02}.tif"), i), 10)
+            .unwrap();
+    }
+    let kept: Vec<String> = store
+        .failures()
+        .unwrap()
+        .into_iter()
+        .map(|r| r.source)
+        .collect();
+    let newest: Vec<String> = (40..50).map(|i| format!("/in/{i}.tif")).collect();
+    assert_eq!(kept, newest, "the newest 10 stay");
+    assert!(store.forget_failure("/in/45.tif").unwrap());
+    assert!(!store.forget_failure("/in/45.tif").unwrap());
+    assert_eq!(store.failures().unwrap().len(), 9);
+    assert_verified(&store);
+}
+
+/// A disk whose free space a test sets.
+struct FakeDisk(std::sync::atomic::AtomicU64);
+
+impl DiskSpace for FakeDisk {
+    fn available(&self, _: &Path) -> std::io::Result<u64> {
+        Ok(self.0.load(std::sync::atomic::Ordering::SeqCst))
+    }
+}
+
+#[test]
+fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let disk = Arc::new(FakeDisk(u64::MAX.into()));
+    let guard = SpaceGuard {
+        disk: disk.clone(),
+        min_free: 64 << 20,
+        reserve: 0,
+    };
+    let Opened { store, .. } =
+        Store::open_with(&dir, LAYOUT, IndexConfig::default(), guard.clone()).unwrap();
+    let (a, b) = (big(1), big(2));
+    let mut t = Terrain::new(IndexConfig::default());
+    ingest(&store, &mut t, &a, "/in/a.tif");
+    let before = store.raw().iter().count();
+    // Room for a small write (64 MiB kept free and 4 MiB for sled), not for a survey's
+    // samples three times over.
+    disk.0.store(68 << 20, std::sync::atomic::Ordering::SeqCst);
+    let mut next = t.clone();
+    let change = next.insert(b.clone());
+    let rec = SurveyRecord::new(
+        &b,
+        "/in/b.tif",
+        "",
+        AccuracySource::Sidecar,
+        Default::default(),
+    );
+    let e = store.commit_survey(&b, &rec, &change, &[]).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            StoreError::Full {
+                available_mb: 68,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("nothing was written"), "{e}");
+    assert_eq!(store.raw().iter().count(), before);
+    assert!(store.writable().is_ok(), "a small write still fits");
+    disk.0.store(10 << 20, std::sync::atomic::Ordering::SeqCst);
+    assert!(store.writable().is_err());
+    let f = FailedRecord {
+        source: "/in/x.tif".into(),
+        error: "bad".into(),
+        size: 1,
+        mtime_unix: 1,
+        at_unix: 1,
+    };
+    assert!(matches!(
+        store.record_failure(&f, 10),
+        Err(StoreError::Full { .. })
+    ));
+    // Space returns, and so do writes.
+    disk.0.store(u64::MAX, std::sync::atomic::Ordering::SeqCst);
+    store.commit_survey(&b, &rec, &change, &[]).unwrap();
+    assert_verified(&store);
+    drop(store);
+    // A store opens on a full disk, and says it cannot be written.
+    disk.0.store(0, std::sync::atomic::Ordering::SeqCst);
+    let Opened { store, terrain, .. } =
+        Store::open_with(&dir, LAYOUT, IndexConfig::default(), guard).unwrap();
+    assert_eq!(terrain.surveys().count(), 2);
+    assert!(matches!(store.writable(), Err(StoreError::Full { .. })));
+}
+
+#[test]
+fn a_pin_holds_the_content_of_a_survey_retired_by_hand_until_it_is_ingested_again() {
+    let tmp = tempfile::tempdir().unwrap();
+    let Opened { store, .. } = open(&store_dir(&tmp));
+    let (a, _) = pair();
+    let mut t = Terrain::new(IndexConfig::default());
+    let change = t.insert(a.clone());
+    let content = "c0".repeat(32);
+    let rec = SurveyRecord::new(
+        &a,
+        "/in/a.tif",
+        &content,
+        AccuracySource::Flag,
+        Default::default(),
+    );
+    store.commit_survey(&a, &rec, &change, &[]).unwrap();
+    let ids = patch_ids(&t, a.id);
+    let change = t.retire(a.id).unwrap();
+    store.commit_retire(a.id, &ids, &change, true).unwrap();
+    let pins = store.pins().unwrap();
+    assert_eq!(pins.get("/in/a.tif"), Some(&content));
+    assert_verified(&store);
+    ingest(&store, &mut t, &a, "/in/a.tif");
+    assert!(
+        store.pins().unwrap().is_empty(),
+        "ingesting the file again lifts the pin"
+    );
 }
 
 fn big(k: u64) -> Arc<Survey> {

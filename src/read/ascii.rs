@@ -229,10 +229,13 @@ fn parse_sample(tok: &str, index: usize, nodata: Option<f32>) -> Result<f32, Rea
     })
 }
 
+/// Extensions of the projection file beside a grid, which the reader opens.
+pub const PRJ_EXTENSIONS: [&str; 2] = ["prj", "PRJ"];
+
 /// The CRS of the `.prj` next to the grid, if there is one: its EPSG code, or the name of a
 /// CRS it describes that has none.
 fn sidecar_crs(path: &Path) -> Result<(Option<u32>, Option<String>), ReadError> {
-    for ext in ["prj", "PRJ"] {
+    for ext in PRJ_EXTENSIONS {
         let prj = path.with_extension(ext);
         if prj.is_file() {
             let mut text = String::new();

@@ -3,7 +3,7 @@
 
 use super::convert;
 use super::proto as pb;
-use crate::engine::{Cut, Engine, EngineError};
+use crate::engine::{Cut, Engine, EngineError, Origin};
 use std::path::Path;
 
 fn cut_of(
@@ -65,6 +65,26 @@ pub fn sample_heights(engine: &Engine, r: &pb::SampleRequest) -> Result<pb::Samp
     })
 }
 
+/// Longest path or id a request may carry: PATH_MAX on Linux.
+const MAX_PATH_BYTES: usize = 4096;
+
+fn check_path(what: &str, p: &str) -> Result<(), EngineError> {
+    if p.len() > MAX_PATH_BYTES {
+        return Err(EngineError::Invalid(format!(
+            "{what} is {} bytes long, more than the {MAX_PATH_BYTES} a path may have",
+            p.len()
+        )));
+    }
+    if p.is_empty() || p.contains('\0') {
+        return Err(EngineError::Invalid(format!(
+            "{what} must be a non-empty path without NUL characters"
+        )));
+    }
+    Ok(())
+}
+
+/// Ingests the files in order. A file's own problem is its result; a storage failure (a full
+/// disk) fails the call, and the files before it stay ingested.
 pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply, EngineError> {
     if let Some(a) = r.accuracy_m {
         if !(a.is_finite() && a >= 0.0) {
@@ -73,20 +93,45 @@ pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply,
             )));
         }
     }
-    Ok(pb::IngestReply {
-        results: r
-            .paths
-            .iter()
-            .map(|p| convert::ingested(&engine.ingest(Path::new(p), r.accuracy_m)))
-            .collect(),
-    })
+    let most = engine.config().limits.max_ingest_paths;
+    if r.paths.len() as u64 > most {
+        return Err(EngineError::TooLarge(format!(
+            "{} paths in one request, more than the limit of {most} (limits.max_ingest_paths): send them in smaller requests",
+            r.paths.len()
+        )));
+    }
+    for p in &r.paths {
+        check_path("a path", p)?;
+    }
+    let results = r
+        .paths
+        .iter()
+        .map(|p| {
+            engine
+                .ingest(Path::new(p), r.accuracy_m, Origin::Request)
+                .map(|i| convert::ingested(&i))
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(pb::IngestReply { results })
 }
 
 pub fn list_surveys(engine: &Engine) -> Result<pb::SurveyList, EngineError> {
-    Ok(convert::surveys(&engine.snapshot(), &engine.surveys()?))
+    Ok(convert::surveys(&engine.snapshot(), &engine.surveys()))
+}
+
+pub fn forget(engine: &Engine, r: &pb::ForgetRequest) -> Result<pb::ForgetReply, EngineError> {
+    check_path("the source", &r.source)?;
+    if !engine.forget(&r.source)? {
+        return Err(EngineError::NotFound(format!(
+            "no failure is recorded for {}; `patchwork surveys` lists them",
+            crate::engine::quote_short(&r.source)
+        )));
+    }
+    Ok(pb::ForgetReply {})
 }
 
 pub fn retire(engine: &Engine, r: &pb::RetireRequest) -> Result<pb::RetireReply, EngineError> {
+    check_path("the id or source", &r.id_or_source)?;
     let (id, patches) = engine.retire(&r.id_or_source)?;
     Ok(pb::RetireReply {
         id: id.to_string(),
@@ -95,7 +140,7 @@ pub fn retire(engine: &Engine, r: &pb::RetireRequest) -> Result<pb::RetireReply,
 }
 
 pub fn stats(engine: &Engine) -> Result<pb::StatsReply, EngineError> {
-    Ok(convert::stats(&engine.stats()?))
+    Ok(convert::stats(&engine.stats()))
 }
 
 pub fn verify(engine: &Engine) -> Result<pb::VerifyReply, EngineError> {

@@ -203,6 +203,7 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         crs: s.crs.unwrap_or(0),
         backend: s.backend.clone(),
         quadtree_nodes: s.quadtree_nodes,
+        read_only: s.read_only.clone().unwrap_or_default(),
     }
 }
 

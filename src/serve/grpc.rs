@@ -129,6 +129,16 @@ impl admin_server::Admin for Service {
             .map(Response::new)
     }
 
+    async fn forget(
+        &self,
+        r: Request<pb::ForgetRequest>,
+    ) -> Result<Response<pb::ForgetReply>, Status> {
+        let r = r.into_inner();
+        self.run(move |e| api::forget(e, &r))
+            .await
+            .map(Response::new)
+    }
+
     async fn stats(
         &self,
         _: Request<pb::StatsRequest>,

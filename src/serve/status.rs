@@ -4,17 +4,42 @@ use crate::engine::EngineError;
 use crate::store::StoreError;
 use tonic::Status;
 
+/// Longest message a status carries: it travels in an HTTP/2 header, and a client's megabyte
+/// of input must not come back in it.
+const MAX_MESSAGE: usize = 1024;
+
+fn short(mut m: String) -> String {
+    if m.len() > MAX_MESSAGE {
+        let mut cut = MAX_MESSAGE;
+        while !m.is_char_boundary(cut) {
+            cut -= 1;
+        }
+        m.truncate(cut);
+        m.push('…');
+    }
+    m
+}
+
 pub fn to_status(e: EngineError) -> Status {
+    let m = short(e.to_string());
     match e {
-        EngineError::Invalid(m) => Status::invalid_argument(m),
-        EngineError::TooLarge(m) => Status::resource_exhausted(m),
-        EngineError::NotFound(m) => Status::not_found(m),
-        EngineError::Unavailable(m) => Status::failed_precondition(m),
-        EngineError::Store(StoreError::Locked { dir }) => Status::unavailable(format!(
-            "the store at {} is in use by another process",
-            dir.display()
-        )),
-        EngineError::Store(e) => Status::internal(e.to_string()),
+        EngineError::Invalid(_) => Status::invalid_argument(m),
+        EngineError::TooLarge(_) => Status::resource_exhausted(m),
+        EngineError::NotFound(_) => Status::not_found(m),
+        EngineError::Unavailable(_) => Status::failed_precondition(m),
+        // Retrying later can help: the disk may get room, the daemon a restart.
+        EngineError::StoreFailed(_) => Status::unavailable(m),
+        EngineError::Store(StoreError::Full { .. }) => Status::resource_exhausted(m),
+        EngineError::Store(StoreError::Locked { .. }) => Status::unavailable(m),
+        EngineError::Store(StoreError::Sled(sled::Error::Io(io)))
+            if io.kind() == std::io::ErrorKind::StorageFull =>
+        {
+            Status::resource_exhausted(m)
+        }
+        EngineError::Store(StoreError::Sled(sled::Error::Io(_)) | StoreError::Io(_)) => {
+            Status::unavailable(m)
+        }
+        EngineError::Store(_) => Status::internal(m),
     }
 }
 
@@ -23,4 +48,32 @@ pub fn deadline(ms: u64) -> Status {
     Status::deadline_exceeded(format!(
         "the request took longer than the {ms} ms limit: ask for a smaller region, a larger error or a smaller tile"
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_error_gets_its_code_and_a_bounded_message() {
+        use tonic::Code;
+        let full = StoreError::Full {
+            available_mb: 1,
+            needed_mb: 70,
+        };
+        assert_eq!(to_status(full.into()).code(), Code::ResourceExhausted);
+        let enospc = std::io::Error::from(std::io::ErrorKind::StorageFull);
+        let s = to_status(StoreError::Sled(sled::Error::Io(enospc)).into());
+        assert_eq!(s.code(), Code::ResourceExhausted);
+        let eio = std::io::Error::other("Input/output error");
+        let s = to_status(StoreError::Sled(sled::Error::Io(eio)).into());
+        assert_eq!(s.code(), Code::Unavailable);
+        let s = to_status(EngineError::StoreFailed("Input/output error".into()));
+        assert_eq!(s.code(), Code::Unavailable);
+        let s = to_status(EngineError::NotFound("x".repeat(1 << 20)));
+        assert_eq!(s.code(), Code::NotFound);
+        assert!(s.message().len() <= MAX_MESSAGE + 3);
+        let s = to_status(EngineError::Invalid("é".repeat(1000)));
+        assert!(s.message().ends_with('…'));
+    }
 }

@@ -107,6 +107,7 @@ impl Store {
         let live = |k: &[u8]| -> bool {
             if k.starts_with(keys::META_PREFIX)
                 || k.starts_with(keys::FAILURE_PREFIX)
+                || k.starts_with(keys::PIN_PREFIX)
                 || keys::parse_survey(k).is_some()
             {
                 return true;
@@ -126,7 +127,9 @@ impl Store {
             false
         };
         let (mut kept, mut removed) = (0u64, 0u64);
-        {
+        // The copy is checked against the free space batch by batch, like any write: a full
+        // disk stops it with the store untouched, and the partial copy is deleted.
+        let copied = (|| -> Result<(), StoreError> {
             let fresh = sled::Config::new().path(&tmp).open()?;
             let mut batch = sled::Batch::default();
             let mut bytes = 0usize;
@@ -140,18 +143,26 @@ impl Store {
                 bytes += k.len() + v.len();
                 batch.insert(k, v);
                 if bytes >= COPY_BATCH_BYTES {
+                    self.guard.check(&dir, bytes as u64)?;
                     fresh.apply_batch(std::mem::take(&mut batch))?;
                     bytes = 0;
                 }
             }
+            self.guard.check(&dir, bytes as u64)?;
             fresh.apply_batch(batch)?;
             fresh.flush()?;
+            Ok(())
+        })();
+        if let Err(e) = copied {
+            let _ = std::fs::remove_dir_all(&tmp);
+            return Err(e);
         }
         self.db.flush()?;
         let Store {
             db,
             layout,
             index,
+            guard,
             _lock: lock,
             ..
         } = self;
@@ -163,7 +174,7 @@ impl Store {
         std::fs::rename(&tmp, &dir)?;
         sync_dir(&dir);
         std::fs::remove_dir_all(&old)?;
-        let opened = Store::open_locked(dir.clone(), lock, layout, index)?;
+        let opened = Store::open_locked(dir.clone(), lock, layout, index, guard)?;
         let bytes_after = dir_bytes(&dir);
         Ok((
             opened,

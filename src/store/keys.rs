@@ -20,6 +20,7 @@ pub const TOP_PREFIX: &[u8] = b"t/";
 pub const FAILURE_PREFIX: &[u8] = b"f/";
 pub const OVERLAP_PREFIX: &[u8] = b"o/";
 pub const ACCURACY_PREFIX: &[u8] = b"a/";
+pub const PIN_PREFIX: &[u8] = b"r/";
 
 pub fn survey(id: SurveyId) -> Vec<u8> {
     format!("s/{id}").into_bytes()
@@ -58,6 +59,14 @@ pub fn overlaps_of(a: SurveyId) -> Vec<u8> {
 
 pub fn failure(source: &str) -> Vec<u8> {
     let mut k = FAILURE_PREFIX.to_vec();
+    k.extend_from_slice(source.as_bytes());
+    k
+}
+
+/// A survey retired by hand from a file still in the inbox: the file's content id, which the
+/// watcher leaves retired until the content changes.
+pub fn pin(source: &str) -> Vec<u8> {
+    let mut k = PIN_PREFIX.to_vec();
     k.extend_from_slice(source.as_bytes());
     k
 }

@@ -14,12 +14,16 @@
 //! | `c/<survey>/<level:02>/<band:08>` | LE `f32` samples of [`CHUNK_ROWS`] rows of a level |
 //! | `t/<patch>` | the patch's [`BoxState`] in the LOD index: `f64` LE top, then a byte that is 1 when the box is exposed; for active surveys' patches and the edge patches they call for |
 //! | `o/<survey>/<other>` | [`Deviation`] (bincode): how two surveys disagree where they overlap, under both orders |
-//! | `f/<source path>` | [`FailedRecord`] (bincode) |
+//! | `f/<source path>` | [`FailedRecord`] (bincode); at most one a path, and a bounded number |
+//! | `r/<source path>` | hex content id of a file whose survey was retired by hand while the file stayed in the inbox |
 //! | `meta/rebuild` | present when the next open must derive the index again from the surveys |
 //!
 //! Storing the box states is what lets `open` rebuild the index without running the cutter:
 //! the boxes themselves follow from the patches and the level georeferences, and the edge
 //! patches from the surveys' samples.
+//!
+//! Every write is checked against the free disk space first (see [`space`]): sled cannot
+//! recover from running out of it.
 //!
 //! Besides sled's own lock inside the directory, a store holds an exclusive lock on the file
 //! `<dir>.lock` beside it for as long as it is open. Compaction swaps whole directories, so
@@ -28,10 +32,12 @@
 mod compact;
 pub(crate) mod keys;
 mod migrate;
+pub mod space;
 mod verify;
 
 pub use compact::CompactReport;
 pub use migrate::CURRENT as SCHEMA_VERSION;
+pub use space::{DiskSpace, SpaceGuard, SystemDisk};
 pub use verify::VerifyReport;
 
 use crate::index::lod::{BoxState, ChangeStats, IndexConfig};
@@ -82,6 +88,12 @@ pub enum StoreError {
     NotActive(SurveyId),
     #[error("invalid request: {0}")]
     Invalid(String),
+    #[error(
+        "the disk holding the store has {available_mb} MiB free, and this write needs \
+         {needed_mb} MiB with the space kept free (storage.min_free_mb): free some space or \
+         compact the store; nothing was written"
+    )]
+    Full { available_mb: u64, needed_mb: u64 },
     #[error("storage engine: {0}")]
     Sled(sled::Error),
     #[error("store I/O: {0}")]
@@ -213,6 +225,35 @@ impl SurveyRecord {
             AccuracySource::Estimated => AccuracySpec::Auto,
             _ => AccuracySpec::Fixed(self.accuracy),
         }
+    }
+}
+
+/// Everything the store holds besides samples and patches: what listings, stats and the inbox
+/// read. The engine keeps it beside the terrain, so that they never wait on the disk.
+#[derive(Clone, Debug, Default)]
+pub struct Catalog {
+    /// Every survey record, active and retired, in id order.
+    pub records: Vec<SurveyRecord>,
+    /// Every recorded failure, in source order.
+    pub failures: Vec<FailedRecord>,
+    /// How surveys disagree where they overlap, under both orders.
+    pub overlaps: HashMap<SurveyId, Vec<(SurveyId, Deviation)>>,
+    /// Sources retired by hand, with the content that stays retired (see [`Store::pins`]).
+    pub pins: HashMap<String, String>,
+    pub crs: Option<u32>,
+    pub layout: PatchLayout,
+}
+
+impl Catalog {
+    /// The record of the active survey read from `source`, if any.
+    pub fn active_from(&self, source: &str) -> Option<&SurveyRecord> {
+        self.records
+            .iter()
+            .find(|r| r.status == Status::Active && r.source == source)
+    }
+
+    pub fn active(&self) -> impl Iterator<Item = &SurveyRecord> {
+        self.records.iter().filter(|r| r.status == Status::Active)
     }
 }
 
@@ -363,8 +404,30 @@ fn lock(dir: &Path) -> Result<File, StoreError> {
     }
 }
 
+/// A sled batch that knows how many bytes it writes, so that the disk can be asked first.
+#[derive(Default)]
+struct Writes {
+    batch: sled::Batch,
+    bytes: u64,
+}
+
+impl Writes {
+    fn insert(&mut self, k: impl Into<sled::IVec>, v: impl Into<sled::IVec>) {
+        let (k, v) = (k.into(), v.into());
+        self.bytes += (k.len() + v.len()) as u64;
+        self.batch.insert(k, v);
+    }
+
+    fn remove(&mut self, k: impl Into<sled::IVec>) {
+        let k = k.into();
+        self.bytes += k.len() as u64;
+        self.batch.remove(k);
+    }
+}
+
 pub struct Store {
     db: sled::Db,
+    guard: SpaceGuard,
     dir: PathBuf,
     layout: PatchLayout,
     index: IndexConfig,
@@ -382,6 +445,8 @@ pub struct Opened {
     /// Problems met while loading that did not stop it (missing or orphaned tops): the terrain
     /// may answer queries wrongly until they are dealt with. `verify` tells more.
     pub warnings: Vec<String>,
+    /// Whether the disk was so full that the reserve file was given back to open the store.
+    pub released_reserve: bool,
 }
 
 /// The writes a survey commit adds to a batch; kept so that the record can get its commit time.
@@ -398,9 +463,28 @@ impl Store {
     /// `layout` and `index` only apply to a fresh store: an existing one keeps the settings its
     /// surveys were built and indexed with (see [`Store::layout`], [`Store::index_config`]).
     pub fn open(dir: &Path, layout: PatchLayout, index: IndexConfig) -> Result<Opened, StoreError> {
+        Self::open_with(dir, layout, index, SpaceGuard::default())
+    }
+
+    /// [`Store::open`] under the given space rules. On a disk too full to write, the store
+    /// opens all the same (releasing its reserve file if that is what it takes), and every
+    /// write is refused with [`StoreError::Full`] until space returns.
+    pub fn open_with(
+        dir: &Path,
+        layout: PatchLayout,
+        index: IndexConfig,
+        guard: SpaceGuard,
+    ) -> Result<Opened, StoreError> {
         let dir = std::path::absolute(dir)?;
         let lock = lock(&dir)?;
-        Self::open_locked(dir, lock, layout, index)
+        let mut opened = Self::open_locked(dir, lock, layout, index, guard)?;
+        if opened.released_reserve {
+            opened.warnings.push(
+                "the disk was full: the store's reserve file was released so that it could                  open"
+                    .into(),
+            );
+        }
+        Ok(opened)
     }
 
     fn open_locked(
@@ -408,9 +492,16 @@ impl Store {
         lock: File,
         layout: PatchLayout,
         index: IndexConfig,
+        guard: SpaceGuard,
     ) -> Result<Opened, StoreError> {
         compact::recover(&dir)?;
+        let released_reserve = guard.release_if_full(&dir)?;
         let db = open_sled(&dir)?;
+        if migrate::version(&db)? < migrate::CURRENT && db.get(keys::SCHEMA)?.is_some() {
+            // A migration rewrites much of the store; refuse it on a full disk rather than
+            // let sled run out of space halfway.
+            guard.check(&dir, db.size_on_disk()?)?;
+        }
         let migrated = migrate::migrate(&db, &migrate::Ctx { layout, index })?;
         let get = |k: &[u8]| -> Result<sled::IVec, StoreError> {
             db.get(k)?.ok_or_else(|| {
@@ -425,6 +516,7 @@ impl Store {
             .transpose()?;
         let store = Store {
             db,
+            guard,
             dir,
             layout,
             index,
@@ -433,11 +525,15 @@ impl Store {
             migrated,
             _lock: lock,
         };
-        let (terrain, warnings) = store.load()?;
+        let (terrain, mut warnings) = store.load()?;
+        if let Err(e) = store.guard.restore(&store.dir) {
+            warnings.push(format!("could not make the reserve file: {e}"));
+        }
         Ok(Opened {
             store,
             terrain,
             warnings,
+            released_reserve,
         })
     }
 
@@ -475,7 +571,7 @@ impl Store {
             .map(|r| self.load_survey(r).map(Arc::new))
             .collect::<Result<_, _>>()?;
         if self.db.get(keys::REBUILD)?.is_some() {
-            return Ok((self.rebuild(surveys)?, Vec::new()));
+            return self.rebuild(surveys, Vec::new());
         }
         let mut states = self.states()?;
         let (terrain, missing) = Terrain::restore(self.index, surveys.clone(), &states);
@@ -488,7 +584,7 @@ impl Store {
                  the surveys",
                 missing.len()
             ));
-            return Ok((self.rebuild(surveys)?, warnings));
+            return self.rebuild(surveys, warnings);
         }
         for id in terrain.index().state().keys() {
             states.remove(id);
@@ -506,10 +602,17 @@ impl Store {
     /// box state and overlap in one batch: what an open does after a migration that changed
     /// what the index keeps. The result does not depend on the order, which only fixes the
     /// work done.
-    fn rebuild(&self, mut surveys: Vec<Arc<Survey>>) -> Result<Terrain, StoreError> {
+    ///
+    /// On a disk too full to take the writes, the terrain is still served and the next open
+    /// tries again.
+    fn rebuild(
+        &self,
+        mut surveys: Vec<Arc<Survey>>,
+        mut warnings: Vec<String>,
+    ) -> Result<(Terrain, Vec<String>), StoreError> {
         surveys.sort_by_key(|s| s.id);
         let mut t = Terrain::new(self.index);
-        let mut batch = sled::Batch::default();
+        let mut batch = Writes::default();
         for kv in self.db.scan_prefix(keys::TOP_PREFIX) {
             batch.remove(kv?.0);
         }
@@ -531,8 +634,14 @@ impl Store {
             batch.insert(keys::top(id), &encode_state(&st));
         }
         batch.remove(keys::REBUILD);
-        self.apply(batch)?;
-        Ok(t)
+        match self.apply(batch) {
+            Ok(()) => {}
+            Err(e @ StoreError::Full { .. }) => warnings.push(format!(
+                "the index was derived again but could not be stored: {e}"
+            )),
+            Err(e) => return Err(e),
+        }
+        Ok((t, warnings))
     }
 
     fn states(&self) -> Result<HashMap<PatchId, BoxState>, StoreError> {
@@ -646,7 +755,7 @@ impl Store {
     #[allow(clippy::too_many_arguments)]
     fn stage_survey(
         &self,
-        batch: &mut sled::Batch,
+        batch: &mut Writes,
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
@@ -717,16 +826,17 @@ impl Store {
             batch.insert(keys::overlap(*other, s.id), v);
         }
         batch.remove(keys::failure(&rec.source));
+        batch.remove(keys::pin(&rec.source));
         Ok(Staged { key, rec, crs })
     }
 
     fn stage_retire(
         &self,
-        batch: &mut sled::Batch,
+        batch: &mut Writes,
         id: SurveyId,
         patch_ids: &[PatchId],
         change: &ChangeStats,
-    ) -> Result<(), StoreError> {
+    ) -> Result<SurveyRecord, StoreError> {
         let mut rec = match self.record(id)? {
             Some(r) if r.status == Status::Active => r,
             _ => return Err(StoreError::NotActive(id)),
@@ -744,12 +854,13 @@ impl Store {
                 batch.remove(keys::overlap(other, id));
             }
         }
-        Ok(())
+        Ok(rec)
     }
 
-    /// Applies a batch and makes it durable before returning.
-    fn apply(&self, batch: sled::Batch) -> Result<(), StoreError> {
-        self.db.apply_batch(batch)?;
+    /// Applies a batch and makes it durable before returning, once the disk has room for it.
+    fn apply(&self, batch: Writes) -> Result<(), StoreError> {
+        self.guard.check(&self.dir, batch.bytes)?;
+        self.db.apply_batch(batch.batch)?;
         self.db.flush()?;
         Ok(())
     }
@@ -781,23 +892,28 @@ impl Store {
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let t0 = Instant::now();
-        let mut batch = sled::Batch::default();
+        let mut batch = Writes::default();
         let staged = self.stage_survey(&mut batch, s, rec, change, overlaps, self.crs(), None)?;
         self.apply(batch)?;
         self.finish(staged, t0)
     }
 
     /// Marks a survey retired, drops its tops and writes the tops its retirement moved, in one
-    /// batch. Its samples stay until [`Store::compact`].
+    /// batch. Its samples stay until [`Store::compact`]. `pin` keeps the survey's file, should
+    /// it stay where it is, from bringing the survey back (see [`Store::pins`]).
     pub fn commit_retire(
         &self,
         id: SurveyId,
         patch_ids: &[PatchId],
         change: &ChangeStats,
+        pin: bool,
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
-        let mut batch = sled::Batch::default();
-        self.stage_retire(&mut batch, id, patch_ids, change)?;
+        let mut batch = Writes::default();
+        let rec = self.stage_retire(&mut batch, id, patch_ids, change)?;
+        if pin && !rec.content_id.is_empty() {
+            batch.insert(keys::pin(&rec.source), rec.content_id.as_bytes());
+        }
         self.apply(batch)
     }
 
@@ -818,7 +934,7 @@ impl Store {
         let t0 = Instant::now();
         // sled batches keep the last write of a key, so the insertion's tops win over the
         // retirement's, as they do in the terrain.
-        let mut batch = sled::Batch::default();
+        let mut batch = Writes::default();
         self.stage_retire(&mut batch, old, old_patches, retire_change)?;
         let staged = self.stage_survey(
             &mut batch,
@@ -833,16 +949,110 @@ impl Store {
         self.finish(staged, t0)
     }
 
-    pub fn record_failure(&self, f: &FailedRecord) -> Result<(), StoreError> {
-        self.db.insert(keys::failure(&f.source), encode(f)?)?;
-        self.db.flush()?;
-        Ok(())
+    /// Records a file that could not be ingested, replacing any earlier record of the same
+    /// path. When `keep` records are already there, the oldest go in the same batch: a client
+    /// that sends thousands of bad paths cannot grow the store without bound.
+    pub fn record_failure(&self, f: &FailedRecord, keep: usize) -> Result<(), StoreError> {
+        let _w = self.lock_writer();
+        let key = keys::failure(&f.source);
+        let mut others: Vec<(u64, sled::IVec)> = Vec::new();
+        for kv in self.db.scan_prefix(keys::FAILURE_PREFIX) {
+            let (k, v) = kv?;
+            if k.as_ref() != key.as_slice() {
+                let old: FailedRecord = decode(&v, "failure")?;
+                others.push((old.at_unix, k));
+            }
+        }
+        let mut batch = Writes::default();
+        if others.len() >= keep {
+            others.sort();
+            for (_, k) in others.drain(..=others.len() - keep.max(1)) {
+                batch.remove(k);
+            }
+        }
+        batch.insert(key, encode(f)?);
+        self.apply(batch)
+    }
+
+    /// Removes the failure recorded for `source`; whether there was one.
+    pub fn forget_failure(&self, source: &str) -> Result<bool, StoreError> {
+        let _w = self.lock_writer();
+        let key = keys::failure(source);
+        if self.db.get(&key)?.is_none() {
+            return Ok(false);
+        }
+        let mut batch = Writes::default();
+        batch.remove(key);
+        self.apply(batch)?;
+        Ok(true)
     }
 
     pub fn clear_failure(&self, source: &str) -> Result<(), StoreError> {
-        self.db.remove(keys::failure(source))?;
-        self.db.flush()?;
+        if self.db.get(keys::failure(source))?.is_some() {
+            self.forget_failure(source)?;
+        }
         Ok(())
+    }
+
+    /// The files whose surveys were retired by hand, with the content that stays retired.
+    pub fn pins(&self) -> Result<HashMap<String, String>, StoreError> {
+        self.db
+            .scan_prefix(keys::PIN_PREFIX)
+            .map(|kv| {
+                let (k, v) = kv?;
+                let source = String::from_utf8_lossy(&k[keys::PIN_PREFIX.len()..]).into_owned();
+                let content = String::from_utf8(v.to_vec()).map_err(|_| {
+                    StoreError::Corrupt(format!("the pin of {source:?} is not text"))
+                })?;
+                Ok((source, content))
+            })
+            .collect()
+    }
+
+    /// Drops the pin of `source`, whose file is gone.
+    pub fn unpin(&self, source: &str) -> Result<(), StoreError> {
+        let _w = self.lock_writer();
+        let mut batch = Writes::default();
+        batch.remove(keys::pin(source));
+        self.apply(batch)
+    }
+
+    /// Every overlap, by the first survey of its key.
+    pub fn all_overlaps(
+        &self,
+    ) -> Result<HashMap<SurveyId, Vec<(SurveyId, Deviation)>>, StoreError> {
+        let mut out: HashMap<SurveyId, Vec<(SurveyId, Deviation)>> = HashMap::new();
+        for kv in self.db.scan_prefix(keys::OVERLAP_PREFIX) {
+            let (k, v) = kv?;
+            let (a, b) = keys::parse_overlap(&k).ok_or_else(|| {
+                StoreError::Corrupt(format!("bad overlap key {:?}", String::from_utf8_lossy(&k)))
+            })?;
+            let d = decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?;
+            out.entry(a).or_default().push((b, d));
+        }
+        Ok(out)
+    }
+
+    /// The records, failures, overlaps and pins as they stand.
+    pub fn catalog(&self) -> Result<Catalog, StoreError> {
+        Ok(Catalog {
+            records: self.surveys()?,
+            failures: self.failures()?,
+            overlaps: self.all_overlaps()?,
+            pins: self.pins()?,
+            crs: self.crs(),
+            layout: self.layout,
+        })
+    }
+
+    /// The space rules the store writes under.
+    pub fn guard(&self) -> &SpaceGuard {
+        &self.guard
+    }
+
+    /// Whether a small write would fit now; the reason when it would not.
+    pub fn writable(&self) -> Result<(), StoreError> {
+        self.guard.check(&self.dir, 0)
     }
 
     /// Every survey record, active and retired, in id order.
@@ -900,7 +1110,7 @@ impl Store {
 }
 
 /// The box states a change moved, and the removal of the boxes it removed.
-fn stage_change(batch: &mut sled::Batch, change: &ChangeStats) {
+fn stage_change(batch: &mut Writes, change: &ChangeStats) {
     for id in &change.removed {
         batch.remove(keys::top(*id));
     }
@@ -909,7 +1119,8 @@ fn stage_change(batch: &mut sled::Batch, change: &ChangeStats) {
     }
 }
 
-fn dir_bytes(dir: &Path) -> u64 {
+/// Bytes of the files under `dir`: a store's size on disk.
+pub fn dir_bytes(dir: &Path) -> u64 {
     let Ok(rd) = std::fs::read_dir(dir) else {
         return 0;
     };

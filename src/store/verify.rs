@@ -123,6 +123,10 @@ impl Store {
                     Ok(_) => overlaps.push(pair),
                     Err(e) => pr.add("overlap", e.to_string()),
                 }
+            } else if k.starts_with(keys::PIN_PREFIX) {
+                if v.len() != 64 || !v.iter().all(u8::is_ascii_hexdigit) {
+                    pr.add("pin", format!("{} does not hold a content id", key_str(&k)));
+                }
             } else if k.starts_with(keys::FAILURE_PREFIX) {
                 rep.failures += 1;
                 if let Err(e) = decode::<FailedRecord>(&v, &key_str(&k)) {
