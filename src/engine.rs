@@ -421,11 +421,11 @@ impl Engine {
                 })
             }
             Err(Refusal::Store(e)) => {
-                tracing::warn!(source = ?source, error = %e, "ingest deferred: the store cannot take it now");
+                tracing::warn!(source = ?source, error = ?e.to_string(), "ingest deferred: the store cannot take it now");
                 Err(e)
             }
             Err(Refusal::File(error)) => {
-                tracing::warn!(source = ?source, error = %error, "ingest failed");
+                tracing::warn!(source = ?source, error = ?error, "ingest failed");
                 self.record_failure(path, &source, &error);
                 self.emit(Outcome::Failed, None, &source, &error, Vec::new());
                 Ok(failed(error))
@@ -450,7 +450,7 @@ impl Engine {
         };
         let keep = self.cfg.limits.max_failures as usize;
         if let Err(e) = self.write(|s, _| Ok((s.record_failure(&rec, keep)?, None))) {
-            tracing::warn!(source = ?source, error = %e, "could not record the failure");
+            tracing::warn!(source = ?source, error = ?e.to_string(), "could not record the failure");
         }
     }
 

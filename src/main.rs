@@ -11,6 +11,7 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
+use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
 #[derive(Parser)]
@@ -39,13 +40,21 @@ struct Target {
     /// Config for direct mode (layout, limits); defaults otherwise.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// A file holding the bearer token to send; otherwise PATCHWORK_TOKEN, then
+    /// PATCHWORK_ADMIN_TOKEN, is sent when set.
+    #[arg(long, env = "PATCHWORK_TOKEN_FILE", value_name = "FILE")]
+    token_file: Option<PathBuf>,
+    /// PEM certificate of the authority that signed the daemon's TLS certificate, for an
+    /// https:// server (the system's roots are not used).
+    #[arg(long, env = "PATCHWORK_CA", value_name = "FILE")]
+    ca: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
 enum Cmd {
     /// Run the daemon: watch the inbox and serve the gRPC API.
     Serve {
-        #[arg(long, value_name = "FILE")]
+        #[arg(long, env = "PATCHWORK_CONFIG", value_name = "FILE")]
         config: Option<PathBuf>,
     },
     /// Ingest files now.
@@ -65,9 +74,16 @@ enum Cmd {
         #[command(flatten)]
         target: Target,
     },
-    /// Retire a survey by id or source path.
+    /// Retire a survey by id or source path. A survey whose file stays in the inbox stays
+    /// retired until that file's content changes.
     Retire {
         id_or_source: String,
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Remove the failure recorded for a file.
+    Forget {
+        path: PathBuf,
         #[command(flatten)]
         target: Target,
     },
@@ -169,11 +185,46 @@ fn rect(s: &str) -> Result<pb::Rect, Fail> {
     })
 }
 
+/// Adds the bearer token, when there is one, to every request.
+#[derive(Clone)]
+struct Bearer(Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>);
+
+impl tonic::service::Interceptor for Bearer {
+    fn call(&mut self, mut req: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(v) = &self.0 {
+            req.metadata_mut().insert("authorization", v.clone());
+        }
+        Ok(req)
+    }
+}
+
+type Authed = InterceptedService<Channel, Bearer>;
+
+/// The token to send: from --token-file, else PATCHWORK_TOKEN, else PATCHWORK_ADMIN_TOKEN.
+fn token(t: &Target) -> Result<Bearer, Fail> {
+    let text = match &t.token_file {
+        Some(f) => Some(
+            std::fs::read_to_string(f)
+                .map_err(|e| format!("cannot read the token file {}: {e}", f.display()))?,
+        ),
+        None => std::env::var("PATCHWORK_TOKEN")
+            .or_else(|_| std::env::var("PATCHWORK_ADMIN_TOKEN"))
+            .ok(),
+    };
+    let Some(text) = text.map(|t| t.trim().to_string()).filter(|t| !t.is_empty()) else {
+        return Ok(Bearer(None));
+    };
+    let v = format!("Bearer {text}")
+        .parse()
+        .map_err(|_| "the token must be printable ASCII")?;
+    Ok(Bearer(Some(v)))
+}
+
 /// The daemon, or the store opened in this process.
 enum Client {
     Remote {
-        terrain: Box<TerrainClient<Channel>>,
-        admin: Box<AdminClient<Channel>>,
+        terrain: Box<TerrainClient<Authed>>,
+        admin: Box<AdminClient<Authed>>,
     },
     Local(Arc<Engine>),
 }
@@ -186,12 +237,28 @@ impl Client {
             let engine = tokio::task::spawn_blocking(move || Engine::open(cfg)).await??;
             return Ok(Client::Local(Arc::new(engine)));
         }
-        let ch = Channel::from_shared(t.server.clone())?.connect().await.map_err(|e| {
-            format!("cannot reach the daemon at {}: {e}; start it with `patchwork serve`, or use --data-dir DIR", t.server)
+        let mut endpoint = Channel::from_shared(t.server.clone())?;
+        if let Some(ca) = &t.ca {
+            let pem = std::fs::read(ca)
+                .map_err(|e| format!("cannot read the CA certificate {}: {e}", ca.display()))?;
+            endpoint = endpoint.tls_config(
+                tonic::transport::ClientTlsConfig::new()
+                    .ca_certificate(tonic::transport::Certificate::from_pem(pem)),
+            )?;
+        }
+        let ch = endpoint.connect().await.map_err(|e| {
+            let why = std::error::Error::source(&e).map(|s| format!(" ({s})")).unwrap_or_default();
+            format!("cannot reach the daemon at {}: {e}{why}; start it with `patchwork serve`, or use --data-dir DIR", t.server)
         })?;
+        let bearer = token(t)?;
         Ok(Client::Remote {
-            terrain: Box::new(TerrainClient::new(ch.clone()).max_decoding_message_size(1 << 30)),
-            admin: Box::new(AdminClient::new(ch)),
+            terrain: Box::new(
+                TerrainClient::with_interceptor(ch.clone(), bearer.clone())
+                    .max_decoding_message_size(1 << 30),
+            ),
+            admin: Box::new(
+                AdminClient::with_interceptor(ch, bearer).max_decoding_message_size(1 << 30),
+            ),
         })
     }
 }
@@ -266,6 +333,10 @@ fn write_tile(out: &Path, t: &pb::Tile, roi: &pb::Rect) -> Result<(), Fail> {
     Ok(())
 }
 
+/// How long requests in flight get to finish after SIGTERM or Ctrl-C. Stopping mid-ingest
+/// is safe: a commit is one atomic batch, and the inbox picks the file up again.
+const GRACE: std::time::Duration = std::time::Duration::from_secs(3);
+
 async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     let cfg = Config::load(config.as_deref())?;
     tracing_subscriber::fmt()
@@ -275,6 +346,7 @@ async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
+    patchwork::serve::auth::check_exposure(&cfg)?;
     std::fs::create_dir_all(&cfg.data_dir)?;
     let listen = cfg.listen.clone();
     let engine = Arc::new(
@@ -288,21 +360,41 @@ async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     let listener = tokio::net::TcpListener::bind(&listen)
         .await
         .map_err(|e| format!("cannot listen on {listen}: {e}"))?;
-    tracing::info!(address = %listener.local_addr()?, data = %engine.config().data_dir.display(), inbox = ?engine.config().inbox, "serving");
+    let c = engine.config();
+    let tls = c.tls_cert.is_some();
+    if !patchwork::serve::auth::is_loopback(&listen) && !tls {
+        tracing::warn!("serving beyond this machine without TLS: tokens and data travel in clear; set tls_cert and tls_key");
+    }
+    tracing::info!(address = %listener.local_addr()?, tls, admin_token = c.admin_token.is_some(), read_token = c.read_token.is_some(), data = ?c.data_dir, inbox = ?c.inbox, "serving");
+    if let Some(why) = engine.read_only() {
+        tracing::warn!(reason = %why, "read-only: queries are served, writes are refused until this is resolved");
+    }
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let watcher = tokio::spawn(patchwork::watch::run(engine.clone(), stop_rx));
-    let shutdown = async move {
+    let watcher = tokio::spawn(patchwork::watch::run(engine.clone(), stop_rx.clone()));
+    tokio::spawn(async move {
         let ctrl_c = tokio::signal::ctrl_c();
         let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
             .expect("signal handler");
         tokio::select! { _ = ctrl_c => {}, _ = term.recv() => {} }
         tracing::info!("shutting down");
         let _ = stop_tx.send(true);
+    });
+    let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
+        let _ = rx.wait_for(|s| *s).await;
     };
-    grpc::serve(engine, listener, shutdown)
+    let server = grpc::serve(engine, listener, stopped(stop_rx.clone()));
+    tokio::select! {
+        r = server => r.map_err(|e| -> Fail { e.to_string().into() })?,
+        _ = async { stopped(stop_rx.clone()).await; tokio::time::sleep(GRACE).await } => {
+            tracing::warn!("requests still running {} s after the signal; stopping without them", GRACE.as_secs());
+        }
+    }
+    if tokio::time::timeout(std::time::Duration::from_secs(1), watcher)
         .await
-        .map_err(|e| -> Fail { e.to_string().into() })?;
-    let _ = watcher.await;
+        .is_err()
+    {
+        tracing::warn!("the inbox pass in progress was left unfinished; it runs again at start");
+    }
     Ok(())
 }
 
@@ -395,11 +487,15 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 for r in reply.results {
                     if r.outcome == "failed" {
                         failed += 1;
-                        say(format!("failed    {}: {}", r.source, r.error));
+                        say(format!("failed    {}: {}", printable(&r.source), r.error));
                     } else {
                         say(format!(
                             "{:<9} {} {:016x} ({} samples, {:.2} s)",
-                            r.outcome, r.source, r.survey, r.samples, r.seconds
+                            r.outcome,
+                            printable(&r.source),
+                            r.survey,
+                            r.samples,
+                            r.seconds
                         ));
                         for c in &r.conflicts {
                             say(format!(
@@ -430,13 +526,18 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             } else {
                 for s in &list.surveys {
                     match s.status.as_str() {
-                        "failed" => println!("{:<16}  failed   {}  {}", "-", s.source, s.error),
+                        "failed" => println!(
+                            "{:<16}  failed   {}  {}",
+                            "-",
+                            printable(&s.source),
+                            s.error
+                        ),
                         st => {
                             println!(
                                 "{:<16}  {:<7}  {}  ε={:.3} m ({})  {} samples  {} patches",
                                 s.id,
                                 st,
-                                s.source,
+                                printable(&s.source),
                                 s.accuracy_m,
                                 s.accuracy_source,
                                 s.samples,
@@ -474,6 +575,19 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             println!("retired {} ({} patches)", reply.id, reply.patches);
             Ok(())
         }
+        Cmd::Forget { path, target } => {
+            let mut c = Client::connect(&target).await?;
+            let source = patchwork::engine::source_name(&path);
+            let req = pb::ForgetRequest {
+                source: source.clone(),
+            };
+            let r = req.clone();
+            call!(&mut c, admin.forget(req), move |e: &Engine| api::forget(
+                e, &r
+            ))?;
+            println!("forgot the failure of {}", printable(&source));
+            Ok(())
+        }
         Cmd::Stats { json, target } => {
             let mut c = Client::connect(&target).await?;
             let s = call!(&mut c, admin.stats(pb::StatsRequest {}), api::stats)?;
@@ -483,6 +597,9 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {}\nbackend {}",
                     s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes,
                     if s.crs == 0 { "none yet".to_string() } else { format!("EPSG:{}", s.crs) }, s.backend);
+                if !s.read_only.is_empty() {
+                    println!("read-only: {}", s.read_only);
+                }
             }
             Ok(())
         }
@@ -741,13 +858,27 @@ impl PatchJson {
     }
 }
 
+/// A path for a line of output: control characters (a newline in a file name, say) escaped,
+/// so that one name stays one line.
+fn printable(s: &str) -> std::borrow::Cow<'_, str> {
+    if s.chars().any(char::is_control) {
+        s.escape_debug().to_string().into()
+    } else {
+        s.into()
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .expect("tokio runtime");
-    match rt.block_on(run(cli)) {
+    let result = rt.block_on(run(cli));
+    // Work still running on blocking threads (an ingest, a query past its deadline) is not
+    // waited for: every commit is atomic, so stopping now is as safe as a crash.
+    rt.shutdown_timeout(std::time::Duration::from_millis(500));
+    match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("patchwork: {e}");

@@ -248,7 +248,9 @@ impl<S: Sink> Reconciler<S> {
                         self.done.insert(source, *stamp);
                     }
                     // Not the file's fault: a later pass tries it again.
-                    Err(e) => tracing::debug!(source = ?source, error = %e, "ingest deferred"),
+                    Err(e) => {
+                        tracing::debug!(source = ?source, error = ?e.to_string(), "ingest deferred")
+                    }
                 }
             }
         }
@@ -278,7 +280,7 @@ impl<S: Sink> Reconciler<S> {
             .collect();
         for source in sources {
             if let Err(e) = self.sink.retire_deleted(&source) {
-                tracing::warn!(source = ?source, error = %e, "could not retire a deleted file's survey");
+                tracing::warn!(source = ?source, error = ?e.to_string(), "could not retire a deleted file's survey");
                 continue;
             }
             // A copy of the same content elsewhere in the inbox was "unchanged" when it

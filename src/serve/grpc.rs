@@ -1,6 +1,7 @@
 //! The gRPC services: each handler runs the dispatcher on a blocking thread under the request
 //! deadline and maps errors in `status`.
 
+use super::auth::Gate;
 use super::proto::{self as pb, admin_server, terrain_server};
 use super::{api, convert, status};
 use crate::engine::{Engine, EngineError};
@@ -8,6 +9,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio_stream::{Stream, StreamExt};
+use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 
 #[derive(Clone)]
@@ -161,12 +163,14 @@ impl admin_server::Admin for Service {
     }
 }
 
-/// Serves the API, health (`grpc.health.v1`) and reflection (v1 and v1alpha) until `shutdown`.
+/// Serves the API, health (`grpc.health.v1`) and reflection (v1 and v1alpha) until `shutdown`,
+/// behind the configured tokens, over TLS when the config names a certificate and key.
 pub async fn serve(
     engine: Arc<Engine>,
     listener: tokio::net::TcpListener,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let cfg = engine.config().clone();
     let svc = Service::new(engine);
     let (health, health_svc) = tonic_health::server::health_reporter();
     health
@@ -187,16 +191,31 @@ pub async fn serve(
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
-    tonic::transport::Server::builder()
+    let mut server = tonic::transport::Server::builder();
+    if let (Some(cert), Some(key)) = (&cfg.tls_cert, &cfg.tls_key) {
+        let read = |p: &std::path::Path, what: &str| {
+            std::fs::read(p).map_err(|e| format!("cannot read the TLS {what} {}: {e}", p.display()))
+        };
+        let identity =
+            tonic::transport::Identity::from_pem(read(cert, "certificate")?, read(key, "key")?);
+        server = server
+            .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
+            .map_err(|e| format!("TLS: {e}"))?;
+    }
+    server
         .add_service(health_svc)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
-        .add_service(
+        .add_service(InterceptedService::new(
             terrain_server::TerrainServer::new(svc.clone())
                 .max_decoding_message_size(64 << 20)
                 .max_encoding_message_size(256 << 20),
-        )
-        .add_service(admin_server::AdminServer::new(svc))
+            Gate::terrain(&cfg),
+        ))
+        .add_service(InterceptedService::new(
+            admin_server::AdminServer::new(svc),
+            Gate::admin(&cfg),
+        ))
         .serve_with_incoming_shutdown(incoming, shutdown)
         .await?;
     Ok(())

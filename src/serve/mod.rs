@@ -1,7 +1,8 @@
-//! The gRPC API: generated messages, conversions, the dispatcher, the error mapping and the
-//! tonic services.
+//! The gRPC API: generated messages, conversions, the dispatcher, the error mapping, the
+//! tokens and the tonic services.
 
 pub mod api;
+pub mod auth;
 pub mod convert;
 pub mod grpc;
 pub mod proto;

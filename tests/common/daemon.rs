@@ -27,33 +27,94 @@ pub struct Daemon {
     child: Option<Child>,
     pub root: PathBuf,
     pub port: u16,
+    /// How the CLI reaches the daemon: environment (token, CA) and server URL.
+    pub client_env: Vec<(String, String)>,
+    pub url: String,
+}
+
+/// How a daemon under test is set up beyond the defaults.
+#[derive(Clone, Default)]
+pub struct Setup {
+    /// Environment of the daemon.
+    pub env: Vec<(String, String)>,
+    /// Environment of the CLI that talks to it.
+    pub client_env: Vec<(String, String)>,
+    /// Serve TLS with the test certificate in tests/data/tls.
+    pub tls: bool,
+}
+
+pub fn tls_file(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/tls")
+        .join(name)
 }
 
 impl Daemon {
     /// Starts a daemon whose store and inbox live under `root`.
     pub fn start(root: &Path) -> Daemon {
+        Self::start_with(root, Setup::default())
+    }
+
+    /// The command that starts a daemon under `root` on `port`, with `setup`'s environment.
+    pub fn command(root: &Path, port: u16, setup: &Setup) -> Command {
         std::fs::create_dir_all(root.join("inbox")).unwrap();
-        let port = free_port();
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
             .open(root.join("serve.log"))
             .unwrap();
-        let child = Command::new(BIN)
-            .arg("serve")
+        let mut cmd = Command::new(BIN);
+        cmd.arg("serve")
             .env("PATCHWORK_DATA_DIR", root.join("data"))
             .env("PATCHWORK_INBOX", root.join("inbox"))
             .env("PATCHWORK_LISTEN", format!("127.0.0.1:{port}"))
             .env("PATCHWORK_SETTLE_MS", "400")
             .env("PATCHWORK_LOG", "info")
+            .env_remove("PATCHWORK_ADMIN_TOKEN")
+            .env_remove("PATCHWORK_READ_TOKEN")
             .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .unwrap();
+            .stderr(log);
+        if setup.tls {
+            cmd.env("PATCHWORK_TLS_CERT", tls_file("server.pem"))
+                .env("PATCHWORK_TLS_KEY", tls_file("server.key"));
+        }
+        cmd.envs(setup.env.iter().map(|(k, v)| (k, v)));
+        cmd
+    }
+
+    /// A handle for a daemon the caller runs itself: only the CLI helpers work.
+    pub fn unstarted(root: &Path, port: u16) -> Daemon {
+        Daemon {
+            child: None,
+            root: root.into(),
+            port,
+            client_env: Vec::new(),
+            url: format!("http://127.0.0.1:{port}"),
+        }
+    }
+
+    /// Starts a daemon under `root` as `setup` says, and waits until it answers.
+    pub fn start_with(root: &Path, setup: Setup) -> Daemon {
+        let port = free_port();
+        let child = Self::command(root, port, &setup).spawn().unwrap();
+        let mut client_env = setup.client_env.clone();
+        if setup.tls {
+            client_env.push((
+                "PATCHWORK_CA".into(),
+                tls_file("ca.pem").to_string_lossy().into_owned(),
+            ));
+        }
+        let scheme = if setup.tls {
+            "https://localhost"
+        } else {
+            "http://127.0.0.1"
+        };
         let d = Daemon {
             child: Some(child),
             root: root.into(),
             port,
+            client_env,
+            url: format!("{scheme}:{port}"),
         };
         let t0 = Instant::now();
         while !d.cli(&["stats"]).status.success() {
@@ -78,9 +139,26 @@ impl Daemon {
     pub fn cli(&self, args: &[&str]) -> Output {
         Command::new(BIN)
             .args(args)
-            .arg(format!("--server=http://127.0.0.1:{}", self.port))
+            .arg(format!("--server={}", self.url))
+            .env_remove("PATCHWORK_TOKEN")
+            .env_remove("PATCHWORK_ADMIN_TOKEN")
+            .envs(self.client_env.iter().map(|(k, v)| (k, v)))
             .output()
             .unwrap()
+    }
+
+    /// The daemon's process id, while it runs.
+    pub fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(|c| c.id())
+    }
+
+    /// Sends SIGTERM and returns how long the daemon took to exit.
+    pub fn stop_timed(&mut self) -> Duration {
+        let mut c = self.child.take().expect("running");
+        let t0 = Instant::now();
+        send_signal(c.id(), "TERM");
+        let _ = c.wait();
+        t0.elapsed()
     }
 
     pub fn json(&self, args: &[&str]) -> Value {

@@ -1,0 +1,322 @@
+//! What the engine and the inbox promise under bad requests and faults: ingest stays inside
+//! its folders and says nothing about the rest of the disk, failure records stay bounded, a
+//! full disk refuses writes while reads go on, a retirement by hand sticks, and an inbox
+//! folder that goes away retires nothing. docs/RELIABILITY.md points at each test.
+
+mod common;
+
+use common::daemon::crop;
+use patchwork::config::{Config, OnDelete};
+use patchwork::engine::{Cut, Engine, EngineError, Origin, Outcome, REFUSED_PATH};
+use patchwork::index::geom::Aabb;
+use patchwork::resample::Backend;
+use patchwork::serve::status::to_status;
+use patchwork::store::{DiskSpace, Status, StoreError};
+use patchwork::watch::Reconciler;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+const COP: &str = "copernicus_n34w119_crop.tif";
+const NASA: &str = "nasadem_n34w119_crop.tif";
+const SRTM: &str = "srtm_n44e005_voids_crop.tif";
+
+struct Setup {
+    tmp: tempfile::TempDir,
+    cfg: Config,
+}
+
+impl Setup {
+    fn new() -> Setup {
+        let tmp = tempfile::tempdir().unwrap();
+        let root = tmp.path().canonicalize().unwrap();
+        for d in ["inbox", "roots", "outside"] {
+            std::fs::create_dir_all(root.join(d)).unwrap();
+        }
+        let cfg = Config {
+            data_dir: root.join("data"),
+            inbox: vec![root.join("inbox")],
+            ingest_roots: vec![root.join("roots")],
+            settle_ms: 0,
+            ..Config::default()
+        };
+        Setup { tmp, cfg }
+    }
+
+    fn root(&self) -> PathBuf {
+        self.tmp.path().canonicalize().unwrap()
+    }
+
+    fn at(&self, rel: &str) -> PathBuf {
+        self.root().join(rel)
+    }
+
+    fn put(&self, crop_name: &str, rel: &str) -> PathBuf {
+        let p = self.at(rel);
+        std::fs::copy(crop(crop_name), &p).unwrap();
+        p
+    }
+
+    fn engine(&self) -> Arc<Engine> {
+        Arc::new(Engine::open(self.cfg.clone()).unwrap())
+    }
+}
+
+fn ingest(e: &Engine, p: &Path) -> patchwork::engine::Ingested {
+    e.ingest(p, None, Origin::Request).unwrap()
+}
+
+#[test]
+fn ingest_stays_inside_its_folders_and_says_nothing_about_the_rest() {
+    let s = Setup::new();
+    let e = s.engine();
+    let outside = s.put(COP, "outside/good.tif");
+    std::fs::create_dir(s.at("outside/folder.tif")).unwrap();
+    std::os::unix::fs::symlink(&outside, s.at("inbox/link.tif")).unwrap();
+    std::os::unix::fs::symlink(s.at("outside/none.tif"), s.at("inbox/dangling.tif")).unwrap();
+    let asc = s.at("roots/grid.asc");
+    std::fs::write(
+        &asc,
+        "ncols 2\nnrows 2\nxllcorner 0\nyllcorner 0\ncellsize 1\n1 2\n3 4\n",
+    )
+    .unwrap();
+    // A sidecar that leads outside gives the file away as surely as the file itself.
+    std::fs::write(s.at("outside/secret.prj"), "root:x:0:0").unwrap();
+    std::os::unix::fs::symlink(s.at("outside/secret.prj"), s.at("roots/grid.prj")).unwrap();
+    let refused = [
+        outside.clone(),
+        s.at("outside/missing.tif"),
+        s.at("outside/folder.tif"),
+        s.at("inbox/link.tif"),
+        s.at("inbox/dangling.tif"),
+        s.at("inbox/../outside/good.tif"),
+        PathBuf::from("/etc/passwd"),
+        PathBuf::from("/"),
+        asc.clone(),
+    ];
+    for p in &refused {
+        let r = ingest(&e, p);
+        assert_eq!(r.outcome, Outcome::Failed, "{}", p.display());
+        assert_eq!(r.error, REFUSED_PATH, "{}", p.display());
+    }
+    assert!(
+        e.catalog().failures.is_empty(),
+        "a client's paths are not remembered"
+    );
+    std::fs::remove_file(s.at("roots/grid.prj")).unwrap();
+    // Inside, the errors say what is wrong; the ASCII grid has no CRS.
+    let r = ingest(&e, &asc);
+    assert!(r.error.contains("no CRS"), "{}", r.error);
+    let good = s.put(COP, "roots/good.tif");
+    assert_eq!(ingest(&e, &good).outcome, Outcome::Inserted);
+    let inbox = s.put(NASA, "inbox/nasa.tif");
+    assert_eq!(ingest(&e, &inbox).outcome, Outcome::Inserted);
+}
+
+#[test]
+fn failure_records_are_bounded_and_batches_limited() {
+    let mut s = Setup::new();
+    s.cfg.limits.max_failures = 20;
+    let e = s.engine();
+    for i in 0..60 {
+        let p = s.at(&format!("roots/bad{i:02}.tif"));
+        std::fs::write(&p, b"not a tiff").unwrap();
+        assert_eq!(ingest(&e, &p).outcome, Outcome::Failed);
+        // Asking again for the same file keeps one record.
+        assert_eq!(ingest(&e, &p).outcome, Outcome::Failed);
+        // Names with nothing behind them are not remembered at all.
+        ingest(&e, &s.at(&format!("roots/missing{i}.tif")));
+    }
+    let failures = &e.catalog().failures;
+    assert_eq!(failures.len(), 20);
+    assert!(failures.iter().all(|f| f.source.contains("/roots/bad")));
+    let last = s.at("roots/bad59.tif");
+    assert!(e.forget(last.to_str().unwrap()).unwrap());
+    assert!(!e.forget(last.to_str().unwrap()).unwrap());
+    assert_eq!(e.catalog().failures.len(), 19);
+
+    let r = patchwork::serve::proto::IngestRequest {
+        paths: vec!["/x.tif".into(); 257],
+        accuracy_m: None,
+    };
+    let err = patchwork::serve::api::ingest(&e, &r).unwrap_err();
+    assert_eq!(to_status(err).code(), tonic::Code::ResourceExhausted);
+    let r = patchwork::serve::proto::RetireRequest {
+        id_or_source: "x".repeat(1 << 20),
+    };
+    let st = to_status(patchwork::serve::api::retire(&e, &r).unwrap_err());
+    assert_eq!(st.code(), tonic::Code::InvalidArgument);
+    assert!(st.message().len() < 200, "{}", st.message());
+    let r = patchwork::serve::proto::RetireRequest {
+        id_or_source: "y".repeat(4000),
+    };
+    let st = to_status(patchwork::serve::api::retire(&e, &r).unwrap_err());
+    assert_eq!(st.code(), tonic::Code::NotFound);
+    assert!(st.message().len() < 300, "{}", st.message());
+}
+
+/// A disk whose free space the test sets.
+struct FakeDisk(AtomicU64);
+
+impl DiskSpace for FakeDisk {
+    fn available(&self, _: &Path) -> std::io::Result<u64> {
+        Ok(self.0.load(Ordering::SeqCst))
+    }
+}
+
+fn tile(e: &Engine, roi: Aabb) -> Vec<u32> {
+    let cut = Cut::Uniform { roi, error: 0.0 };
+    let (t, _) = e.tile(&cut, 64, 64, Backend::Cpu).unwrap();
+    t.heights.iter().map(|h| h.to_bits()).collect()
+}
+
+#[test]
+fn a_full_disk_refuses_writes_keeps_reads_and_writes_resume_with_space() {
+    let s = Setup::new();
+    let disk = Arc::new(FakeDisk(AtomicU64::new(u64::MAX)));
+    let e = Engine::open_on(s.cfg.clone(), disk.clone()).unwrap();
+    let a = s.put(COP, "roots/a.tif");
+    let b = s.put(NASA, "roots/b.tif");
+    assert_eq!(ingest(&e, &a).outcome, Outcome::Inserted);
+    let roi = e.snapshot().index().bounds().unwrap();
+    let before = tile(&e, roi);
+    assert!(e.read_only().is_none());
+
+    disk.0.store(1 << 20, Ordering::SeqCst);
+    let err = e.ingest(&b, None, Origin::Request).unwrap_err();
+    assert!(
+        matches!(err, EngineError::Store(StoreError::Full { .. })),
+        "{err}"
+    );
+    assert_eq!(to_status(err).code(), tonic::Code::ResourceExhausted);
+    let err = e.retire(a.to_str().unwrap()).unwrap_err();
+    assert_eq!(to_status(err).code(), tonic::Code::ResourceExhausted);
+    assert!(e.compact().is_err());
+    assert!(
+        e.catalog().failures.is_empty(),
+        "the disk is not the file's fault"
+    );
+    // Reads go on as before.
+    assert_eq!(tile(&e, roi), before);
+    assert_eq!(e.stats().surveys, 1);
+    assert!(e.stats().read_only.unwrap().contains("MiB free"));
+    assert!(e.verify().unwrap().is_ok());
+
+    disk.0.store(u64::MAX, Ordering::SeqCst);
+    assert_eq!(ingest(&e, &b).outcome, Outcome::Inserted);
+    assert!(e.read_only().is_none());
+    drop(e);
+
+    // A daemon that starts on a full disk serves what it has, read-only.
+    disk.0.store(0, Ordering::SeqCst);
+    let e = Engine::open_on(s.cfg.clone(), disk.clone()).unwrap();
+    assert_eq!(e.stats().surveys, 2);
+    assert!(e.read_only().is_some());
+    assert_eq!(tile(&e, roi).len(), before.len());
+    disk.0.store(u64::MAX, Ordering::SeqCst);
+    assert!(e.retire(b.to_str().unwrap()).is_ok());
+}
+
+fn reconciler(e: &Arc<Engine>, s: &Setup) -> Reconciler<Engine> {
+    let mut r = Reconciler::new(e.clone(), &s.cfg.inbox, Duration::ZERO, OnDelete::Retire);
+    r.startup();
+    r
+}
+
+fn active(e: &Engine) -> Vec<String> {
+    let mut v: Vec<String> = e.catalog().active().map(|r| r.source.clone()).collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn a_retirement_by_hand_sticks_until_the_file_changes() {
+    let s = Setup::new();
+    let e = s.engine();
+    let a = s.put(COP, "inbox/a.tif");
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert_eq!(active(&e).len(), 1);
+    e.retire(a.to_str().unwrap()).unwrap();
+    rec.pass();
+    assert!(active(&e).is_empty(), "the next pass leaves it retired");
+    // Nor does a restart bring it back.
+    drop(rec);
+    let e = {
+        drop(e);
+        s.engine()
+    };
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert!(active(&e).is_empty(), "a restart leaves it retired");
+    // New content at the same path is a new survey.
+    std::fs::copy(crop(NASA), &a).unwrap();
+    rec.pass();
+    assert_eq!(active(&e), vec![a.to_string_lossy().into_owned()]);
+    // A client that names the file brings it back at once.
+    e.retire(a.to_str().unwrap()).unwrap();
+    assert!(active(&e).is_empty());
+    assert_eq!(ingest(&e, &a).outcome, Outcome::Inserted);
+    assert!(e.catalog().pins.is_empty());
+    // Deleting a retired file drops its pin: the same file dropped in again comes back.
+    e.retire(a.to_str().unwrap()).unwrap();
+    assert_eq!(e.catalog().pins.len(), 1);
+    std::fs::remove_file(&a).unwrap();
+    rec.pass();
+    assert!(e.catalog().pins.is_empty());
+    std::fs::copy(crop(NASA), &a).unwrap();
+    rec.pass();
+    assert_eq!(active(&e).len(), 1);
+}
+
+#[test]
+fn an_inbox_folder_that_goes_away_retires_nothing() {
+    let s = Setup::new();
+    let e = s.engine();
+    s.put(COP, "inbox/a.tif");
+    s.put(SRTM, "inbox/b.tif");
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert_eq!(active(&e).len(), 2);
+    let inbox = s.at("inbox");
+    let away = s.at("away");
+
+    // Deleted (moved away) while the daemon runs: nothing is retired.
+    std::fs::rename(&inbox, &away).unwrap();
+    let (_, back) = rec.pass();
+    assert!(back.is_empty());
+    assert!(!rec.all_present());
+    assert_eq!(active(&e).len(), 2);
+    // An empty folder in its place (a share's mount point before the share) is no better.
+    std::fs::create_dir(&inbox).unwrap();
+    rec.pass();
+    assert_eq!(active(&e).len(), 2);
+    std::fs::remove_dir(&inbox).unwrap();
+    // Missing at start-up: nothing is retired either.
+    drop(rec);
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert_eq!(active(&e).len(), 2);
+    // Back again: the watcher is told to watch it, and still nothing is retired.
+    std::fs::rename(&away, &inbox).unwrap();
+    let (_, back) = rec.pass();
+    assert_eq!(back, vec![inbox.clone()]);
+    assert!(rec.all_present());
+    assert_eq!(active(&e).len(), 2);
+    // A file seen deleted from a folder that is there retires its survey.
+    std::fs::remove_file(inbox.join("b.tif")).unwrap();
+    rec.pass();
+    assert_eq!(
+        active(&e),
+        vec![inbox.join("a.tif").to_string_lossy().into_owned()]
+    );
+    assert_eq!(
+        e.catalog()
+            .records
+            .iter()
+            .filter(|r| r.status == Status::Retired)
+            .count(),
+        1
+    );
+}
