@@ -208,7 +208,7 @@ impl ReadLimits {
         if n > fillable.max(FREE) {
             return Err(ReadError::Invalid {
                 what: format!(
-                    "the header declares {cols} x {rows} samples, but the image data in the                      file can fill at most {fillable} of them"
+                    "the header declares {cols} x {rows} samples, but the image data in the file can fill at most {fillable} of them"
                 ),
             });
         }

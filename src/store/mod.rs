@@ -480,7 +480,7 @@ impl Store {
         let mut opened = Self::open_locked(dir, lock, layout, index, guard)?;
         if opened.released_reserve {
             opened.warnings.push(
-                "the disk was full: the store's reserve file was released so that it could                  open"
+                "the disk was full: the store's reserve file was released so that it could open"
                     .into(),
             );
         }
