@@ -991,3 +991,40 @@ pub fn size_mtime(path: &Path) -> Option<(u64, u64)> {
         .as_secs();
     Some((m.len(), mtime))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn after_an_io_error_under_a_write_the_engine_stops_writing_and_keeps_reading() {
+        let tmp = tempfile::tempdir().unwrap();
+        let inbox = tmp.path().join("inbox");
+        std::fs::create_dir_all(&inbox).unwrap();
+        let cfg = Config {
+            data_dir: tmp.path().join("data"),
+            inbox: vec![inbox.clone()],
+            ..Config::default()
+        };
+        let e = Engine::open(cfg).unwrap();
+        let file = inbox.join("a.tif");
+        std::fs::copy(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/copernicus_n34w119_crop.tif"),
+            &file,
+        )
+        .unwrap();
+        // sled cannot go on after an I/O error; the engine must not try.
+        let eio = std::io::Error::other("Input/output error");
+        let err = e.failed(StoreError::Sled(sled::Error::Io(eio)));
+        assert!(matches!(err, EngineError::StoreFailed(_)), "{err}");
+        let err = e.ingest(&file, None, Origin::Request).unwrap_err();
+        assert!(
+            err.to_string().contains("until the daemon restarts"),
+            "{err}"
+        );
+        assert!(matches!(e.compact(), Err(EngineError::StoreFailed(_))));
+        assert!(e.read_only().unwrap().contains("Input/output error"));
+        assert_eq!(e.stats().surveys, 0);
+        assert!(e.sample(&[[0.0, 0.0]], 0.0).is_ok());
+    }
+}
