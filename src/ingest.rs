@@ -74,9 +74,24 @@ pub enum IngestError {
 /// What `<file>.toml` beside a DEM may say.
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct Sidecar {
-    accuracy_m: Option<f64>,
-    crs: Option<String>,
+pub struct Sidecar {
+    pub accuracy_m: Option<f64>,
+    pub crs: Option<String>,
+}
+
+/// A sidecar is a line or two; anything far larger is not one.
+const SIDECAR_MOST: usize = 64 << 10;
+
+/// Parses a sidecar's bytes. The error says where and what is wrong without quoting the text.
+pub fn parse_sidecar(bytes: &[u8]) -> Result<Sidecar, String> {
+    if bytes.len() > SIDECAR_MOST {
+        return Err(format!(
+            "larger than {} KiB, so not a sidecar",
+            SIDECAR_MOST >> 10
+        ));
+    }
+    let text = std::str::from_utf8(bytes).map_err(|_| "not UTF-8 text".to_string())?;
+    toml::from_str(text).map_err(|e| toml_error(text, &e))
 }
 
 /// How a survey was made, for its record.
@@ -93,8 +108,6 @@ pub fn sidecar_path(path: &Path) -> PathBuf {
 }
 
 fn read_sidecar(path: &Path) -> Result<Sidecar, IngestError> {
-    /// A sidecar is a line or two; anything far larger is not one.
-    const MOST: u64 = 64 << 10;
     let side = sidecar_path(path);
     let bad = |message: String| IngestError::Sidecar {
         path: side.clone(),
@@ -106,16 +119,12 @@ fn read_sidecar(path: &Path) -> Result<Sidecar, IngestError> {
         Err(e) => return Err(bad(e.to_string())),
     };
     let mut bytes = Vec::new();
-    std::io::Read::read_to_end(&mut std::io::Read::take(file, MOST + 1), &mut bytes)
-        .map_err(|e| bad(e.to_string()))?;
-    if bytes.len() as u64 > MOST {
-        return Err(bad(format!(
-            "larger than {} KiB, so not a sidecar",
-            MOST >> 10
-        )));
-    }
-    let text = String::from_utf8(bytes).map_err(|_| bad("not UTF-8 text".into()))?;
-    toml::from_str(&text).map_err(|e| bad(toml_error(&text, &e)))
+    std::io::Read::read_to_end(
+        &mut std::io::Read::take(file, SIDECAR_MOST as u64 + 1),
+        &mut bytes,
+    )
+    .map_err(|e| bad(e.to_string()))?;
+    parse_sidecar(&bytes).map_err(bad)
 }
 
 /// Where and why a sidecar failed to parse, without quoting it: the TOML error's own text

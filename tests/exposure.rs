@@ -57,7 +57,7 @@ fn tokens_open_admin_and_reads_as_configured() {
     d.wait("the survey", |s| count(s, "active") == 1);
     let query = [
         "query",
-        "--roi=-118.98,34.02,-118.96,34.04",
+        "--roi=-118.99,34.47,-118.93,34.53",
         "--error=5",
         "--json",
     ];
@@ -235,12 +235,17 @@ fn a_daemon_on_a_full_disk_starts_read_only_and_says_so() {
         let out = d.root.join("t.npy");
         let o = d.cli(&[
             "tile",
-            "--roi=-118.98,34.02,-118.96,34.04",
+            "--roi=-118.99,34.47,-118.93,34.53",
             "--size=32x32",
             "--out",
             out.to_str().unwrap(),
         ]);
         assert!(o.status.success(), "{}", stderr(&o));
+        let said = String::from_utf8_lossy(&o.stdout);
+        assert!(
+            !said.contains(" 0 valid samples"),
+            "the tile holds data: {said}"
+        );
         std::fs::read(out).unwrap()
     };
     let before = tile(&d);

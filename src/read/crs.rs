@@ -188,14 +188,16 @@ fn top_level_authority(wkt: &str) -> Option<u32> {
             b'[' | b'(' if !in_quote => depth += 1,
             b']' | b')' if !in_quote => depth = depth.saturating_sub(1),
             _ if !in_quote && depth == 1 => {
-                let rest = &wkt[i..];
+                // Compared as bytes: `i` may fall inside a multi-byte character. A match is
+                // ASCII, so the text after it starts on a character boundary.
+                let rest = &bytes[i..];
                 let keyword_start = i == 0 || matches!(bytes[i - 1], b',' | b'[' | b'(' | b' ');
                 for kw in ["AUTHORITY[", "ID["] {
                     if keyword_start
                         && rest.len() >= kw.len()
-                        && rest[..kw.len()].eq_ignore_ascii_case(kw)
+                        && rest[..kw.len()].eq_ignore_ascii_case(kw.as_bytes())
                     {
-                        if let Some(code) = parse_authority(&rest[kw.len()..]) {
+                        if let Some(code) = parse_authority(&wkt[i + kw.len()..]) {
                             return Some(code);
                         }
                     }
@@ -245,6 +247,14 @@ fn parameter(wkt: &str, names: &[&str]) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn text_that_is_not_ascii_is_no_problem() {
+        // Found by fuzzing: a two-byte character where a keyword could start.
+        let wkt = "PROJCS[\"x\",\u{77e},AUTHORITY[\"EPSG\",\"32631\"]]";
+        assert_eq!(epsg_from_wkt(wkt), Ok(32631));
+        assert!(epsg_from_wkt("PROJCS[\"é\",ÿÿÿ,é]").is_err());
+    }
 
     #[test]
     fn esri_and_ogc_utm_without_authority_resolve() {

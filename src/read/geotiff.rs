@@ -86,11 +86,114 @@ impl SampleKind {
     }
 }
 
+/// Bytes of one value of each TIFF field type; 0 for types the decoder does not know.
+fn type_bytes(t: u16) -> u64 {
+    match t {
+        1 | 2 | 6 | 7 => 1,
+        3 | 8 => 2,
+        4 | 9 | 11 | 13 => 4,
+        5 | 10 | 12 | 16 | 17 | 18 => 8,
+        _ => 0,
+    }
+}
+
+/// Checks that the first IFD and every value it points to lie inside the file. The decoder
+/// allocates room for a tag's values before it reads them, so a few bytes that claim a tag
+/// of millions of values would otherwise cost that much memory.
+fn check_first_ifd<R: Read + Seek>(r: &mut R, file_len: u64) -> Result<(), ReadError> {
+    use std::io::SeekFrom;
+    let mut head = [0u8; 16];
+    r.seek(SeekFrom::Start(0))?;
+    let n = r.by_ref().take(16).read(&mut head)?;
+    if n < 8 {
+        return Err(ReadError::invalid(
+            "not a TIFF file: it is shorter than a TIFF header",
+        ));
+    }
+    let big_endian = match &head[..2] {
+        b"II" => false,
+        b"MM" => true,
+        // The decoder names a bad signature itself.
+        _ => return Ok(()),
+    };
+    let u16_at = |b: &[u8]| {
+        let a = [b[0], b[1]];
+        if big_endian {
+            u16::from_be_bytes(a)
+        } else {
+            u16::from_le_bytes(a)
+        }
+    };
+    let u32_at = |b: &[u8]| {
+        let a = [b[0], b[1], b[2], b[3]];
+        u64::from(if big_endian {
+            u32::from_be_bytes(a)
+        } else {
+            u32::from_le_bytes(a)
+        })
+    };
+    let u64_at = |b: &[u8]| {
+        let a: [u8; 8] = b[..8].try_into().expect("8 bytes");
+        if big_endian {
+            u64::from_be_bytes(a)
+        } else {
+            u64::from_le_bytes(a)
+        }
+    };
+    let beyond = |what: String| {
+        ReadError::invalid(format!(
+            "malformed TIFF: {what} lies beyond the end of the file"
+        ))
+    };
+    // (size of the entry count, of an entry, of an inline value)
+    let (ifd, count_len, entry_len, inline) = match u16_at(&head[2..]) {
+        42 => (u32_at(&head[4..]), 2u64, 12u64, 4u64),
+        43 if n >= 16 => (u64_at(&head[8..]), 8, 20, 8),
+        _ => return Ok(()),
+    };
+    if ifd.checked_add(count_len).is_none_or(|end| end > file_len) {
+        return Err(beyond("the first image directory".into()));
+    }
+    r.seek(SeekFrom::Start(ifd))?;
+    let mut buf = [0u8; 20];
+    r.read_exact(&mut buf[..count_len as usize])?;
+    let entries = if count_len == 2 {
+        u64::from(u16_at(&buf))
+    } else {
+        u64_at(&buf)
+    };
+    let end = entries
+        .checked_mul(entry_len)
+        .and_then(|b| b.checked_add(ifd + count_len));
+    if end.is_none_or(|end| end > file_len) {
+        return Err(beyond(format!(
+            "the first image directory's {entries} entries"
+        )));
+    }
+    for _ in 0..entries {
+        let e = &mut buf[..entry_len as usize];
+        r.read_exact(e)?;
+        let (tag, ty) = (u16_at(&e[0..]), u16_at(&e[2..]));
+        let (count, offset) = if entry_len == 12 {
+            (u32_at(&e[4..]), u32_at(&e[8..]))
+        } else {
+            (u64_at(&e[4..]), u64_at(&e[12..]))
+        };
+        let bytes = count.saturating_mul(type_bytes(ty));
+        if bytes > inline && offset.checked_add(bytes).is_none_or(|end| end > file_len) {
+            return Err(beyond(format!("the {count} values of tag {tag}")));
+        }
+    }
+    r.seek(SeekFrom::Start(0))?;
+    Ok(())
+}
+
 fn decode<R: Read + Seek>(
-    reader: R,
+    mut reader: R,
     file_len: u64,
     limits: &ReadLimits,
 ) -> Result<Raster, ReadError> {
+    check_first_ifd(&mut reader, file_len)?;
     // Decoder::new loads the first IFD, which in a COG is the full-resolution image; the
     // overviews and masks chained after it are never visited.
     let mut dec = Decoder::new(reader).map_err(tiff_error)?;
@@ -101,7 +204,8 @@ fn decode<R: Read + Seek>(
     let kind = sample_kind(&mut dec)?;
     let (geotransform, (epsg, crs_name)) = georeference(&mut dec)?;
     let nodata = gdal_nodata(&mut dec)?;
-    let (sparse, present) = chunk_layout_check(&mut dec, file_len)?;
+    let counts = chunk_layout_check(&mut dec, file_len)?;
+    let present: u64 = counts.iter().sum();
     let expansion = codec_expansion(&mut dec)?;
     limits.check_fillable(
         u64::from(width),
@@ -109,19 +213,23 @@ fn decode<R: Read + Seek>(
         present.saturating_mul(expansion) / kind.bytes(),
     )?;
 
-    // Tags are all read by now, so loosening the decoder's allocation limit can only affect
-    // chunk buffers, whose size we have bounded ourselves from the validated dimensions.
+    // The decoder may then allocate a whole chunk's samples, and read a chunk's compressed
+    // bytes, and no more: both have been bounded by what the file holds.
     let largest_chunk = largest_chunk_samples(&dec, cols, rows)? * kind.bytes();
+    if largest_chunk > limits.max_bytes {
+        return Err(ReadError::invalid(format!(
+            "a chunk of the image needs {} MiB, more than the whole raster may have",
+            largest_chunk >> 20
+        )));
+    }
     let mut tiff_limits = Limits::default();
-    tiff_limits.decoding_buffer_size = tiff_limits
-        .decoding_buffer_size
-        .max(usize::try_from(largest_chunk).unwrap_or(usize::MAX));
-    tiff_limits.intermediate_buffer_size = tiff_limits
-        .intermediate_buffer_size
-        .max(usize::try_from(file_len).unwrap_or(usize::MAX));
+    tiff_limits.decoding_buffer_size = usize::try_from(largest_chunk)
+        .unwrap_or(usize::MAX)
+        .max(tiff_limits.ifd_value_size);
+    tiff_limits.intermediate_buffer_size = usize::try_from(file_len).unwrap_or(usize::MAX);
     let mut dec = dec.with_limits(tiff_limits);
 
-    let samples = read_samples(&mut dec, cols, rows, kind, nodata, &sparse)?;
+    let samples = read_samples(&mut dec, cols, rows, kind, nodata, &counts, expansion)?;
     Ok(Raster {
         cols,
         rows,
@@ -487,13 +595,13 @@ fn codec_expansion<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<u64, ReadErro
 }
 
 /// Checks every chunk lies inside the file, so a cut-off download reports `Truncated` up front
-/// instead of a decompressor error halfway through. Returns which chunks are sparse (GDAL's
-/// SPARSE_OK writes offset 0 / byte count 0 for blocks that hold only nodata) and how many
-/// bytes of image data the other chunks hold.
+/// instead of a decompressor error halfway through. Returns the bytes each chunk holds; 0 for
+/// sparse chunks (GDAL's SPARSE_OK writes offset 0 / byte count 0 for blocks that hold only
+/// nodata).
 fn chunk_layout_check<R: Read + Seek>(
     dec: &mut Decoder<R>,
     file_len: u64,
-) -> Result<(Vec<bool>, u64), ReadError> {
+) -> Result<Vec<u64>, ReadError> {
     let (offsets_tag, counts_tag) = match dec.get_chunk_type() {
         ChunkType::Strip => (Tag::StripOffsets, Tag::StripByteCounts),
         ChunkType::Tile => (Tag::TileOffsets, Tag::TileByteCounts),
@@ -513,20 +621,12 @@ fn chunk_layout_check<R: Read + Seek>(
             counts.len()
         )));
     }
-    let mut sparse = Vec::with_capacity(offsets.len());
-    let mut present = 0u64;
     for (&offset, &count) in offsets.iter().zip(&counts) {
-        if count == 0 {
-            sparse.push(true);
-            continue;
-        }
-        if offset.checked_add(count).is_none_or(|end| end > file_len) {
+        if count > 0 && offset.checked_add(count).is_none_or(|end| end > file_len) {
             return Err(ReadError::Truncated);
         }
-        present += count;
-        sparse.push(false);
     }
-    Ok((sparse, present))
+    Ok(counts)
 }
 
 fn largest_chunk_samples<R: Read + Seek>(
@@ -540,14 +640,14 @@ fn largest_chunk_samples<R: Read + Seek>(
         ChunkType::Strip => Ok(cols as u64 * ch.min(rows as u64)),
         ChunkType::Tile => {
             // Tiles wider than the image are legal, but a tile many times the image's size
-            // is a corrupt or hostile header.
+            // is a corrupt or hostile header. The decoder fills whole tiles, padding included.
             let most = (cols as u64).max(4096) * (rows as u64).max(4096);
             if cw.checked_mul(ch).is_none_or(|n| n > most) {
                 return Err(ReadError::invalid(format!(
                     "implausible tile size {cw} x {ch}"
                 )));
             }
-            Ok(cw.min(cols as u64) * ch.min(rows as u64))
+            Ok(cw * ch)
         }
     }
 }
@@ -558,7 +658,8 @@ fn read_samples<R: Read + Seek>(
     rows: usize,
     kind: SampleKind,
     nodata: Option<f64>,
-    sparse: &[bool],
+    counts: &[u64],
+    expansion: u64,
 ) -> Result<Vec<f32>, ReadError> {
     let chunk_type = dec.get_chunk_type();
     let count = match chunk_type {
@@ -566,10 +667,10 @@ fn read_samples<R: Read + Seek>(
         ChunkType::Tile => dec.tile_count(),
     }
     .map_err(tiff_error)?;
-    if count as usize != sparse.len() {
+    if count as usize != counts.len() {
         return Err(ReadError::invalid(format!(
             "the image needs {count} chunks but the file lists {}",
-            sparse.len()
+            counts.len()
         )));
     }
     let (cw, ch) = dec.chunk_dimensions();
@@ -583,7 +684,7 @@ fn read_samples<R: Read + Seek>(
     let convert = Converter::new(kind, nodata);
 
     let mut out = vec![0f32; cols * rows];
-    for (idx, &is_sparse) in sparse.iter().enumerate() {
+    for (idx, &bytes) in counts.iter().enumerate() {
         let x0 = (idx % across) * cw;
         let y0 = (idx / across).saturating_mul(ch);
         let (dw, dh) = dec.chunk_data_dimensions(idx as u32);
@@ -597,9 +698,21 @@ fn read_samples<R: Read + Seek>(
             .chunks_mut(cols)
             .take(dh)
             .map(|row| &mut row[x0..x0 + dw]);
-        if is_sparse {
+        if bytes == 0 {
             rows_out.for_each(|row| row.fill(sparse_fill));
             continue;
+        }
+        // The decoder allocates the whole chunk before it reads a byte of it: the bytes the
+        // file holds for it must be able to fill that much.
+        let (bw, bh) = match chunk_type {
+            ChunkType::Strip => (dw as u64, dh as u64),
+            ChunkType::Tile => (cw as u64, ch as u64),
+        };
+        let holds = bytes.saturating_mul(expansion);
+        if bw * bh * kind.bytes() > holds {
+            return Err(ReadError::invalid(format!(
+                "chunk {idx} declares {bw} x {bh} samples, more than its bytes can hold"
+            )));
         }
         let chunk = dec.read_chunk(idx as u32).map_err(tiff_error)?;
         convert.place(chunk, dw, dh, rows_out)?;

@@ -190,7 +190,14 @@ pub async fn serve(
         .register_encoded_file_descriptor_set(pb::DESCRIPTOR)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
-    let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
+    // Replies of more than a segment would otherwise wait out the client's delayed ACK
+    // (Nagle's algorithm): 40 ms on every tile.
+    let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener).map(|s| {
+        if let Ok(s) = &s {
+            let _ = s.set_nodelay(true);
+        }
+        s
+    });
     let mut server = tonic::transport::Server::builder();
     if let (Some(cert), Some(key)) = (&cfg.tls_cert, &cfg.tls_key) {
         let read = |p: &std::path::Path, what: &str| {
