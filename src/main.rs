@@ -234,6 +234,9 @@ impl Client {
         if let Some(dir) = &t.data_dir {
             let mut cfg = Config::load(t.config.as_deref())?;
             cfg.data_dir = dir.clone();
+            // Whoever opens the store directly has the files already: confinement is for
+            // clients of a daemon.
+            cfg.ingest_roots.push(PathBuf::from("/"));
             let engine = tokio::task::spawn_blocking(move || Engine::open(cfg)).await??;
             return Ok(Client::Local(Arc::new(engine)));
         }
@@ -802,6 +805,8 @@ struct StatsJson<'a> {
     crs: Option<String>,
     backend: &'a str,
     quadtree_nodes: u32,
+    /// Why writes are refused now; null when they are not.
+    read_only: Option<&'a str>,
 }
 
 impl<'a> StatsJson<'a> {
@@ -817,6 +822,7 @@ impl<'a> StatsJson<'a> {
             crs: (s.crs != 0).then(|| format!("EPSG:{}", s.crs)),
             backend: &s.backend,
             quadtree_nodes: s.quadtree_nodes,
+            read_only: (!s.read_only.is_empty()).then_some(s.read_only.as_str()),
         }
     }
 }
