@@ -181,6 +181,9 @@ pub struct Engine {
     writer: Mutex<Option<Store>>,
     /// Set once the store failed under a write: sled cannot recover its handle.
     broken: OnceLock<String>,
+    /// One file is read and modelled at a time: an ingest takes about five times its raster
+    /// in memory, and `limits.max_ingest_mb` bounds one raster, not many at once.
+    ingesting: Mutex<()>,
     /// The store's directory and space rules, for `stats` without the writer.
     dir: PathBuf,
     guard: SpaceGuard,
@@ -232,6 +235,7 @@ impl Engine {
             }),
             writer: Mutex::new(Some(opened.store)),
             broken: OnceLock::new(),
+            ingesting: Mutex::new(()),
             cfg,
             events,
             gpu: Mutex::new(None),
@@ -403,7 +407,10 @@ impl Engine {
             }
             return Ok(failed(REFUSED_PATH.into()));
         }
-        match self.ingest_inner(path, &source, accuracy, origin) {
+        let one_at_a_time = self.ingesting.lock().unwrap_or_else(|e| e.into_inner());
+        let result = self.ingest_inner(path, &source, accuracy, origin);
+        drop(one_at_a_time);
+        match result {
             Ok((outcome, survey, samples, conflicts)) => {
                 let seconds = t0.elapsed().as_secs_f64();
                 if outcome != Outcome::Unchanged {
