@@ -8,8 +8,9 @@
 use patchwork::index::lod::IndexConfig;
 use patchwork::model::patch::PatchLayout;
 use patchwork::model::survey::Survey;
+use patchwork::read::file_content_id;
 use patchwork::read::{read_raster, ReadLimits};
-use patchwork::store::{file_content_id, IngestTimings, Opened, Store, SurveyRecord};
+use patchwork::store::{IngestTimings, Opened, Store, SurveyRecord};
 use patchwork::terrain::Terrain;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -37,7 +38,7 @@ fn ingest(store: &Store, terrain: &mut Terrain, path: &Path) -> Arc<Survey> {
     let mut next = terrain.clone();
     let change = next.insert(s.clone());
     let index_ms = ms(t);
-    let content = file_content_id(path).unwrap();
+    let content = file_content_id(path, None).unwrap();
     let rec = SurveyRecord::new(
         &s,
         path.display().to_string(),

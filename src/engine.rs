@@ -15,18 +15,18 @@ use crate::config::Config;
 use crate::index::geom::Aabb;
 use crate::index::lod::ChangeStats;
 use crate::index::query::{Extracted, Metric, ViewQuery};
-use crate::ingest::{check_file, prepare, sidecar_path, IngestSettings};
+use crate::ingest::{open_file, prepare, IngestError, IngestSettings};
 use crate::model::accuracy::{AccuracySource, Deviation};
 use crate::model::ids::SurveyId;
 use crate::model::survey::Survey;
-use crate::read::ascii::PRJ_EXTENSIONS;
-use crate::read::ReadLimits;
+pub use crate::read::REFUSED_PATH;
+use crate::read::{content_id, file_content_id, ReadError, ReadLimits};
 use crate::resample::gpu::{GpuError, GpuResampler};
 pub use crate::resample::Backend;
 use crate::resample::SampleGrid;
 use crate::store::{
-    file_content_id, now_unix, Catalog, DiskSpace, FailedRecord, IngestTimings, SpaceGuard, Store,
-    StoreError, SurveyRecord, SystemDisk,
+    now_unix, Catalog, DiskSpace, FailedRecord, IngestTimings, SpaceGuard, Store, StoreError,
+    SurveyRecord, SystemDisk,
 };
 use crate::terrain::{Terrain, Tile};
 use rayon::prelude::*;
@@ -167,11 +167,6 @@ struct Published {
     terrain: Arc<Terrain>,
     catalog: Arc<Catalog>,
 }
-
-/// The one message for a path that may not be ingested, whatever is or is not there: a
-/// client must not learn about files outside the folders it was given.
-pub const REFUSED_PATH: &str = "not a file this daemon may ingest: a path must lead, symlinks \
-     followed, to a file inside the inbox folders or ingest_roots";
 
 pub struct Engine {
     cfg: Config,
@@ -362,21 +357,6 @@ impl Engine {
             .collect()
     }
 
-    /// Whether `path` may be ingested: it and its sidecars resolve, symlinks followed, inside
-    /// the inbox folders or `ingest_roots`.
-    fn confined(&self, path: &Path) -> bool {
-        let roots = self.roots();
-        let inside = |p: &Path| {
-            p.canonicalize()
-                .is_ok_and(|real| roots.iter().any(|r| real.starts_with(r)))
-        };
-        let sidecars_inside = std::iter::once(sidecar_path(path))
-            .chain(PRJ_EXTENSIONS.iter().map(|e| path.with_extension(e)))
-            .filter(|s| s.symlink_metadata().is_ok())
-            .all(|s| inside(&s));
-        inside(path) && sidecars_inside
-    }
-
     /// Ingests one file: a new survey, a replacement for the survey the same path held, or
     /// nothing when the content is already present. A bad file is a failed outcome, recorded
     /// when it lies where files may be ingested from, and leaves everything stored as it was.
@@ -398,19 +378,19 @@ impl Engine {
             seconds: t0.elapsed().as_secs_f64(),
             conflicts: Vec::new(),
         };
-        if !self.confined(path) {
-            tracing::warn!(source = ?source, "refused a path outside the ingest folders");
-            // A name in the inbox that leads outside (or nowhere) is a bad file like any
-            // other; a client's path is not remembered, or clients could fill the store.
-            if origin == Origin::Inbox {
-                self.record_failure(path, &source, REFUSED_PATH);
-            }
-            return Ok(failed(REFUSED_PATH.into()));
-        }
         let one_at_a_time = self.ingesting.lock().unwrap_or_else(|e| e.into_inner());
         let result = self.ingest_inner(path, &source, accuracy, origin);
         drop(one_at_a_time);
         match result {
+            Err(Refusal::Outside) => {
+                tracing::warn!(source = ?source, "refused a path outside the ingest folders");
+                // A name in the inbox that leads outside (or nowhere) is a bad file like any
+                // other; a client's path is not remembered, or clients could fill the store.
+                if origin == Origin::Inbox {
+                    self.record_failure(path, &source, REFUSED_PATH);
+                }
+                Ok(failed(REFUSED_PATH.into()))
+            }
             Ok((outcome, survey, samples, conflicts)) => {
                 let seconds = t0.elapsed().as_secs_f64();
                 if outcome != Outcome::Unchanged {
@@ -475,24 +455,33 @@ impl Engine {
         self.guard
             .check(&self.dir, 0)
             .map_err(|e| Refusal::Store(e.into()))?;
-        let file = |e: &dyn std::fmt::Display| Refusal::File(e.to_string());
-        check_file(path).map_err(|e| file(&e))?;
-        let content = file_content_id(path).map_err(|e| file(&e))?;
+        // Every file is opened where it resolves, inside these, and checked there: a path
+        // swapped for a symlink after any earlier look still cannot lead outside.
+        let roots: Arc<[PathBuf]> = self.roots().into();
+        let file = |e: IngestError| match e {
+            IngestError::Refused | IngestError::Read(ReadError::Outside) => Refusal::Outside,
+            e => Refusal::File(e.to_string()),
+        };
+        let handle = open_file(path, Some(&roots)).map_err(file)?;
+        let content = content_id(&handle)
+            .map_err(|e| Refusal::File(format!("cannot read {}: {e}", path.display())))?;
+        drop(handle);
         let catalog = self.catalog();
         if origin == Origin::Inbox {
-            // The inbox leaves alone a file whose survey is served as it is, or was retired
-            // by hand, until its content changes.
+            // The inbox leaves alone a file whose survey is served as it is, or whose content
+            // was retired by hand (under this name or a copy's), until its content changes.
+            let pinned = catalog.pins.values().any(|c| *c == content);
             let kept = catalog
                 .active_from(source)
                 .filter(|r| r.content_id == content)
                 .or_else(|| {
-                    (catalog.pins.get(source) == Some(&content))
+                    pinned
                         .then(|| {
                             catalog
                                 .records
                                 .iter()
                                 .rev()
-                                .find(|r| r.source == source && r.content_id == content)
+                                .find(|r| r.content_id == content)
                         })
                         .flatten()
                 });
@@ -507,10 +496,13 @@ impl Engine {
             store_crs: self.crs(),
             // An existing store keeps the layout its tops were computed with.
             layout: catalog.layout,
-            read_limits: ReadLimits::mb(self.cfg.limits.max_ingest_mb),
+            read_limits: ReadLimits {
+                roots: Some(roots),
+                ..ReadLimits::mb(self.cfg.limits.max_ingest_mb)
+            },
             heights: (self.cfg.limits.min_height_m, self.cfg.limits.max_height_m),
         };
-        let prepared = prepare(path, &settings).map_err(|e| file(&e))?;
+        let prepared = prepare(path, &settings).map_err(file)?;
         let survey = Arc::new(prepared.survey);
         let samples = survey.levels[0].valid_count() as u64;
         let t1 = Instant::now();
@@ -599,8 +591,19 @@ impl Engine {
                     quote_short(id_or_source)
                 ))
             })?;
-        let still_there =
-            file_content_id(Path::new(&rec.source)).is_ok_and(|c| c == rec.content_id);
+        // Only the inbox brings a file back by itself: a file there with the same content is
+        // pinned, so that it stays retired.
+        let inbox: Vec<PathBuf> = self
+            .cfg
+            .inbox
+            .iter()
+            .filter_map(|d| d.canonicalize().ok())
+            .collect();
+        let still_there = Path::new(&rec.source)
+            .parent()
+            .is_some_and(|d| inbox.iter().any(|r| d.starts_with(r)))
+            && file_content_id(Path::new(&rec.source), Some(&inbox))
+                .is_ok_and(|c| c == rec.content_id);
         let n = self.retire_record(&rec, still_there)?;
         Ok((rec.id, n))
     }
@@ -910,8 +913,9 @@ fn check_roi(roi: &Aabb) -> Result<(), EngineError> {
     Ok(())
 }
 
-/// Why an ingest did not happen: the file's fault, or the store's.
+/// Why an ingest did not happen: the path leads outside, the file's fault, or the store's.
 enum Refusal {
+    Outside,
     File(String),
     Store(EngineError),
 }

@@ -4,7 +4,7 @@ use crate::config::{parse_epsg, DefaultAccuracy};
 use crate::model::accuracy::{AccuracySource, AccuracySpec};
 use crate::model::patch::PatchLayout;
 use crate::model::survey::{Survey, SurveyError};
-use crate::read::{read_raster, ReadError, ReadLimits};
+use crate::read::{open_untrusted, read_raster, OpenError, ReadError, ReadLimits, REFUSED_PATH};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -60,6 +60,8 @@ pub enum IngestError {
         min: f32,
         max: f32,
     },
+    #[error("{}", REFUSED_PATH)]
+    Refused,
     #[error("{path} is a directory, not a DEM file")]
     Directory { path: PathBuf },
     #[error("{path} is not a regular file")]
@@ -107,17 +109,20 @@ pub fn sidecar_path(path: &Path) -> PathBuf {
     PathBuf::from(s)
 }
 
-fn read_sidecar(path: &Path) -> Result<Sidecar, IngestError> {
+fn read_sidecar(path: &Path, roots: Option<&[PathBuf]>) -> Result<Sidecar, IngestError> {
     let side = sidecar_path(path);
+    // No entry at all is no sidecar; anything else is opened like the DEM itself.
+    if side.symlink_metadata().is_err() {
+        return Ok(Sidecar::default());
+    }
     let bad = |message: String| IngestError::Sidecar {
         path: side.clone(),
         message,
     };
-    let file = match std::fs::File::open(&side) {
-        Ok(f) => f,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Sidecar::default()),
-        Err(e) => return Err(bad(e.to_string())),
-    };
+    let file = open_untrusted(&side, roots).map_err(|e| match e {
+        OpenError::Outside => IngestError::Refused,
+        e => bad(e.to_string()),
+    })?;
     let mut bytes = Vec::new();
     std::io::Read::read_to_end(
         &mut std::io::Read::take(file, SIDECAR_MOST as u64 + 1),
@@ -197,29 +202,22 @@ fn accuracy(
 }
 
 /// Refuses what is not a regular file that can be opened, with a message that says which.
-pub fn check_file(path: &Path) -> Result<(), IngestError> {
-    let meta = std::fs::metadata(path).map_err(|source| IngestError::Unreadable {
-        path: path.into(),
-        source,
-    })?;
-    if meta.is_dir() {
-        return Err(IngestError::Directory { path: path.into() });
-    }
-    if !meta.is_file() {
-        return Err(IngestError::NotAFile { path: path.into() });
-    }
-    // Opening it now gives a clear message for a file we may not read.
-    std::fs::File::open(path).map_err(|source| IngestError::Unreadable {
-        path: path.into(),
-        source,
-    })?;
-    Ok(())
+/// Opens what is to be ingested, refusing what is not a regular file, or not where `roots`
+/// allow, with a message that says which.
+pub fn open_file(path: &Path, roots: Option<&[PathBuf]>) -> Result<std::fs::File, IngestError> {
+    open_untrusted(path, roots).map_err(|e| match e {
+        OpenError::Outside => IngestError::Refused,
+        OpenError::Directory(path) => IngestError::Directory { path },
+        OpenError::NotAFile(path) => IngestError::NotAFile { path },
+        OpenError::Io { path, source } => IngestError::Unreadable { path, source },
+    })
 }
 
 /// Reads and models one file. Pure of the store: nothing is written.
 pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError> {
-    check_file(path)?;
-    let side = read_sidecar(path)?;
+    let roots = s.read_limits.roots.as_deref();
+    open_file(path, roots)?;
+    let side = read_sidecar(path, roots)?;
     let (spec, source) = accuracy(&side, s)?;
     let t0 = Instant::now();
     let raster = read_raster(path, &s.read_limits)?;
@@ -246,7 +244,7 @@ pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError>
         (Some(c), _, _) | (None, Some(c), _) => c,
         (None, None, Some(name)) => {
             return Err(IngestError::UnknownCrs {
-                found: name.clone(),
+                found: crate::read::crs::crs_label(name),
                 sidecar: sidecar_path(path),
             })
         }

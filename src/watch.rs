@@ -16,7 +16,8 @@
 use crate::config::OnDelete;
 use crate::engine::{size_mtime, source_name, Engine, EngineError, Ingested, Origin};
 use crate::ingest::is_temporary;
-use crate::store::{file_content_id, Catalog};
+use crate::read::file_content_id;
+use crate::store::Catalog;
 use notify::event::{EventKind, ModifyKind, RenameMode};
 use notify_debouncer_full::{new_debouncer, DebounceEventResult};
 use std::collections::{HashMap, HashSet};
@@ -192,7 +193,7 @@ impl<S: Sink> Reconciler<S> {
         let (found, _) = self.discover(&catalog);
         for (p, stamp) in &found.files {
             let source = source_name(p);
-            let content = || file_content_id(p).ok();
+            let content = || file_content_id(p, None).ok();
             let served = catalog.active_from(&source).map(|r| r.content_id.clone());
             let pinned = catalog.pins.get(&source).cloned();
             let failed = catalog

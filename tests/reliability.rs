@@ -112,6 +112,34 @@ fn ingest_stays_inside_its_folders_and_says_nothing_about_the_rest() {
     assert_eq!(ingest(&e, &good).outcome, Outcome::Inserted);
     let inbox = s.put(NASA, "inbox/nasa.tif");
     assert_eq!(ingest(&e, &inbox).outcome, Outcome::Inserted);
+
+    // A FIFO, as the file or as its sidecar, is refused at once: opening one to read would
+    // wait for a writer that never comes, and hold up every ingest after it.
+    let fifo = |p: &Path| {
+        let ok = std::process::Command::new("mkfifo")
+            .arg(p)
+            .status()
+            .unwrap();
+        assert!(ok.success());
+    };
+    fifo(&s.at("roots/pipe.tif"));
+    let other = s.put(SRTM, "roots/other.tif");
+    fifo(&s.at("roots/other.tif.toml"));
+    let (tx, rx) = std::sync::mpsc::channel();
+    let (e2, pipe) = (e.clone(), s.at("roots/pipe.tif"));
+    std::thread::spawn(move || {
+        let a = ingest(&e2, &pipe).error;
+        let b = ingest(&e2, &other).error;
+        tx.send((a, b)).unwrap();
+    });
+    let (a, b) = rx
+        .recv_timeout(Duration::from_secs(20))
+        .expect("a FIFO held the ingest up");
+    assert!(a.contains("not a regular file"), "{a}");
+    assert!(
+        b.contains("sidecar") && b.contains("not a regular file"),
+        "{b}"
+    );
 }
 
 #[test]

@@ -102,7 +102,7 @@ struct Header {
 }
 
 pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
-    let file = open_regular_file(path)?;
+    let file = open_regular_file(path, limits)?;
     let file_len = file.metadata()?.len();
     let mut tokens = Tokens {
         reader: BufReader::new(file),
@@ -206,7 +206,7 @@ pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadE
         )));
     }
 
-    let (epsg, crs_name) = sidecar_crs(path)?;
+    let (epsg, crs_name) = sidecar_crs(path, limits)?;
     Ok(Raster {
         cols,
         rows,
@@ -234,21 +234,26 @@ pub const PRJ_EXTENSIONS: [&str; 2] = ["prj", "PRJ"];
 
 /// The CRS of the `.prj` next to the grid, if there is one: its EPSG code, or the name of a
 /// CRS it describes that has none.
-fn sidecar_crs(path: &Path) -> Result<(Option<u32>, Option<String>), ReadError> {
+fn sidecar_crs(
+    path: &Path,
+    limits: &ReadLimits,
+) -> Result<(Option<u32>, Option<String>), ReadError> {
     for ext in PRJ_EXTENSIONS {
         let prj = path.with_extension(ext);
-        if prj.is_file() {
-            let mut text = String::new();
-            // A projection file is a few kilobytes; anything far larger is not one.
-            std::fs::File::open(&prj)?
-                .take(1 << 20)
-                .read_to_string(&mut text)
-                .map_err(|_| ReadError::invalid(format!("{} is not a text file", prj.display())))?;
-            return Ok(match super::crs::epsg_from_wkt(&text) {
-                Ok(c) => (Some(c), None),
-                Err(name) => (None, Some(name)),
-            });
+        // No entry at all is no projection file; anything else is opened like the grid.
+        if prj.symlink_metadata().is_err() {
+            continue;
         }
+        let file = super::open_regular_file(&prj, limits)?;
+        let mut text = String::new();
+        // A projection file is a few kilobytes; anything far larger is not one.
+        file.take(1 << 20)
+            .read_to_string(&mut text)
+            .map_err(|_| ReadError::invalid(format!("{} is not a text file", prj.display())))?;
+        return Ok(match super::crs::epsg_from_wkt(&text) {
+            Ok(c) => (Some(c), None),
+            Err(name) => (None, Some(name)),
+        });
     }
     Ok((None, None))
 }

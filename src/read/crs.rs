@@ -128,6 +128,21 @@ pub fn utm_from_parameters(
     }
 }
 
+/// A CRS name fit to repeat in a message: one that looks like a name (at most 80 letters,
+/// digits, spaces and `_-/.,:()+'`), else a description. Files are not quoted at large.
+pub fn crs_label(name: &str) -> String {
+    let looks_like_a_name = !name.is_empty()
+        && name.len() <= 80
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || " _-/.,:()+'".contains(c));
+    if looks_like_a_name {
+        name.to_string()
+    } else {
+        "a CRS without a readable name".to_string()
+    }
+}
+
 /// The EPSG code of a WKT CRS: its own AUTHORITY (or WKT2 ID), else what its name or its
 /// parameters identify. Otherwise the error names the CRS the WKT describes.
 pub fn epsg_from_wkt(wkt: &str) -> Result<u32, String> {

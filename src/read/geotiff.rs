@@ -45,7 +45,7 @@ pub fn is_tiff_signature(head: &[u8]) -> bool {
 
 /// Reads the single band of the first (full-resolution) image of a GeoTIFF or COG.
 pub fn read_geotiff(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
-    let file = open_regular_file(path)?;
+    let file = open_regular_file(path, limits)?;
     let file_len = file.metadata()?.len();
     let reader = BufReader::new(file);
     // The decoder is fed untrusted bytes and still has internal asserts; a panic there must
@@ -1495,7 +1495,13 @@ mod tests {
         // Tighter caller limits apply too.
         let small = write_temp(&dir, "small.tif", &small_geotiff_bytes(&dir));
         let e = GeoTiffReader
-            .read(&small, &ReadLimits { max_bytes: 40 })
+            .read(
+                &small,
+                &ReadLimits {
+                    max_bytes: 40,
+                    roots: None,
+                },
+            )
             .unwrap_err();
         assert!(matches!(e, ReadError::TooLarge { .. }), "{e}");
     }

@@ -62,7 +62,7 @@ pub fn parse_hgt_name(path: &Path) -> Result<(i32, i32), ReadError> {
 
 pub fn read_hgt(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
     let (lat, lon) = parse_hgt_name(path)?;
-    let file = open_regular_file(path)?;
+    let file = open_regular_file(path, limits)?;
     let len = file.metadata()?.len();
     let n: usize = match len {
         2_884_802 => 1201,

@@ -9,7 +9,8 @@ pub mod write_tiff;
 
 use std::fs::File;
 use std::io::Read;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 pub use ascii::AsciiGridReader;
 pub use geotiff::GeoTiffReader;
@@ -130,9 +131,17 @@ pub enum ReadError {
          {limit_mb} MiB (limits.max_ingest_mb)"
     )]
     TooLarge { cols: u64, rows: u64, limit_mb: u64 },
+    /// The file, or one beside it, does not resolve inside the folders it may be read from.
+    #[error("{}", REFUSED_PATH)]
+    Outside,
     #[error("I/O error: {0}")]
     Io(#[source] std::io::Error),
 }
+
+/// The one message for a path that may not be read, whatever is or is not there: a client
+/// must not learn about files outside the folders it was given.
+pub const REFUSED_PATH: &str = "not a file this daemon may ingest: a path must lead, symlinks \
+     followed, to a file inside the inbox folders or ingest_roots";
 
 impl From<std::io::Error> for ReadError {
     // Every reader hits end-of-file the same way on a cut-off download; give it one clear name.
@@ -155,17 +164,23 @@ impl ReadError {
     }
 }
 
-/// Resource limits applied while reading untrusted files.
+/// What reading an untrusted file may cost, and where it may read.
 #[derive(Clone, Debug)]
 pub struct ReadLimits {
     /// Most bytes the decoded raster (`f32` samples) may take. Checked against the header
     /// before any sample buffer exists.
     pub max_bytes: u64,
+    /// Resolved folders that every file read (the raster and the files beside it) must lie
+    /// in; `None` reads anywhere.
+    pub roots: Option<Arc<[PathBuf]>>,
 }
 
 impl Default for ReadLimits {
     fn default() -> Self {
-        ReadLimits { max_bytes: 4 << 30 }
+        ReadLimits {
+            max_bytes: 4 << 30,
+            roots: None,
+        }
     }
 }
 
@@ -177,6 +192,7 @@ impl ReadLimits {
     pub fn mb(mb: u64) -> Self {
         ReadLimits {
             max_bytes: mb.saturating_mul(1 << 20),
+            roots: None,
         }
     }
 
@@ -230,7 +246,7 @@ pub fn readers() -> [&'static dyn RasterReader; 3] {
 
 /// Reads any supported raster file, choosing the reader from magic bytes and extension.
 pub fn read_raster(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
-    let mut file = open_regular_file(path)?;
+    let mut file = open_regular_file(path, limits)?;
     let mut head = Vec::with_capacity(512);
     file.by_ref().take(512).read_to_end(&mut head)?;
     drop(file);
@@ -244,29 +260,112 @@ pub fn read_raster(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError
     }
 }
 
-/// Opens `path` for reading, refusing directories, special files and empty files with a clear
-/// message rather than the OS's terse one (or a confusing decoder error on zero bytes).
-pub(crate) fn open_regular_file(path: &Path) -> Result<File, ReadError> {
-    let meta = std::fs::metadata(path)?;
+/// Why a file someone else controls was not opened.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    #[error("{} is a directory", .0.display())]
+    Directory(PathBuf),
+    #[error("{} is not a regular file", .0.display())]
+    NotAFile(PathBuf),
+    #[error("{}", REFUSED_PATH)]
+    Outside,
+    #[error("cannot read {}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+impl OpenError {
+    /// Whether nothing is there.
+    pub fn is_not_found(&self) -> bool {
+        matches!(self, OpenError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound)
+    }
+}
+
+/// Opens a file that someone else may control. It is opened without blocking (a FIFO would
+/// otherwise wait forever for a writer) and must be a regular file. With `roots`, the file
+/// opened must be the one its path resolves to, symlinks followed, inside one of them: the
+/// check is made on the open handle, so a symlink swapped between a check and the open
+/// cannot lead outside.
+pub fn open_untrusted(path: &Path, roots: Option<&[PathBuf]>) -> Result<File, OpenError> {
+    use std::os::unix::fs::{MetadataExt, OpenOptionsExt};
+    let io = |source: std::io::Error| OpenError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path);
+    let file = match (file, roots) {
+        (Ok(f), _) => f,
+        // Where a path leads outside, even whether it leads anywhere is not told.
+        (Err(_), Some(_)) => return Err(OpenError::Outside),
+        (Err(e), None) => return Err(io(e)),
+    };
+    let meta = file.metadata().map_err(io)?;
+    if let Some(roots) = roots {
+        let real = path.canonicalize().map_err(|_| OpenError::Outside)?;
+        let same =
+            std::fs::metadata(&real).is_ok_and(|m| (m.dev(), m.ino()) == (meta.dev(), meta.ino()));
+        if !same || !roots.iter().any(|r| real.starts_with(r)) {
+            return Err(OpenError::Outside);
+        }
+    }
     if meta.is_dir() {
-        return Err(ReadError::invalid(format!(
-            "{} is a directory, not a raster file",
-            path.display()
-        )));
+        return Err(OpenError::Directory(path.to_path_buf()));
     }
     if !meta.is_file() {
-        return Err(ReadError::invalid(format!(
-            "{} is not a regular file",
-            path.display()
-        )));
+        return Err(OpenError::NotAFile(path.to_path_buf()));
     }
-    if meta.len() == 0 {
+    Ok(file)
+}
+
+/// Hex BLAKE3 of a file's bytes: the content id of a survey's source.
+pub fn content_id(mut file: &File) -> std::io::Result<String> {
+    let mut h = blake3::Hasher::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = file.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(h.finalize().to_hex().to_string())
+}
+
+/// The content id of the file at `path`, opened as [`open_untrusted`] does.
+pub fn file_content_id(path: &Path, roots: Option<&[PathBuf]>) -> Result<String, OpenError> {
+    let file = open_untrusted(path, roots)?;
+    content_id(&file).map_err(|source| OpenError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Opens a raster file where `limits` allow, refusing directories, special files and empty
+/// files with a clear message rather than the OS's terse one (or a confusing decoder error on
+/// zero bytes).
+pub(crate) fn open_regular_file(path: &Path, limits: &ReadLimits) -> Result<File, ReadError> {
+    let file = open_untrusted(path, limits.roots.as_deref()).map_err(|e| match e {
+        OpenError::Outside => ReadError::Outside,
+        OpenError::Directory(p) => {
+            ReadError::invalid(format!("{} is a directory, not a raster file", p.display()))
+        }
+        OpenError::NotAFile(p) => {
+            ReadError::invalid(format!("{} is not a regular file", p.display()))
+        }
+        OpenError::Io { source, .. } => source.into(),
+    })?;
+    if file.metadata()?.len() == 0 {
         return Err(ReadError::invalid(format!(
             "{} is empty (0 bytes)",
             path.display()
         )));
     }
-    Ok(File::open(path)?)
+    Ok(file)
 }
 
 pub(crate) fn has_extension(path: &Path, wanted: &[&str]) -> bool {
