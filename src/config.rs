@@ -108,6 +108,10 @@ pub struct Limits {
     pub max_points: u64,
     /// Longest a request may run, in milliseconds.
     pub deadline_ms: u64,
+    /// Requests that run at once (queries, tiles, listings); more wait their turn within
+    /// their deadline. Together with the tile and point limits, this bounds the memory
+    /// clients can make the daemon hold.
+    pub max_running_requests: u64,
     /// Most memory one file's decoded raster may take, in MiB; larger headers are refused
     /// before anything is read.
     pub max_ingest_mb: u64,
@@ -128,6 +132,7 @@ impl Default for Limits {
             max_patches: 250_000,
             max_points: 1_000_000,
             deadline_ms: 30_000,
+            max_running_requests: 8,
             max_ingest_mb: 4096,
             min_height_m: -12_000.0,
             max_height_m: 9_000.0,
@@ -336,10 +341,24 @@ impl Config {
         }
         let l = &self.limits;
         let ordered = l.min_height_m < l.max_height_m;
-        if !ordered || l.max_ingest_mb == 0 || l.max_failures == 0 || l.max_ingest_paths == 0 {
+        let counts = [
+            l.max_ingest_mb,
+            l.max_failures,
+            l.max_ingest_paths,
+            l.max_running_requests,
+        ];
+        if !ordered || counts.contains(&0) {
             return Err(ConfigError::Invalid(
                 "limits.min_height_m must be below limits.max_height_m, and \
-                 limits.max_ingest_mb, max_failures and max_ingest_paths at least 1"
+                 limits.max_ingest_mb, max_failures, max_ingest_paths and \
+                 max_running_requests at least 1"
+                    .into(),
+            ));
+        }
+        if self.read_token.is_some() && self.admin_token.is_none() {
+            return Err(ConfigError::Invalid(
+                "read_token needs admin_token too: with reads closed and no admin token, \
+                 Admin calls would be open to all"
                     .into(),
             ));
         }
@@ -384,6 +403,20 @@ mod tests {
         let text = std::fs::read_to_string(path).unwrap();
         let parsed: Config = toml::from_str(&text).unwrap();
         assert_eq!(parsed, Config::default());
+    }
+
+    #[test]
+    fn a_read_token_alone_is_refused() {
+        let mut c = Config {
+            read_token: Some(Secret("read-0123456789abcdef".into())),
+            ..Config::default()
+        };
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("admin_token"), "{e}");
+        c.admin_token = Some(Secret("short".into()));
+        assert!(c.validate().is_err(), "a short token is refused");
+        c.admin_token = Some(Secret("admin-0123456789abcdef".into()));
+        assert!(c.validate().is_ok());
     }
 
     #[test]

@@ -86,8 +86,28 @@ fn tokens_open_admin_and_reads_as_configured() {
     args.push("--json");
     assert!(cli_as(&d, None, &args).status.success());
 
-    // Health needs no token, so that a load balancer can ask.
     let rt = tokio::runtime::Runtime::new().unwrap();
+    // Change events name files and their errors: they need the admin token.
+    let subscribe = |token: &str| {
+        let url = d.url.clone();
+        let token = token.to_string();
+        rt.block_on(async move {
+            let ch = tonic::transport::Channel::from_shared(url)
+                .unwrap()
+                .connect()
+                .await
+                .unwrap();
+            let mut t = patchwork::serve::proto::terrain_client::TerrainClient::new(ch);
+            let mut req = tonic::Request::new(patchwork::serve::proto::SubscribeRequest {});
+            req.metadata_mut()
+                .insert("authorization", format!("Bearer {token}").parse().unwrap());
+            t.subscribe(req).await.map(|_| ()).map_err(|s| s.code())
+        })
+    };
+    assert_eq!(subscribe(READ), Err(tonic::Code::PermissionDenied));
+    assert_eq!(subscribe(ADMIN), Ok(()));
+
+    // Health needs no token, so that a load balancer can ask.
     let status = rt.block_on(async {
         let ch = tonic::transport::Channel::from_shared(d.url.clone())
             .unwrap()

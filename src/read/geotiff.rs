@@ -200,8 +200,7 @@ fn decode<R: Read + Seek>(
     let kind = sample_kind(&mut dec)?;
     let (geotransform, (epsg, crs_name)) = georeference(&mut dec)?;
     let nodata = gdal_nodata(&mut dec)?;
-    let counts = chunk_layout_check(&mut dec, file_len)?;
-    let present: u64 = counts.iter().sum();
+    let (counts, present) = chunk_layout_check(&mut dec, file_len)?;
     let expansion = codec_expansion(&mut dec)?;
     limits.check_fillable(
         u64::from(width),
@@ -591,13 +590,14 @@ fn codec_expansion<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<u64, ReadErro
 }
 
 /// Checks every chunk lies inside the file, so a cut-off download reports `Truncated` up front
-/// instead of a decompressor error halfway through. Returns the bytes each chunk holds; 0 for
-/// sparse chunks (GDAL's SPARSE_OK writes offset 0 / byte count 0 for blocks that hold only
-/// nodata).
+/// instead of a decompressor error halfway through. Returns the bytes each chunk holds (0 for
+/// sparse chunks: GDAL's SPARSE_OK writes offset 0 / byte count 0 for blocks that hold only
+/// nodata), and the bytes of image data in the file: the union of the chunks, since many
+/// chunks may point at the same bytes.
 fn chunk_layout_check<R: Read + Seek>(
     dec: &mut Decoder<R>,
     file_len: u64,
-) -> Result<Vec<u64>, ReadError> {
+) -> Result<(Vec<u64>, u64), ReadError> {
     let (offsets_tag, counts_tag) = match dec.get_chunk_type() {
         ChunkType::Strip => (Tag::StripOffsets, Tag::StripByteCounts),
         ChunkType::Tile => (Tag::TileOffsets, Tag::TileByteCounts),
@@ -617,12 +617,20 @@ fn chunk_layout_check<R: Read + Seek>(
             counts.len()
         )));
     }
+    let mut ranges = Vec::with_capacity(offsets.len());
     for (&offset, &count) in offsets.iter().zip(&counts) {
-        if count > 0 && offset.checked_add(count).is_none_or(|end| end > file_len) {
-            return Err(ReadError::Truncated);
+        if count > 0 {
+            let end = offset.checked_add(count).filter(|&end| end <= file_len);
+            ranges.push((offset, end.ok_or(ReadError::Truncated)?));
         }
     }
-    Ok(counts)
+    ranges.sort_unstable();
+    let (mut present, mut reached) = (0u64, 0u64);
+    for (start, end) in ranges {
+        present += end.saturating_sub(start.max(reached));
+        reached = reached.max(end);
+    }
+    Ok((counts, present))
 }
 
 fn largest_chunk_samples<R: Read + Seek>(
@@ -1530,6 +1538,18 @@ mod tests {
         let bytes = build_tiff(raster(20_000, 50000), &[vec![0u8; 16]], false);
         let e = expect_err(&write_temp(&dir, "zstd.tif", &bytes));
         assert!(e.to_string().contains("can fill at most 131072"), "{e}");
+        // Many strips that point at the same bytes hold those bytes once: 2,000 strips of a
+        // row each, all at the one 8 KB row at offset 8 (the offsets array itself, the first
+        // value written there), cannot fill 2000 × 2000 samples.
+        let mut tags = image_tags(2000, 2000, 32, 3);
+        tags.extend(geo_tags((0.0, 0.0), 1.0, 32631));
+        tags.push((278, Val::Long(vec![1])));
+        tags.push((273, Val::Long(vec![8; 2000])));
+        tags.push((279, Val::Long(vec![8000; 2000])));
+        let bytes = build_tiff(tags, &[], false);
+        assert!(bytes.len() < 20_000);
+        let e = expect_err(&write_temp(&dir, "overlap.tif", &bytes));
+        assert!(e.to_string().contains("can fill at most"), "{e}");
         // A raster small enough to cost nothing is still read, sparse or not.
         let mut tags = raster(64, 1);
         tags.push((273, Val::Long(vec![0])));

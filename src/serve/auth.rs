@@ -1,6 +1,7 @@
 //! Bearer tokens. The admin token opens every call; the read token, when one is set, opens the
-//! Terrain service only; with no read token, Terrain is open to all. Health and reflection
-//! are always open, so that load balancers and tools can find the daemon.
+//! Terrain service only; with no read token, Terrain is open to all, but for Subscribe, whose
+//! events name files and their errors as the Admin listing does. Health and reflection are
+//! always open, so that load balancers and tools can find the daemon.
 //!
 //! Tokens are compared by their BLAKE3 hashes, whose equality is constant-time, so the time a
 //! refusal takes says nothing about how much of a guess was right.
@@ -85,13 +86,20 @@ impl Gate {
     }
 }
 
-impl Interceptor for Gate {
-    fn call(&mut self, req: Request<()>) -> Result<Request<()>, Status> {
+impl Gate {
+    /// Checks a request's token against this gate.
+    pub fn admit<T>(&self, req: &Request<T>) -> Result<(), Status> {
         let header = req
             .metadata()
             .get("authorization")
             .and_then(|v| v.to_str().ok());
-        self.check(header)?;
+        self.check(header)
+    }
+}
+
+impl Interceptor for Gate {
+    fn call(&mut self, req: Request<()>) -> Result<Request<()>, Status> {
+        self.admit(&req)?;
         Ok(req)
     }
 }

@@ -15,14 +15,26 @@ use tonic::{Request, Response, Status};
 #[derive(Clone)]
 pub struct Service {
     engine: Arc<Engine>,
+    /// Requests running at once. A permit goes with the work, not the call: a request whose
+    /// caller gave up (past its deadline, or gone) holds its permit until its work is done, so
+    /// clients that ask and hang up cannot pile up work without bound.
+    running: Arc<tokio::sync::Semaphore>,
+    /// Subscribe is on the Terrain service but tells what the Admin listing tells.
+    admin: Gate,
 }
 
 impl Service {
     pub fn new(engine: Arc<Engine>) -> Self {
-        Service { engine }
+        let n = engine.config().limits.max_running_requests as usize;
+        Service {
+            admin: Gate::admin(engine.config()),
+            engine,
+            running: Arc::new(tokio::sync::Semaphore::new(n)),
+        }
     }
 
-    /// Runs `f` off the async threads, within the configured deadline.
+    /// Runs `f` off the async threads once a permit is free, within the configured deadline
+    /// (the wait for the permit included).
     async fn run<T, F>(&self, f: F) -> Result<T, Status>
     where
         T: Send + 'static,
@@ -30,12 +42,26 @@ impl Service {
     {
         let engine = self.engine.clone();
         let ms = engine.config().limits.deadline_ms;
-        let job = tokio::task::spawn_blocking(move || f(&engine));
-        match tokio::time::timeout(Duration::from_millis(ms), job).await {
-            Ok(Ok(r)) => r.map_err(status::to_status),
-            Ok(Err(e)) => Err(Status::internal(format!("the request failed: {e}"))),
-            Err(_) => Err(status::deadline(ms)),
-        }
+        let work = async {
+            let permit = self
+                .running
+                .clone()
+                .acquire_owned()
+                .await
+                .map_err(|_| Status::unavailable("the daemon is stopping"))?;
+            let job = tokio::task::spawn_blocking(move || {
+                let r = f(&engine);
+                drop(permit);
+                r
+            });
+            match job.await {
+                Ok(r) => r.map_err(status::to_status),
+                Err(e) => Err(Status::internal(format!("the request failed: {e}"))),
+            }
+        };
+        tokio::time::timeout(Duration::from_millis(ms), work)
+            .await
+            .unwrap_or_else(|_| Err(status::deadline(ms)))
     }
 
     /// Runs `f` off the async threads with no deadline: ingestion, verification and
@@ -93,8 +119,9 @@ impl terrain_server::Terrain for Service {
 
     async fn subscribe(
         &self,
-        _: Request<pb::SubscribeRequest>,
+        r: Request<pb::SubscribeRequest>,
     ) -> Result<Response<Self::SubscribeStream>, Status> {
+        self.admin.admit(&r)?;
         let rx = self.engine.subscribe();
         let s = tokio_stream::wrappers::BroadcastStream::new(rx)
             .filter_map(|e| e.ok().map(|e| Ok(convert::event(&e))));
