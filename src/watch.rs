@@ -62,19 +62,32 @@ fn is_dem_name(p: &Path) -> bool {
 /// A file's size and mtime, by which the watcher tells whether it changed.
 type Stamp = Option<(u64, u64)>;
 
-/// Every candidate under `dir`, with its stamp (None when unreadable).
-fn scan(dir: &Path, out: &mut HashMap<PathBuf, Stamp>) {
+/// Every candidate under `dir`, with its stamp (None when unreadable), into `out`; folders
+/// that could not be listed whole go into `incomplete`, since what they hold is unknown, not
+/// gone.
+fn scan(dir: &Path, out: &mut HashMap<PathBuf, Stamp>, incomplete: &mut Vec<PathBuf>) {
     let mut stack = vec![dir.to_path_buf()];
     while let Some(dir) = stack.pop() {
         let Ok(entries) = std::fs::read_dir(&dir) else {
+            incomplete.push(dir);
             continue;
         };
-        for e in entries.flatten() {
+        for e in entries {
+            let Ok(e) = e else {
+                incomplete.push(dir.clone());
+                continue;
+            };
             let p = e.path();
             if is_temporary(&p) {
                 continue;
             }
-            let is_dir = e.file_type().map(|t| t.is_dir()).unwrap_or(false);
+            let is_dir = match e.file_type() {
+                Ok(t) => t.is_dir(),
+                Err(_) => {
+                    incomplete.push(p);
+                    continue;
+                }
+            };
             if is_dem_name(&p) {
                 out.insert(
                     p.clone(),
@@ -92,28 +105,50 @@ struct Root {
     configured: PathBuf,
     /// The resolved folder, while it is there to be trusted.
     real: Option<PathBuf>,
+    /// The folder's device and inode when it was last seen holding files.
+    identity: Option<(u64, u64)>,
 }
 
-/// What discovery found: the candidates under the folders that are there, and the folders.
+/// What discovery found: the candidates under the folders that are there, the folders, and
+/// the folders under them that could not be listed.
 struct Discovered {
     files: HashMap<PathBuf, Stamp>,
     /// Resolved folders that are there.
     present: Vec<PathBuf>,
+    incomplete: Vec<PathBuf>,
 }
 
-/// Resolves `root`, and says whether it can be trusted to list what the inbox holds: it must
-/// exist, and not be empty while surveys came from it (an unmounted share's mount point).
-fn resolve(root: &Path, catalog: &Catalog) -> Option<PathBuf> {
-    let real = root.canonicalize().ok()?;
+impl Discovered {
+    /// Whether `source` is known to be gone: under a folder that is there and was listed
+    /// whole, and not found.
+    fn gone(&self, source: &str) -> bool {
+        let p = Path::new(source);
+        self.present.iter().any(|r| p.starts_with(r))
+            && !self.incomplete.iter().any(|d| p.starts_with(d))
+            && !self.files.contains_key(p)
+    }
+}
+
+/// Resolves `root`, and says whether it can be trusted to list what the inbox holds, with its
+/// identity (device and inode). It must exist; and an empty folder that surveys came from
+/// counts only if it is the very folder last seen holding files (its files were deleted), not
+/// another one: a share unmounted from it or not mounted yet, or a folder made anew.
+fn resolve(root: &Root, catalog: &Catalog) -> Option<(PathBuf, (u64, u64))> {
+    use std::os::unix::fs::MetadataExt;
+    let real = root.configured.canonicalize().ok()?;
+    let meta = std::fs::metadata(&real).ok()?;
+    let identity = (meta.dev(), meta.ino());
     let mut entries = std::fs::read_dir(&real).ok()?;
-    if entries.next().is_none()
-        && catalog
+    let empty = entries.next().is_none();
+    let had_surveys = || {
+        catalog
             .active()
             .any(|r| Path::new(&r.source).starts_with(&real))
-    {
+    };
+    if empty && root.identity != Some(identity) && had_surveys() {
         return None;
     }
-    Some(real)
+    Some((real, identity))
 }
 
 struct Pending {
@@ -142,6 +177,7 @@ impl<S: Sink> Reconciler<S> {
                 .map(|d| Root {
                     configured: d.clone(),
                     real: None,
+                    identity: None,
                 })
                 .collect(),
             settle,
@@ -155,13 +191,16 @@ impl<S: Sink> Reconciler<S> {
     /// Lists the folders that are there and what they hold. Returns the folders that came
     /// back (or appeared) since the last look, which the trigger must watch again.
     fn discover(&mut self, catalog: &Catalog) -> (Discovered, Vec<PathBuf>) {
-        let mut files = HashMap::new();
-        let mut present = Vec::new();
+        let mut found = Discovered {
+            files: HashMap::new(),
+            present: Vec::new(),
+            incomplete: Vec::new(),
+        };
         let mut back = Vec::new();
         for root in &mut self.roots {
-            let now = resolve(&root.configured, catalog);
+            let now = resolve(root, catalog);
             match (&root.real, &now) {
-                (None, Some(real)) => {
+                (None, Some((real, _))) => {
                     tracing::info!(dir = ?root.configured, "inbox folder is there: watching it");
                     back.push(real.clone());
                 }
@@ -171,13 +210,17 @@ impl<S: Sink> Reconciler<S> {
                 ),
                 _ => {}
             }
-            if let Some(real) = &now {
-                scan(real, &mut files);
-                present.push(real.clone());
+            root.real = now.as_ref().map(|(real, _)| real.clone());
+            if let Some((real, identity)) = now {
+                let before = found.files.len();
+                scan(&real, &mut found.files, &mut found.incomplete);
+                if found.files.len() > before {
+                    root.identity = Some(identity);
+                }
+                found.present.push(real);
             }
-            root.real = now;
         }
-        (Discovered { files, present }, back)
+        (found, back)
     }
 
     /// Whether every inbox folder is there.
@@ -259,25 +302,19 @@ impl<S: Sink> Reconciler<S> {
         if self.on_delete == OnDelete::Retire {
             self.retire_missing(&found);
         }
-        // Files under a folder that is away keep their entries: they are not gone.
-        self.done.retain(|s, _| {
-            let p = Path::new(s);
-            found.files.contains_key(p) || !found.present.iter().any(|r| p.starts_with(r))
-        });
+        // Files under a folder that is away, or that could not be listed, keep their
+        // entries: they are not gone.
+        self.done.retain(|s, _| !found.gone(s));
         (!self.pending.is_empty(), back)
     }
 
     fn retire_missing(&mut self, found: &Discovered) {
         let catalog = self.sink.catalog();
-        let gone = |source: &str| {
-            let p = Path::new(source);
-            found.present.iter().any(|r| p.starts_with(r)) && !found.files.contains_key(p)
-        };
         let sources: Vec<String> = catalog
             .active()
             .map(|r| r.source.clone())
             .chain(catalog.pins.keys().cloned())
-            .filter(|s| gone(s))
+            .filter(|s| found.gone(s))
             .collect();
         for source in sources {
             if let Err(e) = self.sink.retire_deleted(&source) {
@@ -411,4 +448,25 @@ pub async fn run(engine: Arc<Engine>, mut shutdown: tokio::sync::watch::Receiver
 enum Wake {
     Changed,
     Renamed(Vec<PathBuf>),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_file_is_gone_only_from_a_folder_that_is_there_and_was_listed_whole() {
+        let found = Discovered {
+            files: [(PathBuf::from("/in/a.tif"), Some((1, 1)))].into(),
+            present: vec![PathBuf::from("/in")],
+            incomplete: vec![PathBuf::from("/in/stale")],
+        };
+        assert!(!found.gone("/in/a.tif"), "it is there");
+        assert!(found.gone("/in/b.tif"), "listed whole and not found");
+        assert!(
+            !found.gone("/in/stale/c.tif"),
+            "its folder could not be listed"
+        );
+        assert!(!found.gone("/away/d.tif"), "its folder is not there");
+    }
 }

@@ -347,4 +347,8 @@ fn an_inbox_folder_that_goes_away_retires_nothing() {
             .count(),
         1
     );
+    // So does the last one: the folder, the very one seen holding files, is now empty.
+    std::fs::remove_file(inbox.join("a.tif")).unwrap();
+    rec.pass();
+    assert!(active(&e).is_empty());
 }
