@@ -270,6 +270,12 @@ impl Engine {
         self.published.read().expect("state lock").catalog.clone()
     }
 
+    /// The terrain and its catalog, of one and the same commit.
+    pub fn published(&self) -> (Arc<Terrain>, Arc<Catalog>) {
+        let p = self.published.read().expect("state lock");
+        (p.terrain.clone(), p.catalog.clone())
+    }
+
     pub fn subscribe(&self) -> broadcast::Receiver<Event> {
         self.events.subscribe()
     }
@@ -291,12 +297,25 @@ impl Engine {
         })?;
         let current = self.snapshot();
         let (v, next) = f(store, &current).map_err(|e| self.failed(e))?;
-        let catalog = store.catalog().map_err(|e| self.failed(e))?;
+        // The change is committed: its terrain is published whatever happens next, or later
+        // writes would build on a terrain the store no longer holds.
+        let catalog = store.catalog();
         let mut p = self.published.write().expect("state lock");
         if let Some(t) = next {
             p.terrain = Arc::new(t);
         }
-        p.catalog = Arc::new(catalog);
+        match catalog {
+            Ok(c) => p.catalog = Arc::new(c),
+            Err(e) => {
+                // Listings would go stale, and the store cannot be read back: stop writing.
+                drop(p);
+                let why = format!("the store could not be read back after a commit: {e}");
+                if self.broken.set(why.clone()).is_ok() {
+                    tracing::error!(error = %why, "no more writes until restart; reads go on");
+                }
+                return Ok(v);
+            }
+        }
         drop(p);
         if let Err(e) = store.guard().restore(store.path()) {
             tracing::warn!(error = %e, "could not make the store's reserve file");
@@ -652,9 +671,10 @@ impl Engine {
         (c.records.clone(), c.failures.clone())
     }
 
-    /// Every survey record, the failed files, and each active survey's conflicts.
-    pub fn surveys(&self) -> SurveyListing {
-        let c = self.catalog();
+    /// The terrain, and every survey record, the failed files, and each active survey's
+    /// conflicts, all of one commit.
+    pub fn surveys(&self) -> (Arc<Terrain>, SurveyListing) {
+        let (t, c) = self.published();
         let accuracy: HashMap<SurveyId, f64> = c.active().map(|r| (r.id, r.accuracy)).collect();
         let mut conflicts = HashMap::new();
         for (id, a) in &accuracy {
@@ -670,11 +690,12 @@ impl Engine {
                 conflicts.insert(*id, mine);
             }
         }
-        SurveyListing {
+        let listing = SurveyListing {
             records: c.records.clone(),
             failures: c.failures.clone(),
             conflicts,
-        }
+        };
+        (t, listing)
     }
 
     /// Why writes are refused now, if they are.
@@ -686,8 +707,7 @@ impl Engine {
     }
 
     pub fn stats(&self) -> Stats {
-        let c = self.catalog();
-        let t = self.snapshot();
+        let (t, c) = self.published();
         let active: Vec<_> = c.active().collect();
         Stats {
             surveys: active.len() as u32,
@@ -697,7 +717,7 @@ impl Engine {
             active_boxes: t.index().active_count() as u64,
             samples: active.iter().map(|r| r.samples).sum(),
             disk_bytes: crate::store::dir_bytes(&self.dir),
-            crs: self.crs(),
+            crs: self.cfg.crs_epsg().or(c.crs),
             backend: self.backend_name(),
             quadtree_nodes: t.index().tree_stats().nodes as u32,
             read_only: self.read_only(),

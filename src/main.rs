@@ -254,6 +254,12 @@ impl Client {
             format!("cannot reach the daemon at {}: {e}{why}; start it with `patchwork serve`, or use --data-dir DIR", t.server)
         })?;
         let bearer = token(t)?;
+        if bearer.0.is_some() && !is_loopback_url(&t.server) && t.server.starts_with("http://") {
+            eprintln!(
+                "patchwork: warning: sending the token in clear to {}; use https:// and --ca",
+                t.server
+            );
+        }
         Ok(Client::Remote {
             terrain: Box::new(
                 TerrainClient::with_interceptor(ch.clone(), bearer.clone())
@@ -490,7 +496,11 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 for r in reply.results {
                     if r.outcome == "failed" {
                         failed += 1;
-                        say(format!("failed    {}: {}", printable(&r.source), r.error));
+                        say(format!(
+                            "failed    {}: {}",
+                            printable(&r.source),
+                            printable(&r.error)
+                        ));
                     } else {
                         say(format!(
                             "{:<9} {} {:016x} ({} samples, {:.2} s)",
@@ -533,7 +543,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                             "{:<16}  failed   {}  {}",
                             "-",
                             printable(&s.source),
-                            s.error
+                            printable(&s.error)
                         ),
                         st => {
                             println!(
@@ -864,6 +874,20 @@ impl PatchJson {
     }
 }
 
+/// Whether a server URL names this machine.
+fn is_loopback_url(url: &str) -> bool {
+    let rest = url.split_once("://").map_or(url, |(_, r)| r);
+    let authority = rest.split('/').next().unwrap_or("");
+    let host = match authority.strip_prefix('[') {
+        Some(v6) => v6.split(']').next().unwrap_or(""),
+        None => authority.split(':').next().unwrap_or(""),
+    };
+    host == "localhost"
+        || host
+            .parse::<std::net::IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
+}
+
 /// A path for a line of output: control characters (a newline in a file name, say) escaped,
 /// so that one name stays one line.
 fn printable(s: &str) -> std::borrow::Cow<'_, str> {
@@ -889,6 +913,30 @@ fn main() -> ExitCode {
         Err(e) => {
             eprintln!("patchwork: {e}");
             ExitCode::FAILURE
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn loopback_urls_are_told_from_others() {
+        for u in [
+            "http://127.0.0.1:50051",
+            "http://localhost:1",
+            "http://[::1]:50051",
+            "https://127.0.0.2",
+        ] {
+            assert!(is_loopback_url(u), "{u}");
+        }
+        for u in [
+            "http://10.0.0.1:50051",
+            "http://[2001:db8::1]:1",
+            "http://example.org",
+        ] {
+            assert!(!is_loopback_url(u), "{u}");
         }
     }
 }

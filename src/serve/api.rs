@@ -116,7 +116,8 @@ pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply,
 }
 
 pub fn list_surveys(engine: &Engine) -> Result<pb::SurveyList, EngineError> {
-    Ok(convert::surveys(&engine.snapshot(), &engine.surveys()))
+    let (terrain, listing) = engine.surveys();
+    Ok(convert::surveys(&terrain, &listing))
 }
 
 pub fn forget(engine: &Engine, r: &pb::ForgetRequest) -> Result<pb::ForgetReply, EngineError> {

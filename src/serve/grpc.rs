@@ -153,7 +153,8 @@ impl admin_server::Admin for Service {
         r: Request<pb::RetireRequest>,
     ) -> Result<Response<pb::RetireReply>, Status> {
         let r = r.into_inner();
-        self.run(move |e| api::retire(e, &r))
+        // Retiring hashes the survey's file to decide whether to pin it: no read deadline.
+        self.run_long(move |e| api::retire(e, &r))
             .await
             .map(Response::new)
     }
