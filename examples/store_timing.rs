@@ -52,7 +52,7 @@ fn ingest(store: &Store, terrain: &mut Terrain, path: &Path) -> Arc<Survey> {
         },
     );
     let t = Instant::now();
-    store.commit_survey(&s, &rec, &change, &[]).unwrap();
+    store.commit_survey(&s, &rec, &change, &next, &[]).unwrap();
     let commit_ms = ms(t);
     *terrain = next;
     println!(
@@ -120,7 +120,9 @@ fn main() {
     let change = next.retire(cop.id).unwrap();
     let index_ms = ms(t);
     let t = Instant::now();
-    store.commit_retire(cop.id, &ids, &change, false).unwrap();
+    store
+        .commit_retire(cop.id, &ids, &change, &next, false)
+        .unwrap();
     println!(
         "retire Copernicus: index {index_ms:.0} ms, commit {:.0} ms, {} tops moved",
         ms(t),

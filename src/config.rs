@@ -163,6 +163,8 @@ pub struct Config {
     pub crs: Option<String>,
     /// How long a file's size and mtime must stay unchanged before it is ingested.
     pub settle_ms: u64,
+    /// Memory for decoded samples, in MiB; the store's page cache takes a quarter more.
+    pub cache_mb: u64,
     pub on_delete: OnDelete,
     /// Log filter, e.g. "info" or "patchwork=debug".
     pub log: String,
@@ -186,6 +188,7 @@ impl Default for Config {
             accuracy_m: DefaultAccuracy::Auto,
             crs: None,
             settle_ms: 1500,
+            cache_mb: 512,
             on_delete: OnDelete::Retire,
             log: "info".into(),
             limits: Limits::default(),
@@ -299,6 +302,9 @@ impl Config {
         }
         if let Some(v) = get("PATCHWORK_SETTLE_MS") {
             self.settle_ms = num("PATCHWORK_SETTLE_MS", &v)?;
+        }
+        if let Some(v) = get("PATCHWORK_CACHE_MB") {
+            self.cache_mb = num("PATCHWORK_CACHE_MB", &v)?;
         }
         if let Some(v) = get("PATCHWORK_ON_DELETE") {
             self.on_delete = match v.trim() {

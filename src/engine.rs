@@ -26,10 +26,9 @@ pub use crate::resample::Backend;
 use crate::resample::SampleGrid;
 use crate::store::{
     now_unix, Catalog, DiskSpace, FailedRecord, IngestTimings, SpaceGuard, Store, StoreError,
-    SurveyRecord, SystemDisk,
+    StoreOptions, SurveyRecord, SystemDisk,
 };
 use crate::terrain::{Terrain, Tile};
-use rayon::prelude::*;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
@@ -204,7 +203,12 @@ impl Engine {
             min_free: cfg.storage.min_free_mb << 20,
             reserve: cfg.storage.reserve_mb << 20,
         };
-        let opened = Store::open_with(&cfg.data_dir, cfg.patches, cfg.index, guard.clone())?;
+        let opened = Store::open_with(
+            &cfg.data_dir,
+            cfg.patches,
+            cfg.index,
+            store_options(&cfg, &guard),
+        )?;
         for w in &opened.warnings {
             tracing::warn!(warning = %w, "store opened with a problem; `patchwork verify` tells more");
         }
@@ -554,9 +558,9 @@ impl Engine {
                             .survey_patches(old.id)
                             .map(|p| p.to_vec())
                             .unwrap_or_default();
-                        let retire: ChangeStats = next.retire(old.id).unwrap_or_default();
-                        let insert = next.insert(survey.clone());
-                        let overlaps = overlaps_with(&next, &survey);
+                        let retire: ChangeStats = next.try_retire(old.id)?.unwrap_or_default();
+                        let insert = next.try_insert(&survey)?;
+                        let overlaps = next.overlaps(&survey)?;
                         store.commit_replace(
                             old.id,
                             &old_patches,
@@ -564,17 +568,20 @@ impl Engine {
                             &survey,
                             &rec,
                             &insert,
+                            &next,
                             &overlaps,
                         )?;
                         (Outcome::Replaced, overlaps)
                     }
                     None => {
-                        let insert = next.insert(survey.clone());
-                        let overlaps = overlaps_with(&next, &survey);
-                        store.commit_survey(&survey, &rec, &insert, &overlaps)?;
+                        let insert = next.try_insert(&survey)?;
+                        let overlaps = next.overlaps(&survey)?;
+                        store.commit_survey(&survey, &rec, &insert, &next, &overlaps)?;
                         (Outcome::Inserted, overlaps)
                     }
                 };
+                // The samples are on disk now; the terrain reads them from there.
+                next.page_out(survey.id);
                 Ok((outcome, Some(next)))
             })
             .map_err(Refusal::Store)?;
@@ -751,7 +758,7 @@ impl Engine {
                     &self.dir,
                     self.cfg.patches,
                     self.cfg.index,
-                    self.guard.clone(),
+                    store_options(&self.cfg, &self.guard),
                 )?;
                 (opened, Err(e.into()))
             }
@@ -842,28 +849,30 @@ impl Engine {
         if backend != Backend::Cpu {
             let mut gpu = self.gpu.lock().expect("gpu lock");
             match gpu.as_mut() {
-                Some(g) => match g.resample(&t.resolve(&ps), &grid) {
-                    Ok(heights) => {
-                        let tile = Tile {
-                            width: grid.width,
-                            height: grid.height,
-                            heights,
-                            patches: ps,
-                        };
-                        return Ok((tile, "gpu"));
-                    }
-                    Err(e) => {
-                        tracing::warn!(error = %e, "GPU resampling failed; this request and later ones use the CPU");
-                        if matches!(e, GpuError::Lost(_) | GpuError::Device(_)) {
-                            *gpu = None;
+                Some(g) => {
+                    match g.resample(&t.try_resolve(&ps).map_err(StoreError::from)?, &grid) {
+                        Ok(heights) => {
+                            let tile = Tile {
+                                width: grid.width,
+                                height: grid.height,
+                                heights,
+                                patches: ps,
+                            };
+                            return Ok((tile, "gpu"));
                         }
-                        if backend == Backend::Gpu {
-                            return Err(EngineError::Unavailable(format!(
-                                "GPU resampling failed: {e}"
-                            )));
+                        Err(e) => {
+                            tracing::warn!(error = %e, "GPU resampling failed; this request and later ones use the CPU");
+                            if matches!(e, GpuError::Lost(_) | GpuError::Device(_)) {
+                                *gpu = None;
+                            }
+                            if backend == Backend::Gpu {
+                                return Err(EngineError::Unavailable(format!(
+                                    "GPU resampling failed: {e}"
+                                )));
+                            }
                         }
                     }
-                },
+                }
                 None if backend == Backend::Gpu => return Err(EngineError::Unavailable(
                     "backend gpu was asked for, but this daemon has no GPU device; use auto or cpu"
                         .into(),
@@ -871,7 +880,7 @@ impl Engine {
                 None => {}
             }
         }
-        Ok((t.resample(ps, &grid), "cpu"))
+        Ok((t.try_resample(ps, &grid).map_err(StoreError::from)?, "cpu"))
     }
 
     /// Heights at points, at error `e`: what any tile holding the same points gives there.
@@ -890,19 +899,19 @@ impl Engine {
             return Err(EngineError::Invalid("points must be finite".into()));
         }
         check_error(e)?;
-        Ok(self.snapshot().sample(points, e))
+        Ok(self
+            .snapshot()
+            .try_sample(points, e)
+            .map_err(StoreError::from)?)
     }
 }
 
-/// How a new survey disagrees with every survey of the terrain it overlaps.
-fn overlaps_with(t: &crate::terrain::Terrain, s: &Survey) -> Vec<(SurveyId, Deviation)> {
-    let others: Vec<&Arc<Survey>> = t.surveys().filter(|o| o.id != s.id).collect();
-    let mut out: Vec<(SurveyId, Deviation)> = others
-        .par_iter()
-        .filter_map(|o| s.overlap(o).map(|d| (o.id, d)))
-        .collect();
-    out.sort_by_key(|(id, _)| *id);
-    out
+/// How the engine's store is opened.
+fn store_options(cfg: &Config, guard: &SpaceGuard) -> StoreOptions {
+    StoreOptions {
+        guard: guard.clone(),
+        cache_bytes: cfg.cache_mb << 20,
+    }
 }
 
 /// A conflict, when two surveys of accuracies `a` and `b` disagree by more than a + b.
@@ -961,8 +970,8 @@ fn retire_in(
         .map(|p| p.to_vec())
         .unwrap_or_default();
     let mut next = current.clone();
-    let change = next.retire(rec.id).unwrap_or_default();
-    store.commit_retire(rec.id, &patches, &change, pin)?;
+    let change = next.try_retire(rec.id)?.unwrap_or_default();
+    store.commit_retire(rec.id, &patches, &change, &next, pin)?;
     Ok(next)
 }
 

@@ -1,15 +1,18 @@
 //! The in-memory engine: surveys, the edge patches their lattices call for, their LOD index,
-//! and the queries and tiles built on them. It does no I/O; the store persists what it holds
-//! and the server calls into it.
+//! and the queries and tiles built on them. It does no I/O: the samples of stored surveys come
+//! through a [`SampleSource`], and the store persists what it holds.
 
 use crate::index::geom::Aabb;
 use crate::index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, PatchBox};
 use crate::index::query::{Extracted, ViewQuery};
+use crate::model::accuracy::{self, Deviation};
 use crate::model::edge::{self, EdgePatch, Member};
+use crate::model::grid::{Grid, SampleRect, Window};
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::lattice::{tile_of, Lattice};
 use crate::model::patch::Patch;
-use crate::model::survey::Survey;
+use crate::model::source::{SampleError, SampleSource};
+use crate::model::survey::{Survey, SurveyMeta};
 use crate::resample::{cpu, PatchSet, ResolvedPatch, SampleGrid};
 use rayon::prelude::*;
 use std::collections::{BTreeSet, HashMap};
@@ -28,7 +31,7 @@ pub struct Tile {
 /// A patch of the terrain: a survey's, or an edge patch.
 #[derive(Clone, Copy, Debug)]
 pub enum PatchRef<'a> {
-    Survey(&'a Arc<Survey>, &'a Patch),
+    Survey(&'a Arc<SurveyMeta>, &'a Patch),
     Edge(&'a Arc<EdgePatch>),
 }
 
@@ -41,33 +44,18 @@ enum Slot {
 /// A survey on a lattice, with the tiles whose edge patches it can affect.
 #[derive(Clone, Debug)]
 struct GroupMember {
-    survey: Arc<Survey>,
+    survey: Arc<SurveyMeta>,
     index: [i64; 2],
-    edge_tiles: Arc<Vec<[i64; 2]>>,
 }
 
 impl GroupMember {
-    fn new(survey: Arc<Survey>, lattice: &Lattice) -> Self {
-        let index = lattice.index_of(&survey.levels[0].georef);
-        let edge_tiles = Arc::new(edge::edge_tiles(
-            &Member {
-                survey: &survey,
-                index,
-            },
-            &survey.layout,
-        ));
-        GroupMember {
-            survey,
-            index,
-            edge_tiles,
-        }
+    fn new(survey: Arc<SurveyMeta>, lattice: &Lattice) -> Self {
+        let index = lattice.index_of(&survey.shapes[0].georef);
+        GroupMember { survey, index }
     }
 
-    fn as_member(&self) -> Member<'_> {
-        Member {
-            survey: &self.survey,
-            index: self.index,
-        }
+    fn edge_tiles(&self) -> &[[i64; 2]] {
+        &self.survey.edge_tiles
     }
 
     /// The tiles whose edge patches can read this survey's samples, as inclusive ranges.
@@ -75,7 +63,7 @@ impl GroupMember {
         let l = &self.survey.layout;
         let side = edge::tile_side(l);
         let reach = l.margin as i64 + 1;
-        let g = &self.survey.levels[0];
+        let g = &self.survey.shapes[0];
         let span = |a: usize, n: usize| {
             [
                 tile_of(self.index[a] - reach, side) - 1,
@@ -83,6 +71,22 @@ impl GroupMember {
             ]
         };
         [span(0, g.cols), span(1, g.rows)]
+    }
+
+    /// The level-0 samples of the member that a tile's edge patch reads, if any.
+    fn reads(&self, tile: [i64; 2]) -> Option<SampleRect> {
+        let [[i0, j0], [i1, j1]] = edge::tile_reads(tile, &self.survey.layout);
+        let g = &self.survey.shapes[0];
+        let c0 = (i0 - self.index[0]).max(0);
+        let r0 = (j0 - self.index[1]).max(0);
+        let c1 = (i1 - self.index[0] + 1).min(g.cols as i64);
+        let r1 = (j1 - self.index[1] + 1).min(g.rows as i64);
+        (c0 < c1 && r0 < r1).then_some(SampleRect {
+            c0: c0 as usize,
+            r0: r0 as usize,
+            c1: c1 as usize,
+            r1: r1 as usize,
+        })
     }
 }
 
@@ -99,7 +103,7 @@ impl LatticeGroup {
     /// the edge tiles of the other members within its reach.
     fn affected_by(&self, m: &GroupMember) -> Vec<[i64; 2]> {
         let [[x0, x1], [y0, y1]] = m.tile_range();
-        let mut set: BTreeSet<[i64; 2]> = m.edge_tiles.iter().copied().collect();
+        let mut set: BTreeSet<[i64; 2]> = m.edge_tiles().iter().copied().collect();
         for o in &self.members {
             if o.survey.id == m.survey.id {
                 continue;
@@ -109,7 +113,7 @@ impl LatticeGroup {
                 continue;
             }
             set.extend(
-                o.edge_tiles
+                o.edge_tiles()
                     .iter()
                     .filter(|t| (x0..=x1).contains(&t[0]) && (y0..=y1).contains(&t[1])),
             );
@@ -121,10 +125,14 @@ impl LatticeGroup {
 #[derive(Clone, Debug)]
 pub struct Terrain {
     index: LodIndex,
-    surveys: HashMap<SurveyId, Arc<Survey>>,
+    surveys: HashMap<SurveyId, Arc<SurveyMeta>>,
     edges: HashMap<SurveyId, Arc<EdgePatch>>,
     lattices: Vec<LatticeGroup>,
     patches: HashMap<PatchId, Slot>,
+    /// Samples held in memory: surveys inserted with them and not yet handed to a store.
+    resident: HashMap<SurveyId, Arc<[Arc<Grid>]>>,
+    /// Where the samples of every other survey are read.
+    source: Option<Arc<dyn SampleSource>>,
 }
 
 /// Edge patches to take out of the index and to put in.
@@ -138,34 +146,76 @@ impl Terrain {
             edges: HashMap::new(),
             lattices: Vec::new(),
             patches: HashMap::new(),
+            resident: HashMap::new(),
+            source: None,
         }
     }
 
-    /// Rebuilds a terrain from surveys and the box states stored with them, without running
-    /// the cutter: the edge patches are derived again from the surveys, their states read
-    /// like the others. Returns the patches that had no stored state, restored as empty.
+    /// Reads the samples of surveys not in memory from `source`.
+    pub fn set_source(&mut self, source: Arc<dyn SampleSource>) {
+        self.source = Some(source);
+    }
+
+    /// Drops a survey's samples from memory once its store can serve them; a terrain without
+    /// a source keeps them.
+    pub fn page_out(&mut self, id: SurveyId) {
+        if self.source.is_some() {
+            self.resident.remove(&id);
+        }
+    }
+
+    /// Samples `rect` of a level of a survey of the terrain, through a window in the level's
+    /// coordinates. A survey held in memory answers with its whole level.
+    pub fn window(
+        &self,
+        s: &SurveyMeta,
+        level: usize,
+        rect: SampleRect,
+    ) -> Result<Window, SampleError> {
+        if let Some(levels) = self.resident.get(&s.id) {
+            return Ok(Window::whole(levels[level].clone()));
+        }
+        let source = self.source.as_ref().ok_or_else(|| SampleError {
+            survey: s.id,
+            reason: "the terrain holds neither its samples nor a store to read them from".into(),
+        })?;
+        let shape = s.shapes[level];
+        let g = source.read(s.id, level, &shape, rect)?;
+        Ok(Window {
+            grid: Arc::new(g),
+            c0: rect.c0,
+            r0: rect.r0,
+            level: shape,
+        })
+    }
+
+    /// Rebuilds a terrain from what a store keeps: the surveys without their samples, the
+    /// edge patches and the box states, without running the cutter or reading a sample.
+    /// Returns the patches that had no stored state, restored as empty.
     pub fn restore(
         cfg: IndexConfig,
-        surveys: Vec<Arc<Survey>>,
+        surveys: Vec<Arc<SurveyMeta>>,
+        edges: Vec<Arc<EdgePatch>>,
         states: &HashMap<PatchId, BoxState>,
+        source: Arc<dyn SampleSource>,
     ) -> (Self, Vec<PatchId>) {
         let mut t = Terrain::new(cfg);
+        t.source = Some(source);
+        let mut group_of_survey = HashMap::new();
         for s in surveys {
             let gi = t.group_of(&s);
             let m = GroupMember::new(s.clone(), &t.lattices[gi].lattice);
             t.lattices[gi].members.push(m);
+            group_of_survey.insert(s.id, gi);
             t.register(s);
         }
-        for gi in 0..t.lattices.len() {
-            let tiles: BTreeSet<[i64; 2]> = t.lattices[gi]
-                .members
-                .iter()
-                .flat_map(|m| m.edge_tiles.iter().copied())
-                .collect();
-            let (_, add) = t.rebuild(gi, tiles.into_iter().collect());
-            for e in add {
-                t.register_edge(gi, e);
-            }
+        for e in edges {
+            // An edge patch whose surveys are gone would be stale; the index derivation that
+            // a missing state triggers puts the right ones back.
+            let Some(&gi) = e.members.first().and_then(|m| group_of_survey.get(m)) else {
+                continue;
+            };
+            t.register_edge(gi, e);
         }
         let mut missing = Vec::new();
         let mut state = |id: PatchId| {
@@ -192,7 +242,7 @@ impl Terrain {
         (t, missing)
     }
 
-    fn register(&mut self, s: Arc<Survey>) {
+    fn register(&mut self, s: Arc<SurveyMeta>) {
         for (k, p) in s.patches.iter().enumerate() {
             self.patches.insert(p.id, Slot::Survey(s.id, k as u32));
         }
@@ -215,8 +265,8 @@ impl Terrain {
     }
 
     /// The lattice group a survey belongs to, made if it is the first on its lattice.
-    fn group_of(&mut self, s: &Survey) -> usize {
-        let l = Lattice::of(&s.levels[0].georef);
+    fn group_of(&mut self, s: &SurveyMeta) -> usize {
+        let l = Lattice::of(&s.shapes[0].georef);
         match self.lattices.iter().position(|g| g.lattice.same(&l)) {
             Some(i) => i,
             None => {
@@ -232,16 +282,32 @@ impl Terrain {
 
     /// The edge patches of `tiles` as the group's members now call for, against those there:
     /// the owners that go and the patches that come.
-    fn rebuild(&self, gi: usize, tiles: Vec<[i64; 2]>) -> EdgeDiff {
+    fn rebuild(&self, gi: usize, tiles: Vec<[i64; 2]>) -> Result<EdgeDiff, SampleError> {
         let g = &self.lattices[gi];
-        let members: Vec<Member> = g.members.iter().map(|m| m.as_member()).collect();
         let Some(layout) = g.members.first().map(|m| m.survey.layout) else {
-            return (g.tiles.values().copied().collect(), Vec::new());
+            return Ok((g.tiles.values().copied().collect(), Vec::new()));
         };
         let built: Vec<([i64; 2], Option<EdgePatch>)> = tiles
             .par_iter()
-            .map(|&t| (t, edge::build(t, &members, &layout)))
-            .collect();
+            .map(|&t| {
+                // Each tile reads only the members' samples around it.
+                let mut windows = Vec::new();
+                for m in &g.members {
+                    if let Some(rect) = m.reads(t) {
+                        windows.push((m, self.window(&m.survey, 0, rect)?));
+                    }
+                }
+                let members: Vec<Member> = windows
+                    .iter()
+                    .map(|(m, w)| Member {
+                        survey: &m.survey,
+                        index: m.index,
+                        samples: w,
+                    })
+                    .collect();
+                Ok((t, edge::build(t, &members, &layout)))
+            })
+            .collect::<Result<_, SampleError>>()?;
         let mut gone = Vec::new();
         let mut come = Vec::new();
         for (t, e) in built {
@@ -253,18 +319,18 @@ impl Terrain {
             gone.extend(old);
             come.extend(e.map(Arc::new));
         }
-        (gone, come)
+        Ok((gone, come))
     }
 
     pub fn index(&self) -> &LodIndex {
         &self.index
     }
 
-    pub fn survey(&self, id: SurveyId) -> Option<&Arc<Survey>> {
+    pub fn survey(&self, id: SurveyId) -> Option<&Arc<SurveyMeta>> {
         self.surveys.get(&id)
     }
 
-    pub fn surveys(&self) -> impl Iterator<Item = &Arc<Survey>> {
+    pub fn surveys(&self) -> impl Iterator<Item = &Arc<SurveyMeta>> {
         self.surveys.values()
     }
 
@@ -285,41 +351,70 @@ impl Terrain {
     }
 
     /// Adds a survey, with the edge patches it changes; adding one already present changes
-    /// nothing.
+    /// nothing. The survey's samples stay in memory until [`Terrain::page_out`].
+    ///
+    /// # Panics
+    /// When a neighbour's samples cannot be read, which only a terrain with a source can
+    /// meet: such a terrain calls [`Terrain::try_insert`].
     pub fn insert(&mut self, s: Arc<Survey>) -> ChangeStats {
+        self.try_insert(&s).expect("samples held in memory")
+    }
+
+    /// Adds a survey, reading its neighbours' samples where edge patches need them. On an
+    /// error the terrain is as it was.
+    pub fn try_insert(&mut self, s: &Survey) -> Result<ChangeStats, SampleError> {
         if self.surveys.contains_key(&s.id) {
-            return ChangeStats::default();
+            return Ok(ChangeStats::default());
         }
-        let gi = self.group_of(&s);
-        let m = GroupMember::new(s.clone(), &self.lattices[gi].lattice);
+        let meta = s.meta();
+        let gi = self.group_of(&meta);
+        let m = GroupMember::new(meta.clone(), &self.lattices[gi].lattice);
         let affected = self.lattices[gi].affected_by(&m);
         self.lattices[gi].members.push(m);
-        let (gone, come) = self.rebuild(gi, affected);
-        let mut insert = vec![(s.id, s.boxes())];
+        self.resident.insert(s.id, s.levels.clone().into());
+        let (gone, come) = match self.rebuild(gi, affected) {
+            Ok(d) => d,
+            Err(e) => {
+                self.resident.remove(&s.id);
+                self.lattices[gi].members.pop();
+                if self.lattices[gi].members.is_empty() {
+                    self.lattices.remove(gi);
+                }
+                return Err(e);
+            }
+        };
+        let mut insert = vec![(s.id, meta.boxes())];
         insert.extend(come.iter().map(|e| (e.owner, vec![PatchBox::edge(e)])));
         let stats = self.index.apply(&gone, insert);
-        self.register(s);
+        self.register(meta);
         for o in gone {
             self.unregister_edge(gi, o);
         }
         for e in come {
             self.register_edge(gi, e);
         }
-        stats
+        Ok(stats)
     }
 
     /// Removes a survey and the edge patches it changes; the terrain becomes the one that
     /// never had it.
+    ///
+    /// # Panics
+    /// As [`Terrain::insert`]; a terrain with a source calls [`Terrain::try_retire`].
     pub fn retire(&mut self, id: SurveyId) -> Option<ChangeStats> {
-        let s = self.surveys.remove(&id)?;
-        for p in &s.patches {
-            self.patches.remove(&p.id);
-        }
-        let gi = self
+        self.try_retire(id).expect("samples held in memory")
+    }
+
+    /// Removes a survey, reading its neighbours' samples where edge patches need them; None
+    /// when it is not there. On an error the terrain is as it was.
+    pub fn try_retire(&mut self, id: SurveyId) -> Result<Option<ChangeStats>, SampleError> {
+        let Some(gi) = self
             .lattices
             .iter()
             .position(|g| g.members.iter().any(|m| m.survey.id == id))
-            .expect("every survey is on a lattice");
+        else {
+            return Ok(None);
+        };
         let pos = self.lattices[gi]
             .members
             .iter()
@@ -329,8 +424,19 @@ impl Terrain {
             let g = &self.lattices[gi];
             g.affected_by(&g.members[pos])
         };
-        self.lattices[gi].members.remove(pos);
-        let (mut gone, come) = self.rebuild(gi, affected);
+        let member = self.lattices[gi].members.remove(pos);
+        let (mut gone, come) = match self.rebuild(gi, affected) {
+            Ok(d) => d,
+            Err(e) => {
+                self.lattices[gi].members.insert(pos, member);
+                return Err(e);
+            }
+        };
+        let s = self.surveys.remove(&id).expect("a member is a survey");
+        for p in &s.patches {
+            self.patches.remove(&p.id);
+        }
+        self.resident.remove(&id);
         let insert = come
             .iter()
             .map(|e| (e.owner, vec![PatchBox::edge(e)]))
@@ -347,7 +453,40 @@ impl Terrain {
         if self.lattices[gi].members.is_empty() {
             self.lattices.remove(gi);
         }
-        Some(stats)
+        Ok(Some(stats))
+    }
+
+    /// How `s` and every survey of the terrain that it overlaps disagree (see
+    /// [`Survey::overlap`]). Each of the two is read over the other's bounds, whichever came
+    /// first, so the figure does not depend on the order of insertion.
+    pub fn overlaps(&self, s: &Survey) -> Result<Vec<(SurveyId, Deviation)>, SampleError> {
+        let mine = s.levels[0].world_bounds();
+        let mut out = Vec::new();
+        for o in self.surveys.values() {
+            if o.id == s.id {
+                continue;
+            }
+            let theirs = o.shapes[0].world_bounds();
+            if !mine.intersects(&theirs) {
+                continue;
+            }
+            let (Some(rs), Some(ro)) =
+                (s.shapes[0].rect_over(&theirs), o.shapes[0].rect_over(&mine))
+            else {
+                continue;
+            };
+            let a = s.levels[0].window(rs.c0, rs.r0, rs.cols(), rs.rows());
+            let w = self.window(o, 0, ro)?;
+            let b = w
+                .grid
+                .window(ro.c0 - w.c0, ro.r0 - w.r0, ro.cols(), ro.rows());
+            let (fine, coarse) = if s.finer_than(o) { (&a, &b) } else { (&b, &a) };
+            if let Some(d) = accuracy::deviation(fine, coarse) {
+                out.push((o.id, d));
+            }
+        }
+        out.sort_by_key(|(id, _)| *id);
+        Ok(out)
     }
 
     pub fn uniform(&self, roi: &Aabb, e: f64) -> Vec<Extracted> {
@@ -359,30 +498,51 @@ impl Terrain {
     }
 
     /// The samples and geometry of extracted patches, ready to blend.
+    ///
+    /// # Panics
+    /// As [`Terrain::insert`]; a terrain with a source calls [`Terrain::try_resolve`].
     pub fn resolve(&self, ps: &[Extracted]) -> PatchSet {
-        PatchSet::new(
-            ps.iter()
-                .filter_map(|x| {
-                    Some(match self.patch(x.id)? {
-                        PatchRef::Survey(s, p) => {
-                            ResolvedPatch::new(s.levels[p.level as usize].clone(), p, x.fallback)
-                        }
-                        PatchRef::Edge(e) => ResolvedPatch::edge(e, x.fallback),
-                    })
+        self.try_resolve(ps).expect("samples held in memory")
+    }
+
+    /// The samples and geometry of extracted patches, read where they are not in memory.
+    pub fn try_resolve(&self, ps: &[Extracted]) -> Result<PatchSet, SampleError> {
+        let patches = ps
+            .par_iter()
+            .filter_map(|x| {
+                Some(match self.patch(x.id)? {
+                    PatchRef::Survey(s, p) => {
+                        let level = p.level as usize;
+                        let rect = ResolvedPatch::reads(p, &s.shapes[level]);
+                        self.window(s, level, rect)
+                            .map(|w| ResolvedPatch::new(w, p, x.fallback))
+                    }
+                    PatchRef::Edge(e) => Ok(ResolvedPatch::edge(e, x.fallback)),
                 })
-                .collect(),
-        )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(PatchSet::new(patches))
     }
 
     /// Resamples patches at the points of a grid on the CPU.
     pub fn resample(&self, patches: Vec<Extracted>, grid: &SampleGrid) -> Tile {
-        let set = self.resolve(&patches);
-        Tile {
+        self.try_resample(patches, grid)
+            .expect("samples held in memory")
+    }
+
+    /// Resamples patches at the points of a grid on the CPU, reading samples as needed.
+    pub fn try_resample(
+        &self,
+        patches: Vec<Extracted>,
+        grid: &SampleGrid,
+    ) -> Result<Tile, SampleError> {
+        let set = self.try_resolve(&patches)?;
+        Ok(Tile {
             width: grid.width,
             height: grid.height,
             heights: cpu::resample(&set, grid),
             patches,
-        }
+        })
     }
 
     /// A north-up `width × height` tile over `roi` at error `e`.
@@ -393,8 +553,13 @@ impl Terrain {
 
     /// Heights at points, at error `e`: what tiles holding the same points give there.
     pub fn sample(&self, points: &[[f64; 2]], e: f64) -> Vec<f32> {
+        self.try_sample(points, e).expect("samples held in memory")
+    }
+
+    /// Heights at points, at error `e`, reading samples as needed.
+    pub fn try_sample(&self, points: &[[f64; 2]], e: f64) -> Result<Vec<f32>, SampleError> {
         if points.is_empty() {
-            return Vec::new();
+            return Ok(Vec::new());
         }
         let ps = self.uniform(&Aabb::of_points(points), e);
         let grid = SampleGrid {
@@ -402,7 +567,7 @@ impl Terrain {
             height: 1,
             points: points.to_vec(),
         };
-        self.resample(ps, &grid).heights
+        Ok(self.try_resample(ps, &grid)?.heights)
     }
 
     /// A view-dependent sample grid of `width × height` screen pixels.

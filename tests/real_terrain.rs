@@ -7,6 +7,7 @@ use common::*;
 use patchwork::index::geom::Aabb;
 use patchwork::index::lod::IndexConfig;
 use patchwork::model::patch::PatchLayout;
+use patchwork::model::source::MemorySource;
 use patchwork::model::survey::Survey;
 use patchwork::terrain::Terrain;
 use std::sync::Arc;
@@ -237,7 +238,13 @@ fn an_index_restored_from_stored_tops_is_the_same_index() {
         }
         states.extend(change.moved);
     }
-    let (restored, missing) = Terrain::restore(IndexConfig::default(), all.to_vec(), &states);
+    // What a store keeps: the surveys without samples, the edge patches, the states; the
+    // samples come through a source.
+    let metas = all.iter().map(|s| s.meta()).collect();
+    let edges = t.edges().cloned().collect();
+    let source = Arc::new(MemorySource::of(all.iter().map(|s| s.as_ref())));
+    let (restored, missing) =
+        Terrain::restore(IndexConfig::default(), metas, edges, &states, source);
     assert!(
         missing.is_empty(),
         "{} patches without a state",
@@ -248,6 +255,14 @@ fn an_index_restored_from_stored_tops_is_the_same_index() {
     restored.index().check().unwrap();
     let roi = bounds_of(&all);
     assert_eq!(restored.uniform(&roi, 3.0), t.uniform(&roi, 3.0));
+    // And it reads the same samples, through windows, as the terrain that holds them.
+    let a = restored.tile(&roi, 96, 96, 3.0);
+    let b = t.tile(&roi, 96, 96, 3.0);
+    assert!(a
+        .heights
+        .iter()
+        .zip(&b.heights)
+        .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan())));
 }
 
 #[test]

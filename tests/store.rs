@@ -47,7 +47,9 @@ fn ingest(store: &Store, t: &mut Terrain, s: &Arc<Survey>, source: &str) {
         AccuracySource::Flag,
         IngestTimings::default(),
     );
-    store.commit_survey(s, &rec, &change, &[]).expect("commit");
+    store
+        .commit_survey(s, &rec, &change, &next, &[])
+        .expect("commit");
     *t = next;
 }
 
@@ -60,7 +62,7 @@ fn retire(store: &Store, t: &mut Terrain, id: SurveyId) {
     let ids = patch_ids(t, id);
     let change = next.retire(id).expect("present");
     store
-        .commit_retire(id, &ids, &change, false)
+        .commit_retire(id, &ids, &change, &next, false)
         .expect("retire");
     *t = next;
 }
@@ -136,7 +138,7 @@ fn committed_surveys_come_back_as_the_same_terrain() {
     let mut t = Terrain::new(IndexConfig::default());
     {
         let Opened { store, terrain, .. } = open(&dir);
-        assert_eq!(store.migrations_run(), &[(0, 1), (1, 2)]);
+        assert_eq!(store.migrations_run(), &[(0, 1), (1, 2), (2, 3)]);
         assert_eq!(terrain.index().len(), 0);
         ingest(&store, &mut t, &a, "/data/a.tif");
         ingest(&store, &mut t, &b, "/data/b.tif");
@@ -148,18 +150,21 @@ fn committed_surveys_come_back_as_the_same_terrain() {
     assert_same(&terrain, &t, &roi);
     assert_same(&terrain, &terrain_of(&[a.clone(), b.clone()]), &roi);
     terrain.index().check().unwrap();
-    // The samples come back bit for bit, voids included.
+    // The samples come back bit for bit, voids included, read from disk.
     for s in [&a, &b] {
         let back = terrain.survey(s.id).unwrap();
-        assert_eq!(back.levels.len(), s.levels.len());
-        for (x, y) in back.levels.iter().zip(&s.levels) {
+        assert_eq!(back.shapes.len(), s.levels.len());
+        for (k, y) in s.levels.iter().enumerate() {
+            let x = terrain.window(back, k, back.shapes[k].all()).unwrap();
             let bits = |g: &patchwork::model::grid::Grid| -> Vec<u32> {
                 g.samples.iter().map(|z| z.to_bits()).collect()
             };
-            assert_eq!(bits(x), bits(y));
-            assert_eq!(x.georef, y.georef);
+            assert_eq!(bits(&x.grid), bits(y));
+            assert_eq!(x.grid.georef, y.georef);
+            assert_eq!(back.shapes[k], y.shape());
         }
         assert_eq!(back.patches, s.patches);
+        assert_eq!(back.edge_tiles, s.edge_tiles);
     }
     let recs = store.surveys().unwrap();
     assert_eq!(recs.len(), 2);
@@ -186,7 +191,7 @@ fn a_retired_survey_stays_retired() {
         }
         retire(&store, &mut t, b.id);
         assert!(matches!(
-            store.commit_retire(b.id, &[], &Default::default(), false),
+            store.commit_retire(b.id, &[], &Default::default(), &t, false),
             Err(StoreError::NotActive(_))
         ));
         assert_verified(&store);
@@ -231,7 +236,7 @@ fn a_replacement_is_one_commit() {
             IngestTimings::default(),
         );
         store
-            .commit_replace(a.id, &old, &retired, &a2, &rec, &inserted, &[])
+            .commit_replace(a.id, &old, &retired, &a2, &rec, &inserted, &next, &[])
             .unwrap();
         t = next;
         assert_verified(&store);
@@ -310,15 +315,23 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     );
     store.raw().remove(b"t/0123456789abcdef").unwrap();
 
-    // Samples that changed under the same key.
+    // A damaged chunk fails its checksum.
     let chunk0 = format!("c/{}/00/00000000", a.id);
-    let mut bytes = store
-        .raw()
-        .get(chunk0.as_bytes())
-        .unwrap()
-        .unwrap()
-        .to_vec();
-    bytes[100] ^= 1;
+    let good = store.raw().get(chunk0.as_bytes()).unwrap().unwrap();
+    let mut bytes = good.to_vec();
+    bytes[20] ^= 1;
+    store.raw().insert(chunk0.as_bytes(), bytes).unwrap();
+    let r = store.verify().unwrap();
+    assert!(
+        r.problems.iter().any(|p| p.contains("damaged")),
+        "{:?}",
+        r.problems
+    );
+    // Samples that changed under the same key, in a sound chunk.
+    let g = &a.levels[0];
+    let mut samples = g.samples.clone();
+    samples[0] += 1.0;
+    let bytes = patchwork::store::chunks::encode(&samples, g.cols);
     store.raw().insert(chunk0.as_bytes(), bytes).unwrap();
     let r = store.verify().unwrap();
     assert!(
@@ -415,7 +428,7 @@ fn a_failed_commit_changes_nothing() {
         IngestTimings::default(),
     );
     let err = store
-        .commit_survey(&foreign, &rec, &change, &[])
+        .commit_survey(&foreign, &rec, &change, &next, &[])
         .unwrap_err();
     assert!(matches!(
         err,
@@ -428,7 +441,7 @@ fn a_failed_commit_changes_nothing() {
     // Committing the same survey twice would overwrite its tops with nothing.
     let rec = SurveyRecord::new(&a, "a", "", AccuracySource::Flag, IngestTimings::default());
     let err = store
-        .commit_survey(&a, &rec, &Default::default(), &[])
+        .commit_survey(&a, &rec, &Default::default(), &t, &[])
         .unwrap_err();
     assert!(matches!(err, StoreError::Duplicate(id) if id == a.id));
     // A record of another survey is refused.
@@ -436,7 +449,7 @@ fn a_failed_commit_changes_nothing() {
     let mut nb = t.clone();
     let change = nb.insert(b.clone());
     assert!(matches!(
-        store.commit_survey(&b, &rec, &change, &[]),
+        store.commit_survey(&b, &rec, &change, &nb, &[]),
         Err(StoreError::Invalid(_))
     ));
     assert_eq!(store.surveys().unwrap().len(), 1);
@@ -548,7 +561,9 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
         AccuracySource::Sidecar,
         Default::default(),
     );
-    let e = store.commit_survey(&b, &rec, &change, &[]).unwrap_err();
+    let e = store
+        .commit_survey(&b, &rec, &change, &next, &[])
+        .unwrap_err();
     assert!(
         matches!(
             e,
@@ -577,7 +592,7 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
     ));
     // Space returns, and so do writes.
     disk.0.store(u64::MAX, std::sync::atomic::Ordering::SeqCst);
-    store.commit_survey(&b, &rec, &change, &[]).unwrap();
+    store.commit_survey(&b, &rec, &change, &next, &[]).unwrap();
     assert_verified(&store);
     drop(store);
     // A store opens on a full disk, and says it cannot be written.
@@ -603,10 +618,10 @@ fn a_pin_holds_the_content_of_a_survey_retired_by_hand_until_it_is_ingested_agai
         AccuracySource::Flag,
         Default::default(),
     );
-    store.commit_survey(&a, &rec, &change, &[]).unwrap();
+    store.commit_survey(&a, &rec, &change, &t, &[]).unwrap();
     let ids = patch_ids(&t, a.id);
     let change = t.retire(a.id).unwrap();
-    store.commit_retire(a.id, &ids, &change, true).unwrap();
+    store.commit_retire(a.id, &ids, &change, &t, true).unwrap();
     let pins = store.pins().unwrap();
     assert_eq!(pins.get("/in/a.tif"), Some(&content));
     assert_verified(&store);
@@ -674,8 +689,8 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
         let chunk = format!("c/{}/00/00000000", s.id);
         assert!(store.raw().get(chunk.as_bytes()).unwrap().is_none());
     }
-    // Retired records stay, as history.
-    assert_eq!(store.surveys().unwrap().len(), 6);
+    // Retired surveys are gone for good, records and all.
+    assert_eq!(store.surveys().unwrap().len(), 1);
     assert!(!tmp.path().join("store.old").exists());
     assert!(!tmp.path().join("store.compact").exists());
     drop(store);
@@ -684,7 +699,14 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
     assert_same(&terrain, &t, &roi);
     // Compacting a compact store changes nothing.
     let live = terrain.index().state().into_keys().collect();
-    let (Opened { terrain, .. }, rep) = store.compact(&live).unwrap();
+    let (
+        Opened {
+            store: _store,
+            terrain,
+            ..
+        },
+        rep,
+    ) = store.compact(&live).unwrap();
     assert_eq!((rep.surveys_purged, rep.keys_removed), (0, 0));
     assert_same(&terrain, &t, &roi);
 }
@@ -895,15 +917,36 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
                 } else {
                     db.remove(k).unwrap();
                 }
-            } else if key.starts_with("o/") {
+            } else if key.starts_with("o/") || key.starts_with("e/") || key.starts_with("c/") {
                 db.remove(k).unwrap();
+            } else if key.starts_with("p/") {
+                // Versions 1 and 2 kept the patches alone.
+                let p: patchwork::store::StoredPatches =
+                    bincode::serde::decode_from_slice(&v, bincode::config::standard())
+                        .unwrap()
+                        .0;
+                let bytes =
+                    bincode::serde::encode_to_vec(&p.patches, bincode::config::standard()).unwrap();
+                db.insert(k, bytes).unwrap();
+            }
+        }
+        // Versions 1 and 2 kept each level as bands of 64 rows of raw f32.
+        for s in [&a, &b] {
+            for (level, g) in s.levels.iter().enumerate() {
+                for (band, rows) in g.samples.chunks(64 * g.cols).enumerate() {
+                    let bytes: Vec<u8> = rows.iter().flat_map(|z| z.to_le_bytes()).collect();
+                    let key = format!("c/{}/{level:02}/{band:08}", s.id);
+                    db.insert(key.as_bytes(), bytes).unwrap();
+                }
             }
         }
         db.insert(b"meta/schema", &1u32.to_le_bytes()).unwrap();
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(1, 2)]);
+    assert_eq!(store.migrations_run(), &[(1, 2), (2, 3)]);
+    let roi = bounds_of(&[a.clone(), b.clone()]);
+    assert_same(&terrain, &t, &roi);
     assert_eq!(terrain.index().state(), t.index().state());
     let recs = store.surveys().unwrap();
     assert!(recs

@@ -13,6 +13,7 @@ use crate::config::Config;
 use crate::engine::{Cut, Engine};
 use crate::index::geom::Aabb;
 use crate::index::query::{Metric, ViewQuery};
+use crate::model::grid::Grid;
 use crate::resample::SampleGrid;
 use crate::serve::convert;
 use crate::terrain::Terrain;
@@ -90,11 +91,23 @@ fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (f64, T) {
 /// reference. With one survey both are its bilinear surface; where surveys overlap, the bound
 /// holds against the range they span.
 pub fn reference(t: &Terrain, grid: &SampleGrid) -> (Vec<f32>, Vec<f32>) {
-    let surveys: Vec<_> = t.surveys().cloned().collect();
+    let bounds = crate::index::geom::Aabb::of_points(&grid.points);
+    // Each survey's level 0 where the grid is: the whole of it would not fit a large store.
+    let surveys: Vec<Grid> = t
+        .surveys()
+        .filter_map(|s| {
+            let rect = s.shapes[0].rect_over(&bounds)?;
+            let w = t.window(s, 0, rect).expect("samples readable");
+            Some(
+                w.grid
+                    .window(rect.c0 - w.c0, rect.r0 - w.r0, rect.cols(), rect.rows()),
+            )
+        })
+        .collect();
     grid.points
         .iter()
         .map(|p| {
-            let hs = surveys.iter().filter_map(|s| s.levels[0].bilinear(*p));
+            let hs = surveys.iter().filter_map(|g| g.bilinear(*p));
             let (lo, hi) = hs.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), h| {
                 (a.min(h), b.max(h))
             });
@@ -179,9 +192,9 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     let t = engine.snapshot();
     let first = t
         .surveys()
-        .max_by_key(|s| s.levels[0].samples.len())
+        .max_by_key(|s| s.shapes[0].cols * s.shapes[0].rows)
         .ok_or("no survey was ingested")?
-        .levels[0]
+        .shapes[0]
         .world_bounds();
     let c = [
         (first.min[0] + first.max[0]) / 2.0,
@@ -213,7 +226,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
             let (query_ms, (_, ps)) = timed(repeats, || engine.query(&cut).expect("query"));
             let wire_bytes = ps
                 .iter()
-                .filter_map(|x| convert::patch(&t, x))
+                .filter_map(|x| convert::patch(&t, x).expect("samples readable"))
                 .map(|p| p.encoded_len())
                 .sum();
             let (resample_ms, tile) = timed(repeats.min(3), || t.resample(ps.clone(), &grid));
@@ -325,9 +338,19 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     let base = first_survey
         .and_then(|id| t.survey(id))
         .ok_or("no survey was ingested")?;
-    let g = &base.levels[0];
-    let side = g.cols.min(g.rows).min(if opts.smoke { 300 } else { 1800 });
-    let g = g.window((g.cols - side) / 2, (g.rows - side) / 2, side, side);
+    let shape = base.shapes[0];
+    let side = shape
+        .cols
+        .min(shape.rows)
+        .min(if opts.smoke { 300 } else { 1800 });
+    let rect = crate::model::grid::SampleRect {
+        c0: (shape.cols - side) / 2,
+        r0: (shape.rows - side) / 2,
+        c1: (shape.cols - side) / 2 + side,
+        r1: (shape.rows - side) / 2 + side,
+    };
+    let w = t.window(base, 0, rect)?;
+    let g = w.grid.window(rect.c0 - w.c0, rect.r0 - w.r0, side, side);
     let scenes = meet::run(&g, base.crs, tile_side, &errors_used)?;
     for m in &scenes.mixed {
         println!(

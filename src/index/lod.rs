@@ -19,7 +19,7 @@ use super::cover::covered_all;
 use super::geom::{Aabb, ORect};
 use super::quadtree::{Entry, MsQuadtree, TreeStats};
 use crate::model::edge::EdgePatch;
-use crate::model::grid::Grid;
+use crate::model::grid::Georef;
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::patch::Patch;
 use rayon::prelude::*;
@@ -68,8 +68,7 @@ pub struct PatchBox {
 }
 
 impl PatchBox {
-    pub fn new(p: &Patch, level: &Grid, kernel_cells: usize) -> Self {
-        let g = &level.georef;
+    pub fn new(p: &Patch, g: &Georef, kernel_cells: usize) -> Self {
         let kernel = ORect::from_cells(g, &p.kernel);
         let window = ORect::from_cells(g, &p.window);
         let side = kernel_cells as f64;

@@ -34,11 +34,11 @@
 //! lattice, so order independence and exact retirement carry over: the terrain recomputes the
 //! tiles a change can touch and swaps the patches that changed.
 
-use super::grid::{Georef, Grid};
+use super::grid::{Georef, Grid, Shape, Window};
 use super::ids::{hash64, PatchId, SurveyId};
 use super::lattice::tile_of;
 use super::patch::{CellRect, PatchLayout};
-use super::survey::Survey;
+use super::survey::SurveyMeta;
 use crate::resample::SNAP;
 use std::sync::Arc;
 
@@ -60,7 +60,7 @@ pub const EDGE_CELL: u8 = 2;
 
 /// The samples an edge patch evaluates: its window on the lattice, voids filled where a valid
 /// sample is near, with a flag byte per sample.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EdgeGrid {
     pub cols: usize,
     pub rows: usize,
@@ -214,7 +214,7 @@ pub fn nearest_valid(v: [bool; 4], f: [f64; 2]) -> bool {
 
 /// One edge patch: a tile of a lattice where some cell has data at a corner but no survey of
 /// the lattice has the whole cell.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EdgePatch {
     /// The unit the index inserts and retires; derived from the tile and the surveys used.
     pub owner: SurveyId,
@@ -241,42 +241,54 @@ pub struct EdgePatch {
     pub grid: Arc<EdgeGrid>,
 }
 
-/// A survey on a lattice: where its sample (0, 0) is on the lattice.
+/// A survey on a lattice: where its sample (0, 0) is on the lattice, and its level-0 samples
+/// around the tiles being built.
 #[derive(Clone, Copy)]
 pub struct Member<'a> {
-    pub survey: &'a Survey,
+    pub survey: &'a SurveyMeta,
     pub index: [i64; 2],
+    pub samples: &'a Window,
 }
 
 impl Member<'_> {
-    fn grid(&self) -> &Grid {
-        &self.survey.levels[0]
+    fn shape(&self) -> &Shape {
+        &self.survey.shapes[0]
     }
 
     /// Grid coordinates of lattice point (i, j), if the survey has that sample.
     #[inline]
     fn local(&self, i: i64, j: i64) -> Option<(usize, usize)> {
         let (c, r) = (i - self.index[0], j - self.index[1]);
-        let g = self.grid();
+        let g = self.shape();
         (c >= 0 && r >= 0 && (c as usize) < g.cols && (r as usize) < g.rows)
             .then_some((c as usize, r as usize))
     }
 
     /// Whether the survey's samples meet the lattice rectangle [i0, i1] × [j0, j1].
     fn meets(&self, i0: i64, j0: i64, i1: i64, j1: i64) -> bool {
-        let g = self.grid();
+        let g = self.shape();
         let (a0, b0) = (self.index[0], self.index[1]);
         let (a1, b1) = (a0 + g.cols as i64 - 1, b0 + g.rows as i64 - 1);
         a0 <= i1 && i0 <= a1 && b0 <= j1 && j0 <= b1
     }
 }
 
+/// The level-0 samples a tile's edge patch reads, as a lattice rectangle: the window one ring
+/// wider, inclusive.
+pub fn tile_reads(tile: [i64; 2], layout: &PatchLayout) -> [[i64; 2]; 2] {
+    let k = tile_side(layout) as i64;
+    let m = layout.margin as i64;
+    let (i0, j0) = (tile[0] * k - m, tile[1] * k - m);
+    let n = k + 2 * m + 1;
+    [[i0 - 1, j0 - 1], [i0 + n, j0 + n]]
+}
+
 /// The tiles of the lattice whose edge patches a survey can affect: those whose samples, one
 /// ring wider than the window, reach a valid sample of the survey with a void or the grid's
-/// end among its eight neighbours. Every cell an edge patch serves has such a corner.
-pub fn edge_tiles(m: &Member, layout: &PatchLayout) -> Vec<[i64; 2]> {
+/// end among its eight neighbours. Every cell an edge patch serves has such a corner. `index`
+/// is where the grid's sample (0, 0) is on its lattice.
+pub fn edge_tiles(g: &Grid, index: [i64; 2], layout: &PatchLayout) -> Vec<[i64; 2]> {
     use rayon::prelude::*;
-    let g = m.grid();
     let side = tile_side(layout);
     let k = side as i64;
     let reach = layout.margin as i64 + 1;
@@ -299,7 +311,7 @@ pub fn edge_tiles(m: &Member, layout: &PatchLayout) -> Vec<[i64; 2]> {
                 if !border {
                     continue;
                 }
-                let (i, j) = (m.index[0] + c, m.index[1] + r);
+                let (i, j) = (index[0] + c, index[1] + r);
                 for tj in tile_of(j - reach, side) - 1..=tile_of(j + reach, side) {
                     for ti in tile_of(i - reach, side) - 1..=tile_of(i + reach, side) {
                         if tile_reaches(ti, i, k, reach) && tile_reaches(tj, j, k, reach) {
@@ -352,7 +364,7 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
                 let Some((c, r)) = mb.local(i, j) else {
                     continue;
                 };
-                let h = mb.grid().at(c, r);
+                let h = mb.samples.at(c, r);
                 if h.is_nan() {
                     continue;
                 }
@@ -386,7 +398,9 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
             let (i, j) = (i0 + a as i64, j0 + b as i64);
             let whole = used.iter().any(|mb| {
                 mb.local(i, j).is_some_and(|(c, r)| {
-                    c + 1 < mb.grid().cols && r + 1 < mb.grid().rows && mb.grid().cell_valid(c, r)
+                    c + 1 < mb.shape().cols
+                        && r + 1 < mb.shape().rows
+                        && mb.samples.cell_valid(c, r)
                 })
             });
             if !whole {
@@ -502,13 +516,13 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
 
     // Positions come from the survey with the smallest id, so they never depend on order.
     let first = used[0];
-    let origin = first.survey.levels[0].georef.to_world(
+    let origin = first.survey.shapes[0].georef.to_world(
         (i0 + a_lo as i64 - first.index[0]) as f64,
         (j0 + b_lo as i64 - first.index[1]) as f64,
     );
     let georef = Georef {
         origin,
-        ..first.survey.levels[0].georef
+        ..first.survey.shapes[0].georef
     };
     let ids: Vec<SurveyId> = used.iter().map(|mb| mb.survey.id).collect();
     let owner = owner_id(tile, k, &ids);

@@ -328,6 +328,35 @@ impl Grid {
 
     /// Axis-aligned world bounds of the sample positions.
     pub fn world_bounds(&self) -> crate::index::geom::Aabb {
+        self.shape().world_bounds()
+    }
+
+    pub fn shape(&self) -> Shape {
+        Shape {
+            cols: self.cols,
+            rows: self.rows,
+            georef: self.georef,
+        }
+    }
+}
+
+/// A grid's size and place without its samples: what stays in memory of a level whose
+/// samples live on disk.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Shape {
+    pub cols: usize,
+    pub rows: usize,
+    pub georef: Georef,
+}
+
+impl Shape {
+    /// Cells along each axis.
+    pub fn cells(&self) -> [usize; 2] {
+        [self.cols - 1, self.rows - 1]
+    }
+
+    /// Axis-aligned world bounds of the sample positions.
+    pub fn world_bounds(&self) -> crate::index::geom::Aabb {
         let c = (self.cols - 1) as f64;
         let r = (self.rows - 1) as f64;
         crate::index::geom::Aabb::of_points(&[
@@ -336,6 +365,127 @@ impl Grid {
             self.georef.to_world(0.0, r),
             self.georef.to_world(c, r),
         ])
+    }
+
+    /// The samples whose cells meet a world rectangle, one ring wider, clipped to the grid;
+    /// None when they miss it.
+    pub fn rect_over(&self, b: &crate::index::geom::Aabb) -> Option<SampleRect> {
+        let corners = [
+            self.georef.to_grid(b.min),
+            self.georef.to_grid([b.max[0], b.min[1]]),
+            self.georef.to_grid([b.min[0], b.max[1]]),
+            self.georef.to_grid(b.max),
+        ];
+        let lo = |k: usize| corners.iter().map(|g| g[k]).fold(f64::INFINITY, f64::min);
+        let hi = |k: usize| {
+            corners
+                .iter()
+                .map(|g| g[k])
+                .fold(f64::NEG_INFINITY, f64::max)
+        };
+        let c0 = (lo(0).floor() - 1.0).max(0.0);
+        let r0 = (lo(1).floor() - 1.0).max(0.0);
+        let c1 = (hi(0).ceil() + 1.0).min((self.cols - 1) as f64);
+        let r1 = (hi(1).ceil() + 1.0).min((self.rows - 1) as f64);
+        (c0 <= c1 && r0 <= r1).then(|| SampleRect {
+            c0: c0 as usize,
+            r0: r0 as usize,
+            c1: c1 as usize + 1,
+            r1: r1 as usize + 1,
+        })
+    }
+
+    /// The whole grid as a rectangle of samples.
+    pub fn all(&self) -> SampleRect {
+        SampleRect {
+            c0: 0,
+            r0: 0,
+            c1: self.cols,
+            r1: self.rows,
+        }
+    }
+}
+
+/// A half-open rectangle of samples `[c0, c1) × [r0, r1)` of a grid.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct SampleRect {
+    pub c0: usize,
+    pub r0: usize,
+    pub c1: usize,
+    pub r1: usize,
+}
+
+impl SampleRect {
+    pub fn cols(&self) -> usize {
+        self.c1 - self.c0
+    }
+    pub fn rows(&self) -> usize {
+        self.r1 - self.r0
+    }
+    pub fn len(&self) -> usize {
+        self.cols() * self.rows()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.c1 <= self.c0 || self.r1 <= self.r0
+    }
+    /// The smallest rectangle holding both.
+    pub fn union(&self, o: &SampleRect) -> SampleRect {
+        SampleRect {
+            c0: self.c0.min(o.c0),
+            r0: self.r0.min(o.r0),
+            c1: self.c1.max(o.c1),
+            r1: self.r1.max(o.r1),
+        }
+    }
+}
+
+/// Samples of a rectangle of a larger grid (a level), indexed in the level's coordinates:
+/// sample (c, r) of the level is sample (c − c0, r − r0) of `grid`. Subtracting whole numbers
+/// from grid coordinates is exact, so a window answers exactly as its level does wherever it
+/// holds the samples the answer reads.
+#[derive(Clone, Debug)]
+pub struct Window {
+    pub grid: std::sync::Arc<Grid>,
+    pub c0: usize,
+    pub r0: usize,
+    /// The level's own shape.
+    pub level: Shape,
+}
+
+impl Window {
+    /// A whole level as its own window.
+    pub fn whole(g: std::sync::Arc<Grid>) -> Window {
+        Window {
+            level: g.shape(),
+            grid: g,
+            c0: 0,
+            r0: 0,
+        }
+    }
+
+    /// Whether the window holds level sample (c, r).
+    #[inline]
+    pub fn holds(&self, c: usize, r: usize) -> bool {
+        c >= self.c0 && r >= self.r0 && c - self.c0 < self.grid.cols && r - self.r0 < self.grid.rows
+    }
+
+    /// Level sample (c, r), which the window must hold.
+    #[inline]
+    pub fn at(&self, c: usize, r: usize) -> f32 {
+        self.grid.at(c - self.c0, r - self.r0)
+    }
+
+    /// Whether level cell (c, r), which the window must hold, has four valid corners.
+    #[inline]
+    pub fn cell_valid(&self, c: usize, r: usize) -> bool {
+        self.grid.cell_valid(c - self.c0, r - self.r0)
+    }
+
+    /// The bilinear height at fractional level coordinates, read from the window's samples.
+    #[inline]
+    pub fn bilinear_grid(&self, g: [f64; 2]) -> Option<f64> {
+        self.grid
+            .bilinear_grid([g[0] - self.c0 as f64, g[1] - self.r0 as f64])
     }
 }
 

@@ -7,4 +7,5 @@ pub mod ids;
 pub mod lattice;
 pub mod mipmap;
 pub mod patch;
+pub mod source;
 pub mod survey;

@@ -1,7 +1,8 @@
 //! A survey: one grid, its mipmap and its patches, ready for the index.
 
 use super::accuracy::{self, AccuracySpec, KernelAccuracy};
-use super::grid::Grid;
+use super::edge;
+use super::grid::{Grid, Shape};
 use super::ids::{hash64, SurveyId};
 use super::lattice::Lattice;
 use super::mipmap;
@@ -20,8 +21,10 @@ pub enum SurveyError {
     BadLayout(usize),
 }
 
+/// What the index keeps of a survey: everything but its samples, which the store serves from
+/// disk when a patch is read.
 #[derive(Clone, Debug)]
-pub struct Survey {
+pub struct SurveyMeta {
     pub id: SurveyId,
     /// ε, in metres: the largest over the survey's kernels.
     pub accuracy: f64,
@@ -33,9 +36,77 @@ pub struct Survey {
     pub tiling: Tiling,
     /// ε of every level-0 kernel.
     pub kernel_accuracy: KernelAccuracy,
+    /// The levels' sizes and georeferences, level 0 first.
+    pub shapes: Vec<Shape>,
+    pub patches: Vec<Patch>,
+    /// The lattice tiles whose edge patches this survey's samples can reach (see
+    /// [`edge::edge_tiles`]): found once from the samples, so that inserting or retiring a
+    /// neighbour never has to read them all again.
+    pub edge_tiles: Vec<[i64; 2]>,
+}
+
+/// A survey with its samples: what a reader's grid becomes before it is stored.
+#[derive(Clone, Debug)]
+pub struct Survey {
+    pub meta: Arc<SurveyMeta>,
     /// Level 0 first.
     pub levels: Vec<Arc<Grid>>,
-    pub patches: Vec<Patch>,
+}
+
+impl std::ops::Deref for Survey {
+    type Target = SurveyMeta;
+    fn deref(&self) -> &SurveyMeta {
+        &self.meta
+    }
+}
+
+impl SurveyMeta {
+    /// ε at level-0 sample (c, r): the largest of the kernels it is a corner of.
+    pub fn accuracy_at(&self, c: usize, r: usize) -> f64 {
+        let [cw, ch] = self.shapes[0].cells();
+        let cell = super::patch::CellRect {
+            c0: (c as u32).saturating_sub(1),
+            r0: (r as u32).saturating_sub(1),
+            c1: (c as u32 + 1).min(cw as u32),
+            r1: (r as u32 + 1).min(ch as u32),
+        };
+        self.kernel_accuracy.max_over(&self.tiling, &cell)
+    }
+
+    /// The patches as LOD-space boxes.
+    pub fn boxes(&self) -> Vec<PatchBox> {
+        self.patches
+            .iter()
+            .map(|p| PatchBox::new(p, &self.shapes[p.level as usize].georef, self.layout.kernel))
+            .collect()
+    }
+
+    /// Area of one level-0 cell.
+    pub fn cell_area(&self) -> f64 {
+        let s = self.shapes[0].georef.step;
+        s[0] * s[1]
+    }
+
+    /// Whether this survey's samples are the finer of two overlapping surveys': the smaller
+    /// cell, at equal cells the smaller id. Overlaps are measured at the finer survey's samples,
+    /// so that the figure is the same whichever was inserted first.
+    pub fn finer_than(&self, o: &SurveyMeta) -> bool {
+        self.cell_area()
+            .total_cmp(&o.cell_area())
+            .then(self.id.cmp(&o.id))
+            .is_lt()
+    }
+
+    /// Samples in every level, the mipmap's storage cost.
+    pub fn stored_samples(&self) -> usize {
+        self.shapes.iter().map(|l| l.cols * l.rows).sum()
+    }
+
+    /// Where the survey's sample (0, 0) is on its lattice.
+    pub fn lattice_index(&self) -> [i64; 2] {
+        let g = &self.shapes[0].georef;
+        Lattice::of(g).index_of(g)
+    }
 }
 
 impl Survey {
@@ -126,48 +197,32 @@ impl Survey {
         levels: Vec<Arc<Grid>>,
         patches: Vec<Patch>,
     ) -> Survey {
+        let index = Lattice::of(&levels[0].georef).index_of(&levels[0].georef);
+        let edge_tiles = edge::edge_tiles(&levels[0], index, &layout);
         Survey {
-            id,
-            accuracy: kernel_accuracy.max(),
-            spec,
-            crs,
-            layout,
-            tiling,
-            kernel_accuracy,
+            meta: Arc::new(SurveyMeta {
+                id,
+                accuracy: kernel_accuracy.max(),
+                spec,
+                crs,
+                layout,
+                tiling,
+                kernel_accuracy,
+                shapes: levels.iter().map(|g| g.shape()).collect(),
+                patches,
+                edge_tiles,
+            }),
             levels,
-            patches,
         }
     }
 
-    /// ε at level-0 sample (c, r): the largest of the kernels it is a corner of.
-    pub fn accuracy_at(&self, c: usize, r: usize) -> f64 {
-        let [cw, ch] = self.levels[0].cells();
-        let cell = super::patch::CellRect {
-            c0: (c as u32).saturating_sub(1),
-            r0: (r as u32).saturating_sub(1),
-            c1: (c as u32 + 1).min(cw as u32),
-            r1: (r as u32 + 1).min(ch as u32),
-        };
-        self.kernel_accuracy.max_over(&self.tiling, &cell)
-    }
-
-    /// The patches as LOD-space boxes.
-    pub fn boxes(&self) -> Vec<PatchBox> {
-        self.patches
-            .iter()
-            .map(|p| PatchBox::new(p, &self.levels[p.level as usize], self.layout.kernel))
-            .collect()
-    }
-
-    /// Area of one level-0 cell.
-    pub fn cell_area(&self) -> f64 {
-        let s = self.levels[0].georef.step;
-        s[0] * s[1]
+    /// What the index keeps of the survey.
+    pub fn meta(&self) -> Arc<SurveyMeta> {
+        self.meta.clone()
     }
 
     /// How this survey and `o` disagree where they overlap, measured at the samples of the
-    /// finer of the two (the smaller cell; at equal cells the smaller id) against the other's
-    /// surface, so that the figure is the same whichever was inserted first.
+    /// finer of the two against the other's surface (see [`SurveyMeta::finer_than`]).
     pub fn overlap(&self, o: &Survey) -> Option<accuracy::Deviation> {
         if !self.levels[0]
             .world_bounds()
@@ -175,17 +230,11 @@ impl Survey {
         {
             return None;
         }
-        let self_finer = self
-            .cell_area()
-            .total_cmp(&o.cell_area())
-            .then(self.id.cmp(&o.id))
-            .is_lt();
-        let (fine, coarse) = if self_finer { (self, o) } else { (o, self) };
+        let (fine, coarse) = if self.finer_than(o) {
+            (self, o)
+        } else {
+            (o, self)
+        };
         accuracy::deviation(&fine.levels[0], &coarse.levels[0])
-    }
-
-    /// Samples in every level, the mipmap's storage cost.
-    pub fn stored_samples(&self) -> usize {
-        self.levels.iter().map(|l| l.samples.len()).sum()
     }
 }

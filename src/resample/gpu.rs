@@ -700,12 +700,14 @@ fn extent(p: &ResolvedPatch) -> Extent {
 /// flags after them.
 fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     let e = extent(p);
-    let (heights, cols, flags): (&[f32], usize, Option<&[u8]>) = match &p.surface {
-        Surface::Bilinear(g) => (&g.samples, g.cols, None),
-        Surface::Edge(g) => (&g.heights, g.cols, Some(&g.flags)),
+    // Where the surface's samples start in its level: a window of a level may begin inside it.
+    let (heights, cols, flags, at): (&[f32], usize, Option<&[u8]>, [usize; 2]) = match &p.surface {
+        Surface::Bilinear(w) => (&w.grid.samples, w.grid.cols, None, [w.c0, w.r0]),
+        Surface::Edge(g) => (&g.heights, g.cols, Some(&g.flags), [0, 0]),
     };
-    let rows = || (e.r0..e.r0 + e.rows).map(|r| r as usize);
-    let row = |r: usize| &heights[r * cols + e.c0 as usize..][..e.cols as usize];
+    let rows = || (e.r0..e.r0 + e.rows).map(|r| r as usize - at[1]);
+    let c0 = e.c0 as usize - at[0];
+    let row = |r: usize| &heights[r * cols + c0..][..e.cols as usize];
     let (lo, hi) = rows()
         .flat_map(row)
         .filter(|z| !z.is_nan())
@@ -729,7 +731,7 @@ fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     if let Some(flags) = flags {
         for r in rows() {
             data.extend(
-                flags[r * cols + e.c0 as usize..][..e.cols as usize]
+                flags[r * cols + c0..][..e.cols as usize]
                     .iter()
                     .map(|&f| f32::from(f)),
             );

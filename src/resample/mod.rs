@@ -7,7 +7,7 @@ pub mod gpu;
 use crate::index::geom::{Aabb, ORect};
 use crate::index::query::ViewQuery;
 use crate::model::edge::{EdgeGrid, EdgePatch};
-use crate::model::grid::{Georef, Grid};
+use crate::model::grid::{Georef, SampleRect, Shape, Window};
 use crate::model::ids::PatchId;
 use crate::model::patch::{CellRect, Patch};
 use std::sync::Arc;
@@ -137,8 +137,9 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 /// What a patch evaluates.
 #[derive(Clone, Debug)]
 pub enum Surface {
-    /// A window of a mipmap level, bilinear on its valid cells.
-    Bilinear(Arc<Grid>),
+    /// A mipmap level, bilinear on its valid cells, through a window that holds at least the
+    /// patch's samples and one more ring where the level has it (see [`ResolvedPatch::reads`]).
+    Bilinear(Window),
     /// An edge patch's filled samples (see [`crate::model::edge`]).
     Edge(Arc<EdgeGrid>),
 }
@@ -146,7 +147,7 @@ pub enum Surface {
 impl Surface {
     pub fn georef(&self) -> &Georef {
         match self {
-            Surface::Bilinear(g) => &g.georef,
+            Surface::Bilinear(w) => &w.level.georef,
             Surface::Edge(e) => &e.georef,
         }
     }
@@ -154,7 +155,7 @@ impl Surface {
     /// Cells along each axis.
     pub fn cells(&self) -> [usize; 2] {
         match self {
-            Surface::Bilinear(g) => g.cells(),
+            Surface::Bilinear(w) => w.level.cells(),
             Surface::Edge(e) => [e.cols - 1, e.rows - 1],
         }
     }
@@ -245,8 +246,21 @@ impl ResolvedPatch {
         }
     }
 
-    /// A survey's patch on its level.
-    pub fn new(level: Arc<Grid>, p: &Patch, fallback: bool) -> Self {
+    /// The samples of its level a survey patch reads: its window and one more cell on every
+    /// side the level has (the rule for points on a cell edge may look at the cell beyond).
+    pub fn reads(p: &Patch, level: &Shape) -> SampleRect {
+        let w = p.window;
+        let [cw, ch] = level.cells();
+        SampleRect {
+            c0: w.c0.saturating_sub(1) as usize,
+            r0: w.r0.saturating_sub(1) as usize,
+            c1: (w.c1 as usize + 1).min(cw) + 1,
+            r1: (w.r1 as usize + 1).min(ch) + 1,
+        }
+    }
+
+    /// A survey's patch on its level, read through a window holding [`Self::reads`].
+    pub fn new(level: Window, p: &Patch, fallback: bool) -> Self {
         Self::make(
             p.id,
             Surface::Bilinear(level),

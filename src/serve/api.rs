@@ -4,6 +4,7 @@
 use super::convert;
 use super::proto as pb;
 use crate::engine::{Cut, Engine, EngineError, Origin};
+use crate::store::StoreError;
 use std::path::Path;
 
 fn cut_of(
@@ -36,12 +37,16 @@ pub fn query_patches(
     } else {
         r.batch_size as usize
     };
-    Ok(ps
-        .chunks(size)
-        .map(|c| pb::PatchBatch {
-            patches: c.iter().filter_map(|x| convert::patch(&t, x)).collect(),
+    ps.chunks(size)
+        .map(|c| {
+            let patches = c
+                .iter()
+                .filter_map(|x| convert::patch(&t, x).transpose())
+                .collect::<Result<_, _>>()
+                .map_err(StoreError::from)?;
+            Ok(pb::PatchBatch { patches })
         })
-        .collect())
+        .collect()
 }
 
 pub fn resample_tile(engine: &Engine, r: &pb::TileRequest) -> Result<pb::Tile, EngineError> {

@@ -7,8 +7,9 @@ use crate::engine::{
 };
 use crate::index::geom::Aabb;
 use crate::index::query::Extracted;
-use crate::model::grid::Georef;
+use crate::model::grid::{Georef, SampleRect};
 use crate::model::patch::CellRect;
+use crate::model::source::SampleError;
 use crate::store::Status;
 use crate::terrain::{PatchRef, Terrain, Tile};
 
@@ -56,8 +57,8 @@ pub fn backend(b: i32) -> Result<Backend, EngineError> {
     }
 }
 
-/// A patch with its window's samples, ready to send.
-pub fn patch(t: &Terrain, x: &Extracted) -> Option<pb::Patch> {
+/// A patch with its window's samples, ready to send; None when the terrain no longer has it.
+pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleError> {
     let (georef, w, kernel, samples, flags, kind): (
         Georef,
         CellRect,
@@ -65,18 +66,24 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Option<pb::Patch> {
         Vec<f32>,
         Vec<u8>,
         _,
-    ) = match t.patch(x.id)? {
-        PatchRef::Survey(s, p) => {
-            let level = &s.levels[p.level as usize];
+    ) = match t.patch(x.id) {
+        None => return Ok(None),
+        Some(PatchRef::Survey(s, p)) => {
             let w = p.window;
-            let cols = (w.cols() + 1) as usize;
-            let mut samples = Vec::with_capacity(cols * (w.rows() + 1) as usize);
-            for r in w.r0..=w.r1 {
-                let start = r as usize * level.cols + w.c0 as usize;
-                samples.extend_from_slice(&level.samples[start..start + cols]);
+            let rect = SampleRect {
+                c0: w.c0 as usize,
+                r0: w.r0 as usize,
+                c1: w.c1 as usize + 1,
+                r1: w.r1 as usize + 1,
+            };
+            let level = t.window(s, p.level as usize, rect)?;
+            let mut samples = Vec::with_capacity(rect.len());
+            for r in rect.r0..rect.r1 {
+                let start = (r - level.r0) * level.grid.cols + (rect.c0 - level.c0);
+                samples.extend_from_slice(&level.grid.samples[start..start + rect.cols()]);
             }
             (
-                level.georef,
+                level.level.georef,
                 w,
                 p.kernel,
                 samples,
@@ -84,7 +91,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Option<pb::Patch> {
                 pb::PatchKind::Bilinear,
             )
         }
-        PatchRef::Edge(e) => (
+        Some(PatchRef::Edge(e)) => (
             e.grid.georef,
             e.window,
             e.kernel,
@@ -94,7 +101,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Option<pb::Patch> {
         ),
     };
     let o = georef.to_world(w.c0 as f64, w.r0 as f64);
-    Some(pb::Patch {
+    Ok(Some(pb::Patch {
         id: x.id.0,
         survey: x.survey.0,
         level: x.level as u32,
@@ -118,7 +125,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Option<pb::Patch> {
         kind: kind as i32,
         flags,
         fallback: x.fallback,
-    })
+    }))
 }
 
 pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {

@@ -75,11 +75,10 @@ pub(super) fn recover(dir: &Path) -> Result<(), StoreError> {
 }
 
 impl Store {
-    /// Removes the samples and patches of retired surveys and every key that belongs to no
-    /// active survey, then rewrites the files. `live` holds the patches of the terrain the
-    /// store holds (its surveys' and the edge patches they call for): only their box states
-    /// are kept. Retired surveys keep their records, so [`Store::surveys`] still tells what
-    /// was retired.
+    /// Removes retired surveys for good (records, samples, patches) and every key that belongs
+    /// to no active survey, then rewrites the files. `live` holds the patches of the terrain
+    /// the store holds (its surveys' and the edge patches they call for): only their box
+    /// states and edge patches are kept. A pin stays: it names a file's content, not a survey.
     pub fn compact(self, live: &HashSet<PatchId>) -> Result<(Opened, CompactReport), StoreError> {
         let bytes_before = self.disk_bytes();
         let dir = self.dir.clone();
@@ -108,9 +107,11 @@ impl Store {
             if k.starts_with(keys::META_PREFIX)
                 || k.starts_with(keys::FAILURE_PREFIX)
                 || k.starts_with(keys::PIN_PREFIX)
-                || keys::parse_survey(k).is_some()
             {
                 return true;
+            }
+            if let Some(id) = keys::parse_survey(k) {
+                return active.contains(&id);
             }
             if let Some(id) = keys::parse_patches(k).or_else(|| keys::parse_accuracy(k)) {
                 return active.contains(&id);
@@ -118,7 +119,7 @@ impl Store {
             if let Some((id, _, _)) = keys::parse_chunk(k) {
                 return active.contains(&id);
             }
-            if let Some(id) = keys::parse_top(k) {
+            if let Some(id) = keys::parse_top(k).or_else(|| keys::parse_edge(k)) {
                 return live.contains(&id);
             }
             if let Some((a, b)) = keys::parse_overlap(k) {
@@ -162,10 +163,13 @@ impl Store {
             db,
             layout,
             index,
-            guard,
+            opts,
             _lock: lock,
+            _close_reader,
             ..
         } = self;
+        // Terrains published from this store must not keep its database open.
+        drop(_close_reader);
         // Closing sled ends its use of the directory; the lock beside it stays held, so no
         // other process can open the store while the directories move.
         drop(db);
@@ -174,7 +178,7 @@ impl Store {
         std::fs::rename(&tmp, &dir)?;
         sync_dir(&dir);
         std::fs::remove_dir_all(&old)?;
-        let opened = Store::open_locked(dir.clone(), lock, layout, index, guard)?;
+        let opened = Store::open_locked(dir.clone(), lock, layout, index, opts)?;
         let bytes_after = dir_bytes(&dir);
         Ok((
             opened,

@@ -21,6 +21,7 @@ pub const FAILURE_PREFIX: &[u8] = b"f/";
 pub const OVERLAP_PREFIX: &[u8] = b"o/";
 pub const ACCURACY_PREFIX: &[u8] = b"a/";
 pub const PIN_PREFIX: &[u8] = b"r/";
+pub const EDGE_PREFIX: &[u8] = b"e/";
 
 pub fn survey(id: SurveyId) -> Vec<u8> {
     format!("s/{id}").into_bytes()
@@ -39,8 +40,18 @@ pub fn chunks_of(id: SurveyId) -> Vec<u8> {
     format!("c/{id}/").into_bytes()
 }
 
-pub fn chunk(id: SurveyId, level: usize, band: usize) -> Vec<u8> {
-    format!("c/{id}/{level:02}/{band:08}").into_bytes()
+/// Chunk `k` of a level, numbered row-major over the level's chunks.
+pub fn chunk(id: SurveyId, level: usize, k: usize) -> Vec<u8> {
+    format!("c/{id}/{level:02}/{k:08}").into_bytes()
+}
+
+/// An edge patch, by its patch id.
+pub fn edge(id: PatchId) -> Vec<u8> {
+    format!("e/{id}").into_bytes()
+}
+
+pub fn parse_edge(k: &[u8]) -> Option<PatchId> {
+    hex_id(k.strip_prefix(EDGE_PREFIX)?).map(PatchId)
 }
 
 pub fn top(id: PatchId) -> Vec<u8> {
@@ -110,7 +121,7 @@ pub fn parse_top(k: &[u8]) -> Option<PatchId> {
     hex_id(k.strip_prefix(TOP_PREFIX)?).map(PatchId)
 }
 
-/// `c/<survey>/<level:02>/<band:08>` → (survey, level, band).
+/// `c/<survey>/<level:02>/<k:08>` → (survey, level, k).
 pub fn parse_chunk(k: &[u8]) -> Option<(SurveyId, usize, usize)> {
     let rest = k.strip_prefix(CHUNK_PREFIX)?;
     if rest.len() != 16 + 1 + 2 + 1 + 8 || rest[16] != b'/' || rest[19] != b'/' {
@@ -139,6 +150,7 @@ mod tests {
         assert_eq!(parse_accuracy(&accuracy(s)), Some(s));
         assert_eq!(top(p), b"t/ffffffffffffffff");
         assert_eq!(parse_top(&top(p)), Some(p));
+        assert_eq!(parse_edge(&edge(p)), Some(p));
         assert_eq!(chunk(s, 3, 17), b"c/00abcdef01234567/03/00000017");
         assert_eq!(parse_chunk(&chunk(s, 3, 17)), Some((s, 3, 17)));
         assert!(chunk(s, 3, 17).starts_with(&chunks_of(s)));

@@ -9,18 +9,20 @@
 //! | `meta/crs` | `u32` LE: EPSG code of the store, set by the first survey that has one |
 //! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
 //! | `s/<survey>` | [`SurveyRecord`] (bincode) |
-//! | `p/<survey>` | the survey's `Vec<Patch>` (bincode) |
+//! | `p/<survey>` | the survey's [`StoredPatches`]: its patches and the edge tiles it reaches (bincode) |
 //! | `a/<survey>` | the [`KernelAccuracy`] of a survey whose ε was estimated (bincode) |
-//! | `c/<survey>/<level:02>/<band:08>` | LE `f32` samples of [`CHUNK_ROWS`] rows of a level |
+//! | `c/<survey>/<level:02>/<k:08>` | chunk `k` of a level: [`chunks::CHUNK`]² samples, compressed and checksummed (see [`chunks`]) |
+//! | `e/<patch>` | an [`EdgePatch`] the active surveys call for (bincode) |
 //! | `t/<patch>` | the patch's [`BoxState`] in the LOD index: `f64` LE top, then a byte that is 1 when the box is exposed; for active surveys' patches and the edge patches they call for |
 //! | `o/<survey>/<other>` | [`Deviation`] (bincode): how two surveys disagree where they overlap, under both orders |
 //! | `f/<source path>` | [`FailedRecord`] (bincode); at most one a path, and a bounded number |
 //! | `r/<source path>` | hex content id of a file whose survey was retired by hand while the file stayed in the inbox |
 //! | `meta/rebuild` | present when the next open must derive the index again from the surveys |
 //!
-//! Storing the box states is what lets `open` rebuild the index without running the cutter:
-//! the boxes themselves follow from the patches and the level georeferences, and the edge
-//! patches from the surveys' samples.
+//! Storing the box states and the edge patches is what lets `open` rebuild the index without
+//! running the cutter or reading a sample: the boxes follow from the patches and the level
+//! georeferences. Samples stay on disk and are read through a bounded cache of decoded chunks
+//! ([`ChunkReader`]) when a cut needs them.
 //!
 //! Every write is checked against the free disk space first (see [`space`]): sled cannot
 //! recover from running out of it.
@@ -29,12 +31,14 @@
 //! `<dir>.lock` beside it for as long as it is open. Compaction swaps whole directories, so
 //! the lock that keeps two processes apart must not live inside one of them.
 
+pub mod chunks;
 mod compact;
 pub(crate) mod keys;
 mod migrate;
 pub mod space;
 mod verify;
 
+pub use chunks::{CacheStats, ChunkReader};
 pub use compact::CompactReport;
 pub use migrate::CURRENT as SCHEMA_VERSION;
 pub use space::{DiskSpace, SpaceGuard, SystemDisk};
@@ -42,11 +46,13 @@ pub use verify::VerifyReport;
 
 use crate::index::lod::{BoxState, ChangeStats, IndexConfig};
 use crate::model::accuracy::{AccuracySource, AccuracySpec, Deviation, KernelAccuracy};
-use crate::model::grid::{Georef, Grid};
+use crate::model::edge::EdgePatch;
+use crate::model::grid::{Georef, Grid, Shape};
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::patch::{Patch, PatchLayout, Tiling};
-use crate::model::survey::Survey;
-use crate::terrain::Terrain;
+use crate::model::source::SampleSource;
+use crate::model::survey::{Survey, SurveyMeta};
+use crate::terrain::{PatchRef, Terrain};
 use fs2::FileExt;
 use rayon::prelude::*;
 use serde::de::DeserializeOwned;
@@ -58,9 +64,51 @@ use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use thiserror::Error;
 
-/// Rows of a level per chunk. Bands of whole rows keep a chunk one contiguous slice of the
-/// level's row-major samples; 64 rows of a 3600-column level are under 1 MiB.
-pub const CHUNK_ROWS: usize = 64;
+/// The decoded-chunk cache of a store opened without saying: 512 MiB.
+pub const DEFAULT_CACHE_BYTES: u64 = 512 << 20;
+
+/// How a store is opened: its space rules and how much memory its caches may take.
+#[derive(Clone, Debug)]
+pub struct StoreOptions {
+    pub guard: SpaceGuard,
+    /// Bytes of decoded chunks kept in memory; sled's own page cache takes a quarter of it
+    /// more (see [`StoreOptions::sled_cache_bytes`]).
+    pub cache_bytes: u64,
+}
+
+impl StoreOptions {
+    /// sled's page cache: a quarter of the chunk cache, at least 8 MiB. It holds the records,
+    /// patches and tops that an open reads once and commits touch; the samples have their own
+    /// cache, so a large sled cache would only hold the same chunks a second time, compressed.
+    pub fn sled_cache_bytes(&self) -> u64 {
+        (self.cache_bytes / 4).max(8 << 20)
+    }
+}
+
+impl Default for StoreOptions {
+    fn default() -> Self {
+        StoreOptions {
+            guard: SpaceGuard::default(),
+            cache_bytes: DEFAULT_CACHE_BYTES,
+        }
+    }
+}
+
+impl From<SpaceGuard> for StoreOptions {
+    fn from(guard: SpaceGuard) -> Self {
+        StoreOptions {
+            guard,
+            ..Default::default()
+        }
+    }
+}
+
+/// A survey's patches and the edge tiles its samples reach, stored together under `p/`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoredPatches {
+    pub patches: Vec<Patch>,
+    pub edge_tiles: Vec<[i64; 2]>,
+}
 
 #[derive(Debug, Error)]
 pub enum StoreError {
@@ -101,6 +149,9 @@ pub enum StoreError {
     Encode(String),
     #[error("could not decode {0}")]
     Decode(String),
+    /// Samples a read or an index change needed could not be read back.
+    #[error(transparent)]
+    Samples(#[from] crate::model::source::SampleError),
 }
 
 impl From<sled::Error> for StoreError {
@@ -146,6 +197,14 @@ impl LevelHeader {
             cols: g.cols as u64,
             rows: g.rows as u64,
             georef: g.georef,
+        }
+    }
+
+    pub fn shape(&self) -> Shape {
+        Shape {
+            cols: self.cols as usize,
+            rows: self.rows as usize,
+            georef: self.georef,
         }
     }
 }
@@ -316,29 +375,6 @@ fn decode_u32(b: &[u8], what: &str) -> Result<u32, StoreError> {
     Ok(u32::from_le_bytes(a))
 }
 
-/// Rows in band `band` of a level with `rows` rows.
-fn band_rows(rows: usize, band: usize) -> usize {
-    CHUNK_ROWS.min(rows - band * CHUNK_ROWS)
-}
-
-fn band_count(rows: usize) -> usize {
-    rows.div_ceil(CHUNK_ROWS)
-}
-
-/// The level's samples, a band of rows at a time.
-fn level_chunks(g: &Grid) -> impl Iterator<Item = (usize, Vec<u8>)> + '_ {
-    g.samples
-        .chunks(CHUNK_ROWS * g.cols)
-        .enumerate()
-        .map(|(band, s)| {
-            let mut b = Vec::with_capacity(4 * s.len());
-            for z in s {
-                b.extend_from_slice(&z.to_le_bytes());
-            }
-            (band, b)
-        })
-}
-
 /// A store's path to a sibling of its directory: `<dir><suffix>`.
 fn sibling(dir: &Path, suffix: &str) -> Result<PathBuf, StoreError> {
     let name = dir.file_name().ok_or_else(|| {
@@ -353,10 +389,14 @@ fn sibling(dir: &Path, suffix: &str) -> Result<PathBuf, StoreError> {
 /// other handle is open, so a lock that sled still finds held belongs to a handle of this
 /// process that was just dropped: sled releases its lock from a background thread, a moment
 /// later. Waiting a little for that is safe; waiting on another process never happens here.
-fn open_sled(dir: &Path) -> Result<sled::Db, StoreError> {
+fn open_sled(dir: &Path, cache_bytes: u64) -> Result<sled::Db, StoreError> {
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
     loop {
-        match sled::Config::new().path(dir).open() {
+        match sled::Config::new()
+            .path(dir)
+            .cache_capacity(cache_bytes)
+            .open()
+        {
             Ok(db) => return Ok(db),
             Err(sled::Error::Io(io))
                 if is_lock_error(&io) && std::time::Instant::now() < deadline =>
@@ -409,8 +449,20 @@ impl Writes {
     }
 }
 
+/// Closes the store's chunk reader when the store goes, however it goes.
+struct CloseReader(Arc<ChunkReader>);
+
+impl Drop for CloseReader {
+    fn drop(&mut self) {
+        self.0.close();
+    }
+}
+
 pub struct Store {
     db: sled::Db,
+    reader: Arc<ChunkReader>,
+    _close_reader: CloseReader,
+    opts: StoreOptions,
     guard: SpaceGuard,
     dir: PathBuf,
     layout: PatchLayout,
@@ -447,7 +499,7 @@ impl Store {
     /// `layout` and `index` only apply to a fresh store: an existing one keeps the settings its
     /// surveys were built and indexed with (see [`Store::layout`], [`Store::index_config`]).
     pub fn open(dir: &Path, layout: PatchLayout, index: IndexConfig) -> Result<Opened, StoreError> {
-        Self::open_with(dir, layout, index, SpaceGuard::default())
+        Self::open_with(dir, layout, index, StoreOptions::default())
     }
 
     /// [`Store::open`] under the given space rules. On a disk too full to write, the store
@@ -457,11 +509,11 @@ impl Store {
         dir: &Path,
         layout: PatchLayout,
         index: IndexConfig,
-        guard: SpaceGuard,
+        opts: impl Into<StoreOptions>,
     ) -> Result<Opened, StoreError> {
         let dir = std::path::absolute(dir)?;
         let lock = lock(&dir)?;
-        let mut opened = Self::open_locked(dir, lock, layout, index, guard)?;
+        let mut opened = Self::open_locked(dir, lock, layout, index, opts.into())?;
         if opened.released_reserve {
             opened.warnings.push(
                 "the disk was full: the store's reserve file was released so that it could open"
@@ -476,11 +528,12 @@ impl Store {
         lock: File,
         layout: PatchLayout,
         index: IndexConfig,
-        guard: SpaceGuard,
+        opts: StoreOptions,
     ) -> Result<Opened, StoreError> {
         compact::recover(&dir)?;
+        let guard = opts.guard.clone();
         let released_reserve = guard.release_if_full(&dir)?;
-        let db = open_sled(&dir)?;
+        let db = open_sled(&dir, opts.sled_cache_bytes())?;
         if migrate::version(&db)? < migrate::CURRENT && db.get(keys::SCHEMA)?.is_some() {
             // A migration rewrites much of the store; refuse it on a full disk rather than
             // let sled run out of space halfway.
@@ -498,8 +551,12 @@ impl Store {
             .get(keys::CRS)?
             .map(|v| decode_u32(&v, "meta/crs"))
             .transpose()?;
+        let reader = Arc::new(ChunkReader::new((*db).clone(), opts.cache_bytes));
         let store = Store {
             db,
+            _close_reader: CloseReader(reader.clone()),
+            reader,
+            opts,
             guard,
             dir,
             layout,
@@ -544,21 +601,34 @@ impl Store {
         *self.crs.read().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// The reader the terrain gets its samples through.
+    pub fn reader(&self) -> Arc<ChunkReader> {
+        self.reader.clone()
+    }
+
+    /// What the index needs of the active surveys, the edge patches and the box states; no
+    /// sample is read.
     fn load(&self) -> Result<(Terrain, Vec<String>), StoreError> {
         let active: Vec<SurveyRecord> = self
             .surveys()?
             .into_iter()
             .filter(|r| r.status == Status::Active)
             .collect();
-        let surveys: Vec<Arc<Survey>> = active
-            .par_iter()
-            .map(|r| self.load_survey(r).map(Arc::new))
-            .collect::<Result<_, _>>()?;
         if self.db.get(keys::REBUILD)?.is_some() {
+            let surveys: Vec<Arc<Survey>> = active
+                .par_iter()
+                .map(|r| self.load_survey(r).map(Arc::new))
+                .collect::<Result<_, _>>()?;
             return self.rebuild(surveys, Vec::new());
         }
+        let metas: Vec<Arc<SurveyMeta>> = active
+            .par_iter()
+            .map(|r| self.load_meta(r).map(Arc::new))
+            .collect::<Result<_, _>>()?;
+        let edges = self.edges()?;
         let mut states = self.states()?;
-        let (terrain, missing) = Terrain::restore(self.index, surveys.clone(), &states);
+        let source: Arc<dyn SampleSource> = self.reader.clone();
+        let (terrain, missing) = Terrain::restore(self.index, metas, edges, &states, source);
         let mut warnings = Vec::new();
         if let Some(p) = missing.first() {
             // A patch without a state would be a hole; deriving the index again costs an
@@ -568,6 +638,10 @@ impl Store {
                  the surveys",
                 missing.len()
             ));
+            let surveys: Vec<Arc<Survey>> = active
+                .par_iter()
+                .map(|r| self.load_survey(r).map(Arc::new))
+                .collect::<Result<_, _>>()?;
             return self.rebuild(surveys, warnings);
         }
         for id in terrain.index().state().keys() {
@@ -583,9 +657,9 @@ impl Store {
     }
 
     /// Derives the index again from the surveys, inserting them in id order, and writes every
-    /// box state and overlap in one batch: what an open does after a migration that changed
-    /// what the index keeps. The result does not depend on the order, which only fixes the
-    /// work done.
+    /// box state, edge patch and overlap in one batch: what an open does after a migration
+    /// that changed what the index keeps. The result does not depend on the order, which only
+    /// fixes the work done.
     ///
     /// On a disk too full to take the writes, the terrain is still served and the next open
     /// tries again.
@@ -597,16 +671,19 @@ impl Store {
         surveys.sort_by_key(|s| s.id);
         let mut t = Terrain::new(self.index);
         let mut batch = Writes::default();
-        for kv in self.db.scan_prefix(keys::TOP_PREFIX) {
-            batch.remove(kv?.0);
+        for prefix in [keys::TOP_PREFIX, keys::EDGE_PREFIX] {
+            for kv in self.db.scan_prefix(prefix) {
+                batch.remove(kv?.0);
+            }
         }
         for s in &surveys {
-            for o in t.surveys() {
-                if let Some(d) = s.overlap(o) {
-                    let v = encode(&d)?;
-                    batch.insert(keys::overlap(s.id, o.id), v.clone());
-                    batch.insert(keys::overlap(o.id, s.id), v);
-                }
+            for (o, d) in t
+                .overlaps(s)
+                .map_err(|e| StoreError::Corrupt(e.to_string()))?
+            {
+                let v = encode(&d)?;
+                batch.insert(keys::overlap(s.id, o), v.clone());
+                batch.insert(keys::overlap(o, s.id), v);
             }
             t.insert(s.clone());
         }
@@ -617,6 +694,9 @@ impl Store {
             };
             batch.insert(keys::top(id), &encode_state(&st));
         }
+        for e in t.edges() {
+            batch.insert(keys::edge(e.id), encode(e.as_ref())?);
+        }
         batch.remove(keys::REBUILD);
         match self.apply(batch) {
             Ok(()) => {}
@@ -624,6 +704,10 @@ impl Store {
                 "the index was derived again but could not be stored: {e}"
             )),
             Err(e) => return Err(e),
+        }
+        t.set_source(self.reader.clone());
+        for s in &surveys {
+            t.page_out(s.id);
         }
         Ok((t, warnings))
     }
@@ -640,42 +724,46 @@ impl Store {
         Ok(out)
     }
 
-    fn load_patches(&self, id: SurveyId) -> Result<Vec<Patch>, StoreError> {
+    /// Every stored edge patch.
+    fn edges(&self) -> Result<Vec<Arc<EdgePatch>>, StoreError> {
+        let mut out = Vec::new();
+        for kv in self.db.scan_prefix(keys::EDGE_PREFIX) {
+            let (k, v) = kv?;
+            let id = keys::parse_edge(&k).ok_or_else(|| {
+                StoreError::Corrupt(format!("bad edge key {:?}", String::from_utf8_lossy(&k)))
+            })?;
+            let e: EdgePatch = decode(&v, &format!("edge patch {id}"))?;
+            out.push(Arc::new(e));
+        }
+        Ok(out)
+    }
+
+    fn load_patches(&self, id: SurveyId) -> Result<StoredPatches, StoreError> {
         let v = self.db.get(keys::patches(id))?.ok_or_else(|| {
             StoreError::Corrupt(format!("the patches of survey {id} are missing"))
         })?;
         decode(&v, &format!("patches of survey {id}"))
     }
 
-    /// One level's samples from its chunks.
+    /// One whole level's samples from its chunks.
     fn load_level(&self, id: SurveyId, level: usize, h: &LevelHeader) -> Result<Grid, StoreError> {
-        let (cols, rows) = (h.cols as usize, h.rows as usize);
-        let mut samples = Vec::with_capacity(cols * rows);
-        for band in 0..band_count(rows) {
-            let want = 4 * cols * band_rows(rows, band);
-            let v = self.db.get(keys::chunk(id, level, band))?.ok_or_else(|| {
-                StoreError::Corrupt(format!(
-                    "chunk {band} of level {level} of survey {id} is missing"
-                ))
-            })?;
-            if v.len() != want {
-                return Err(StoreError::Corrupt(format!(
-                    "chunk {band} of level {level} of survey {id} holds {} bytes, not {want}",
-                    v.len()
-                )));
-            }
-            samples.extend(
-                v.chunks_exact(4)
-                    .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes"))),
-            );
+        let shape = h.shape();
+        if shape.cols < 2 || shape.rows < 2 {
+            return Err(StoreError::Corrupt(format!(
+                "level {level} of survey {id} is {}×{} samples",
+                shape.cols, shape.rows
+            )));
         }
-        Grid::new(cols, rows, samples, h.georef)
-            .map_err(|e| StoreError::Corrupt(format!("level {level} of survey {id}: {e}")))
+        self.reader
+            .read(id, level, &shape, shape.all())
+            .map_err(|e| StoreError::Corrupt(e.to_string()))
     }
 
-    fn load_survey(&self, r: &SurveyRecord) -> Result<Survey, StoreError> {
-        let patches = self.load_patches(r.id)?;
-        if let Some(p) = patches
+    /// A survey without its samples, from its record, patches and accuracies.
+    fn load_meta(&self, r: &SurveyRecord) -> Result<SurveyMeta, StoreError> {
+        let stored = self.load_patches(r.id)?;
+        if let Some(p) = stored
+            .patches
             .iter()
             .find(|p| p.survey != r.id || p.level as usize >= r.levels.len())
         {
@@ -684,19 +772,20 @@ impl Store {
                 r.id, p.id, p.survey, p.level
             )));
         }
-        if r.levels.is_empty() {
+        let Some(l0) = r.levels.first() else {
             return Err(StoreError::Corrupt(format!(
                 "survey {} has no levels",
                 r.id
             )));
+        };
+        let shape0 = l0.shape();
+        if shape0.cols < 2 || shape0.rows < 2 {
+            return Err(StoreError::Corrupt(format!(
+                "level 0 of survey {} is {}×{} samples",
+                r.id, shape0.cols, shape0.rows
+            )));
         }
-        let levels: Vec<Arc<Grid>> = r
-            .levels
-            .iter()
-            .enumerate()
-            .map(|(k, h)| self.load_level(r.id, k, h).map(Arc::new))
-            .collect::<Result<_, _>>()?;
-        let tiling = Tiling::new(levels[0].cells(), self.layout.kernel, r.tiling_offset);
+        let tiling = Tiling::new(shape0.cells(), self.layout.kernel, r.tiling_offset);
         let kernel_accuracy = match r.spec() {
             AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
             AccuracySpec::Auto => {
@@ -715,16 +804,31 @@ impl Store {
                 k
             }
         };
-        Ok(Survey::restore(
-            r.id,
-            r.spec(),
-            r.crs,
-            self.layout,
+        Ok(SurveyMeta {
+            id: r.id,
+            accuracy: kernel_accuracy.max(),
+            spec: r.spec(),
+            crs: r.crs,
+            layout: self.layout,
             tiling,
             kernel_accuracy,
-            levels,
-            patches,
-        ))
+            shapes: r.levels.iter().map(LevelHeader::shape).collect(),
+            patches: stored.patches,
+            edge_tiles: stored.edge_tiles,
+        })
+    }
+
+    /// A whole survey, samples and all: what deriving the index again and `verify` need.
+    fn load_survey(&self, r: &SurveyRecord) -> Result<Survey, StoreError> {
+        let meta = self.load_meta(r)?;
+        let levels: Vec<Arc<Grid>> = r
+            .levels
+            .iter()
+            .enumerate()
+            .map(|(k, h)| self.load_level(r.id, k, h).map(Arc::new))
+            .collect::<Result<_, _>>()?;
+        let meta = Arc::new(meta);
+        Ok(Survey { meta, levels })
     }
 
     fn record(&self, id: SurveyId) -> Result<Option<SurveyRecord>, StoreError> {
@@ -743,6 +847,7 @@ impl Store {
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
+        next: &Terrain,
         overlaps: &[(SurveyId, Deviation)],
         crs: Option<u32>,
         replacing: Option<SurveyId>,
@@ -794,16 +899,20 @@ impl Store {
         rec.status = Status::Active;
         let key = keys::survey(s.id);
         batch.insert(key.clone(), encode(&rec)?);
-        batch.insert(keys::patches(s.id), encode(&s.patches)?);
+        let stored = StoredPatches {
+            patches: s.patches.clone(),
+            edge_tiles: s.edge_tiles.clone(),
+        };
+        batch.insert(keys::patches(s.id), encode(&stored)?);
         if s.spec == AccuracySpec::Auto {
             batch.insert(keys::accuracy(s.id), encode(&s.kernel_accuracy)?);
         }
         for (level, g) in s.levels.iter().enumerate() {
-            for (band, bytes) in level_chunks(g) {
-                batch.insert(keys::chunk(s.id, level, band), bytes);
+            for (k, bytes) in chunks::encode_level(g) {
+                batch.insert(keys::chunk(s.id, level, k), bytes);
             }
         }
-        stage_change(batch, change);
+        stage_change(batch, change, next)?;
         for (other, d) in overlaps {
             let v = encode(d)?;
             batch.insert(keys::overlap(s.id, *other), v.clone());
@@ -820,6 +929,7 @@ impl Store {
         id: SurveyId,
         patch_ids: &[PatchId],
         change: &ChangeStats,
+        next: &Terrain,
     ) -> Result<SurveyRecord, StoreError> {
         let mut rec = match self.record(id)? {
             Some(r) if r.status == Status::Active => r,
@@ -830,7 +940,7 @@ impl Store {
         for p in patch_ids {
             batch.remove(keys::top(*p));
         }
-        stage_change(batch, change);
+        stage_change(batch, change, next)?;
         for kv in self.db.scan_prefix(keys::overlaps_of(id)) {
             let (k, _) = kv?;
             if let Some((_, other)) = keys::parse_overlap(&k) {
@@ -872,12 +982,14 @@ impl Store {
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
+        next: &Terrain,
         overlaps: &[(SurveyId, Deviation)],
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let t0 = Instant::now();
         let mut batch = Writes::default();
-        let staged = self.stage_survey(&mut batch, s, rec, change, overlaps, self.crs(), None)?;
+        let staged =
+            self.stage_survey(&mut batch, s, rec, change, next, overlaps, self.crs(), None)?;
         self.apply(batch)?;
         self.finish(staged, t0)
     }
@@ -890,11 +1002,12 @@ impl Store {
         id: SurveyId,
         patch_ids: &[PatchId],
         change: &ChangeStats,
+        next: &Terrain,
         pin: bool,
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let mut batch = Writes::default();
-        let rec = self.stage_retire(&mut batch, id, patch_ids, change)?;
+        let rec = self.stage_retire(&mut batch, id, patch_ids, change, next)?;
         if pin && !rec.content_id.is_empty() {
             batch.insert(keys::pin(&rec.source), rec.content_id.as_bytes());
         }
@@ -912,6 +1025,7 @@ impl Store {
         new: &Survey,
         rec: &SurveyRecord,
         insert_change: &ChangeStats,
+        next: &Terrain,
         overlaps: &[(SurveyId, Deviation)],
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
@@ -919,12 +1033,13 @@ impl Store {
         // sled batches keep the last write of a key, so the insertion's tops win over the
         // retirement's, as they do in the terrain.
         let mut batch = Writes::default();
-        self.stage_retire(&mut batch, old, old_patches, retire_change)?;
+        self.stage_retire(&mut batch, old, old_patches, retire_change, next)?;
         let staged = self.stage_survey(
             &mut batch,
             new,
             rec,
             insert_change,
+            next,
             overlaps,
             self.crs(),
             Some(old),
@@ -1094,13 +1209,25 @@ impl Store {
 }
 
 /// The box states a change moved, and the removal of the boxes it removed.
-fn stage_change(batch: &mut Writes, change: &ChangeStats) {
+/// The writes an index change calls for: the tops of the boxes it moved, and the edge patches
+/// it removed or added. `next` is the terrain after the whole commit, which holds every edge
+/// patch the commit leaves in place.
+fn stage_change(
+    batch: &mut Writes,
+    change: &ChangeStats,
+    next: &Terrain,
+) -> Result<(), StoreError> {
     for id in &change.removed {
         batch.remove(keys::top(*id));
+        batch.remove(keys::edge(*id));
     }
     for (id, st) in &change.moved {
         batch.insert(keys::top(*id), &encode_state(st));
+        if let Some(PatchRef::Edge(e)) = next.patch(*id) {
+            batch.insert(keys::edge(*id), encode(e.as_ref())?);
+        }
     }
+    Ok(())
 }
 
 /// Bytes of the files under `dir`: a store's size on disk.

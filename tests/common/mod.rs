@@ -103,8 +103,7 @@ pub fn in_valid_kernel(t: &Terrain, x: &Extracted, p: [f64; 2]) -> bool {
     let tol = 1e-7;
     match t.patch(x.id).expect("extracted patches resolve") {
         PatchRef::Survey(s, patch) => {
-            let level = &s.levels[patch.level as usize];
-            let g = level.georef.to_grid(p);
+            let g = s.shapes[patch.level as usize].georef.to_grid(p);
             patch.valid.iter().any(|r| {
                 g[0] >= r.c0 as f64 - tol
                     && g[0] <= r.c1 as f64 + tol

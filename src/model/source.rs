@@ -1,0 +1,71 @@
+//! Where samples come from when they are not in memory. The model and the terrain read
+//! through this trait and do no I/O themselves; the store implements it over its chunks.
+
+use super::grid::{Grid, SampleRect, Shape};
+use super::ids::SurveyId;
+use thiserror::Error;
+
+/// Samples that could not be read: the store failed, or holds something it cannot decode.
+#[derive(Clone, Debug, Error, PartialEq)]
+#[error("samples of survey {survey} could not be read: {reason}")]
+pub struct SampleError {
+    pub survey: SurveyId,
+    pub reason: String,
+}
+
+/// Reads rectangles of the levels of stored surveys.
+pub trait SampleSource: Send + Sync + std::fmt::Debug {
+    /// Samples `rect` of level `level` of `survey`, whose shape is `shape`, as a grid
+    /// georeferenced where they lie.
+    fn read(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        shape: &Shape,
+        rect: SampleRect,
+    ) -> Result<Grid, SampleError>;
+}
+
+/// Samples held in memory, by survey: a source for terrains restored without a store.
+#[derive(Clone, Debug, Default)]
+pub struct MemorySource {
+    levels: std::collections::HashMap<SurveyId, Vec<std::sync::Arc<Grid>>>,
+}
+
+impl MemorySource {
+    /// A source holding the samples of every survey given.
+    pub fn of<'a>(surveys: impl IntoIterator<Item = &'a super::survey::Survey>) -> Self {
+        MemorySource {
+            levels: surveys
+                .into_iter()
+                .map(|s| (s.id, s.levels.clone()))
+                .collect(),
+        }
+    }
+}
+
+impl SampleSource for MemorySource {
+    fn read(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        _: &Shape,
+        rect: SampleRect,
+    ) -> Result<Grid, SampleError> {
+        let g = self
+            .levels
+            .get(&survey)
+            .and_then(|l| l.get(level))
+            .ok_or_else(|| SampleError {
+                survey,
+                reason: format!("no level {level} in memory"),
+            })?;
+        if rect.is_empty() || rect.c1 > g.cols || rect.r1 > g.rows {
+            return Err(SampleError {
+                survey,
+                reason: format!("{rect:?} is not inside a {}×{} level", g.cols, g.rows),
+            });
+        }
+        Ok(g.window(rect.c0, rect.r0, rect.cols(), rect.rows()))
+    }
+}

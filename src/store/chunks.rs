@@ -1,0 +1,428 @@
+//! Samples on disk: square chunks of a level, compressed losslessly, checksummed, and read
+//! back through a bounded cache of decoded chunks.
+//!
+//! A chunk is `CHUNK × CHUNK` samples of one level (less at the level's right and bottom
+//! edges), so a patch's window (33² samples by default) touches at most four of them and a
+//! tile decodes about the area it covers. Chunks are numbered row-major over the level.
+//!
+//! Encoding, chosen by measurement (docs/BENCHMARKS.md, "Store size"):
+//! - heights that are all whole numbers (16-bit sources: SRTM, NASADEM, most .hgt) are
+//!   delta-coded along rows as integers, zigzagged, split into byte planes and zstd-compressed;
+//! - any other heights go through the float predictor GeoTIFF uses (byte planes, most
+//!   significant first, then byte differences along the row) and zstd;
+//! - where neither is smaller than the raw samples, the raw samples are kept.
+//!
+//! Every chunk starts with a one-byte codec and the first four bytes of the BLAKE3 hash of
+//! its payload, checked on every read: a damaged chunk is an error, never wrong heights.
+
+use crate::model::grid::{Grid, SampleRect, Shape};
+use crate::model::ids::SurveyId;
+use crate::model::source::{SampleError, SampleSource};
+use rayon::prelude::*;
+use std::sync::Arc;
+
+/// Samples per chunk side.
+pub const CHUNK: usize = 256;
+
+/// zstd's level: level 3 already reaches within a few percent of level 19 on the predicted
+/// planes, at a tenth of the time (see docs/BENCHMARKS.md).
+const ZSTD_LEVEL: i32 = 3;
+
+const RAW: u8 = 0;
+const FLOAT: u8 = 1;
+const INT: u8 = 2;
+const HEADER: usize = 5;
+/// Stands for a void in the integer codec: far outside any height a reader accepts.
+const INT_VOID: i32 = i32::MIN;
+/// Integers beyond this are not heights; their deltas could overflow.
+const INT_LIMIT: f32 = (1 << 30) as f32;
+
+/// The chunks of a level: how many along each axis.
+pub fn chunk_counts(shape: &Shape) -> [usize; 2] {
+    [shape.cols.div_ceil(CHUNK), shape.rows.div_ceil(CHUNK)]
+}
+
+/// The samples chunk `k` of a level holds.
+pub fn chunk_rect(shape: &Shape, k: usize) -> SampleRect {
+    let [nx, _] = chunk_counts(shape);
+    let (tx, ty) = (k % nx, k / nx);
+    SampleRect {
+        c0: tx * CHUNK,
+        r0: ty * CHUNK,
+        c1: ((tx + 1) * CHUNK).min(shape.cols),
+        r1: ((ty + 1) * CHUNK).min(shape.rows),
+    }
+}
+
+/// The chunks of a level, with their encoded bytes, in parallel.
+pub fn encode_level(g: &Grid) -> Vec<(usize, Vec<u8>)> {
+    let shape = g.shape();
+    let [nx, ny] = chunk_counts(&shape);
+    (0..nx * ny)
+        .into_par_iter()
+        .map(|k| {
+            let r = chunk_rect(&shape, k);
+            let mut samples = Vec::with_capacity(r.len());
+            for row in r.r0..r.r1 {
+                samples.extend_from_slice(&g.samples[row * g.cols + r.c0..row * g.cols + r.c1]);
+            }
+            (k, encode(&samples, r.cols()))
+        })
+        .collect()
+}
+
+fn checksum(payload: &[u8]) -> [u8; 4] {
+    let h = blake3::hash(payload);
+    h.as_bytes()[..4].try_into().expect("4 bytes")
+}
+
+fn with_header(codec: u8, payload: Vec<u8>) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER + payload.len());
+    out.push(codec);
+    out.extend_from_slice(&checksum(&payload));
+    out.extend_from_slice(&payload);
+    out
+}
+
+/// Whether every height is void or a whole number whose float is exactly that integer.
+fn all_integers(samples: &[f32]) -> bool {
+    samples.iter().all(|&z| {
+        z.is_nan() || (z.abs() < INT_LIMIT && (z as i32) as f32 == z && z.to_bits() != 0x8000_0000)
+    })
+}
+
+/// Splits 4-byte words into four planes, `order` giving the byte of each word per plane.
+fn planes(words: impl ExactSizeIterator<Item = [u8; 4]>, out: &mut Vec<u8>) {
+    let n = words.len();
+    let start = out.len();
+    out.resize(start + 4 * n, 0);
+    let (p0, rest) = out[start..].split_at_mut(n);
+    let (p1, rest) = rest.split_at_mut(n);
+    let (p2, p3) = rest.split_at_mut(n);
+    for (i, w) in words.enumerate() {
+        p0[i] = w[0];
+        p1[i] = w[1];
+        p2[i] = w[2];
+        p3[i] = w[3];
+    }
+}
+
+fn unplanes(bytes: &[u8], n: usize) -> impl Iterator<Item = [u8; 4]> + '_ {
+    let (p0, rest) = bytes.split_at(n);
+    let (p1, rest) = rest.split_at(n);
+    let (p2, p3) = rest.split_at(n);
+    (0..n).map(move |i| [p0[i], p1[i], p2[i], p3[i]])
+}
+
+/// Encodes a chunk of `cols`-wide rows.
+pub fn encode(samples: &[f32], cols: usize) -> Vec<u8> {
+    let raw_len = 4 * samples.len();
+    let mut pre = Vec::with_capacity(raw_len);
+    let codec = if all_integers(samples) {
+        for row in samples.chunks(cols) {
+            let mut prev = 0i32;
+            let words = row.iter().map(|&z| {
+                let x = if z.is_nan() { INT_VOID } else { z as i32 };
+                let d = x.wrapping_sub(prev);
+                prev = x;
+                (((d << 1) ^ (d >> 31)) as u32).to_le_bytes()
+            });
+            planes(words, &mut pre);
+        }
+        INT
+    } else {
+        for row in samples.chunks(cols) {
+            let start = pre.len();
+            planes(row.iter().map(|z| z.to_bits().to_be_bytes()), &mut pre);
+            // Byte differences along the row's planes, last to first so each uses the original.
+            let r = &mut pre[start..];
+            for i in (1..r.len()).rev() {
+                r[i] = r[i].wrapping_sub(r[i - 1]);
+            }
+        }
+        FLOAT
+    };
+    match zstd::bulk::compress(&pre, ZSTD_LEVEL) {
+        Ok(z) if z.len() < raw_len => with_header(codec, z),
+        _ => {
+            let raw: Vec<u8> = samples.iter().flat_map(|z| z.to_le_bytes()).collect();
+            with_header(RAW, raw)
+        }
+    }
+}
+
+/// Decodes a chunk of `n` samples in `cols`-wide rows.
+pub fn decode(bytes: &[u8], n: usize, cols: usize) -> Result<Vec<f32>, String> {
+    if bytes.len() < HEADER {
+        return Err(format!(
+            "{} bytes, shorter than a chunk header",
+            bytes.len()
+        ));
+    }
+    let (codec, sum, payload) = (bytes[0], &bytes[1..HEADER], &bytes[HEADER..]);
+    if checksum(payload) != sum {
+        return Err("the checksum does not match: the chunk is damaged".into());
+    }
+    let unpack = |p: &[u8]| -> Result<Vec<u8>, String> {
+        let b = zstd::bulk::decompress(p, 4 * n).map_err(|e| format!("zstd: {e}"))?;
+        if b.len() != 4 * n {
+            return Err(format!("{} bytes decoded, {} expected", b.len(), 4 * n));
+        }
+        Ok(b)
+    };
+    match codec {
+        RAW if payload.len() == 4 * n => Ok(payload
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
+            .collect()),
+        RAW => Err(format!("{} raw bytes, {} expected", payload.len(), 4 * n)),
+        INT => {
+            let b = unpack(payload)?;
+            let mut out = Vec::with_capacity(n);
+            let mut at = 0;
+            while at < n {
+                let w = cols.min(n - at);
+                let mut prev = 0i32;
+                for word in unplanes(&b[4 * at..4 * (at + w)], w) {
+                    let u = u32::from_le_bytes(word);
+                    let d = ((u >> 1) as i32) ^ -((u & 1) as i32);
+                    prev = prev.wrapping_add(d);
+                    out.push(if prev == INT_VOID {
+                        f32::NAN
+                    } else {
+                        prev as f32
+                    });
+                }
+                at += w;
+            }
+            Ok(out)
+        }
+        FLOAT => {
+            let mut b = unpack(payload)?;
+            let mut out = Vec::with_capacity(n);
+            let mut at = 0;
+            while at < n {
+                let w = cols.min(n - at);
+                let r = &mut b[4 * at..4 * (at + w)];
+                for i in 1..r.len() {
+                    r[i] = r[i].wrapping_add(r[i - 1]);
+                }
+                out.extend(unplanes(r, w).map(|word| f32::from_bits(u32::from_be_bytes(word))));
+                at += w;
+            }
+            Ok(out)
+        }
+        c => Err(format!("unknown chunk codec {c}")),
+    }
+}
+
+/// A decoded chunk in the cache.
+type Chunk = Arc<[f32]>;
+
+/// Which chunk: survey, level, number.
+type ChunkKey = (u64, u8, u32);
+
+#[derive(Clone)]
+struct Bytes;
+
+impl quick_cache::Weighter<ChunkKey, Chunk> for Bytes {
+    fn weight(&self, _: &ChunkKey, v: &Chunk) -> u64 {
+        4 * v.len() as u64 + 64
+    }
+}
+
+/// Reads chunks from the store through a cache of decoded ones, bounded in bytes.
+///
+/// Terrains published to readers hold it; the store closes it when it closes, so that a
+/// snapshot still in a reader's hands never keeps the database open (and its directory
+/// locked) after the store is gone. Reads after that fail, cached chunks aside.
+pub struct ChunkReader {
+    tree: std::sync::RwLock<Option<sled::Tree>>,
+    cache: quick_cache::sync::Cache<ChunkKey, Chunk, Bytes>,
+}
+
+impl std::fmt::Debug for ChunkReader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ChunkReader")
+            .field("cached_bytes", &self.cache.weight())
+            .finish()
+    }
+}
+
+/// How the cache is doing.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CacheStats {
+    pub bytes: u64,
+    pub capacity: u64,
+    pub chunks: usize,
+    pub hits: u64,
+    pub misses: u64,
+}
+
+impl ChunkReader {
+    pub fn new(tree: sled::Tree, capacity_bytes: u64) -> Self {
+        let items = (capacity_bytes / (4 * (CHUNK * CHUNK) as u64)).max(16) as usize;
+        ChunkReader {
+            tree: std::sync::RwLock::new(Some(tree)),
+            cache: quick_cache::sync::Cache::with_weighter(items, capacity_bytes, Bytes),
+        }
+    }
+
+    /// Lets go of the database: later reads of chunks not in the cache fail.
+    pub fn close(&self) {
+        *self.tree.write().unwrap_or_else(|e| e.into_inner()) = None;
+    }
+
+    pub fn stats(&self) -> CacheStats {
+        CacheStats {
+            bytes: self.cache.weight(),
+            capacity: self.cache.capacity(),
+            chunks: self.cache.len(),
+            hits: self.cache.hits(),
+            misses: self.cache.misses(),
+        }
+    }
+
+    fn chunk(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        shape: &Shape,
+        k: usize,
+    ) -> Result<Chunk, SampleError> {
+        let key = (survey.0, level as u8, k as u32);
+        self.cache.get_or_insert_with(&key, || {
+            let fail = |reason: String| SampleError { survey, reason };
+            let r = chunk_rect(shape, k);
+            let tree = self.tree.read().unwrap_or_else(|e| e.into_inner());
+            let tree = tree
+                .as_ref()
+                .ok_or_else(|| fail("the store is closed".into()))?;
+            let bytes = tree
+                .get(super::keys::chunk(survey, level, k))
+                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?
+                .ok_or_else(|| fail(format!("chunk {k} of level {level} is missing")))?;
+            let v = decode(&bytes, r.len(), r.cols())
+                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
+            Ok(v.into())
+        })
+    }
+}
+
+impl SampleSource for ChunkReader {
+    fn read(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        shape: &Shape,
+        rect: SampleRect,
+    ) -> Result<Grid, SampleError> {
+        if rect.is_empty() || rect.c1 > shape.cols || rect.r1 > shape.rows {
+            return Err(SampleError {
+                survey,
+                reason: format!(
+                    "{rect:?} is not inside a {}×{} level",
+                    shape.cols, shape.rows
+                ),
+            });
+        }
+        let mut samples = vec![f32::NAN; rect.len()];
+        let [nx, _] = chunk_counts(shape);
+        for ty in rect.r0 / CHUNK..=(rect.r1 - 1) / CHUNK {
+            for tx in rect.c0 / CHUNK..=(rect.c1 - 1) / CHUNK {
+                let k = ty * nx + tx;
+                let cr = chunk_rect(shape, k);
+                let chunk = self.chunk(survey, level, shape, k)?;
+                let (c0, c1) = (rect.c0.max(cr.c0), rect.c1.min(cr.c1));
+                for r in rect.r0.max(cr.r0)..rect.r1.min(cr.r1) {
+                    let from = (r - cr.r0) * cr.cols() + (c0 - cr.c0);
+                    let to = (r - rect.r0) * rect.cols() + (c0 - rect.c0);
+                    samples[to..to + (c1 - c0)].copy_from_slice(&chunk[from..from + (c1 - c0)]);
+                }
+            }
+        }
+        Ok(Grid {
+            cols: rect.cols(),
+            rows: rect.rows(),
+            samples,
+            georef: crate::model::grid::Georef {
+                origin: shape.georef.to_world(rect.c0 as f64, rect.r0 as f64),
+                ..shape.georef
+            },
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn round_trip(samples: &[f32], cols: usize) -> u8 {
+        let b = encode(samples, cols);
+        let back = decode(&b, samples.len(), cols).unwrap();
+        for (a, z) in samples.iter().zip(&back) {
+            assert!(
+                a.to_bits() == z.to_bits() || (a.is_nan() && z.is_nan()),
+                "{a} came back as {z}"
+            );
+        }
+        b[0]
+    }
+
+    #[test]
+    fn every_codec_gives_back_the_exact_samples() {
+        let ints: Vec<f32> = (0..600)
+            .map(|i| {
+                if i % 37 == 0 {
+                    f32::NAN
+                } else {
+                    (i % 50) as f32 - 20.0
+                }
+            })
+            .collect();
+        assert_eq!(round_trip(&ints, 30), INT);
+        let floats: Vec<f32> = (0..600)
+            .map(|i| {
+                if i % 41 == 0 {
+                    f32::NAN
+                } else {
+                    (i as f32 * 0.37).sin() * 812.25
+                }
+            })
+            .collect();
+        assert_eq!(round_trip(&floats, 30), FLOAT);
+        // -0 is not the integer 0 bit for bit, and extreme values overflow deltas.
+        let odd = [
+            -0.0f32,
+            1.0,
+            2.0,
+            3.0e9,
+            -3.0e9,
+            f32::MIN_POSITIVE,
+            7.0,
+            8.0,
+        ];
+        assert_ne!(round_trip(&odd, 4), INT);
+        // Noise does not compress: it is kept raw.
+        let mut x = 0x1234_5678u32;
+        let noise: Vec<f32> = (0..256)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 17;
+                x ^= x << 5;
+                f32::from_bits(x & 0x7f7f_ffff)
+            })
+            .collect();
+        assert_eq!(round_trip(&noise, 16), RAW);
+    }
+
+    #[test]
+    fn a_damaged_chunk_is_an_error() {
+        let s: Vec<f32> = (0..100).map(|i| i as f32 * 0.5).collect();
+        let mut b = encode(&s, 10);
+        let last = b.len() - 1;
+        b[last] ^= 1;
+        assert!(decode(&b, 100, 10).unwrap_err().contains("checksum"));
+        assert!(decode(&b[..3], 100, 10).is_err());
+    }
+}
