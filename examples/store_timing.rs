@@ -86,7 +86,31 @@ fn main() {
         &data.join("Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif"),
     );
     ingest(&store, &mut terrain, &data.join("NASADEM_HGT_n34w119.tif"));
-    println!("store: {:.1} MiB", mib(store.disk_bytes()));
+    let input: u64 = [
+        "Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif",
+        "NASADEM_HGT_n34w119.tif",
+    ]
+    .iter()
+    .map(|f| std::fs::metadata(data.join(f)).unwrap().len())
+    .sum();
+    let pack = store.raw_pack().len();
+    println!(
+        "store: {:.1} MiB on disk ({:.2}× the input files' {:.1} MiB): chunk pack {:.1} MiB, \
+         database {:.1} MiB",
+        mib(store.disk_bytes()),
+        store.disk_bytes() as f64 / input as f64,
+        mib(input),
+        mib(pack),
+        mib(store.disk_bytes() - pack),
+    );
+    let live = terrain.index().state().into_keys().collect();
+    let (Opened { store, .. }, rep) = store.compact(&live).unwrap();
+    println!(
+        "compact with nothing retired: {:.1} → {:.1} MiB ({:.2}× the input)",
+        mib(rep.bytes_before),
+        mib(rep.bytes_after),
+        rep.bytes_after as f64 / input as f64
+    );
     drop(store);
 
     let t = Instant::now();

@@ -1,10 +1,11 @@
 //! 2 → 3: samples in square compressed chunks, patches stored with the edge tiles their
 //! survey reaches, and edge patches stored rather than derived at every open.
 //!
-//! Version 2 kept each level as bands of 64 rows of raw little-endian `f32`, and derived the
-//! edge patches from every sample at open, so an open read the whole store. The step reads
-//! each survey's bands, writes its levels again as [`chunks::CHUNK`]² chunks in the chunk
-//! codec, and stores its patches beside the edge tiles found from its level 0. Edge patches
+//! Version 2 kept each level in sled as bands of 64 rows of raw little-endian `f32`, and
+//! derived the edge patches from every sample at open, so an open read the whole store. The
+//! step reads each survey's bands, writes its levels again to the chunk pack as
+//! [`chunks::CHUNK`]² chunks in the chunk codec (the pack is synced before the batch that
+//! points at it), and stores its patches beside the edge tiles found from its level 0. Edge patches
 //! follow from the set of surveys, not from the tree alone, so the step marks the store for a
 //! rebuild, which writes them with every box state.
 
@@ -64,8 +65,14 @@ pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
             }
             let g = Grid::new(cols, rows, samples, h.georef)
                 .map_err(|e| format!("level {level} of survey {id}: {e}"))?;
-            for (k, bytes) in chunks::encode_level(&g) {
-                batch.insert(keys::chunk(id, level, k), bytes);
+            let (ks, bytes): (Vec<usize>, Vec<Vec<u8>>) =
+                chunks::encode_level(&g).into_iter().unzip();
+            let locs = ctx
+                .pack
+                .append(&bytes)
+                .map_err(|e| format!("writing the chunk pack: {e}"))?;
+            for (k, loc) in ks.into_iter().zip(locs) {
+                batch.insert(keys::chunk(id, level, k), &loc.to_bytes()[..]);
             }
             if level == 0 {
                 level0 = Some(g);
@@ -81,14 +88,18 @@ pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
                 patches,
                 edge_tiles: edge::edge_tiles(&g, index, &layout),
             };
-            batch.insert(
-                keys::patches(id),
-                encode(&stored).map_err(|e| e.to_string())?,
-            );
+            let sealed = chunks::seal(&encode(&stored).map_err(|e| e.to_string())?);
+            let loc = ctx
+                .pack
+                .append(&[sealed])
+                .map_err(|e| format!("writing the chunk pack: {e}"))?[0];
+            batch.insert(keys::patches(id), &loc.to_bytes()[..]);
         }
     }
     if any {
         batch.insert(keys::REBUILD, &[1u8][..]);
     }
+    // The pack was empty at version 2 (an open cuts it back to the committed length, none).
+    batch.insert(keys::PACK_LEN, &ctx.pack.len().to_le_bytes()[..]);
     Ok(batch)
 }

@@ -10,6 +10,7 @@ use patchwork::index::lod::IndexConfig;
 use patchwork::model::accuracy::AccuracySource;
 use patchwork::model::ids::{PatchId, SurveyId};
 use patchwork::model::survey::Survey;
+use patchwork::store::pack::ChunkStore as _;
 use patchwork::store::{
     open_error, DiskSpace, FailedRecord, IngestTimings, Opened, SpaceGuard, Status, Store,
     StoreError, SurveyRecord, SCHEMA_VERSION,
@@ -317,10 +318,20 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
 
     // A damaged chunk fails its checksum.
     let chunk0 = format!("c/{}/00/00000000", a.id);
-    let good = store.raw().get(chunk0.as_bytes()).unwrap().unwrap();
-    let mut bytes = good.to_vec();
-    bytes[20] ^= 1;
-    store.raw().insert(chunk0.as_bytes(), bytes).unwrap();
+    let loc = store.raw().get(chunk0.as_bytes()).unwrap().unwrap();
+    let loc = patchwork::store::pack::Loc::from_bytes(&loc).unwrap();
+    let pack = dir.join(patchwork::store::pack::PACK_FILE);
+    {
+        use std::os::unix::fs::FileExt;
+        let f = std::fs::OpenOptions::new()
+            .write(true)
+            .read(true)
+            .open(&pack)
+            .unwrap();
+        let mut b = [0u8; 1];
+        f.read_exact_at(&mut b, loc.offset + 20).unwrap();
+        f.write_all_at(&[b[0] ^ 1], loc.offset + 20).unwrap();
+    }
     let r = store.verify().unwrap();
     assert!(
         r.problems.iter().any(|p| p.contains("damaged")),
@@ -332,7 +343,11 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     let mut samples = g.samples.clone();
     samples[0] += 1.0;
     let bytes = patchwork::store::chunks::encode(&samples, g.cols);
-    store.raw().insert(chunk0.as_bytes(), bytes).unwrap();
+    let loc = store.raw_pack().append(&[bytes]).unwrap()[0];
+    store
+        .raw()
+        .insert(chunk0.as_bytes(), &loc.to_bytes()[..])
+        .unwrap();
     let r = store.verify().unwrap();
     assert!(
         r.problems.iter().any(|p| p.contains("have changed")),
@@ -920,11 +935,9 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
             } else if key.starts_with("o/") || key.starts_with("e/") || key.starts_with("c/") {
                 db.remove(k).unwrap();
             } else if key.starts_with("p/") {
-                // Versions 1 and 2 kept the patches alone.
-                let p: patchwork::store::StoredPatches =
-                    bincode::serde::decode_from_slice(&v, bincode::config::standard())
-                        .unwrap()
-                        .0;
+                // Versions 1 and 2 kept the patches alone, in the database.
+                let id: SurveyId = key[2..].parse().unwrap();
+                let p = store.load_patches(id).unwrap();
                 let bytes =
                     bincode::serde::encode_to_vec(&p.patches, bincode::config::standard()).unwrap();
                 db.insert(k, bytes).unwrap();
@@ -959,4 +972,31 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
     let Opened { store, terrain, .. } = open(&dir);
     assert!(store.migrations_run().is_empty());
     assert_eq!(terrain.index().state(), t.index().state());
+}
+
+#[test]
+fn chunks_a_crash_left_past_the_commit_are_cut_at_open() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, b) = pair();
+    let mut t = Terrain::new(IndexConfig::default());
+    let committed;
+    {
+        let Opened { store, .. } = open(&dir);
+        ingest(&store, &mut t, &a, "a");
+        committed = store.raw_pack().len();
+        // A commit that appended its chunks and died before its batch.
+        store.raw_pack().append(&[vec![7u8; 5000]]).unwrap();
+    }
+    let pack = dir.join(patchwork::store::pack::PACK_FILE);
+    assert_eq!(std::fs::metadata(&pack).unwrap().len(), committed + 5000);
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_eq!(std::fs::metadata(&pack).unwrap().len(), committed);
+    assert_verified(&store);
+    let roi = bounds_of(&[a.clone()]);
+    assert_same(&terrain, &t, &roi);
+    // Later commits go where the cut tail was.
+    let mut t2 = terrain.clone();
+    ingest(&store, &mut t2, &b, "b");
+    assert_verified(&store);
 }

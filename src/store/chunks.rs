@@ -15,6 +15,7 @@
 //! Every chunk starts with a one-byte codec and the first four bytes of the BLAKE3 hash of
 //! its payload, checked on every read: a damaged chunk is an error, never wrong heights.
 
+use super::pack::{ChunkStore, Loc};
 use crate::model::grid::{Grid, SampleRect, Shape};
 use crate::model::ids::SurveyId;
 use crate::model::source::{SampleError, SampleSource};
@@ -31,6 +32,8 @@ const ZSTD_LEVEL: i32 = 3;
 const RAW: u8 = 0;
 const FLOAT: u8 = 1;
 const INT: u8 = 2;
+/// Not samples: a record kept in the pack (a survey's patches), zstd-compressed.
+const SEALED: u8 = 3;
 const HEADER: usize = 5;
 /// Stands for a void in the integer codec: far outside any height a reader accepts.
 const INT_VOID: i32 = i32::MIN;
@@ -151,6 +154,23 @@ pub fn encode(samples: &[f32], cols: usize) -> Vec<u8> {
     }
 }
 
+/// A record's bytes as the pack keeps them: compressed, with the chunk header's checksum.
+pub fn seal(bytes: &[u8]) -> Vec<u8> {
+    let z = zstd::bulk::compress(bytes, ZSTD_LEVEL).expect("compressing in memory");
+    with_header(SEALED, z)
+}
+
+/// A record's bytes back from [`seal`]; at most `limit` bytes are accepted.
+pub fn unseal(bytes: &[u8], limit: usize) -> Result<Vec<u8>, String> {
+    if bytes.len() < HEADER || bytes[0] != SEALED {
+        return Err("not a sealed record".into());
+    }
+    if checksum(&bytes[HEADER..]) != bytes[1..HEADER] {
+        return Err("the checksum does not match: the record is damaged".into());
+    }
+    zstd::bulk::decompress(&bytes[HEADER..], limit).map_err(|e| format!("zstd: {e}"))
+}
+
 /// Decodes a chunk of `n` samples in `cols`-wide rows.
 pub fn decode(bytes: &[u8], n: usize, cols: usize) -> Result<Vec<f32>, String> {
     if bytes.len() < HEADER {
@@ -237,7 +257,8 @@ impl quick_cache::Weighter<ChunkKey, Chunk> for Bytes {
 /// snapshot still in a reader's hands never keeps the database open (and its directory
 /// locked) after the store is gone. Reads after that fail, cached chunks aside.
 pub struct ChunkReader {
-    tree: std::sync::RwLock<Option<sled::Tree>>,
+    /// Chunk locations, and the pack that holds the bytes.
+    open: std::sync::RwLock<Option<(sled::Tree, Arc<dyn ChunkStore>)>>,
     cache: quick_cache::sync::Cache<ChunkKey, Chunk, Bytes>,
 }
 
@@ -260,17 +281,17 @@ pub struct CacheStats {
 }
 
 impl ChunkReader {
-    pub fn new(tree: sled::Tree, capacity_bytes: u64) -> Self {
+    pub fn new(tree: sled::Tree, pack: Arc<dyn ChunkStore>, capacity_bytes: u64) -> Self {
         let items = (capacity_bytes / (4 * (CHUNK * CHUNK) as u64)).max(16) as usize;
         ChunkReader {
-            tree: std::sync::RwLock::new(Some(tree)),
+            open: std::sync::RwLock::new(Some((tree, pack))),
             cache: quick_cache::sync::Cache::with_weighter(items, capacity_bytes, Bytes),
         }
     }
 
     /// Lets go of the database: later reads of chunks not in the cache fail.
     pub fn close(&self) {
-        *self.tree.write().unwrap_or_else(|e| e.into_inner()) = None;
+        *self.open.write().unwrap_or_else(|e| e.into_inner()) = None;
     }
 
     pub fn stats(&self) -> CacheStats {
@@ -294,19 +315,50 @@ impl ChunkReader {
         self.cache.get_or_insert_with(&key, || {
             let fail = |reason: String| SampleError { survey, reason };
             let r = chunk_rect(shape, k);
-            let tree = self.tree.read().unwrap_or_else(|e| e.into_inner());
-            let tree = tree
+            let open = self.open.read().unwrap_or_else(|e| e.into_inner());
+            let (tree, pack) = open
                 .as_ref()
                 .ok_or_else(|| fail("the store is closed".into()))?;
-            let bytes = tree
-                .get(super::keys::chunk(survey, level, k))
-                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?
-                .ok_or_else(|| fail(format!("chunk {k} of level {level} is missing")))?;
+            let bytes = read_chunk(tree, pack.as_ref(), survey, level, k)
+                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
             let v = decode(&bytes, r.len(), r.cols())
                 .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
             Ok(v.into())
         })
     }
+}
+
+/// A chunk's bytes: its location from the database, then the bytes from the pack.
+pub fn read_chunk(
+    tree: &sled::Tree,
+    pack: &dyn ChunkStore,
+    survey: SurveyId,
+    level: usize,
+    k: usize,
+) -> Result<Vec<u8>, String> {
+    read_packed(tree, pack, &super::keys::chunk(survey, level, k))
+}
+
+/// The bytes the pack holds for `key`, whose value in the database is their location.
+pub fn read_packed(
+    tree: &sled::Tree,
+    pack: &dyn ChunkStore,
+    key: &[u8],
+) -> Result<Vec<u8>, String> {
+    let v = tree
+        .get(key)
+        .map_err(|e| e.to_string())?
+        .ok_or("it is missing")?;
+    let loc = Loc::from_bytes(&v).ok_or_else(|| format!("its location is {} bytes", v.len()))?;
+    if loc.end() > pack.len() {
+        return Err(format!(
+            "it lies at {}..{}, past the {} bytes of the pack",
+            loc.offset,
+            loc.end(),
+            pack.len()
+        ));
+    }
+    pack.read(loc).map_err(|e| format!("reading the pack: {e}"))
 }
 
 impl SampleSource for ChunkReader {

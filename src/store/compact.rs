@@ -11,6 +11,8 @@
 //!
 //! [`recover`] runs on every open and finishes or undoes whatever a crash interrupted.
 
+use super::chunks::read_packed;
+use super::pack::{ChunkStore, PackFile};
 use super::{dir_bytes, keys, sibling, Opened, Status, Store, StoreError};
 use crate::model::ids::{PatchId, SurveyId};
 use std::collections::HashSet;
@@ -132,8 +134,26 @@ impl Store {
         // disk stops it with the store untouched, and the partial copy is deleted.
         let copied = (|| -> Result<(), StoreError> {
             let fresh = sled::Config::new().path(&tmp).open()?;
+            // Live chunks alone go to the new pack, each synced before the batch naming it.
+            let pack = PackFile::open(&tmp, 0)?;
             let mut batch = sled::Batch::default();
+            let mut chunks: Vec<(sled::IVec, Vec<u8>)> = Vec::new();
             let mut bytes = 0usize;
+            let flush = |batch: &mut sled::Batch,
+                         chunks: &mut Vec<(sled::IVec, Vec<u8>)>,
+                         bytes: &mut usize|
+             -> Result<(), StoreError> {
+                self.guard.check(&dir, *bytes as u64)?;
+                let (ks, vs): (Vec<_>, Vec<_>) = chunks.drain(..).unzip();
+                let locs = pack.append(&vs)?;
+                for (k, loc) in ks.into_iter().zip(locs) {
+                    batch.insert(k, &loc.to_bytes()[..]);
+                }
+                batch.insert(keys::PACK_LEN, &pack.len().to_le_bytes()[..]);
+                fresh.apply_batch(std::mem::take(batch))?;
+                *bytes = 0;
+                Ok(())
+            };
             for kv in self.db.iter() {
                 let (k, v) = kv?;
                 if !live(&k) {
@@ -141,16 +161,21 @@ impl Store {
                     continue;
                 }
                 kept += 1;
-                bytes += k.len() + v.len();
-                batch.insert(k, v);
+                if keys::in_pack(&k) {
+                    let b = read_packed(&self.db, self.pack.as_ref(), &k).map_err(|e| {
+                        StoreError::Corrupt(format!("{}: {e}", String::from_utf8_lossy(&k)))
+                    })?;
+                    bytes += k.len() + b.len();
+                    chunks.push((k, b));
+                } else if k.as_ref() != keys::PACK_LEN {
+                    bytes += k.len() + v.len();
+                    batch.insert(k, v);
+                }
                 if bytes >= COPY_BATCH_BYTES {
-                    self.guard.check(&dir, bytes as u64)?;
-                    fresh.apply_batch(std::mem::take(&mut batch))?;
-                    bytes = 0;
+                    flush(&mut batch, &mut chunks, &mut bytes)?;
                 }
             }
-            self.guard.check(&dir, bytes as u64)?;
-            fresh.apply_batch(batch)?;
+            flush(&mut batch, &mut chunks, &mut bytes)?;
             fresh.flush()?;
             Ok(())
         })();

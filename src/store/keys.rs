@@ -8,6 +8,8 @@ pub const SCHEMA: &[u8] = b"meta/schema";
 pub const CRS: &[u8] = b"meta/crs";
 pub const LAYOUT: &[u8] = b"meta/layout";
 pub const INDEX: &[u8] = b"meta/index";
+/// `u64` LE: how many bytes of the chunk pack are committed (see [`super::pack`]).
+pub const PACK_LEN: &[u8] = b"meta/pack_len";
 /// Present when the index must be derived again from the surveys on the next open (a
 /// migration that changed what the index keeps writes it).
 pub const REBUILD: &[u8] = b"meta/rebuild";
@@ -43,6 +45,11 @@ pub fn chunks_of(id: SurveyId) -> Vec<u8> {
 /// Chunk `k` of a level, numbered row-major over the level's chunks.
 pub fn chunk(id: SurveyId, level: usize, k: usize) -> Vec<u8> {
     format!("c/{id}/{level:02}/{k:08}").into_bytes()
+}
+
+/// Whether the key's value is a location in the chunk pack rather than the record itself.
+pub fn in_pack(k: &[u8]) -> bool {
+    k.starts_with(CHUNK_PREFIX) || k.starts_with(PATCHES_PREFIX)
 }
 
 /// An edge patch, by its patch id.

@@ -13,10 +13,11 @@ mod steps;
 pub const CURRENT: u32 = 3;
 
 /// What a step may need beyond the tree: the settings `open` was called with, which a fresh
-/// store adopts.
-pub struct Ctx {
+/// store adopts, and the pack that chunk bytes go to.
+pub struct Ctx<'a> {
     pub layout: PatchLayout,
     pub index: IndexConfig,
+    pub pack: &'a dyn super::pack::ChunkStore,
 }
 
 /// A step reads the tree as it is and returns the writes that take it one version further.

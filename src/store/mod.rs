@@ -1,7 +1,8 @@
 //! The persistent store: surveys, their samples and the LOD index's box tops, in one sled tree.
 //!
-//! Everything lives in sled's default tree so that one `sled::Batch` can commit a survey, its
-//! samples and every index change it caused atomically. Keys (ids are 16 lowercase hex digits):
+//! Everything but the chunk bytes lives in sled's default tree, so that one `sled::Batch` can
+//! commit a survey and every index change it caused atomically; the chunk bytes go to an
+//! append-only pack beside it first, and the batch points at them (see [`pack`]). Keys (ids are 16 lowercase hex digits):
 //!
 //! | key | value |
 //! | --- | --- |
@@ -9,9 +10,10 @@
 //! | `meta/crs` | `u32` LE: EPSG code of the store, set by the first survey that has one |
 //! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
 //! | `s/<survey>` | [`SurveyRecord`] (bincode) |
-//! | `p/<survey>` | the survey's [`StoredPatches`]: its patches and the edge tiles it reaches (bincode) |
+//! | `p/<survey>` | where the survey's [`StoredPatches`] are in the pack: its patches and the edge tiles it reaches (bincode, sealed with [`chunks::seal`]) |
 //! | `a/<survey>` | the [`KernelAccuracy`] of a survey whose ε was estimated (bincode) |
-//! | `c/<survey>/<level:02>/<k:08>` | chunk `k` of a level: [`chunks::CHUNK`]² samples, compressed and checksummed (see [`chunks`]) |
+//! | `c/<survey>/<level:02>/<k:08>` | where chunk `k` of a level is in the pack ([`pack::Loc`]): [`chunks::CHUNK`]² samples, compressed and checksummed (see [`chunks`]) |
+//! | `meta/pack_len` | `u64` LE: the committed length of the chunk pack |
 //! | `e/<patch>` | an [`EdgePatch`] the active surveys call for (bincode) |
 //! | `t/<patch>` | the patch's [`BoxState`] in the LOD index: `f64` LE top, then a byte that is 1 when the box is exposed; for active surveys' patches and the edge patches they call for |
 //! | `o/<survey>/<other>` | [`Deviation`] (bincode): how two surveys disagree where they overlap, under both orders |
@@ -35,12 +37,14 @@ pub mod chunks;
 mod compact;
 pub(crate) mod keys;
 mod migrate;
+pub mod pack;
 pub mod space;
 mod verify;
 
 pub use chunks::{CacheStats, ChunkReader};
 pub use compact::CompactReport;
 pub use migrate::CURRENT as SCHEMA_VERSION;
+use pack::{ChunkStore, PackFile};
 pub use space::{DiskSpace, SpaceGuard, SystemDisk};
 pub use verify::VerifyReport;
 
@@ -63,6 +67,10 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use thiserror::Error;
+
+/// The largest record read back from the pack: far above any survey's patch list (a
+/// 3600² survey's is about 2.5 MB), so that a damaged length cannot allocate without bound.
+const MAX_RECORD_BYTES: usize = 1 << 30;
 
 /// The decoded-chunk cache of a store opened without saying: 512 MiB.
 pub const DEFAULT_CACHE_BYTES: u64 = 512 << 20;
@@ -428,14 +436,23 @@ fn lock(dir: &Path) -> Result<File, StoreError> {
     }
 }
 
-/// A sled batch that knows how many bytes it writes, so that the disk can be asked first.
+/// A sled batch that knows how many bytes it writes, so that the disk can be asked first, with
+/// the chunks that go to the pack before it.
 #[derive(Default)]
 struct Writes {
     batch: sled::Batch,
     bytes: u64,
+    chunks: Vec<(Vec<u8>, Vec<u8>)>,
 }
 
 impl Writes {
+    /// Bytes for the pack (a chunk, a sealed record), their location under `key` in the
+    /// database.
+    fn insert_chunk(&mut self, key: Vec<u8>, bytes: Vec<u8>) {
+        self.bytes += (key.len() + bytes.len()) as u64;
+        self.chunks.push((key, bytes));
+    }
+
     fn insert(&mut self, k: impl Into<sled::IVec>, v: impl Into<sled::IVec>) {
         let (k, v) = (k.into(), v.into());
         self.bytes += (k.len() + v.len()) as u64;
@@ -460,6 +477,7 @@ impl Drop for CloseReader {
 
 pub struct Store {
     db: sled::Db,
+    pack: Arc<PackFile>,
     reader: Arc<ChunkReader>,
     _close_reader: CloseReader,
     opts: StoreOptions,
@@ -539,7 +557,21 @@ impl Store {
             // let sled run out of space halfway.
             guard.check(&dir, db.size_on_disk()?)?;
         }
-        let migrated = migrate::migrate(&db, &migrate::Ctx { layout, index })?;
+        let committed = match db.get(keys::PACK_LEN)? {
+            None => 0,
+            Some(v) => u64::from_le_bytes(v.as_ref().try_into().map_err(|_| {
+                StoreError::Corrupt(format!("meta/pack_len holds {} bytes, not 8", v.len()))
+            })?),
+        };
+        let pack = Arc::new(PackFile::open(&dir, committed)?);
+        let migrated = migrate::migrate(
+            &db,
+            &migrate::Ctx {
+                layout,
+                index,
+                pack: pack.as_ref(),
+            },
+        )?;
         let get = |k: &[u8]| -> Result<sled::IVec, StoreError> {
             db.get(k)?.ok_or_else(|| {
                 StoreError::Corrupt(format!("{} is missing", String::from_utf8_lossy(k)))
@@ -551,9 +583,14 @@ impl Store {
             .get(keys::CRS)?
             .map(|v| decode_u32(&v, "meta/crs"))
             .transpose()?;
-        let reader = Arc::new(ChunkReader::new((*db).clone(), opts.cache_bytes));
+        let reader = Arc::new(ChunkReader::new(
+            (*db).clone(),
+            pack.clone(),
+            opts.cache_bytes,
+        ));
         let store = Store {
             db,
+            pack,
             _close_reader: CloseReader(reader.clone()),
             reader,
             opts,
@@ -738,11 +775,15 @@ impl Store {
         Ok(out)
     }
 
-    fn load_patches(&self, id: SurveyId) -> Result<StoredPatches, StoreError> {
-        let v = self.db.get(keys::patches(id))?.ok_or_else(|| {
-            StoreError::Corrupt(format!("the patches of survey {id} are missing"))
-        })?;
-        decode(&v, &format!("patches of survey {id}"))
+    /// A survey's patches and edge tiles, from the pack.
+    #[doc(hidden)]
+    pub fn load_patches(&self, id: SurveyId) -> Result<StoredPatches, StoreError> {
+        let what = format!("the patches of survey {id}");
+        let sealed = chunks::read_packed(&self.db, self.pack.as_ref(), &keys::patches(id))
+            .map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))?;
+        let v = chunks::unseal(&sealed, MAX_RECORD_BYTES)
+            .map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))?;
+        decode(&v, &what)
     }
 
     /// One whole level's samples from its chunks.
@@ -903,13 +944,13 @@ impl Store {
             patches: s.patches.clone(),
             edge_tiles: s.edge_tiles.clone(),
         };
-        batch.insert(keys::patches(s.id), encode(&stored)?);
+        batch.insert_chunk(keys::patches(s.id), chunks::seal(&encode(&stored)?));
         if s.spec == AccuracySpec::Auto {
             batch.insert(keys::accuracy(s.id), encode(&s.kernel_accuracy)?);
         }
         for (level, g) in s.levels.iter().enumerate() {
             for (k, bytes) in chunks::encode_level(g) {
-                batch.insert(keys::chunk(s.id, level, k), bytes);
+                batch.insert_chunk(keys::chunk(s.id, level, k), bytes);
             }
         }
         stage_change(batch, change, next)?;
@@ -952,8 +993,18 @@ impl Store {
     }
 
     /// Applies a batch and makes it durable before returning, once the disk has room for it.
-    fn apply(&self, batch: Writes) -> Result<(), StoreError> {
+    fn apply(&self, mut batch: Writes) -> Result<(), StoreError> {
         self.guard.check(&self.dir, batch.bytes)?;
+        if !batch.chunks.is_empty() {
+            let (keys, bytes): (Vec<_>, Vec<_>) = batch.chunks.drain(..).unzip();
+            let locs = self.pack.append(&bytes)?;
+            for (k, loc) in keys.into_iter().zip(locs) {
+                batch.batch.insert(k, &loc.to_bytes()[..]);
+            }
+            batch
+                .batch
+                .insert(keys::PACK_LEN, &self.pack.len().to_le_bytes()[..]);
+        }
         self.db.apply_batch(batch.batch)?;
         self.db.flush()?;
         Ok(())
@@ -1205,6 +1256,12 @@ impl Store {
     #[doc(hidden)]
     pub fn raw(&self) -> &sled::Tree {
         &self.db
+    }
+
+    /// The chunk pack, for tests and tools that need to look under the records.
+    #[doc(hidden)]
+    pub fn raw_pack(&self) -> &dyn ChunkStore {
+        self.pack.as_ref()
     }
 }
 

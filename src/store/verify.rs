@@ -2,7 +2,8 @@
 //! checksum, every active survey is whole and its samples still hash to its id, and the stored
 //! box states and edge patches are the ones inserting the surveys again derives.
 
-use super::chunks::{chunk_counts, chunk_rect, decode as decode_chunk};
+use super::chunks::{chunk_counts, chunk_rect, decode as decode_chunk, read_chunk};
+use super::pack::ChunkStore;
 use super::{
     decode, decode_state, decode_u32, keys, migrate, FailedRecord, Status, Store, StoreError,
     StoredPatches, SurveyRecord,
@@ -81,7 +82,7 @@ impl Store {
         let mut rep = VerifyReport::default();
         let mut records: BTreeMap<SurveyId, SurveyRecord> = BTreeMap::new();
         let mut patches: HashMap<SurveyId, StoredPatches> = HashMap::new();
-        // (survey, level, k) → whether the chunk's checksum holds
+        // (survey, level, k) → where the chunk is in the pack
         let mut chunks: BTreeMap<(SurveyId, usize, usize), sled::IVec> = BTreeMap::new();
         let mut edges: HashMap<PatchId, EdgePatch> = HashMap::new();
         let mut tops: HashMap<PatchId, BoxState> = HashMap::new();
@@ -105,7 +106,7 @@ impl Store {
                     Err(e) => pr.add("record", e.to_string()),
                 }
             } else if let Some(id) = keys::parse_patches(&k) {
-                match decode::<StoredPatches>(&v, &key_str(&k)) {
+                match self.load_patches(id) {
                     Ok(ps) => {
                         patches.insert(id, ps);
                     }
@@ -319,6 +320,18 @@ impl Store {
                 (l != self.layout).then(|| format!("layout {l:?} differs from the open store's"))
             }),
             keys::REBUILD => Ok(None),
+            keys::PACK_LEN => match <[u8; 8]>::try_from(v) {
+                Ok(b) if u64::from_le_bytes(b) == self.pack.len() => Ok(None),
+                Ok(b) => Ok(Some(format!(
+                    "meta/pack_len says {} bytes, the pack holds {}",
+                    u64::from_le_bytes(b),
+                    self.pack.len()
+                ))),
+                Err(_) => Ok(Some(format!(
+                    "meta/pack_len holds {} bytes, not 8",
+                    v.len()
+                ))),
+            },
             keys::INDEX => decode::<IndexConfig>(v, &what).map(|c| {
                 (c != self.index)
                     .then(|| format!("index config {c:?} differs from the open store's"))
@@ -357,16 +370,17 @@ impl Store {
                 });
             }
             for k in 0..n {
-                let Some(bytes) = chunks.get(&(id, level, k)) else {
+                if !chunks.contains_key(&(id, level, k)) {
                     whole = false;
                     pr.add(
                         "missing chunk",
                         format!("chunk {k} of level {level} of survey {id} is missing"),
                     );
                     continue;
-                };
+                }
                 let rect = chunk_rect(&shape, k);
-                match decode_chunk(bytes, rect.len(), rect.cols()) {
+                let read = read_chunk(&self.db, self.pack.as_ref(), id, level, k);
+                match read.and_then(|b| decode_chunk(&b, rect.len(), rect.cols())) {
                     Err(e) => {
                         whole = false;
                         pr.add(
