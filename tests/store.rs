@@ -10,7 +10,6 @@ use patchwork::index::lod::IndexConfig;
 use patchwork::model::accuracy::AccuracySource;
 use patchwork::model::ids::{PatchId, SurveyId};
 use patchwork::model::survey::Survey;
-use patchwork::store::pack::ChunkStore as _;
 use patchwork::store::{
     open_error, DiskSpace, FailedRecord, IngestTimings, Opened, SpaceGuard, Status, Store,
     StoreError, SurveyRecord, SCHEMA_VERSION,
@@ -934,9 +933,9 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
                 }
             } else if key.starts_with("o/") || key.starts_with("e/") || key.starts_with("c/") {
                 db.remove(k).unwrap();
-            } else if key.starts_with("p/") {
+            } else if let Some(id) = key.strip_prefix("p/") {
                 // Versions 1 and 2 kept the patches alone, in the database.
-                let id: SurveyId = key[2..].parse().unwrap();
+                let id: SurveyId = id.parse().unwrap();
                 let p = store.load_patches(id).unwrap();
                 let bytes =
                     bincode::serde::encode_to_vec(&p.patches, bincode::config::standard()).unwrap();
@@ -993,7 +992,7 @@ fn chunks_a_crash_left_past_the_commit_are_cut_at_open() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(std::fs::metadata(&pack).unwrap().len(), committed);
     assert_verified(&store);
-    let roi = bounds_of(&[a.clone()]);
+    let roi = bounds_of(std::slice::from_ref(&a));
     assert_same(&terrain, &t, &roi);
     // Later commits go where the cut tail was.
     let mut t2 = terrain.clone();
