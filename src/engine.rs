@@ -23,7 +23,7 @@ pub use crate::read::REFUSED_PATH;
 use crate::read::{content_id, file_content_id, ReadError, ReadLimits};
 use crate::resample::gpu::{GpuError, GpuResampler};
 pub use crate::resample::Backend;
-use crate::resample::SampleGrid;
+use crate::resample::{cpu, Cancel, SampleGrid};
 use crate::store::{
     now_unix, Catalog, DiskSpace, FailedRecord, IngestTimings, SpaceGuard, Store, StoreError,
     StoreOptions, SurveyRecord, SystemDisk,
@@ -59,6 +59,9 @@ pub enum EngineError {
     StoreFailed(String),
     #[error("{0}")]
     Store(#[from] StoreError),
+    /// The caller gave up (its deadline passed) and the work stopped.
+    #[error("the request was cancelled: its deadline passed")]
+    Cancelled,
 }
 
 /// What happened to a file or a survey.
@@ -290,6 +293,16 @@ impl Engine {
         &self,
         f: impl FnOnce(&Store, &Arc<Terrain>) -> Result<(T, Option<Terrain>), StoreError>,
     ) -> Result<T, EngineError> {
+        self.write_and(f, |_| {})
+    }
+
+    /// [`Engine::write`], then `after` with the result once it is published, still as the
+    /// writer: what `after` sends (change events) goes out in commit order.
+    fn write_and<T>(
+        &self,
+        f: impl FnOnce(&Store, &Arc<Terrain>) -> Result<(T, Option<Terrain>), StoreError>,
+        after: impl FnOnce(&T),
+    ) -> Result<T, EngineError> {
         if let Some(why) = self.broken.get() {
             return Err(EngineError::StoreFailed(why.clone()));
         }
@@ -317,10 +330,12 @@ impl Engine {
                 if self.broken.set(why.clone()).is_ok() {
                     tracing::error!(error = %why, "no more writes until restart; reads go on");
                 }
+                after(&v);
                 return Ok(v);
             }
         }
         drop(p);
+        after(&v);
         if let Err(e) = store.guard().restore(store.path()) {
             tracing::warn!(error = %e, "could not make the store's reserve file");
         }
@@ -418,7 +433,6 @@ impl Engine {
                 let seconds = t0.elapsed().as_secs_f64();
                 if outcome != Outcome::Unchanged {
                     tracing::info!(source = ?source, survey = %survey, outcome = outcome.as_str(), seconds, conflicts = conflicts.len(), "ingested");
-                    self.emit(outcome, Some(survey), &source, "", conflicts.clone());
                 }
                 Ok(Ingested {
                     source,
@@ -437,7 +451,6 @@ impl Engine {
             Err(Refusal::File(error)) => {
                 tracing::warn!(source = ?source, error = ?error, "ingest failed");
                 self.record_failure(path, &source, &error);
-                self.emit(Outcome::Failed, None, &source, &error, Vec::new());
                 Ok(failed(error))
             }
         }
@@ -446,8 +459,11 @@ impl Engine {
     /// Remembers a file that failed, so that the inbox does not try it again until it
     /// changes. Only names that are there are remembered: one with nothing behind it would
     /// only fill the store.
+    /// Records a failed file, and says so to subscribers in commit order.
     fn record_failure(&self, path: &Path, source: &str, error: &str) {
         if path.symlink_metadata().is_err() {
+            // Only names that exist are kept; the failure is still news.
+            self.emit(Outcome::Failed, None, source, error, Vec::new());
             return;
         }
         let (size, mtime_unix) = size_mtime(path).unwrap_or((0, 0));
@@ -459,8 +475,13 @@ impl Engine {
             at_unix: now_unix(),
         };
         let keep = self.cfg.limits.max_failures as usize;
-        if let Err(e) = self.write(|s, _| Ok((s.record_failure(&rec, keep)?, None))) {
+        let recorded = self.write_and(
+            |s, _| Ok((s.record_failure(&rec, keep)?, None)),
+            |_| self.emit(Outcome::Failed, None, source, error, Vec::new()),
+        );
+        if let Err(e) = recorded {
             tracing::warn!(source = ?source, error = ?e.to_string(), "could not record the failure");
+            self.emit(Outcome::Failed, None, source, error, Vec::new());
         }
     }
 
@@ -529,74 +550,84 @@ impl Engine {
         let survey = Arc::new(prepared.survey);
         let samples = survey.levels[0].valid_count() as u64;
         let t1 = Instant::now();
-        let (outcome, overlaps) = self
-            .write(|store, current| {
-                let previous = store_active_from(store, source)?;
-                if current.survey(survey.id).is_some() {
-                    // The content is already served (from this path or a copy elsewhere);
-                    // what this path held before, if anything else, is gone.
-                    let next = match previous.filter(|o| o.id != survey.id) {
-                        Some(old) => Some(retire_in(store, current, &old, false)?),
-                        None => None,
+        let mut conflicts = Vec::new();
+        let outcome = self
+            .write_and(
+                |store, current| {
+                    let previous = store_active_from(store, source)?;
+                    if current.survey(survey.id).is_some() {
+                        // The content is already served (from this path or a copy elsewhere);
+                        // what this path held before, if anything else, is gone.
+                        let next = match previous.filter(|o| o.id != survey.id) {
+                            Some(old) => Some(retire_in(store, current, &old, false)?),
+                            None => None,
+                        };
+                        store.clear_failure(source)?;
+                        return Ok(((Outcome::Unchanged, Vec::new()), next));
+                    }
+                    let mut next = (**current).clone();
+                    let rec = record(
+                        &survey,
+                        source,
+                        &content,
+                        prepared.source,
+                        prepared.timings,
+                        t1,
+                    );
+                    let outcome = match &previous {
+                        Some(old) => {
+                            let old_patches: Vec<_> = current
+                                .index()
+                                .survey_patches(old.id)
+                                .map(|p| p.to_vec())
+                                .unwrap_or_default();
+                            let retire: ChangeStats = next.try_retire(old.id)?.unwrap_or_default();
+                            let insert = next.try_insert(&survey)?;
+                            let overlaps = next.overlaps(&survey)?;
+                            store.commit_replace(
+                                old.id,
+                                &old_patches,
+                                &retire,
+                                &survey,
+                                &rec,
+                                &insert,
+                                &next,
+                                &overlaps,
+                            )?;
+                            (Outcome::Replaced, overlaps)
+                        }
+                        None => {
+                            let insert = next.try_insert(&survey)?;
+                            let overlaps = next.overlaps(&survey)?;
+                            store.commit_survey(&survey, &rec, &insert, &next, &overlaps)?;
+                            (Outcome::Inserted, overlaps)
+                        }
                     };
-                    store.clear_failure(source)?;
-                    return Ok(((Outcome::Unchanged, Vec::new()), next));
-                }
-                let mut next = (**current).clone();
-                let rec = record(
-                    &survey,
-                    source,
-                    &content,
-                    prepared.source,
-                    prepared.timings,
-                    t1,
-                );
-                let outcome = match &previous {
-                    Some(old) => {
-                        let old_patches: Vec<_> = current
-                            .index()
-                            .survey_patches(old.id)
-                            .map(|p| p.to_vec())
-                            .unwrap_or_default();
-                        let retire: ChangeStats = next.try_retire(old.id)?.unwrap_or_default();
-                        let insert = next.try_insert(&survey)?;
-                        let overlaps = next.overlaps(&survey)?;
-                        store.commit_replace(
-                            old.id,
-                            &old_patches,
-                            &retire,
-                            &survey,
-                            &rec,
-                            &insert,
-                            &next,
-                            &overlaps,
-                        )?;
-                        (Outcome::Replaced, overlaps)
+                    // The samples are on disk now; the terrain reads them from there.
+                    next.page_out(survey.id);
+                    Ok((outcome, Some(next)))
+                },
+                |(outcome, overlaps)| {
+                    if *outcome == Outcome::Unchanged {
+                        return;
                     }
-                    None => {
-                        let insert = next.try_insert(&survey)?;
-                        let overlaps = next.overlaps(&survey)?;
-                        store.commit_survey(&survey, &rec, &insert, &next, &overlaps)?;
-                        (Outcome::Inserted, overlaps)
-                    }
-                };
-                // The samples are on disk now; the terrain reads them from there.
-                next.page_out(survey.id);
-                Ok((outcome, Some(next)))
-            })
-            .map_err(Refusal::Store)?;
-        let catalog = self.catalog();
-        let accuracy = |id: SurveyId| {
-            catalog
-                .records
-                .iter()
-                .find(|r| r.id == id)
-                .map(|r| r.accuracy)
-        };
-        let conflicts = overlaps
-            .iter()
-            .filter_map(|(o, d)| conflict(survey.accuracy, accuracy(*o)?, *o, d))
-            .collect();
+                    let catalog = self.catalog();
+                    let accuracy = |id: SurveyId| {
+                        catalog
+                            .records
+                            .iter()
+                            .find(|r| r.id == id)
+                            .map(|r| r.accuracy)
+                    };
+                    conflicts = overlaps
+                        .iter()
+                        .filter_map(|(o, d)| conflict(survey.accuracy, accuracy(*o)?, *o, d))
+                        .collect();
+                    self.emit(*outcome, Some(survey.id), source, "", conflicts.clone());
+                },
+            )
+            .map_err(Refusal::Store)?
+            .0;
         Ok((outcome, survey.id, samples, conflicts))
     }
 
@@ -646,20 +677,22 @@ impl Engine {
     }
 
     fn retire_record(&self, rec: &SurveyRecord, pin: bool) -> Result<usize, EngineError> {
-        let n = self.write(|store, current| {
-            // Another writer may have retired it since the catalog was read.
-            if store_active_from(store, &rec.source)?.is_none_or(|r| r.id != rec.id) {
-                return Err(StoreError::NotActive(rec.id));
-            }
-            let n = current
-                .index()
-                .survey_patches(rec.id)
-                .map_or(0, |p| p.len());
-            let next = retire_in(store, current, rec, pin)?;
-            Ok((n, Some(next)))
-        })?;
+        let n = self.write_and(
+            |store, current| {
+                // Another writer may have retired it since the catalog was read.
+                if store_active_from(store, &rec.source)?.is_none_or(|r| r.id != rec.id) {
+                    return Err(StoreError::NotActive(rec.id));
+                }
+                let n = current
+                    .index()
+                    .survey_patches(rec.id)
+                    .map_or(0, |p| p.len());
+                let next = retire_in(store, current, rec, pin)?;
+                Ok((n, Some(next)))
+            },
+            |_| self.emit(Outcome::Retired, Some(rec.id), &rec.source, "", Vec::new()),
+        )?;
         tracing::info!(survey = %rec.id, source = ?rec.source, pinned = pin, "retired");
-        self.emit(Outcome::Retired, Some(rec.id), &rec.source, "", Vec::new());
         Ok(n)
     }
 
@@ -829,6 +862,18 @@ impl Engine {
         height: u32,
         backend: Backend,
     ) -> Result<(Tile, &'static str), EngineError> {
+        self.tile_until(cut, width, height, backend, &Cancel::default())
+    }
+
+    /// A resampled tile, given up once `cancel` is set.
+    pub fn tile_until(
+        &self,
+        cut: &Cut,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<(Tile, &'static str), EngineError> {
         let n = width as u64 * height as u64;
         if width == 0 || height == 0 {
             return Err(EngineError::Invalid(
@@ -880,7 +925,15 @@ impl Engine {
                 None => {}
             }
         }
-        Ok((t.try_resample(ps, &grid).map_err(StoreError::from)?, "cpu"))
+        let set = t.try_resolve(&ps).map_err(StoreError::from)?;
+        let heights = cpu::resample_until(&set, &grid, cancel).ok_or(EngineError::Cancelled)?;
+        let tile = Tile {
+            width: grid.width,
+            height: grid.height,
+            heights,
+            patches: ps,
+        };
+        Ok((tile, "cpu"))
     }
 
     /// Heights at points, at error `e`: what any tile holding the same points gives there.

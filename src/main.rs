@@ -737,7 +737,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             };
             let r = req;
             let t = call!(&mut c, terrain.resample_tile(req), move |e: &Engine| {
-                api::resample_tile(e, &r)
+                api::resample_tile(e, &r, &Default::default())
             })?;
             write_tile(&out, &t, &roi)?;
             let valid = t.valid.iter().filter(|&&v| v == 1).count();

@@ -10,7 +10,7 @@
 //! only on the point and the patches that reach it, never on the ROI, and it is within the
 //! error of the most accurate data that covers it.
 
-use super::{PatchSet, ResolvedPatch, SampleGrid, BLOCK};
+use super::{Cancel, PatchSet, ResolvedPatch, SampleGrid, BLOCK};
 use rayon::prelude::*;
 
 /// Patch indices per block of output samples, so each sample visits only patches near it.
@@ -32,12 +32,20 @@ pub fn bin(patches: &[ResolvedPatch], grid: &SampleGrid) -> Vec<Vec<u32>> {
 
 /// Heights at every point of the grid, NaN where no valid kernel reaches.
 pub fn resample(set: &PatchSet, grid: &SampleGrid) -> Vec<f32> {
+    resample_until(set, grid, &Cancel::default()).expect("never cancelled")
+}
+
+/// [`resample`], checking `cancel` before every row; None once it is set.
+pub fn resample_until(set: &PatchSet, grid: &SampleGrid, cancel: &Cancel) -> Option<Vec<f32>> {
     let bins = bin(&set.patches, grid);
     let bx = grid.width.div_ceil(BLOCK);
     let mut out = vec![f32::NAN; grid.width * grid.height];
     out.par_chunks_mut(grid.width)
         .enumerate()
         .for_each(|(j, row)| {
+            if cancel.is_cancelled() {
+                return;
+            }
             let pts = &grid.points[j * grid.width..(j + 1) * grid.width];
             let mut tiers = Vec::with_capacity(8);
             for (i, (o, &p)) in row.iter_mut().zip(pts).enumerate() {
@@ -48,7 +56,7 @@ pub fn resample(set: &PatchSet, grid: &SampleGrid) -> Vec<f32> {
                 *o = blend_with(set, bin, p, &mut tiers);
             }
         });
-    out
+    (!cancel.is_cancelled()).then_some(out)
 }
 
 /// Sums of one tier at one point.

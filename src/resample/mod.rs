@@ -20,6 +20,22 @@ pub enum Backend {
     Gpu,
 }
 
+/// Set when the caller of a long computation has given up (its deadline passed): the loops
+/// that resample check it as they go and stop, so that abandoned work frees its thread.
+#[derive(Clone, Debug, Default)]
+pub struct Cancel(Arc<std::sync::atomic::AtomicBool>);
+
+impl Cancel {
+    pub fn cancel(&self) {
+        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    #[inline]
+    pub fn is_cancelled(&self) -> bool {
+        self.0.load(std::sync::atomic::Ordering::Relaxed)
+    }
+}
+
 /// Output samples per block side when binning patches.
 pub const BLOCK: usize = 16;
 

@@ -4,8 +4,12 @@
 use super::convert;
 use super::proto as pb;
 use crate::engine::{Cut, Engine, EngineError, Origin};
+use crate::index::query::Extracted;
+use crate::resample::Cancel;
 use crate::store::StoreError;
+use crate::terrain::Terrain;
 use std::path::Path;
+use std::sync::Arc;
 
 fn cut_of(
     engine: &Engine,
@@ -21,10 +25,12 @@ fn cut_of(
     }
 }
 
-pub fn query_patches(
+/// A patch query's cut: the snapshot it was taken from, its patches, and how many go in a
+/// batch. The batches are made one at a time as the client takes them ([`patch_batch`]).
+pub fn patch_cut(
     engine: &Engine,
     r: &pb::PatchQuery,
-) -> Result<Vec<pb::PatchBatch>, EngineError> {
+) -> Result<(Arc<Terrain>, Vec<Extracted>, usize), EngineError> {
     let (u, v) = match &r.cut {
         Some(pb::patch_query::Cut::Uniform(u)) => (Some(u), None),
         Some(pb::patch_query::Cut::View(v)) => (None, Some(v)),
@@ -37,19 +43,33 @@ pub fn query_patches(
     } else {
         r.batch_size as usize
     };
-    ps.chunks(size)
-        .map(|c| {
-            let patches = c
-                .iter()
-                .filter_map(|x| convert::patch(&t, x).transpose())
-                .collect::<Result<_, _>>()
-                .map_err(StoreError::from)?;
-            Ok(pb::PatchBatch { patches })
-        })
-        .collect()
+    Ok((t, ps, size))
 }
 
-pub fn resample_tile(engine: &Engine, r: &pb::TileRequest) -> Result<pb::Tile, EngineError> {
+/// One batch of a patch query, samples read.
+pub fn patch_batch(t: &Terrain, ps: &[Extracted]) -> Result<pb::PatchBatch, EngineError> {
+    let patches = ps
+        .iter()
+        .filter_map(|x| convert::patch(t, x).transpose())
+        .collect::<Result<_, _>>()
+        .map_err(StoreError::from)?;
+    Ok(pb::PatchBatch { patches })
+}
+
+/// Every batch of a patch query at once: for callers in the same process.
+pub fn query_patches(
+    engine: &Engine,
+    r: &pb::PatchQuery,
+) -> Result<Vec<pb::PatchBatch>, EngineError> {
+    let (t, ps, size) = patch_cut(engine, r)?;
+    ps.chunks(size).map(|c| patch_batch(&t, c)).collect()
+}
+
+pub fn resample_tile(
+    engine: &Engine,
+    r: &pb::TileRequest,
+    cancel: &Cancel,
+) -> Result<pb::Tile, EngineError> {
     let (u, v) = match &r.cut {
         Some(pb::tile_request::Cut::Uniform(u)) => (Some(u), None),
         Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
@@ -57,7 +77,7 @@ pub fn resample_tile(engine: &Engine, r: &pb::TileRequest) -> Result<pb::Tile, E
     };
     let cut = cut_of(engine, u, v)?;
     let backend = convert::backend(r.backend)?;
-    let (tile, used) = engine.tile(&cut, r.width, r.height, backend)?;
+    let (tile, used) = engine.tile_until(&cut, r.width, r.height, backend, cancel)?;
     Ok(convert::tile(&tile, used, engine.crs()))
 }
 

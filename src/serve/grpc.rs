@@ -5,6 +5,7 @@ use super::auth::Gate;
 use super::proto::{self as pb, admin_server, terrain_server};
 use super::{api, convert, status};
 use crate::engine::{Engine, EngineError};
+use crate::resample::Cancel;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
@@ -34,14 +35,17 @@ impl Service {
     }
 
     /// Runs `f` off the async threads once a permit is free, within the configured deadline
-    /// (the wait for the permit included).
+    /// (the wait for the permit included). Past the deadline the caller gets
+    /// DEADLINE_EXCEEDED and `f`'s [`Cancel`] is set, so that work which checks it stops.
     async fn run<T, F>(&self, f: F) -> Result<T, Status>
     where
         T: Send + 'static,
-        F: FnOnce(&Engine) -> Result<T, EngineError> + Send + 'static,
+        F: FnOnce(&Engine, &Cancel) -> Result<T, EngineError> + Send + 'static,
     {
         let engine = self.engine.clone();
         let ms = engine.config().limits.deadline_ms;
+        let cancel = Cancel::default();
+        let job_cancel = cancel.clone();
         let work = async {
             let permit = self
                 .running
@@ -50,7 +54,7 @@ impl Service {
                 .await
                 .map_err(|_| Status::unavailable("the daemon is stopping"))?;
             let job = tokio::task::spawn_blocking(move || {
-                let r = f(&engine);
+                let r = f(&engine, &job_cancel);
                 drop(permit);
                 r
             });
@@ -61,7 +65,10 @@ impl Service {
         };
         tokio::time::timeout(Duration::from_millis(ms), work)
             .await
-            .unwrap_or_else(|_| Err(status::deadline(ms)))
+            .unwrap_or_else(|_| {
+                cancel.cancel();
+                Err(status::deadline(ms))
+            })
     }
 
     /// Runs `f` off the async threads with no deadline: ingestion, verification and
@@ -91,10 +98,51 @@ impl terrain_server::Terrain for Service {
         r: Request<pb::PatchQuery>,
     ) -> Result<Response<Self::QueryPatchesStream>, Status> {
         let r = r.into_inner();
-        let batches = self.run(move |e| api::query_patches(e, &r)).await?;
-        Ok(Response::new(Box::pin(tokio_stream::iter(
-            batches.into_iter().map(Ok),
-        ))))
+        let ms = self.engine.config().limits.deadline_ms;
+        let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
+        let (t, ps, size) = self.run(move |e, _| api::patch_cut(e, &r)).await?;
+        // Batches are made as the client takes them, two ahead at most: a client that stops
+        // reading holds two batches, not the whole cut, and only until the deadline.
+        let (tx, rx) = tokio::sync::mpsc::channel(2);
+        let running = self.running.clone();
+        // Set when the deadline cut the stream short, so that it ends in an error rather than
+        // looking complete.
+        let cut_short = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let short = cut_short.clone();
+        tokio::spawn(async move {
+            for chunk in ps.chunks(size) {
+                let Ok(permit) = running.clone().acquire_owned().await else {
+                    return;
+                };
+                let (t, chunk) = (t.clone(), chunk.to_vec());
+                let batch = tokio::task::spawn_blocking(move || {
+                    let b = api::patch_batch(&t, &chunk);
+                    drop(permit);
+                    b
+                })
+                .await
+                .map_err(|e| Status::internal(format!("the request failed: {e}")))
+                .and_then(|b| b.map_err(status::to_status));
+                let failed = batch.is_err();
+                match tokio::time::timeout_at(deadline, tx.send(batch)).await {
+                    Ok(Ok(())) if !failed => {}
+                    // The client is gone, or was sent the error.
+                    Ok(_) => return,
+                    Err(_) => {
+                        short.store(true, std::sync::atomic::Ordering::SeqCst);
+                        return;
+                    }
+                }
+            }
+        });
+        let end = tokio_stream::once(()).filter_map(move |()| {
+            cut_short
+                .load(std::sync::atomic::Ordering::SeqCst)
+                .then(|| Err(status::deadline(ms)))
+        });
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(rx).chain(end),
+        )))
     }
 
     async fn resample_tile(
@@ -102,7 +150,7 @@ impl terrain_server::Terrain for Service {
         r: Request<pb::TileRequest>,
     ) -> Result<Response<pb::Tile>, Status> {
         let r = r.into_inner();
-        self.run(move |e| api::resample_tile(e, &r))
+        self.run(move |e, c| api::resample_tile(e, &r, c))
             .await
             .map(Response::new)
     }
@@ -112,7 +160,7 @@ impl terrain_server::Terrain for Service {
         r: Request<pb::SampleRequest>,
     ) -> Result<Response<pb::Samples>, Status> {
         let r = r.into_inner();
-        self.run(move |e| api::sample_heights(e, &r))
+        self.run(move |e, _| api::sample_heights(e, &r))
             .await
             .map(Response::new)
     }
@@ -145,7 +193,9 @@ impl admin_server::Admin for Service {
         &self,
         _: Request<pb::ListSurveysRequest>,
     ) -> Result<Response<pb::SurveyList>, Status> {
-        self.run(api::list_surveys).await.map(Response::new)
+        self.run(|e, _| api::list_surveys(e))
+            .await
+            .map(Response::new)
     }
 
     async fn retire(
@@ -164,7 +214,7 @@ impl admin_server::Admin for Service {
         r: Request<pb::ForgetRequest>,
     ) -> Result<Response<pb::ForgetReply>, Status> {
         let r = r.into_inner();
-        self.run(move |e| api::forget(e, &r))
+        self.run(move |e, _| api::forget(e, &r))
             .await
             .map(Response::new)
     }
@@ -173,7 +223,7 @@ impl admin_server::Admin for Service {
         &self,
         _: Request<pb::StatsRequest>,
     ) -> Result<Response<pb::StatsReply>, Status> {
-        self.run(api::stats).await.map(Response::new)
+        self.run(|e, _| api::stats(e)).await.map(Response::new)
     }
 
     async fn verify(

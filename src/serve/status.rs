@@ -39,7 +39,9 @@ pub fn to_status(e: EngineError) -> Status {
         EngineError::Store(StoreError::Sled(sled::Error::Io(_)) | StoreError::Io(_)) => {
             Status::unavailable(m)
         }
+        EngineError::Store(StoreError::Samples(_)) => Status::data_loss(m),
         EngineError::Store(_) => Status::internal(m),
+        EngineError::Cancelled => Status::deadline_exceeded(m),
     }
 }
 
