@@ -25,8 +25,8 @@ use crate::resample::gpu::{GpuError, GpuResampler};
 pub use crate::resample::Backend;
 use crate::resample::{cpu, Cancel, SampleGrid};
 use crate::store::{
-    now_unix, Catalog, DiskSpace, FailedRecord, IngestTimings, SpaceGuard, Store, StoreError,
-    StoreOptions, SurveyRecord, SystemDisk,
+    now_unix, CacheStats, Catalog, ChunkReader, DiskSpace, FailedRecord, IngestTimings, SpaceGuard,
+    Store, StoreError, StoreOptions, SurveyRecord, SystemDisk,
 };
 use crate::terrain::{Terrain, Tile};
 use std::collections::HashMap;
@@ -162,6 +162,7 @@ pub struct Stats {
     pub quadtree_nodes: u32,
     /// Why writes are refused now (a full disk, a failed store); None when they are not.
     pub read_only: Option<String>,
+    pub cache: CacheStats,
 }
 
 /// What readers see: a terrain and the catalog of the same commit.
@@ -187,6 +188,8 @@ pub struct Engine {
     events: broadcast::Sender<Event>,
     /// The GPU resampler, when the daemon opened one; dropped if the device is lost.
     gpu: Mutex<Option<GpuResampler>>,
+    /// The store's chunk reader, for cache figures without the writer.
+    reader: RwLock<Arc<ChunkReader>>,
 }
 
 /// Whether an EPSG code names a geographic (longitude/latitude) CRS.
@@ -229,6 +232,7 @@ impl Engine {
         let catalog = opened.store.catalog()?;
         let (events, _) = broadcast::channel(1024);
         Ok(Engine {
+            reader: RwLock::new(opened.store.reader()),
             dir: opened.store.path().to_path_buf(),
             guard,
             published: RwLock::new(Published {
@@ -761,6 +765,7 @@ impl Engine {
             backend: self.backend_name(),
             quadtree_nodes: t.index().tree_stats().nodes as u32,
             read_only: self.read_only(),
+            cache: self.reader.read().expect("reader lock").stats(),
         }
     }
 
@@ -797,6 +802,7 @@ impl Engine {
             }
         };
         let catalog = opened.store.catalog()?;
+        *self.reader.write().expect("reader lock") = opened.store.reader();
         self.publish(opened.terrain, catalog);
         *guard = Some(opened.store);
         report

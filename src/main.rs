@@ -610,6 +610,10 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {}\nbackend {}",
                     s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes,
                     if s.crs == 0 { "none yet".to_string() } else { format!("EPSG:{}", s.crs) }, s.backend);
+                println!(
+                    "cache {} of {} bytes, {} hits, {} misses",
+                    s.cache_bytes, s.cache_capacity_bytes, s.cache_hits, s.cache_misses
+                );
                 if !s.read_only.is_empty() {
                     println!("read-only: {}", s.read_only);
                 }
@@ -817,6 +821,10 @@ struct StatsJson<'a> {
     quadtree_nodes: u32,
     /// Why writes are refused now; null when they are not.
     read_only: Option<&'a str>,
+    cache_bytes: u64,
+    cache_capacity_bytes: u64,
+    cache_hits: u64,
+    cache_misses: u64,
 }
 
 impl<'a> StatsJson<'a> {
@@ -833,6 +841,10 @@ impl<'a> StatsJson<'a> {
             backend: &s.backend,
             quadtree_nodes: s.quadtree_nodes,
             read_only: (!s.read_only.is_empty()).then_some(s.read_only.as_str()),
+            cache_bytes: s.cache_bytes,
+            cache_capacity_bytes: s.cache_capacity_bytes,
+            cache_hits: s.cache_hits,
+            cache_misses: s.cache_misses,
         }
     }
 }

@@ -211,6 +211,10 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         backend: s.backend.clone(),
         quadtree_nodes: s.quadtree_nodes,
         read_only: s.read_only.clone().unwrap_or_default(),
+        cache_bytes: s.cache.bytes,
+        cache_capacity_bytes: s.cache.capacity,
+        cache_hits: s.cache.hits,
+        cache_misses: s.cache.misses,
     }
 }
 
