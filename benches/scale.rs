@@ -242,7 +242,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                 backend: pb::Backend::Cpu as i32,
             };
             let t = Instant::now();
-            let tile = terrain.resample_tile(req.clone()).await?.into_inner();
+            let tile = terrain.resample_tile(req).await?.into_inner();
             cold.push(t.elapsed().as_secs_f64() * 1e3);
             patches += tile.patches as u64;
             let t = Instant::now();
