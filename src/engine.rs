@@ -230,6 +230,7 @@ impl Engine {
             tracing::warn!(reason = %e, "serving read-only: writes resume once the disk has room");
         }
         let catalog = opened.store.catalog()?;
+        release_free_memory();
         let (events, _) = broadcast::channel(1024);
         Ok(Engine {
             reader: RwLock::new(opened.store.reader()),
@@ -422,6 +423,7 @@ impl Engine {
         };
         let one_at_a_time = self.ingesting.lock().unwrap_or_else(|e| e.into_inner());
         let result = self.ingest_inner(path, &source, accuracy, origin);
+        release_free_memory();
         drop(one_at_a_time);
         match result {
             Err(Refusal::Outside) => {
@@ -962,6 +964,19 @@ impl Engine {
             .snapshot()
             .try_sample(points, e)
             .map_err(StoreError::from)?)
+    }
+}
+
+/// Gives the allocator's free memory back to the system. Opening a store and ingesting a file
+/// allocate far more, briefly, than serving keeps (tops read once, a raster's mipmap and
+/// chunks); glibc keeps such freed pages in its arenas, so without this a daemon's resident
+/// memory would stay at its largest ingest rather than what it serves from.
+fn release_free_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free pages of the allocator's own arenas to the
+    // system; it touches no memory in use.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 
