@@ -572,14 +572,18 @@ impl Engine {
                         return Ok(((Outcome::Unchanged, Vec::new()), next));
                     }
                     let mut next = (**current).clone();
-                    let rec = record(
-                        &survey,
-                        source,
-                        &content,
-                        prepared.source,
-                        prepared.timings,
-                        t1,
-                    );
+                    // The record, once the index work is done, so that it can say how long
+                    // that took.
+                    let rec = || {
+                        record(
+                            &survey,
+                            source,
+                            &content,
+                            prepared.source,
+                            prepared.timings,
+                            t1,
+                        )
+                    };
                     let outcome = match &previous {
                         Some(old) => {
                             let old_patches: Vec<_> = current
@@ -595,7 +599,7 @@ impl Engine {
                                 &old_patches,
                                 &retire,
                                 &survey,
-                                &rec,
+                                &rec(),
                                 &insert,
                                 &next,
                                 &overlaps,
@@ -605,7 +609,7 @@ impl Engine {
                         None => {
                             let insert = next.try_insert(&survey)?;
                             let overlaps = next.overlaps(&survey)?;
-                            store.commit_survey(&survey, &rec, &insert, &next, &overlaps)?;
+                            store.commit_survey(&survey, &rec(), &insert, &next, &overlaps)?;
                             (Outcome::Inserted, overlaps)
                         }
                     };
@@ -618,6 +622,10 @@ impl Engine {
                         return;
                     }
                     let catalog = self.catalog();
+                    if let Some(r) = catalog.records.iter().find(|r| r.id == survey.id) {
+                        let t = &r.ingest;
+                        tracing::debug!(source = ?source, read_ms = t.read_ms, build_ms = t.build_ms, index_ms = t.index_ms, commit_ms = t.commit_ms, "ingest timings");
+                    }
                     let accuracy = |id: SurveyId| {
                         catalog
                             .records

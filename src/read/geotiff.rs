@@ -1,6 +1,7 @@
 //! GeoTIFF and Cloud Optimized GeoTIFF reader built on the pure-Rust `tiff` decoder.
 
-use std::io::{BufReader, Read, Seek};
+use rayon::prelude::*;
+use std::io::{Cursor, Read, Seek};
 use std::panic::{self, AssertUnwindSafe};
 use std::path::Path;
 
@@ -45,12 +46,25 @@ pub fn is_tiff_signature(head: &[u8]) -> bool {
 
 /// Reads the single band of the first (full-resolution) image of a GeoTIFF or COG.
 pub fn read_geotiff(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
-    let file = open_regular_file(path, limits)?;
+    let mut file = open_regular_file(path, limits)?;
     let file_len = file.metadata()?.len();
-    let reader = BufReader::new(file);
+    // The file is read whole so that its chunks can be decoded in parallel, each thread with
+    // a decoder of its own over the same bytes. A file that could not be a raster within the
+    // limit, even uncompressed with overviews (a third more) and masks, is refused before a
+    // byte of it is read.
+    if file_len > limits.max_bytes.saturating_mul(2).saturating_add(1 << 20) {
+        return Err(ReadError::invalid(format!(
+            "the file is {} MiB, more than twice what a raster may have (limits.max_ingest_mb = {})",
+            file_len >> 20,
+            limits.max_bytes >> 20
+        )));
+    }
+    let mut bytes = Vec::with_capacity(file_len as usize);
+    file.read_to_end(&mut bytes)?;
+    let file_len = bytes.len() as u64;
     // The decoder is fed untrusted bytes and still has internal asserts; a panic there must
     // become an error for this one file, not take the whole import down.
-    match panic::catch_unwind(AssertUnwindSafe(|| decode(reader, file_len, limits))) {
+    match panic::catch_unwind(AssertUnwindSafe(|| decode(&bytes, file_len, limits))) {
         Ok(result) => result,
         Err(payload) => {
             let msg = payload
@@ -184,15 +198,11 @@ fn check_first_ifd<R: Read + Seek>(r: &mut R, file_len: u64) -> Result<(), ReadE
     Ok(())
 }
 
-fn decode<R: Read + Seek>(
-    mut reader: R,
-    file_len: u64,
-    limits: &ReadLimits,
-) -> Result<Raster, ReadError> {
-    check_first_ifd(&mut reader, file_len)?;
+fn decode(bytes: &[u8], file_len: u64, limits: &ReadLimits) -> Result<Raster, ReadError> {
+    check_first_ifd(&mut Cursor::new(bytes), file_len)?;
     // Decoder::new loads the first IFD, which in a COG is the full-resolution image; the
     // overviews and masks chained after it are never visited.
-    let mut dec = Decoder::new(reader).map_err(tiff_error)?;
+    let mut dec = Decoder::new(Cursor::new(bytes)).map_err(tiff_error)?;
     let (width, height) = dec.dimensions().map_err(tiff_error)?;
     limits.check(u64::from(width), u64::from(height))?;
     let (cols, rows) = (width as usize, height as usize);
@@ -222,9 +232,15 @@ fn decode<R: Read + Seek>(
         .unwrap_or(usize::MAX)
         .max(tiff_limits.ifd_value_size);
     tiff_limits.intermediate_buffer_size = usize::try_from(file_len).unwrap_or(usize::MAX);
-    let mut dec = dec.with_limits(tiff_limits);
-
-    let samples = read_samples(&mut dec, cols, rows, kind, nodata, &counts, expansion)?;
+    let mut dec = dec.with_limits(tiff_limits.clone());
+    let open = || {
+        Decoder::new(Cursor::new(bytes))
+            .map(|d| d.with_limits(tiff_limits.clone()))
+            .map_err(tiff_error)
+    };
+    let samples = read_samples(
+        &mut dec, &open, cols, rows, kind, nodata, &counts, expansion,
+    )?;
     Ok(Raster {
         cols,
         rows,
@@ -656,8 +672,12 @@ fn largest_chunk_samples<R: Read + Seek>(
     }
 }
 
-fn read_samples<R: Read + Seek>(
+/// The image's samples. Chunks are decoded in parallel, a band of chunk rows to a task, each
+/// task with a decoder from `open` (the first IFD of the same bytes).
+#[allow(clippy::too_many_arguments)]
+fn read_samples<'a, R: Read + Seek>(
     dec: &mut Decoder<R>,
+    open: &(dyn Fn() -> Result<Decoder<Cursor<&'a [u8]>>, ReadError> + Sync),
     cols: usize,
     rows: usize,
     kind: SampleKind,
@@ -687,40 +707,65 @@ fn read_samples<R: Read + Seek>(
     let sparse_fill = if nodata.is_some() { f32::NAN } else { 0.0 };
     let convert = Converter::new(kind, nodata);
 
-    let mut out = vec![0f32; cols * rows];
-    for (idx, &bytes) in counts.iter().enumerate() {
+    // Where each chunk goes, and that it lies inside the image, before anything is decoded.
+    let mut places = Vec::with_capacity(counts.len());
+    for idx in 0..counts.len() {
         let x0 = (idx % across) * cw;
         let y0 = (idx / across).saturating_mul(ch);
         let (dw, dh) = dec.chunk_data_dimensions(idx as u32);
         let (dw, dh) = (dw as usize, dh as usize);
-        if x0 + dw > cols || y0.saturating_add(dh) > rows {
+        if x0 + dw > cols || y0.saturating_add(dh) > rows || (dh > ch && ch > 0) {
             return Err(ReadError::invalid(format!(
                 "chunk {idx} ({dw} x {dh} at {x0},{y0}) lies outside the {cols} x {rows} image"
             )));
         }
-        let rows_out = out[y0 * cols..]
-            .chunks_mut(cols)
-            .take(dh)
-            .map(|row| &mut row[x0..x0 + dw]);
-        if bytes == 0 {
-            rows_out.for_each(|row| row.fill(sparse_fill));
-            continue;
-        }
-        // The decoder allocates the whole chunk before it reads a byte of it: the bytes the
-        // file holds for it must be able to fill that much.
-        let (bw, bh) = match chunk_type {
-            ChunkType::Strip => (dw as u64, dh as u64),
-            ChunkType::Tile => (cw as u64, ch as u64),
-        };
-        let holds = bytes.saturating_mul(expansion);
-        if bw * bh * kind.bytes() > holds {
-            return Err(ReadError::invalid(format!(
-                "chunk {idx} declares {bw} x {bh} samples, more than its bytes can hold"
-            )));
-        }
-        let chunk = dec.read_chunk(idx as u32).map_err(tiff_error)?;
-        convert.place(chunk, dw, dh, rows_out)?;
+        places.push((x0, y0, dw, dh));
     }
+    let mut out = vec![0f32; cols * rows];
+    // A band is one row of chunks: `ch` image rows that no other band writes.
+    let band_rows = ch.max(1);
+    out.par_chunks_mut(cols * band_rows)
+        .enumerate()
+        .try_for_each(|(band, slab)| -> Result<(), ReadError> {
+            let first = band * across;
+            let last = (first + across).min(counts.len());
+            if first >= last {
+                return Ok(());
+            }
+            let mut dec = None;
+            for idx in first..last {
+                let bytes = counts[idx];
+                let (x0, y0, dw, dh) = places[idx];
+                let r0 = y0 - band * band_rows;
+                let rows_out = slab[r0 * cols..]
+                    .chunks_mut(cols)
+                    .take(dh)
+                    .map(|row| &mut row[x0..x0 + dw]);
+                if bytes == 0 {
+                    rows_out.for_each(|row| row.fill(sparse_fill));
+                    continue;
+                }
+                // The decoder allocates the whole chunk before it reads a byte of it: the
+                // bytes the file holds for it must be able to fill that much.
+                let (bw, bh) = match chunk_type {
+                    ChunkType::Strip => (dw as u64, dh as u64),
+                    ChunkType::Tile => (cw as u64, ch as u64),
+                };
+                let holds = bytes.saturating_mul(expansion);
+                if bw * bh * kind.bytes() > holds {
+                    return Err(ReadError::invalid(format!(
+                        "chunk {idx} declares {bw} x {bh} samples, more than its bytes can hold"
+                    )));
+                }
+                if dec.is_none() {
+                    dec = Some(open()?);
+                }
+                let d = dec.as_mut().expect("opened");
+                let chunk = d.read_chunk(idx as u32).map_err(tiff_error)?;
+                convert.place(chunk, dw, dh, rows_out)?;
+            }
+            Ok(())
+        })?;
     Ok(out)
 }
 
