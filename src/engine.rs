@@ -15,7 +15,8 @@ use crate::config::Config;
 use crate::index::geom::Aabb;
 use crate::index::lod::ChangeStats;
 use crate::index::query::{Extracted, Metric, ViewQuery};
-use crate::ingest::{open_file, prepare, IngestError, IngestSettings};
+pub use crate::ingest::Phase;
+use crate::ingest::{open_file, prepare_with, IngestError, IngestSettings};
 use crate::model::accuracy::{AccuracySource, Deviation};
 use crate::model::ids::SurveyId;
 use crate::model::survey::Survey;
@@ -163,6 +164,17 @@ pub struct Stats {
     /// Why writes are refused now (a full disk, a failed store); None when they are not.
     pub read_only: Option<String>,
     pub cache: CacheStats,
+    /// The ingest under way, if any.
+    pub ingesting: Option<Progress>,
+}
+
+/// The ingest under way: which file, how big, where it is and since when.
+#[derive(Clone, Debug)]
+pub struct Progress {
+    pub source: String,
+    pub bytes: u64,
+    pub phase: Phase,
+    pub started: Instant,
 }
 
 /// What readers see: a terrain and the catalog of the same commit.
@@ -182,6 +194,8 @@ pub struct Engine {
     /// One file is read and modelled at a time: an ingest takes about five times its raster
     /// in memory, and `limits.max_ingest_mb` bounds one raster, not many at once.
     ingesting: Mutex<()>,
+    /// The ingest under way, for progress displays.
+    progress: Mutex<Option<Progress>>,
     /// The store's directory and space rules, for `stats` without the writer.
     dir: PathBuf,
     guard: SpaceGuard,
@@ -233,6 +247,7 @@ impl Engine {
         release_free_memory();
         let (events, _) = broadcast::channel(1024);
         Ok(Engine {
+            progress: Mutex::new(None),
             reader: RwLock::new(opened.store.reader()),
             dir: opened.store.path().to_path_buf(),
             guard,
@@ -347,6 +362,17 @@ impl Engine {
         Ok(v)
     }
 
+    fn set_phase(&self, phase: Phase) {
+        if let Some(p) = self.progress.lock().expect("progress lock").as_mut() {
+            p.phase = phase;
+        }
+    }
+
+    /// The ingest under way, if any.
+    pub fn progress(&self) -> Option<Progress> {
+        self.progress.lock().expect("progress lock").clone()
+    }
+
     /// Notes a store error; one from sled's I/O leaves its handle unusable.
     fn failed(&self, e: StoreError) -> EngineError {
         if let StoreError::Sled(sled::Error::Io(io)) = &e {
@@ -422,7 +448,14 @@ impl Engine {
             conflicts: Vec::new(),
         };
         let one_at_a_time = self.ingesting.lock().unwrap_or_else(|e| e.into_inner());
+        *self.progress.lock().expect("progress lock") = Some(Progress {
+            source: source.clone(),
+            bytes: std::fs::metadata(path).map_or(0, |m| m.len()),
+            phase: Phase::Reading,
+            started: Instant::now(),
+        });
         let result = self.ingest_inner(path, &source, accuracy, origin);
+        *self.progress.lock().expect("progress lock") = None;
         release_free_memory();
         drop(one_at_a_time);
         match result {
@@ -552,7 +585,7 @@ impl Engine {
             },
             heights: (self.cfg.limits.min_height_m, self.cfg.limits.max_height_m),
         };
-        let prepared = prepare(path, &settings).map_err(file)?;
+        let prepared = prepare_with(path, &settings, &|p| self.set_phase(p)).map_err(file)?;
         let survey = Arc::new(prepared.survey);
         let samples = survey.levels[0].valid_count() as u64;
         let t1 = Instant::now();
@@ -560,6 +593,7 @@ impl Engine {
         let outcome = self
             .write_and(
                 |store, current| {
+                    self.set_phase(Phase::Indexing);
                     let previous = store_active_from(store, source)?;
                     if current.survey(survey.id).is_some() {
                         // The content is already served (from this path or a copy elsewhere);
@@ -594,6 +628,7 @@ impl Engine {
                             let retire: ChangeStats = next.try_retire(old.id)?.unwrap_or_default();
                             let insert = next.try_insert(&survey)?;
                             let overlaps = next.overlaps(&survey)?;
+                            self.set_phase(Phase::Committing);
                             store.commit_replace(
                                 old.id,
                                 &old_patches,
@@ -609,6 +644,7 @@ impl Engine {
                         None => {
                             let insert = next.try_insert(&survey)?;
                             let overlaps = next.overlaps(&survey)?;
+                            self.set_phase(Phase::Committing);
                             store.commit_survey(&survey, &rec(), &insert, &next, &overlaps)?;
                             (Outcome::Inserted, overlaps)
                         }
@@ -776,6 +812,7 @@ impl Engine {
             quadtree_nodes: t.index().tree_stats().nodes as u32,
             read_only: self.read_only(),
             cache: self.reader.read().expect("reader lock").stats(),
+            ingesting: self.progress(),
         }
     }
 

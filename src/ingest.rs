@@ -96,6 +96,27 @@ pub fn parse_sidecar(bytes: &[u8]) -> Result<Sidecar, String> {
     toml::from_str(text).map_err(|e| toml_error(text, &e))
 }
 
+/// Where an ingest is: what a progress display shows. The first two are [`prepare`]'s; the
+/// engine reports the others.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    Reading,
+    Modelling,
+    Indexing,
+    Committing,
+}
+
+impl Phase {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Phase::Reading => "reading",
+            Phase::Modelling => "modelling",
+            Phase::Indexing => "indexing",
+            Phase::Committing => "committing",
+        }
+    }
+}
+
 /// How a survey was made, for its record.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Timings {
@@ -215,6 +236,16 @@ pub fn open_file(path: &Path, roots: Option<&[PathBuf]>) -> Result<std::fs::File
 
 /// Reads and models one file. Pure of the store: nothing is written.
 pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError> {
+    prepare_with(path, s, &|_| {})
+}
+
+/// [`prepare`], telling `phase` when it starts reading and when it starts modelling.
+pub fn prepare_with(
+    path: &Path,
+    s: &IngestSettings,
+    phase: &dyn Fn(Phase),
+) -> Result<Prepared, IngestError> {
+    phase(Phase::Reading);
     let roots = s.read_limits.roots.as_deref();
     open_file(path, roots)?;
     let side = read_sidecar(path, roots)?;
@@ -260,6 +291,7 @@ pub fn prepare(path: &Path, s: &IngestSettings) -> Result<Prepared, IngestError>
         }
     }
     let t1 = Instant::now();
+    phase(Phase::Modelling);
     let grid = raster.into_grid()?;
     let survey = Survey::build(grid, spec, Some(crs), s.layout)?;
     if survey.accuracy >= s.max_accuracy {

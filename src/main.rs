@@ -273,6 +273,58 @@ impl Client {
 }
 
 /// Runs one request either way: over gRPC, or through the same dispatcher the daemon uses.
+/// Shows the daemon's ingest under way on `bar` until aborted: its phase, and a position
+/// within the file by phase (reading and modelling take most of an ingest, committing the
+/// rest), on top of `done`, the bytes of files finished. Polls `stats` every 200 ms.
+fn watch_ingest(
+    c: &Client,
+    bar: indicatif::ProgressBar,
+    done: Arc<std::sync::atomic::AtomicU64>,
+) -> tokio::task::JoinHandle<()> {
+    let mut remote = match c {
+        Client::Remote { admin, .. } => Some(admin.as_ref().clone()),
+        Client::Local(_) => None,
+    };
+    let local = match c {
+        Client::Local(e) => Some(e.clone()),
+        Client::Remote { .. } => None,
+    };
+    tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            let s = match (&mut remote, &local) {
+                (Some(a), _) => match a.stats(pb::StatsRequest {}).await {
+                    Ok(r) => r.into_inner(),
+                    Err(_) => continue,
+                },
+                (None, Some(e)) => patchwork::serve::convert::stats(&e.stats()),
+                (None, None) => return,
+            };
+            if s.ingesting_source.is_empty() {
+                continue;
+            }
+            let share = match s.ingesting_phase.as_str() {
+                "reading" => 0.0,
+                "modelling" => 0.25,
+                "indexing" => 0.6,
+                _ => 0.8,
+            };
+            let base = done.load(std::sync::atomic::Ordering::Relaxed);
+            bar.set_position(base + (share * s.ingesting_bytes as f64) as u64);
+            let name = std::path::Path::new(&s.ingesting_source)
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            bar.set_message(format!(
+                "{} {} ({:.1} s)",
+                s.ingesting_phase,
+                printable(&name),
+                s.ingesting_seconds
+            ));
+        }
+    })
+}
+
 macro_rules! call {
     ($client:expr, $svc:ident . $rpc:ident($req:expr), $local:expr) => {
         match $client {
@@ -473,7 +525,21 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             target,
         } => {
             let mut c = Client::connect(&target).await?;
-            let bar = indicatif::ProgressBar::new(files.len() as u64);
+            // The bar counts bytes of files: a large file moves it through its phases while
+            // the daemon reads, models, indexes and commits it.
+            let sizes: Vec<u64> = files
+                .iter()
+                .map(|f| std::fs::metadata(f).map_or(1, |m| m.len().max(1)))
+                .collect();
+            let bar = indicatif::ProgressBar::new(sizes.iter().sum());
+            bar.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{bar:30} {bytes}/{total_bytes} {elapsed} {msg}",
+                )
+                .expect("template"),
+            );
+            let done = Arc::new(std::sync::atomic::AtomicU64::new(0));
+            let watcher = watch_ingest(&c, bar.clone(), done.clone());
             // A hidden bar (no terminal) swallows its own println: print plainly then.
             let say = |line: String| {
                 if bar.is_hidden() {
@@ -483,7 +549,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 }
             };
             let mut failed = 0;
-            for f in files {
+            for (f, size) in files.into_iter().zip(sizes) {
                 let path = patchwork::engine::source_name(&f);
                 let req = pb::IngestRequest {
                     paths: vec![path],
@@ -518,8 +584,10 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                         }
                     }
                 }
-                bar.inc(1);
+                done.fetch_add(size, std::sync::atomic::Ordering::Relaxed);
+                bar.set_position(done.load(std::sync::atomic::Ordering::Relaxed));
             }
+            watcher.abort();
             bar.finish_and_clear();
             if failed > 0 {
                 return Err(format!("{failed} file(s) failed").into());

@@ -215,6 +215,21 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         cache_capacity_bytes: s.cache.capacity,
         cache_hits: s.cache.hits,
         cache_misses: s.cache.misses,
+        ingesting_source: s
+            .ingesting
+            .as_ref()
+            .map(|p| p.source.clone())
+            .unwrap_or_default(),
+        ingesting_bytes: s.ingesting.as_ref().map_or(0, |p| p.bytes),
+        ingesting_phase: s
+            .ingesting
+            .as_ref()
+            .map(|p| p.phase.as_str().to_string())
+            .unwrap_or_default(),
+        ingesting_seconds: s
+            .ingesting
+            .as_ref()
+            .map_or(0.0, |p| p.started.elapsed().as_secs_f64()),
     }
 }
 
