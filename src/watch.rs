@@ -5,7 +5,8 @@
 //! store that matches the inbox.
 //!
 //! A file is ingested once its size and mtime have stayed the same for `settle_ms`, or at once
-//! when it arrived by rename (the usual way to publish a finished file). A file that fails is
+//! when it is known complete: it arrived by rename (the usual way to publish a finished file),
+//! or its writer closed it. A file that fails is
 //! recorded once and not retried until its size or mtime changes; one the store could not take
 //! (a full disk) is tried again on a later pass.
 //!
@@ -18,7 +19,7 @@ use crate::engine::{size_mtime, source_name, Engine, EngineError, Ingested, Orig
 use crate::ingest::is_temporary;
 use crate::read::file_content_id;
 use crate::store::Catalog;
-use notify::event::{EventKind, ModifyKind, RenameMode};
+use notify::event::{AccessKind, AccessMode, EventKind, ModifyKind, RenameMode};
 use notify_debouncer_full::{new_debouncer, DebounceEventResult};
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -354,17 +355,34 @@ pub async fn run(engine: Arc<Engine>, mut shutdown: tokio::sync::watch::Receiver
         }
     }
     let (tx, mut rx) = mpsc::channel::<Wake>(64);
+    // Long enough to see a burst (a copy, then its rename) as one; short beside an ingest.
     let mut debouncer = match new_debouncer(
-        Duration::from_millis(200),
+        Duration::from_millis(100),
         None,
         move |res: DebounceEventResult| {
             let Ok(events) = res else { return };
+            // Opening and reading are no change, and the reconciler's own listing of a folder
+            // is one: waking on them would have the watcher wake itself for ever.
+            let events: Vec<_> = events
+                .into_iter()
+                .filter(|e| match e.kind {
+                    EventKind::Access(AccessKind::Close(AccessMode::Write)) => true,
+                    EventKind::Access(_) => false,
+                    _ => true,
+                })
+                .collect();
+            if events.is_empty() {
+                return;
+            }
+            // Complete files: renamed into place, or closed by their writer. A copy renamed
+            // into place within the debounce window comes out as a creation and a close.
             let renamed: Vec<PathBuf> = events
                 .iter()
                 .filter(|e| {
                     matches!(
                         e.kind,
                         EventKind::Modify(ModifyKind::Name(RenameMode::To | RenameMode::Both))
+                            | EventKind::Access(AccessKind::Close(AccessMode::Write))
                     )
                 })
                 .flat_map(|e| {

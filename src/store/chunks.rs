@@ -119,6 +119,12 @@ fn unplanes(bytes: &[u8], n: usize) -> impl Iterator<Item = [u8; 4]> + '_ {
 
 /// Encodes a chunk of `cols`-wide rows.
 pub fn encode(samples: &[f32], cols: usize) -> Vec<u8> {
+    encode_at(samples, cols, ZSTD_LEVEL)
+}
+
+/// [`encode`] at another zstd level: for measuring the choice.
+#[doc(hidden)]
+pub fn encode_at(samples: &[f32], cols: usize, level: i32) -> Vec<u8> {
     let raw_len = 4 * samples.len();
     let mut pre = Vec::with_capacity(raw_len);
     let codec = if all_integers(samples) {
@@ -145,7 +151,7 @@ pub fn encode(samples: &[f32], cols: usize) -> Vec<u8> {
         }
         FLOAT
     };
-    match zstd::bulk::compress(&pre, ZSTD_LEVEL) {
+    match zstd::bulk::compress(&pre, level) {
         Ok(z) if z.len() < raw_len => with_header(codec, z),
         _ => {
             let raw: Vec<u8> = samples.iter().flat_map(|z| z.to_le_bytes()).collect();
