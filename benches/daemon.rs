@@ -5,23 +5,14 @@
 //!
 //! cargo bench --bench daemon            (PATCHWORK_BENCH_REQUESTS sets the tile count)
 
+mod common;
+
+use common::{quantile, shared};
 use patchwork::serve::proto::{
     self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
 };
-use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-fn shared(name: &str) -> PathBuf {
-    std::env::var_os("PATCHWORK_SHARED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"))
-        .join(name)
-}
-
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
-}
 
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {

@@ -9,6 +9,9 @@
 //! cargo bench --bench scale                 (N = 8: 104 M samples)
 //! PATCHWORK_SCALE_N=12 PATCHWORK_SCALE_CACHE_MB=64 cargo bench --bench scale
 
+mod common;
+
+use common::{quantile, shared};
 use patchwork::serve::proto::{
     self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
 };
@@ -16,22 +19,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-fn shared(name: &str) -> PathBuf {
-    std::env::var_os("PATCHWORK_SHARED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"))
-        .join(name)
-}
-
 fn env_or(name: &str, default: u64) -> u64 {
     std::env::var(name)
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
-}
-
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
 fn mib(b: u64) -> f64 {

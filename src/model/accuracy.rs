@@ -271,18 +271,10 @@ pub struct Deviation {
 /// The deviation of `other` from `grid`'s samples; None where they share no ground.
 pub fn deviation(grid: &Grid, other: &Grid) -> Option<Deviation> {
     // Only the samples of `grid` under `other`'s bounds can meet it.
-    let b = other.world_bounds();
-    let corners = b.corners().map(|p| grid.georef.to_grid(p));
-    let lo = |k: usize| corners.iter().map(|c| c[k]).fold(f64::INFINITY, f64::min);
-    let hi = |k: usize| {
-        corners
-            .iter()
-            .map(|c| c[k])
-            .fold(f64::NEG_INFINITY, f64::max)
-    };
+    let (lo, hi) = grid.shape().grid_bounds(&other.world_bounds());
     let range = |k: usize, n: usize| {
-        let a = lo(k).floor().max(0.0);
-        let z = hi(k).ceil().min(n as f64 - 1.0);
+        let a = lo[k].floor().max(0.0);
+        let z = hi[k].ceil().min(n as f64 - 1.0);
         (a <= z).then_some((a as usize, z as usize))
     };
     let (c0, c1) = range(0, grid.cols)?;

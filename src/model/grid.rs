@@ -367,15 +367,9 @@ impl Shape {
         ])
     }
 
-    /// The samples whose cells meet a world rectangle, one ring wider, clipped to the grid;
-    /// None when they miss it.
-    pub fn rect_over(&self, b: &crate::index::geom::Aabb) -> Option<SampleRect> {
-        let corners = [
-            self.georef.to_grid(b.min),
-            self.georef.to_grid([b.max[0], b.min[1]]),
-            self.georef.to_grid([b.min[0], b.max[1]]),
-            self.georef.to_grid(b.max),
-        ];
+    /// The smallest and largest fractional grid coordinates of a world rectangle's corners.
+    pub fn grid_bounds(&self, b: &crate::index::geom::Aabb) -> ([f64; 2], [f64; 2]) {
+        let corners = b.corners().map(|p| self.georef.to_grid(p));
         let lo = |k: usize| corners.iter().map(|g| g[k]).fold(f64::INFINITY, f64::min);
         let hi = |k: usize| {
             corners
@@ -383,10 +377,17 @@ impl Shape {
                 .map(|g| g[k])
                 .fold(f64::NEG_INFINITY, f64::max)
         };
-        let c0 = (lo(0).floor() - 1.0).max(0.0);
-        let r0 = (lo(1).floor() - 1.0).max(0.0);
-        let c1 = (hi(0).ceil() + 1.0).min((self.cols - 1) as f64);
-        let r1 = (hi(1).ceil() + 1.0).min((self.rows - 1) as f64);
+        ([lo(0), lo(1)], [hi(0), hi(1)])
+    }
+
+    /// The samples whose cells meet a world rectangle, one ring wider, clipped to the grid;
+    /// None when they miss it.
+    pub fn rect_over(&self, b: &crate::index::geom::Aabb) -> Option<SampleRect> {
+        let (lo, hi) = self.grid_bounds(b);
+        let c0 = (lo[0].floor() - 1.0).max(0.0);
+        let r0 = (lo[1].floor() - 1.0).max(0.0);
+        let c1 = (hi[0].ceil() + 1.0).min((self.cols - 1) as f64);
+        let r1 = (hi[1].ceil() + 1.0).min((self.rows - 1) as f64);
         (c0 <= c1 && r0 <= r1).then(|| SampleRect {
             c0: c0 as usize,
             r0: r0 as usize,

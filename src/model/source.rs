@@ -13,6 +13,22 @@ pub struct SampleError {
     pub reason: String,
 }
 
+/// Refuses a rectangle that is empty or not inside a `cols × rows` level.
+pub fn check_rect(
+    survey: SurveyId,
+    rect: &SampleRect,
+    cols: usize,
+    rows: usize,
+) -> Result<(), SampleError> {
+    if rect.is_empty() || rect.c1 > cols || rect.r1 > rows {
+        return Err(SampleError {
+            survey,
+            reason: format!("{rect:?} is not inside a {cols}×{rows} level"),
+        });
+    }
+    Ok(())
+}
+
 /// Reads rectangles of the levels of stored surveys.
 pub trait SampleSource: Send + Sync + std::fmt::Debug {
     /// Samples `rect` of level `level` of `survey`, whose shape is `shape`, as a grid
@@ -60,12 +76,7 @@ impl SampleSource for MemorySource {
                 survey,
                 reason: format!("no level {level} in memory"),
             })?;
-        if rect.is_empty() || rect.c1 > g.cols || rect.r1 > g.rows {
-            return Err(SampleError {
-                survey,
-                reason: format!("{rect:?} is not inside a {}×{} level", g.cols, g.rows),
-            });
-        }
+        check_rect(survey, &rect, g.cols, g.rows)?;
         Ok(g.window(rect.c0, rect.r0, rect.cols(), rect.rows()))
     }
 }

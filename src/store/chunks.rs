@@ -18,7 +18,7 @@
 use super::pack::{ChunkStore, Loc};
 use crate::model::grid::{Grid, SampleRect, Shape};
 use crate::model::ids::SurveyId;
-use crate::model::source::{SampleError, SampleSource};
+use crate::model::source::{check_rect, SampleError, SampleSource};
 use rayon::prelude::*;
 use std::sync::Arc;
 
@@ -375,15 +375,7 @@ impl SampleSource for ChunkReader {
         shape: &Shape,
         rect: SampleRect,
     ) -> Result<Grid, SampleError> {
-        if rect.is_empty() || rect.c1 > shape.cols || rect.r1 > shape.rows {
-            return Err(SampleError {
-                survey,
-                reason: format!(
-                    "{rect:?} is not inside a {}×{} level",
-                    shape.cols, shape.rows
-                ),
-            });
-        }
+        check_rect(survey, &rect, shape.cols, shape.rows)?;
         let mut samples = vec![f32::NAN; rect.len()];
         let [nx, _] = chunk_counts(shape);
         for ty in rect.r0 / CHUNK..=(rect.r1 - 1) / CHUNK {
