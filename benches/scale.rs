@@ -15,7 +15,7 @@ use common::{quantile, shared};
 use patchwork::serve::proto::{
     self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
 };
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 

@@ -618,17 +618,29 @@ impl Engine {
                             t1,
                         )
                     };
-                    let outcome = match &previous {
-                        Some(old) => {
-                            let old_patches: Vec<_> = current
-                                .index()
-                                .survey_patches(old.id)
-                                .map(|p| p.to_vec())
-                                .unwrap_or_default();
-                            let retire: ChangeStats = next.try_retire(old.id)?.unwrap_or_default();
+                    let old_patches: Vec<_> = previous
+                        .as_ref()
+                        .and_then(|old| current.index().survey_patches(old.id))
+                        .map(|p| p.to_vec())
+                        .unwrap_or_default();
+                    // The index work and the encoding of the samples need nothing of each
+                    // other: the chunks go to the pack while the index takes the survey in.
+                    let (indexed, packed) = rayon::join(
+                        || -> Result<_, StoreError> {
+                            let retire = match &previous {
+                                Some(old) => next.try_retire(old.id)?.unwrap_or_default(),
+                                None => ChangeStats::default(),
+                            };
                             let insert = next.try_insert(&survey)?;
                             let overlaps = next.overlaps(&survey)?;
-                            self.set_phase(Phase::Committing);
+                            Ok((retire, insert, overlaps))
+                        },
+                        || store.pack_survey(&survey),
+                    );
+                    let ((retire, insert, overlaps), packed) = (indexed?, packed?);
+                    self.set_phase(Phase::Committing);
+                    let outcome = match &previous {
+                        Some(old) => {
                             store.commit_replace(
                                 old.id,
                                 &old_patches,
@@ -638,14 +650,19 @@ impl Engine {
                                 &insert,
                                 &next,
                                 &overlaps,
+                                packed,
                             )?;
                             (Outcome::Replaced, overlaps)
                         }
                         None => {
-                            let insert = next.try_insert(&survey)?;
-                            let overlaps = next.overlaps(&survey)?;
-                            self.set_phase(Phase::Committing);
-                            store.commit_survey(&survey, &rec(), &insert, &next, &overlaps)?;
+                            store.commit_packed(
+                                &survey,
+                                &rec(),
+                                &insert,
+                                &next,
+                                &overlaps,
+                                packed,
+                            )?;
                             (Outcome::Inserted, overlaps)
                         }
                     };

@@ -236,7 +236,17 @@ fn a_replacement_is_one_commit() {
             IngestTimings::default(),
         );
         store
-            .commit_replace(a.id, &old, &retired, &a2, &rec, &inserted, &next, &[])
+            .commit_replace(
+                a.id,
+                &old,
+                &retired,
+                &a2,
+                &rec,
+                &inserted,
+                &next,
+                &[],
+                store.pack_survey(&a2).unwrap(),
+            )
             .unwrap();
         t = next;
         assert_verified(&store);

@@ -436,23 +436,21 @@ fn lock(dir: &Path) -> Result<File, StoreError> {
     }
 }
 
-/// A sled batch that knows how many bytes it writes, so that the disk can be asked first, with
-/// the chunks that go to the pack before it.
+/// A sled batch that knows how many bytes it writes, so that the disk can be asked first.
 #[derive(Default)]
 struct Writes {
     batch: sled::Batch,
     bytes: u64,
-    chunks: Vec<(Vec<u8>, Vec<u8>)>,
+}
+
+/// A survey's chunks and patch list, appended to the pack and synced but not yet committed:
+/// the commit that follows points the database at them (see [`Store::pack_survey`]).
+pub struct Packed {
+    survey: SurveyId,
+    entries: Vec<(Vec<u8>, pack::Loc)>,
 }
 
 impl Writes {
-    /// Bytes for the pack (a chunk, a sealed record), their location under `key` in the
-    /// database.
-    fn insert_chunk(&mut self, key: Vec<u8>, bytes: Vec<u8>) {
-        self.bytes += (key.len() + bytes.len()) as u64;
-        self.chunks.push((key, bytes));
-    }
-
     fn insert(&mut self, k: impl Into<sled::IVec>, v: impl Into<sled::IVec>) {
         let (k, v) = (k.into(), v.into());
         self.bytes += (k.len() + v.len()) as u64;
@@ -892,6 +890,7 @@ impl Store {
         overlaps: &[(SurveyId, Deviation)],
         crs: Option<u32>,
         replacing: Option<SurveyId>,
+        packed: Packed,
     ) -> Result<Staged, StoreError> {
         if rec.id != s.id {
             return Err(StoreError::Invalid(format!(
@@ -940,18 +939,18 @@ impl Store {
         rec.status = Status::Active;
         let key = keys::survey(s.id);
         batch.insert(key.clone(), encode(&rec)?);
-        let stored = StoredPatches {
-            patches: s.patches.clone(),
-            edge_tiles: s.edge_tiles.clone(),
-        };
-        batch.insert_chunk(keys::patches(s.id), chunks::seal(&encode(&stored)?));
+        if packed.survey != s.id {
+            return Err(StoreError::Invalid(format!(
+                "the chunks packed are survey {}'s, the survey is {}",
+                packed.survey, s.id
+            )));
+        }
+        for (k, loc) in packed.entries {
+            batch.insert(k, &loc.to_bytes()[..]);
+        }
+        batch.insert(keys::PACK_LEN, &self.pack.len().to_le_bytes()[..]);
         if s.spec == AccuracySpec::Auto {
             batch.insert(keys::accuracy(s.id), encode(&s.kernel_accuracy)?);
-        }
-        for (level, g) in s.levels.iter().enumerate() {
-            for (k, bytes) in chunks::encode_level(g) {
-                batch.insert_chunk(keys::chunk(s.id, level, k), bytes);
-            }
         }
         stage_change(batch, change, next)?;
         for (other, d) in overlaps {
@@ -993,18 +992,8 @@ impl Store {
     }
 
     /// Applies a batch and makes it durable before returning, once the disk has room for it.
-    fn apply(&self, mut batch: Writes) -> Result<(), StoreError> {
+    fn apply(&self, batch: Writes) -> Result<(), StoreError> {
         self.guard.check(&self.dir, batch.bytes)?;
-        if !batch.chunks.is_empty() {
-            let (keys, bytes): (Vec<_>, Vec<_>) = batch.chunks.drain(..).unzip();
-            let locs = self.pack.append(&bytes)?;
-            for (k, loc) in keys.into_iter().zip(locs) {
-                batch.batch.insert(k, &loc.to_bytes()[..]);
-            }
-            batch
-                .batch
-                .insert(keys::PACK_LEN, &self.pack.len().to_le_bytes()[..]);
-        }
         self.db.apply_batch(batch.batch)?;
         self.db.flush()?;
         Ok(())
@@ -1024,6 +1013,32 @@ impl Store {
         self.writer.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// Encodes a survey's levels and its patch list and appends them to the pack, synced,
+    /// once the disk has room: the part of a commit that needs no index work, so a caller can
+    /// run it beside that work. Until a commit points at them the bytes are not the store's:
+    /// an open cuts them, or a later commit leaves them as garbage for compaction.
+    pub fn pack_survey(&self, s: &Survey) -> Result<Packed, StoreError> {
+        let stored = StoredPatches {
+            patches: s.patches.clone(),
+            edge_tiles: s.edge_tiles.clone(),
+        };
+        let mut entries_keys = vec![keys::patches(s.id)];
+        let mut bytes = vec![chunks::seal(&encode(&stored)?)];
+        for (level, g) in s.levels.iter().enumerate() {
+            for (k, b) in chunks::encode_level(g) {
+                entries_keys.push(keys::chunk(s.id, level, k));
+                bytes.push(b);
+            }
+        }
+        let total: usize = bytes.iter().map(Vec::len).sum();
+        self.guard.check(&self.dir, total as u64)?;
+        let locs = self.pack.append(&bytes)?;
+        Ok(Packed {
+            survey: s.id,
+            entries: entries_keys.into_iter().zip(locs).collect(),
+        })
+    }
+
     /// Commits an already-built survey: record, patches, chunks, and every top the insertion
     /// moved (`change` from inserting it into the terrain, which may include patches of other
     /// surveys) in one batch, then flushes. A failure leaves the store as it was, so the
@@ -1036,11 +1051,34 @@ impl Store {
         next: &Terrain,
         overlaps: &[(SurveyId, Deviation)],
     ) -> Result<(), StoreError> {
+        let packed = self.pack_survey(s)?;
+        self.commit_packed(s, rec, change, next, overlaps, packed)
+    }
+
+    /// [`Store::commit_survey`] with the survey's chunks already packed.
+    pub fn commit_packed(
+        &self,
+        s: &Survey,
+        rec: &SurveyRecord,
+        change: &ChangeStats,
+        next: &Terrain,
+        overlaps: &[(SurveyId, Deviation)],
+        packed: Packed,
+    ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let t0 = Instant::now();
         let mut batch = Writes::default();
-        let staged =
-            self.stage_survey(&mut batch, s, rec, change, next, overlaps, self.crs(), None)?;
+        let staged = self.stage_survey(
+            &mut batch,
+            s,
+            rec,
+            change,
+            next,
+            overlaps,
+            self.crs(),
+            None,
+            packed,
+        )?;
         self.apply(batch)?;
         self.finish(staged, t0)
     }
@@ -1078,6 +1116,7 @@ impl Store {
         insert_change: &ChangeStats,
         next: &Terrain,
         overlaps: &[(SurveyId, Deviation)],
+        packed: Packed,
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let t0 = Instant::now();
@@ -1094,6 +1133,7 @@ impl Store {
             overlaps,
             self.crs(),
             Some(old),
+            packed,
         )?;
         self.apply(batch)?;
         self.finish(staged, t0)

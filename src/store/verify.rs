@@ -320,8 +320,10 @@ impl Store {
                 (l != self.layout).then(|| format!("layout {l:?} differs from the open store's"))
             }),
             keys::REBUILD => Ok(None),
+            // Bytes past the committed length are a commit that did not happen (or has not
+            // yet): an open cuts them. Fewer bytes than committed would be lost chunks.
             keys::PACK_LEN => match <[u8; 8]>::try_from(v) {
-                Ok(b) if u64::from_le_bytes(b) == self.pack.len() => Ok(None),
+                Ok(b) if u64::from_le_bytes(b) <= self.pack.len() => Ok(None),
                 Ok(b) => Ok(Some(format!(
                     "meta/pack_len says {} bytes, the pack holds {}",
                     u64::from_le_bytes(b),
