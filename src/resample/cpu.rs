@@ -138,3 +138,26 @@ fn blend_with(set: &PatchSet, bin: &[u32], p: [f64; 2], tiers: &mut Vec<(u32, Ti
     }
     cut.height()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::index::geom::Aabb;
+
+    #[test]
+    fn a_cancelled_resampling_stops_and_says_so() {
+        let roi = Aabb {
+            min: [0.0, 0.0],
+            max: [1.0, 1.0],
+        };
+        let grid = SampleGrid::uniform(&roi, 64, 64);
+        let set = PatchSet::default();
+        assert_eq!(
+            resample_until(&set, &grid, &Cancel::default()).map(|h| h.len()),
+            Some(64 * 64)
+        );
+        let cancel = Cancel::default();
+        cancel.cancel();
+        assert!(resample_until(&set, &grid, &cancel).is_none());
+    }
+}

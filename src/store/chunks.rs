@@ -467,6 +467,74 @@ mod tests {
     }
 
     #[test]
+    fn reads_assemble_windows_across_chunks_and_the_cache_stays_within_its_bound() {
+        use crate::model::grid::Georef;
+        use crate::store::pack::PackFile;
+        let tmp = tempfile::tempdir().unwrap();
+        let db = sled::Config::new()
+            .path(tmp.path().join("db"))
+            .open()
+            .unwrap();
+        let pack = Arc::new(PackFile::open(tmp.path(), 0).unwrap());
+        // 600 × 520 samples: 3 × 3 chunks, the last row and column of them partial.
+        let (cols, rows) = (600, 520);
+        let samples: Vec<f32> = (0..cols * rows)
+            .map(|i| {
+                if i % 97 == 0 {
+                    f32::NAN
+                } else {
+                    (i % 1013) as f32 * 0.25
+                }
+            })
+            .collect();
+        let g = Grid::new(
+            cols,
+            rows,
+            samples,
+            Georef::north_up([0.0, 0.0], [1.0, 1.0]),
+        )
+        .unwrap();
+        let id = SurveyId(42);
+        let (ks, bytes): (Vec<usize>, Vec<Vec<u8>>) = encode_level(&g).into_iter().unzip();
+        assert_eq!(ks.len(), 9);
+        for (k, loc) in ks.into_iter().zip(pack.append(&bytes).unwrap()) {
+            db.insert(super::super::keys::chunk(id, 0, k), &loc.to_bytes()[..])
+                .unwrap();
+        }
+        // Room for two decoded chunks.
+        let one = 4 * (CHUNK * CHUNK) as u64 + 64;
+        let reader = ChunkReader::new((*db).clone(), pack, 2 * one);
+        let shape = g.shape();
+        // A window across four chunks comes back exactly.
+        let rect = SampleRect {
+            c0: 250,
+            r0: 240,
+            c1: 270,
+            r1: 300,
+        };
+        let w = reader.read(id, 0, &shape, rect).unwrap();
+        let want = g.window(250, 240, 20, 60);
+        assert!(w
+            .samples
+            .iter()
+            .zip(&want.samples)
+            .all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())));
+        assert_eq!(w.georef, want.georef);
+        // The whole level, then again: the cache never holds more than its bound.
+        for _ in 0..2 {
+            let all = reader.read(id, 0, &shape, shape.all()).unwrap();
+            assert_eq!(all.samples.len(), cols * rows);
+            let st = reader.stats();
+            assert!(st.bytes <= st.capacity, "{st:?}");
+        }
+        let st = reader.stats();
+        assert!(st.misses >= 9 + 4, "{st:?}");
+        // Past the store's closing, only what is cached can still be read.
+        reader.close();
+        assert!(reader.read(id, 0, &shape, shape.all()).is_err());
+    }
+
+    #[test]
     fn a_damaged_chunk_is_an_error() {
         let s: Vec<f32> = (0..100).map(|i| i as f32 * 0.5).collect();
         let mut b = encode(&s, 10);
