@@ -10,7 +10,8 @@ use patchwork::model::patch::PatchLayout;
 use patchwork::model::survey::Survey;
 use patchwork::read::file_content_id;
 use patchwork::read::{read_raster, ReadLimits};
-use patchwork::store::{IngestTimings, Opened, Store, SurveyRecord};
+use patchwork::restore::{self, Opened};
+use patchwork::store::{IngestTimings, Store, StoreOptions, SurveyRecord};
 use patchwork::terrain::Terrain;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -52,7 +53,9 @@ fn ingest(store: &Store, terrain: &mut Terrain, path: &Path) -> Arc<Survey> {
         },
     );
     let t = Instant::now();
-    store.commit_survey(&s, &rec, &change, &next, &[]).unwrap();
+    store
+        .commit_survey(&s, &rec, &change, &next.edges_of(&[&change]), &[])
+        .unwrap();
     let commit_ms = ms(t);
     *terrain = next;
     println!(
@@ -78,7 +81,7 @@ fn main() {
     let dir = args.next().map(PathBuf::from).unwrap_or(tmp.join("store"));
     let (layout, cfg) = (PatchLayout::default(), IndexConfig::default());
 
-    let Opened { store, .. } = Store::open(&dir, layout, cfg).unwrap();
+    let Opened { store, .. } = restore::open(&dir, layout, cfg, StoreOptions::default()).unwrap();
     let mut terrain = Terrain::new(cfg);
     let cop = ingest(
         &store,
@@ -104,7 +107,7 @@ fn main() {
         mib(store.disk_bytes() - pack),
     );
     let live = terrain.index().state().into_keys().collect();
-    let (Opened { store, .. }, rep) = store.compact(&live).unwrap();
+    let (Opened { store, .. }, rep) = restore::compact(store, &live).unwrap();
     println!(
         "compact with nothing retired: {:.1} → {:.1} MiB ({:.2}× the input)",
         mib(rep.bytes_before),
@@ -118,7 +121,7 @@ fn main() {
         store,
         terrain: back,
         ..
-    } = Store::open(&dir, layout, cfg).unwrap();
+    } = restore::open(&dir, layout, cfg, StoreOptions::default()).unwrap();
     println!(
         "reopen: {:.0} ms, {} boxes, same index: {}",
         ms(t),
@@ -127,7 +130,7 @@ fn main() {
     );
 
     let t = Instant::now();
-    let rep = store.verify().unwrap();
+    let rep = restore::verify(&store).unwrap();
     println!(
         "verify: {:.0} ms, {} problems{}",
         ms(t),
@@ -145,7 +148,7 @@ fn main() {
     let index_ms = ms(t);
     let t = Instant::now();
     store
-        .commit_retire(cop.id, &ids, &change, &next, false)
+        .commit_retire(cop.id, &ids, &change, &next.edges_of(&[&change]), false)
         .unwrap();
     println!(
         "retire Copernicus: index {index_ms:.0} ms, commit {:.0} ms, {} tops moved",
@@ -155,7 +158,7 @@ fn main() {
 
     let t = Instant::now();
     let live = terrain.index().state().into_keys().collect();
-    let (Opened { store, .. }, rep) = store.compact(&live).unwrap();
+    let (Opened { store, .. }, rep) = restore::compact(store, &live).unwrap();
     println!(
         "compact: {:.0} ms (reopen included), {:.1} → {:.1} MiB",
         ms(t),

@@ -25,6 +25,7 @@ use crate::read::{content_id, file_content_id, ReadError, ReadLimits};
 use crate::resample::gpu::{GpuError, GpuResampler};
 pub use crate::resample::Backend;
 use crate::resample::{cpu, Cancel, SampleGrid};
+use crate::restore;
 use crate::store::{
     now_unix, CacheStats, Catalog, ChunkReader, DiskSpace, FailedRecord, IngestTimings, SpaceGuard,
     Store, StoreError, StoreOptions, SurveyRecord, SystemDisk,
@@ -223,7 +224,7 @@ impl Engine {
             min_free: cfg.storage.min_free_mb << 20,
             reserve: cfg.storage.reserve_mb << 20,
         };
-        let opened = Store::open_with(
+        let opened = restore::open(
             &cfg.data_dir,
             cfg.patches,
             cfg.index,
@@ -648,7 +649,7 @@ impl Engine {
                                 &survey,
                                 &rec(),
                                 &insert,
-                                &next,
+                                &next.edges_of(&[&retire, &insert]),
                                 &overlaps,
                                 packed,
                             )?;
@@ -659,7 +660,7 @@ impl Engine {
                                 &survey,
                                 &rec(),
                                 &insert,
-                                &next,
+                                &next.edges_of(&[&insert]),
                                 &overlaps,
                                 packed,
                             )?;
@@ -838,7 +839,7 @@ impl Engine {
         let store = guard
             .as_ref()
             .ok_or_else(|| EngineError::Unavailable("the store is not open".into()))?;
-        Ok(store.verify()?)
+        Ok(restore::verify(store)?)
     }
 
     /// Physically removes retired surveys and rewrites the store's files.
@@ -851,12 +852,12 @@ impl Engine {
             .take()
             .ok_or_else(|| EngineError::Unavailable("the store is not open".into()))?;
         let live = self.snapshot().index().state().into_keys().collect();
-        let result = store.compact(&live);
+        let result = restore::compact(store, &live);
         let (opened, report) = match result {
             Ok((opened, report)) => (opened, Ok(report)),
             // Compaction leaves the old files in place on failure: reopen them.
             Err(e) => {
-                let opened = Store::open_with(
+                let opened = restore::open(
                     &self.dir,
                     self.cfg.patches,
                     self.cfg.index,
@@ -1107,7 +1108,7 @@ fn retire_in(
         .unwrap_or_default();
     let mut next = current.clone();
     let change = next.try_retire(rec.id)?.unwrap_or_default();
-    store.commit_retire(rec.id, &patches, &change, &next, pin)?;
+    store.commit_retire(rec.id, &patches, &change, &next.edges_of(&[&change]), pin)?;
     Ok(next)
 }
 

@@ -14,6 +14,7 @@ pub mod ingest;
 pub mod model;
 pub mod read;
 pub mod resample;
+pub mod restore;
 pub mod serve;
 pub mod store;
 pub mod terrain;

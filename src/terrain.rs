@@ -339,6 +339,22 @@ impl Terrain {
         self.edges.values()
     }
 
+    /// The edge patches this terrain holds among the boxes the changes moved: what a store
+    /// writes of them besides their tops.
+    pub fn edges_of(&self, changes: &[&ChangeStats]) -> Vec<Arc<EdgePatch>> {
+        let mut out: Vec<Arc<EdgePatch>> = changes
+            .iter()
+            .flat_map(|c| c.moved.iter())
+            .filter_map(|(id, _)| match self.patch(*id)? {
+                PatchRef::Edge(e) => Some(e.clone()),
+                PatchRef::Survey(..) => None,
+            })
+            .collect();
+        out.sort_by_key(|e| e.id);
+        out.dedup_by_key(|e| e.id);
+        out
+    }
+
     /// A patch of the terrain.
     pub fn patch(&self, id: PatchId) -> Option<PatchRef<'_>> {
         match self.patches.get(&id)? {

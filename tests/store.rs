@@ -10,9 +10,10 @@ use patchwork::index::lod::IndexConfig;
 use patchwork::model::accuracy::AccuracySource;
 use patchwork::model::ids::{PatchId, SurveyId};
 use patchwork::model::survey::Survey;
+use patchwork::restore::{self, Opened};
 use patchwork::store::{
-    open_error, DiskSpace, FailedRecord, IngestTimings, Opened, SpaceGuard, Status, Store,
-    StoreError, SurveyRecord, SCHEMA_VERSION,
+    open_error, DiskSpace, FailedRecord, IngestTimings, SpaceGuard, Status, Store, StoreError,
+    StoreOptions, SurveyRecord, SCHEMA_VERSION,
 };
 use patchwork::terrain::Terrain;
 
@@ -27,7 +28,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 fn open(dir: &Path) -> Opened {
-    let o = Store::open(dir, LAYOUT, IndexConfig::default()).expect("store opens");
+    let o = restore::open(dir, LAYOUT, IndexConfig::default(), StoreOptions::default())
+        .expect("store opens");
     assert!(o.warnings.is_empty(), "{:?}", o.warnings);
     o
 }
@@ -48,7 +50,7 @@ fn ingest(store: &Store, t: &mut Terrain, s: &Arc<Survey>, source: &str) {
         IngestTimings::default(),
     );
     store
-        .commit_survey(s, &rec, &change, &next, &[])
+        .commit_survey(s, &rec, &change, &next.edges_of(&[&change]), &[])
         .expect("commit");
     *t = next;
 }
@@ -62,7 +64,7 @@ fn retire(store: &Store, t: &mut Terrain, id: SurveyId) {
     let ids = patch_ids(t, id);
     let change = next.retire(id).expect("present");
     store
-        .commit_retire(id, &ids, &change, &next, false)
+        .commit_retire(id, &ids, &change, &next.edges_of(&[&change]), false)
         .expect("retire");
     *t = next;
 }
@@ -125,7 +127,7 @@ fn assert_same(a: &Terrain, b: &Terrain, roi: &Aabb) {
 }
 
 fn assert_verified(store: &Store) {
-    let r = store.verify().unwrap();
+    let r = restore::verify(store).unwrap();
     assert!(r.is_ok(), "{:#?}", r.problems);
 }
 
@@ -191,7 +193,7 @@ fn a_retired_survey_stays_retired() {
         }
         retire(&store, &mut t, b.id);
         assert!(matches!(
-            store.commit_retire(b.id, &[], &Default::default(), &t, false),
+            store.commit_retire(b.id, &[], &Default::default(), &[], false),
             Err(StoreError::NotActive(_))
         ));
         assert_verified(&store);
@@ -243,7 +245,7 @@ fn a_replacement_is_one_commit() {
                 &a2,
                 &rec,
                 &inserted,
-                &next,
+                &next.edges_of(&[&retired, &inserted]),
                 &[],
                 store.pack_survey(&a2).unwrap(),
             )
@@ -269,7 +271,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     let Opened { store, .. } = open(&dir);
     ingest(&store, &mut t, &a, "a");
     ingest(&store, &mut t, &b, "b");
-    let r = store.verify().unwrap();
+    let r = restore::verify(&store).unwrap();
     assert!(r.is_ok(), "{:?}", r.problems);
     assert_eq!((r.active, r.retired), (2, 0));
     assert_eq!(r.patches, a.patches.len() + b.patches.len());
@@ -279,7 +281,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
 
     let chunk = format!("c/{}/01/00000000", a.id);
     let saved = store.raw().remove(chunk.as_bytes()).unwrap().unwrap();
-    let r = store.verify().unwrap();
+    let r = restore::verify(&store).unwrap();
     assert!(
         r.problems.iter().any(|p| p.contains("chunk 0 of level 1")),
         "{:?}",
@@ -290,7 +292,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
 
     let top = format!("t/{}", b.patches[3].id);
     let saved = store.raw().remove(top.as_bytes()).unwrap().unwrap();
-    let r = store.verify().unwrap();
+    let r = restore::verify(&store).unwrap();
     assert!(
         r.problems
             .iter()
@@ -304,7 +306,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
         .raw()
         .insert(top.as_bytes(), state_bytes(12345.0, false))
         .unwrap();
-    let r = store.verify().unwrap();
+    let r = restore::verify(&store).unwrap();
     assert!(
         r.problems.iter().any(|p| p.contains("wrong top")),
         "{:?}",
@@ -317,7 +319,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
         .raw()
         .insert(b"t/0123456789abcdef", state_bytes(1.0, false))
         .unwrap();
-    let r = store.verify().unwrap();
+    let r = restore::verify(&store).unwrap();
     assert!(
         r.problems.iter().any(|p| p.contains("0123456789abcdef")),
         "{:?}",
@@ -341,7 +343,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
         f.read_exact_at(&mut b, loc.offset + 20).unwrap();
         f.write_all_at(&[b[0] ^ 1], loc.offset + 20).unwrap();
     }
-    let r = store.verify().unwrap();
+    let r = restore::verify(&store).unwrap();
     assert!(
         r.problems.iter().any(|p| p.contains("damaged")),
         "{:?}",
@@ -357,7 +359,7 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
         .raw()
         .insert(chunk0.as_bytes(), &loc.to_bytes()[..])
         .unwrap();
-    let r = store.verify().unwrap();
+    let r = restore::verify(&store).unwrap();
     assert!(
         r.problems.iter().any(|p| p.contains("have changed")),
         "{:?}",
@@ -377,9 +379,14 @@ fn a_newer_schema_is_refused_naming_both_versions() {
             .unwrap();
         store.raw().flush().unwrap();
     }
-    let err = Store::open(&dir, LAYOUT, IndexConfig::default())
-        .err()
-        .expect("refused");
+    let err = restore::open(
+        &dir,
+        LAYOUT,
+        IndexConfig::default(),
+        StoreOptions::default(),
+    )
+    .err()
+    .expect("refused");
     assert!(
         matches!(err, StoreError::Newer { found: 99, supported } if supported == SCHEMA_VERSION)
     );
@@ -399,9 +406,14 @@ fn a_directory_with_data_but_no_schema_is_not_adopted() {
         db.insert(b"something", b"else").unwrap();
         db.flush().unwrap();
     }
-    let err = Store::open(&dir, LAYOUT, IndexConfig::default())
-        .err()
-        .expect("refused");
+    let err = restore::open(
+        &dir,
+        LAYOUT,
+        IndexConfig::default(),
+        StoreOptions::default(),
+    )
+    .err()
+    .expect("refused");
     assert!(matches!(err, StoreError::Migration { from: 0, to: 1, .. }));
     assert!(err.to_string().contains("not a Patchwork store"), "{err}");
 }
@@ -419,7 +431,7 @@ fn settings_of_an_existing_store_win() {
         max_error: 500.0,
         node_capacity: 8,
     };
-    let Opened { store, .. } = Store::open(&dir, other, cfg).unwrap();
+    let Opened { store, .. } = restore::open(&dir, other, cfg, StoreOptions::default()).unwrap();
     assert_eq!(store.layout(), LAYOUT);
     assert_eq!(store.index_config(), IndexConfig::default());
 }
@@ -452,7 +464,7 @@ fn a_failed_commit_changes_nothing() {
         IngestTimings::default(),
     );
     let err = store
-        .commit_survey(&foreign, &rec, &change, &next, &[])
+        .commit_survey(&foreign, &rec, &change, &next.edges_of(&[&change]), &[])
         .unwrap_err();
     assert!(matches!(
         err,
@@ -465,7 +477,7 @@ fn a_failed_commit_changes_nothing() {
     // Committing the same survey twice would overwrite its tops with nothing.
     let rec = SurveyRecord::new(&a, "a", "", AccuracySource::Flag, IngestTimings::default());
     let err = store
-        .commit_survey(&a, &rec, &Default::default(), &t, &[])
+        .commit_survey(&a, &rec, &Default::default(), &[], &[])
         .unwrap_err();
     assert!(matches!(err, StoreError::Duplicate(id) if id == a.id));
     // A record of another survey is refused.
@@ -473,7 +485,7 @@ fn a_failed_commit_changes_nothing() {
     let mut nb = t.clone();
     let change = nb.insert(b.clone());
     assert!(matches!(
-        store.commit_survey(&b, &rec, &change, &nb, &[]),
+        store.commit_survey(&b, &rec, &change, &nb.edges_of(&[&change]), &[]),
         Err(StoreError::Invalid(_))
     ));
     assert_eq!(store.surveys().unwrap().len(), 1);
@@ -510,7 +522,7 @@ fn failures_are_recorded_listed_and_cleared() {
     let mut t = Terrain::new(IndexConfig::default());
     ingest(&store, &mut t, &a, "/in/a.tif");
     assert_eq!(store.failures().unwrap(), vec![f("/in/b.tif")]);
-    let r = store.verify().unwrap();
+    let r = restore::verify(&store).unwrap();
     assert!(r.is_ok() && r.failures == 1, "{r:?}");
 }
 
@@ -568,7 +580,7 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
         reserve: 0,
     };
     let Opened { store, .. } =
-        Store::open_with(&dir, LAYOUT, IndexConfig::default(), guard.clone()).unwrap();
+        restore::open(&dir, LAYOUT, IndexConfig::default(), guard.clone()).unwrap();
     let (a, b) = (big(1), big(2));
     let mut t = Terrain::new(IndexConfig::default());
     ingest(&store, &mut t, &a, "/in/a.tif");
@@ -586,7 +598,7 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
         Default::default(),
     );
     let e = store
-        .commit_survey(&b, &rec, &change, &next, &[])
+        .commit_survey(&b, &rec, &change, &next.edges_of(&[&change]), &[])
         .unwrap_err();
     assert!(
         matches!(
@@ -616,13 +628,15 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
     ));
     // Space returns, and so do writes.
     disk.0.store(u64::MAX, std::sync::atomic::Ordering::SeqCst);
-    store.commit_survey(&b, &rec, &change, &next, &[]).unwrap();
+    store
+        .commit_survey(&b, &rec, &change, &next.edges_of(&[&change]), &[])
+        .unwrap();
     assert_verified(&store);
     drop(store);
     // A store opens on a full disk, and says it cannot be written.
     disk.0.store(0, std::sync::atomic::Ordering::SeqCst);
     let Opened { store, terrain, .. } =
-        Store::open_with(&dir, LAYOUT, IndexConfig::default(), guard).unwrap();
+        restore::open(&dir, LAYOUT, IndexConfig::default(), guard).unwrap();
     assert_eq!(terrain.surveys().count(), 2);
     assert!(matches!(store.writable(), Err(StoreError::Full { .. })));
 }
@@ -642,10 +656,14 @@ fn a_pin_holds_the_content_of_a_survey_retired_by_hand_until_it_is_ingested_agai
         AccuracySource::Flag,
         Default::default(),
     );
-    store.commit_survey(&a, &rec, &change, &t, &[]).unwrap();
+    store
+        .commit_survey(&a, &rec, &change, &t.edges_of(&[&change]), &[])
+        .unwrap();
     let ids = patch_ids(&t, a.id);
     let change = t.retire(a.id).unwrap();
-    store.commit_retire(a.id, &ids, &change, &t, true).unwrap();
+    store
+        .commit_retire(a.id, &ids, &change, &t.edges_of(&[&change]), true)
+        .unwrap();
     let pins = store.pins().unwrap();
     assert_eq!(pins.get("/in/a.tif"), Some(&content));
     assert_verified(&store);
@@ -696,7 +714,7 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
     let before = store.disk_bytes();
     let started = Instant::now();
     let live = terrain.index().state().into_keys().collect();
-    let (Opened { store, terrain, .. }, rep) = store.compact(&live).unwrap();
+    let (Opened { store, terrain, .. }, rep) = restore::compact(store, &live).unwrap();
     eprintln!("compaction: {rep:?} in {:?}", started.elapsed());
     assert_eq!(rep.bytes_before, before);
     assert_eq!(rep.surveys_purged, 5);
@@ -730,7 +748,7 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
             ..
         },
         rep,
-    ) = store.compact(&live).unwrap();
+    ) = restore::compact(store, &live).unwrap();
     assert_eq!((rep.surveys_purged, rep.keys_removed), (0, 0));
     assert_same(&terrain, &t, &roi);
 }
@@ -790,9 +808,14 @@ fn open_recovers_from_a_crash_at_any_step_of_compaction() {
     check("after renames");
     // Only the copy: not ours to guess.
     std::fs::rename(&dir, &compact).unwrap();
-    let err = Store::open(&dir, LAYOUT, IndexConfig::default())
-        .err()
-        .expect("refused");
+    let err = restore::open(
+        &dir,
+        LAYOUT,
+        IndexConfig::default(),
+        StoreOptions::default(),
+    )
+    .err()
+    .expect("refused");
     assert!(matches!(err, StoreError::Corrupt(_)), "{err}");
     std::fs::rename(&compact, &dir).unwrap();
     check("copy renamed back");
@@ -803,9 +826,14 @@ fn a_store_in_use_is_refused_with_a_helpful_message() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = store_dir(&tmp);
     let first = open(&dir);
-    let err = Store::open(&dir, LAYOUT, IndexConfig::default())
-        .err()
-        .expect("locked");
+    let err = restore::open(
+        &dir,
+        LAYOUT,
+        IndexConfig::default(),
+        StoreOptions::default(),
+    )
+    .err()
+    .expect("locked");
     assert!(matches!(err, StoreError::Locked { .. }), "{err}");
     let msg = err.to_string();
     assert!(
@@ -838,7 +866,12 @@ fn store_child_opens() {
     let Some(dir) = std::env::var_os("PATCHWORK_STORE_CHILD") else {
         return;
     };
-    match Store::open(Path::new(&dir), LAYOUT, IndexConfig::default()) {
+    match restore::open(
+        Path::new(&dir),
+        LAYOUT,
+        IndexConfig::default(),
+        StoreOptions::default(),
+    ) {
         Err(StoreError::Locked { .. }) => println!("child: locked"),
         Err(e) => println!("child: other error {e}"),
         Ok(_) => println!("child: opened"),

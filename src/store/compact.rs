@@ -13,7 +13,7 @@
 
 use super::chunks::read_packed;
 use super::pack::{ChunkStore, PackFile};
-use super::{dir_bytes, keys, sibling, Opened, Status, Store, StoreError};
+use super::{dir_bytes, keys, sibling, Loaded, Status, Store, StoreError};
 use crate::model::ids::{PatchId, SurveyId};
 use std::collections::HashSet;
 use std::path::Path;
@@ -81,7 +81,7 @@ impl Store {
     /// to no active survey, then rewrites the files. `live` holds the patches of the terrain
     /// the store holds (its surveys' and the edge patches they call for): only their box
     /// states and edge patches are kept. A pin stays: it names a file's content, not a survey.
-    pub fn compact(self, live: &HashSet<PatchId>) -> Result<(Opened, CompactReport), StoreError> {
+    pub fn compact(self, live: &HashSet<PatchId>) -> Result<(Loaded, CompactReport), StoreError> {
         let bytes_before = self.disk_bytes();
         let dir = self.dir.clone();
         let tmp = sibling(&dir, ".compact")?;

@@ -46,7 +46,7 @@ pub use compact::CompactReport;
 pub use migrate::CURRENT as SCHEMA_VERSION;
 use pack::{ChunkStore, PackFile};
 pub use space::{DiskSpace, SpaceGuard, SystemDisk};
-pub use verify::VerifyReport;
+pub use verify::{Checked, VerifyReport};
 
 use crate::index::lod::{BoxState, ChangeStats, IndexConfig};
 use crate::model::accuracy::{AccuracySource, AccuracySpec, Deviation, KernelAccuracy};
@@ -56,7 +56,6 @@ use crate::model::ids::{PatchId, SurveyId};
 use crate::model::patch::{Patch, PatchLayout, Tiling};
 use crate::model::source::SampleSource;
 use crate::model::survey::{Survey, SurveyMeta};
-use crate::terrain::{PatchRef, Terrain};
 use fs2::FileExt;
 use rayon::prelude::*;
 use serde::de::DeserializeOwned;
@@ -491,11 +490,22 @@ pub struct Store {
     _lock: File,
 }
 
-pub struct Opened {
+/// What the index is rebuilt from at open: the surveys without their samples, the edge
+/// patches and the box states. Building the terrain from it is the caller's (see
+/// `crate::restore`); the store reads and writes, and builds nothing.
+pub struct Contents {
+    pub surveys: Vec<Arc<SurveyMeta>>,
+    pub edges: Vec<Arc<EdgePatch>>,
+    pub tops: HashMap<PatchId, BoxState>,
+    /// The index must be derived again from the surveys (a migration asked for it).
+    pub rebuild: bool,
+}
+
+/// A store just opened, with what it holds for the index.
+pub struct Loaded {
     pub store: Store,
-    pub terrain: Terrain,
-    /// Problems met while loading that did not stop it (missing or orphaned tops): the terrain
-    /// may answer queries wrongly until they are dealt with. `verify` tells more.
+    pub contents: Contents,
+    /// Problems met while opening that did not stop it.
     pub warnings: Vec<String>,
     /// Whether the disk was so full that the reserve file was given back to open the store.
     pub released_reserve: bool,
@@ -510,11 +520,12 @@ struct Staged {
 
 impl Store {
     /// Opens or creates the store at `dir`, recovering from an interrupted compaction and
-    /// running migrations, and loads every active survey into a terrain.
+    /// running migrations, and reads what the index is restored from (see [`Contents`]; the
+    /// terrain is built by `crate::restore`).
     ///
     /// `layout` and `index` only apply to a fresh store: an existing one keeps the settings its
     /// surveys were built and indexed with (see [`Store::layout`], [`Store::index_config`]).
-    pub fn open(dir: &Path, layout: PatchLayout, index: IndexConfig) -> Result<Opened, StoreError> {
+    pub fn open(dir: &Path, layout: PatchLayout, index: IndexConfig) -> Result<Loaded, StoreError> {
         Self::open_with(dir, layout, index, StoreOptions::default())
     }
 
@@ -526,7 +537,7 @@ impl Store {
         layout: PatchLayout,
         index: IndexConfig,
         opts: impl Into<StoreOptions>,
-    ) -> Result<Opened, StoreError> {
+    ) -> Result<Loaded, StoreError> {
         let dir = std::path::absolute(dir)?;
         let lock = lock(&dir)?;
         let mut opened = Self::open_locked(dir, lock, layout, index, opts.into())?;
@@ -545,7 +556,7 @@ impl Store {
         layout: PatchLayout,
         index: IndexConfig,
         opts: StoreOptions,
-    ) -> Result<Opened, StoreError> {
+    ) -> Result<Loaded, StoreError> {
         compact::recover(&dir)?;
         let guard = opts.guard.clone();
         let released_reserve = guard.release_if_full(&dir)?;
@@ -601,13 +612,14 @@ impl Store {
             migrated,
             _lock: lock,
         };
-        let (terrain, mut warnings) = store.load()?;
+        let contents = store.load()?;
+        let mut warnings = Vec::new();
         if let Err(e) = store.guard.restore(&store.dir) {
             warnings.push(format!("could not make the reserve file: {e}"));
         }
-        Ok(Opened {
+        Ok(Loaded {
             store,
-            terrain,
+            contents,
             warnings,
             released_reserve,
         })
@@ -643,108 +655,73 @@ impl Store {
 
     /// What the index needs of the active surveys, the edge patches and the box states; no
     /// sample is read.
-    fn load(&self) -> Result<(Terrain, Vec<String>), StoreError> {
+    fn load(&self) -> Result<Contents, StoreError> {
         let active: Vec<SurveyRecord> = self
             .surveys()?
             .into_iter()
             .filter(|r| r.status == Status::Active)
             .collect();
-        if self.db.get(keys::REBUILD)?.is_some() {
-            let surveys: Vec<Arc<Survey>> = active
-                .par_iter()
-                .map(|r| self.load_survey(r).map(Arc::new))
-                .collect::<Result<_, _>>()?;
-            return self.rebuild(surveys, Vec::new());
-        }
-        let metas: Vec<Arc<SurveyMeta>> = active
+        let surveys: Vec<Arc<SurveyMeta>> = active
             .par_iter()
             .map(|r| self.load_meta(r).map(Arc::new))
             .collect::<Result<_, _>>()?;
-        let edges = self.edges()?;
-        let mut states = self.states()?;
-        let source: Arc<dyn SampleSource> = self.reader.clone();
-        let (terrain, missing) = Terrain::restore(self.index, metas, edges, &states, source);
-        let mut warnings = Vec::new();
-        if let Some(p) = missing.first() {
-            // A patch without a state would be a hole; deriving the index again costs an
-            // insertion per survey and writes every state.
-            warnings.push(format!(
-                "{} patches had no stored top (first: {p}); the index was derived again from \
-                 the surveys",
-                missing.len()
-            ));
-            let surveys: Vec<Arc<Survey>> = active
-                .par_iter()
-                .map(|r| self.load_survey(r).map(Arc::new))
-                .collect::<Result<_, _>>()?;
-            return self.rebuild(surveys, warnings);
+        // A store marked for a rebuild may hold tops of an older format: they are replaced,
+        // never read.
+        if self.db.get(keys::REBUILD)?.is_some() {
+            return Ok(Contents {
+                surveys,
+                edges: Vec::new(),
+                tops: HashMap::new(),
+                rebuild: true,
+            });
         }
-        for id in terrain.index().state().keys() {
-            states.remove(id);
-        }
-        if let Some(p) = states.keys().min() {
-            warnings.push(format!(
-                "{} stored tops belong to no patch of the terrain (first: {p}); ignored",
-                states.len()
-            ));
-        }
-        Ok((terrain, warnings))
+        Ok(Contents {
+            surveys,
+            edges: self.edges()?,
+            tops: self.states()?,
+            rebuild: false,
+        })
     }
 
-    /// Derives the index again from the surveys, inserting them in id order, and writes every
-    /// box state, edge patch and overlap in one batch: what an open does after a migration
-    /// that changed what the index keeps. The result does not depend on the order, which only
-    /// fixes the work done.
-    ///
-    /// On a disk too full to take the writes, the terrain is still served and the next open
-    /// tries again.
-    fn rebuild(
+    /// Every active survey whole, samples and all: what deriving the index again needs.
+    pub fn whole_surveys(&self) -> Result<Vec<Arc<Survey>>, StoreError> {
+        let active: Vec<SurveyRecord> = self
+            .surveys()?
+            .into_iter()
+            .filter(|r| r.status == Status::Active)
+            .collect();
+        active
+            .par_iter()
+            .map(|r| self.load_survey(r).map(Arc::new))
+            .collect()
+    }
+
+    /// Replaces every box state and edge patch, and writes overlaps, in one batch: an index
+    /// derived again from the surveys. Clears the mark that asked for it.
+    pub fn write_derived(
         &self,
-        mut surveys: Vec<Arc<Survey>>,
-        mut warnings: Vec<String>,
-    ) -> Result<(Terrain, Vec<String>), StoreError> {
-        surveys.sort_by_key(|s| s.id);
-        let mut t = Terrain::new(self.index);
+        tops: &[(PatchId, BoxState)],
+        edges: &[Arc<EdgePatch>],
+        overlaps: &[(SurveyId, SurveyId, Deviation)],
+    ) -> Result<(), StoreError> {
+        let _w = self.lock_writer();
         let mut batch = Writes::default();
         for prefix in [keys::TOP_PREFIX, keys::EDGE_PREFIX] {
             for kv in self.db.scan_prefix(prefix) {
                 batch.remove(kv?.0);
             }
         }
-        for s in &surveys {
-            for (o, d) in t
-                .overlaps(s)
-                .map_err(|e| StoreError::Corrupt(e.to_string()))?
-            {
-                let v = encode(&d)?;
-                batch.insert(keys::overlap(s.id, o), v.clone());
-                batch.insert(keys::overlap(o, s.id), v);
-            }
-            t.insert(s.clone());
+        for (a, b, d) in overlaps {
+            let v = encode(d)?;
+            batch.insert(keys::overlap(*a, *b), v.clone());
+            batch.insert(keys::overlap(*b, *a), v);
         }
-        for (id, (span, exposed)) in t.index().state() {
-            let st = BoxState {
-                top: span.max_z,
-                exposed,
-            };
-            batch.insert(keys::top(id), &encode_state(&st));
+        for (id, st) in tops {
+            batch.insert(keys::top(*id), &encode_state(st));
         }
-        for e in t.edges() {
-            batch.insert(keys::edge(e.id), encode(e.as_ref())?);
-        }
+        stage_edges(&mut batch, edges)?;
         batch.remove(keys::REBUILD);
-        match self.apply(batch) {
-            Ok(()) => {}
-            Err(e @ StoreError::Full { .. }) => warnings.push(format!(
-                "the index was derived again but could not be stored: {e}"
-            )),
-            Err(e) => return Err(e),
-        }
-        t.set_source(self.reader.clone());
-        for s in &surveys {
-            t.page_out(s.id);
-        }
-        Ok((t, warnings))
+        self.apply(batch)
     }
 
     fn states(&self) -> Result<HashMap<PatchId, BoxState>, StoreError> {
@@ -886,7 +863,6 @@ impl Store {
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
-        next: &Terrain,
         overlaps: &[(SurveyId, Deviation)],
         crs: Option<u32>,
         replacing: Option<SurveyId>,
@@ -952,7 +928,7 @@ impl Store {
         if s.spec == AccuracySpec::Auto {
             batch.insert(keys::accuracy(s.id), encode(&s.kernel_accuracy)?);
         }
-        stage_change(batch, change, next)?;
+        stage_change(batch, change);
         for (other, d) in overlaps {
             let v = encode(d)?;
             batch.insert(keys::overlap(s.id, *other), v.clone());
@@ -969,7 +945,6 @@ impl Store {
         id: SurveyId,
         patch_ids: &[PatchId],
         change: &ChangeStats,
-        next: &Terrain,
     ) -> Result<SurveyRecord, StoreError> {
         let mut rec = match self.record(id)? {
             Some(r) if r.status == Status::Active => r,
@@ -980,7 +955,7 @@ impl Store {
         for p in patch_ids {
             batch.remove(keys::top(*p));
         }
-        stage_change(batch, change, next)?;
+        stage_change(batch, change);
         for kv in self.db.scan_prefix(keys::overlaps_of(id)) {
             let (k, _) = kv?;
             if let Some((_, other)) = keys::parse_overlap(&k) {
@@ -1041,18 +1016,19 @@ impl Store {
 
     /// Commits an already-built survey: record, patches, chunks, and every top the insertion
     /// moved (`change` from inserting it into the terrain, which may include patches of other
-    /// surveys) in one batch, then flushes. A failure leaves the store as it was, so the
-    /// caller swaps in the terrain it computed `change` with only on success.
+    /// surveys) in one batch, then flushes. `edges` are the edge patches the terrain holds
+    /// among the boxes the change moved. A failure leaves the store as it was, so the caller
+    /// swaps in the terrain it computed `change` with only on success.
     pub fn commit_survey(
         &self,
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
-        next: &Terrain,
+        edges: &[Arc<EdgePatch>],
         overlaps: &[(SurveyId, Deviation)],
     ) -> Result<(), StoreError> {
         let packed = self.pack_survey(s)?;
-        self.commit_packed(s, rec, change, next, overlaps, packed)
+        self.commit_packed(s, rec, change, edges, overlaps, packed)
     }
 
     /// [`Store::commit_survey`] with the survey's chunks already packed.
@@ -1061,7 +1037,7 @@ impl Store {
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
-        next: &Terrain,
+        edges: &[Arc<EdgePatch>],
         overlaps: &[(SurveyId, Deviation)],
         packed: Packed,
     ) -> Result<(), StoreError> {
@@ -1073,30 +1049,32 @@ impl Store {
             s,
             rec,
             change,
-            next,
             overlaps,
             self.crs(),
             None,
             packed,
         )?;
+        stage_edges(&mut batch, edges)?;
         self.apply(batch)?;
         self.finish(staged, t0)
     }
 
-    /// Marks a survey retired, drops its tops and writes the tops its retirement moved, in one
-    /// batch. Its samples stay until [`Store::compact`]. `pin` keeps the survey's file, should
-    /// it stay where it is, from bringing the survey back (see [`Store::pins`]).
+    /// Marks a survey retired, drops its tops and writes the tops and edge patches its
+    /// retirement moved, in one batch. Its samples stay until [`Store::compact`]. `pin` keeps
+    /// the survey's file, should it stay where it is, from bringing the survey back (see
+    /// [`Store::pins`]).
     pub fn commit_retire(
         &self,
         id: SurveyId,
         patch_ids: &[PatchId],
         change: &ChangeStats,
-        next: &Terrain,
+        edges: &[Arc<EdgePatch>],
         pin: bool,
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let mut batch = Writes::default();
-        let rec = self.stage_retire(&mut batch, id, patch_ids, change, next)?;
+        let rec = self.stage_retire(&mut batch, id, patch_ids, change)?;
+        stage_edges(&mut batch, edges)?;
         if pin && !rec.content_id.is_empty() {
             batch.insert(keys::pin(&rec.source), rec.content_id.as_bytes());
         }
@@ -1104,7 +1082,8 @@ impl Store {
     }
 
     /// Replaces one survey with another (a file that changed) in one batch: `retire_change`
-    /// from retiring `old`, then `insert_change` from inserting `new` after it.
+    /// from retiring `old`, then `insert_change` from inserting `new` after it; `edges` are the
+    /// edge patches the final terrain holds among the boxes either moved.
     #[allow(clippy::too_many_arguments)]
     pub fn commit_replace(
         &self,
@@ -1114,7 +1093,7 @@ impl Store {
         new: &Survey,
         rec: &SurveyRecord,
         insert_change: &ChangeStats,
-        next: &Terrain,
+        edges: &[Arc<EdgePatch>],
         overlaps: &[(SurveyId, Deviation)],
         packed: Packed,
     ) -> Result<(), StoreError> {
@@ -1123,18 +1102,18 @@ impl Store {
         // sled batches keep the last write of a key, so the insertion's tops win over the
         // retirement's, as they do in the terrain.
         let mut batch = Writes::default();
-        self.stage_retire(&mut batch, old, old_patches, retire_change, next)?;
+        self.stage_retire(&mut batch, old, old_patches, retire_change)?;
         let staged = self.stage_survey(
             &mut batch,
             new,
             rec,
             insert_change,
-            next,
             overlaps,
             self.crs(),
             Some(old),
             packed,
         )?;
+        stage_edges(&mut batch, edges)?;
         self.apply(batch)?;
         self.finish(staged, t0)
     }
@@ -1305,24 +1284,23 @@ impl Store {
     }
 }
 
-/// The box states a change moved, and the removal of the boxes it removed.
-/// The writes an index change calls for: the tops of the boxes it moved, and the edge patches
-/// it removed or added. `next` is the terrain after the whole commit, which holds every edge
-/// patch the commit leaves in place.
-fn stage_change(
-    batch: &mut Writes,
-    change: &ChangeStats,
-    next: &Terrain,
-) -> Result<(), StoreError> {
+/// The writes an index change calls for: the tops of the boxes it moved, and the removal of
+/// the boxes it removed (an edge patch's record among them).
+fn stage_change(batch: &mut Writes, change: &ChangeStats) {
     for id in &change.removed {
         batch.remove(keys::top(*id));
         batch.remove(keys::edge(*id));
     }
     for (id, st) in &change.moved {
         batch.insert(keys::top(*id), &encode_state(st));
-        if let Some(PatchRef::Edge(e)) = next.patch(*id) {
-            batch.insert(keys::edge(*id), encode(e.as_ref())?);
-        }
+    }
+}
+
+/// The edge patches a commit leaves in place, written after every removal it stages: one
+/// that a retirement removed and an insertion brought back is there.
+fn stage_edges(batch: &mut Writes, edges: &[Arc<EdgePatch>]) -> Result<(), StoreError> {
+    for e in edges {
+        batch.insert(keys::edge(e.id), encode(e.as_ref())?);
     }
     Ok(())
 }

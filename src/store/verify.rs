@@ -1,6 +1,7 @@
-//! A full check of the store against itself: every key decodes, every chunk matches its
-//! checksum, every active survey is whole and its samples still hash to its id, and the stored
-//! box states and edge patches are the ones inserting the surveys again derives.
+//! The store's half of `verify`: every key decodes, every chunk matches its checksum, every
+//! active survey is whole and its samples still hash to its id. The other half, that the
+//! stored box states and edge patches are the ones inserting the surveys again derives, needs
+//! a terrain and is `crate::restore::verify`'s.
 
 use super::chunks::{chunk_counts, chunk_rect, decode as decode_chunk, read_chunk};
 use super::pack::ChunkStore;
@@ -15,7 +16,6 @@ use crate::model::grid::Grid;
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::patch::PatchLayout;
 use crate::model::survey::Survey;
-use crate::terrain::Terrain;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
@@ -41,13 +41,14 @@ impl VerifyReport {
 /// Stop listing problems of one kind past this many; the count still tells how bad it is.
 const MAX_LISTED: usize = 20;
 
-struct Problems {
+/// Problems found, counted by kind, the first few of each kind listed.
+pub(crate) struct Problems {
     list: Vec<String>,
     counts: BTreeMap<&'static str, usize>,
 }
 
 impl Problems {
-    fn add(&mut self, kind: &'static str, msg: String) {
+    pub(crate) fn add(&mut self, kind: &'static str, msg: String) {
         let n = self.counts.entry(kind).or_default();
         *n += 1;
         if *n <= MAX_LISTED {
@@ -55,7 +56,7 @@ impl Problems {
         }
     }
 
-    fn finish(mut self) -> Vec<String> {
+    pub(crate) fn finish(mut self) -> Vec<String> {
         for (kind, n) in &self.counts {
             if *n > MAX_LISTED {
                 self.list.push(format!(
@@ -72,9 +73,21 @@ fn key_str(k: &[u8]) -> String {
     String::from_utf8_lossy(k).into_owned()
 }
 
+/// What the store's own checks found, and what the index check needs: the whole surveys (when
+/// every active one could be loaded and no rebuild is pending), and the stored tops and edge
+/// patches to compare with the ones they derive.
+pub struct Checked {
+    pub(crate) report: VerifyReport,
+    pub(crate) problems: Problems,
+    pub(crate) whole: Option<Vec<Arc<Survey>>>,
+    pub(crate) tops: HashMap<PatchId, BoxState>,
+    pub(crate) edges: HashMap<PatchId, EdgePatch>,
+}
+
 impl Store {
-    /// Re-checks the whole store. Problems go in the report; `Err` is only for failing to read.
-    pub fn verify(&self) -> Result<VerifyReport, StoreError> {
+    /// Re-checks everything the store holds but the index. Problems go in the report; `Err` is
+    /// only for failing to read.
+    pub fn check(&self) -> Result<Checked, StoreError> {
         let mut pr = Problems {
             list: Vec::new(),
             counts: BTreeMap::new(),
@@ -245,63 +258,19 @@ impl Store {
                 );
             }
         }
-        if self.db.get(keys::REBUILD)?.is_some() {
-            // The index is derived on the next open; there are no states to check yet.
-            rep.problems = pr.finish();
-            return Ok(rep);
-        }
         // Without every active survey the index cannot be derived as the store holds it (its
         // neighbours' tops and the edge patches depend on the missing one): what is wrong with
-        // the surveys is reported above, and the index is checked once they are whole.
-        if whole.len() == rep.active {
-            whole.sort_by_key(|s| s.id);
-            let mut terrain = Terrain::new(self.index);
-            for s in whole {
-                terrain.insert(s);
-            }
-            for (id, (span, exposed)) in terrain.index().state() {
-                match tops.remove(&id) {
-                    None => pr.add("missing top", format!("patch {id} has no top")),
-                    Some(t) if t.top != span.max_z || t.exposed != exposed => pr.add(
-                        "top",
-                        format!(
-                            "wrong top of patch {id}: stored {} (exposed {}), derived {} (exposed {exposed})",
-                            t.top, t.exposed, span.max_z
-                        ),
-                    ),
-                    Some(_) => {}
-                }
-            }
-            for p in tops.keys() {
-                pr.add(
-                    "orphan top",
-                    format!("top of patch {p} belongs to no patch of the terrain"),
-                );
-            }
-            for e in terrain.edges() {
-                match edges.remove(&e.id) {
-                    None => pr.add("missing edge", format!("edge patch {} is missing", e.id)),
-                    // Compared as stored: heights hold NaN where nothing is near.
-                    Some(stored) if super::encode(&stored)? != super::encode(e.as_ref())? => pr
-                        .add(
-                            "edge",
-                            format!("edge patch {} differs from the one derived", e.id),
-                        ),
-                    Some(_) => {}
-                }
-            }
-            for id in edges.keys() {
-                pr.add(
-                    "orphan edge",
-                    format!("edge patch {id} belongs to no tile of the terrain"),
-                );
-            }
-            if let Err(e) = terrain.index().check() {
-                pr.add("index", format!("the derived index fails its check: {e}"));
-            }
-        }
-        rep.problems = pr.finish();
-        Ok(rep)
+        // the surveys is reported above, and the index is checked once they are whole. After a
+        // migration the index is derived on the next open; there are no states to check yet.
+        let whole =
+            (whole.len() == rep.active && self.db.get(keys::REBUILD)?.is_none()).then_some(whole);
+        Ok(Checked {
+            report: rep,
+            problems: pr,
+            whole,
+            tops,
+            edges,
+        })
     }
 
     fn check_meta(&self, k: &[u8], v: &[u8], pr: &mut Problems) {
