@@ -115,6 +115,10 @@ pub struct Limits {
     /// Most memory one file's decoded raster may take, in MiB; larger headers are refused
     /// before anything is read.
     pub max_ingest_mb: u64,
+    /// Files read and modelled at once. Each takes about five times its raster in memory;
+    /// two keep both cores busy, one reading and modelling while the other's survey is
+    /// indexed and committed (commits are one at a time whatever this says).
+    pub ingest_parallel: u64,
     /// Heights outside [min_height_m, max_height_m] are not terrain in metres: a file holding
     /// any is refused.
     pub min_height_m: f64,
@@ -134,6 +138,7 @@ impl Default for Limits {
             deadline_ms: 30_000,
             max_running_requests: 8,
             max_ingest_mb: 4096,
+            ingest_parallel: 2,
             min_height_m: -12_000.0,
             max_height_m: 9_000.0,
             max_ingest_paths: 256,
@@ -352,12 +357,13 @@ impl Config {
             l.max_failures,
             l.max_ingest_paths,
             l.max_running_requests,
+            l.ingest_parallel,
         ];
         if !ordered || counts.contains(&0) {
             return Err(ConfigError::Invalid(
                 "limits.min_height_m must be below limits.max_height_m, and \
-                 limits.max_ingest_mb, max_failures, max_ingest_paths and \
-                 max_running_requests at least 1"
+                 limits.max_ingest_mb, max_failures, max_ingest_paths, max_running_requests \
+                 and ingest_parallel at least 1"
                     .into(),
             ));
         }

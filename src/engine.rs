@@ -178,6 +178,17 @@ pub struct Progress {
     pub started: Instant,
 }
 
+/// One of the engine's ingest slots, given back when dropped.
+struct IngestSlot<'a>(&'a Engine);
+
+impl Drop for IngestSlot<'_> {
+    fn drop(&mut self) {
+        let (count, freed) = &self.0.ingest_slots;
+        *count.lock().unwrap_or_else(|e| e.into_inner()) -= 1;
+        freed.notify_one();
+    }
+}
+
 /// What readers see: a terrain and the catalog of the same commit.
 struct Published {
     terrain: Arc<Terrain>,
@@ -192,11 +203,11 @@ pub struct Engine {
     writer: Mutex<Option<Store>>,
     /// Set once the store failed under a write: sled cannot recover its handle.
     broken: OnceLock<String>,
-    /// One file is read and modelled at a time: an ingest takes about five times its raster
-    /// in memory, and `limits.max_ingest_mb` bounds one raster, not many at once.
-    ingesting: Mutex<()>,
-    /// The ingest under way, for progress displays.
-    progress: Mutex<Option<Progress>>,
+    /// Ingests under way, at most `limits.ingest_parallel`: an ingest takes about five times
+    /// its raster in memory, and `limits.max_ingest_mb` bounds one raster, not many at once.
+    ingest_slots: (Mutex<u64>, std::sync::Condvar),
+    /// The ingests under way, oldest first, for progress displays.
+    progress: Mutex<Vec<Progress>>,
     /// The store's directory and space rules, for `stats` without the writer.
     dir: PathBuf,
     guard: SpaceGuard,
@@ -248,7 +259,7 @@ impl Engine {
         release_free_memory();
         let (events, _) = broadcast::channel(1024);
         Ok(Engine {
-            progress: Mutex::new(None),
+            progress: Mutex::new(Vec::new()),
             reader: RwLock::new(opened.store.reader()),
             dir: opened.store.path().to_path_buf(),
             guard,
@@ -258,7 +269,7 @@ impl Engine {
             }),
             writer: Mutex::new(Some(opened.store)),
             broken: OnceLock::new(),
-            ingesting: Mutex::new(()),
+            ingest_slots: (Mutex::new(0), std::sync::Condvar::new()),
             cfg,
             events,
             gpu: Mutex::new(None),
@@ -363,15 +374,37 @@ impl Engine {
         Ok(v)
     }
 
-    fn set_phase(&self, phase: Phase) {
-        if let Some(p) = self.progress.lock().expect("progress lock").as_mut() {
+    fn set_phase(&self, source: &str, phase: Phase) {
+        let mut all = self.progress.lock().expect("progress lock");
+        if let Some(p) = all.iter_mut().find(|p| p.source == source) {
             p.phase = phase;
         }
     }
 
-    /// The ingest under way, if any.
+    /// The oldest ingest under way, if any.
     pub fn progress(&self) -> Option<Progress> {
-        self.progress.lock().expect("progress lock").clone()
+        self.progress
+            .lock()
+            .expect("progress lock")
+            .first()
+            .cloned()
+    }
+
+    /// Waits for one of the `limits.ingest_parallel` ingest slots; the slot is given back
+    /// when the guard goes.
+    fn ingest_slot(&self) -> IngestSlot<'_> {
+        let (count, freed) = &self.ingest_slots;
+        let mut n = count.lock().unwrap_or_else(|e| e.into_inner());
+        while *n >= self.cfg.limits.ingest_parallel {
+            n = freed.wait(n).unwrap_or_else(|e| e.into_inner());
+        }
+        *n += 1;
+        IngestSlot(self)
+    }
+
+    /// How many files may be ingested at once.
+    pub fn ingest_parallel(&self) -> usize {
+        self.cfg.limits.ingest_parallel as usize
     }
 
     /// Notes a store error; one from sled's I/O leaves its handle unusable.
@@ -448,17 +481,20 @@ impl Engine {
             seconds: t0.elapsed().as_secs_f64(),
             conflicts: Vec::new(),
         };
-        let one_at_a_time = self.ingesting.lock().unwrap_or_else(|e| e.into_inner());
-        *self.progress.lock().expect("progress lock") = Some(Progress {
+        let slot = self.ingest_slot();
+        self.progress.lock().expect("progress lock").push(Progress {
             source: source.clone(),
             bytes: std::fs::metadata(path).map_or(0, |m| m.len()),
             phase: Phase::Reading,
             started: Instant::now(),
         });
         let result = self.ingest_inner(path, &source, accuracy, origin);
-        *self.progress.lock().expect("progress lock") = None;
+        self.progress
+            .lock()
+            .expect("progress lock")
+            .retain(|p| p.source != source);
         release_free_memory();
-        drop(one_at_a_time);
+        drop(slot);
         match result {
             Err(Refusal::Outside) => {
                 tracing::warn!(source = ?source, "refused a path outside the ingest folders");
@@ -586,7 +622,8 @@ impl Engine {
             },
             heights: (self.cfg.limits.min_height_m, self.cfg.limits.max_height_m),
         };
-        let prepared = prepare_with(path, &settings, &|p| self.set_phase(p)).map_err(file)?;
+        let prepared =
+            prepare_with(path, &settings, &|p| self.set_phase(source, p)).map_err(file)?;
         let survey = Arc::new(prepared.survey);
         let samples = survey.levels[0].valid_count() as u64;
         let t1 = Instant::now();
@@ -594,7 +631,7 @@ impl Engine {
         let outcome = self
             .write_and(
                 |store, current| {
-                    self.set_phase(Phase::Indexing);
+                    self.set_phase(source, Phase::Indexing);
                     let previous = store_active_from(store, source)?;
                     if current.survey(survey.id).is_some() {
                         // The content is already served (from this path or a copy elsewhere);
@@ -639,7 +676,7 @@ impl Engine {
                         || store.pack_survey(&survey),
                     );
                     let ((retire, insert, overlaps), packed) = (indexed?, packed?);
-                    self.set_phase(Phase::Committing);
+                    self.set_phase(source, Phase::Committing);
                     let outcome = match &previous {
                         Some(old) => {
                             store.commit_replace(

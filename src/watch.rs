@@ -34,6 +34,10 @@ pub trait Sink: Send + Sync + 'static {
     fn ingest(&self, path: &Path) -> Result<Ingested, EngineError>;
     /// Retires the survey of a file seen deleted.
     fn retire_deleted(&self, source: &str) -> Result<(), EngineError>;
+    /// How many files the sink takes at once.
+    fn parallel(&self) -> usize {
+        1
+    }
 }
 
 impl Sink for Engine {
@@ -47,6 +51,10 @@ impl Sink for Engine {
 
     fn retire_deleted(&self, source: &str) -> Result<(), EngineError> {
         Engine::retire_deleted(self, source)
+    }
+
+    fn parallel(&self) -> usize {
+        self.ingest_parallel()
     }
 }
 
@@ -263,6 +271,7 @@ impl<S: Sink> Reconciler<S> {
     /// waiting to settle, and the folders to watch again.
     pub fn pass(&mut self) -> (bool, Vec<PathBuf>) {
         let now = Instant::now();
+        let mut ready = Vec::new();
         let catalog = self.sink.catalog();
         let (found, back) = self.discover(&catalog);
         for (p, stamp) in &found.files {
@@ -287,15 +296,20 @@ impl<S: Sink> Reconciler<S> {
             entry.renamed |= renamed;
             if entry.renamed || now.duration_since(entry.since) >= self.settle {
                 self.pending.remove(p);
-                match self.sink.ingest(p) {
-                    Ok(r) => {
-                        tracing::debug!(source = ?r.source, outcome = r.outcome.as_str(), "reconciled");
-                        self.done.insert(source, *stamp);
-                    }
-                    // Not the file's fault: a later pass tries it again.
-                    Err(e) => {
-                        tracing::debug!(source = ?source, error = ?e.to_string(), "ingest deferred")
-                    }
+                ready.push((p.clone(), source, *stamp));
+            }
+        }
+        // The files that are ready, several at once: the store's answer does not depend on
+        // the order they are taken in, and the sink bounds how many it reads at a time.
+        for ((_, source, stamp), result) in ready.iter().zip(self.ingest_all(&ready)) {
+            match result {
+                Ok(r) => {
+                    tracing::debug!(source = ?r.source, outcome = r.outcome.as_str(), "reconciled");
+                    self.done.insert(source.clone(), *stamp);
+                }
+                // Not the file's fault: a later pass tries it again.
+                Err(e) => {
+                    tracing::debug!(source = ?source, error = ?e.to_string(), "ingest deferred")
                 }
             }
         }
@@ -307,6 +321,38 @@ impl<S: Sink> Reconciler<S> {
         // entries: they are not gone.
         self.done.retain(|s, _| !found.gone(s));
         (!self.pending.is_empty(), back)
+    }
+
+    /// Ingests files on up to [`Sink::parallel`] threads; the results in the files' order.
+    #[allow(clippy::type_complexity)]
+    fn ingest_all(
+        &self,
+        ready: &[(PathBuf, String, Option<(u64, u64)>)],
+    ) -> Vec<Result<Ingested, EngineError>> {
+        let workers = self.sink.parallel().clamp(1, ready.len().max(1));
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        let results: Vec<std::sync::Mutex<Option<Result<Ingested, EngineError>>>> =
+            ready.iter().map(|_| std::sync::Mutex::new(None)).collect();
+        std::thread::scope(|scope| {
+            for _ in 0..workers {
+                scope.spawn(|| loop {
+                    let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    let Some((p, _, _)) = ready.get(i) else {
+                        return;
+                    };
+                    let r = self.sink.ingest(p);
+                    *results[i].lock().unwrap_or_else(|e| e.into_inner()) = Some(r);
+                });
+            }
+        });
+        results
+            .into_iter()
+            .map(|m| {
+                m.into_inner()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .expect("every file was taken")
+            })
+            .collect()
     }
 
     fn retire_missing(&mut self, found: &Discovered) {

@@ -87,8 +87,29 @@ pub trait PatchFunction: Send + Sync {
     fn weight(&self, t: f64) -> f64;
     /// The patch's height at fractional level-grid coordinates inside its window, or None on void.
     fn eval(&self, level: &Grid, window: &CellRect, g: [f64; 2]) -> Option<f64>;
-    /// The largest |patch − level 0| over the window where both are defined.
+    /// The largest |patch − level 0| over the window where both are defined. It must be the
+    /// largest of the window's cells' own figures: [`make_patches`] computes each cell's once
+    /// and takes the largest over a window, since windows overlap.
     fn max_deviation(&self, levels: &[Arc<Grid>], level: usize, window: &CellRect) -> f64;
+
+    /// [`PatchFunction::max_deviation`] of every cell of a level, row-major.
+    fn cell_deviations(&self, levels: &[Arc<Grid>], level: usize) -> Vec<f64> {
+        let [cw, ch] = levels[level].cells();
+        (0..ch as u32)
+            .into_par_iter()
+            .flat_map_iter(|r| {
+                (0..cw as u32).map(move |c| {
+                    let cell = CellRect {
+                        c0: c,
+                        r0: r,
+                        c1: c + 1,
+                        r1: r + 1,
+                    };
+                    self.max_deviation(levels, level, &cell)
+                })
+            })
+            .collect()
+    }
 }
 
 /// C0 patches: bilinear interpolation of the window's samples, blended with w(t) = 1 − |t|.
@@ -312,6 +333,24 @@ pub fn make_patches(
             }
         })
         .collect();
+    // Each coarse cell's deviation once: a window's is the largest over its cells, and the
+    // windows of a level overlap by their extension zones.
+    let devs: Vec<Vec<f64>> = (0..levels.len())
+        .map(|lv| {
+            if lv == 0 {
+                Vec::new()
+            } else {
+                func.cell_deviations(levels, lv)
+            }
+        })
+        .collect();
+    let window_deviation = |lv: usize, w: &CellRect| -> f64 {
+        let cw = levels[lv].cells()[0];
+        let d = &devs[lv];
+        (w.r0 as usize..w.r1 as usize)
+            .flat_map(|r| d[r * cw + w.c0 as usize..r * cw + w.c1 as usize].iter())
+            .fold(0.0f64, |a, &b| a.max(b))
+    };
     let mut slots = Vec::new();
     for (lv, t) in tilings.iter().enumerate() {
         let [nx, ny] = t.counts();
@@ -335,7 +374,11 @@ pub fn make_patches(
                 return None;
             }
             let window = t.window(&kernel, m);
-            let delta = func.max_deviation(levels, lv, &window);
+            let delta = if lv == 0 {
+                0.0
+            } else {
+                window_deviation(lv, &window)
+            };
             // Rounding δ up by a few ulps keeps the bound a bound after f32 storage downstream.
             let delta = if delta > 0.0 {
                 delta * (1.0 + 1e-9) + 1e-6

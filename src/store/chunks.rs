@@ -9,7 +9,7 @@
 //! - heights that are all whole numbers (16-bit sources: SRTM, NASADEM, most .hgt) are
 //!   delta-coded along rows as integers, zigzagged, split into byte planes and zstd-compressed;
 //! - any other heights go through the float predictor GeoTIFF uses (byte planes, most
-//!   significant first, then byte differences along the row) and zstd;
+//!   significant first, then byte differences along the row) and zstd at level 1;
 //! - where neither is smaller than the raw samples, the raw samples are kept.
 //!
 //! Every chunk starts with a one-byte codec and the first four bytes of the BLAKE3 hash of
@@ -25,9 +25,10 @@ use std::sync::Arc;
 /// Samples per chunk side.
 pub const CHUNK: usize = 256;
 
-/// zstd's level: level 3 already reaches within a few percent of level 19 on the predicted
-/// planes, at a tenth of the time (see docs/BENCHMARKS.md).
-const ZSTD_LEVEL: i32 = 3;
+/// zstd's level: on the predicted planes level 1 is within 2% of level 3 and 6% of level 19
+/// in size, at two thirds of level 3's time, and encoding is a tenth of an ingest's work (see
+/// docs/BENCHMARKS.md, "The store").
+const ZSTD_LEVEL: i32 = 1;
 
 const RAW: u8 = 0;
 const FLOAT: u8 = 1;
