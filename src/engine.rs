@@ -1046,6 +1046,16 @@ impl Engine {
 
     /// Heights at points, at error `e`: what any tile holding the same points gives there.
     pub fn sample(&self, points: &[[f64; 2]], e: f64) -> Result<Vec<f32>, EngineError> {
+        self.sample_until(points, e, &Cancel::default())
+    }
+
+    /// Heights at points, given up once `cancel` is set.
+    pub fn sample_until(
+        &self,
+        points: &[[f64; 2]],
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Vec<f32>, EngineError> {
         if points.len() as u64 > self.cfg.limits.max_points {
             return Err(EngineError::TooLarge(format!(
                 "{} points, more than the limit of {}: send them in smaller requests",
@@ -1060,10 +1070,10 @@ impl Engine {
             return Err(EngineError::Invalid("points must be finite".into()));
         }
         check_error(e)?;
-        Ok(self
-            .snapshot()
-            .try_sample(points, e)
-            .map_err(StoreError::from)?)
+        self.snapshot()
+            .try_sample_until(points, e, cancel)
+            .map_err(StoreError::from)?
+            .ok_or(EngineError::Cancelled)
     }
 }
 

@@ -13,7 +13,7 @@ use crate::model::lattice::{tile_of, Lattice};
 use crate::model::patch::Patch;
 use crate::model::source::{SampleError, SampleSource};
 use crate::model::survey::{Survey, SurveyMeta};
-use crate::resample::{cpu, PatchSet, ResolvedPatch, SampleGrid};
+use crate::resample::{cpu, Cancel, PatchSet, ResolvedPatch, SampleGrid};
 use rayon::prelude::*;
 use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
@@ -574,16 +574,40 @@ impl Terrain {
 
     /// Heights at points, at error `e`, reading samples as needed.
     pub fn try_sample(&self, points: &[[f64; 2]], e: f64) -> Result<Vec<f32>, SampleError> {
+        Ok(self
+            .try_sample_until(points, e, &Cancel::default())?
+            .expect("never cancelled"))
+    }
+
+    /// [`Terrain::try_sample`], given up (None) once `cancel` is set.
+    pub fn try_sample_until(
+        &self,
+        points: &[[f64; 2]],
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Option<Vec<f32>>, SampleError> {
         if points.is_empty() {
-            return Ok(Vec::new());
+            return Ok(Some(Vec::new()));
         }
         let ps = self.uniform(&Aabb::of_points(points), e);
+        let set = self.try_resolve(&ps)?;
+        // Rows of points, so that they resample on every core and a cancel is seen between
+        // rows; each point's height depends on the point alone. The last row is padded with
+        // points that are nowhere.
+        const ROW: usize = 1024;
+        let width = points.len().min(ROW);
+        let height = points.len().div_ceil(width);
+        let mut padded = points.to_vec();
+        padded.resize(width * height, [f64::NAN, f64::NAN]);
         let grid = SampleGrid {
-            width: points.len(),
-            height: 1,
-            points: points.to_vec(),
+            width,
+            height,
+            points: padded,
         };
-        Ok(self.try_resample(ps, &grid)?.heights)
+        Ok(cpu::resample_until(&set, &grid, cancel).map(|mut h| {
+            h.truncate(points.len());
+            h
+        }))
     }
 
     /// A view-dependent sample grid of `width × height` screen pixels.

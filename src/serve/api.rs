@@ -81,9 +81,13 @@ pub fn resample_tile(
     Ok(convert::tile(&tile, used, engine.crs()))
 }
 
-pub fn sample_heights(engine: &Engine, r: &pb::SampleRequest) -> Result<pb::Samples, EngineError> {
+pub fn sample_heights(
+    engine: &Engine,
+    r: &pb::SampleRequest,
+    cancel: &Cancel,
+) -> Result<pb::Samples, EngineError> {
     let pts: Vec<[f64; 2]> = r.points.iter().map(|p| [p.x, p.y]).collect();
-    let heights = engine.sample(&pts, r.error)?;
+    let heights = engine.sample_until(&pts, r.error, cancel)?;
     Ok(pb::Samples {
         valid: heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
         heights,

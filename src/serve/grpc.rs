@@ -160,7 +160,7 @@ impl terrain_server::Terrain for Service {
         r: Request<pb::SampleRequest>,
     ) -> Result<Response<pb::Samples>, Status> {
         let r = r.into_inner();
-        self.run(move |e, _| api::sample_heights(e, &r))
+        self.run(move |e, c| api::sample_heights(e, &r, c))
             .await
             .map(Response::new)
     }
