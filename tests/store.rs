@@ -34,6 +34,13 @@ fn open(dir: &Path) -> Opened {
     o
 }
 
+/// The error a store that must not open gives.
+fn refused(dir: &Path) -> StoreError {
+    restore::open(dir, LAYOUT, IndexConfig::default(), StoreOptions::default())
+        .err()
+        .expect("refused")
+}
+
 fn store_dir(tmp: &tempfile::TempDir) -> PathBuf {
     tmp.path().join("store")
 }
@@ -379,14 +386,7 @@ fn a_newer_schema_is_refused_naming_both_versions() {
             .unwrap();
         store.raw().flush().unwrap();
     }
-    let err = restore::open(
-        &dir,
-        LAYOUT,
-        IndexConfig::default(),
-        StoreOptions::default(),
-    )
-    .err()
-    .expect("refused");
+    let err = refused(&dir);
     assert!(
         matches!(err, StoreError::Newer { found: 99, supported } if supported == SCHEMA_VERSION)
     );
@@ -406,14 +406,7 @@ fn a_directory_with_data_but_no_schema_is_not_adopted() {
         db.insert(b"something", b"else").unwrap();
         db.flush().unwrap();
     }
-    let err = restore::open(
-        &dir,
-        LAYOUT,
-        IndexConfig::default(),
-        StoreOptions::default(),
-    )
-    .err()
-    .expect("refused");
+    let err = refused(&dir);
     assert!(matches!(err, StoreError::Migration { from: 0, to: 1, .. }));
     assert!(err.to_string().contains("not a Patchwork store"), "{err}");
 }
@@ -808,14 +801,7 @@ fn open_recovers_from_a_crash_at_any_step_of_compaction() {
     check("after renames");
     // Only the copy: not ours to guess.
     std::fs::rename(&dir, &compact).unwrap();
-    let err = restore::open(
-        &dir,
-        LAYOUT,
-        IndexConfig::default(),
-        StoreOptions::default(),
-    )
-    .err()
-    .expect("refused");
+    let err = refused(&dir);
     assert!(matches!(err, StoreError::Corrupt(_)), "{err}");
     std::fs::rename(&compact, &dir).unwrap();
     check("copy renamed back");
@@ -826,14 +812,7 @@ fn a_store_in_use_is_refused_with_a_helpful_message() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = store_dir(&tmp);
     let first = open(&dir);
-    let err = restore::open(
-        &dir,
-        LAYOUT,
-        IndexConfig::default(),
-        StoreOptions::default(),
-    )
-    .err()
-    .expect("locked");
+    let err = refused(&dir);
     assert!(matches!(err, StoreError::Locked { .. }), "{err}");
     let msg = err.to_string();
     assert!(
