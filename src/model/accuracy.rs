@@ -120,27 +120,36 @@ pub struct Estimate {
     pub kernels: KernelAccuracy,
 }
 
-/// The difference between z(c, r) and the bilinear surface through the samples of the grid
-/// decimated by `f`, or None where that surface is undefined or (c, r) is one of its samples.
-#[inline]
-fn decimation_error(g: &Grid, f: usize, c: usize, r: usize) -> Option<f64> {
-    if c.is_multiple_of(f) && r.is_multiple_of(f) {
-        return None;
+/// Along row `r`: the difference between z(c, r) and the bilinear surface through the samples
+/// of the grid decimated by `f`, for every c, or NaN where that surface is undefined or (c, r)
+/// is one of its samples. `out` gets one figure a column.
+fn decimation_errors(g: &Grid, f: usize, r: usize, out: &mut [f64]) {
+    out.fill(f64::NAN);
+    let j = r / f * f;
+    if j + f >= g.rows {
+        return;
     }
-    let (i, j) = (c / f * f, r / f * f);
-    if i + f >= g.cols || j + f >= g.rows {
-        return None;
-    }
-    let z = g.at(c, r) as f64;
-    let (z00, z10) = (g.at(i, j) as f64, g.at(i + f, j) as f64);
-    let (z01, z11) = (g.at(i, j + f) as f64, g.at(i + f, j + f) as f64);
-    let fx = (c - i) as f64 / f as f64;
+    let row = |k: usize| &g.samples[k * g.cols..(k + 1) * g.cols];
+    let (here, above, below) = (row(r), row(j), row(j + f));
     let fy = (r - j) as f64 / f as f64;
-    let top = z00 + (z10 - z00) * fx;
-    let bottom = z01 + (z11 - z01) * fx;
-    let d = (top + (bottom - top) * fy - z).abs();
-    // Any void corner or sample makes d NaN.
-    (!d.is_nan()).then_some(d)
+    let on_row = r.is_multiple_of(f);
+    for i in (0..g.cols).step_by(f) {
+        if i + f >= g.cols {
+            break;
+        }
+        let (z00, z10) = (above[i] as f64, above[i + f] as f64);
+        let (z01, z11) = (below[i] as f64, below[i + f] as f64);
+        for c in i..i + f {
+            if on_row && c == i {
+                continue;
+            }
+            let fx = (c - i) as f64 / f as f64;
+            let top = z00 + (z10 - z00) * fx;
+            let bottom = z01 + (z11 - z01) * fx;
+            // Any void corner or sample makes it NaN.
+            out[c] = (top + (bottom - top) * fy - here[c] as f64).abs();
+        }
+    }
 }
 
 /// Estimates ε for every kernel of `tiling` over level 0, with windows `margin` cells wider
@@ -149,21 +158,28 @@ pub fn estimate(g: &Grid, tiling: &Tiling, margin: u32) -> Estimate {
     // Per row: sums of squares and counts for both factors, and the largest d₂ per column.
     let rows: Vec<(f64, u64, f64, u64, Vec<f32>)> = (0..g.rows)
         .into_par_iter()
-        .map(|r| {
-            let mut out = (0.0, 0u64, 0.0, 0u64, vec![f32::NAN; g.cols]);
-            for c in 0..g.cols {
-                if let Some(d) = decimation_error(g, 2, c, r) {
-                    out.0 += d * d;
-                    out.1 += 1;
-                    out.4[c] = d as f32;
+        .map_init(
+            || (vec![0.0; g.cols], vec![0.0; g.cols]),
+            |(d2, d4), r| {
+                let mut out = (0.0, 0u64, 0.0, 0u64, vec![f32::NAN; g.cols]);
+                decimation_errors(g, 2, r, d2);
+                decimation_errors(g, 4, r, d4);
+                for c in 0..g.cols {
+                    let d = d2[c];
+                    if !d.is_nan() {
+                        out.0 += d * d;
+                        out.1 += 1;
+                        out.4[c] = d as f32;
+                    }
+                    let d = d4[c];
+                    if !d.is_nan() {
+                        out.2 += d * d;
+                        out.3 += 1;
+                    }
                 }
-                if let Some(d) = decimation_error(g, 4, c, r) {
-                    out.2 += d * d;
-                    out.3 += 1;
-                }
-            }
-            out
-        })
+                out
+            },
+        )
         .collect();
     let (s2, n2, s4, n4) = rows.iter().fold((0.0, 0, 0.0, 0), |a, r| {
         (a.0 + r.0, a.1 + r.1, a.2 + r.2, a.3 + r.3)
@@ -311,6 +327,58 @@ pub fn deviation(grid: &Grid, other: &Grid) -> Option<Deviation> {
 mod tests {
     use super::*;
     use crate::model::grid::Georef;
+
+    #[test]
+    fn row_decimation_errors_are_the_per_sample_definition_bit_for_bit() {
+        // The definition, one sample at a time.
+        let one = |g: &Grid, f: usize, c: usize, r: usize| -> Option<f64> {
+            if c.is_multiple_of(f) && r.is_multiple_of(f) {
+                return None;
+            }
+            let (i, j) = (c / f * f, r / f * f);
+            if i + f >= g.cols || j + f >= g.rows {
+                return None;
+            }
+            let z = g.at(c, r) as f64;
+            let (z00, z10) = (g.at(i, j) as f64, g.at(i + f, j) as f64);
+            let (z01, z11) = (g.at(i, j + f) as f64, g.at(i + f, j + f) as f64);
+            let fx = (c - i) as f64 / f as f64;
+            let fy = (r - j) as f64 / f as f64;
+            let top = z00 + (z10 - z00) * fx;
+            let bottom = z01 + (z11 - z01) * fx;
+            let d = (top + (bottom - top) * fy - z).abs();
+            (!d.is_nan()).then_some(d)
+        };
+        let (cols, rows) = (23, 18);
+        let samples: Vec<f32> = (0..cols * rows)
+            .map(|k| {
+                if k % 29 == 3 {
+                    f32::NAN
+                } else {
+                    ((k as f32) * 0.731).sin() * 40.0 + (k % 7) as f32
+                }
+            })
+            .collect();
+        let g = Grid::new(
+            cols,
+            rows,
+            samples,
+            Georef::north_up([0.0, 0.0], [1.0, 1.0]),
+        )
+        .unwrap();
+        let mut out = vec![0.0; cols];
+        for f in [2, 4] {
+            for r in 0..rows {
+                decimation_errors(&g, f, r, &mut out);
+                for c in 0..cols {
+                    match one(&g, f, c, r) {
+                        Some(d) => assert_eq!(out[c].to_bits(), d.to_bits(), "f {f} at {c},{r}"),
+                        None => assert!(out[c].is_nan(), "f {f} at {c},{r}: {}", out[c]),
+                    }
+                }
+            }
+        }
+    }
 
     fn grid(n: usize, f: impl Fn(f64, f64) -> f64) -> Grid {
         let s = (0..n * n)
