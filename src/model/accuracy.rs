@@ -370,10 +370,10 @@ mod tests {
         for f in [2, 4] {
             for r in 0..rows {
                 decimation_errors(&g, f, r, &mut out);
-                for c in 0..cols {
+                for (c, got) in out.iter().enumerate() {
                     match one(&g, f, c, r) {
-                        Some(d) => assert_eq!(out[c].to_bits(), d.to_bits(), "f {f} at {c},{r}"),
-                        None => assert!(out[c].is_nan(), "f {f} at {c},{r}: {}", out[c]),
+                        Some(d) => assert_eq!(got.to_bits(), d.to_bits(), "f {f} at {c},{r}"),
+                        None => assert!(got.is_nan(), "f {f} at {c},{r}: {got}"),
                     }
                 }
             }
