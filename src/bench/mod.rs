@@ -192,7 +192,8 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     let t = engine.snapshot();
     let first = t
         .surveys()
-        .max_by_key(|s| s.shapes[0].cols * s.shapes[0].rows)
+        // Ties broken by id: the surveys come in hash order.
+        .max_by_key(|s| (s.shapes[0].cols * s.shapes[0].rows, s.id))
         .ok_or("no survey was ingested")?
         .shapes[0]
         .world_bounds();
