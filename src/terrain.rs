@@ -164,6 +164,23 @@ impl Terrain {
         }
     }
 
+    /// Samples `rect` of a level of a survey of the terrain, exactly, as a grid georeferenced
+    /// where they lie.
+    pub fn samples(
+        &self,
+        s: &SurveyMeta,
+        level: usize,
+        rect: SampleRect,
+    ) -> Result<Grid, SampleError> {
+        let w = self.window(s, level, rect)?;
+        if (w.c0, w.r0, w.grid.cols, w.grid.rows) == (rect.c0, rect.r0, rect.cols(), rect.rows()) {
+            // Read for this call alone: no copy.
+            return Ok(Arc::unwrap_or_clone(w.grid));
+        }
+        Ok(w.grid
+            .window(rect.c0 - w.c0, rect.r0 - w.r0, rect.cols(), rect.rows()))
+    }
+
     /// Samples `rect` of a level of a survey of the terrain, through a window in the level's
     /// coordinates. A survey held in memory answers with its whole level.
     pub fn window(
@@ -472,9 +489,10 @@ impl Terrain {
         Ok(Some(stats))
     }
 
-    /// How `s` and every survey of the terrain that it overlaps disagree (see
-    /// [`Survey::overlap`]). Each of the two is read over the other's bounds, whichever came
-    /// first, so the figure does not depend on the order of insertion.
+    /// How `s` and every survey of the terrain that it overlaps disagree, measured at the
+    /// samples of the finer of the two against the other's surface (see
+    /// [`SurveyMeta::finer_than`]). Each of the two is read over the other's bounds, whichever
+    /// came first, so the figure does not depend on the order of insertion.
     pub fn overlaps(&self, s: &Survey) -> Result<Vec<(SurveyId, Deviation)>, SampleError> {
         let mine = s.levels[0].world_bounds();
         let mut out = Vec::new();
@@ -492,10 +510,7 @@ impl Terrain {
                 continue;
             };
             let a = s.levels[0].window(rs.c0, rs.r0, rs.cols(), rs.rows());
-            let w = self.window(o, 0, ro)?;
-            let b = w
-                .grid
-                .window(ro.c0 - w.c0, ro.r0 - w.r0, ro.cols(), ro.rows());
+            let b = self.samples(o, 0, ro)?;
             let (fine, coarse) = if s.finer_than(o) { (&a, &b) } else { (&b, &a) };
             if let Some(d) = accuracy::deviation(fine, coarse) {
                 out.push((o.id, d));

@@ -1021,3 +1021,41 @@ fn chunks_a_crash_left_past_the_commit_are_cut_at_open() {
     ingest(&store, &mut t2, &b, "b");
     assert_verified(&store);
 }
+
+#[test]
+fn abutting_tiles_read_back_from_disk_answer_as_in_memory_whole_and_in_sub_tiles() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    // Four tiles of one lattice meeting at their edges, each with a void: the seams and the
+    // void rims are edge patches, stored and read back rather than derived from samples.
+    let tiles: Vec<Arc<Survey>> = [[0.0, 0.0], [24.0, 0.0], [0.0, -20.0], [24.0, -20.0]]
+        .iter()
+        .enumerate()
+        .map(|(k, &o)| spec(24, 20, o, 20 + k as u64, 0.5).survey().unwrap())
+        .collect();
+    let roi = bounds_of(&tiles);
+    let mut t = Terrain::new(IndexConfig::default());
+    {
+        let Opened { store, .. } = open(&dir);
+        for (k, s) in tiles.iter().enumerate() {
+            ingest(&store, &mut t, s, &format!("tile{k}"));
+        }
+        assert_verified(&store);
+    }
+    // The store stays open: it serves the samples.
+    let Opened {
+        store: _store,
+        terrain,
+        ..
+    } = open(&dir);
+    assert!(terrain.edges().count() > 0);
+    assert_same(&terrain, &t, &roi);
+    let [w, h] = [roi.width() / 2.0, roi.height() / 2.0];
+    for (i, j) in [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)] {
+        let sub = Aabb {
+            min: [roi.min[0] + i * w, roi.min[1] + j * h],
+            max: [roi.min[0] + (i + 1.0) * w, roi.min[1] + (j + 1.0) * h],
+        };
+        assert_eq!(heights(&terrain, &sub), heights(&t, &sub));
+    }
+}

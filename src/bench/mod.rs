@@ -97,11 +97,7 @@ pub fn reference(t: &Terrain, grid: &SampleGrid) -> (Vec<f32>, Vec<f32>) {
         .surveys()
         .filter_map(|s| {
             let rect = s.shapes[0].rect_over(&bounds)?;
-            let w = t.window(s, 0, rect).expect("samples readable");
-            Some(
-                w.grid
-                    .window(rect.c0 - w.c0, rect.r0 - w.r0, rect.cols(), rect.rows()),
-            )
+            Some(t.samples(s, 0, rect).expect("samples readable"))
         })
         .collect();
     grid.points
@@ -350,8 +346,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         c1: (shape.cols - side) / 2 + side,
         r1: (shape.rows - side) / 2 + side,
     };
-    let w = t.window(base, 0, rect)?;
-    let g = w.grid.window(rect.c0 - w.c0, rect.r0 - w.r0, side, side);
+    let g = t.samples(base, 0, rect)?;
     let scenes = meet::run(&g, base.crs, tile_side, &errors_used)?;
     for m in &scenes.mixed {
         println!(

@@ -429,15 +429,6 @@ impl SampleRect {
     pub fn is_empty(&self) -> bool {
         self.c1 <= self.c0 || self.r1 <= self.r0
     }
-    /// The smallest rectangle holding both.
-    pub fn union(&self, o: &SampleRect) -> SampleRect {
-        SampleRect {
-            c0: self.c0.min(o.c0),
-            r0: self.r0.min(o.r0),
-            c1: self.c1.max(o.c1),
-            r1: self.r1.max(o.r1),
-        }
-    }
 }
 
 /// Samples of a rectangle of a larger grid (a level), indexed in the level's coordinates:
@@ -462,12 +453,6 @@ impl Window {
             c0: 0,
             r0: 0,
         }
-    }
-
-    /// Whether the window holds level sample (c, r).
-    #[inline]
-    pub fn holds(&self, c: usize, r: usize) -> bool {
-        c >= self.c0 && r >= self.r0 && c - self.c0 < self.grid.cols && r - self.r0 < self.grid.rows
     }
 
     /// Level sample (c, r), which the window must hold.

@@ -220,21 +220,4 @@ impl Survey {
     pub fn meta(&self) -> Arc<SurveyMeta> {
         self.meta.clone()
     }
-
-    /// How this survey and `o` disagree where they overlap, measured at the samples of the
-    /// finer of the two against the other's surface (see [`SurveyMeta::finer_than`]).
-    pub fn overlap(&self, o: &Survey) -> Option<accuracy::Deviation> {
-        if !self.levels[0]
-            .world_bounds()
-            .intersects(&o.levels[0].world_bounds())
-        {
-            return None;
-        }
-        let (fine, coarse) = if self.finer_than(o) {
-            (self, o)
-        } else {
-            (o, self)
-        };
-        accuracy::deviation(&fine.levels[0], &coarse.levels[0])
-    }
 }

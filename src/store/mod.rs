@@ -656,11 +656,7 @@ impl Store {
     /// What the index needs of the active surveys, the edge patches and the box states; no
     /// sample is read.
     fn load(&self) -> Result<Contents, StoreError> {
-        let active: Vec<SurveyRecord> = self
-            .surveys()?
-            .into_iter()
-            .filter(|r| r.status == Status::Active)
-            .collect();
+        let active = self.active_records()?;
         let surveys: Vec<Arc<SurveyMeta>> = active
             .par_iter()
             .map(|r| self.load_meta(r).map(Arc::new))
@@ -683,14 +679,15 @@ impl Store {
         })
     }
 
+    fn active_records(&self) -> Result<Vec<SurveyRecord>, StoreError> {
+        let mut all = self.surveys()?;
+        all.retain(|r| r.status == Status::Active);
+        Ok(all)
+    }
+
     /// Every active survey whole, samples and all: what deriving the index again needs.
     pub fn whole_surveys(&self) -> Result<Vec<Arc<Survey>>, StoreError> {
-        let active: Vec<SurveyRecord> = self
-            .surveys()?
-            .into_iter()
-            .filter(|r| r.status == Status::Active)
-            .collect();
-        active
+        self.active_records()?
             .par_iter()
             .map(|r| self.load_survey(r).map(Arc::new))
             .collect()
