@@ -8,6 +8,7 @@
 //!
 //! cargo bench --bench scale                 (N = 8: 104 M samples)
 //! PATCHWORK_SCALE_N=12 PATCHWORK_SCALE_CACHE_MB=64 cargo bench --bench scale
+//! PATCHWORK_SCALE_LOG=debug cargo bench --bench scale   (the daemon's log, with each ingest's timings)
 
 mod common;
 
@@ -28,6 +29,22 @@ fn env_or(name: &str, default: u64) -> u64 {
 
 fn mib(b: u64) -> f64 {
     b as f64 / (1 << 20) as f64
+}
+
+/// CPU seconds a process has used, user and system (/proc/<pid>/stat, in clock ticks of
+/// 1/100 s on Linux).
+fn cpu_seconds(pid: u32) -> f64 {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+    // Fields after the command name, which is in parentheses and may hold spaces.
+    let rest = s.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<u64> = rest
+        .split_whitespace()
+        .map(|v| v.parse().unwrap_or(0))
+        .collect();
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
+    f.get(11)
+        .zip(f.get(12))
+        .map_or(0.0, |(u, s)| (u + s) as f64 / 100.0)
 }
 
 /// A /proc/<pid>/status figure in bytes (VmRSS, VmHWM).
@@ -83,7 +100,10 @@ impl Daemon {
             .env("PATCHWORK_INBOX", inbox)
             .env("PATCHWORK_LISTEN", format!("127.0.0.1:{port}"))
             .env("PATCHWORK_CACHE_MB", cache_mb.to_string())
-            .env("PATCHWORK_LOG", "warn")
+            .env(
+                "PATCHWORK_LOG",
+                std::env::var("PATCHWORK_SCALE_LOG").unwrap_or_else(|_| "warn".into()),
+            )
             .stdout(Stdio::null())
             .spawn()?;
         Ok(Daemon {
@@ -147,6 +167,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     admin.stats(pb::StatsRequest {}).await?;
     let empty_rss = proc_bytes(d.child.id(), "VmRSS");
 
+    let cpu0 = cpu_seconds(d.child.id());
     let t0 = Instant::now();
     for name in &names {
         std::fs::rename(staging.join(name), inbox.join(name))?;
@@ -170,13 +191,15 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         tokio::time::sleep(Duration::from_millis(20)).await;
     };
     let ingest_s = t0.elapsed().as_secs_f64();
+    let ingest_cpu = cpu_seconds(d.child.id()) - cpu0;
     let ingest_peak = proc_bytes(d.child.id(), "VmHWM");
     let stats = admin.stats(pb::StatsRequest {}).await?.into_inner();
     println!(
-        "ingest: {n} tiles, {:.1} M samples in {ingest_s:.1} s from drop to committed: {:.1} M samples/s (peak RSS {:.0} MiB)",
+        "ingest: {n} tiles, {:.1} M samples in {ingest_s:.1} s from drop to committed: {:.1} M samples/s (peak RSS {:.0} MiB; {ingest_cpu:.1} CPU-s, {:.0}% of the cores)",
         samples as f64 / 1e6,
         samples as f64 / ingest_s / 1e6,
-        mib(ingest_peak)
+        mib(ingest_peak),
+        100.0 * ingest_cpu / ingest_s / std::thread::available_parallelism().map_or(1, |n| n.get()) as f64
     );
     println!(
         "store: {:.1} MiB on disk for {:.1} MiB of input files: {:.2}×",

@@ -92,21 +92,29 @@ pub trait PatchFunction: Send + Sync {
     /// and takes the largest over a window, since windows overlap.
     fn max_deviation(&self, levels: &[Arc<Grid>], level: usize, window: &CellRect) -> f64;
 
-    /// [`PatchFunction::max_deviation`] of every cell of a level, row-major.
-    fn cell_deviations(&self, levels: &[Arc<Grid>], level: usize) -> Vec<f64> {
-        let [cw, ch] = levels[level].cells();
-        (0..ch as u32)
-            .into_par_iter()
-            .flat_map_iter(|r| {
-                (0..cw as u32).map(move |c| {
-                    let cell = CellRect {
-                        c0: c,
-                        r0: r,
-                        c1: c + 1,
-                        r1: r + 1,
-                    };
-                    self.max_deviation(levels, level, &cell)
-                })
+    /// [`PatchFunction::max_deviation`] of every cell of every level: for each level, its
+    /// cells row-major (none for level 0).
+    fn cell_deviations(&self, levels: &[Arc<Grid>]) -> Vec<Vec<f64>> {
+        (0..levels.len())
+            .map(|level| {
+                if level == 0 {
+                    return Vec::new();
+                }
+                let [cw, ch] = levels[level].cells();
+                (0..ch as u32)
+                    .into_par_iter()
+                    .flat_map_iter(|r| {
+                        (0..cw as u32).map(move |c| {
+                            let cell = CellRect {
+                                c0: c,
+                                r0: r,
+                                c1: c + 1,
+                                r1: r + 1,
+                            };
+                            self.max_deviation(levels, level, &cell)
+                        })
+                    })
+                    .collect()
             })
             .collect()
     }
@@ -166,20 +174,158 @@ impl PatchFunction for Bilinear {
                     let fy = (j - j0) as f64 * inv;
                     let a = z00 + (z01 - z00) * fy;
                     let b = z10 + (z11 - z10) * fy;
-                    let row = &fine.samples[j * fine.cols..(j + 1) * fine.cols];
-                    for (k, &z) in row[i0..=i1].iter().enumerate() {
-                        if z.is_nan() {
-                            continue;
-                        }
-                        let fx = k as f64 * inv;
-                        let d = (a + (b - a) * fx - z as f64).abs();
-                        worst = worst.max(d);
-                    }
+                    let row = &fine.samples[j * fine.cols + i0..=j * fine.cols + i1];
+                    worst = worst.max(row_deviation(a, b, inv, row));
                 }
             }
         }
         worst
     }
+
+    /// All levels in one pass over level 0, a band of its rows to a task: each fine row is
+    /// read once, while it is in cache, for every level, instead of once per level from
+    /// memory; and the coarsest levels, a few cell rows each, no longer leave a core idle.
+    /// Each (cell, fine row) pair is evaluated once, by [`row_deviation`] as in
+    /// [`Bilinear::max_deviation`], and maxima do not depend on the order they are taken in:
+    /// the result is that function's to the bit (tested).
+    fn cell_deviations(&self, levels: &[Arc<Grid>]) -> Vec<Vec<f64>> {
+        const BAND: usize = 64;
+        let fine = &levels[0];
+        let bands: Vec<Vec<(usize, Vec<f64>)>> = (0..fine.rows.div_ceil(BAND))
+            .into_par_iter()
+            .map(|b| {
+                let rows = b * BAND..((b + 1) * BAND).min(fine.rows);
+                (1..levels.len())
+                    .map(|level| band_deviations(&levels[level], fine, level, rows.clone()))
+                    .collect()
+            })
+            .collect();
+        let mut out: Vec<Vec<f64>> = levels
+            .iter()
+            .enumerate()
+            .map(|(lv, g)| {
+                let [cw, ch] = g.cells();
+                vec![0.0; if lv == 0 { 0 } else { cw * ch }]
+            })
+            .collect();
+        for band in bands {
+            for (lv, (first, part)) in band.into_iter().enumerate() {
+                let dst = &mut out[lv + 1][first..first + part.len()];
+                for (d, p) in dst.iter_mut().zip(part) {
+                    *d = d.max(p);
+                }
+            }
+        }
+        out
+    }
+}
+
+/// One row of coarse cells, for [`band_deviations`]: each cell's left corners and their
+/// differences down the cell, as `max_deviation` computes them, or None for a cell it skips
+/// (a void corner, or no fine samples under it).
+#[derive(Default)]
+struct CellRow {
+    r: Option<usize>,
+    cells: Vec<Option<[f64; 4]>>,
+}
+
+impl CellRow {
+    fn load(&mut self, coarse: &Grid, r: usize, f: usize, fine_cols: usize) {
+        let [cw, _] = coarse.cells();
+        self.r = Some(r);
+        self.cells.clear();
+        self.cells.extend((0..cw).map(|c| {
+            if c * f >= fine_cols || !coarse.cell_valid(c, r) {
+                return None;
+            }
+            let z00 = coarse.at(c, r) as f64;
+            let z10 = coarse.at(c + 1, r) as f64;
+            let z01 = coarse.at(c, r + 1) as f64;
+            let z11 = coarse.at(c + 1, r + 1) as f64;
+            Some([z00, z01 - z00, z10, z11 - z10])
+        }));
+    }
+}
+
+/// The largest deviation of each cell of `coarse` (level `level`) over the fine rows `rows`,
+/// for the cell rows those rows meet: the index of the first cell and the cells' figures,
+/// row-major. Fine row j lies in cell row j >> level and, where it starts that row, also on
+/// the bottom edge of the row above.
+fn band_deviations(
+    coarse: &Grid,
+    fine: &Grid,
+    level: usize,
+    rows: std::ops::Range<usize>,
+) -> (usize, Vec<f64>) {
+    let f = 1usize << level;
+    let inv = 1.0 / f as f64;
+    let [cw, ch] = coarse.cells();
+    let first_row = if rows.start.is_multiple_of(f) && rows.start > 0 {
+        rows.start / f - 1
+    } else {
+        rows.start / f
+    };
+    let last_row = ((rows.end - 1) / f).min(ch.saturating_sub(1));
+    if ch == 0 || first_row > last_row {
+        return (0, Vec::new());
+    }
+    let mut part = vec![0.0f64; (last_row - first_row + 1) * cw];
+    // The cell rows in use, so that a cell's corners are read and checked once for all of
+    // its fine rows rather than once for each.
+    let (mut cur, mut prev) = (CellRow::default(), CellRow::default());
+    for j in rows {
+        let fine_row = &fine.samples[j * fine.cols..(j + 1) * fine.cols];
+        let top = j / f;
+        let above = (j.is_multiple_of(f) && j > 0).then(|| top - 1);
+        for r in [above, Some(top)].into_iter().flatten() {
+            if r >= ch {
+                continue;
+            }
+            if cur.r != Some(r) {
+                std::mem::swap(&mut cur, &mut prev);
+                if cur.r != Some(r) {
+                    cur.load(coarse, r, f, fine.cols);
+                }
+            }
+            let fy = (j - r * f) as f64 * inv;
+            let out = &mut part[(r - first_row) * cw..(r - first_row + 1) * cw];
+            for (c, (worst, cell)) in out.iter_mut().zip(&cur.cells).enumerate() {
+                let Some([z00, dz0, z10, dz1]) = *cell else {
+                    continue;
+                };
+                let i0 = c * f;
+                let i1 = ((c + 1) * f).min(fine.cols - 1);
+                let (a, b) = (z00 + dz0 * fy, z10 + dz1 * fy);
+                *worst = worst.max(row_deviation(a, b, inv, &fine_row[i0..=i1]));
+            }
+        }
+    }
+    (first_row * cw, part)
+}
+
+/// The largest |a + (b − a)·k/f − z_k| over one row of fine samples, voids skipped.
+///
+/// This is the inner loop of every δ, run about ten times per level-0 sample at ingest, so
+/// it keeps four running maxima: one alone would chain every sample through the latency of
+/// a max. A void gives NaN, which `e > w` never selects. The arithmetic is the plain formula's,
+/// term for term, so the result is the same to the bit.
+#[inline]
+fn row_deviation(a: f64, b: f64, inv: f64, row: &[f32]) -> f64 {
+    let s = b - a;
+    let at = |k: usize, z: f32| (a + s * (k as f64 * inv) - z as f64).abs();
+    let keep = |w: f64, e: f64| if e > w { e } else { w };
+    let mut w = [0.0f64; 4];
+    let mut quads = row.chunks_exact(4);
+    for (q, z) in quads.by_ref().enumerate() {
+        for l in 0..4 {
+            w[l] = keep(w[l], at(4 * q + l, z[l]));
+        }
+    }
+    let done = row.len() - quads.remainder().len();
+    for (l, &z) in quads.remainder().iter().enumerate() {
+        w[l] = keep(w[l], at(done + l, z));
+    }
+    w[0].max(w[1]).max(w[2].max(w[3]))
 }
 
 /// The kernel's valid cells, merged into rectangles: row runs that repeat on the next row grow
@@ -335,15 +481,7 @@ pub fn make_patches(
         .collect();
     // Each coarse cell's deviation once: a window's is the largest over its cells, and the
     // windows of a level overlap by their extension zones.
-    let devs: Vec<Vec<f64>> = (0..levels.len())
-        .map(|lv| {
-            if lv == 0 {
-                Vec::new()
-            } else {
-                func.cell_deviations(levels, lv)
-            }
-        })
-        .collect();
+    let devs = func.cell_deviations(levels);
     let window_deviation = |lv: usize, w: &CellRect| -> f64 {
         let cw = levels[lv].cells()[0];
         let d = &devs[lv];
@@ -493,6 +631,63 @@ mod tests {
             let a = g.bilinear_grid([x, y]).unwrap();
             let b = levels[1].bilinear_grid([x / 2.0, y / 2.0]).unwrap();
             assert!((a - b).abs() <= d + 1e-9);
+        }
+    }
+
+    #[test]
+    fn cell_deviations_are_the_plain_formula_to_the_bit() {
+        // Rough heights with voids, on sizes that leave partial cells at the far edges.
+        for (cols, rows) in [(37, 29), (64, 65), (9, 130), (300, 270)] {
+            let g = grid(cols, rows, |c, r| {
+                let h = (c * 7919 + r * 104_729) % 1009;
+                if h % 53 == 0 {
+                    f32::NAN
+                } else {
+                    (h as f32 * 0.37).sin() * 300.0 + h as f32 * 0.013
+                }
+            });
+            let mut levels = vec![g];
+            while levels.last().unwrap().cols > 2 && levels.last().unwrap().rows > 2 {
+                levels.push(Arc::new(mipmap::downsample(levels.last().unwrap())));
+            }
+            let all = Bilinear.cell_deviations(&levels);
+            for lv in 1..levels.len() {
+                let (coarse, fine) = (&levels[lv], &levels[0]);
+                let f = 1usize << lv;
+                let [cw, ch] = coarse.cells();
+                let got = &all[lv];
+                for r in 0..ch {
+                    for c in 0..cw {
+                        let mut worst = 0.0f64;
+                        if coarse.cell_valid(c, r) && r * f < fine.rows && c * f < fine.cols {
+                            for j in r * f..=((r + 1) * f).min(fine.rows - 1) {
+                                for i in c * f..=((c + 1) * f).min(fine.cols - 1) {
+                                    let (fx, fy) = (
+                                        (i - c * f) as f64 / f as f64,
+                                        (j - r * f) as f64 / f as f64,
+                                    );
+                                    let a = coarse.at(c, r) as f64
+                                        + (coarse.at(c, r + 1) as f64 - coarse.at(c, r) as f64)
+                                            * fy;
+                                    let b = coarse.at(c + 1, r) as f64
+                                        + (coarse.at(c + 1, r + 1) as f64
+                                            - coarse.at(c + 1, r) as f64)
+                                            * fy;
+                                    let z = fine.at(i, j);
+                                    if !z.is_nan() {
+                                        worst = worst.max((a + (b - a) * fx - z as f64).abs());
+                                    }
+                                }
+                            }
+                        }
+                        assert_eq!(
+                            got[r * cw + c].to_bits(),
+                            worst.to_bits(),
+                            "{cols}x{rows} level {lv} cell {c},{r}"
+                        );
+                    }
+                }
+            }
         }
     }
 
