@@ -12,7 +12,7 @@ use patchwork::index::lod::IndexConfig;
 use patchwork::model::patch::PatchLayout;
 use patchwork::model::survey::Survey;
 use patchwork::read::{read_raster, ReadLimits};
-use patchwork::resample::gpu::{GpuResampler, GpuTimings};
+use patchwork::resample::gpu::{Emulated, GpuResampler, GpuTimings};
 use patchwork::resample::{cpu, SampleGrid};
 use patchwork::terrain::Terrain;
 use std::path::PathBuf;
@@ -35,7 +35,7 @@ fn main() {
     if !std::env::args().any(|a| a == "--bench") {
         return;
     }
-    let mut gpu = match GpuResampler::new() {
+    let mut gpu = match GpuResampler::new(Emulated::Allow) {
         Ok(g) => g,
         Err(e) => {
             println!("no GPU adapter ({e}); nothing to compare");
@@ -94,7 +94,7 @@ fn main() {
                 let cpu_s = t1.elapsed().as_secs_f64();
 
                 // A fresh cache, so the first request is cold.
-                gpu = GpuResampler::new().unwrap();
+                gpu = GpuResampler::new(Emulated::Allow).unwrap();
                 let (_, cold) = gpu.resample_timed(&set, &grid).unwrap();
                 let mut best: Option<GpuTimings> = None;
                 let mut got = Vec::new();

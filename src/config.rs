@@ -173,6 +173,9 @@ pub struct Config {
     pub on_delete: OnDelete,
     /// Log filter, e.g. "info" or "patchwork=debug".
     pub log: String,
+    /// Whether a software GPU adapter (llvmpipe, lavapipe, WARP) may resample when no real
+    /// one is present; it is slower than the CPU path.
+    pub allow_emulated_gpu: bool,
     pub limits: Limits,
     pub storage: Storage,
     pub index: IndexConfig,
@@ -196,6 +199,7 @@ impl Default for Config {
             cache_mb: 512,
             on_delete: OnDelete::Retire,
             log: "info".into(),
+            allow_emulated_gpu: false,
             limits: Limits::default(),
             storage: Storage::default(),
             index: IndexConfig::default(),
@@ -326,6 +330,18 @@ impl Config {
         if let Some(v) = get("PATCHWORK_LOG") {
             self.log = v;
         }
+        if let Some(v) = get("PATCHWORK_ALLOW_EMULATED_GPU") {
+            self.allow_emulated_gpu = match v.as_str() {
+                "1" | "true" => true,
+                "0" | "false" => false,
+                other => {
+                    return Err(ConfigError::Env {
+                        var: "PATCHWORK_ALLOW_EMULATED_GPU".into(),
+                        message: format!("{other:?} is neither true nor false (or 1 and 0)"),
+                    })
+                }
+            };
+        }
         Ok(())
     }
 
@@ -438,9 +454,17 @@ mod tests {
             "PATCHWORK_INBOX" => Some("/a:/b".to_string()),
             "PATCHWORK_LISTEN" => Some("127.0.0.1:1".to_string()),
             "PATCHWORK_ON_DELETE" => Some("keep".to_string()),
+            "PATCHWORK_ALLOW_EMULATED_GPU" => Some("1".to_string()),
             _ => None,
         };
+        assert!(
+            !c.allow_emulated_gpu,
+            "a software GPU is refused by default"
+        );
         c.apply_env(env).unwrap();
+        assert!(c.allow_emulated_gpu);
+        let emulated = |k: &str| (k == "PATCHWORK_ALLOW_EMULATED_GPU").then(|| "maybe".to_string());
+        assert!(c.apply_env(emulated).is_err());
         assert_eq!(c.inbox, vec![PathBuf::from("/a"), PathBuf::from("/b")]);
         let acc =
             |v: &'static str| move |k: &str| (k == "PATCHWORK_ACCURACY_M").then(|| v.to_string());

@@ -22,7 +22,7 @@ use crate::model::ids::SurveyId;
 use crate::model::survey::Survey;
 pub use crate::read::REFUSED_PATH;
 use crate::read::{content_id, file_content_id, ReadError, ReadLimits};
-use crate::resample::gpu::{GpuError, GpuResampler};
+use crate::resample::gpu::{Emulated, GpuError, GpuResampler};
 pub use crate::resample::Backend;
 use crate::resample::{cpu, Cancel, SampleGrid};
 use crate::restore;
@@ -280,13 +280,20 @@ impl Engine {
     /// Opens the GPU device the daemon resamples on, once, at start-up. Without an adapter
     /// the daemon says so and resamples on the CPU.
     pub fn enable_gpu(&self) {
-        match GpuResampler::new() {
+        let emulated = if self.cfg.allow_emulated_gpu {
+            Emulated::Allow
+        } else {
+            Emulated::Refuse
+        };
+        match GpuResampler::new(emulated) {
             Ok(g) => {
                 tracing::info!(adapter = %g.adapter(), "resampling on the GPU");
                 *self.gpu.lock().expect("gpu lock") = Some(g);
             }
             Err(e) => tracing::info!(reason = %e, "no GPU device: resampling on the CPU"),
         }
+        // A refused software driver leaves its libraries' heap behind.
+        release_free_memory();
     }
 
     fn backend_name(&self) -> String {

@@ -980,6 +980,7 @@ fn printable(s: &str) -> std::borrow::Cow<'_, str> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    quiet_vulkan_layers();
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -994,6 +995,18 @@ fn main() -> ExitCode {
             eprintln!("patchwork: {e}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// Turns off Mesa's device-select Vulkan layer, which the loader adds to every instance. To
+/// pick a default device it connects to a Wayland display, and on a server without one that
+/// prints an error to stderr at every start; the GPU probe ranks adapters itself. A value set
+/// by the user stands.
+fn quiet_vulkan_layers() {
+    if std::env::var_os("NODEVICE_SELECT").is_none() {
+        // SAFETY: called first thing in main, before the runtime or anything else starts a
+        // thread that could read the environment at the same time.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
     }
 }
 

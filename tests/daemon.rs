@@ -640,6 +640,46 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
 }
 
 #[test]
+fn the_daemon_starts_quietly_and_takes_no_software_gpu_unless_allowed() {
+    // No runtime directory and no display, as on a server: Mesa's Vulkan layers used to
+    // complain on stderr at every start. Every line now is the daemon's own log.
+    let tmp = tempfile::tempdir().unwrap();
+    let mut d = Daemon::start_with(
+        tmp.path(),
+        Setup {
+            env: vec![("PATCHWORK_ALLOW_EMULATED_GPU".into(), "false".into())],
+            unset: vec![
+                "XDG_RUNTIME_DIR".into(),
+                "WAYLAND_DISPLAY".into(),
+                "DISPLAY".into(),
+            ],
+            ..Setup::default()
+        },
+    );
+    let backend = d.json(&["stats", "--json"])["backend"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    d.stop();
+    let log = d.log();
+    for line in log.lines() {
+        assert!(
+            line.contains(" INFO ") || line.contains(" WARN "),
+            "a line that is not the daemon's log: {line:?}\n{log}"
+        );
+    }
+    let probe: Vec<&str> = log.lines().filter(|l| l.contains("GPU")).collect();
+    assert_eq!(probe.len(), 1, "one line from the GPU probe: {log}");
+    if backend.starts_with("gpu") {
+        // A real GPU is there; it is taken whatever the switch says.
+        assert!(probe[0].contains("resampling on the GPU"), "{log}");
+    } else {
+        assert_eq!(backend, "cpu");
+        assert!(probe[0].contains("resampling on the CPU"), "{log}");
+    }
+}
+
+#[test]
 fn daemon_tiles_on_the_gpu_match_the_cpu_and_gpu_without_a_device_is_refused() {
     use patchwork::serve::proto::{self as pb, terrain_client::TerrainClient};
     let tmp = tempfile::tempdir().unwrap();

@@ -14,7 +14,7 @@ use common::*;
 use patchwork::index::geom::Aabb;
 use patchwork::index::query::{Metric, ViewQuery};
 use patchwork::model::survey::Survey;
-use patchwork::resample::gpu::GpuResampler;
+use patchwork::resample::gpu::{Emulated, GpuResampler};
 use patchwork::resample::{cpu, SampleGrid};
 use patchwork::terrain::Terrain;
 use std::sync::Arc;
@@ -22,7 +22,7 @@ use std::sync::Arc;
 const TOLERANCE: f64 = 1e-3;
 
 fn gpu() -> Option<GpuResampler> {
-    match GpuResampler::new() {
+    match GpuResampler::new(Emulated::Allow) {
         Ok(g) => {
             println!("GPU adapter: {}", g.adapter());
             Some(g)
@@ -274,7 +274,7 @@ fn gpu_uploads_shared_patches_once_and_survives_eviction() {
     assert_eq!(part.uploaded_patches, 0, "{part:?}");
 
     // An arena too small for two requests empties itself between them and stays right.
-    let mut small = GpuResampler::with_budget(64 << 10).unwrap();
+    let mut small = GpuResampler::with_budget(64 << 10, Emulated::Allow).unwrap();
     let coarse = t.resolve(&t.uniform(&roi, 50.0));
     for (set, what) in [(&set, "fine"), (&coarse, "coarse"), (&set, "fine again")] {
         let want = cpu::resample(set, &grid);
@@ -345,4 +345,26 @@ fn gpu_matches_cpu_where_surveys_meet() {
         check(&t, &all, 256, 256, e, "ε 2 in ε 20");
     }
     println!("where surveys meet: max |gpu − cpu| = {worst:.3e} m");
+}
+
+#[test]
+fn a_software_adapter_is_taken_only_when_allowed() {
+    let Some(g) = gpu() else {
+        return;
+    };
+    match GpuResampler::new(Emulated::Refuse) {
+        Ok(real) => {
+            // A real GPU is preferred to a software one in any case.
+            assert!(!real.is_emulated(), "{}", real.adapter());
+            assert_eq!(real.adapter(), g.adapter());
+        }
+        Err(e) => {
+            assert!(g.is_emulated(), "{} refused: {e}", g.adapter());
+            let e = e.to_string();
+            assert!(
+                e.contains("software") && e.contains("allow_emulated_gpu"),
+                "the refusal says what was found and how to allow it: {e}"
+            );
+        }
+    }
 }

@@ -174,11 +174,11 @@ pub struct GpuResampler {
 
 /// The resampler a backend choice calls for: none for `Cpu`, one if a device opens for
 /// `Auto`, and for `Gpu` one or the reason there is none.
-pub fn select(backend: Backend) -> Result<Option<GpuResampler>, GpuError> {
+pub fn select(backend: Backend, emulated: Emulated) -> Result<Option<GpuResampler>, GpuError> {
     match backend {
         Backend::Cpu => Ok(None),
-        Backend::Gpu => GpuResampler::new().map(Some),
-        Backend::Auto => match GpuResampler::new() {
+        Backend::Gpu => GpuResampler::new(emulated).map(Some),
+        Backend::Auto => match GpuResampler::new(emulated) {
             Ok(g) => Ok(Some(g)),
             Err(e) => {
                 tracing::info!(error = %e, "no GPU; resampling on the CPU");
@@ -193,18 +193,30 @@ fn split(x: f64) -> [f32; 2] {
     [hi, (x - hi as f64) as f32]
 }
 
+/// Whether a software adapter (Mesa's llvmpipe or lavapipe, WARP) may resample. On a server
+/// without a GPU it is several times slower than the CPU path, so by default it may not; tests
+/// of the GPU code allow it where it is the only adapter.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Emulated {
+    Refuse,
+    Allow,
+}
+
 impl GpuResampler {
-    pub fn new() -> Result<Self, GpuError> {
-        Self::with_budget(DEFAULT_ARENA_BYTES)
+    pub fn new(emulated: Emulated) -> Result<Self, GpuError> {
+        Self::with_budget(DEFAULT_ARENA_BYTES, emulated)
     }
 
     /// A resampler whose sample arena holds at most `budget` bytes (more only when a single
     /// request needs it).
-    pub fn with_budget(budget: u64) -> Result<Self, GpuError> {
+    pub fn with_budget(budget: u64, emulated: Emulated) -> Result<Self, GpuError> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-        desc.backends = wgpu::Backends::all();
+        // Vulkan, Metal and DX12. GL goes through EGL, whose Mesa build writes to stderr on
+        // every start of a machine without a display, and a compute-capable GPU has one of
+        // the three anyway.
+        desc.backends = wgpu::Backends::PRIMARY;
         let instance = wgpu::Instance::new(desc);
-        let adapter = pick_adapter(&instance)?;
+        let adapter = pick_adapter(&instance, emulated)?;
         let info = adapter.get_info();
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -303,6 +315,11 @@ impl GpuResampler {
     /// The adapter in use, e.g. "llvmpipe (LLVM 15.0.7, 256 bits) on Vulkan".
     pub fn adapter(&self) -> String {
         format!("{} on {:?}", self.info.name, self.info.backend)
+    }
+
+    /// Whether the adapter is a software one, emulating a GPU on the CPU.
+    pub fn is_emulated(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
     }
 
     /// Patches whose samples are on the device now.
@@ -603,10 +620,10 @@ impl GpuResampler {
     }
 }
 
-/// The best adapter that runs compute shaders: a real GPU before a software one, and a
-/// native API before GL.
-fn pick_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter, GpuError> {
-    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+/// The best adapter that runs compute shaders: a real GPU before a software one, which is
+/// taken only if `emulated` allows it.
+fn pick_adapter(instance: &wgpu::Instance, emulated: Emulated) -> Result<wgpu::Adapter, GpuError> {
+    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY));
     let seen: Vec<String> = adapters
         .iter()
         .map(|a| {
@@ -614,28 +631,36 @@ fn pick_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter, GpuError> {
             format!("{} ({:?})", i.name, i.backend)
         })
         .collect();
-    let rank = |a: &wgpu::Adapter| {
-        let i = a.get_info();
-        let ty = match i.device_type {
-            wgpu::DeviceType::DiscreteGpu => 0,
-            wgpu::DeviceType::IntegratedGpu => 1,
-            wgpu::DeviceType::VirtualGpu => 2,
-            wgpu::DeviceType::Cpu => 3,
-            wgpu::DeviceType::Other => 4,
-        };
-        (ty, i.backend == wgpu::Backend::Gl)
+    let software = |a: &wgpu::Adapter| a.get_info().device_type == wgpu::DeviceType::Cpu;
+    let rank = |a: &wgpu::Adapter| match a.get_info().device_type {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Cpu => 3,
+        wgpu::DeviceType::Other => 4,
     };
-    adapters
+    let capable: Vec<wgpu::Adapter> = adapters
         .into_iter()
         .filter(|a| {
             a.get_downlevel_capabilities()
                 .flags
                 .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
         })
+        .collect();
+    let only_software = !capable.is_empty() && capable.iter().all(software);
+    capable
+        .into_iter()
+        .filter(|a| emulated == Emulated::Allow || !software(a))
         .min_by_key(rank)
         .ok_or_else(|| {
             GpuError::NoAdapter(if seen.is_empty() {
-                "no adapters at all (no Vulkan, Metal, DX12 or GL driver)".into()
+                "no adapters at all (no Vulkan, Metal or DX12 driver)".into()
+            } else if only_software {
+                format!(
+                    "only the software adapter {}, slower than the CPU path; set \
+                     allow_emulated_gpu = true to resample on it anyway",
+                    seen.join(", ")
+                )
             } else {
                 format!("none of {} runs compute shaders", seen.join(", "))
             })

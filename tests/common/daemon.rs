@@ -37,6 +37,8 @@ pub struct Daemon {
 pub struct Setup {
     /// Environment of the daemon.
     pub env: Vec<(String, String)>,
+    /// Variables taken out of the daemon's environment.
+    pub unset: Vec<String>,
     /// Environment of the CLI that talks to it.
     pub client_env: Vec<(String, String)>,
     /// Serve TLS with the test certificate in tests/data/tls.
@@ -79,6 +81,9 @@ impl Daemon {
                 .env("PATCHWORK_TLS_KEY", tls_file("server.key"));
         }
         cmd.envs(setup.env.iter().map(|(k, v)| (k, v)));
+        for k in &setup.unset {
+            cmd.env_remove(k);
+        }
         cmd
     }
 
