@@ -219,9 +219,21 @@ fn cpu_resampling(c: &mut Criterion) {
         ps.len(),
         (sq / n as f64).sqrt()
     );
+    // Speed is the more telling beside the work per sample: how many patches reach each one.
+    let set = t.resolve(&ps);
+    let grid = SampleGrid::uniform(&roi, 512, 512);
+    let reaching: usize = grid
+        .points
+        .iter()
+        .map(|&q| set.patches.iter().filter(|p| p.at(q).is_some()).count())
+        .sum();
+    println!(
+        "{:.2} patches reach a sample on average",
+        reaching as f64 / grid.points.len() as f64
+    );
     let mut group = c.benchmark_group("cpu_resample");
     group.sample_size(10);
-    for n in [256usize, 512, 1024] {
+    for n in [256usize, 512, 1024, 2048] {
         let grid = SampleGrid::uniform(&roi, n, n);
         group.throughput(Throughput::Elements((n * n) as u64));
         group.bench_with_input(BenchmarkId::from_parameter(n), &grid, |b, g| {

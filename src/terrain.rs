@@ -618,6 +618,7 @@ impl Terrain {
             width,
             height,
             points: padded,
+            axes: None,
         };
         Ok(cpu::resample_until(&set, &grid, cancel).map(|mut h| {
             h.truncate(points.len());

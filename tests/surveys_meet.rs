@@ -386,3 +386,54 @@ fn surveys_on_different_lattices_with_less_than_a_cell_between_them_leave_no_gap
         }
     }
 }
+
+#[test]
+fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit() {
+    // Every kind of patch at once: a finer copy with voids (edge patches), a coarser one of
+    // estimated accuracy (fallback tiers below it), a rotated one (resampled a point at a
+    // time inside the same tile), each at several errors, over tiles of odd sizes that start
+    // anywhere.
+    let g = cop();
+    let surveys = vec![
+        survey_with(sparse(&window(&g, 20, 30, 200, 180), 0.9, 7), 1.0),
+        survey_with(decimate(&g, 3), Auto),
+        survey_with(turned(&window(&g, 120, 100, 120, 120), 17.0), 2.0),
+    ];
+    let t = terrain_of(&surveys);
+    let b = bounds_of(&surveys);
+    let (w, h) = (b.width(), b.height());
+    let rois = [
+        b,
+        Aabb::new(
+            b.min[0] + 0.2 * w,
+            b.min[1] + 0.3 * h,
+            b.min[0] + 0.45 * w,
+            b.min[1] + 0.5 * h,
+        ),
+        Aabb::new(
+            b.min[0] + 0.31 * w,
+            b.min[1] + 0.27 * h,
+            b.min[0] + 0.93 * w,
+            b.min[1] + 0.71 * h,
+        ),
+    ];
+    let mut compared = 0;
+    for roi in rois {
+        for e in [0.0, 2.0, 10.0, 60.0] {
+            for (width, height) in [(97, 61), (256, 256), (33, 190)] {
+                let grid = SampleGrid::uniform(&roi, width, height);
+                let ps = t.uniform(&roi, e);
+                let fast = t.resample(ps.clone(), &grid).heights;
+                let slow = t.resample(ps, &grid.clone().pointwise()).heights;
+                for (k, (a, b)) in fast.iter().zip(&slow).enumerate() {
+                    assert!(
+                        a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()) || a == b,
+                        "{roi:?} e = {e} {width}x{height} sample {k}: {a} by rows, {b} by points"
+                    );
+                }
+                compared += fast.iter().filter(|z| !z.is_nan()).count();
+            }
+        }
+    }
+    assert!(compared > 300_000, "only {compared} heights compared");
+}

@@ -10,7 +10,7 @@
 //! only on the point and the patches that reach it, never on the ROI, and it is within the
 //! error of the most accurate data that covers it.
 
-use super::{Cancel, PatchSet, ResolvedPatch, SampleGrid, BLOCK};
+use super::{AxisHit, Cancel, Hit, PatchSet, ResolvedPatch, SampleGrid, BLOCK};
 use rayon::prelude::*;
 
 /// Patch indices per block of output samples, so each sample visits only patches near it.
@@ -40,23 +40,112 @@ pub fn resample_until(set: &PatchSet, grid: &SampleGrid, cancel: &Cancel) -> Opt
     let bins = bin(&set.patches, grid);
     let bx = grid.width.div_ceil(BLOCK);
     let mut out = vec![f32::NAN; grid.width * grid.height];
-    out.par_chunks_mut(grid.width)
+    let Some(axes) = &grid.axes else {
+        out.par_chunks_mut(grid.width)
+            .enumerate()
+            .for_each(|(j, row)| {
+                if cancel.is_cancelled() {
+                    return;
+                }
+                let pts = &grid.points[j * grid.width..(j + 1) * grid.width];
+                let mut tiers = Vec::with_capacity(8);
+                for (i, (o, &p)) in row.iter_mut().zip(pts).enumerate() {
+                    if p[0].is_nan() {
+                        continue;
+                    }
+                    let bin = &bins[(j / BLOCK) * bx + i / BLOCK];
+                    *o = blend_by(set, bin, &mut tiers, |k| set.patches[k].at(p));
+                }
+            });
+        return (!cancel.is_cancelled()).then_some(out);
+    };
+    // A north-up tile: what a patch makes of a column's x is worked out once for the tile,
+    // and of a row's y once for the row, where a point at a time works both out for every
+    // patch at every sample. The answer is the same, term for term (tested).
+    let columns: Vec<Option<Columns>> = set
+        .patches
+        .par_iter()
+        .map(|p| p.separable().then(|| Columns::new(p, &axes.xs)))
+        .collect();
+    out.par_chunks_mut(grid.width * BLOCK)
         .enumerate()
-        .for_each(|(j, row)| {
+        .for_each(|(b, band)| {
             if cancel.is_cancelled() {
                 return;
             }
-            let pts = &grid.points[j * grid.width..(j + 1) * grid.width];
+            // The patches of this band of blocks, and where each one's row half is kept.
+            let bins = &bins[b * bx..((b + 1) * bx).min(bins.len())];
+            let mut near: Vec<u32> = bins.iter().flatten().copied().collect();
+            near.sort_unstable();
+            near.dedup();
+            let mut slot = vec![u32::MAX; set.patches.len()];
+            for (n, &k) in near.iter().enumerate() {
+                slot[k as usize] = n as u32;
+            }
+            let mut rows = vec![AxisHit::default(); near.len()];
             let mut tiers = Vec::with_capacity(8);
-            for (i, (o, &p)) in row.iter_mut().zip(pts).enumerate() {
-                if p[0].is_nan() {
-                    continue;
+            for (dj, row) in band.chunks_mut(grid.width).enumerate() {
+                if cancel.is_cancelled() {
+                    return;
                 }
-                let bin = &bins[(j / BLOCK) * bx + i / BLOCK];
-                *o = blend_with(set, bin, p, &mut tiers);
+                let j = b * BLOCK + dj;
+                let y = axes.ys[j];
+                for (h, &k) in rows.iter_mut().zip(&near) {
+                    if columns[k as usize].is_some() {
+                        *h = set.patches[k as usize].along(1, y);
+                    }
+                }
+                for (i, o) in row.iter_mut().enumerate() {
+                    let x = axes.xs[i];
+                    let bin = &bins[i / BLOCK];
+                    *o = blend_by(set, bin, &mut tiers, |k| {
+                        let p = &set.patches[k];
+                        match &columns[k] {
+                            Some(c) => p.at_axes(&c.at(i), &rows[slot[k] as usize]),
+                            None => p.at([x, y]),
+                        }
+                    });
+                }
             }
         });
     (!cancel.is_cancelled()).then_some(out)
+}
+
+/// What one separable patch makes of the columns of a tile it may reach: the columns whose x
+/// lies within a column's width of its window, each with its [`AxisHit`].
+struct Columns {
+    first: usize,
+    hits: Vec<AxisHit>,
+}
+
+impl Columns {
+    fn new(p: &ResolvedPatch, xs: &[f64]) -> Self {
+        // Binning already takes a patch only where its window's bounds meet a block; a
+        // column's width of slack more keeps every x whose rounding could still reach.
+        let pad = if xs.len() > 1 {
+            (xs[1] - xs[0]).abs()
+        } else {
+            f64::INFINITY
+        };
+        let (lo, hi) = (p.window_aabb.min[0] - pad, p.window_aabb.max[0] + pad);
+        let first = xs.partition_point(|&x| x < lo);
+        let last = xs.partition_point(|&x| x <= hi);
+        Columns {
+            first,
+            hits: xs[first..last.max(first)]
+                .iter()
+                .map(|&x| p.along(0, x))
+                .collect(),
+        }
+    }
+
+    #[inline]
+    fn at(&self, i: usize) -> AxisHit {
+        i.checked_sub(self.first)
+            .and_then(|k| self.hits.get(k))
+            .copied()
+            .unwrap_or_default()
+    }
 }
 
 /// Sums of one tier at one point.
@@ -93,16 +182,22 @@ impl Tier {
 
 /// Formula 1 at one point.
 pub fn blend(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
-    blend_with(set, bin, p, &mut Vec::new())
+    blend_by(set, bin, &mut Vec::new(), |k| set.patches[k].at(p))
 }
 
-/// Formula 1 at one point, with `tiers` as scratch space for the fallback ranks that reach it.
+/// Formula 1 at one point, where `at(k)` is patch k's weight and answer there, with `tiers`
+/// as scratch space for the fallback ranks that reach it.
 #[inline]
-fn blend_with(set: &PatchSet, bin: &[u32], p: [f64; 2], tiers: &mut Vec<(u32, Tier)>) -> f32 {
+fn blend_by(
+    set: &PatchSet,
+    bin: &[u32],
+    tiers: &mut Vec<(u32, Tier)>,
+    at: impl Fn(usize) -> Option<(f64, Hit)>,
+) -> f32 {
     let mut cut = Tier::default();
     if !set.has_fallback {
         for &k in bin {
-            if let Some((w, h)) = set.patches[k as usize].at(p) {
+            if let Some((w, h)) = at(k as usize) {
                 cut.add(w, h.z, h.covered);
             }
         }
@@ -111,7 +206,7 @@ fn blend_with(set: &PatchSet, bin: &[u32], p: [f64; 2], tiers: &mut Vec<(u32, Ti
     tiers.clear();
     for &k in bin {
         let q = &set.patches[k as usize];
-        let Some((w, h)) = q.at(p) else {
+        let Some((w, h)) = at(k as usize) else {
             continue;
         };
         if !q.fallback {
