@@ -240,7 +240,11 @@ impl Client {
             let engine = tokio::task::spawn_blocking(move || Engine::open(cfg)).await??;
             return Ok(Client::Local(Arc::new(engine)));
         }
-        let mut endpoint = Channel::from_shared(t.server.clone())?;
+        // Window sizes follow the connection's measured bandwidth-delay product, so that a
+        // large tile is not held back by HTTP/2's default 64 KiB window.
+        let mut endpoint = Channel::from_shared(t.server.clone())?
+            .http2_adaptive_window(true)
+            .tcp_nodelay(true);
         if let Some(ca) = &t.ca {
             let pem = std::fs::read(ca)
                 .map_err(|e| format!("cannot read the CA certificate {}: {e}", ca.display()))?;
@@ -363,6 +367,48 @@ fn view_of(c: &CutArgs) -> Result<Option<pb::ViewCut>, Fail> {
         (None, None) => Ok(None),
         _ => Err("a view needs both --eye and --look".into()),
     }
+}
+
+/// A tile put back together from its bands, which must cover its rows in order.
+fn assemble(bands: Vec<pb::TileBand>) -> Result<pb::Tile, Fail> {
+    let Some(first) = bands.first() else {
+        return Err("the daemon sent no tile".into());
+    };
+    let (width, height) = (first.width as usize, first.height as usize);
+    let mut t = pb::Tile {
+        width: first.width,
+        height: first.height,
+        patches: first.patches,
+        backend: first.backend.clone(),
+        crs: first.crs,
+        max_error: first.max_error,
+        heights: Vec::with_capacity(width * height),
+        valid: Vec::new(),
+    };
+    for b in &bands {
+        let row = t.heights.len() / width.max(1);
+        if b.row as usize != row || b.heights.len() != 4 * width * b.rows as usize {
+            return Err(format!(
+                "band at row {} of {} rows does not follow row {row}",
+                b.row, b.rows
+            )
+            .into());
+        }
+        t.heights.extend(
+            b.heights
+                .chunks_exact(4)
+                .map(|q| f32::from_le_bytes([q[0], q[1], q[2], q[3]])),
+        );
+    }
+    if t.heights.len() != width * height {
+        return Err(format!(
+            "the bands hold {} of the tile's {} heights",
+            t.heights.len(),
+            width * height
+        )
+        .into());
+    }
+    Ok(t)
 }
 
 fn write_tile(out: &Path, t: &pb::Tile, roi: &pb::Rect) -> Result<(), Fail> {
@@ -807,12 +853,34 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 height: h,
                 backend: backend as i32,
             };
-            let r = req;
-            let t = call!(&mut c, terrain.resample_tile(req), move |e: &Engine| {
-                api::resample_tile(e, &r, &Default::default())
-            })?;
+            let bands = match &mut c {
+                Client::Remote { terrain, .. } => {
+                    let mut s = terrain
+                        .tile_bands(req)
+                        .await
+                        .map_err(|s| -> Fail { s.message().to_string().into() })?
+                        .into_inner();
+                    let mut bands = Vec::new();
+                    while let Some(b) = s
+                        .message()
+                        .await
+                        .map_err(|s| -> Fail { s.message().to_string().into() })?
+                    {
+                        bands.push(b);
+                    }
+                    bands
+                }
+                Client::Local(engine) => {
+                    let engine = engine.clone();
+                    tokio::task::spawn_blocking(move || {
+                        api::tile_bands(&engine, &req, &Default::default())
+                    })
+                    .await??
+                }
+            };
+            let t = assemble(bands)?;
             write_tile(&out, &t, &roi)?;
-            let valid = t.valid.iter().filter(|&&v| v == 1).count();
+            let valid = t.heights.iter().filter(|z| !z.is_nan()).count();
             println!(
                 "wrote {} ({}×{}, {} valid samples, {} patches, max error {:.3} m, {})",
                 out.display(),

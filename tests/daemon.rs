@@ -749,3 +749,97 @@ fn daemon_tiles_on_the_gpu_match_the_cpu_and_gpu_without_a_device_is_refused() {
         }
     });
 }
+
+#[test]
+fn tiles_come_as_bands_of_bytes_that_any_client_can_take_and_small_ones_at_once() {
+    use patchwork::serve::proto::{self as pb, terrain_client::TerrainClient};
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "a.tif");
+    d.wait("the survey", |s| count(s, "active") == 1);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        // gRPC's default receive limit of 4 MB, as any client starts with.
+        let mut t = TerrainClient::connect(format!("http://127.0.0.1:{}", d.port))
+            .await
+            .unwrap();
+        let tile = |w: u32, h: u32| pb::TileRequest {
+            cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
+                roi: Some(pb::Rect {
+                    xmin: -119.0,
+                    ymin: 34.46,
+                    xmax: -118.92,
+                    ymax: 34.54,
+                }),
+                error: 0.0,
+            })),
+            width: w,
+            height: h,
+            backend: pb::Backend::Cpu as i32,
+        };
+        // 2400 × 1800 heights are 17 MB: more than the limit as one message, not as bands.
+        let (w, h) = (2400usize, 1800usize);
+        let mut s = t
+            .tile_bands(tile(w as u32, h as u32))
+            .await
+            .unwrap()
+            .into_inner();
+        let mut heights = Vec::new();
+        let mut bands = 0;
+        while let Some(b) = s.message().await.unwrap() {
+            assert_eq!((b.width as usize, b.height as usize), (w, h));
+            assert_eq!(b.row as usize, heights.len() / w, "bands come in row order");
+            assert!(
+                b.heights.len() <= 1 << 20,
+                "a band of {} bytes",
+                b.heights.len()
+            );
+            assert_eq!(b.heights.len(), 4 * w * b.rows as usize);
+            assert_eq!(
+                b.backend.is_empty(),
+                bands > 0,
+                "the first band says what ran"
+            );
+            heights.extend(
+                b.heights
+                    .chunks_exact(4)
+                    .map(|q| f32::from_le_bytes(q.try_into().unwrap())),
+            );
+            bands += 1;
+        }
+        assert_eq!(heights.len(), w * h);
+        assert!(bands >= 17, "{bands} bands");
+        // The same heights as the one-message tile, which needs a raised limit.
+        let mut big = TerrainClient::connect(format!("http://127.0.0.1:{}", d.port))
+            .await
+            .unwrap()
+            .max_decoding_message_size(64 << 20);
+        let whole = big
+            .resample_tile(tile(w as u32, h as u32))
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(heights.iter().any(|z| !z.is_nan()));
+        assert!(heights
+            .iter()
+            .zip(&whole.heights)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert_eq!(
+            t.resample_tile(tile(w as u32, h as u32))
+                .await
+                .unwrap_err()
+                .code(),
+            tonic::Code::OutOfRange,
+            "one message is over the default limit"
+        );
+        // A small tile answers at once: replies no longer wait out a delayed ACK (40 ms).
+        let mut ms = Vec::new();
+        for _ in 0..21 {
+            let t0 = std::time::Instant::now();
+            t.resample_tile(tile(16, 16)).await.unwrap();
+            ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        ms.sort_by(f64::total_cmp);
+        assert!(ms[10] < 5.0, "a 16² tile takes {:.1} ms (median)", ms[10]);
+    });
+}

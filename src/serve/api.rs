@@ -70,6 +70,25 @@ pub fn resample_tile(
     r: &pb::TileRequest,
     cancel: &Cancel,
 ) -> Result<pb::Tile, EngineError> {
+    let (tile, used) = tile_of(engine, r, cancel)?;
+    Ok(convert::tile(&tile, used, engine.crs()))
+}
+
+/// The tile of [`resample_tile`], as bands of f32 bytes.
+pub fn tile_bands(
+    engine: &Engine,
+    r: &pb::TileRequest,
+    cancel: &Cancel,
+) -> Result<Vec<pb::TileBand>, EngineError> {
+    let (tile, used) = tile_of(engine, r, cancel)?;
+    Ok(convert::tile_bands(&tile, used, engine.crs()))
+}
+
+fn tile_of(
+    engine: &Engine,
+    r: &pb::TileRequest,
+    cancel: &Cancel,
+) -> Result<(crate::terrain::Tile, &'static str), EngineError> {
     let (u, v) = match &r.cut {
         Some(pb::tile_request::Cut::Uniform(u)) => (Some(u), None),
         Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
@@ -77,8 +96,7 @@ pub fn resample_tile(
     };
     let cut = cut_of(engine, u, v)?;
     let backend = convert::backend(r.backend)?;
-    let (tile, used) = engine.tile_until(&cut, r.width, r.height, backend, cancel)?;
-    Ok(convert::tile(&tile, used, engine.crs()))
+    engine.tile_until(&cut, r.width, r.height, backend, cancel)
 }
 
 pub fn sample_heights(

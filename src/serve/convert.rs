@@ -137,8 +137,42 @@ pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {
         patches: t.patches.len() as u32,
         backend: backend.into(),
         crs: crs.unwrap_or(0),
-        max_error: t.patches.iter().map(|p| p.span.min_z).fold(0.0, f64::max),
+        max_error: max_error(t),
     }
+}
+
+/// The largest error of the patches a tile blended.
+fn max_error(t: &Tile) -> f64 {
+    t.patches.iter().map(|p| p.span.min_z).fold(0.0, f64::max)
+}
+
+/// Most bytes of heights in one [`pb::TileBand`]: a quarter of gRPC's default receive limit.
+pub const BAND_BYTES: usize = 1 << 20;
+
+/// A tile as bands of whole rows of f32 little-endian bytes; the first band carries what is
+/// said of the whole tile.
+pub fn tile_bands(t: &Tile, backend: &str, crs: Option<u32>) -> Vec<pb::TileBand> {
+    let width = t.width.max(1);
+    let rows = (BAND_BYTES / (4 * width)).max(1);
+    let max_error = max_error(t);
+    t.heights
+        .chunks(rows * width)
+        .enumerate()
+        .map(|(k, band)| {
+            let first = k == 0;
+            pb::TileBand {
+                width: t.width as u32,
+                height: t.height as u32,
+                row: (k * rows) as u32,
+                rows: (band.len() / width) as u32,
+                heights: band.iter().flat_map(|z| z.to_le_bytes()).collect(),
+                patches: if first { t.patches.len() as u32 } else { 0 },
+                backend: if first { backend.into() } else { String::new() },
+                crs: if first { crs.unwrap_or(0) } else { 0 },
+                max_error: if first { max_error } else { 0.0 },
+            }
+        })
+        .collect()
 }
 
 pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {

@@ -155,6 +155,19 @@ impl terrain_server::Terrain for Service {
             .map(Response::new)
     }
 
+    type TileBandsStream = BoxStream<pb::TileBand>;
+
+    async fn tile_bands(
+        &self,
+        r: Request<pb::TileRequest>,
+    ) -> Result<Response<Self::TileBandsStream>, Status> {
+        let r = r.into_inner();
+        let bands = self.run(move |e, c| api::tile_bands(e, &r, c)).await?;
+        Ok(Response::new(Box::pin(tokio_stream::iter(
+            bands.into_iter().map(Ok),
+        ))))
+    }
+
     async fn sample_heights(
         &self,
         r: Request<pb::SampleRequest>,
@@ -276,7 +289,9 @@ pub async fn serve(
         }
         s
     });
-    let mut server = tonic::transport::Server::builder();
+    // Flow control sized by measuring the connection (BDP) rather than HTTP/2's 64 KiB
+    // default window, which a multi-megabyte tile would otherwise wait on, window by window.
+    let mut server = tonic::transport::Server::builder().http2_adaptive_window(Some(true));
     if let (Some(cert), Some(key)) = (&cfg.tls_cert, &cfg.tls_key) {
         let read = |p: &std::path::Path, what: &str| {
             std::fs::read(p).map_err(|e| format!("cannot read the TLS {what} {}: {e}", p.display()))

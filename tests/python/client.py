@@ -64,6 +64,7 @@ def run(address):
         generate(stubs)
         sys.path.insert(0, stubs)
         from patchwork.v1 import admin_pb2, admin_pb2_grpc, terrain_pb2, terrain_pb2_grpc
+        import numpy as np
 
         options = [
             ("grpc.max_receive_message_length", 64 << 20),
@@ -133,12 +134,47 @@ def run(address):
             nonfinite = [z for z in valid if not math.isfinite(z)]
             require(not nonfinite, f"{len(nonfinite)} valid samples are not finite, e.g. {nonfinite[:5]}")
 
+            # 5. The same tile as bands of f32 bytes, put together as one numpy array, and a
+            # tile too big for gRPC's default 4 MB limit as one message, which this channel
+            # keeps.
+            arr, first = tile_array(terrain, terrain_pb2.TileRequest(uniform=cut, width=TILE, height=TILE))
+            require(arr.shape == (TILE, TILE), f"TileBands gave {arr.shape}")
+            same = np.array(tile.heights, dtype="<f4").reshape(TILE, TILE)
+            require(
+                np.array_equal(arr, same, equal_nan=True),
+                "TileBands and ResampleTile disagree",
+            )
+            require(first.backend == tile.backend, f"TileBands ran on {first.backend!r}")
+            with grpc.insecure_channel(address) as plain:
+                small_limit = terrain_pb2_grpc.TerrainStub(plain)
+                big, _ = tile_array(
+                    small_limit, terrain_pb2.TileRequest(uniform=cut, width=1800, height=1200)
+                )
+            require(big.shape == (1200, 1800), f"the big tile came as {big.shape}")
+            require(np.isfinite(big).any(), "the big tile has no valid sample")
+
             print(
                 f"ok: {address} SERVING, {len(active)} active survey(s), "
                 f"{len(patches)} patches in {batches} batch(es) at error {ERROR_M:g} m, "
                 f"tile {TILE}x{TILE} by {tile.backend}: {len(valid)}/{n} valid, "
                 f"heights {min(valid):.1f}..{max(valid):.1f} m"
             )
+
+
+def tile_array(terrain, request):
+    """A tile from TileBands as one float32 array of height × width, NaN where there is no
+    data, and the first band (which says what ran and how many patches were blended)."""
+    import numpy as np
+
+    arr, first = None, None
+    for band in terrain.TileBands(request, timeout=TIMEOUT_S):
+        if first is None:
+            first = band
+            arr = np.empty((band.height, band.width), dtype="<f4")
+        rows = np.frombuffer(band.heights, dtype="<f4").reshape(band.rows, band.width)
+        arr[band.row : band.row + band.rows] = rows
+    require(first is not None, "TileBands sent no band")
+    return arr, first
 
 
 def main(argv):
@@ -149,6 +185,7 @@ def main(argv):
         import grpc  # noqa: F401
         import grpc_tools.protoc  # noqa: F401
         import grpc_health.v1.health_pb2  # noqa: F401
+        import numpy  # noqa: F401
     except ImportError as e:
         print(
             f"FAIL: {e}; install the client's packages with:"
