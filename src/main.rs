@@ -728,6 +728,12 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                     "cache {} of {} bytes, {} hits, {} misses",
                     s.cache_bytes, s.cache_capacity_bytes, s.cache_hits, s.cache_misses
                 );
+                if s.requests_limit > 0 {
+                    println!(
+                        "requests {} at work of at most {}, {} waiting, {} served",
+                        s.requests_running, s.requests_limit, s.requests_waiting, s.requests_served
+                    );
+                }
                 if !s.read_only.is_empty() {
                     println!("read-only: {}", s.read_only);
                 }
@@ -961,6 +967,11 @@ struct StatsJson<'a> {
     cache_capacity_bytes: u64,
     cache_hits: u64,
     cache_misses: u64,
+    /// Requests at work, of at most `requests_limit`; waiting for a turn; finished.
+    requests_running: u32,
+    requests_waiting: u32,
+    requests_served: u64,
+    requests_limit: u32,
 }
 
 impl<'a> StatsJson<'a> {
@@ -981,6 +992,10 @@ impl<'a> StatsJson<'a> {
             cache_capacity_bytes: s.cache_capacity_bytes,
             cache_hits: s.cache_hits,
             cache_misses: s.cache_misses,
+            requests_running: s.requests_running,
+            requests_waiting: s.requests_waiting,
+            requests_served: s.requests_served,
+            requests_limit: s.requests_limit,
         }
     }
 }

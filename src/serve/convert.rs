@@ -264,6 +264,8 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
             .ingesting
             .as_ref()
             .map_or(0.0, |p| p.started.elapsed().as_secs_f64()),
+        // The requests are the server's to count, not the engine's; it fills them in.
+        ..Default::default()
     }
 }
 

@@ -7,6 +7,7 @@ use super::{api, convert, status};
 use crate::engine::{Engine, EngineError};
 use crate::resample::Cancel;
 use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio_stream::{Stream, StreamExt};
@@ -20,8 +21,33 @@ pub struct Service {
     /// caller gave up (past its deadline, or gone) holds its permit until its work is done, so
     /// clients that ask and hang up cannot pile up work without bound.
     running: Arc<tokio::sync::Semaphore>,
+    load: Arc<Load>,
     /// Subscribe is on the Terrain service but tells what the Admin listing tells.
     admin: Gate,
+}
+
+/// Counts of the requests that wait for a permit and that finished, for `stats`.
+#[derive(Default)]
+struct Load {
+    waiting: AtomicU64,
+    served: AtomicU64,
+}
+
+/// One request waiting for a permit, for as long as the guard lives: a request whose deadline
+/// passes while it waits is dropped there, and must stop counting.
+struct Waiting<'a>(&'a Load);
+
+impl<'a> Waiting<'a> {
+    fn new(load: &'a Load) -> Self {
+        load.waiting.fetch_add(1, Ordering::Relaxed);
+        Waiting(load)
+    }
+}
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        self.0.waiting.fetch_sub(1, Ordering::Relaxed);
+    }
 }
 
 impl Service {
@@ -31,7 +57,17 @@ impl Service {
             admin: Gate::admin(engine.config()),
             engine,
             running: Arc::new(tokio::sync::Semaphore::new(n)),
+            load: Arc::default(),
         }
+    }
+
+    /// What `stats` says of the requests.
+    fn load(&self, r: &mut pb::StatsReply) {
+        let limit = self.engine.config().limits.max_running_requests as usize;
+        r.requests_limit = limit as u32;
+        r.requests_running = limit.saturating_sub(self.running.available_permits()) as u32;
+        r.requests_waiting = self.load.waiting.load(Ordering::Relaxed) as u32;
+        r.requests_served = self.load.served.load(Ordering::Relaxed);
     }
 
     /// Runs `f` off the async threads once a permit is free, within the configured deadline
@@ -46,16 +82,20 @@ impl Service {
         let ms = engine.config().limits.deadline_ms;
         let cancel = Cancel::default();
         let job_cancel = cancel.clone();
+        let load = self.load.clone();
         let work = async {
+            let waiting = Waiting::new(&self.load);
             let permit = self
                 .running
                 .clone()
                 .acquire_owned()
                 .await
                 .map_err(|_| Status::unavailable("the daemon is stopping"))?;
+            drop(waiting);
             let job = tokio::task::spawn_blocking(move || {
                 let r = f(&engine, &job_cancel);
                 drop(permit);
+                load.served.fetch_add(1, Ordering::Relaxed);
                 r
             });
             match job.await {
@@ -236,7 +276,9 @@ impl admin_server::Admin for Service {
         &self,
         _: Request<pb::StatsRequest>,
     ) -> Result<Response<pb::StatsReply>, Status> {
-        self.run(|e, _| api::stats(e)).await.map(Response::new)
+        let mut r = self.run(|e, _| api::stats(e)).await?;
+        self.load(&mut r);
+        Ok(Response::new(r))
     }
 
     async fn verify(
