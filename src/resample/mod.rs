@@ -421,7 +421,7 @@ impl ResolvedPatch {
     }
 
     /// [`Self::at`] from the two halves [`Self::along`] gave for the point's x and y.
-    #[inline]
+    #[inline(always)]
     pub fn at_axes(&self, x: &AxisHit, y: &AxisHit) -> Option<(f64, Hit)> {
         if !(x.reaches && y.reaches) {
             return None;
