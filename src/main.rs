@@ -128,6 +128,10 @@ enum Cmd {
         #[arg(long)]
         no_gdal: bool,
     },
+    /// List the GPU adapters with compute shaders, one a line. The daemon runs this in a child
+    /// process, so that drivers it will not use are never loaded into it.
+    #[command(hide = true)]
+    ProbeGpu,
     /// Resample a north-up tile and write it as GeoTIFF (.tif) or numpy (.npy).
     Tile {
         #[arg(long, value_name = "XMIN,YMIN,XMAX,YMAX", allow_hyphen_values = true)]
@@ -459,7 +463,12 @@ async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     let engine = Arc::new(
         tokio::task::spawn_blocking(move || {
             let e = Engine::open(cfg)?;
-            e.enable_gpu();
+            match real_gpu(e.config().allow_emulated_gpu) {
+                Ok(()) => e.enable_gpu(),
+                Err(why) => {
+                    tracing::info!(reason = %why, "no GPU device: resampling on the CPU")
+                }
+            }
             Ok::<_, patchwork::engine::EngineError>(e)
         })
         .await??,
@@ -565,6 +574,12 @@ async fn run(cli: Cli) -> Result<(), Fail> {
         .await?
         .map_err(Into::into),
         Cmd::Serve { config } => serve(config).await,
+        Cmd::ProbeGpu => {
+            for line in patchwork::resample::gpu::list_adapters() {
+                println!("{line}");
+            }
+            Ok(())
+        }
         Cmd::Ingest {
             files,
             accuracy,
@@ -1079,6 +1094,40 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Whether the daemon should open a GPU device: with software adapters refused, only when a
+/// child process finds a real one. Asking in a child keeps a software driver the daemon will
+/// not use out of its memory (Mesa's lavapipe maps 50 MB of libLLVM that never unloads), and
+/// a driver that crashes while probing takes only the child with it.
+fn real_gpu(allow_emulated: bool) -> Result<(), String> {
+    if allow_emulated {
+        return Ok(());
+    }
+    let exe = std::env::current_exe().map_err(|e| format!("cannot find this program: {e}"))?;
+    let out = std::process::Command::new(exe)
+        .arg("probe-gpu")
+        .stdin(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .output()
+        .map_err(|e| format!("the GPU probe did not run: {e}"))?;
+    if !out.status.success() {
+        return Err(format!("the GPU probe failed ({})", out.status));
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let seen: Vec<&str> = text.lines().collect();
+    if seen.iter().any(|l| l.starts_with("gpu\t")) {
+        return Ok(());
+    }
+    let software: Vec<&str> = seen
+        .iter()
+        .filter_map(|l| l.strip_prefix("software\t"))
+        .collect();
+    Err(if software.is_empty() {
+        "no GPU adapter with compute shaders".into()
+    } else {
+        patchwork::resample::gpu::software_refused(&software.join(", "))
+    })
 }
 
 /// Turns off Mesa's device-select Vulkan layer, which the loader adds to every instance. To

@@ -660,6 +660,16 @@ fn the_daemon_starts_quietly_and_takes_no_software_gpu_unless_allowed() {
         .as_str()
         .unwrap()
         .to_string();
+    // A refused software driver is not even loaded: the probe runs in a child process.
+    let maps = std::fs::read_to_string(format!("/proc/{}/maps", d.pid().unwrap())).unwrap();
+    if backend == "cpu" {
+        for lib in ["libvulkan_lvp", "libLLVM", "libGLX_mesa"] {
+            assert!(
+                !maps.contains(lib),
+                "{lib} is mapped in a daemon that resamples on the CPU"
+            );
+        }
+    }
     d.stop();
     let log = d.log();
     for line in log.lines() {

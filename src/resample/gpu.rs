@@ -620,6 +620,40 @@ impl GpuResampler {
     }
 }
 
+/// The adapters with compute shaders that the probe sees, as "software" or "gpu", a tab, and
+/// the adapter's name and API, one to a line: what `patchwork probe-gpu` prints for a daemon
+/// to read before it loads any driver itself.
+pub fn list_adapters() -> Vec<String> {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::PRIMARY;
+    let instance = wgpu::Instance::new(desc);
+    pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY))
+        .iter()
+        .filter(|a| {
+            a.get_downlevel_capabilities()
+                .flags
+                .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
+        })
+        .map(|a| {
+            let i = a.get_info();
+            let kind = if i.device_type == wgpu::DeviceType::Cpu {
+                "software"
+            } else {
+                "gpu"
+            };
+            format!("{kind}\t{} ({:?})", i.name, i.backend)
+        })
+        .collect()
+}
+
+/// Why the software adapters `names` are not taken.
+pub fn software_refused(names: &str) -> String {
+    format!(
+        "only the software adapter {names}, slower than the CPU path; set allow_emulated_gpu = \
+         true to resample on it anyway"
+    )
+}
+
 /// The best adapter that runs compute shaders: a real GPU before a software one, which is
 /// taken only if `emulated` allows it.
 fn pick_adapter(instance: &wgpu::Instance, emulated: Emulated) -> Result<wgpu::Adapter, GpuError> {
@@ -656,11 +690,7 @@ fn pick_adapter(instance: &wgpu::Instance, emulated: Emulated) -> Result<wgpu::A
             GpuError::NoAdapter(if seen.is_empty() {
                 "no adapters at all (no Vulkan, Metal or DX12 driver)".into()
             } else if only_software {
-                format!(
-                    "only the software adapter {}, slower than the CPU path; set \
-                     allow_emulated_gpu = true to resample on it anyway",
-                    seen.join(", ")
-                )
+                software_refused(&seen.join(", "))
             } else {
                 format!("none of {} runs compute shaders", seen.join(", "))
             })
