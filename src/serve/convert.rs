@@ -165,7 +165,7 @@ pub fn tile_bands(t: &Tile, backend: &str, crs: Option<u32>) -> Vec<pb::TileBand
                 height: t.height as u32,
                 row: (k * rows) as u32,
                 rows: (band.len() / width) as u32,
-                heights: band.iter().flat_map(|z| z.to_le_bytes()).collect(),
+                heights: le_bytes(band),
                 patches: if first { t.patches.len() as u32 } else { 0 },
                 backend: if first { backend.into() } else { String::new() },
                 crs: if first { crs.unwrap_or(0) } else { 0 },
@@ -173,6 +173,15 @@ pub fn tile_bands(t: &Tile, backend: &str, crs: Option<u32>) -> Vec<pb::TileBand
             }
         })
         .collect()
+}
+
+/// f32s as little-endian bytes: a copy of memory where that is the machine's order.
+fn le_bytes(v: &[f32]) -> Vec<u8> {
+    if cfg!(target_endian = "little") {
+        bytemuck::cast_slice(v).to_vec()
+    } else {
+        v.iter().flat_map(|z| z.to_le_bytes()).collect()
+    }
 }
 
 pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
