@@ -31,25 +31,34 @@ def load(path):
     return np.load(path).astype(np.float64)
 
 
-def gdal_tile(sources, crs, roi, n):
+def warp(datasets, crs, roi, n):
+    """Open datasets warped bilinearly onto an n × n north-up grid over roi, as float32."""
     xmin, ymin, xmax, ymax = roi
     dst = np.full((n, n), np.nan, dtype=np.float32)
     transform = from_bounds(xmin, ymin, xmax, ymax, n, n)
-    for src_path in sources:
-        with rasterio.open(src_path) as src:
-            part = np.full((n, n), np.nan, dtype=np.float32)
-            reproject(
-                source=rasterio.band(src, 1),
-                destination=part,
-                src_nodata=src.nodata,
-                dst_transform=transform,
-                dst_crs=crs,
-                dst_nodata=np.nan,
-                resampling=Resampling.bilinear,
-            )
-            # Later sources win where they have data, as in a VRT or gdal.Warp mosaic.
-            dst = np.where(np.isnan(part), dst, part)
-    return dst.astype(np.float64)
+    for src in datasets:
+        part = np.full((n, n), np.nan, dtype=np.float32)
+        reproject(
+            source=rasterio.band(src, 1),
+            destination=part,
+            src_nodata=src.nodata,
+            dst_transform=transform,
+            dst_crs=crs,
+            dst_nodata=np.nan,
+            resampling=Resampling.bilinear,
+        )
+        # Later sources win where they have data, as in a VRT or gdal.Warp mosaic.
+        dst = np.where(np.isnan(part), dst, part)
+    return dst
+
+
+def gdal_tile(sources, crs, roi, n):
+    datasets = [rasterio.open(p) for p in sources]
+    try:
+        return warp(datasets, crs, roi, n).astype(np.float64)
+    finally:
+        for d in datasets:
+            d.close()
 
 
 def outside(h, lo, hi):

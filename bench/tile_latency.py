@@ -30,8 +30,6 @@ import time
 
 import numpy as np
 import rasterio
-from rasterio.transform import from_bounds
-from rasterio.warp import Resampling, reproject
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
@@ -48,6 +46,7 @@ ERRORS = [0.0, 5.0]
 
 sys.path.insert(0, os.path.join(REPO, "tests", "python"))
 from client import generate, tile_array  # noqa: E402  (the test client's stubs and bands)
+from gdal_compare import warp  # noqa: E402  (the same GDAL warp as the bench's comparison)
 
 
 def repeats(n, quick):
@@ -67,22 +66,7 @@ def free_port():
 
 
 def gdal_tile(datasets, roi, n):
-    xmin, ymin, xmax, ymax = roi
-    transform = from_bounds(xmin, ymin, xmax, ymax, n, n)
-    dst = np.full((n, n), np.nan, dtype=np.float32)
-    for src in datasets:
-        part = np.full((n, n), np.nan, dtype=np.float32)
-        reproject(
-            source=rasterio.band(src, 1),
-            destination=part,
-            src_nodata=src.nodata,
-            dst_transform=transform,
-            dst_crs=src.crs,
-            dst_nodata=np.nan,
-            resampling=Resampling.bilinear,
-        )
-        dst = np.where(np.isnan(part), dst, part)
-    return dst
+    return warp(datasets, datasets[0].crs, roi, n)
 
 
 def median_ms(f, k):

@@ -790,10 +790,8 @@ fn read_samples<'a, R: Read + Seek>(
                 if let Some(file) = inflate {
                     let start = chunks.offsets[idx] as usize;
                     let data = &file[start..start + bytes as usize];
-                    let f = inflater.get_or_insert_with(FloatInflater::default);
-                    f.chunk(idx, data, bw as usize, dh, dw, rows_out, |v| {
-                        convert.float(v)
-                    })?;
+                    let f = inflater.get_or_insert_with(FloatInflater::new);
+                    f.chunk(idx, data, bw as usize, dh, rows_out, |v| convert.float(v))?;
                     continue;
                 }
                 if dec.is_none() {
@@ -904,14 +902,22 @@ fn deflated_float_predictor<R: Read + Seek>(
 /// 3): each row of a chunk is the bytes of its samples split into four planes, most
 /// significant first whatever the file's byte order, then differenced byte by byte along the
 /// row. Buffers are kept from one chunk to the next.
-#[derive(Default)]
 struct FloatInflater {
+    inflater: flate2::Decompress,
     inflated: Vec<u8>,
 }
 
 impl FloatInflater {
+    fn new() -> Self {
+        FloatInflater {
+            inflater: flate2::Decompress::new(true),
+            inflated: Vec::new(),
+        }
+    }
+
     /// Decodes chunk `idx` of `width` samples a row (the padding of edge tiles included) and
-    /// places the first `dw` samples of each of its first `dh` rows through `height`.
+    /// places its first `dh` rows through `height` into `rows`, as many samples of each as
+    /// the row given for it holds.
     #[allow(clippy::too_many_arguments)]
     fn chunk<'a>(
         &mut self,
@@ -919,7 +925,6 @@ impl FloatInflater {
         data: &[u8],
         width: usize,
         dh: usize,
-        dw: usize,
         rows: impl Iterator<Item = &'a mut [f32]>,
         height: impl Fn(f32) -> f32,
     ) -> Result<(), ReadError> {
@@ -929,7 +934,8 @@ impl FloatInflater {
         // TIFF deflate is a zlib stream. A chunk may hold more rows than the image has left
         // (the padding rows of a bottom tile), which are never needed: decoding stops at
         // `need` bytes.
-        let mut z = flate2::Decompress::new(true);
+        let z = &mut self.inflater;
+        z.reset(true);
         let status = z.decompress(data, &mut self.inflated, flate2::FlushDecompress::Finish);
         let corrupt = |why: String| {
             ReadError::invalid(format!("corrupt compressed image data: chunk {idx} {why}"))
@@ -944,7 +950,7 @@ impl FloatInflater {
             }
             Err(e) => return Err(corrupt(e.to_string())),
         }
-        for (dst, row) in rows.zip(self.inflated.chunks_exact_mut(width * 4)).take(dh) {
+        for (dst, row) in rows.zip(self.inflated.chunks_exact_mut(width * 4)) {
             let mut acc = 0u8;
             for b in row.iter_mut() {
                 acc = acc.wrapping_add(*b);
@@ -953,7 +959,7 @@ impl FloatInflater {
             let (p0, rest) = row.split_at(width);
             let (p1, rest) = rest.split_at(width);
             let (p2, p3) = rest.split_at(width);
-            for (i, d) in dst.iter_mut().enumerate().take(dw) {
+            for (i, d) in dst.iter_mut().enumerate() {
                 *d = height(f32::from_bits(u32::from_be_bytes([
                     p0[i], p1[i], p2[i], p3[i],
                 ])));

@@ -374,9 +374,8 @@ impl ResolvedPatch {
         let Surface::Bilinear(level) = &self.surface else {
             unreachable!("only bilinear patches are separable")
         };
+        let (w, k) = (&self.window, &self.kernel);
         let (dir, offset, cells, lo, hi, klo, khi) = if axis == 0 {
-            let w = &self.window;
-            let k = &self.kernel;
             (
                 self.u[0],
                 level.c0,
@@ -387,8 +386,6 @@ impl ResolvedPatch {
                 k.c1,
             )
         } else {
-            let w = &self.window;
-            let k = &self.kernel;
             (
                 self.v[1],
                 level.r0,
