@@ -199,10 +199,10 @@ fn cpu_resampling(c: &mut Criterion) {
     let tile = t.resample(ps.clone(), &SampleGrid::uniform(&roi, 512, 512));
     let grid = SampleGrid::uniform(&roi, 512, 512);
     let (mut worst, mut sq, mut n) = (0.0f64, 0.0f64, 0usize);
-    for (q, z) in grid.points.iter().zip(&tile.heights) {
+    for (q, z) in grid.points().zip(&tile.heights) {
         let hs: Vec<f64> = [&p.cop, &p.nasa]
             .iter()
-            .filter_map(|s| s.levels[0].bilinear(*q))
+            .filter_map(|s| s.levels[0].bilinear(q))
             .collect();
         if hs.is_empty() || z.is_nan() {
             continue;
@@ -223,13 +223,12 @@ fn cpu_resampling(c: &mut Criterion) {
     let set = t.resolve(&ps);
     let grid = SampleGrid::uniform(&roi, 512, 512);
     let reaching: usize = grid
-        .points
-        .iter()
-        .map(|&q| set.patches.iter().filter(|p| p.at(q).is_some()).count())
+        .points()
+        .map(|q| set.patches.iter().filter(|p| p.at(q).is_some()).count())
         .sum();
     println!(
         "{:.2} patches reach a sample on average",
-        reaching as f64 / grid.points.len() as f64
+        reaching as f64 / grid.points().len() as f64
     );
     let mut group = c.benchmark_group("cpu_resample");
     group.sample_size(10);

@@ -196,14 +196,7 @@ impl Terrain {
             survey: s.id,
             reason: "the terrain holds neither its samples nor a store to read them from".into(),
         })?;
-        let shape = s.shapes[level];
-        let g = source.read(s.id, level, &shape, rect)?;
-        Ok(Window {
-            grid: Arc::new(g),
-            c0: rect.c0,
-            r0: rect.r0,
-            level: shape,
-        })
+        source.window(s.id, level, &s.shapes[level], rect)
     }
 
     /// Rebuilds a terrain from what a store keeps: the surveys without their samples, the
@@ -614,12 +607,7 @@ impl Terrain {
         let height = points.len().div_ceil(width);
         let mut padded = points.to_vec();
         padded.resize(width * height, [f64::NAN, f64::NAN]);
-        let grid = SampleGrid {
-            width,
-            height,
-            points: padded,
-            axes: None,
-        };
+        let grid = SampleGrid::of_points(width, height, padded);
         Ok(cpu::resample_until(&set, &grid, cancel).map(|mut h| {
             h.truncate(points.len());
             h

@@ -54,7 +54,7 @@ fn compare(
     let bx = grid.width.div_ceil(patchwork::resample::BLOCK);
     // The spread of the heights the patches reaching a point give there.
     let spread = |k: usize| {
-        let p = grid.points[k];
+        let p = grid.point(k);
         let bin = &bins[(k / grid.width / patchwork::resample::BLOCK) * bx
             + (k % grid.width) / patchwork::resample::BLOCK];
         let zs = bin
@@ -73,7 +73,7 @@ fn compare(
             a.is_nan(),
             b.is_nan(),
             "{what}: mask differs at sample {k} ({:?}): gpu {a}, cpu {b}",
-            grid.points[k]
+            grid.point(k)
         );
         if !a.is_nan() {
             valid += 1;

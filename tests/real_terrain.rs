@@ -159,8 +159,8 @@ fn voids_stay_nodata_and_valid_samples_get_heights() {
         let tile = t.tile(&roi, 256, 256, e);
         let grid = patchwork::resample::SampleGrid::uniform(&roi, 256, 256);
         let (mut void, mut valid, mut edge) = (0, 0, 0);
-        for (p, z) in grid.points.iter().zip(&tile.heights) {
-            match (g.bilinear(*p), pixel_valid(g, *p)) {
+        for (p, z) in grid.points().zip(&tile.heights) {
+            match (g.bilinear(p), pixel_valid(g, p)) {
                 (Some(h), _) => {
                     valid += 1;
                     assert!(!z.is_nan(), "nodata at a valid point {p:?}, e = {e}");
@@ -173,7 +173,7 @@ fn voids_stay_nodata_and_valid_samples_get_heights() {
                     // In a pixel of data but no whole cell: a border or the edge of a void.
                     edge += 1;
                     assert!(!z.is_nan(), "nodata in a valid pixel at {p:?}, e = {e}");
-                    let (lo, hi) = neighbourhood_range(g, *p);
+                    let (lo, hi) = neighbourhood_range(g, p);
                     assert!(
                         *z as f64 >= lo - e - 1e-3 && *z as f64 <= hi + e + 1e-3,
                         "{z} outside the nearby samples [{lo}, {hi}] at {p:?}, e = {e}"
@@ -313,17 +313,17 @@ fn view_cuts_cover_the_footprint_and_coarsen_with_distance() {
         let tile = t.view_tile(&v, 200, 150);
         let grid = SampleGrid::view(&v, 200, 150, v.look[2]);
         let mut checked = 0;
-        for (p, z) in grid.points.iter().zip(&tile.heights) {
-            if p[0].is_nan() || !footprint.contains_point(*p) {
+        for (p, z) in grid.points().zip(&tile.heights) {
+            if p[0].is_nan() || !footprint.contains_point(p) {
                 continue;
             }
-            let hs = survey_heights(&pair, *p);
+            let hs = survey_heights(&pair, p);
             if hs.is_empty() {
                 assert!(z.is_nan(), "a height outside the data at {p:?}");
                 continue;
             }
             assert!(
-                ps.iter().any(|x| in_valid_kernel(&t, x, *p)),
+                ps.iter().any(|x| in_valid_kernel(&t, x, p)),
                 "hole at {p:?}"
             );
             let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
@@ -332,7 +332,7 @@ fn view_cuts_cover_the_footprint_and_coarsen_with_distance() {
             // field over each patch's kernel.
             let allowed = ps
                 .iter()
-                .filter(|x| x.window.contains_point(*p))
+                .filter(|x| x.window.contains_point(p))
                 .map(|x| x.span.min_z)
                 .fold(0.0f64, f64::max);
             let h = *z as f64;

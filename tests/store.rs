@@ -10,6 +10,7 @@ use patchwork::index::lod::IndexConfig;
 use patchwork::model::accuracy::AccuracySource;
 use patchwork::model::ids::{PatchId, SurveyId};
 use patchwork::model::survey::Survey;
+use patchwork::resample::SampleGrid;
 use patchwork::restore::{self, Opened};
 use patchwork::store::{
     open_error, DiskSpace, FailedRecord, IngestTimings, SpaceGuard, Status, Store, StoreError,
@@ -1057,5 +1058,35 @@ fn abutting_tiles_read_back_from_disk_answer_as_in_memory_whole_and_in_sub_tiles
             max: [roi.min[0] + (i + 1.0) * w, roi.min[1] + (j + 1.0) * h],
         };
         assert_eq!(heights(&terrain, &sub), heights(&t, &sub));
+    }
+}
+
+#[test]
+fn a_survey_of_many_chunks_reads_back_as_in_memory_inside_chunks_and_across_their_seams() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    // 600 × 530 samples are 3 × 3 chunks: some patches read inside one chunk, in place, and
+    // others across a seam between two or four, copied out.
+    let s = spec(600, 530, [0.0, 0.0], 41, 0.0).survey().unwrap();
+    let roi = bounds_of(std::slice::from_ref(&s));
+    let mut t = Terrain::new(IndexConfig::default());
+    {
+        let Opened { store, .. } = open(&dir);
+        ingest(&store, &mut t, &s, "big");
+    }
+    let Opened {
+        store: _store,
+        terrain,
+        ..
+    } = open(&dir);
+    for e in [0.0, 2.0] {
+        let ps = terrain.uniform(&roi, e);
+        assert_eq!(ps, t.uniform(&roi, e));
+        let grid = SampleGrid::uniform(&roi, 301, 277);
+        let bits = |t: &Terrain| -> Vec<u32> {
+            let h = t.resample(ps.clone(), &grid).heights;
+            h.iter().map(|z| z.to_bits()).collect()
+        };
+        assert_eq!(bits(&terrain), bits(&t), "e = {e}");
     }
 }

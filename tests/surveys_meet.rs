@@ -9,7 +9,7 @@ use patchwork::index::geom::Aabb;
 use patchwork::index::lod::IndexConfig;
 use patchwork::model::accuracy::AccuracySpec::Auto;
 use patchwork::model::grid::Grid;
-use patchwork::resample::SampleGrid;
+use patchwork::resample::{cpu, SampleGrid};
 use patchwork::terrain::Terrain;
 
 fn cop() -> Grid {
@@ -65,10 +65,9 @@ fn a_finer_copy_of_the_same_ground_serves_the_small_errors() {
             "e = {e}: the coarse copy serves where the fine one is as good"
         );
         let worst = grid
-            .points
-            .iter()
+            .points()
             .zip(&tile.heights)
-            .filter_map(|(p, z)| Some((g.bilinear(*p)? - *z as f64).abs()))
+            .filter_map(|(p, z)| Some((g.bilinear(p)? - *z as f64).abs()))
             .fold(0.0, f64::max);
         assert!(worst < 1e-3, "e = {e}: {worst} m off the fine survey");
     }
@@ -76,9 +75,9 @@ fn a_finer_copy_of_the_same_ground_serves_the_small_errors() {
     let e = 2.0 * coarse.accuracy;
     let tile = t.tile(&roi, 180, 150, e);
     assert!(tile.patches.iter().any(|x| x.survey == coarse.id));
-    for (p, z) in grid.points.iter().zip(&tile.heights) {
-        if let Some(h) = g.bilinear(*p) {
-            let hs = survey_heights(&[fine.clone(), coarse.clone()], *p);
+    for (p, z) in grid.points().zip(&tile.heights) {
+        if let Some(h) = g.bilinear(p) {
+            let hs = survey_heights(&[fine.clone(), coarse.clone()], p);
             let lo = hs.iter().cloned().fold(h, f64::min);
             let hi = hs.iter().cloned().fold(h, f64::max);
             assert!(*z as f64 >= lo - e - 1e-3 && *z as f64 <= hi + e + 1e-3);
@@ -128,7 +127,7 @@ fn a_height_does_not_depend_on_the_region_that_holds_it() {
         // Heights at the same points asked one by one are the tile's too.
         let grid = SampleGrid::uniform(&whole, w, h);
         let picks: Vec<usize> = (0..w * h).step_by(97).collect();
-        let pts: Vec<[f64; 2]> = picks.iter().map(|&i| grid.points[i]).collect();
+        let pts: Vec<[f64; 2]> = picks.iter().map(|&i| grid.point(i)).collect();
         let one_by_one = t.sample(&pts, e);
         let want: Vec<f32> = picks.iter().map(|&i| big.heights[i]).collect();
         assert!(max_diff(&one_by_one, &want, "points") <= 1e-4);
@@ -136,14 +135,14 @@ fn a_height_does_not_depend_on_the_region_that_holds_it() {
         // the coarse survey's ε, within the error of one of the two.
         let bound = e.max(2.0);
         let (mut worst, mut n) = (0.0f64, 0);
-        for (p, z) in grid.points.iter().zip(&big.heights) {
-            let Some(hf) = fine.levels[0].bilinear(*p) else {
+        for (p, z) in grid.points().zip(&big.heights) {
+            let Some(hf) = fine.levels[0].bilinear(p) else {
                 continue;
             };
             let off = if e < 20.0 {
                 (hf - *z as f64).abs()
             } else {
-                let hs = survey_heights(&[fine.clone(), coarse.clone()], *p);
+                let hs = survey_heights(&[fine.clone(), coarse.clone()], p);
                 let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
                 let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
                 (lo - *z as f64).max(*z as f64 - hi).max(0.0)
@@ -247,14 +246,14 @@ fn nothing_lost_nothing_invented(g: Grid) -> usize {
     let tile = t.tile(&roi, w, h, 0.0);
     let grid = SampleGrid::uniform(&roi, w, h);
     let mut triangles = 0;
-    for (p, z) in grid.points.iter().zip(&tile.heights) {
+    for (p, z) in grid.points().zip(&tile.heights) {
         assert_eq!(
-            pixel_valid(&g, *p),
+            pixel_valid(&g, p),
             !z.is_nan(),
             "at {p:?}: {z} where the pixel is {}",
-            if pixel_valid(&g, *p) { "data" } else { "void" }
+            if pixel_valid(&g, p) { "data" } else { "void" }
         );
-        let q = g.georef.to_grid(*p);
+        let q = g.georef.to_grid(p);
         let (c, r) = (q[0].floor(), q[1].floor());
         if c < 0.0 || r < 0.0 || c as usize + 1 >= g.cols || r as usize + 1 >= g.rows {
             continue;
@@ -373,9 +372,9 @@ fn surveys_on_different_lattices_with_less_than_a_cell_between_them_leave_no_gap
                 .iter()
                 .map(|x| x.span.min_z)
                 .fold(0.0, f64::max);
-            for (p, z) in grid.points.iter().zip(&tile.heights) {
+            for (p, z) in grid.points().zip(&tile.heights) {
                 assert!(!z.is_nan(), "a gap at {p:?}, e = {err}");
-                let hs = survey_heights(&[w.clone(), e.clone()], *p);
+                let hs = survey_heights(&[w.clone(), e.clone()], p);
                 let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
                 let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
                 assert!(
@@ -436,4 +435,65 @@ fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit
         }
     }
     assert!(compared > 300_000, "only {compared} heights compared");
+}
+
+#[test]
+fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
+    // Binning looks up patches by buckets; the plain test of every patch against every block
+    // is the reference. Surveys of several levels, edge patches and a rotated survey, on
+    // north-up grids and on a grid of scattered points with holes in it.
+    let g = cop();
+    let surveys = vec![
+        survey_with(sparse(&window(&g, 20, 30, 200, 180), 0.9, 7), 1.0),
+        survey_with(decimate(&g, 3), Auto),
+        survey_with(turned(&window(&g, 120, 100, 120, 120), 17.0), 2.0),
+    ];
+    let t = terrain_of(&surveys);
+    let b = bounds_of(&surveys);
+    let inner = Aabb::new(
+        b.min[0] + 0.31 * b.width(),
+        b.min[1] + 0.27 * b.height(),
+        b.min[0] + 0.93 * b.width(),
+        b.min[1] + 0.71 * b.height(),
+    );
+    let mut seen = 0;
+    for roi in [b, inner] {
+        for e in [0.0, 10.0] {
+            let set = t.resolve(&t.uniform(&roi, e));
+            let uniform = SampleGrid::uniform(&roi, 97, 61);
+            let scattered = SampleGrid::of_points(
+                40,
+                30,
+                (0..1200)
+                    .map(|k| {
+                        let (i, j) = ((k * 7919) % 1200, (k * 104_729) % 1200);
+                        if k % 13 == 0 {
+                            [f64::NAN, f64::NAN]
+                        } else {
+                            [
+                                roi.min[0] + roi.width() * i as f64 / 1200.0,
+                                roi.min[1] + roi.height() * j as f64 / 1200.0,
+                            ]
+                        }
+                    })
+                    .collect(),
+            );
+            for grid in [uniform, scattered] {
+                let bins = cpu::bin(&set.patches, &grid);
+                let want: Vec<Vec<u32>> = grid
+                    .block_bounds()
+                    .iter()
+                    .map(|bb| match bb {
+                        Some(bb) => (0..set.patches.len() as u32)
+                            .filter(|&k| set.patches[k as usize].window_aabb.intersects(bb))
+                            .collect(),
+                        None => Vec::new(),
+                    })
+                    .collect();
+                assert_eq!(bins, want, "{roi:?} e = {e}");
+                seen += bins.iter().map(Vec::len).sum::<usize>();
+            }
+        }
+    }
+    assert!(seen > 1000, "only {seen} patches binned");
 }

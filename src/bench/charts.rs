@@ -354,11 +354,10 @@ fn map(out: &Path, t: &Terrain, roi: &Aabb, n: usize) -> Result<(), Fail> {
         let ps = t.uniform(roi, e);
         let tile = t.resample(ps.clone(), &grid);
         let levels: Vec<u8> = grid
-            .points
-            .iter()
+            .points()
             .map(|p| {
                 ps.iter()
-                    .filter(|x| x.kernel.contains_point(*p))
+                    .filter(|x| x.kernel.contains_point(p))
                     .map(|x| x.level)
                     .max()
                     .unwrap_or(0)

@@ -99,10 +99,9 @@ fn pixels(g: &Grid, c0: f64, r0: f64, c1: f64, r1: f64) -> Aabb {
 /// Max and RMS of |tile − the grid's surface| where the grid has a whole cell.
 fn against(g: &Grid, grid: &SampleGrid, heights: &[f32]) -> (f64, f64) {
     let (worst, sum, n) = grid
-        .points
-        .iter()
+        .points()
         .zip(heights)
-        .filter_map(|(p, z)| Some((g.bilinear(*p)? - *z as f64).abs()))
+        .filter_map(|(p, z)| Some((g.bilinear(p)? - *z as f64).abs()))
         .fold((0.0f64, 0.0f64, 0usize), |(w, s, n), d| {
             (w.max(d), s + d * d, n + 1)
         });

@@ -91,7 +91,7 @@ fn timed<T>(repeats: usize, mut f: impl FnMut() -> T) -> (f64, T) {
 /// reference. With one survey both are its bilinear surface; where surveys overlap, the bound
 /// holds against the range they span.
 pub fn reference(t: &Terrain, grid: &SampleGrid) -> (Vec<f32>, Vec<f32>) {
-    let bounds = crate::index::geom::Aabb::of_points(&grid.points);
+    let bounds = crate::index::geom::Aabb::of_points(&grid.points().collect::<Vec<_>>());
     // Each survey's level 0 where the grid is: the whole of it would not fit a large store.
     let surveys: Vec<Grid> = t
         .surveys()
@@ -100,10 +100,9 @@ pub fn reference(t: &Terrain, grid: &SampleGrid) -> (Vec<f32>, Vec<f32>) {
             Some(t.samples(s, 0, rect).expect("samples readable"))
         })
         .collect();
-    grid.points
-        .iter()
+    grid.points()
         .map(|p| {
-            let hs = surveys.iter().filter_map(|g| g.bilinear(*p));
+            let hs = surveys.iter().filter_map(|g| g.bilinear(p));
             let (lo, hi) = hs.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), h| {
                 (a.min(h), b.max(h))
             });

@@ -455,6 +455,17 @@ impl Window {
         }
     }
 
+    /// The samples of `rect` of a level whose shape is `level`.
+    pub fn of(grid: std::sync::Arc<Grid>, rect: SampleRect, level: Shape) -> Window {
+        debug_assert_eq!((grid.cols, grid.rows), (rect.cols(), rect.rows()));
+        Window {
+            grid,
+            c0: rect.c0,
+            r0: rect.r0,
+            level,
+        }
+    }
+
     /// Level sample (c, r), which the window must hold.
     #[inline]
     pub fn at(&self, c: usize, r: usize) -> f32 {

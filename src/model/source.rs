@@ -1,7 +1,7 @@
 //! Where samples come from when they are not in memory. The model and the terrain read
 //! through this trait and do no I/O themselves; the store implements it over its chunks.
 
-use super::grid::{Grid, SampleRect, Shape};
+use super::grid::{Grid, SampleRect, Shape, Window};
 use super::ids::SurveyId;
 use thiserror::Error;
 
@@ -40,6 +40,19 @@ pub trait SampleSource: Send + Sync + std::fmt::Debug {
         shape: &Shape,
         rect: SampleRect,
     ) -> Result<Grid, SampleError>;
+
+    /// A window holding at least `rect`: what [`Self::read`] gives, or more where the source
+    /// holds it already and can share it rather than copy it.
+    fn window(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        shape: &Shape,
+        rect: SampleRect,
+    ) -> Result<Window, SampleError> {
+        let g = self.read(survey, level, shape, rect)?;
+        Ok(Window::of(std::sync::Arc::new(g), rect, *shape))
+    }
 }
 
 /// Samples held in memory, by survey: a source for terrains restored without a store.
@@ -68,15 +81,32 @@ impl SampleSource for MemorySource {
         _: &Shape,
         rect: SampleRect,
     ) -> Result<Grid, SampleError> {
-        let g = self
-            .levels
+        let g = self.level(survey, level)?;
+        check_rect(survey, &rect, g.cols, g.rows)?;
+        Ok(g.window(rect.c0, rect.r0, rect.cols(), rect.rows()))
+    }
+
+    fn window(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        _: &Shape,
+        rect: SampleRect,
+    ) -> Result<Window, SampleError> {
+        let g = self.level(survey, level)?;
+        check_rect(survey, &rect, g.cols, g.rows)?;
+        Ok(Window::whole(g.clone()))
+    }
+}
+
+impl MemorySource {
+    fn level(&self, survey: SurveyId, level: usize) -> Result<&std::sync::Arc<Grid>, SampleError> {
+        self.levels
             .get(&survey)
             .and_then(|l| l.get(level))
             .ok_or_else(|| SampleError {
                 survey,
                 reason: format!("no level {level} in memory"),
-            })?;
-        check_rect(survey, &rect, g.cols, g.rows)?;
-        Ok(g.window(rect.c0, rect.r0, rect.cols(), rect.rows()))
+            })
     }
 }

@@ -13,21 +13,92 @@
 use super::{AxisHit, Cancel, Hit, PatchSet, ResolvedPatch, SampleGrid, BLOCK};
 use rayon::prelude::*;
 
-/// Patch indices per block of output samples, so each sample visits only patches near it.
+/// Patch indices per block of output samples, so each sample visits only patches near it:
+/// those whose window meets the block's bounds, in ascending order.
 pub fn bin(patches: &[ResolvedPatch], grid: &SampleGrid) -> Vec<Vec<u32>> {
     let blocks = grid.block_bounds();
+    // Testing every patch against every block cost a 2048² tile of 15,000 patches 0.5 s:
+    // buckets narrow each block's test to the patches near it.
+    let buckets = Buckets::new(patches);
     blocks
         .par_iter()
         .map(|b| match b {
-            Some(b) => patches
-                .iter()
-                .enumerate()
-                .filter(|(_, p)| p.window_aabb.intersects(b))
-                .map(|(i, _)| i as u32)
-                .collect(),
+            Some(b) => {
+                let mut near = buckets.near(b);
+                near.retain(|&k| patches[k as usize].window_aabb.intersects(b));
+                near
+            }
             None => Vec::new(),
         })
         .collect()
+}
+
+/// Patch indices on a uniform grid of cells over the patches' windows.
+struct Buckets {
+    min: [f64; 2],
+    /// Cells per world unit, along each axis.
+    scale: [f64; 2],
+    side: usize,
+    cells: Vec<Vec<u32>>,
+}
+
+impl Buckets {
+    fn new(patches: &[ResolvedPatch]) -> Self {
+        let side = ((patches.len() as f64).sqrt().ceil() as usize).clamp(1, 256);
+        let bounds = patches
+            .iter()
+            .map(|p| p.window_aabb)
+            .reduce(|a, b| a.union(&b));
+        let mut b = Buckets {
+            min: [0.0; 2],
+            scale: [0.0; 2],
+            side,
+            cells: vec![Vec::new(); side * side],
+        };
+        let Some(bounds) = bounds else {
+            return b;
+        };
+        b.min = bounds.min;
+        // A zero-wide extent puts everything in the first cell along that axis.
+        let per = |w: f64| if w > 0.0 { side as f64 / w } else { 0.0 };
+        b.scale = [per(bounds.width()), per(bounds.height())];
+        for (k, p) in patches.iter().enumerate() {
+            let ([i0, i1], [j0, j1]) = b.span(&p.window_aabb);
+            for j in j0..=j1 {
+                for i in i0..=i1 {
+                    b.cells[j * side + i].push(k as u32);
+                }
+            }
+        }
+        b
+    }
+
+    /// The first and last cell along x and along y that a box reaches, clamped to the grid.
+    fn span(&self, a: &crate::index::geom::Aabb) -> ([usize; 2], [usize; 2]) {
+        let cell = |v: f64, axis: usize| {
+            let c = ((v - self.min[axis]) * self.scale[axis]).floor();
+            c.clamp(0.0, (self.side - 1) as f64) as usize
+        };
+        (
+            [cell(a.min[0], 0), cell(a.max[0], 0)],
+            [cell(a.min[1], 1), cell(a.max[1], 1)],
+        )
+    }
+
+    /// Every patch in a cell the box reaches, ascending and each once: a superset of those
+    /// whose window meets it, since a cell holds every patch whose window reaches the cell.
+    fn near(&self, a: &crate::index::geom::Aabb) -> Vec<u32> {
+        let ([i0, i1], [j0, j1]) = self.span(a);
+        let mut out = Vec::new();
+        for j in j0..=j1 {
+            for i in i0..=i1 {
+                out.extend_from_slice(&self.cells[j * self.side + i]);
+            }
+        }
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
 }
 
 /// Heights at every point of the grid, NaN where no valid kernel reaches.
@@ -47,7 +118,7 @@ pub fn resample_until(set: &PatchSet, grid: &SampleGrid, cancel: &Cancel) -> Opt
                 if cancel.is_cancelled() {
                     return;
                 }
-                let pts = &grid.points[j * grid.width..(j + 1) * grid.width];
+                let pts = &grid.list[j * grid.width..(j + 1) * grid.width];
                 let mut tiers = Vec::with_capacity(8);
                 for (i, (o, &p)) in row.iter_mut().zip(pts).enumerate() {
                     if p[0].is_nan() {

@@ -342,17 +342,12 @@ impl GpuResampler {
         let mut tm = GpuTimings::default();
         let n = grid.width * grid.height;
         let mut out = vec![f32::NAN; n];
-        let Some(origin) = grid
-            .points
-            .iter()
-            .find(|p| !p[0].is_nan() && !p[1].is_nan())
-        else {
+        let Some(origin) = grid.points().find(|p| !p[0].is_nan() && !p[1].is_nan()) else {
             return Ok((out, tm));
         };
         if set.patches.is_empty() {
             return Ok((out, tm));
         }
-        let origin = *origin;
         let bx = grid.width.div_ceil(BLOCK);
         let by = grid.height.div_ceil(BLOCK);
         let wg_max = self.device.limits().max_compute_workgroups_per_dimension as usize;
@@ -377,8 +372,7 @@ impl GpuResampler {
             flat.push(0);
         }
         let points: Vec<[f32; 4]> = grid
-            .points
-            .iter()
+            .points()
             .map(|p| {
                 if p[0].is_nan() || p[1].is_nan() {
                     [VOID, 0.0, 0.0, 0.0]

@@ -45,7 +45,9 @@ pub const BLOCK: usize = 16;
 pub struct SampleGrid {
     pub width: usize,
     pub height: usize,
-    pub points: Vec<[f64; 2]>,
+    /// Every point, row-major; empty where `axes` gives them. Listing a 2048² tile's points
+    /// took longer than blending most of it.
+    list: Vec<[f64; 2]>,
     /// For a north-up tile, the x of each column and the y of each row: point (i, j) is
     /// (xs[i], ys[j]), which lets the CPU work out per column and per row what it would
     /// otherwise work out per sample.
@@ -70,22 +72,43 @@ impl SampleGrid {
         let ys: Vec<f64> = (0..height)
             .map(|j| roi.max[1] - (j as f64 + 0.5) * dy)
             .collect();
-        let points = ys
-            .iter()
-            .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
-            .collect();
         SampleGrid {
             width,
             height,
-            points,
+            list: Vec::new(),
             axes: Some(Axes { xs, ys }),
         }
     }
 
+    /// A grid of any points, row-major, `width × height` of them.
+    pub fn of_points(width: usize, height: usize, points: Vec<[f64; 2]>) -> Self {
+        assert_eq!(points.len(), width * height, "a point for every sample");
+        SampleGrid {
+            width,
+            height,
+            list: points,
+            axes: None,
+        }
+    }
+
     /// The same points without their axes: resampled one point at a time, as any grid is.
-    pub fn pointwise(mut self) -> Self {
-        self.axes = None;
-        self
+    pub fn pointwise(self) -> Self {
+        let list = self.points().collect();
+        SampleGrid::of_points(self.width, self.height, list)
+    }
+
+    /// Sample k's position, row-major.
+    #[inline]
+    pub fn point(&self, k: usize) -> [f64; 2] {
+        match &self.axes {
+            Some(a) => [a.xs[k % self.width], a.ys[k / self.width]],
+            None => self.list[k],
+        }
+    }
+
+    /// Every sample's position, row-major.
+    pub fn points(&self) -> impl ExactSizeIterator<Item = [f64; 2]> + '_ {
+        (0..self.width * self.height).map(|k| self.point(k))
     }
 
     /// A screen grid of `width × height` pixels projected from the eye onto the plane
@@ -124,12 +147,7 @@ impl SampleGrid {
                 });
             }
         }
-        SampleGrid {
-            width,
-            height,
-            points,
-            axes: None,
-        }
+        SampleGrid::of_points(width, height, points)
     }
 
     /// Bounds of each block's points, row-major over blocks; None for a block without any.
@@ -156,7 +174,7 @@ impl SampleGrid {
                 let mut acc: Option<Aabb> = None;
                 for j in j0..(j0 + BLOCK).min(self.height) {
                     for i in i0..(i0 + BLOCK).min(self.width) {
-                        let p = self.points[j * self.width + i];
+                        let p = self.list[j * self.width + i];
                         if p[0].is_nan() {
                             continue;
                         }

@@ -16,7 +16,7 @@
 //! its payload, checked on every read: a damaged chunk is an error, never wrong heights.
 
 use super::pack::{ChunkStore, Loc};
-use crate::model::grid::{Grid, SampleRect, Shape};
+use crate::model::grid::{Grid, SampleRect, Shape, Window};
 use crate::model::ids::SurveyId;
 use crate::model::source::{check_rect, SampleError, SampleSource};
 use rayon::prelude::*;
@@ -243,8 +243,10 @@ pub fn decode(bytes: &[u8], n: usize, cols: usize) -> Result<Vec<f32>, String> {
     }
 }
 
-/// A decoded chunk in the cache.
-type Chunk = Arc<[f32]>;
+/// A decoded chunk in the cache, georeferenced where it lies: a patch whose samples lie in one
+/// chunk reads them in place. Copying every patch's window cost a tile of 16,000 patches
+/// 290 MB of copies, a third of its time.
+type Chunk = Arc<Grid>;
 
 /// Which chunk: survey, level, number.
 type ChunkKey = (u64, u8, u32);
@@ -254,7 +256,7 @@ struct Bytes;
 
 impl quick_cache::Weighter<ChunkKey, Chunk> for Bytes {
     fn weight(&self, _: &ChunkKey, v: &Chunk) -> u64 {
-        4 * v.len() as u64 + 64
+        4 * v.samples.len() as u64 + 64
     }
 }
 
@@ -328,9 +330,17 @@ impl ChunkReader {
                 .ok_or_else(|| fail("the store is closed".into()))?;
             let bytes = read_chunk(tree, pack.as_ref(), survey, level, k)
                 .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
-            let v = decode(&bytes, r.len(), r.cols())
+            let samples = decode(&bytes, r.len(), r.cols())
                 .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
-            Ok(v.into())
+            Ok(Arc::new(Grid {
+                cols: r.cols(),
+                rows: r.rows(),
+                samples,
+                georef: crate::model::grid::Georef {
+                    origin: shape.georef.to_world(r.c0 as f64, r.r0 as f64),
+                    ..shape.georef
+                },
+            }))
         })
     }
 }
@@ -388,7 +398,8 @@ impl SampleSource for ChunkReader {
                 for r in rect.r0.max(cr.r0)..rect.r1.min(cr.r1) {
                     let from = (r - cr.r0) * cr.cols() + (c0 - cr.c0);
                     let to = (r - rect.r0) * rect.cols() + (c0 - rect.c0);
-                    samples[to..to + (c1 - c0)].copy_from_slice(&chunk[from..from + (c1 - c0)]);
+                    samples[to..to + (c1 - c0)]
+                        .copy_from_slice(&chunk.samples[from..from + (c1 - c0)]);
                 }
             }
         }
@@ -401,6 +412,28 @@ impl SampleSource for ChunkReader {
                 ..shape.georef
             },
         })
+    }
+
+    fn window(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        shape: &Shape,
+        rect: SampleRect,
+    ) -> Result<Window, SampleError> {
+        check_rect(survey, &rect, shape.cols, shape.rows)?;
+        let [nx, _] = chunk_counts(shape);
+        let (tx, ty) = (rect.c0 / CHUNK, rect.r0 / CHUNK);
+        if (rect.c1 - 1) / CHUNK != tx || (rect.r1 - 1) / CHUNK != ty {
+            let grid = Arc::new(self.read(survey, level, shape, rect)?);
+            return Ok(Window::of(grid, rect, *shape));
+        }
+        let k = ty * nx + tx;
+        Ok(Window::of(
+            self.chunk(survey, level, shape, k)?,
+            chunk_rect(shape, k),
+            *shape,
+        ))
     }
 }
 
