@@ -148,6 +148,17 @@ pub enum Cut {
     View(ViewQuery),
 }
 
+/// What a tile is, told with each of its bands.
+#[derive(Clone, Copy, Debug)]
+pub struct TileHead<'a> {
+    pub width: usize,
+    pub height: usize,
+    /// The patches the heights are blended from, in id order.
+    pub patches: &'a [Extracted],
+    /// The backend that resampled: "cpu" or "gpu".
+    pub backend: &'static str,
+}
+
 /// A store and the figures `stats` reports.
 #[derive(Clone, Debug, Default)]
 pub struct Stats {
@@ -995,6 +1006,43 @@ impl Engine {
         backend: Backend,
         cancel: &Cancel,
     ) -> Result<(Tile, &'static str), EngineError> {
+        let mut heights = Vec::new();
+        let (patches, used) = self.tile_bands_until(
+            cut,
+            width,
+            height,
+            backend,
+            height as usize,
+            cancel,
+            &mut |_, _, band| {
+                heights = band;
+                true
+            },
+        )?;
+        let tile = Tile {
+            width: width as usize,
+            height: height as usize,
+            heights,
+            patches,
+        };
+        Ok((tile, used))
+    }
+
+    /// A resampled tile in bands of about `rows` rows, top first: `sink` gets what the tile
+    /// is, each band's first row and its heights, and says whether to go on. On the CPU a band
+    /// goes to `sink` as soon as it is done, so that it can be sent while the next is worked
+    /// out. Returns the patches blended and the backend that ran.
+    #[allow(clippy::too_many_arguments)]
+    pub fn tile_bands_until(
+        &self,
+        cut: &Cut,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        rows: usize,
+        cancel: &Cancel,
+        sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
+    ) -> Result<(Vec<Extracted>, &'static str), EngineError> {
         let n = width as u64 * height as u64;
         if width == 0 || height == 0 {
             return Err(EngineError::Invalid(
@@ -1012,19 +1060,33 @@ impl Engine {
             Cut::Uniform { roi, .. } => SampleGrid::uniform(roi, width as usize, height as usize),
             Cut::View(v) => SampleGrid::view(v, width as usize, height as usize, v.look[2]),
         };
+        let head = |backend| TileHead {
+            width: grid.width,
+            height: grid.height,
+            patches: &ps,
+            backend,
+        };
         if backend != Backend::Cpu {
             let mut gpu = self.gpu.lock().expect("gpu lock");
             match gpu.as_mut() {
                 Some(g) => {
                     match g.resample(&t.try_resolve(&ps).map_err(StoreError::from)?, &grid) {
                         Ok(heights) => {
-                            let tile = Tile {
-                                width: grid.width,
-                                height: grid.height,
-                                heights,
-                                patches: ps,
-                            };
-                            return Ok((tile, "gpu"));
+                            drop(gpu);
+                            let head = head("gpu");
+                            let rows = rows.max(1);
+                            if rows >= grid.height {
+                                if !sink(&head, 0, heights) {
+                                    return Err(EngineError::Cancelled);
+                                }
+                            } else {
+                                for (k, band) in heights.chunks(rows * grid.width).enumerate() {
+                                    if !sink(&head, k * rows, band.to_vec()) {
+                                        return Err(EngineError::Cancelled);
+                                    }
+                                }
+                            }
+                            return Ok((ps, "gpu"));
                         }
                         Err(e) => {
                             tracing::warn!(error = %e, "GPU resampling failed; this request and later ones use the CPU");
@@ -1047,14 +1109,12 @@ impl Engine {
             }
         }
         let set = t.try_resolve(&ps).map_err(StoreError::from)?;
-        let heights = cpu::resample_until(&set, &grid, cancel).ok_or(EngineError::Cancelled)?;
-        let tile = Tile {
-            width: grid.width,
-            height: grid.height,
-            heights,
-            patches: ps,
-        };
-        Ok((tile, "cpu"))
+        let head = head("cpu");
+        cpu::resample_bands(&set, &grid, rows, cancel, &mut |j0, band| {
+            sink(&head, j0, band)
+        })
+        .ok_or(EngineError::Cancelled)?;
+        Ok((ps, "cpu"))
     }
 
     /// Heights at points, at error `e`: what any tile holding the same points gives there.

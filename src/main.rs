@@ -894,7 +894,12 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 Client::Local(engine) => {
                     let engine = engine.clone();
                     tokio::task::spawn_blocking(move || {
-                        api::tile_bands(&engine, &req, &Default::default())
+                        let mut bands = Vec::new();
+                        api::tile_bands(&engine, &req, &Default::default(), &mut |b| {
+                            bands.push(b);
+                            true
+                        })
+                        .map(|()| bands)
                     })
                     .await??
                 }

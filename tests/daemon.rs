@@ -706,19 +706,13 @@ fn daemon_tiles_on_the_gpu_match_the_cpu_and_gpu_without_a_device_is_refused() {
         let mut t = TerrainClient::connect(format!("http://127.0.0.1:{}", d.port))
             .await
             .unwrap();
-        let tile = |b: pb::Backend, e: f64| pb::TileRequest {
-            cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
-                roi: Some(pb::Rect {
-                    xmin: -119.0,
-                    ymin: 34.46,
-                    xmax: -118.92,
-                    ymax: 34.54,
-                }),
-                error: e,
-            })),
-            width: 300,
-            height: 200,
-            backend: b as i32,
+        let tile = |b: pb::Backend, e: f64| {
+            let mut r = crop_tile(300, 200);
+            r.backend = b as i32;
+            if let Some(pb::tile_request::Cut::Uniform(u)) = &mut r.cut {
+                u.error = e;
+            }
+            r
         };
         if !backend.starts_with("gpu") {
             assert!(
@@ -762,7 +756,7 @@ fn daemon_tiles_on_the_gpu_match_the_cpu_and_gpu_without_a_device_is_refused() {
 
 #[test]
 fn tiles_come_as_bands_of_bytes_that_any_client_can_take_and_small_ones_at_once() {
-    use patchwork::serve::proto::{self as pb, terrain_client::TerrainClient};
+    use patchwork::serve::proto::terrain_client::TerrainClient;
     let tmp = tempfile::tempdir().unwrap();
     let d = Daemon::start(tmp.path());
     drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "a.tif");
@@ -773,20 +767,7 @@ fn tiles_come_as_bands_of_bytes_that_any_client_can_take_and_small_ones_at_once(
         let mut t = TerrainClient::connect(format!("http://127.0.0.1:{}", d.port))
             .await
             .unwrap();
-        let tile = |w: u32, h: u32| pb::TileRequest {
-            cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
-                roi: Some(pb::Rect {
-                    xmin: -119.0,
-                    ymin: 34.46,
-                    xmax: -118.92,
-                    ymax: 34.54,
-                }),
-                error: 0.0,
-            })),
-            width: w,
-            height: h,
-            backend: pb::Backend::Cpu as i32,
-        };
+        let tile = crop_tile;
         // 2400 × 1800 heights are 17 MB: more than the limit as one message, not as bands.
         let (w, h) = (2400usize, 1800usize);
         let mut s = t
@@ -819,6 +800,11 @@ fn tiles_come_as_bands_of_bytes_that_any_client_can_take_and_small_ones_at_once(
         }
         assert_eq!(heights.len(), w * h);
         assert!(bands >= 17, "{bands} bands");
+        // A request refused before its first band is refused as the call's status.
+        assert_eq!(
+            t.tile_bands(tile(0, 16)).await.unwrap_err().code(),
+            tonic::Code::InvalidArgument
+        );
         // The same heights as the one-message tile, which needs a raised limit.
         let mut big = TerrainClient::connect(format!("http://127.0.0.1:{}", d.port))
             .await

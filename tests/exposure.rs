@@ -1,7 +1,8 @@
 //! The daemon exposed: tokens guard what they should, a daemon that would be open beyond this
 //! machine refuses to start, TLS serves with the configured certificate, SIGTERM stops it
 //! quickly whatever is in flight, it starts read-only on a full disk, and odd file names
-//! neither break its log nor stay recorded once forgotten. docs/RELIABILITY.md points at
+//! neither break its log nor stay recorded once forgotten, and a client that stops reading a
+//! tile frees the daemon at the deadline. docs/RELIABILITY.md points at
 //! each test.
 
 mod common;
@@ -327,4 +328,58 @@ fn odd_names_keep_the_log_whole_and_failures_can_be_forgotten() {
         "{}",
         stderr(&o)
     );
+}
+
+#[test]
+fn a_client_that_stops_reading_a_tile_holds_its_work_only_until_the_deadline() {
+    use patchwork::config::Config;
+    use patchwork::engine::{Engine, Origin};
+    use patchwork::serve::proto::terrain_client::TerrainClient;
+    use std::sync::Arc;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    // One request at a time: a stalled stream that kept its permit would stall everyone.
+    let mut cfg = Config {
+        data_dir: tmp.path().join("data"),
+        ingest_roots: vec![data.clone()],
+        ..Config::default()
+    };
+    cfg.limits.deadline_ms = 1_000;
+    cfg.limits.max_running_requests = 1;
+    let engine = Arc::new(Engine::open(cfg).unwrap());
+    let done = engine
+        .ingest(
+            &data.join("copernicus_n34w119_crop.tif"),
+            None,
+            Origin::Request,
+        )
+        .unwrap();
+    assert!(done.error.is_empty(), "{}", done.error);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        tokio::spawn(patchwork::serve::grpc::serve(
+            engine,
+            listener,
+            std::future::pending(),
+        ));
+        let tile = crop_tile;
+        // 64 MB of heights, of which the client takes one band and then nothing more.
+        let mut stalled = TerrainClient::connect(url.clone()).await.unwrap();
+        let mut s = stalled
+            .tile_bands(tile(4000, 4000))
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(s.message().await.unwrap().is_some());
+        tokio::time::sleep(Duration::from_millis(1_500)).await;
+        // Past the deadline the permit is free again, while the stalled stream is still open.
+        let mut other = TerrainClient::connect(url).await.unwrap();
+        let t0 = Instant::now();
+        let small = other.tile_bands(tile(64, 64)).await;
+        assert!(small.is_ok(), "{:?}", small.err());
+        assert!(t0.elapsed() < Duration::from_millis(900));
+        drop(s);
+    });
 }

@@ -108,42 +108,96 @@ pub fn resample(set: &PatchSet, grid: &SampleGrid) -> Vec<f32> {
 
 /// [`resample`], checking `cancel` before every row; None once it is set.
 pub fn resample_until(set: &PatchSet, grid: &SampleGrid, cancel: &Cancel) -> Option<Vec<f32>> {
+    let mut out = Vec::new();
+    resample_bands(set, grid, grid.height, cancel, &mut |_, band| {
+        out = band;
+        true
+    })?;
+    Some(out)
+}
+
+/// [`resample`] in bands of `rows` rows (rounded up to whole blocks), top first: `sink` gets
+/// each band's first row and heights as soon as they are done, so that a caller can send one
+/// while the next is worked out. None once `cancel` is set or `sink` says stop.
+pub fn resample_bands(
+    set: &PatchSet,
+    grid: &SampleGrid,
+    rows: usize,
+    cancel: &Cancel,
+    sink: &mut dyn FnMut(usize, Vec<f32>) -> bool,
+) -> Option<()> {
+    let rows = rows.max(1).div_ceil(BLOCK) * BLOCK;
     let bins = bin(&set.patches, grid);
-    let bx = grid.width.div_ceil(BLOCK);
-    let mut out = vec![f32::NAN; grid.width * grid.height];
-    let Some(axes) = &grid.axes else {
-        out.par_chunks_mut(grid.width)
-            .enumerate()
-            .for_each(|(j, row)| {
-                if cancel.is_cancelled() {
-                    return;
-                }
-                let pts = &grid.list[j * grid.width..(j + 1) * grid.width];
-                let mut tiers = Vec::with_capacity(8);
-                for (i, (o, &p)) in row.iter_mut().zip(pts).enumerate() {
-                    if p[0].is_nan() {
-                        continue;
-                    }
-                    let bin = &bins[(j / BLOCK) * bx + i / BLOCK];
-                    *o = blend_by(set, bin, &mut tiers, |k| set.patches[k].at(p));
-                }
-            });
-        return (!cancel.is_cancelled()).then_some(out);
-    };
     // A north-up tile: what a patch makes of a column's x is worked out once for the tile,
     // and of a row's y once for the row, where a point at a time works both out for every
     // patch at every sample. The answer is the same, term for term (tested).
-    let columns: Vec<Option<Columns>> = set
-        .patches
-        .par_iter()
-        .map(|p| p.separable().then(|| Columns::new(p, &axes.xs)))
-        .collect();
-    out.par_chunks_mut(grid.width * BLOCK)
+    let columns: Option<Vec<Option<Columns>>> = grid.axes.as_ref().map(|axes| {
+        set.patches
+            .par_iter()
+            .map(|p| p.separable().then(|| Columns::new(p, &axes.xs)))
+            .collect()
+    });
+    for j0 in (0..grid.height).step_by(rows) {
+        let mut out = vec![f32::NAN; grid.width * (grid.height - j0).min(rows)];
+        match (&grid.axes, &columns) {
+            (Some(axes), Some(columns)) => by_axes(set, axes, columns, &bins, j0, &mut out, cancel),
+            _ => by_points(set, grid, &bins, j0, &mut out, cancel),
+        }
+        if cancel.is_cancelled() || !sink(j0, out) {
+            return None;
+        }
+    }
+    Some(())
+}
+
+/// The rows from `j0` (the first of a block) that `out` holds, one point at a time.
+fn by_points(
+    set: &PatchSet,
+    grid: &SampleGrid,
+    bins: &[Vec<u32>],
+    j0: usize,
+    out: &mut [f32],
+    cancel: &Cancel,
+) {
+    let bx = grid.width.div_ceil(BLOCK);
+    out.par_chunks_mut(grid.width)
         .enumerate()
-        .for_each(|(b, band)| {
+        .for_each(|(dj, row)| {
             if cancel.is_cancelled() {
                 return;
             }
+            let j = j0 + dj;
+            let pts = &grid.list[j * grid.width..(j + 1) * grid.width];
+            let mut tiers = Vec::with_capacity(8);
+            for (i, (o, &p)) in row.iter_mut().zip(pts).enumerate() {
+                if p[0].is_nan() {
+                    continue;
+                }
+                let bin = &bins[(j / BLOCK) * bx + i / BLOCK];
+                *o = blend_by(set, bin, &mut tiers, |k| set.patches[k].at(p));
+            }
+        });
+}
+
+/// The rows from `j0` (the first of a block) that `out` holds, of a north-up tile.
+fn by_axes(
+    set: &PatchSet,
+    axes: &super::Axes,
+    columns: &[Option<Columns>],
+    bins: &[Vec<u32>],
+    j0: usize,
+    out: &mut [f32],
+    cancel: &Cancel,
+) {
+    let width = axes.xs.len();
+    let bx = width.div_ceil(BLOCK);
+    out.par_chunks_mut(width * BLOCK)
+        .enumerate()
+        .for_each(|(db, band)| {
+            if cancel.is_cancelled() {
+                return;
+            }
+            let b = j0 / BLOCK + db;
             // The patches of this band of blocks, and where each one's row half is kept.
             let bins = &bins[b * bx..((b + 1) * bx).min(bins.len())];
             let mut near: Vec<u32> = bins.iter().flatten().copied().collect();
@@ -156,12 +210,11 @@ pub fn resample_until(set: &PatchSet, grid: &SampleGrid, cancel: &Cancel) -> Opt
             let mut rows = vec![AxisHit::default(); near.len()];
             let mut tiers = Vec::with_capacity(8);
             let mut live = Vec::new();
-            for (dj, row) in band.chunks_mut(grid.width).enumerate() {
+            for (dj, row) in band.chunks_mut(width).enumerate() {
                 if cancel.is_cancelled() {
                     return;
                 }
-                let j = b * BLOCK + dj;
-                let y = axes.ys[j];
+                let y = axes.ys[b * BLOCK + dj];
                 for (h, &k) in rows.iter_mut().zip(&near) {
                     if columns[k as usize].is_some() {
                         *h = set.patches[k as usize].along(1, y);
@@ -188,7 +241,6 @@ pub fn resample_until(set: &PatchSet, grid: &SampleGrid, cancel: &Cancel) -> Opt
                 }
             }
         });
-    (!cancel.is_cancelled()).then_some(out)
 }
 
 /// What one separable patch makes of the columns of a tile it may reach: the columns whose x

@@ -3,9 +3,9 @@
 
 use super::convert;
 use super::proto as pb;
-use crate::engine::{Cut, Engine, EngineError, Origin};
+use crate::engine::{Backend, Cut, Engine, EngineError, Origin};
 use crate::index::query::Extracted;
-use crate::resample::Cancel;
+use crate::resample::{Cancel, BLOCK};
 use crate::store::StoreError;
 use crate::terrain::Terrain;
 use std::path::Path;
@@ -74,14 +74,37 @@ pub fn resample_tile(
     Ok(convert::tile(&tile, used, engine.crs()))
 }
 
-/// The tile of [`resample_tile`], as bands of f32 bytes.
+/// The tile of [`resample_tile`] as bands of f32 bytes, each handed to `send` as soon as it
+/// is resampled; `send` says whether to go on.
 pub fn tile_bands(
     engine: &Engine,
     r: &pb::TileRequest,
     cancel: &Cancel,
-) -> Result<Vec<pb::TileBand>, EngineError> {
-    let (tile, used) = tile_of(engine, r, cancel)?;
-    Ok(convert::tile_bands(&tile, used, engine.crs()))
+    send: &mut dyn FnMut(pb::TileBand) -> bool,
+) -> Result<(), EngineError> {
+    let (cut, backend) = tile_cut(engine, r)?;
+    let crs = engine.crs();
+    // Whole blocks of the resampler in a band where a band holds that many rows.
+    let rows = convert::band_rows(r.width as usize);
+    let rows = if rows >= BLOCK {
+        rows / BLOCK * BLOCK
+    } else {
+        rows
+    };
+    engine.tile_bands_until(
+        &cut,
+        r.width,
+        r.height,
+        backend,
+        rows,
+        cancel,
+        &mut |head, row, heights| {
+            convert::tile_bands(head, row, &heights, crs)
+                .into_iter()
+                .all(&mut *send)
+        },
+    )?;
+    Ok(())
 }
 
 fn tile_of(
@@ -89,14 +112,18 @@ fn tile_of(
     r: &pb::TileRequest,
     cancel: &Cancel,
 ) -> Result<(crate::terrain::Tile, &'static str), EngineError> {
+    let (cut, backend) = tile_cut(engine, r)?;
+    engine.tile_until(&cut, r.width, r.height, backend, cancel)
+}
+
+/// The cut and backend a tile request asks for.
+fn tile_cut(engine: &Engine, r: &pb::TileRequest) -> Result<(Cut, Backend), EngineError> {
     let (u, v) = match &r.cut {
         Some(pb::tile_request::Cut::Uniform(u)) => (Some(u), None),
         Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
         None => (None, None),
     };
-    let cut = cut_of(engine, u, v)?;
-    let backend = convert::backend(r.backend)?;
-    engine.tile_until(&cut, r.width, r.height, backend, cancel)
+    Ok((cut_of(engine, u, v)?, convert::backend(r.backend)?))
 }
 
 pub fn sample_heights(

@@ -3,7 +3,7 @@
 
 use super::proto as pb;
 use crate::engine::{
-    Backend, Conflict, Cut, Engine, EngineError, Event, Ingested, Stats, SurveyListing,
+    Backend, Conflict, Cut, Engine, EngineError, Event, Ingested, Stats, SurveyListing, TileHead,
 };
 use crate::index::geom::Aabb;
 use crate::index::query::Extracted;
@@ -137,39 +137,52 @@ pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {
         patches: t.patches.len() as u32,
         backend: backend.into(),
         crs: crs.unwrap_or(0),
-        max_error: max_error(t),
+        max_error: max_error(&t.patches),
     }
 }
 
 /// The largest error of the patches a tile blended.
-fn max_error(t: &Tile) -> f64 {
-    t.patches.iter().map(|p| p.span.min_z).fold(0.0, f64::max)
+fn max_error(patches: &[Extracted]) -> f64 {
+    patches.iter().map(|p| p.span.min_z).fold(0.0, f64::max)
 }
 
 /// Most bytes of heights in one [`pb::TileBand`]: a quarter of gRPC's default receive limit.
 pub const BAND_BYTES: usize = 1 << 20;
 
-/// A tile as bands of whole rows of f32 little-endian bytes; the first band carries what is
-/// said of the whole tile.
-pub fn tile_bands(t: &Tile, backend: &str, crs: Option<u32>) -> Vec<pb::TileBand> {
-    let width = t.width.max(1);
-    let rows = (BAND_BYTES / (4 * width)).max(1);
-    let max_error = max_error(t);
-    t.heights
+/// Rows of a `width`-sample tile in one band: as many as [`BAND_BYTES`] holds, one at least.
+pub fn band_rows(width: usize) -> usize {
+    (BAND_BYTES / (4 * width.max(1))).max(1)
+}
+
+/// Rows `row..` of a tile as bands of whole rows of f32 little-endian bytes; the tile's first
+/// band carries what is said of the whole tile.
+pub fn tile_bands(
+    head: &TileHead,
+    row: usize,
+    heights: &[f32],
+    crs: Option<u32>,
+) -> Vec<pb::TileBand> {
+    let width = head.width.max(1);
+    let rows = band_rows(width);
+    heights
         .chunks(rows * width)
         .enumerate()
         .map(|(k, band)| {
-            let first = k == 0;
+            let first = row == 0 && k == 0;
             pb::TileBand {
-                width: t.width as u32,
-                height: t.height as u32,
-                row: (k * rows) as u32,
+                width: head.width as u32,
+                height: head.height as u32,
+                row: (row + k * rows) as u32,
                 rows: (band.len() / width) as u32,
                 heights: le_bytes(band),
-                patches: if first { t.patches.len() as u32 } else { 0 },
-                backend: if first { backend.into() } else { String::new() },
+                patches: if first { head.patches.len() as u32 } else { 0 },
+                backend: if first {
+                    head.backend.into()
+                } else {
+                    String::new()
+                },
                 crs: if first { crs.unwrap_or(0) } else { 0 },
-                max_error: if first { max_error } else { 0.0 },
+                max_error: if first { max_error(head.patches) } else { 0.0 },
             }
         })
         .collect()

@@ -202,10 +202,37 @@ impl terrain_server::Terrain for Service {
         r: Request<pb::TileRequest>,
     ) -> Result<Response<Self::TileBandsStream>, Status> {
         let r = r.into_inner();
-        let bands = self.run(move |e, c| api::tile_bands(e, &r, c)).await?;
-        Ok(Response::new(Box::pin(tokio_stream::iter(
-            bands.into_iter().map(Ok),
-        ))))
+        let ms = self.engine.config().limits.deadline_ms;
+        let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
+        // Bands go out as the resampler finishes them, two ahead at most: sending overlaps
+        // resampling, and a client that stops reading holds the work only until the deadline.
+        let (tx, mut rx) = tokio::sync::mpsc::channel(2);
+        let last = tx.clone();
+        let svc = self.clone();
+        let rt = tokio::runtime::Handle::current();
+        tokio::spawn(async move {
+            let done = svc
+                .run(move |e, c| {
+                    api::tile_bands(e, &r, c, &mut |band| {
+                        let sent =
+                            rt.block_on(tokio::time::timeout_at(deadline, tx.send(Ok(band))));
+                        matches!(sent, Ok(Ok(())))
+                    })
+                })
+                .await;
+            if let Err(s) = done {
+                // The answer when no band went out; otherwise it ends the stream.
+                let _ = tokio::time::timeout(Duration::from_secs(1), last.send(Err(s))).await;
+            }
+        });
+        match rx.recv().await {
+            Some(Ok(first)) => Ok(Response::new(Box::pin(
+                tokio_stream::once(Ok(first))
+                    .chain(tokio_stream::wrappers::ReceiverStream::new(rx)),
+            ))),
+            Some(Err(s)) => Err(s),
+            None => Err(Status::internal("the tile ended before its first band")),
+        }
     }
 
     async fn sample_heights(

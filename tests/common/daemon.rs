@@ -250,3 +250,22 @@ pub fn drop_by_rename(from: &Path, inbox: &Path, name: &str) {
     std::fs::copy(from, &tmp).unwrap();
     std::fs::rename(&tmp, inbox.join(name)).unwrap();
 }
+
+/// A north-up tile of `w × h` samples over the middle of the Copernicus crop, on the CPU.
+pub fn crop_tile(w: u32, h: u32) -> patchwork::serve::proto::TileRequest {
+    use patchwork::serve::proto as pb;
+    pb::TileRequest {
+        cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
+            roi: Some(pb::Rect {
+                xmin: -119.0,
+                ymin: 34.46,
+                xmax: -118.92,
+                ymax: 34.54,
+            }),
+            error: 0.0,
+        })),
+        width: w,
+        height: h,
+        backend: pb::Backend::Cpu as i32,
+    }
+}
