@@ -208,8 +208,7 @@ fn by_axes(
                 slot[k as usize] = n as u32;
             }
             let mut rows = vec![AxisHit::default(); near.len()];
-            let mut tiers = Vec::with_capacity(8);
-            let mut live = Vec::new();
+            let (mut live, mut ranks, mut sums) = (Vec::new(), Vec::new(), Vec::new());
             for (dj, row) in band.chunks_mut(width).enumerate() {
                 if cancel.is_cancelled() {
                     return;
@@ -227,16 +226,65 @@ fn by_axes(
                     live.extend(bin.iter().copied().filter(|&k| {
                         columns[k as usize].is_none() || rows[slot[k as usize] as usize].reaches
                     }));
-                    for (di, o) in cells.iter_mut().enumerate() {
-                        let i = ib * BLOCK + di;
-                        let x = axes.xs[i];
-                        *o = blend_by(set, &live, &mut tiers, |k| {
-                            let p = &set.patches[k];
-                            match &columns[k] {
-                                Some(c) => p.at_axes(&c.at(i), &rows[slot[k] as usize]),
-                                None => p.at([x, y]),
+                    // A patch at a time across the block's samples, each sample's sums taken
+                    // in the bin's order as blend_by takes them: the same sums, with the
+                    // patch's lookups made once for the block rather than once per sample.
+                    // Fallback patches sum by rank, the block's ranks in ascending order.
+                    ranks.clear();
+                    ranks.extend(
+                        live.iter()
+                            .map(|&k| &set.patches[k as usize])
+                            .filter(|p| p.fallback)
+                            .map(|p| p.rank),
+                    );
+                    ranks.sort_unstable();
+                    ranks.dedup();
+                    let i0 = ib * BLOCK;
+                    let add = |k: u32, sums: &mut [Tier; BLOCK]| {
+                        let p = &set.patches[k as usize];
+                        let sums = sums.iter_mut().zip(i0..i0 + cells.len());
+                        match &columns[k as usize] {
+                            Some(c) => {
+                                let yh = &rows[slot[k as usize] as usize];
+                                for (t, i) in sums {
+                                    if let Some((w, h)) = p.at_axes(&c.at(i), yh) {
+                                        t.add(w, h.z, h.covered);
+                                    }
+                                }
                             }
-                        });
+                            None => {
+                                for (t, i) in sums {
+                                    if let Some((w, h)) = p.at([axes.xs[i], y]) {
+                                        t.add(w, h.z, h.covered);
+                                    }
+                                }
+                            }
+                        }
+                    };
+                    if ranks.is_empty() {
+                        let mut cut = [Tier::default(); BLOCK];
+                        for &k in &live {
+                            add(k, &mut cut);
+                        }
+                        for (o, t) in cells.iter_mut().zip(&cut) {
+                            *o = t.height();
+                        }
+                        continue;
+                    }
+                    sums.clear();
+                    sums.resize(ranks.len() + 1, [Tier::default(); BLOCK]);
+                    for &k in &live {
+                        let p = &set.patches[k as usize];
+                        let tier = if p.fallback {
+                            1 + ranks.partition_point(|&r| r < p.rank)
+                        } else {
+                            0
+                        };
+                        add(k, &mut sums[tier]);
+                    }
+                    let (cut, ranked) = sums.split_first().expect("the cut's sums");
+                    for (di, o) in cells.iter_mut().enumerate() {
+                        *o = settle(cut[di], ranks.iter().zip(ranked).map(|(&r, t)| (r, &t[di])));
                     }
                 }
             }
@@ -286,6 +334,8 @@ struct Tier {
     sum: f64,
     wsum: f64,
     covered: bool,
+    /// Some patch of it reaches the point.
+    present: bool,
 }
 
 impl Tier {
@@ -294,6 +344,7 @@ impl Tier {
         self.sum += w * z;
         self.wsum += w;
         self.covered |= covered;
+        self.present = true;
     }
 
     #[inline]
@@ -355,14 +406,29 @@ fn blend_by(
             }
         }
     }
+    tiers.sort_unstable_by_key(|t| t.0);
+    settle(cut, tiers.iter().map(|(r, t)| (*r, t)))
+}
+
+/// A point's height from the sums of the cut's patches and of each fallback rank's, ranks in
+/// ascending order. Where the cut's patches cover the point they alone count; elsewhere the
+/// best rank that covers it, and every better one that reaches it, are added to them in rank
+/// order, so that every path adds them in the same order.
+#[inline]
+fn settle<'a>(mut cut: Tier, ranked: impl Iterator<Item = (u32, &'a Tier)> + Clone) -> f32 {
     if cut.covered {
         return cut.height();
     }
-    let Some(best) = tiers.iter().filter(|t| t.1.covered).map(|t| t.0).min() else {
+    let Some(best) = ranked
+        .clone()
+        .filter(|(_, t)| t.covered)
+        .map(|(r, _)| r)
+        .min()
+    else {
         return f32::NAN;
     };
-    for t in tiers.iter().filter(|t| t.0 <= best) {
-        cut.merge(&t.1);
+    for (_, t) in ranked.filter(|(r, t)| t.present && *r <= best) {
+        cut.merge(t);
     }
     cut.height()
 }
