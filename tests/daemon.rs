@@ -256,11 +256,38 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
     });
 }
 
-fn shared(name: &str) -> std::path::PathBuf {
-    std::env::var_os("PATCHWORK_SHARED_DATA")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"))
-        .join(name)
+/// A survey the size of a full 1″ cell (3600², 26 MB), so that its ingest is under way when a
+/// kill lands: the real NASADEM crop, mirrored across it so that the ground stays continuous.
+fn big_survey(dir: &Path) -> std::path::PathBuf {
+    let r = patchwork::read::read_raster(
+        &crop("nasadem_n34w119_crop.tif"),
+        &patchwork::read::ReadLimits::default(),
+    )
+    .unwrap();
+    let n = 3600;
+    let mirror = |i: usize, len: usize| {
+        let k = i % (2 * len);
+        if k < len {
+            k
+        } else {
+            2 * len - 1 - k
+        }
+    };
+    let samples: Vec<i16> = (0..n * n)
+        .map(|k| r.get(mirror(k % n, r.cols), mirror(k / n, r.rows)) as i16)
+        .collect();
+    let path = dir.join("big_source.tif");
+    patchwork::read::write_tiff::write_geotiff_i16(
+        &path,
+        n,
+        n,
+        &samples,
+        r.geotransform,
+        r.epsg,
+        None,
+    )
+    .unwrap();
+    path
 }
 
 #[test]
@@ -268,8 +295,7 @@ fn kill_9_during_ingest_loses_nothing_and_the_inbox_catches_up() {
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path().join("store");
     std::fs::create_dir_all(root.join("inbox")).unwrap();
-    let big = shared("NASADEM_HGT_n34w119.tif");
-    assert!(big.exists(), "{} is missing", big.display());
+    let big = big_survey(tmp.path());
     let mut seed = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .unwrap()

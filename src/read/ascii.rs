@@ -273,6 +273,31 @@ mod tests {
     }
 
     #[test]
+    fn a_real_grid_written_by_gdal_reads_with_its_prj() {
+        // Mont Ventoux from SRTM3, as GDAL's AAIGrid driver writes it: corner registration,
+        // a cellsize of nine digits, and an ESRI .prj beside it.
+        let r = read(&crate::read::test_support::data_file("ventoux.asc")).unwrap();
+        assert_eq!((r.cols, r.rows), (120, 100));
+        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.nodata, Some(-32768.0));
+        assert_eq!(r.nodata_count(), 0);
+        crate::read::test_support::assert_gt_close(
+            r.geotransform,
+            [
+                5.195416666667,
+                0.000833333333,
+                0.0,
+                44.132916666667 + 100.0 * 0.000833333333,
+                0.0,
+                -0.000833333333,
+            ],
+            1e-12,
+        );
+        let max = r.samples.iter().cloned().fold(f32::MIN, f32::max);
+        assert_eq!(max, 1898.0, "the summit sample");
+    }
+
+    #[test]
     fn corner_header_values_and_nodata() {
         let dir = tempfile::tempdir().unwrap();
         let p = write(

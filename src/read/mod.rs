@@ -378,25 +378,13 @@ pub(crate) fn has_extension(path: &Path, wanted: &[&str]) -> bool {
 pub(crate) mod test_support {
     use std::path::PathBuf;
 
-    /// The project's real sample data lives beside the checkout. Missing data is a broken setup,
-    /// not a reason to skip: silently skipped tests would hide a reader regression.
-    pub fn shared_data() -> PathBuf {
-        let dir = match std::env::var_os("PATCHWORK_SHARED_DATA") {
-            Some(d) => PathBuf::from(d),
-            None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"),
-        };
-        assert!(
-            dir.is_dir(),
-            "shared test data not found at {}: set PATCHWORK_SHARED_DATA to the folder holding \
-             the real elevation files (normally ../shared/data beside the checkout)",
-            dir.display()
-        );
-        dir
-    }
-
+    /// Crops of real surveys, committed with the tests (tests/data/real, and the README there
+    /// for where each came from).
     pub fn data_file(name: &str) -> PathBuf {
-        let p = shared_data().join(name);
-        assert!(p.is_file(), "shared test file missing: {}", p.display());
+        let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/real")
+            .join(name);
+        assert!(p.is_file(), "test file missing: {}", p.display());
         p
     }
 
@@ -468,9 +456,15 @@ mod tests {
     #[test]
     fn read_raster_dispatches_on_real_files() {
         let limits = ReadLimits::default();
-        let hgt = read_raster(&test_support::data_file("N44E005.hgt"), &limits).unwrap();
+        let hgt = read_raster(&test_support::data_file("hgt/N44E005.hgt"), &limits).unwrap();
         assert_eq!((hgt.cols, hgt.rows), (1201, 1201));
-        let tif = read_raster(&test_support::data_file("rhine_elv0.tif"), &limits).unwrap();
-        assert_eq!((tif.cols, tif.rows), (997, 682));
+        let tif = read_raster(
+            &test_support::data_file("rhine_deflate_strips.tif"),
+            &limits,
+        )
+        .unwrap();
+        assert_eq!((tif.cols, tif.rows), (200, 150));
+        let asc = read_raster(&test_support::data_file("ventoux.asc"), &limits).unwrap();
+        assert_eq!((asc.cols, asc.rows), (120, 100));
     }
 }

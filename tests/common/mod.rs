@@ -3,6 +3,7 @@
 #![allow(dead_code)]
 
 pub mod daemon;
+pub mod python;
 
 use patchwork::index::geom::Aabb;
 use patchwork::index::lod::{IndexConfig, PatchBox};
