@@ -1066,13 +1066,21 @@ fn a_survey_of_many_chunks_reads_back_as_in_memory_inside_chunks_and_across_thei
     let tmp = tempfile::tempdir().unwrap();
     let dir = store_dir(&tmp);
     // 600 × 530 samples are 3 × 3 chunks: some patches read inside one chunk, in place, and
-    // others across a seam between two or four, copied out.
+    // others across a seam between two or four, copied out. A finer, less accurate survey
+    // overlaps it across its seams, so that both kinds meet where surveys blend.
     let s = spec(600, 530, [0.0, 0.0], 41, 0.0).survey().unwrap();
-    let roi = bounds_of(std::slice::from_ref(&s));
+    let fine = Spec {
+        step: [0.5, 0.5],
+        ..spec(700, 600, [150.0, -100.0], 43, 1.5)
+    }
+    .survey()
+    .unwrap();
+    let roi = bounds_of(&[s.clone(), fine.clone()]);
     let mut t = Terrain::new(IndexConfig::default());
     {
         let Opened { store, .. } = open(&dir);
         ingest(&store, &mut t, &s, "big");
+        ingest(&store, &mut t, &fine, "fine");
     }
     let Opened {
         store: _store,

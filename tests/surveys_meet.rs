@@ -386,18 +386,24 @@ fn surveys_on_different_lattices_with_less_than_a_cell_between_them_leave_no_gap
     }
 }
 
+/// A finer copy with voids (edge patches), a coarser one of estimated accuracy (fallback tiers
+/// below it) and a rotated one (resampled a point at a time inside a north-up tile).
+fn every_kind_of_patch() -> Vec<std::sync::Arc<patchwork::model::survey::Survey>> {
+    let g = cop();
+    vec![
+        survey_with(sparse(&window(&g, 20, 30, 200, 180), 0.9, 7), 1.0),
+        survey_with(decimate(&g, 3), Auto),
+        survey_with(turned(&window(&g, 120, 100, 120, 120), 17.0), 2.0),
+    ]
+}
+
 #[test]
 fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit() {
     // Every kind of patch at once: a finer copy with voids (edge patches), a coarser one of
     // estimated accuracy (fallback tiers below it), a rotated one (resampled a point at a
     // time inside the same tile), each at several errors, over tiles of odd sizes that start
     // anywhere.
-    let g = cop();
-    let surveys = vec![
-        survey_with(sparse(&window(&g, 20, 30, 200, 180), 0.9, 7), 1.0),
-        survey_with(decimate(&g, 3), Auto),
-        survey_with(turned(&window(&g, 120, 100, 120, 120), 17.0), 2.0),
-    ];
+    let surveys = every_kind_of_patch();
     let t = terrain_of(&surveys);
     let b = bounds_of(&surveys);
     let (w, h) = (b.width(), b.height());
@@ -442,12 +448,7 @@ fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
     // Binning looks up patches by buckets; the plain test of every patch against every block
     // is the reference. Surveys of several levels, edge patches and a rotated survey, on
     // north-up grids and on a grid of scattered points with holes in it.
-    let g = cop();
-    let surveys = vec![
-        survey_with(sparse(&window(&g, 20, 30, 200, 180), 0.9, 7), 1.0),
-        survey_with(decimate(&g, 3), Auto),
-        survey_with(turned(&window(&g, 120, 100, 120, 120), 17.0), 2.0),
-    ];
+    let surveys = every_kind_of_patch();
     let t = terrain_of(&surveys);
     let b = bounds_of(&surveys);
     let inner = Aabb::new(

@@ -332,15 +332,7 @@ impl ChunkReader {
                 .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
             let samples = decode(&bytes, r.len(), r.cols())
                 .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
-            Ok(Arc::new(Grid {
-                cols: r.cols(),
-                rows: r.rows(),
-                samples,
-                georef: crate::model::grid::Georef {
-                    origin: shape.georef.to_world(r.c0 as f64, r.r0 as f64),
-                    ..shape.georef
-                },
-            }))
+            Ok(Arc::new(placed(shape, &r, samples)))
         })
     }
 }
@@ -378,6 +370,19 @@ pub fn read_packed(
     pack.read(loc).map_err(|e| format!("reading the pack: {e}"))
 }
 
+/// `rect`'s samples of a level shaped `shape`, georeferenced where they lie in it.
+fn placed(shape: &Shape, rect: &SampleRect, samples: Vec<f32>) -> Grid {
+    Grid {
+        cols: rect.cols(),
+        rows: rect.rows(),
+        samples,
+        georef: crate::model::grid::Georef {
+            origin: shape.georef.to_world(rect.c0 as f64, rect.r0 as f64),
+            ..shape.georef
+        },
+    }
+}
+
 impl SampleSource for ChunkReader {
     fn read(
         &self,
@@ -403,15 +408,7 @@ impl SampleSource for ChunkReader {
                 }
             }
         }
-        Ok(Grid {
-            cols: rect.cols(),
-            rows: rect.rows(),
-            samples,
-            georef: crate::model::grid::Georef {
-                origin: shape.georef.to_world(rect.c0 as f64, rect.r0 as f64),
-                ..shape.georef
-            },
-        })
+        Ok(placed(shape, &rect, samples))
     }
 
     fn window(
