@@ -591,7 +591,11 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
             while let Some(b) = st.message().await.unwrap() {
                 assert!(b.patches.len() <= 16);
                 for p in &b.patches {
-                    assert_eq!(p.samples.len() as u32, p.cols * p.rows);
+                    let width = match p.encoding() {
+                        pb::SampleEncoding::F32 => 4,
+                        pb::SampleEncoding::I16 => 2,
+                    };
+                    assert_eq!(p.data.len() as u32, width * p.cols * p.rows);
                 }
                 n += b.patches.len();
             }

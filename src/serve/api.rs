@@ -39,11 +39,88 @@ pub fn patch_cut(
     let cut = cut_of(engine, u, v)?;
     let (t, ps) = engine.query(&cut)?;
     let size = if r.batch_size == 0 {
-        256
+        BATCH
     } else {
         r.batch_size as usize
     };
     Ok((t, ps, size))
+}
+
+/// Patches in a batch when the client does not say.
+pub const BATCH: usize = 256;
+
+/// What the client of a view session holds: the patches it was sent, each with what of it
+/// can change while its id stays. At most one cut's worth, so `limits.max_patches` bounds it.
+#[derive(Debug, Default)]
+pub struct ViewSession {
+    held: std::collections::HashMap<crate::model::ids::PatchId, Held>,
+    frame: u64,
+}
+
+/// The parts of a sent patch that are the cut's rather than the patch's: whether it is a
+/// fallback, and its box in LOD space, whose top comes down when a more accurate survey
+/// arrives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Held {
+    fallback: bool,
+    span: [u64; 2],
+}
+
+impl Held {
+    fn of(x: &Extracted) -> Self {
+        Held {
+            fallback: x.fallback,
+            span: [x.span.min_z.to_bits(), x.span.max_z.to_bits()],
+        }
+    }
+}
+
+impl ViewSession {
+    /// The messages that take the client from what it holds to the cut for `v`. What the
+    /// session holds changes only once the step is made whole, so a step that fails leaves it
+    /// as the client has it.
+    pub fn step(
+        &mut self,
+        engine: &Engine,
+        v: &pb::ViewCut,
+    ) -> Result<Vec<pb::ViewDelta>, EngineError> {
+        let cut = convert::view_cut(engine, v)?;
+        let (t, ps) = engine.query(&cut)?;
+        let next: std::collections::HashMap<_, _> =
+            ps.iter().map(|x| (x.id, Held::of(x))).collect();
+        let mut removed: Vec<u64> = self
+            .held
+            .iter()
+            .filter(|(id, f)| next.get(id) != Some(f))
+            .map(|(id, _)| id.0)
+            .collect();
+        removed.sort_unstable();
+        let added: Vec<Extracted> = ps
+            .into_iter()
+            .filter(|x| self.held.get(&x.id) != Some(&Held::of(x)))
+            .collect();
+        let mut deltas = Vec::with_capacity(added.len().div_ceil(BATCH).max(1));
+        for chunk in added.chunks(BATCH) {
+            deltas.push(pb::ViewDelta {
+                frame: self.frame,
+                added: patch_batch(&t, chunk)?.patches,
+                ..Default::default()
+            });
+        }
+        if deltas.is_empty() {
+            deltas.push(pb::ViewDelta {
+                frame: self.frame,
+                ..Default::default()
+            });
+        }
+        deltas[0].removed = removed;
+        let last = deltas.last_mut().expect("one message at least");
+        last.last = true;
+        last.patches = next.len() as u32;
+        self.held = next;
+        self.frame += 1;
+        Ok(deltas)
+    }
 }
 
 /// One batch of a patch query, samples read.

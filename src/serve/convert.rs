@@ -57,16 +57,23 @@ pub fn backend(b: i32) -> Result<Backend, EngineError> {
     }
 }
 
-/// A patch with its window's samples, ready to send; None when the terrain no longer has it.
+/// A patch with its window's samples and everything Formula 1 needs of it, ready to send;
+/// None when the terrain no longer has it.
 pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleError> {
-    let (georef, w, kernel, samples, flags, kind): (
-        Georef,
-        CellRect,
-        CellRect,
-        Vec<f32>,
-        Vec<u8>,
-        _,
-    ) = match t.patch(x.id) {
+    struct Parts {
+        georef: Georef,
+        window: CellRect,
+        kernel: CellRect,
+        centre: [f64; 2],
+        half: [f64; 2],
+        flat: f64,
+        /// In level (or edge grid) coordinates.
+        valid: Vec<[f64; 4]>,
+        samples: Vec<f32>,
+        flags: Vec<u8>,
+        kind: pb::PatchKind,
+    }
+    let p = match t.patch(x.id) {
         None => return Ok(None),
         Some(PatchRef::Survey(s, p)) => {
             let w = p.window;
@@ -82,25 +89,40 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                 let start = (r - level.r0) * level.grid.cols + (rect.c0 - level.c0);
                 samples.extend_from_slice(&level.grid.samples[start..start + rect.cols()]);
             }
-            (
-                level.level.georef,
-                w,
-                p.kernel,
+            Parts {
+                georef: level.level.georef,
+                window: w,
+                kernel: p.kernel,
+                centre: p.centre,
+                half: p.half,
+                flat: 0.0,
+                valid: p
+                    .valid
+                    .iter()
+                    .map(|v| [v.c0, v.r0, v.c1, v.r1].map(f64::from))
+                    .collect(),
                 samples,
-                Vec::new(),
-                pb::PatchKind::Bilinear,
-            )
+                flags: Vec::new(),
+                kind: pb::PatchKind::Bilinear,
+            }
         }
-        Some(PatchRef::Edge(e)) => (
-            e.grid.georef,
-            e.window,
-            e.kernel,
-            e.grid.heights.clone(),
-            e.grid.flags.clone(),
-            pb::PatchKind::Edge,
-        ),
+        Some(PatchRef::Edge(e)) => Parts {
+            georef: e.grid.georef,
+            window: e.window,
+            kernel: e.kernel,
+            centre: e.centre,
+            half: e.half,
+            flat: e.flat,
+            valid: e.valid.clone(),
+            samples: e.grid.heights.clone(),
+            flags: e.grid.flags.clone(),
+            kind: pb::PatchKind::Edge,
+        },
     };
-    let o = georef.to_world(w.c0 as f64, w.r0 as f64);
+    let (w, k) = (p.window, p.kernel);
+    let (c0, r0) = (w.c0 as f64, w.r0 as f64);
+    let o = p.georef.to_world(c0, r0);
+    let packed = Packed::of(&p.samples);
     Ok(Some(pb::Patch {
         id: x.id.0,
         survey: x.survey.0,
@@ -111,21 +133,138 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
         frame: Some(pb::Frame {
             origin_x: o[0],
             origin_y: o[1],
-            theta: georef.theta,
-            step_x: georef.step[0],
-            step_y: georef.step[1],
+            theta: p.georef.theta,
+            step_x: p.georef.step[0],
+            step_y: p.georef.step[1],
         }),
         cols: w.cols() + 1,
         rows: w.rows() + 1,
-        samples,
-        kernel_c0: kernel.c0 - w.c0,
-        kernel_r0: kernel.r0 - w.r0,
-        kernel_c1: kernel.c1 - w.c0,
-        kernel_r1: kernel.r1 - w.r0,
-        kind: kind as i32,
-        flags,
+        kernel_c0: k.c0 - w.c0,
+        kernel_r0: k.r0 - w.r0,
+        kernel_c1: k.c1 - w.c0,
+        kernel_r1: k.r1 - w.r0,
+        kind: p.kind as i32,
+        flags: p.flags,
         fallback: x.fallback,
+        data: packed.data,
+        encoding: packed.encoding as i32,
+        scale: packed.scale,
+        offset: packed.offset,
+        centre_x: p.centre[0] - c0,
+        centre_y: p.centre[1] - r0,
+        half_x: p.half[0],
+        half_y: p.half[1],
+        flat: p.flat,
+        valid: p
+            .valid
+            .iter()
+            .map(|v| pb::GridRect {
+                c0: v[0] - c0,
+                r0: v[1] - r0,
+                c1: v[2] - c0,
+                r1: v[3] - r0,
+            })
+            .collect(),
     }))
+}
+
+/// A patch's samples as bytes: 16-bit integers with a scale and offset where that loses
+/// nothing, else f32.
+#[derive(Debug, PartialEq)]
+pub struct Packed {
+    pub encoding: pb::SampleEncoding,
+    pub scale: f64,
+    pub offset: f64,
+    pub data: Vec<u8>,
+}
+
+/// The i16 value that marks a void sample.
+pub const I16_VOID: i16 = i16::MIN;
+
+impl Packed {
+    /// Finest binary fraction tried: 16-bit surveys' level k holds multiples of 4^-k after
+    /// the [1 2 1]/4 filter, so this serves their first six levels.
+    const MAX_SHIFT: i32 = 12;
+
+    pub fn of(samples: &[f32]) -> Self {
+        Self::as_i16(samples).unwrap_or_else(|| Packed {
+            encoding: pb::SampleEncoding::F32,
+            scale: 0.0,
+            offset: 0.0,
+            data: samples.iter().flat_map(|z| z.to_le_bytes()).collect(),
+        })
+    }
+
+    /// Heights = offset + scale · i for i16 values i, exactly, with scale a power of two.
+    fn as_i16(samples: &[f32]) -> Option<Self> {
+        let (lo, hi) = samples
+            .iter()
+            .filter(|z| !z.is_nan())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &z| {
+                (a.min(z as f64), b.max(z as f64))
+            });
+        if !lo.is_finite() {
+            // All void: any encoding is exact.
+            return Some(Packed {
+                encoding: pb::SampleEncoding::I16,
+                scale: 1.0,
+                offset: 0.0,
+                data: samples
+                    .iter()
+                    .flat_map(|_| I16_VOID.to_le_bytes())
+                    .collect(),
+            });
+        }
+        // The coarsest fraction all heights are whole multiples of.
+        let shift = (0..=Self::MAX_SHIFT).find(|&k| {
+            let m = (k as f64).exp2();
+            samples
+                .iter()
+                .all(|&z| z.is_nan() || (z as f64 * m).fract() == 0.0)
+        })?;
+        let m = (shift as f64).exp2();
+        let base = ((lo + hi) / 2.0 * m).round();
+        // Values from −32767 to 32767: −32768 marks a void.
+        if (hi * m - base).abs() > 32767.0 || (lo * m - base).abs() > 32767.0 {
+            return None;
+        }
+        let data = samples
+            .iter()
+            .flat_map(|&z| {
+                let i = if z.is_nan() {
+                    I16_VOID
+                } else {
+                    (z as f64 * m - base) as i16
+                };
+                i.to_le_bytes()
+            })
+            .collect();
+        Some(Packed {
+            encoding: pb::SampleEncoding::I16,
+            scale: 1.0 / m,
+            offset: base / m,
+            data,
+        })
+    }
+
+    /// The heights back, NaN where void.
+    pub fn unpack(&self) -> Vec<f32> {
+        match self.encoding {
+            pb::SampleEncoding::F32 => self
+                .data
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect(),
+            pb::SampleEncoding::I16 => self
+                .data
+                .chunks_exact(2)
+                .map(|b| match i16::from_le_bytes([b[0], b[1]]) {
+                    I16_VOID => f32::NAN,
+                    i => (self.offset + self.scale * i as f64) as f32,
+                })
+                .collect(),
+        }
+    }
 }
 
 pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {
@@ -299,5 +438,39 @@ pub fn event(e: &Event) -> pb::ChangeEvent {
         error: e.error.clone(),
         at_unix: e.at_unix,
         conflicts: conflicts(&e.conflicts),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn round_trips(samples: &[f32]) -> pb::SampleEncoding {
+        let p = Packed::of(samples);
+        let back = p.unpack();
+        assert_eq!(back.len(), samples.len());
+        for (a, b) in samples.iter().zip(&back) {
+            assert!(a == b || (a.is_nan() && b.is_nan()), "{a} came back as {b}");
+        }
+        p.encoding
+    }
+
+    #[test]
+    fn whole_metres_and_their_filtered_levels_pack_in_16_bits() {
+        let srtm = [812.0, 813.0, f32::NAN, -12.0, 4807.0];
+        assert_eq!(round_trips(&srtm), pb::SampleEncoding::I16);
+        // A level-2 mipmap of integers: multiples of 1/16 and 1/256.
+        let level2 = [812.0625, 813.00390625, f32::NAN, 790.5];
+        assert_eq!(round_trips(&level2), pb::SampleEncoding::I16);
+        // 8,000 m at 1/16 m steps needs more than 16 bits.
+        assert_eq!(round_trips(&[-10.5625, 8000.0]), pb::SampleEncoding::F32);
+        assert_eq!(round_trips(&[f32::NAN; 3]), pb::SampleEncoding::I16);
+    }
+
+    #[test]
+    fn float_surveys_stay_f32_bit_for_bit() {
+        let cop = [812.3456f32, 813.1, f32::NAN, 1e-7];
+        assert_eq!(round_trips(&cop), pb::SampleEncoding::F32);
+        assert_eq!(Packed::of(&cop).data.len(), 16);
     }
 }

@@ -185,6 +185,59 @@ impl terrain_server::Terrain for Service {
         )))
     }
 
+    type ViewSessionStream = BoxStream<pb::ViewDelta>;
+
+    async fn view_session(
+        &self,
+        r: Request<tonic::Streaming<pb::ViewCut>>,
+    ) -> Result<Response<Self::ViewSessionStream>, Status> {
+        let mut cameras = r.into_inner();
+        let ms = self.engine.config().limits.deadline_ms;
+        // One step ahead at most: a client that stops reading holds one step's messages.
+        let (tx, rx) = tokio::sync::mpsc::channel(2);
+        let svc = self.clone();
+        tokio::spawn(async move {
+            let session = Arc::new(std::sync::Mutex::new(api::ViewSession::default()));
+            while let Ok(Some(camera)) = cameras.message().await {
+                let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
+                let s = session.clone();
+                let step = svc
+                    .run(move |e, _| {
+                        let mut s = s.lock().unwrap_or_else(|p| p.into_inner());
+                        s.step(e, &camera)
+                    })
+                    .await;
+                let deltas = match step {
+                    Ok(d) => d,
+                    Err(status) => {
+                        let _ = tokio::time::timeout_at(deadline, tx.send(Err(status))).await;
+                        return;
+                    }
+                };
+                for d in deltas {
+                    match tokio::time::timeout_at(deadline, tx.send(Ok(d))).await {
+                        Ok(Ok(())) => {}
+                        // The client is gone.
+                        Ok(Err(_)) => return,
+                        // It stopped reading: end with an error, should it read again, so
+                        // that it does not take a partial step for a whole one.
+                        Err(_) => {
+                            let _ = tokio::time::timeout(
+                                Duration::from_secs(1),
+                                tx.send(Err(status::deadline(ms))),
+                            )
+                            .await;
+                            return;
+                        }
+                    }
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(rx),
+        )))
+    }
+
     async fn resample_tile(
         &self,
         r: Request<pb::TileRequest>,
