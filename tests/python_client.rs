@@ -1,6 +1,7 @@
-//! A client not written in this crate talks to the daemon from the proto: Python `grpcio`,
-//! with stubs that `grpcio-tools` generates from `proto/` at test time (tests/python/client.py),
-//! run in a virtual environment that the test makes under the target folder.
+//! The Python client package (clients/python), installed as a user installs it into a virtual
+//! environment under the target folder, against a daemon: every Terrain call, `resample`
+//! against the daemon's tiles, a view session, and the README's example
+//! (tests/python/client.py). Its committed stubs must match the protos.
 
 mod common;
 
@@ -10,16 +11,54 @@ use std::path::Path;
 use std::process::Command;
 
 #[test]
-fn a_python_client_built_from_the_proto_queries_the_daemon() {
+fn the_python_client_package_reproduces_the_daemon() {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
     let python = python();
+    let check = Command::new(&python)
+        .current_dir(repo)
+        .args(["clients/python/generate_stubs.py", "--check"])
+        .output()
+        .expect("run generate_stubs.py");
+    assert!(
+        check.status.success(),
+        "{}{}",
+        String::from_utf8_lossy(&check.stdout),
+        String::from_utf8_lossy(&check.stderr)
+    );
 
     let tmp = tempfile::tempdir().unwrap();
     let d = Daemon::start(tmp.path());
-    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "a.tif");
-    d.wait("the Copernicus crop to be active", |s| {
-        count(s, "active") == 1
-    });
+    for (name, as_name) in [
+        ("copernicus_n34w119_crop.tif", "a.tif"),
+        ("nasadem_n34w119_crop.tif", "b.tif"),
+        ("srtm_n44e005_voids_crop.tif", "c.tif"),
+    ] {
+        drop_by_rename(&crop(name), &d.inbox(), as_name);
+    }
+    // A coarser survey of the same ground on a rotated lattice, off the others' pixels: its
+    // edges blend with the Copernicus patches through the edge ramps.
+    let mut rotated = common::window(
+        &common::decimate(&common::real_crop("copernicus_n34w119_crop.tif"), 3),
+        15,
+        10,
+        60,
+        60,
+    );
+    rotated.georef.theta = 0.15;
+    rotated.georef.origin[0] += 0.3 * rotated.georef.step[0];
+    let staged = tmp.path().join("rotated.tif");
+    patchwork::read::write_tiff::write_geotiff_f32(
+        &staged,
+        rotated.cols,
+        rotated.rows,
+        &rotated.samples,
+        rotated.georef.geotransform(),
+        Some(4326),
+        Some(-9999.0),
+    )
+    .unwrap();
+    drop_by_rename(&staged, &d.inbox(), "d.tif");
+    d.wait("the four surveys to be active", |s| count(s, "active") == 4);
 
     let out = Command::new(&python)
         .current_dir(repo)

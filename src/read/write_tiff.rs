@@ -1,4 +1,5 @@
-//! Minimal GeoTIFF writer (north-up, single band, deflate) for exports and test fixtures.
+//! Minimal GeoTIFF writer (single band, deflate; north-up or rotated) for exports and test
+//! fixtures.
 
 use std::fs::File;
 use std::io::{BufWriter, Seek, Write};
@@ -112,15 +113,13 @@ fn write<C: ColorType>(
 where
     [C::Inner]: TiffValue,
 {
-    if gt[2] != 0.0 || gt[4] != 0.0 {
-        return Err(ReadError::unsupported(
-            "only north-up rasters can be written (geotransform has rotation terms)",
-        ));
-    }
-    if !(gt[1] > 0.0 && gt[5] < 0.0) || gt.iter().any(|v| !v.is_finite()) {
+    let rotated = gt[2] != 0.0 || gt[4] != 0.0;
+    // Rotated grids go out as a ModelTransformation, which has no sign convention to break;
+    // north-up ones as GDAL writes them, with a pixel scale and a tie point.
+    if gt.iter().any(|v| !v.is_finite()) || (!rotated && !(gt[1] > 0.0 && gt[5] < 0.0)) {
         return Err(ReadError::unsupported(format!(
-            "only north-up rasters with positive pixel width and negative pixel height can be \
-             written, got {gt:?}"
+            "only north-up rasters with positive pixel width and negative pixel height, or \
+             rotated ones, can be written, got {gt:?}"
         )));
     }
     let geo_keys = geo_key_directory(epsg)?;
@@ -154,11 +153,22 @@ where
             .with_predictor(predictor);
         let mut image = tiff.new_image::<C>(cols as u32, rows as u32)?;
         let dir = image.encoder();
-        dir.write_tag(Tag::ModelPixelScaleTag, &[gt[1], -gt[5], 0.0][..])?;
-        dir.write_tag(
-            Tag::ModelTiepointTag,
-            &[0.0, 0.0, 0.0, gt[0], gt[3], 0.0][..],
-        )?;
+        if gt[2] != 0.0 || gt[4] != 0.0 {
+            #[rustfmt::skip]
+            let m = [
+                gt[1], gt[2], 0.0, gt[0],
+                gt[4], gt[5], 0.0, gt[3],
+                0.0, 0.0, 0.0, 0.0,
+                0.0, 0.0, 0.0, 1.0,
+            ];
+            dir.write_tag(Tag::ModelTransformationTag, &m[..])?;
+        } else {
+            dir.write_tag(Tag::ModelPixelScaleTag, &[gt[1], -gt[5], 0.0][..])?;
+            dir.write_tag(
+                Tag::ModelTiepointTag,
+                &[0.0, 0.0, 0.0, gt[0], gt[3], 0.0][..],
+            )?;
+        }
         dir.write_tag(Tag::GeoKeyDirectoryTag, geo_keys)?;
         if let Some(nd) = nodata {
             dir.write_tag(Tag::GdalNodata, format_nodata(nd).as_str())?;
@@ -293,6 +303,21 @@ mod tests {
     }
 
     #[test]
+    fn a_rotated_grid_round_trips_through_its_model_transformation() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("turned.tif");
+        let (s, c) = 0.3f64.sin_cos();
+        let gt = [1000.0, 2.0 * c, 3.0 * s, 5000.0, 2.0 * s, -3.0 * c];
+        let samples: Vec<f32> = (0..12).map(|i| i as f32 * 1.5).collect();
+        write_geotiff_f32(&path, 4, 3, &samples, gt, Some(32631), None).unwrap();
+        let r = read_raster(&path, &ReadLimits::default()).unwrap();
+        assert_eq!((r.cols, r.rows, r.samples.clone()), (4, 3, samples));
+        for (a, b) in r.geotransform.iter().zip(gt) {
+            assert!((a - b).abs() < 1e-9, "{:?} vs {gt:?}", r.geotransform);
+        }
+    }
+
+    #[test]
     fn geo_keys_follow_crs_kind() {
         assert_eq!(
             geo_key_directory(Some(4326)).unwrap(),
@@ -310,9 +335,6 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("x.tif");
         let north_up = [0.0, 1.0, 0.0, 2.0, 0.0, -1.0];
-        let rotated = [0.0, 1.0, 0.1, 2.0, 0.0, -1.0];
-        let e = write_geotiff_f32(&path, 2, 2, &[0.0; 4], rotated, None, None).unwrap_err();
-        assert!(e.to_string().contains("north-up"), "{e}");
         let south_up = [0.0, 1.0, 0.0, 2.0, 0.0, 1.0];
         assert!(write_geotiff_f32(&path, 2, 2, &[0.0; 4], south_up, None, None).is_err());
         let e = write_geotiff_f32(&path, 2, 2, &[0.0; 3], north_up, None, None).unwrap_err();

@@ -1,13 +1,38 @@
 //! The Python that the cross-language tests run: a virtual environment under the target
 //! folder, made on first use from the pinned tests/python/requirements.txt, and made again when
-//! they change. A fresh machine needs only `python3` (with its `venv` module) and the package
+//! they change, with the client package (clients/python) installed from the working tree on
+//! every use. A fresh machine needs only `python3` (with its `venv` module) and the package
 //! index; nothing is installed outside the target folder.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// The environment's interpreter, with the requirements installed.
+/// The environment's interpreter, with the requirements and the client package installed.
 pub fn python() -> PathBuf {
+    let bin = environment();
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    // As a user installs it, so that a broken package fails here; the dependencies are
+    // already there, pinned.
+    run(
+        Command::new(&bin)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+                "--no-deps",
+                "--no-build-isolation",
+                "--force-reinstall",
+            ])
+            .arg(repo.join("clients/python")),
+        "pip install ./clients/python",
+    );
+    bin
+}
+
+/// The environment with the pinned requirements.
+fn environment() -> PathBuf {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
     let reqs_path = repo.join("tests/python/requirements.txt");
     let reqs = std::fs::read_to_string(&reqs_path).unwrap();

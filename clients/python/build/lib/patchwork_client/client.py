@@ -1,0 +1,320 @@
+"""The gRPC client: a method per RPC of the Terrain and Admin services, numpy arrays out."""
+
+import queue
+from dataclasses import dataclass, fields, make_dataclass
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple
+
+import grpc
+import numpy as np
+
+from ._proto import admin_pb2, admin_pb2_grpc, terrain_pb2, terrain_pb2_grpc
+from .patches import Patch, Rect
+
+BACKENDS = {
+    "auto": terrain_pb2.BACKEND_AUTO,
+    "cpu": terrain_pb2.BACKEND_CPU,
+    "gpu": terrain_pb2.BACKEND_GPU,
+}
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A view: eye and look-at point (plane coordinates in the store's CRS, heights in
+    metres), horizontal field of view, viewport width and the error allowed on screen."""
+
+    eye: Tuple[float, float, float]
+    look: Tuple[float, float, float]
+    fov_deg: float = 60.0
+    viewport_px: int = 1024
+    pixel_error: float = 1.0
+
+    def to_proto(self) -> "terrain_pb2.ViewCut":
+        return terrain_pb2.ViewCut(
+            eye_x=self.eye[0], eye_y=self.eye[1], eye_z=self.eye[2],
+            look_x=self.look[0], look_y=self.look[1], look_z=self.look[2],
+            fov_deg=self.fov_deg, viewport_px=self.viewport_px, pixel_error=self.pixel_error,
+        )
+
+
+@dataclass(frozen=True)
+class TileInfo:
+    """What the daemon says of a tile besides its heights."""
+
+    #: "cpu" or "gpu": what resampled it.
+    backend: str
+    #: Patches blended, and the largest error among them (metres).
+    patches: int
+    max_error: float
+    #: EPSG code of the store's CRS, 0 if unknown.
+    crs: int
+
+
+@dataclass(frozen=True)
+class Conflict:
+    survey: str
+    max_m: float
+    rms_m: float
+
+
+@dataclass(frozen=True)
+class Survey:
+    id: str
+    source: str
+    #: "active", "retired" or "failed".
+    status: str
+    error: str
+    accuracy_m: float
+    accuracy_source: str
+    samples: int
+    patches: int
+    crs: int
+    conflicts: List[Conflict]
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    source: str
+    #: "inserted", "replaced", "unchanged" or "failed".
+    outcome: str
+    survey: str
+    error: str
+    samples: int
+    seconds: float
+    conflicts: List[Conflict]
+
+
+@dataclass(frozen=True)
+class ChangeEvent:
+    #: "inserted", "retired", "replaced" or "failed".
+    kind: str
+    survey: str
+    source: str
+    error: str
+    at_unix: int
+    conflicts: List[Conflict]
+
+
+@dataclass(frozen=True)
+class ViewStep:
+    """What one camera changed: the patches added and the ids removed, and the whole cut's
+    size. The session's ``patches`` holds the cut once the step is applied."""
+
+    frame: int
+    added: List[Patch]
+    removed: List[int]
+    patches: int
+    #: The step's messages as they crossed the wire, bytes.
+    wire_bytes: int
+
+
+def _message_dataclass(name: str, message) -> type:
+    """A frozen dataclass with a message's fields, so that replies with many plain fields
+    stay in step with the proto."""
+    return make_dataclass(
+        name, [(f.name, object) for f in message.DESCRIPTOR.fields], frozen=True
+    )
+
+
+def _from_message(cls, m):
+    return cls(**{f.name: getattr(m, f.name) for f in fields(cls)})
+
+
+Stats = _message_dataclass("Stats", admin_pb2.StatsReply)
+VerifyResult = _message_dataclass("VerifyResult", admin_pb2.VerifyReply)
+CompactResult = _message_dataclass("CompactResult", admin_pb2.CompactReply)
+RetireResult = _message_dataclass("RetireResult", admin_pb2.RetireReply)
+
+
+def _conflicts(cs) -> List[Conflict]:
+    return [Conflict(survey=c.survey, max_m=c.max_m, rms_m=c.rms_m) for c in cs]
+
+
+def _rect(roi: Rect) -> "terrain_pb2.Rect":
+    xmin, ymin, xmax, ymax = (float(v) for v in roi)
+    return terrain_pb2.Rect(xmin=xmin, ymin=ymin, xmax=xmax, ymax=ymax)
+
+
+class Client:
+    """A connection to a Patchwork daemon.
+
+    ``target`` is ``host:port``. ``token`` is sent as ``authorization: Bearer <token>``
+    (the read token opens Terrain, the admin token everything). With ``ca`` (PEM bytes or a
+    path) the channel uses TLS. ``timeout`` bounds each call, in seconds.
+    """
+
+    def __init__(self, target: str, token: Optional[str] = None, *, ca=None, timeout: float = 60.0):
+        options = [
+            # Tiles come in bands under gRPC's default 4 MB, but a large unary tile or a
+            # large patch batch may not.
+            ("grpc.max_receive_message_length", 256 << 20),
+        ]
+        if ca is not None:
+            pem = ca if isinstance(ca, bytes) else open(ca, "rb").read()
+            self._channel = grpc.secure_channel(target, grpc.ssl_channel_credentials(pem), options)
+        else:
+            self._channel = grpc.insecure_channel(target, options)
+        self._metadata = [("authorization", f"Bearer {token}")] if token else []
+        self.timeout = timeout
+        self.terrain = terrain_pb2_grpc.TerrainStub(self._channel)
+        self.admin = admin_pb2_grpc.AdminStub(self._channel)
+
+    def close(self):
+        self._channel.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *_):
+        self.close()
+
+    def _call(self, method, request, **kw):
+        return method(request, timeout=self.timeout, metadata=self._metadata, **kw)
+
+    # --- Terrain -----------------------------------------------------------------------
+
+    def query_patches(self, roi: Rect, error: float) -> List[Patch]:
+        """The uniform cut over ``roi`` = (xmin, ymin, xmax, ymax) at ``error`` metres."""
+        cut = terrain_pb2.UniformCut(roi=_rect(roi), error=error)
+        return self._patches(terrain_pb2.PatchQuery(uniform=cut))
+
+    def query_view(self, camera: Camera) -> List[Patch]:
+        """The view-dependent cut for a camera."""
+        return self._patches(terrain_pb2.PatchQuery(view=camera.to_proto()))
+
+    def _patches(self, q) -> List[Patch]:
+        out = []
+        for batch in self._call(self.terrain.QueryPatches, q):
+            out.extend(Patch.from_proto(p) for p in batch.patches)
+        return out
+
+    def tile(self, roi: Rect, width: int, height: int, error: float, backend: str = "auto") -> np.ndarray:
+        """A height × width float32 tile over ``roi``, north row first, NaN for nodata."""
+        return self.tile_with_info(roi, width, height, error, backend)[0]
+
+    def tile_with_info(self, roi: Rect, width: int, height: int, error: float, backend: str = "auto"):
+        """:meth:`tile`, with what the daemon says of it (:class:`TileInfo`)."""
+        cut = terrain_pb2.UniformCut(roi=_rect(roi), error=error)
+        return self._bands(terrain_pb2.TileRequest(uniform=cut, width=width, height=height, backend=BACKENDS[backend]))
+
+    def view_tile(self, camera: Camera, width: int, height: int, backend: str = "auto") -> np.ndarray:
+        """The view-dependent tile a camera sees: its screen grid projected onto the ground."""
+        req = terrain_pb2.TileRequest(view=camera.to_proto(), width=width, height=height, backend=BACKENDS[backend])
+        return self._bands(req)[0]
+
+    def _bands(self, req):
+        """TileBands put back together: each band is whole rows of f32 little-endian."""
+        out, info = None, None
+        for band in self._call(self.terrain.TileBands, req):
+            if out is None:
+                out = np.empty((band.height, band.width), dtype=np.float32)
+                info = TileInfo(backend=band.backend, patches=band.patches, max_error=band.max_error, crs=band.crs)
+            rows = np.frombuffer(band.heights, dtype="<f4").reshape(band.rows, band.width)
+            out[band.row:band.row + band.rows] = rows
+        if out is None:
+            raise RuntimeError("the tile came back empty")
+        return out, info
+
+    def sample(self, points, error: float) -> np.ndarray:
+        """Heights at points, an n × 2 array (or a sequence of (x, y)); float32, NaN where
+        there is no data."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        req = terrain_pb2.SampleRequest(
+            points=[terrain_pb2.Point(x=x, y=y) for x, y in pts], error=error
+        )
+        r = self._call(self.terrain.SampleHeights, req)
+        z = np.asarray(r.heights, dtype=np.float32)
+        z[np.frombuffer(r.valid, dtype=np.uint8) == 0] = np.nan
+        return z
+
+    def view_session(self) -> "ViewSession":
+        """A view session: send cameras with :meth:`ViewSession.update`, and the session's
+        ``patches`` follow the view cut, by the difference from one camera to the next."""
+        return ViewSession(self)
+
+    def subscribe(self) -> Iterator[ChangeEvent]:
+        """Change events as they happen (needs the admin token where the daemon has one).
+        Runs without a deadline: cancel by closing the client."""
+        for e in self.terrain.Subscribe(terrain_pb2.SubscribeRequest(), metadata=self._metadata):
+            yield ChangeEvent(kind=e.kind, survey=f"{e.survey:016x}", source=e.source, error=e.error,
+                              at_unix=e.at_unix, conflicts=_conflicts(e.conflicts))
+
+    # --- Admin -------------------------------------------------------------------------
+
+    def ingest(self, paths: Sequence[str], accuracy_m: Optional[float] = None) -> List[IngestResult]:
+        req = admin_pb2.IngestRequest(paths=list(paths))
+        if accuracy_m is not None:
+            req.accuracy_m = accuracy_m
+        # Ingest takes as long as the files need.
+        r = self.admin.Ingest(req, metadata=self._metadata)
+        return [IngestResult(source=i.source, outcome=i.outcome, survey=f"{i.survey:016x}", error=i.error,
+                             samples=i.samples, seconds=i.seconds, conflicts=_conflicts(i.conflicts))
+                for i in r.results]
+
+    def surveys(self) -> List[Survey]:
+        r = self._call(self.admin.ListSurveys, admin_pb2.ListSurveysRequest())
+        return [Survey(id=s.id, source=s.source, status=s.status, error=s.error, accuracy_m=s.accuracy_m,
+                       accuracy_source=s.accuracy_source, samples=s.samples, patches=s.patches, crs=s.crs,
+                       conflicts=_conflicts(s.conflicts))
+                for s in r.surveys]
+
+    def retire(self, id_or_source: str):
+        return _from_message(RetireResult, self.admin.Retire(
+            admin_pb2.RetireRequest(id_or_source=id_or_source), metadata=self._metadata))
+
+    def forget(self, source: str) -> None:
+        self._call(self.admin.Forget, admin_pb2.ForgetRequest(source=source))
+
+    def stats(self):
+        return _from_message(Stats, self._call(self.admin.Stats, admin_pb2.StatsRequest()))
+
+    def verify(self):
+        return _from_message(VerifyResult, self.admin.Verify(admin_pb2.VerifyRequest(), metadata=self._metadata))
+
+    def compact(self):
+        return _from_message(CompactResult, self.admin.Compact(admin_pb2.CompactRequest(), metadata=self._metadata))
+
+
+class ViewSession:
+    """One bidirectional ViewSession stream. ``patches`` maps id to :class:`Patch`: after
+    each :meth:`update` it is the view cut for that camera."""
+
+    def __init__(self, client: Client):
+        self._cameras: "queue.Queue" = queue.Queue()
+        self._replies = client.terrain.ViewSession(self._requests(), metadata=client._metadata)
+        self.patches: Dict[int, Patch] = {}
+        self.frame = -1
+
+    def _requests(self):
+        while True:
+            cam = self._cameras.get()
+            if cam is None:
+                return
+            yield cam
+
+    def update(self, camera: Camera) -> ViewStep:
+        """Sends a camera and applies what the daemon says changed."""
+        self._cameras.put(camera.to_proto())
+        added, removed, wire = [], [], 0
+        while True:
+            d = next(self._replies)
+            wire += d.ByteSize()
+            for i in d.removed:
+                self.patches.pop(i, None)
+                removed.append(i)
+            for p in d.added:
+                q = Patch.from_proto(p)
+                self.patches[q.id] = q
+                added.append(q)
+            if d.last:
+                self.frame = d.frame
+                return ViewStep(frame=d.frame, added=added, removed=removed, patches=d.patches, wire_bytes=wire)
+
+    def close(self):
+        self._cameras.put(None)
+        self._replies.cancel()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *_):
+        self.close()

@@ -1,0 +1,37 @@
+"""A Python client for the Patchwork terrain database.
+
+    from patchwork_client import Client
+    with Client("127.0.0.1:50051") as c:
+        heights = c.tile((-119.0, 34.45, -118.9, 34.55), 512, 512, error=5.0)
+
+Every RPC of the daemon's Terrain and Admin services has a method on :class:`Client`; arrays
+come back as numpy, with NaN where there is no data. :func:`resample` blends streamed patches
+into a tile on the client, as the daemon's ResampleTile does.
+"""
+
+from .client import (
+    Camera,
+    ChangeEvent,
+    Client,
+    Conflict,
+    IngestResult,
+    Survey,
+    TileInfo,
+    ViewSession,
+    ViewStep,
+)
+from .patches import Patch, resample
+
+__all__ = [
+    "Camera",
+    "ChangeEvent",
+    "Client",
+    "Conflict",
+    "IngestResult",
+    "Patch",
+    "Survey",
+    "TileInfo",
+    "ViewSession",
+    "ViewStep",
+    "resample",
+]
