@@ -7,8 +7,8 @@ Builds a store of the Copernicus + NASADEM N34W119 pair from ../shared/data, sta
 tiles of 64², 512² and 2048² over squares of 0.05°, 0.2° and 1° centred on the cell, at
 e = 0 and 5 m:
 
-- ours: a Python client asks TileBands with gRPC's default limits and puts the bands together
-  as one float32 array (what a client has in hand, decoded);
+- ours: the Python client (clients/python) asks TileBands and puts the bands together as one
+  float32 array (what a client has in hand, decoded);
 - GDAL warm: rasterio (GDAL) bilinearly warps the same files onto the same grid with both
   datasets kept open, as a tile server keeps them, the later source winning where both have
   data (a VRT mosaic);
@@ -16,7 +16,7 @@ e = 0 and 5 m:
 
 Medians of several requests each. Writes docs/bench/tile_latency.csv and
 docs/bench/tile_latency.png; docs/BENCHMARKS.md reads them. Needs `cargo build --release`
-first and `python3 -m pip install -r bench/requirements.txt -r tests/python/requirements.txt`.
+first, `python3 -m pip install -r bench/requirements.txt ./clients/python`.
 """
 
 import csv
@@ -44,8 +44,7 @@ SIZES = [64, 512, 2048]
 EXTENTS = [0.05, 0.2, 1.0]
 ERRORS = [0.0, 5.0]
 
-sys.path.insert(0, os.path.join(REPO, "tests", "python"))
-from client import generate, tile_array  # noqa: E402  (the test client's stubs and bands)
+from patchwork_client import Client  # noqa: E402  (pip install ./clients/python)
 from gdal_compare import warp  # noqa: E402  (the same GDAL warp as the bench's comparison)
 
 
@@ -107,9 +106,22 @@ def chart(rows, path):
     fig.savefig(path, dpi=110)
 
 
+def wait_ready(client, seconds=30):
+    """Until the daemon answers."""
+    import grpc
+
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            return client.stats()
+        except grpc.RpcError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
 def main(argv):
     quick = "--quick" in argv
-    import grpc
 
     for s in SOURCES:
         if not os.path.isfile(s):
@@ -126,15 +138,8 @@ def main(argv):
     daemon = subprocess.Popen([BIN, "serve"], env=env, stdout=subprocess.DEVNULL)
     rows = []
     try:
-        stubs = os.path.join(tmp, "stubs")
-        os.makedirs(stubs)
-        generate(stubs)
-        sys.path.insert(0, stubs)
-        from patchwork.v1 import terrain_pb2, terrain_pb2_grpc
-
-        channel = grpc.insecure_channel(f"127.0.0.1:{port}")
-        grpc.channel_ready_future(channel).result(timeout=30)
-        terrain = terrain_pb2_grpc.TerrainStub(channel)
+        client = Client(f"127.0.0.1:{port}")
+        wait_ready(client)
         warm = [rasterio.open(s) for s in SOURCES]
         for n in SIZES:
             for extent in EXTENTS:
@@ -142,18 +147,12 @@ def main(argv):
                 k = repeats(n, quick)
                 row = {"size": n, "extent_deg": extent, "repeats": k}
                 for e in ERRORS:
-                    req = terrain_pb2.TileRequest(
-                        uniform=terrain_pb2.UniformCut(
-                            roi=terrain_pb2.Rect(xmin=roi[0], ymin=roi[1], xmax=roi[2], ymax=roi[3]),
-                            error=e,
-                        ),
-                        width=n,
-                        height=n,
-                        backend=terrain_pb2.BACKEND_CPU,
-                    )
-                    arr, first = tile_array(terrain, req)
-                    row[f"ours_e{e:g}_ms"] = median_ms(lambda: tile_array(terrain, req), k)
-                    row[f"ours_e{e:g}_patches"] = first.patches
+                    def ours_tile():
+                        return client.tile_with_info(roi, n, n, e, backend="cpu")
+
+                    arr, info = ours_tile()
+                    row[f"ours_e{e:g}_ms"] = median_ms(ours_tile, k)
+                    row[f"ours_e{e:g}_patches"] = info.patches
                 ours = arr
                 row["gdal_warm_ms"] = median_ms(lambda: gdal_tile(warm, roi, n), k)
 

@@ -263,6 +263,34 @@ pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) ->
             scatter: false,
         },
     )?;
+    let mut flight = Vec::new();
+    for (speed, _) in super::flight::SPEEDS {
+        let rows = r.flight.iter().filter(|f| f.speed == speed);
+        let kb = |b: usize| b as f64 / 1e3;
+        flight.push((
+            format!("{speed}: delta"),
+            rows.clone()
+                .map(|f| (f.frame as f64, kb(f.delta_bytes)))
+                .collect(),
+        ));
+        flight.push((
+            format!("{speed}: whole cut"),
+            rows.map(|f| (f.frame as f64, kb(f.full_bytes))).collect(),
+        ));
+    }
+    both(
+        out,
+        "view_session",
+        &Chart {
+            title: "Bytes per frame of a view session, delta against whole cut",
+            x: "frame",
+            y: "kB (log)",
+            series: flight,
+            log_y: true,
+            diagonal: false,
+            scatter: false,
+        },
+    )?;
     let sc = &r.scenes;
     let mixed = |scene: &str, f: fn(&super::meet::MixedRow) -> f64| -> Vec<(f64, f64)> {
         sc.mixed

@@ -7,6 +7,7 @@
 //! is compared on.
 
 pub mod charts;
+pub mod flight;
 pub mod meet;
 
 use crate::config::Config;
@@ -65,6 +66,7 @@ pub struct IngestRow {
 
 pub struct Report {
     pub uniform: Vec<UniformRow>,
+    pub flight: Vec<flight::FlightRow>,
     pub view: Vec<ViewRow>,
     pub ingest: Vec<IngestRow>,
     pub disk_bytes: u64,
@@ -269,11 +271,15 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
                     });
                     let file = format!("{stem}_e{e}.npy");
                     write_npy(&opts.out.join("tiles").join(&file), n, n, &tile.heights)?;
-                    manifest.push(serde_json::json!({
-                        "size": n, "error": e, "ours": file, "ours_ms": ms,
-                        "lo": format!("{stem}_lo.npy"), "hi": format!("{stem}_hi.npy"),
-                        "roi": [roi.min[0], roi.min[1], roi.max[0], roi.max[1]],
-                    }));
+                    manifest.push(ManifestTile {
+                        size: n,
+                        error: e,
+                        ours: file,
+                        ours_ms: ms,
+                        lo: format!("{stem}_lo.npy"),
+                        hi: format!("{stem}_hi.npy"),
+                        roi: [roi.min[0], roi.min[1], roi.max[0], roi.max[1]],
+                    });
                 }
             }
         }
@@ -281,11 +287,15 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     let crs = engine.crs().unwrap_or(0);
     std::fs::write(
         opts.out.join("tiles/manifest.json"),
-        serde_json::to_string_pretty(&serde_json::json!({
-            "crs": format!("EPSG:{crs}"),
-            "sources": opts.files.iter().map(|f| std::path::absolute(f).unwrap_or(f.clone())).collect::<Vec<_>>(),
-            "tiles": manifest,
-        }))?,
+        serde_json::to_string_pretty(&Manifest {
+            crs: format!("EPSG:{crs}"),
+            sources: opts
+                .files
+                .iter()
+                .map(|f| std::path::absolute(f).unwrap_or(f.clone()))
+                .collect(),
+            tiles: manifest,
+        })?,
     )?;
 
     // A flight along the survey's diagonal, 1,500 m up, looking ahead.
@@ -329,6 +339,8 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         );
         view.push(row);
     }
+    let flight = flight::fly(&engine, &first, if opts.smoke { 12 } else { 200 })?;
+    flight::write_csv(&opts.out, &flight)?;
     // Where surveys meet, made from the first file's survey (its middle, at most 1,800
     // samples a side, so the scenes take seconds).
     let base = first_survey
@@ -370,6 +382,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     meet::write_csv(&opts.out, &scenes)?;
     let report = Report {
         uniform,
+        flight,
         view,
         ingest,
         disk_bytes,
@@ -378,6 +391,26 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     write_csv(&opts.out, &report)?;
     charts::draw(&opts.out, &report, &t, &rois[1].1, opts.smoke)?;
     Ok(report)
+}
+
+/// `tiles/manifest.json`: the tiles GDAL is compared on (bench/gdal_compare.py reads it).
+#[derive(serde::Serialize)]
+struct Manifest {
+    crs: String,
+    sources: Vec<PathBuf>,
+    tiles: Vec<ManifestTile>,
+}
+
+#[derive(serde::Serialize)]
+struct ManifestTile {
+    size: usize,
+    error: f64,
+    /// Our tile and the low and high reference, as .npy files beside the manifest.
+    ours: String,
+    ours_ms: f64,
+    lo: String,
+    hi: String,
+    roi: [f64; 4],
 }
 
 fn c_lat(b: &Aabb) -> f64 {

@@ -116,7 +116,8 @@ where
     let rotated = gt[2] != 0.0 || gt[4] != 0.0;
     // Rotated grids go out as a ModelTransformation, which has no sign convention to break;
     // north-up ones as GDAL writes them, with a pixel scale and a tie point.
-    if gt.iter().any(|v| !v.is_finite()) || (!rotated && !(gt[1] > 0.0 && gt[5] < 0.0)) {
+    let north_up = gt[1] > 0.0 && gt[5] < 0.0;
+    if gt.iter().any(|v| !v.is_finite()) || !(rotated || north_up) {
         return Err(ReadError::unsupported(format!(
             "only north-up rasters with positive pixel width and negative pixel height, or \
              rotated ones, can be written, got {gt:?}"

@@ -460,7 +460,7 @@ mod tests {
         let srtm = [812.0, 813.0, f32::NAN, -12.0, 4807.0];
         assert_eq!(round_trips(&srtm), pb::SampleEncoding::I16);
         // A level-2 mipmap of integers: multiples of 1/16 and 1/256.
-        let level2 = [812.0625, 813.00390625, f32::NAN, 790.5];
+        let level2 = [812.0625, 813.0 + 1.0 / 256.0, f32::NAN, 790.5];
         assert_eq!(round_trips(&level2), pb::SampleEncoding::I16);
         // 8,000 m at 1/16 m steps needs more than 16 bits.
         assert_eq!(round_trips(&[-10.5625, 8000.0]), pb::SampleEncoding::F32);
