@@ -11,24 +11,56 @@ use std::process::Command;
 pub fn python() -> PathBuf {
     let bin = environment();
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    // Built from a copy, since pip builds in the source folder and the working tree should not
+    // change under a test.
+    let src = Path::new(env!("CARGO_TARGET_TMPDIR")).join("client-src");
+    let _ = std::fs::remove_dir_all(&src);
+    copy_tree(&repo.join("clients/python"), &src);
     // As a user installs it, so that a broken package fails here; the dependencies are
     // already there, pinned.
+    pip(
+        &bin,
+        &["--no-deps", "--no-build-isolation", "--force-reinstall"],
+        &src,
+        "pip install ./clients/python",
+    );
+    bin
+}
+
+/// The package's sources, without what a build left beside them.
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let name = entry.file_name();
+        let skip = ["build", "__pycache__"].iter().any(|s| name == *s)
+            || name.to_string_lossy().ends_with(".egg-info");
+        if skip {
+            continue;
+        }
+        if entry.file_type().unwrap().is_dir() {
+            copy_tree(&entry.path(), &to.join(&name));
+        } else {
+            std::fs::copy(entry.path(), to.join(&name)).unwrap();
+        }
+    }
+}
+
+/// `pip install --quiet` of `target` with `flags`, failing with `what`.
+fn pip(bin: &Path, flags: &[&str], target: &Path, what: &str) {
     run(
-        Command::new(&bin)
+        Command::new(bin)
             .args([
                 "-m",
                 "pip",
                 "install",
                 "--quiet",
                 "--disable-pip-version-check",
-                "--no-deps",
-                "--no-build-isolation",
-                "--force-reinstall",
             ])
-            .arg(repo.join("clients/python")),
-        "pip install ./clients/python",
+            .args(flags)
+            .arg(target),
+        what,
     );
-    bin
 }
 
 /// The environment with the pinned requirements.
@@ -50,17 +82,10 @@ fn environment() -> PathBuf {
         Command::new("python3").args(["-m", "venv"]).arg(&env),
         "python3 -m venv (Debian and Ubuntu package it as python3-venv)",
     );
-    run(
-        Command::new(&bin)
-            .args([
-                "-m",
-                "pip",
-                "install",
-                "--quiet",
-                "--disable-pip-version-check",
-                "-r",
-            ])
-            .arg(&reqs_path),
+    pip(
+        &bin,
+        &["-r"],
+        &reqs_path,
         "pip install -r tests/python/requirements.txt (needs the package index)",
     );
     std::fs::write(&stamp, reqs).unwrap();
