@@ -2,6 +2,7 @@
 //! for the top-level keys (`PATCHWORK_<KEY>`). `config/patchwork.toml` documents every key.
 
 use crate::index::lod::IndexConfig;
+use crate::model::mipmap::Filter;
 use crate::model::patch::PatchLayout;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -180,6 +181,8 @@ pub struct Config {
     pub storage: Storage,
     pub index: IndexConfig,
     pub patches: PatchLayout,
+    /// How a new store makes its surveys' coarser levels; an existing store keeps its own.
+    pub mipmap: Filter,
 }
 
 impl Default for Config {
@@ -204,6 +207,7 @@ impl Default for Config {
             storage: Storage::default(),
             index: IndexConfig::default(),
             patches: PatchLayout::default(),
+            mipmap: Filter::default(),
         }
     }
 }
@@ -329,6 +333,12 @@ impl Config {
         }
         if let Some(v) = get("PATCHWORK_LOG") {
             self.log = v;
+        }
+        if let Some(v) = get("PATCHWORK_MIPMAP") {
+            self.mipmap = Filter::from_name(&v).ok_or_else(|| ConfigError::Env {
+                var: "PATCHWORK_MIPMAP".into(),
+                message: format!("{v:?} is not a filter: use minimax, smooth or decimate"),
+            })?;
         }
         if let Some(v) = get("PATCHWORK_ALLOW_EMULATED_GPU") {
             self.allow_emulated_gpu = match v.as_str() {

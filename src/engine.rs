@@ -638,8 +638,10 @@ impl Engine {
             default_accuracy: self.cfg.accuracy_m,
             max_accuracy: self.cfg.index.max_error,
             store_crs: self.crs(),
-            // An existing store keeps the layout its tops were computed with.
+            // An existing store keeps the layout its tops were computed with, and the filter
+            // its surveys were built with.
             layout: catalog.layout,
+            mipmap: catalog.mipmap,
             read_limits: ReadLimits {
                 roots: Some(roots),
                 ..ReadLimits::mb(self.cfg.limits.max_ingest_mb)
@@ -1183,6 +1185,7 @@ fn store_options(cfg: &Config, guard: &SpaceGuard) -> StoreOptions {
     StoreOptions {
         guard: guard.clone(),
         cache_bytes: cfg.cache_mb << 20,
+        mipmap: cfg.mipmap,
     }
 }
 

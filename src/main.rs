@@ -124,7 +124,8 @@ enum Cmd {
         /// A run of a few seconds that proves the bench still works.
         #[arg(long)]
         smoke: bool,
-        /// Skip the GDAL comparison (it needs python3 with rasterio).
+        /// Skip the comparisons in Python: GDAL on the same tiles, martini and delatin on the
+        /// same surveys (python3 -m pip install -r bench/requirements.txt).
         #[arg(long)]
         no_gdal: bool,
     },
@@ -555,6 +556,14 @@ fn bench(files: Vec<PathBuf>, out: PathBuf, smoke: bool, no_gdal: bool) -> Resul
             })?;
         if !status.success() {
             return Err("the GDAL comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
+        }
+        let status = std::process::Command::new("python3")
+            .arg("bench/mesh_compare.py")
+            .arg(&out)
+            .status()
+            .map_err(|e| format!("cannot run python3 for the mesh comparison: {e}"))?;
+        if !status.success() {
+            return Err("the mesh comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
         }
     }
     println!("wrote {}", out.display());

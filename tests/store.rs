@@ -431,6 +431,38 @@ fn settings_of_an_existing_store_win() {
 }
 
 #[test]
+fn a_store_keeps_the_mipmap_filter_it_was_made_with() {
+    use patchwork::model::mipmap::Filter;
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let with = |mipmap| StoreOptions {
+        mipmap,
+        ..StoreOptions::default()
+    };
+    let opened = |mipmap| {
+        restore::open(&dir, LAYOUT, IndexConfig::default(), with(mipmap))
+            .unwrap()
+            .store
+    };
+    assert_eq!(opened(Filter::Decimate).mipmap(), Filter::Decimate);
+    assert_eq!(opened(Filter::Minimax).mipmap(), Filter::Decimate);
+
+    // A store from before the choice holds smooth surveys, whatever a new store would get.
+    let old = tmp.path().join("old");
+    let store = restore::open(&old, LAYOUT, IndexConfig::default(), with(Filter::Smooth))
+        .unwrap()
+        .store;
+    let mut t = Terrain::new(IndexConfig::default());
+    ingest(&store, &mut t, &pair().0, "a");
+    store.raw().remove("meta/mipmap").unwrap();
+    drop(store);
+    for _ in 0..2 {
+        let o = restore::open(&old, LAYOUT, IndexConfig::default(), with(Filter::Minimax));
+        assert_eq!(o.unwrap().store.mipmap(), Filter::Smooth);
+    }
+}
+
+#[test]
 fn a_failed_commit_changes_nothing() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = store_dir(&tmp);

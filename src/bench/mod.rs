@@ -9,6 +9,7 @@
 pub mod charts;
 pub mod flight;
 pub mod meet;
+pub mod variants;
 
 use crate::config::Config;
 use crate::engine::{Cut, Engine};
@@ -67,6 +68,7 @@ pub struct IngestRow {
 pub struct Report {
     pub uniform: Vec<UniformRow>,
     pub flight: Vec<flight::FlightRow>,
+    pub variants: Vec<variants::VariantRow>,
     pub view: Vec<ViewRow>,
     pub ingest: Vec<IngestRow>,
     pub disk_bytes: u64,
@@ -341,6 +343,8 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     }
     let flight = flight::fly(&engine, &first, if opts.smoke { 12 } else { 200 })?;
     flight::write_csv(&opts.out, &flight)?;
+    let variants = variants::run(&opts.files, &errors_used, tile_side)?;
+    variants::write_csv(&opts.out, &variants)?;
     // Where surveys meet, made from the first file's survey (its middle, at most 1,800
     // samples a side, so the scenes take seconds).
     let base = first_survey
@@ -383,6 +387,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     let report = Report {
         uniform,
         flight,
+        variants,
         view,
         ingest,
         disk_bytes,

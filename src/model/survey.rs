@@ -6,6 +6,7 @@ use super::grid::{Grid, Shape};
 use super::ids::{hash64, SurveyId};
 use super::lattice::Lattice;
 use super::mipmap;
+use super::mipmap::Filter;
 use super::patch::{make_patches, Bilinear, Patch, PatchLayout, Tiling};
 use crate::index::lod::PatchBox;
 use std::sync::Arc;
@@ -146,12 +147,24 @@ impl Survey {
         Tiling::new(grid.cells(), layout.kernel, lattice.index_of(&grid.georef))
     }
 
-    /// Builds the mipmap and the patches with their errors.
+    /// Builds the mipmap (with the default filter) and the patches with their errors.
     pub fn build(
         grid: Grid,
         spec: impl Into<AccuracySpec>,
         crs: Option<u32>,
         layout: PatchLayout,
+    ) -> Result<Survey, SurveyError> {
+        Self::build_with(grid, spec, crs, layout, Filter::default())
+    }
+
+    /// [`Survey::build`] with the mipmap made by `filter`. A store builds all its surveys with
+    /// one filter, chosen when it was made.
+    pub fn build_with(
+        grid: Grid,
+        spec: impl Into<AccuracySpec>,
+        crs: Option<u32>,
+        layout: PatchLayout,
+        filter: Filter,
     ) -> Result<Survey, SurveyError> {
         let spec = spec.into();
         if let AccuracySpec::Fixed(a) = spec {
@@ -171,7 +184,7 @@ impl Survey {
             AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
             AccuracySpec::Auto => accuracy::estimate(&grid, &tiling, layout.margin as u32).kernels,
         };
-        let levels = mipmap::build(Arc::new(grid), layout.kernel);
+        let levels = mipmap::build_with(Arc::new(grid), layout.kernel, filter);
         let patches = make_patches(id, &kernel_accuracy, &levels, &tiling, &layout, &Bilinear);
         Ok(Self::restore(
             id,

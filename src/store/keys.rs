@@ -8,6 +8,9 @@ pub const SCHEMA: &[u8] = b"meta/schema";
 pub const CRS: &[u8] = b"meta/crs";
 pub const LAYOUT: &[u8] = b"meta/layout";
 pub const INDEX: &[u8] = b"meta/index";
+/// The name of the mipmap filter every survey of the store is built with; absent in stores
+/// made before there was a choice, whose surveys are all `smooth`.
+pub const MIPMAP: &[u8] = b"meta/mipmap";
 /// `u64` LE: how many bytes of the chunk pack are committed (see [`super::pack`]).
 pub const PACK_LEN: &[u8] = b"meta/pack_len";
 /// Present when the index must be derived again from the surveys on the next open (a

@@ -9,6 +9,7 @@
 //! | `meta/schema` | `u32` LE: the schema version (see `migrations/`) |
 //! | `meta/crs` | `u32` LE: EPSG code of the store, set by the first survey that has one |
 //! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
+//! | `meta/mipmap` | the name of the mipmap [`Filter`] its surveys are built with, set when the store is made (absent: `smooth`, a store from before the choice) |
 //! | `s/<survey>` | [`SurveyRecord`] (bincode) |
 //! | `p/<survey>` | where the survey's [`StoredPatches`] are in the pack: its patches and the edge tiles it reaches (bincode, sealed with [`chunks::seal`]) |
 //! | `a/<survey>` | the [`KernelAccuracy`] of a survey whose ε was estimated (bincode) |
@@ -53,6 +54,7 @@ use crate::model::accuracy::{AccuracySource, AccuracySpec, Deviation, KernelAccu
 use crate::model::edge::EdgePatch;
 use crate::model::grid::{Georef, Grid, Shape};
 use crate::model::ids::{PatchId, SurveyId};
+use crate::model::mipmap::Filter;
 use crate::model::patch::{Patch, PatchLayout, Tiling};
 use crate::model::source::SampleSource;
 use crate::model::survey::{Survey, SurveyMeta};
@@ -81,6 +83,8 @@ pub struct StoreOptions {
     /// Bytes of decoded chunks kept in memory; sled's own page cache takes a quarter of it
     /// more (see [`StoreOptions::sled_cache_bytes`]).
     pub cache_bytes: u64,
+    /// The mipmap filter of a new store; an existing one keeps its own.
+    pub mipmap: Filter,
 }
 
 impl StoreOptions {
@@ -97,6 +101,7 @@ impl Default for StoreOptions {
         StoreOptions {
             guard: SpaceGuard::default(),
             cache_bytes: DEFAULT_CACHE_BYTES,
+            mipmap: Filter::default(),
         }
     }
 }
@@ -307,6 +312,7 @@ pub struct Catalog {
     pub pins: HashMap<String, String>,
     pub crs: Option<u32>,
     pub layout: PatchLayout,
+    pub mipmap: Filter,
 }
 
 impl Catalog {
@@ -342,6 +348,29 @@ pub fn now_unix() -> u64 {
 pub(crate) fn encode<T: Serialize>(v: &T) -> Result<Vec<u8>, StoreError> {
     bincode::serde::encode_to_vec(v, bincode::config::standard())
         .map_err(|e| StoreError::Encode(e.to_string()))
+}
+
+/// The store's mipmap filter: the recorded one, or for a store that has none, `smooth` when it
+/// already holds surveys (they were built before the choice) and `configured` when it is new,
+/// recorded then. On a disk too full to record it, it is used unrecorded: no survey can be
+/// written there either.
+fn mipmap_of(
+    db: &sled::Db,
+    dir: &Path,
+    guard: &SpaceGuard,
+    configured: Filter,
+) -> Result<Filter, StoreError> {
+    if let Some(v) = db.get(keys::MIPMAP)? {
+        let name = String::from_utf8_lossy(&v);
+        return Filter::from_name(&name)
+            .ok_or_else(|| StoreError::Corrupt(format!("meta/mipmap names no filter: {name:?}")));
+    }
+    let legacy = db.scan_prefix(keys::SURVEY_PREFIX).next().is_some();
+    let f = if legacy { Filter::Smooth } else { configured };
+    if guard.check(dir, 64).is_ok() {
+        db.insert(keys::MIPMAP, f.name())?;
+    }
+    Ok(f)
 }
 
 pub(crate) fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, StoreError> {
@@ -482,6 +511,7 @@ pub struct Store {
     dir: PathBuf,
     layout: PatchLayout,
     index: IndexConfig,
+    mipmap: Filter,
     crs: RwLock<Option<u32>>,
     /// Commits read the store (CRS, records) before writing it; one at a time keeps the read
     /// and the batch consistent.
@@ -588,6 +618,7 @@ impl Store {
         };
         let layout: PatchLayout = decode(&get(keys::LAYOUT)?, "meta/layout")?;
         let index: IndexConfig = decode(&get(keys::INDEX)?, "meta/index")?;
+        let mipmap = mipmap_of(&db, &dir, &guard, opts.mipmap)?;
         let crs = db
             .get(keys::CRS)?
             .map(|v| decode_u32(&v, "meta/crs"))
@@ -607,6 +638,7 @@ impl Store {
             dir,
             layout,
             index,
+            mipmap,
             crs: RwLock::new(crs),
             writer: Mutex::new(()),
             migrated,
@@ -632,6 +664,11 @@ impl Store {
     /// The layout every survey of this store is cut with.
     pub fn layout(&self) -> PatchLayout {
         self.layout
+    }
+
+    /// The mipmap filter every survey of this store is built with.
+    pub fn mipmap(&self) -> Filter {
+        self.mipmap
     }
 
     /// The index settings the stored tops were computed with.
@@ -1208,6 +1245,7 @@ impl Store {
             pins: self.pins()?,
             crs: self.crs(),
             layout: self.layout,
+            mipmap: self.mipmap,
         })
     }
 
