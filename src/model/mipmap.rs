@@ -109,12 +109,20 @@ const FIT_ROUNDS: usize = 6;
 pub const FIT_STEP: f64 = 1.0 / 16.0;
 
 /// Moves each valid sample of `coarse` (level `level` of `fine`'s pyramid) towards the middle
-/// of the deviations from `fine` of the fine samples nearest it (within half a coarse cell),
-/// by half the way each round, since its neighbours move too.
+/// of the deviations from `fine` of the fine samples within half a coarse cell of it, by half
+/// the way each round, since its neighbours move too. A round streams the fine samples row by
+/// row, each coarse row taking the fine rows near it, so rows go to the cores without sharing
+/// anything.
 pub fn fit_minimax(coarse: &mut Grid, fine: &Grid, level: usize) {
     let f = 1usize << level;
     let half = f / 2;
+    let inv = 1.0 / f as f64;
     let [cw, ch] = coarse.cells();
+    if cw == 0 || ch == 0 {
+        return;
+    }
+    // Fine samples past the last coarse line lie under no coarse cell.
+    let (last_x, last_y) = (cw * f, ch * f);
     for _ in 0..FIT_ROUNDS {
         let current = coarse.clone();
         coarse
@@ -122,30 +130,44 @@ pub fn fit_minimax(coarse: &mut Grid, fine: &Grid, level: usize) {
             .par_chunks_mut(current.cols)
             .enumerate()
             .for_each(|(j, row)| {
-                for (i, z) in row.iter_mut().enumerate() {
-                    if z.is_nan() {
-                        continue;
-                    }
-                    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-                    let rows = (j * f).saturating_sub(half)..(j * f + half).min(fine.rows - 1) + 1;
-                    let cols = (i * f).saturating_sub(half)..(i * f + half).min(fine.cols - 1) + 1;
-                    for y in rows {
-                        let (r, fy) = cell_of(y, f, ch);
-                        for x in cols.clone() {
-                            let (c, fx) = cell_of(x, f, cw);
-                            let Some(zc) = current.bilinear_in_cell(c, r, [fx, fy]) else {
-                                continue;
-                            };
-                            let d = zc - fine.at(x, y) as f64;
+                let mut lo = vec![f64::INFINITY; current.cols];
+                let mut hi = vec![f64::NEG_INFINITY; current.cols];
+                // Within half a coarse cell, both ends included: a fine line halfway between
+                // two coarse lines counts for both, which steadies the fit.
+                let ys = (j * f).saturating_sub(half)..=(j * f + half).min(last_y);
+                for y in ys {
+                    let (r, fy) = cell_of(y, f, ch);
+                    let line = &fine.samples[y * fine.cols..y * fine.cols + last_x + 1];
+                    for c in 0..cw {
+                        let at =
+                            |cc: usize, rr: usize| current.samples[rr * current.cols + cc] as f64;
+                        let a = at(c, r) + (at(c, r + 1) - at(c, r)) * fy;
+                        let b = at(c + 1, r) + (at(c + 1, r + 1) - at(c + 1, r)) * fy;
+                        if a.is_nan() || b.is_nan() {
+                            continue;
+                        }
+                        // The cell's own samples, its right edge only for the last cell (the
+                        // next cell starts there with the same value).
+                        let end = if c + 1 == cw { f } else { f - 1 };
+                        let slope = (b - a) * inv;
+                        for (k, &z) in line[c * f..=c * f + end].iter().enumerate() {
+                            let d = a + slope * k as f64 - z as f64;
                             if d.is_nan() {
                                 continue;
                             }
-                            lo = lo.min(d);
-                            hi = hi.max(d);
+                            let i = (c * f + k + half) >> level;
+                            lo[i] = lo[i].min(d);
+                            hi[i] = hi[i].max(d);
+                            if k == half && i > 0 {
+                                lo[i - 1] = lo[i - 1].min(d);
+                                hi[i - 1] = hi[i - 1].max(d);
+                            }
                         }
                     }
-                    if lo.is_finite() {
-                        *z = (*z as f64 - 0.5 * (lo + hi) * 0.5) as f32;
+                }
+                for (i, z) in row.iter_mut().enumerate() {
+                    if !z.is_nan() && lo[i].is_finite() {
+                        *z = (*z as f64 - 0.25 * (lo[i] + hi[i])) as f32;
                     }
                 }
             });
