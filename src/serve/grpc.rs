@@ -193,7 +193,8 @@ impl terrain_server::Terrain for Service {
     ) -> Result<Response<Self::ViewSessionStream>, Status> {
         let mut cameras = r.into_inner();
         let ms = self.engine.config().limits.deadline_ms;
-        // One step ahead at most: a client that stops reading holds one step's messages.
+        // Two messages ahead at most: a client that stops reading holds those, and only until
+        // the step's deadline.
         let (tx, rx) = tokio::sync::mpsc::channel(2);
         let svc = self.clone();
         tokio::spawn(async move {
