@@ -385,3 +385,78 @@ fn estimated_accuracies_and_edge_patches_do_not_depend_on_order() {
     assert_eq!(r.index().state(), never.index().state());
     assert_eq!(edges(&r), edges(&never));
 }
+
+/// Where methods break, for every mipmap filter: a 400 m cliff, spikes and pits, a survey full
+/// of voids and a rotated survey, each alone and exact. At random valid points of each, the
+/// blended height stays within e of the survey's own surface, and the largest deviation
+/// measured is printed beside e.
+#[test]
+fn every_mipmap_filter_keeps_the_bound_at_cliffs_spikes_voids_and_rotations() {
+    use patchwork::model::mipmap::Filter;
+    let cop = real_crop("copernicus_n34w119_crop.tif");
+    let mut cliff = cop.clone();
+    for (k, z) in cliff.samples.iter_mut().enumerate() {
+        if k % cliff.cols >= cliff.cols / 2 {
+            *z += 400.0;
+        }
+    }
+    let mut spikes = cop.clone();
+    for (k, z) in spikes.samples.iter_mut().enumerate() {
+        match k % 997 {
+            0 => *z += 1500.0,
+            500 => *z -= 800.0,
+            _ => {}
+        }
+    }
+    let cases = [
+        ("cliff", cliff),
+        ("spikes", spikes),
+        ("voids", real_crop("srtm_n44e005_voids_crop.tif")),
+        ("rotated", turned(&cop, 25.0)),
+    ];
+    let mut rng = Rng(7);
+    for (name, grid) in &cases {
+        for filter in Filter::ALL {
+            let s = Arc::new(
+                Survey::build_with(
+                    grid.clone(),
+                    0.0,
+                    Some(4326),
+                    PatchLayout::default(),
+                    filter,
+                )
+                .unwrap(),
+            );
+            let t = terrain_of(std::slice::from_ref(&s));
+            let roi = s.levels[0].world_bounds();
+            for e in [2.0, 10.0, 50.0] {
+                let ps = t.uniform(&roi, e);
+                let set = t.resolve(&ps);
+                let all: Vec<u32> = (0..set.patches.len() as u32).collect();
+                let mut worst = 0.0f64;
+                for _ in 0..600 {
+                    let p = valid_point(&s, rng.next(), rng.next(), rng.next()).unwrap();
+                    let h = patchwork::resample::cpu::blend(&set, &all, p) as f64;
+                    assert!(
+                        !h.is_nan(),
+                        "{name}, {filter:?}, e = {e}: no height at {p:?}"
+                    );
+                    let hs = survey_heights(std::slice::from_ref(&s), p);
+                    let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
+                    let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                    let off = (lo - h).max(h - hi).max(0.0);
+                    assert!(
+                        off <= e + 1e-3,
+                        "{name}, {filter:?}, e = {e}: {h} is {off} m outside [{lo}, {hi}] at {p:?}"
+                    );
+                    worst = worst.max(off);
+                }
+                println!(
+                    "{name:>7} {:>8} e = {e:>4}: {:>4} patches, largest deviation {worst:.2} m",
+                    filter.name(),
+                    ps.len()
+                );
+            }
+        }
+    }
+}
