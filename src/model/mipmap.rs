@@ -150,19 +150,23 @@ pub fn fit_minimax(coarse: &mut Grid, fine: &Grid, level: usize) {
                         // next cell starts there with the same value).
                         let end = if c + 1 == cw { f } else { f - 1 };
                         let slope = (b - a) * inv;
-                        for (k, &z) in line[c * f..=c * f + end].iter().enumerate() {
+                        // The first half of the cell is nearest coarse column c, the second
+                        // c + 1, the middle both. f64::min and max pass over a NaN (a void
+                        // fine sample), so the loops need no test and vectorise.
+                        let seg = &line[c * f..=c * f + end];
+                        let (mut l0, mut h0) = (lo[c], hi[c]);
+                        for (k, &z) in seg[..=half].iter().enumerate() {
                             let d = a + slope * k as f64 - z as f64;
-                            if d.is_nan() {
-                                continue;
-                            }
-                            let i = (c * f + k + half) >> level;
-                            lo[i] = lo[i].min(d);
-                            hi[i] = hi[i].max(d);
-                            if k == half && i > 0 {
-                                lo[i - 1] = lo[i - 1].min(d);
-                                hi[i - 1] = hi[i - 1].max(d);
-                            }
+                            l0 = l0.min(d);
+                            h0 = h0.max(d);
                         }
+                        let (mut l1, mut h1) = (lo[c + 1], hi[c + 1]);
+                        for (k, &z) in seg[half..].iter().enumerate() {
+                            let d = a + slope * (k + half) as f64 - z as f64;
+                            l1 = l1.min(d);
+                            h1 = h1.max(d);
+                        }
+                        (lo[c], hi[c], lo[c + 1], hi[c + 1]) = (l0, h0, l1, h1);
                     }
                 }
                 for (i, z) in row.iter_mut().enumerate() {
