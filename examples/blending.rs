@@ -135,14 +135,19 @@ fn main() {
     // A quarter of a 1″ cell, in metres, at this latitude.
     let step_m = cell / 4.0 * 111_320.0 * 34.5f64.to_radians().cos();
     let (lo, hi) = reference(&t, &grid);
-    println!("{side}² points over the overlap of the Copernicus and NASADEM crops, a quarter cell apart");
+    println!(
+        "{side}² points over the overlap of the Copernicus and NASADEM crops, a quarter cell apart"
+    );
     println!("e | blend | patches | max error (m) | slope jump p99 / max (m/m per m) | ms");
     for e in [0.0, 5.0, 10.0, 20.0, 50.0] {
         let ps = t.uniform(&roi, e);
         let set = t.resolve(&ps);
         let bins = cpu::bin(&set.patches, &grid);
         for (name, f) in [
-            ("formula 1", cpu::blend as fn(&PatchSet, &[u32], [f64; 2]) -> f32),
+            (
+                "formula 1",
+                cpu::blend as fn(&PatchSet, &[u32], [f64; 2]) -> f32,
+            ),
             ("priority", priority),
         ] {
             let mut times = Vec::new();

@@ -99,9 +99,12 @@ pub fn decimate(fine: &Grid) -> Grid {
     out
 }
 
-/// Fit rounds of [`Filter::Minimax`]: the largest deviation stops falling after about this
-/// many on real terrain.
-const FIT_ROUNDS: usize = 6;
+/// Fit rounds of [`Filter::Minimax`], and how far each moves a sample towards the middle of
+/// its deviations. Measured on the 1″ N34W119 tiles: four rounds of three quarters ship as few
+/// samples as six of a half (within 1%), three of nine tenths 2% more, four of a half 5–14%
+/// more. Not the whole way, since a sample's neighbours move too.
+const FIT_ROUNDS: usize = 4;
+const FIT_PULL: f64 = 0.75;
 
 /// Fitted heights are kept to multiples of this (m): δ is measured on the heights as kept, so
 /// the bound holds whatever they are, and binary fractions let a 16-bit survey's coarse
@@ -109,8 +112,8 @@ const FIT_ROUNDS: usize = 6;
 pub const FIT_STEP: f64 = 1.0 / 16.0;
 
 /// Moves each valid sample of `coarse` (level `level` of `fine`'s pyramid) towards the middle
-/// of the deviations from `fine` of the fine samples within half a coarse cell of it, by half
-/// the way each round, since its neighbours move too. A round streams the fine samples row by
+/// of the deviations from `fine` of the fine samples within half a coarse cell of it, by
+/// [`FIT_PULL`] of the way each round. A round streams the fine samples row by
 /// row, each coarse row taking the fine rows near it, so rows go to the cores without sharing
 /// anything.
 pub fn fit_minimax(coarse: &mut Grid, fine: &Grid, level: usize) {
@@ -171,7 +174,7 @@ pub fn fit_minimax(coarse: &mut Grid, fine: &Grid, level: usize) {
                 }
                 for (i, z) in row.iter_mut().enumerate() {
                     if !z.is_nan() && lo[i].is_finite() {
-                        *z = (*z as f64 - 0.25 * (lo[i] + hi[i])) as f32;
+                        *z = (*z as f64 - FIT_PULL * 0.5 * (lo[i] + hi[i])) as f32;
                     }
                 }
             });
