@@ -97,7 +97,7 @@ impl ViewSession {
         removed.sort_unstable();
         let added: Vec<Extracted> = ps
             .into_iter()
-            .filter(|x| self.held.get(&x.id) != Some(&Held::of(x)))
+            .filter(|x| self.held.get(&x.id) != next.get(&x.id))
             .collect();
         let mut deltas = Vec::with_capacity(added.len().div_ceil(BATCH).max(1));
         for chunk in added.chunks(BATCH) {

@@ -182,8 +182,9 @@ pub struct Packed {
 pub const I16_VOID: i16 = i16::MIN;
 
 impl Packed {
-    /// Finest binary fraction tried: 16-bit surveys' level k holds multiples of 4^-k after
-    /// the [1 2 1]/4 filter, so this serves their first six levels.
+    /// Finest binary fraction tried: minimax levels hold multiples of 1/16 m
+    /// (`mipmap::FIT_STEP`), and a 16-bit survey's smooth level k multiples of 4^-k, so this
+    /// serves their first six.
     const MAX_SHIFT: i32 = 12;
 
     pub fn of(samples: &[f32]) -> Self {
@@ -245,25 +246,6 @@ impl Packed {
             offset: base / m,
             data,
         })
-    }
-
-    /// The heights back, NaN where void.
-    pub fn unpack(&self) -> Vec<f32> {
-        match self.encoding {
-            pb::SampleEncoding::F32 => self
-                .data
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect(),
-            pb::SampleEncoding::I16 => self
-                .data
-                .chunks_exact(2)
-                .map(|b| match i16::from_le_bytes([b[0], b[1]]) {
-                    I16_VOID => f32::NAN,
-                    i => (self.offset + self.scale * i as f64) as f32,
-                })
-                .collect(),
-        }
     }
 }
 
@@ -445,9 +427,28 @@ pub fn event(e: &Event) -> pb::ChangeEvent {
 mod tests {
     use super::*;
 
+    /// The heights back, NaN where void: what a client decodes.
+    fn unpack(p: &Packed) -> Vec<f32> {
+        match p.encoding {
+            pb::SampleEncoding::F32 => p
+                .data
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect(),
+            pb::SampleEncoding::I16 => p
+                .data
+                .chunks_exact(2)
+                .map(|b| match i16::from_le_bytes([b[0], b[1]]) {
+                    I16_VOID => f32::NAN,
+                    i => (p.offset + p.scale * i as f64) as f32,
+                })
+                .collect(),
+        }
+    }
+
     fn round_trips(samples: &[f32]) -> pb::SampleEncoding {
         let p = Packed::of(samples);
-        let back = p.unpack();
+        let back = unpack(&p);
         assert_eq!(back.len(), samples.len());
         for (a, b) in samples.iter().zip(&back) {
             assert!(a == b || (a.is_nan() && b.is_nan()), "{a} came back as {b}");

@@ -23,7 +23,7 @@ import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import patchwork_client as pc
-from patchwork_client._proto import terrain_pb2
+from patchwork_client._proto import terrain_pb2, terrain_pb2_grpc
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
@@ -101,7 +101,7 @@ def run(address):
         require(info.backend == unary.backend and info.patches == unary.patches, f"{info} vs {unary.backend}")
         with grpc.insecure_channel(address) as plain:
             stub = terrain_pb2.TileRequest(uniform=cut, width=1800, height=1200)
-            n = sum(b.rows for b in pc.client.terrain_pb2_grpc.TerrainStub(plain).TileBands(stub, timeout=60))
+            n = sum(b.rows for b in terrain_pb2_grpc.TerrainStub(plain).TileBands(stub, timeout=60))
         require(n == 1200, f"the big tile came with {n} rows")
 
         # 3. Heights at points are the tile's at its pixel centres.

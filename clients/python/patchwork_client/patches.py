@@ -160,14 +160,15 @@ def _bilinear(s: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     z = cell(c, r, fx, fy)
     left, up = (fx == 0) & (c > 0), (fy == 0) & (r > 0)
     right, down = (fx == 1) & (c + 2 < cols), (fy == 1) & (r + 2 < rows)
+    # Which neighbour a point may look to along each axis: left wins over right, up over down.
+    beside_c = {0: True, -1: left, 1: right & ~left}
+    beside_r = {0: True, -1: up, 1: down & ~up}
     # The daemon's order: columns (this, then left or right), within them rows.
     for dc in (0, -1, 1):
         for dr in (0, -1, 1):
             if dc == 0 and dr == 0:
                 continue
-            use_c = {0: np.ones_like(left), -1: left, 1: right & ~left}[dc]
-            use_r = {0: np.ones_like(up), -1: up, 1: down & ~up}[dr]
-            todo = np.isnan(z) & use_c & use_r
+            todo = np.isnan(z) & beside_c[dc] & beside_r[dr]
             if not todo.any():
                 continue
             cc = np.clip(c + dc, 0, cols - 2)
