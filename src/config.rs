@@ -3,7 +3,8 @@
 
 use crate::index::lod::IndexConfig;
 use crate::model::mipmap::Filter;
-use crate::model::patch::PatchLayout;
+use crate::model::patch::{PatchKind, PatchLayout};
+use crate::model::survey::Recipe;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -180,9 +181,51 @@ pub struct Config {
     pub limits: Limits,
     pub storage: Storage,
     pub index: IndexConfig,
-    pub patches: PatchLayout,
+    pub patches: Patches,
     /// How a new store makes its surveys' coarser levels; an existing store keeps its own.
     pub mipmap: Filter,
+}
+
+/// The `[patches]` section: the layout every store keeps, and the kind of a new store.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Patches {
+    /// Kernel side in cells.
+    pub kernel: usize,
+    /// Extension zone around the kernel, in cells.
+    pub margin: usize,
+    /// What a new store's patches evaluate; an existing store keeps its own.
+    pub kind: PatchKind,
+}
+
+impl Default for Patches {
+    fn default() -> Self {
+        let l = PatchLayout::default();
+        Patches {
+            kernel: l.kernel,
+            margin: l.margin,
+            kind: PatchKind::default(),
+        }
+    }
+}
+
+impl Patches {
+    pub fn layout(&self) -> PatchLayout {
+        PatchLayout {
+            kernel: self.kernel,
+            margin: self.margin,
+        }
+    }
+}
+
+impl Config {
+    /// How a new store builds its surveys.
+    pub fn recipe(&self) -> Recipe {
+        Recipe {
+            mipmap: self.mipmap,
+            patches: self.patches.kind,
+        }
+    }
 }
 
 impl Default for Config {
@@ -206,7 +249,7 @@ impl Default for Config {
             limits: Limits::default(),
             storage: Storage::default(),
             index: IndexConfig::default(),
-            patches: PatchLayout::default(),
+            patches: Patches::default(),
             mipmap: Filter::default(),
         }
     }
@@ -338,6 +381,12 @@ impl Config {
             self.mipmap = Filter::from_name(&v).ok_or_else(|| ConfigError::Env {
                 var: "PATCHWORK_MIPMAP".into(),
                 message: format!("{v:?} is not a filter: use minimax, smooth or decimate"),
+            })?;
+        }
+        if let Some(v) = get("PATCHWORK_PATCHES") {
+            self.patches.kind = PatchKind::from_name(&v).ok_or_else(|| ConfigError::Env {
+                var: "PATCHWORK_PATCHES".into(),
+                message: format!("{v:?} is not a patch kind: use bilinear or bicubic"),
             })?;
         }
         if let Some(v) = get("PATCHWORK_ALLOW_EMULATED_GPU") {

@@ -249,7 +249,7 @@ impl Engine {
         };
         let opened = restore::open(
             &cfg.data_dir,
-            cfg.patches,
+            cfg.patches.layout(),
             cfg.index,
             store_options(&cfg, &guard),
         )?;
@@ -638,10 +638,10 @@ impl Engine {
             default_accuracy: self.cfg.accuracy_m,
             max_accuracy: self.cfg.index.max_error,
             store_crs: self.crs(),
-            // An existing store keeps the layout its tops were computed with, and the filter
+            // An existing store keeps the layout its tops were computed with, and the recipe
             // its surveys were built with.
             layout: catalog.layout,
-            mipmap: catalog.mipmap,
+            recipe: catalog.recipe,
             read_limits: ReadLimits {
                 roots: Some(roots),
                 ..ReadLimits::mb(self.cfg.limits.max_ingest_mb)
@@ -922,7 +922,7 @@ impl Engine {
             Err(e) => {
                 let opened = restore::open(
                     &self.dir,
-                    self.cfg.patches,
+                    self.cfg.patches.layout(),
                     self.cfg.index,
                     store_options(&self.cfg, &self.guard),
                 )?;
@@ -1185,7 +1185,7 @@ fn store_options(cfg: &Config, guard: &SpaceGuard) -> StoreOptions {
     StoreOptions {
         guard: guard.clone(),
         cache_bytes: cfg.cache_mb << 20,
-        mipmap: cfg.mipmap,
+        recipe: cfg.recipe(),
     }
 }
 

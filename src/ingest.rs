@@ -2,9 +2,8 @@
 
 use crate::config::{parse_epsg, DefaultAccuracy};
 use crate::model::accuracy::{AccuracySource, AccuracySpec};
-use crate::model::mipmap::Filter;
 use crate::model::patch::PatchLayout;
-use crate::model::survey::{Survey, SurveyError};
+use crate::model::survey::{Recipe, Survey, SurveyError};
 use crate::read::{open_untrusted, read_raster, OpenError, ReadError, ReadLimits, REFUSED_PATH};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -185,7 +184,7 @@ pub struct IngestSettings {
     /// The store's CRS, once it has one.
     pub store_crs: Option<u32>,
     pub layout: PatchLayout,
-    pub mipmap: Filter,
+    pub recipe: Recipe,
     pub read_limits: ReadLimits,
     /// Plausible heights, in metres: a file with a valid sample outside is refused.
     pub heights: (f64, f64),
@@ -295,7 +294,7 @@ pub fn prepare_with(
     let t1 = Instant::now();
     phase(Phase::Modelling);
     let grid = raster.into_grid()?;
-    let survey = Survey::build_with(grid, spec, Some(crs), s.layout, s.mipmap)?;
+    let survey = Survey::build_with(grid, spec, Some(crs), s.layout, s.recipe)?;
     if survey.accuracy >= s.max_accuracy {
         return Err(IngestError::BadAccuracy {
             value: survey.accuracy,
@@ -362,7 +361,7 @@ mod tests {
             max_accuracy: 10_000.0,
             store_crs: None,
             layout: PatchLayout::default(),
-            mipmap: Filter::default(),
+            recipe: Recipe::default(),
             read_limits: ReadLimits::mb(64),
             heights: (-12_000.0, 9_000.0),
         }

@@ -19,3 +19,19 @@ pub mod serve;
 pub mod store;
 pub mod terrain;
 pub mod watch;
+
+/// Helpers shared by the unit tests.
+#[cfg(test)]
+pub(crate) mod testing {
+    /// Uniform numbers in [0, 1) from a 64-bit LCG: reproducible, and enough for spreading
+    /// test points.
+    pub fn uniform(seed: u64) -> impl FnMut() -> f64 {
+        let mut state = seed;
+        move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+}

@@ -539,7 +539,7 @@ impl Terrain {
                         let level = p.level as usize;
                         let rect = ResolvedPatch::reads(p, &s.shapes[level]);
                         self.window(s, level, rect)
-                            .map(|w| ResolvedPatch::new(w, p, x.fallback))
+                            .map(|w| ResolvedPatch::new(w, p, s.kind, x.fallback))
                     }
                     PatchRef::Edge(e) => Ok(ResolvedPatch::edge(e, x.fallback)),
                 })

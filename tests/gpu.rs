@@ -222,6 +222,29 @@ fn gpu_matches_cpu_on_the_real_crops() {
 }
 
 #[test]
+fn gpu_matches_cpu_with_bicubic_patches() {
+    use patchwork::model::patch::PatchKind;
+    let Some(mut g) = gpu() else { return };
+    let cop = real_crop("copernicus_n34w119_crop.tif");
+    let surveys = vec![
+        real_survey_of(turned(&cop, 25.0), PatchKind::Bicubic),
+        real_survey_of(cop, PatchKind::Bicubic),
+        real_survey_of(real_crop("srtm_n44e005_voids_crop.tif"), PatchKind::Bicubic),
+    ];
+    let t = terrain_of(&surveys);
+    let mut worst = 0.0f64;
+    for s in &surveys {
+        let roi = s.levels[0].world_bounds();
+        for (e, size) in [(0.0, 256), (5.0, 200), (20.0, 128), (100.0, 64)] {
+            let grid = SampleGrid::uniform(&roi, size, size);
+            let what = format!("bicubic survey {} at e = {e}, {size}²", s.id);
+            worst = worst.max(compare(&mut g, &t, t.uniform(&roi, e), &grid, &what));
+        }
+    }
+    println!("bicubic crops: max |gpu − cpu| = {worst:.3e} m");
+}
+
+#[test]
 fn gpu_keeps_a_millimetre_near_nine_kilometres() {
     let Some(mut g) = gpu() else { return };
     // The Copernicus crop lifted so its peaks sit just under 9,000 m, where an f32 height

@@ -431,34 +431,58 @@ fn settings_of_an_existing_store_win() {
 }
 
 #[test]
-fn a_store_keeps_the_mipmap_filter_it_was_made_with() {
+fn a_store_keeps_the_recipe_it_was_made_with() {
     use patchwork::model::mipmap::Filter;
+    use patchwork::model::patch::PatchKind;
+    use patchwork::model::survey::Recipe;
     let tmp = tempfile::tempdir().unwrap();
     let dir = store_dir(&tmp);
-    let with = |mipmap| StoreOptions {
-        mipmap,
+    let with = |mipmap, patches| StoreOptions {
+        recipe: Recipe { mipmap, patches },
         ..StoreOptions::default()
     };
-    let opened = |mipmap| {
-        restore::open(&dir, LAYOUT, IndexConfig::default(), with(mipmap))
+    let opened = |mipmap, patches| {
+        restore::open(&dir, LAYOUT, IndexConfig::default(), with(mipmap, patches))
             .unwrap()
             .store
     };
-    assert_eq!(opened(Filter::Decimate).mipmap(), Filter::Decimate);
-    assert_eq!(opened(Filter::Minimax).mipmap(), Filter::Decimate);
+    let made = Recipe {
+        mipmap: Filter::Decimate,
+        patches: PatchKind::Bicubic,
+    };
+    assert_eq!(opened(Filter::Decimate, PatchKind::Bicubic).recipe(), made);
+    assert_eq!(opened(Filter::Minimax, PatchKind::Bilinear).recipe(), made);
 
-    // A store from before the choice holds smooth surveys, whatever a new store would get.
+    // A store from before the choices holds smooth, bilinear surveys, whatever a new store
+    // would get.
     let old = tmp.path().join("old");
-    let store = restore::open(&old, LAYOUT, IndexConfig::default(), with(Filter::Smooth))
-        .unwrap()
-        .store;
+    let store = restore::open(
+        &old,
+        LAYOUT,
+        IndexConfig::default(),
+        with(Filter::Smooth, PatchKind::Bilinear),
+    )
+    .unwrap()
+    .store;
     let mut t = Terrain::new(IndexConfig::default());
     ingest(&store, &mut t, &pair().0, "a");
     store.raw().remove("meta/mipmap").unwrap();
+    store.raw().remove("meta/patches").unwrap();
     drop(store);
     for _ in 0..2 {
-        let o = restore::open(&old, LAYOUT, IndexConfig::default(), with(Filter::Minimax));
-        assert_eq!(o.unwrap().store.mipmap(), Filter::Smooth);
+        let o = restore::open(
+            &old,
+            LAYOUT,
+            IndexConfig::default(),
+            with(Filter::Minimax, PatchKind::Bicubic),
+        );
+        assert_eq!(
+            o.unwrap().store.recipe(),
+            Recipe {
+                mipmap: Filter::Smooth,
+                patches: PatchKind::Bilinear
+            }
+        );
     }
 }
 

@@ -1,4 +1,4 @@
-//! The mipmap filters side by side: for each survey alone and each [`Filter`], the uniform
+//! The recipes side by side: for each survey alone and each [`Filter`] and [`PatchKind`], the uniform
 //! cut over the whole survey at every error, counted in patches and in samples shipped (the
 //! samples of the patches' windows) beside the survey's own valid samples, with the cut's and
 //! a tile's time and the tile's measured error.
@@ -11,8 +11,8 @@ use super::{errors, reference, timed};
 use crate::index::lod::IndexConfig;
 use crate::model::accuracy::AccuracySpec;
 use crate::model::mipmap::Filter;
-use crate::model::patch::PatchLayout;
-use crate::model::survey::Survey;
+use crate::model::patch::{PatchKind, PatchLayout};
+use crate::model::survey::{Recipe, Survey};
 use crate::resample::SampleGrid;
 use crate::terrain::{PatchRef, Terrain};
 use std::fmt::Write as _;
@@ -23,7 +23,7 @@ use std::time::Instant;
 #[derive(Clone, Debug)]
 pub struct VariantRow {
     pub dataset: String,
-    pub filter: Filter,
+    pub recipe: Recipe,
     pub error: f64,
     pub patches: usize,
     /// Patches from level 1 or coarser.
@@ -38,7 +38,32 @@ pub struct VariantRow {
     pub max_err: f64,
 }
 
-/// Every filter on every file, each file a terrain of its own.
+/// What is compared: every filter with bilinear patches, and bicubic patches on the smooth
+/// and the minimax mipmaps.
+pub const RECIPES: [Recipe; 5] = [
+    Recipe {
+        mipmap: Filter::Smooth,
+        patches: PatchKind::Bilinear,
+    },
+    Recipe {
+        mipmap: Filter::Decimate,
+        patches: PatchKind::Bilinear,
+    },
+    Recipe {
+        mipmap: Filter::Minimax,
+        patches: PatchKind::Bilinear,
+    },
+    Recipe {
+        mipmap: Filter::Smooth,
+        patches: PatchKind::Bicubic,
+    },
+    Recipe {
+        mipmap: Filter::Minimax,
+        patches: PatchKind::Bicubic,
+    },
+];
+
+/// Every recipe on every file, each file a terrain of its own.
 pub fn run(
     files: &[std::path::PathBuf],
     errors_used: &[f64],
@@ -54,14 +79,14 @@ pub fn run(
         let crs = raster.epsg;
         let grid = raster.into_grid()?;
         let raw = grid.valid_count();
-        for filter in Filter::ALL {
+        for recipe in RECIPES {
             let t0 = Instant::now();
             let s = Survey::build_with(
                 grid.clone(),
                 AccuracySpec::Fixed(0.0),
                 crs,
                 PatchLayout::default(),
-                filter,
+                recipe,
             )?;
             let build_s = t0.elapsed().as_secs_f64();
             let bounds = s.levels[0].world_bounds();
@@ -87,14 +112,15 @@ pub fn run(
                     .into_iter()
                     .fold(0.0, f64::max);
                 println!(
-                    "{name} {:>8} e = {e:>5} m: {} patches ({coarse} coarse), {samples} samples ({:.2}× raw), query {query_ms:.2} ms, max error {max_err:.2} m",
-                    filter.name(),
+                    "{name} {:>8} {:>8} e = {e:>5} m: {} patches ({coarse} coarse), {samples} samples ({:.2}× raw), query {query_ms:.2} ms, max error {max_err:.2} m",
+                    recipe.mipmap.name(),
+                    recipe.patches.name(),
                     ps.len(),
                     samples as f64 / raw as f64
                 );
                 rows.push(VariantRow {
                     dataset: name.clone(),
-                    filter,
+                    recipe,
                     error: e,
                     patches: ps.len(),
                     coarse,
@@ -113,14 +139,15 @@ pub fn run(
 
 pub fn write_csv(out: &Path, rows: &[VariantRow]) -> std::io::Result<()> {
     let mut s = String::from(
-        "dataset,filter,error_m,patches,coarse_patches,samples,raw_samples,build_s,query_ms,resample_ms,max_error_m\n",
+        "dataset,filter,kind,error_m,patches,coarse_patches,samples,raw_samples,build_s,query_ms,resample_ms,max_error_m\n",
     );
     for r in rows {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{:.3},{:.3},{:.2},{:.4}",
+            "{},{},{},{},{},{},{},{},{:.3},{:.3},{:.2},{:.4}",
             r.dataset,
-            r.filter.name(),
+            r.recipe.mipmap.name(),
+            r.recipe.patches.name(),
             r.error,
             r.patches,
             r.coarse,

@@ -243,13 +243,7 @@ mod tests {
     fn coverage_never_claims_points_that_are_uncovered() {
         // Random rotated configurations: whenever coverage is claimed, dense point samples
         // of the target must all lie in some rectangle.
-        let mut seed = 12345u64;
-        let mut rnd = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = crate::testing::uniform(12345);
         let t = r(0.0, 0.0, 1.0, 1.0);
         let mut claimed = 0;
         for _ in 0..300 {

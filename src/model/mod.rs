@@ -8,4 +8,5 @@ pub mod lattice;
 pub mod mipmap;
 pub mod patch;
 pub mod source;
+pub mod spline;
 pub mod survey;

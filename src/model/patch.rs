@@ -4,6 +4,7 @@
 use super::accuracy::KernelAccuracy;
 use super::grid::Grid;
 use super::ids::{PatchId, SurveyId};
+use super::spline::{self, Spline};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -80,42 +81,70 @@ pub struct Patch {
     pub error: f64,
 }
 
-/// The function a patch evaluates and the blending weight that goes with it. Bilinear (C0)
-/// patches are the one kind today; bicubic (C2) ones plug in here.
-pub trait PatchFunction: Send + Sync {
+/// Which function the patches of a store evaluate. A store makes all its surveys' patches of
+/// one kind, chosen when it is made (`[patches] kind` in the config; `meta/patches` in the
+/// store).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PatchKind {
+    /// C0: bilinear on each cell, blended with the tent w(t) = 1 − |t|.
+    #[default]
+    Bilinear,
+    /// C2: the natural bicubic spline through the window's samples, blended with
+    /// w(t) = (1 − |t|)³(3|t| + 1).
+    Bicubic,
+}
+
+impl PatchKind {
+    pub const ALL: [PatchKind; 2] = [PatchKind::Bilinear, PatchKind::Bicubic];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PatchKind::Bilinear => "bilinear",
+            PatchKind::Bicubic => "bicubic",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<PatchKind> {
+        PatchKind::ALL.into_iter().find(|k| k.name() == name)
+    }
+
+    /// The function that makes and measures patches of this kind.
+    pub fn function(self) -> &'static dyn PatchFunction {
+        match self {
+            PatchKind::Bilinear => &Bilinear,
+            PatchKind::Bicubic => &Bicubic,
+        }
+    }
+
     /// The 1-D blending weight on t ∈ [−1, 1], zero at ±1.
-    fn weight(&self, t: f64) -> f64;
+    #[inline]
+    pub fn weight(self, t: f64) -> f64 {
+        let a = t.abs().min(1.0);
+        let w = 1.0 - a;
+        match self {
+            PatchKind::Bilinear => w,
+            PatchKind::Bicubic => w * w * w * (3.0 * a + 1.0),
+        }
+    }
+}
+
+/// The function a patch evaluates, and its δ: the largest distance from the *reference
+/// surface*, the bilinear surface of the survey's level-0 samples on its valid cells (the
+/// surface GDAL interpolates and edge patches continue), anywhere in the patch's window where
+/// the patch is evaluated.
+pub trait PatchFunction: Send + Sync {
+    fn kind(&self) -> PatchKind;
     /// The patch's height at fractional level-grid coordinates inside its window, or None on void.
     fn eval(&self, level: &Grid, window: &CellRect, g: [f64; 2]) -> Option<f64>;
-    /// The largest |patch − level 0| over the window where both are defined. It must be the
-    /// largest of the window's cells' own figures: [`make_patches`] computes each cell's once
-    /// and takes the largest over a window, since windows overlap.
+    /// The largest |patch − reference| over the window's valid cells, or a bound on it.
     fn max_deviation(&self, levels: &[Arc<Grid>], level: usize, window: &CellRect) -> f64;
 
-    /// [`PatchFunction::max_deviation`] of every cell of every level: for each level, its
-    /// cells row-major (none for level 0).
-    fn cell_deviations(&self, levels: &[Arc<Grid>]) -> Vec<Vec<f64>> {
-        (0..levels.len())
-            .map(|level| {
-                if level == 0 {
-                    return Vec::new();
-                }
-                let [cw, ch] = levels[level].cells();
-                (0..ch as u32)
-                    .into_par_iter()
-                    .flat_map_iter(|r| {
-                        (0..cw as u32).map(move |c| {
-                            let cell = CellRect {
-                                c0: c,
-                                r0: r,
-                                c1: c + 1,
-                                r1: r + 1,
-                            };
-                            self.max_deviation(levels, level, &cell)
-                        })
-                    })
-                    .collect()
-            })
+    /// [`PatchFunction::max_deviation`] of many windows, as `(level, window)`.
+    fn deviations(&self, levels: &[Arc<Grid>], windows: &[(usize, CellRect)]) -> Vec<f64> {
+        windows
+            .par_iter()
+            .map(|(lv, w)| self.max_deviation(levels, *lv, w))
             .collect()
     }
 }
@@ -125,9 +154,8 @@ pub trait PatchFunction: Send + Sync {
 pub struct Bilinear;
 
 impl PatchFunction for Bilinear {
-    #[inline]
-    fn weight(&self, t: f64) -> f64 {
-        (1.0 - t.abs()).max(0.0)
+    fn kind(&self) -> PatchKind {
+        PatchKind::Bilinear
     }
 
     #[inline]
@@ -182,13 +210,38 @@ impl PatchFunction for Bilinear {
         worst
     }
 
+    /// A window's δ is the largest of its cells' own figures, and the windows of a level
+    /// overlap by their extension zones: each cell's is computed once, by
+    /// [`Bilinear::cell_deviations`].
+    fn deviations(&self, levels: &[Arc<Grid>], windows: &[(usize, CellRect)]) -> Vec<f64> {
+        let devs = self.cell_deviations(levels);
+        windows
+            .par_iter()
+            .map(|&(lv, w)| {
+                if lv == 0 {
+                    return 0.0;
+                }
+                let cw = levels[lv].cells()[0];
+                let d = &devs[lv];
+                (w.r0 as usize..w.r1 as usize)
+                    .flat_map(|r| d[r * cw + w.c0 as usize..r * cw + w.c1 as usize].iter())
+                    .fold(0.0f64, |a, &b| a.max(b))
+            })
+            .collect()
+    }
+}
+
+impl Bilinear {
+    /// [`Bilinear::max_deviation`] of every single cell of every level: for each level, its
+    /// cells row-major (none for level 0).
+    ///
     /// All levels in one pass over level 0, a band of its rows to a task: each fine row is
     /// read once, while it is in cache, for every level, instead of once per level from
     /// memory; and the coarsest levels, a few cell rows each, no longer leave a core idle.
     /// Each (cell, fine row) pair is evaluated once, by [`row_deviation`] as in
     /// [`Bilinear::max_deviation`], and maxima do not depend on the order they are taken in:
     /// the result is that function's to the bit (tested).
-    fn cell_deviations(&self, levels: &[Arc<Grid>]) -> Vec<Vec<f64>> {
+    pub fn cell_deviations(&self, levels: &[Arc<Grid>]) -> Vec<Vec<f64>> {
         const BAND: usize = 64;
         let fine = &levels[0];
         let bands: Vec<Vec<(usize, Vec<f64>)>> = (0..fine.rows.div_ceil(BAND))
@@ -218,6 +271,161 @@ impl PatchFunction for Bilinear {
         }
         out
     }
+}
+
+/// C2 patches (§4.1): the natural bicubic spline through the window's samples (see
+/// [`crate::model::spline`]), evaluated on the window's valid cells.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Bicubic;
+
+impl Bicubic {
+    /// The patch's spline: fitted to its window's samples, `at(c, r)` in level coordinates;
+    /// the spline's coordinates are relative to the window's first sample.
+    pub fn spline_of(window: &CellRect, at: impl Fn(usize, usize) -> f32) -> Spline {
+        let (c0, r0) = (window.c0 as usize, window.r0 as usize);
+        Spline::fit(
+            window.cols() as usize + 1,
+            window.rows() as usize + 1,
+            |c, r| at(c0 + c, r0 + r),
+        )
+    }
+
+    fn spline(level: &Grid, window: &CellRect) -> Spline {
+        Self::spline_of(window, |c, r| level.at(c, r))
+    }
+}
+
+impl PatchFunction for Bicubic {
+    fn kind(&self) -> PatchKind {
+        PatchKind::Bicubic
+    }
+
+    /// Where the bilinear patch is defined (the same validity), the spline's height.
+    fn eval(&self, level: &Grid, window: &CellRect, g: [f64; 2]) -> Option<f64> {
+        Bilinear.eval(level, window, g)?;
+        let s = Self::spline(level, window);
+        Some(s.eval([g[0] - window.c0 as f64, g[1] - window.r0 as f64]))
+    }
+
+    /// A guaranteed bound, not a sample: on each level-0 cell under a valid cell of the window,
+    /// both the spline and the reference are polynomials of degree 3 in each direction (the
+    /// reference bilinear, degree-elevated), so their difference is one too, and lies within
+    /// the range of its Bernstein coefficients. Those are the difference of the spline's
+    /// Bézier net, subdivided down to the level-0 cell, and the reference's net. Where that
+    /// range is well above the largest deviation already found, [`net_bound`] halves the cell
+    /// until it is not: the bound is within 1% + 1 mm of the true maximum.
+    fn max_deviation(&self, levels: &[Arc<Grid>], level: usize, window: &CellRect) -> f64 {
+        let coarse = &levels[level];
+        let fine = &levels[0];
+        let spline = Self::spline(coarse, window);
+        let f = 1usize << level;
+        let subs = spline::subdivision(f);
+        let third = [0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0];
+        let mut worst = 0.0f64;
+        // The largest deviation met exactly so far (at cell corners): cells whose bound is
+        // not above it need no refining.
+        let mut lower = 0.0f64;
+        let mut diff = [[0.0f64; 4]; 4];
+        // The net subdivided across, for each fine column of the cell: [k][row][m].
+        let mut across = vec![[[0.0f64; 4]; 4]; f];
+        for r in window.r0 as usize..window.r1 as usize {
+            for c in window.c0 as usize..window.c1 as usize {
+                if !coarse.cell_valid(c, r) {
+                    continue;
+                }
+                let net = spline.bezier(c - window.c0 as usize, r - window.r0 as usize);
+                for (k, sub) in subs.iter().enumerate() {
+                    for (y, row) in net.iter().enumerate() {
+                        for m in 0..4 {
+                            across[k][y][m] = (0..4).map(|x| sub[m][x] * row[x]).sum();
+                        }
+                    }
+                }
+                for (l, sub_y) in subs.iter().enumerate() {
+                    let j = r * f + l;
+                    if j + 1 >= fine.rows {
+                        break;
+                    }
+                    for (k, a) in across.iter().enumerate() {
+                        let i = c * f + k;
+                        if i + 1 >= fine.cols {
+                            break;
+                        }
+                        let z00 = fine.at(i, j) as f64;
+                        let z10 = fine.at(i + 1, j) as f64;
+                        let z01 = fine.at(i, j + 1) as f64;
+                        let z11 = fine.at(i + 1, j + 1) as f64;
+                        for n in 0..4 {
+                            let y = third[n];
+                            let left = z00 + (z01 - z00) * y;
+                            let right = z10 + (z11 - z10) * y;
+                            for m in 0..4 {
+                                let q: f64 = (0..4).map(|yy| sub_y[n][yy] * a[yy][m]).sum();
+                                diff[n][m] = q - (left + (right - left) * third[m]);
+                            }
+                        }
+                        worst = worst.max(net_bound(&diff, &mut lower, REFINE_DEPTH));
+                    }
+                }
+            }
+        }
+        worst
+    }
+}
+
+/// How many times [`net_bound`] may halve a cell: 4⁻⁸ of a cell is far below any survey's
+/// resolution, and the bound's excess shrinks fourfold each time.
+const REFINE_DEPTH: u32 = 8;
+
+/// An upper bound on |p| over the unit square, for the bicubic polynomial p with Bernstein
+/// coefficients `net`, tight to 1% + 1 mm of the larger of its true maximum and `lower`.
+/// `lower` is raised to every exact value met (the corners): a part whose coefficients do not
+/// rise above it cannot hold the maximum, and is not refined.
+fn net_bound(net: &[[f64; 4]; 4], lower: &mut f64, depth: u32) -> f64 {
+    let corners = net[0][0]
+        .abs()
+        .max(net[0][3].abs())
+        .max(net[3][0].abs().max(net[3][3].abs()));
+    // A void corner (which erosion rules out) gives NaN, which never wins a comparison.
+    if corners > *lower {
+        *lower = corners;
+    }
+    let hull = net.iter().flatten().fold(0.0f64, |a, &b| a.max(b.abs()));
+    if hull.is_nan() || depth == 0 || hull <= *lower * 1.01 + 1e-3 {
+        return if hull.is_nan() { 0.0 } else { hull };
+    }
+    let halves = |p: [f64; 4]| -> ([f64; 4], [f64; 4]) {
+        let a = [
+            (p[0] + p[1]) / 2.0,
+            (p[1] + p[2]) / 2.0,
+            (p[2] + p[3]) / 2.0,
+        ];
+        let b = [(a[0] + a[1]) / 2.0, (a[1] + a[2]) / 2.0];
+        let mid = (b[0] + b[1]) / 2.0;
+        ([p[0], a[0], b[0], mid], [mid, b[1], a[2], p[3]])
+    };
+    // Split each row across, then each column of each half down.
+    let mut across = [[[0.0f64; 4]; 4]; 2];
+    for (n, row) in net.iter().enumerate() {
+        let (l, r) = halves(*row);
+        across[0][n] = l;
+        across[1][n] = r;
+    }
+    let mut worst = 0.0f64;
+    for half in &across {
+        let mut quarters = [[[0.0f64; 4]; 4]; 2];
+        for m in 0..4 {
+            let (top, bottom) = halves([half[0][m], half[1][m], half[2][m], half[3][m]]);
+            for n in 0..4 {
+                quarters[0][n][m] = top[n];
+                quarters[1][n][m] = bottom[n];
+            }
+        }
+        for q in &quarters {
+            worst = worst.max(net_bound(q, lower, depth - 1));
+        }
+    }
+    worst
 }
 
 /// One row of coarse cells, for [`band_deviations`]: each cell's left corners and their
@@ -479,16 +687,6 @@ pub fn make_patches(
             }
         })
         .collect();
-    // Each coarse cell's deviation once: a window's is the largest over its cells, and the
-    // windows of a level overlap by their extension zones.
-    let devs = func.cell_deviations(levels);
-    let window_deviation = |lv: usize, w: &CellRect| -> f64 {
-        let cw = levels[lv].cells()[0];
-        let d = &devs[lv];
-        (w.r0 as usize..w.r1 as usize)
-            .flat_map(|r| d[r * cw + w.c0 as usize..r * cw + w.c1 as usize].iter())
-            .fold(0.0f64, |a, &b| a.max(b))
-    };
     let mut slots = Vec::new();
     for (lv, t) in tilings.iter().enumerate() {
         let [nx, ny] = t.counts();
@@ -498,7 +696,7 @@ pub fn make_patches(
             }
         }
     }
-    slots
+    let mut patches: Vec<Patch> = slots
         .into_par_iter()
         .filter_map(|(lv, pi, pj)| {
             let g = &levels[lv];
@@ -512,21 +710,9 @@ pub fn make_patches(
                 return None;
             }
             let window = t.window(&kernel, m);
-            let delta = if lv == 0 {
-                0.0
-            } else {
-                window_deviation(lv, &window)
-            };
-            // Rounding δ up by a few ulps keeps the bound a bound after f32 storage downstream.
-            let delta = if delta > 0.0 {
-                delta * (1.0 + 1e-9) + 1e-6
-            } else {
-                0.0
-            };
-            // A level-0 patch is the survey's own surface everywhere in its window, so its
-            // kernel's ε is its error: in its extension zone it blends with patches of the
-            // same surface. A coarser one departs from that surface, and answers for the
-            // ground under its whole window.
+            // A level-0 patch's error starts from its kernel's ε: in its extension zone it
+            // blends with patches of the same samples. A coarser one departs from those
+            // samples, and answers for the ground under its whole window.
             let eps = if lv == 0 {
                 accuracy.at([pi, pj])
             } else {
@@ -551,11 +737,25 @@ pub fn make_patches(
                 centre: t.centre([pi, pj]),
                 half: [half, half],
                 valid,
-                delta,
-                error: eps + delta,
+                delta: 0.0,
+                error: eps,
             })
         })
-        .collect()
+        .collect();
+    let windows: Vec<(usize, CellRect)> = patches
+        .iter()
+        .map(|p| (p.level as usize, p.window))
+        .collect();
+    for (p, delta) in patches.iter_mut().zip(func.deviations(levels, &windows)) {
+        // Rounding δ up by a few ulps keeps the bound a bound after f32 storage downstream.
+        p.delta = if delta > 0.0 {
+            delta * (1.0 + 1e-9) + 1e-6
+        } else {
+            0.0
+        };
+        p.error += p.delta;
+    }
+    patches
 }
 
 #[cfg(test)]
@@ -687,6 +887,67 @@ mod tests {
                         );
                     }
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn the_bicubic_bound_holds_everywhere_and_is_near_tight() {
+        // Rough heights with voids and a cliff, so that the spline overshoots.
+        let g = grid(120, 100, |c, r| {
+            let h = (c * 7919 + r * 104_729) % 1009;
+            if (40..44).contains(&c) && (30..37).contains(&r) {
+                f32::NAN
+            } else {
+                (h as f32 * 0.37).sin() * 20.0 + if c > 70 { 300.0 } else { 0.0 }
+            }
+        });
+        let levels = mipmap::build(g.clone(), 8);
+        let mut next = crate::testing::uniform(99);
+        for lv in 0..levels.len().min(3) {
+            let coarse = &levels[lv];
+            let f = (1usize << lv) as f64;
+            let [cw, ch] = coarse.cells();
+            for (c0, r0) in [(0u32, 0u32), (3, 5), (cw as u32 / 2, ch as u32 / 3)] {
+                let w = CellRect {
+                    c0,
+                    r0,
+                    c1: (c0 + 12).min(cw as u32),
+                    r1: (r0 + 12).min(ch as u32),
+                };
+                let bound = Bicubic.max_deviation(&levels, lv, &w);
+                let spline = Bicubic::spline(coarse, &w);
+                let mut seen = 0.0f64;
+                // Random points, and every level-0 sample, where a maximum often lies.
+                let fine_steps =
+                    (w.cols() as usize * (1 << lv) + 1) * (w.rows() as usize * (1 << lv) + 1);
+                for k in 0..4000 + fine_steps {
+                    let (gx, gy) = if k < 4000 {
+                        (
+                            w.c0 as f64 + next() * w.cols() as f64,
+                            w.r0 as f64 + next() * w.rows() as f64,
+                        )
+                    } else {
+                        let i = k - 4000;
+                        let across = w.cols() as usize * (1 << lv) + 1;
+                        (
+                            w.c0 as f64 + (i % across) as f64 / f,
+                            w.r0 as f64 + (i / across) as f64 / f,
+                        )
+                    };
+                    let (cx, cy) = (
+                        (gx as usize).min(w.c1 as usize - 1),
+                        (gy as usize).min(w.r1 as usize - 1),
+                    );
+                    if !coarse.cell_valid(cx, cy) {
+                        continue;
+                    }
+                    let z = spline.eval([gx - w.c0 as f64, gy - w.r0 as f64]);
+                    let reference = g.bilinear_grid([gx * f, gy * f]).unwrap();
+                    seen = seen.max((z - reference).abs());
+                }
+                assert!(seen <= bound + 1e-9, "level {lv}: {seen} > {bound}");
+                assert!(seen >= 0.9 * bound - 2e-3, "level {lv}: {seen} ≪ {bound}");
             }
         }
     }

@@ -7,7 +7,7 @@ use super::ids::{hash64, SurveyId};
 use super::lattice::Lattice;
 use super::mipmap;
 use super::mipmap::Filter;
-use super::patch::{make_patches, Bilinear, Patch, PatchLayout, Tiling};
+use super::patch::{make_patches, Patch, PatchKind, PatchLayout, Tiling};
 use crate::index::lod::PatchBox;
 use std::sync::Arc;
 use thiserror::Error;
@@ -22,6 +22,14 @@ pub enum SurveyError {
     BadLayout(usize),
 }
 
+/// How a store makes its surveys' coarser levels and their patches: chosen when the store is
+/// made, and the same for every survey in it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Recipe {
+    pub mipmap: Filter,
+    pub patches: PatchKind,
+}
+
 /// What the index keeps of a survey: everything but its samples, which the store serves from
 /// disk when a patch is read.
 #[derive(Clone, Debug)]
@@ -33,6 +41,8 @@ pub struct SurveyMeta {
     /// EPSG code of the survey's horizontal CRS, where known.
     pub crs: Option<u32>,
     pub layout: PatchLayout,
+    /// The function its patches evaluate.
+    pub kind: PatchKind,
     /// How level 0 is cut into kernels.
     pub tiling: Tiling,
     /// ε of every level-0 kernel.
@@ -154,17 +164,17 @@ impl Survey {
         crs: Option<u32>,
         layout: PatchLayout,
     ) -> Result<Survey, SurveyError> {
-        Self::build_with(grid, spec, crs, layout, Filter::default())
+        Self::build_with(grid, spec, crs, layout, Recipe::default())
     }
 
-    /// [`Survey::build`] with the mipmap made by `filter`. A store builds all its surveys with
-    /// one filter, chosen when it was made.
+    /// [`Survey::build`] with the mipmap and patches `recipe` says. A store builds all its
+    /// surveys with one recipe, chosen when it was made.
     pub fn build_with(
         grid: Grid,
         spec: impl Into<AccuracySpec>,
         crs: Option<u32>,
         layout: PatchLayout,
-        filter: Filter,
+        recipe: Recipe,
     ) -> Result<Survey, SurveyError> {
         let spec = spec.into();
         if let AccuracySpec::Fixed(a) = spec {
@@ -184,13 +194,15 @@ impl Survey {
             AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
             AccuracySpec::Auto => accuracy::estimate(&grid, &tiling, layout.margin as u32).kernels,
         };
-        let levels = mipmap::build_with(Arc::new(grid), layout.kernel, filter);
-        let patches = make_patches(id, &kernel_accuracy, &levels, &tiling, &layout, &Bilinear);
+        let levels = mipmap::build_with(Arc::new(grid), layout.kernel, recipe.mipmap);
+        let func = recipe.patches.function();
+        let patches = make_patches(id, &kernel_accuracy, &levels, &tiling, &layout, func);
         Ok(Self::restore(
             id,
             spec,
             crs,
             layout,
+            recipe.patches,
             tiling,
             kernel_accuracy,
             levels,
@@ -205,6 +217,7 @@ impl Survey {
         spec: AccuracySpec,
         crs: Option<u32>,
         layout: PatchLayout,
+        kind: PatchKind,
         tiling: Tiling,
         kernel_accuracy: KernelAccuracy,
         levels: Vec<Arc<Grid>>,
@@ -219,6 +232,7 @@ impl Survey {
                 spec,
                 crs,
                 layout,
+                kind,
                 tiling,
                 kernel_accuracy,
                 shapes: levels.iter().map(|g| g.shape()).collect(),

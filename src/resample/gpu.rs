@@ -65,9 +65,10 @@ use wgpu::util::DeviceExt;
 /// Samples are void at or above this, both in the arena and as a point's x.
 const VOID: f32 = f32::MAX;
 
-/// The patch kinds the shader evaluates; bicubic (C2) patches get the next number.
+/// The patch kinds the shader evaluates.
 pub const KIND_BILINEAR: u32 = 0;
 pub const KIND_EDGE: u32 = 1;
+pub const KIND_BICUBIC: u32 = 2;
 
 /// `PATCH_FALLBACK` in the shader.
 const PATCH_FALLBACK: u32 = 1;
@@ -712,11 +713,13 @@ struct Extent {
 }
 
 impl Extent {
-    /// f32 slots in the arena: edge patches add a flag word per sample.
+    /// f32 slots in the arena: edge patches add a flag word per sample, bicubic ones their
+    /// spline's coefficients.
     fn len(&self, p: &ResolvedPatch) -> u64 {
         let n = self.cols as u64 * self.rows as u64;
-        match p.surface {
+        match &p.surface {
             Surface::Bilinear(_) => n,
+            Surface::Bicubic(_, s) => n + s.coef.len() as u64,
             Surface::Edge(_) => 2 * n,
         }
     }
@@ -745,13 +748,15 @@ fn extent(p: &ResolvedPatch) -> Extent {
     }
 }
 
-/// Appends a patch's samples relative to its base, voids as [`VOID`], and an edge patch's
-/// flags after them.
+/// Appends a patch's samples relative to its base, voids as [`VOID`], and after them an edge
+/// patch's flags or a bicubic patch's spline coefficients (relative to the same base).
 fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     let e = extent(p);
     // Where the surface's samples start in its level: a window of a level may begin inside it.
     let (heights, cols, flags, at): (&[f32], usize, Option<&[u8]>, [usize; 2]) = match &p.surface {
-        Surface::Bilinear(w) => (&w.grid.samples, w.grid.cols, None, [w.c0, w.r0]),
+        Surface::Bilinear(w) | Surface::Bicubic(w, _) => {
+            (&w.grid.samples, w.grid.cols, None, [w.c0, w.r0])
+        }
         Surface::Edge(g) => (&g.heights, g.cols, Some(&g.flags), [0, 0]),
     };
     let rows = || (e.r0..e.r0 + e.rows).map(|r| r as usize - at[1]);
@@ -776,6 +781,9 @@ fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
                 (z as f64 - base as f64) as f32
             }
         }));
+    }
+    if let Surface::Bicubic(_, spline) = &p.surface {
+        data.extend(spline.coef.iter().map(|&c| (c - base as f64) as f32));
     }
     if let Some(flags) = flags {
         for r in rows() {
@@ -842,6 +850,7 @@ fn gpu_patch(p: &ResolvedPatch, a: &Uploaded, origin: [f64; 2], max_norm: f64) -
         rows: a.rows,
         kind: match p.surface {
             Surface::Bilinear(_) => KIND_BILINEAR,
+            Surface::Bicubic(..) => KIND_BICUBIC,
             Surface::Edge(_) => KIND_EDGE,
         },
         flat: p.flat as f32,

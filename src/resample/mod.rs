@@ -9,7 +9,8 @@ use crate::index::query::ViewQuery;
 use crate::model::edge::{EdgeGrid, EdgePatch};
 use crate::model::grid::{Georef, SampleRect, Shape, Window};
 use crate::model::ids::PatchId;
-use crate::model::patch::{CellRect, Patch};
+use crate::model::patch::{Bicubic, CellRect, Patch, PatchKind};
+use crate::model::spline::Spline;
 use std::sync::Arc;
 
 /// Where a tile is resampled: `Auto` takes the GPU when the daemon has one.
@@ -207,6 +208,9 @@ pub enum Surface {
     /// A mipmap level, bilinear on its valid cells, through a window that holds at least the
     /// patch's samples and one more ring where the level has it (see [`ResolvedPatch::reads`]).
     Bilinear(Window),
+    /// The same, evaluating the patch's spline (fitted to its window's samples) wherever the
+    /// bilinear surface is defined.
+    Bicubic(Window, Arc<Spline>),
     /// An edge patch's filled samples (see [`crate::model::edge`]).
     Edge(Arc<EdgeGrid>),
 }
@@ -214,7 +218,7 @@ pub enum Surface {
 impl Surface {
     pub fn georef(&self) -> &Georef {
         match self {
-            Surface::Bilinear(w) => &w.level.georef,
+            Surface::Bilinear(w) | Surface::Bicubic(w, _) => &w.level.georef,
             Surface::Edge(e) => &e.georef,
         }
     }
@@ -222,7 +226,7 @@ impl Surface {
     /// Cells along each axis.
     pub fn cells(&self) -> [usize; 2] {
         match self {
-            Surface::Bilinear(w) => w.level.cells(),
+            Surface::Bilinear(w) | Surface::Bicubic(w, _) => w.level.cells(),
             Surface::Edge(e) => [e.cols - 1, e.rows - 1],
         }
     }
@@ -326,17 +330,18 @@ impl ResolvedPatch {
         }
     }
 
-    /// A survey's patch on its level, read through a window holding [`Self::reads`].
-    pub fn new(level: Window, p: &Patch, fallback: bool) -> Self {
+    /// A survey's patch of `kind` on its level, read through a window holding
+    /// [`Self::reads`].
+    pub fn new(level: Window, p: &Patch, kind: PatchKind, fallback: bool) -> Self {
+        let surface = match kind {
+            PatchKind::Bilinear => Surface::Bilinear(level),
+            PatchKind::Bicubic => {
+                let spline = Bicubic::spline_of(&p.window, |c, r| level.at(c, r));
+                Surface::Bicubic(level, Arc::new(spline))
+            }
+        };
         Self::make(
-            p.id,
-            Surface::Bilinear(level),
-            p.kernel,
-            p.window,
-            p.centre,
-            p.half,
-            p.error,
-            fallback,
+            p.id, surface, p.kernel, p.window, p.centre, p.half, p.error, fallback,
         )
     }
 
@@ -358,6 +363,9 @@ impl ResolvedPatch {
     /// The 1-D blend weight at t ∈ (−1, 1).
     #[inline]
     fn weight(&self, t: f64) -> f64 {
+        if let Surface::Bicubic(..) = self.surface {
+            return PatchKind::Bicubic.weight(t);
+        }
         let w = 1.0 - t.abs();
         if self.flat > 0.0 {
             (w * self.flat).min(1.0)
@@ -472,6 +480,18 @@ impl ResolvedPatch {
                 }
                 Hit {
                     z: level.bilinear_grid(g)?,
+                    weight: 1.0,
+                    covered: self.kernel.contains_grid(g),
+                }
+            }
+            Surface::Bicubic(level, spline) => {
+                if !self.window.contains_grid(g) {
+                    return None;
+                }
+                level.bilinear_grid(g)?;
+                let w = &self.window;
+                Hit {
+                    z: spline.eval([g[0] - w.c0 as f64, g[1] - w.r0 as f64]),
                     weight: 1.0,
                     covered: self.kernel.contains_grid(g),
                 }

@@ -14,6 +14,7 @@ const VOID: f32 = 3.0e38;
 
 const KIND_BILINEAR: u32 = 0u;
 const KIND_EDGE: u32 = 1u;
+const KIND_BICUBIC: u32 = 2u;
 
 // Edge patches store a flag word per sample after their heights, as a small whole number.
 const FLAG_VALID: u32 = 1u;
@@ -77,10 +78,14 @@ struct Patch {
 @group(0) @binding(6) var<storage, read_write> heights: array<vec2<f32>>;
 @group(0) @binding(7) var<storage, read_write> valid: array<u32>;
 
-// The 1-D blending weight on t in [-1, 1]: the tent, or for edge patches one flat on the
-// kernel (`ResolvedPatch::weight`).
+// The 1-D blending weight on t in [-1, 1]: the tent, (1 - |t|)^3 (3|t| + 1) for bicubic
+// patches, or for edge patches one flat on the kernel (`ResolvedPatch::weight`).
 fn weight(q: Patch, t: f32) -> f32 {
-    let w = max(1.0 - abs(t), 0.0);
+    let a = min(abs(t), 1.0);
+    let w = 1.0 - a;
+    if q.kind == KIND_BICUBIC {
+        return w * w * w * (3.0 * a + 1.0);
+    }
     if q.flat > 0.0 {
         return min(w * q.flat, 1.0);
     }
@@ -149,6 +154,38 @@ fn bilinear(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec2<f32> {
         }
     }
     return vec2<f32>(0.0, 0.0);
+}
+
+// `Spline::eval`: the bicubic patch's spline at the grid coordinates gh + gl. Its
+// coefficients follow the samples, (window columns + 3) per row, from the knot one before the
+// window's first sample.
+fn bicubic(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> f32 {
+    let w = q.window;
+    let n = vec2<u32>(w.zw - w.xy) + 1u;
+    let x = (gh - w.xy) + gl;
+    let cell = min(vec2<u32>(max(floor(x), vec2<f32>(0.0))), n - 2u);
+    let t = x - vec2<f32>(cell);
+    let s = 1.0 - t;
+    let t2 = t * t;
+    let t3 = t2 * t;
+    let b0 = s * s * s / 6.0;
+    let b1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0;
+    let b2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0;
+    let b3 = t3 / 6.0;
+    let bx = vec4<f32>(b0.x, b1.x, b2.x, b3.x);
+    let by = vec4<f32>(b0.y, b1.y, b2.y, b3.y);
+    let stride = n.x + 2u;
+    let first = q.offset + q.cols * q.rows + cell.y * stride + cell.x;
+    // Summed relative to a coefficient of the cell, so that the f32 rounding scales with how
+    // the surface varies near the point rather than with the patch's whole relief.
+    let near = samples[first + stride + 1u];
+    var z = 0.0;
+    for (var b = 0u; b < 4u; b++) {
+        let k = first + b * stride;
+        let row = vec4<f32>(samples[k], samples[k + 1u], samples[k + 2u], samples[k + 3u]);
+        z += by[b] * dot(row - near, bx);
+    }
+    return near + z;
 }
 
 fn flag(q: Patch, c: u32, r: u32) -> u32 {
@@ -262,6 +299,13 @@ fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
         case KIND_EDGE: {
             let e = edge(q, gh, gl);
             return vec4<f32>(e.x, e.y, select(0.0, 1.0, in_kernel(q, gh, gl)), e.w);
+        }
+        case KIND_BICUBIC: {
+            let z = bilinear(q, gh, gl);
+            if z.y == 0.0 {
+                return vec4<f32>(0.0);
+            }
+            return vec4<f32>(bicubic(q, gh, gl), 1.0, select(0.0, 1.0, in_kernel(q, gh, gl)), 1.0);
         }
         case KIND_BILINEAR, default: {
             let z = bilinear(q, gh, gl);

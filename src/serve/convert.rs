@@ -8,7 +8,7 @@ use crate::engine::{
 use crate::index::geom::Aabb;
 use crate::index::query::Extracted;
 use crate::model::grid::{Georef, SampleRect};
-use crate::model::patch::CellRect;
+use crate::model::patch::{CellRect, PatchKind};
 use crate::model::source::SampleError;
 use crate::store::Status;
 use crate::terrain::{PatchRef, Terrain, Tile};
@@ -103,7 +103,10 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                     .collect(),
                 samples,
                 flags: Vec::new(),
-                kind: pb::PatchKind::Bilinear,
+                kind: match s.kind {
+                    PatchKind::Bilinear => pb::PatchKind::Bilinear,
+                    PatchKind::Bicubic => pb::PatchKind::Bicubic,
+                },
             }
         }
         Some(PatchRef::Edge(e)) => Parts {

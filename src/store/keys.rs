@@ -11,6 +11,9 @@ pub const INDEX: &[u8] = b"meta/index";
 /// The name of the mipmap filter every survey of the store is built with; absent in stores
 /// made before there was a choice, whose surveys are all `smooth`.
 pub const MIPMAP: &[u8] = b"meta/mipmap";
+/// The name of the patch kind every survey of the store is made of; absent in stores made
+/// before there was a choice, whose patches are all `bilinear`.
+pub const PATCHES: &[u8] = b"meta/patches";
 /// `u64` LE: how many bytes of the chunk pack are committed (see [`super::pack`]).
 pub const PACK_LEN: &[u8] = b"meta/pack_len";
 /// Present when the index must be derived again from the surveys on the next open (a

@@ -10,6 +10,7 @@
 //! | `meta/crs` | `u32` LE: EPSG code of the store, set by the first survey that has one |
 //! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
 //! | `meta/mipmap` | the name of the mipmap [`Filter`] its surveys are built with, set when the store is made (absent: `smooth`, a store from before the choice) |
+//! | `meta/patches` | the name of the [`PatchKind`] its surveys' patches are, set when the store is made (absent: `bilinear`, a store from before the choice) |
 //! | `s/<survey>` | [`SurveyRecord`] (bincode) |
 //! | `p/<survey>` | where the survey's [`StoredPatches`] are in the pack: its patches and the edge tiles it reaches (bincode, sealed with [`chunks::seal`]) |
 //! | `a/<survey>` | the [`KernelAccuracy`] of a survey whose ε was estimated (bincode) |
@@ -55,8 +56,9 @@ use crate::model::edge::EdgePatch;
 use crate::model::grid::{Georef, Grid, Shape};
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::mipmap::Filter;
-use crate::model::patch::{Patch, PatchLayout, Tiling};
+use crate::model::patch::{Patch, PatchKind, PatchLayout, Tiling};
 use crate::model::source::SampleSource;
+use crate::model::survey::Recipe;
 use crate::model::survey::{Survey, SurveyMeta};
 use fs2::FileExt;
 use rayon::prelude::*;
@@ -83,8 +85,8 @@ pub struct StoreOptions {
     /// Bytes of decoded chunks kept in memory; sled's own page cache takes a quarter of it
     /// more (see [`StoreOptions::sled_cache_bytes`]).
     pub cache_bytes: u64,
-    /// The mipmap filter of a new store; an existing one keeps its own.
-    pub mipmap: Filter,
+    /// The mipmap filter and patch kind of a new store; an existing one keeps its own.
+    pub recipe: Recipe,
 }
 
 impl StoreOptions {
@@ -101,7 +103,7 @@ impl Default for StoreOptions {
         StoreOptions {
             guard: SpaceGuard::default(),
             cache_bytes: DEFAULT_CACHE_BYTES,
-            mipmap: Filter::default(),
+            recipe: Recipe::default(),
         }
     }
 }
@@ -312,7 +314,7 @@ pub struct Catalog {
     pub pins: HashMap<String, String>,
     pub crs: Option<u32>,
     pub layout: PatchLayout,
-    pub mipmap: Filter,
+    pub recipe: Recipe,
 }
 
 impl Catalog {
@@ -350,27 +352,93 @@ pub(crate) fn encode<T: Serialize>(v: &T) -> Result<Vec<u8>, StoreError> {
         .map_err(|e| StoreError::Encode(e.to_string()))
 }
 
-/// The store's mipmap filter: the recorded one, or for a store that has none, `smooth` when it
+/// A choice recorded in the store when it is made, under its own key, by name.
+pub(crate) trait Setting: Copy + PartialEq {
+    const KEY: &'static [u8];
+    /// What the choice is, for messages.
+    const WHAT: &'static str;
+    /// What a store made before the choice existed holds.
+    const LEGACY: Self;
+    fn name(self) -> &'static str;
+    fn from_name(name: &str) -> Option<Self>;
+}
+
+impl Setting for Filter {
+    const KEY: &'static [u8] = keys::MIPMAP;
+    const WHAT: &'static str = "mipmap filter";
+    const LEGACY: Self = Filter::Smooth;
+    fn name(self) -> &'static str {
+        Filter::name(self)
+    }
+    fn from_name(name: &str) -> Option<Self> {
+        Filter::from_name(name)
+    }
+}
+
+impl Setting for PatchKind {
+    const KEY: &'static [u8] = keys::PATCHES;
+    const WHAT: &'static str = "patch kind";
+    const LEGACY: Self = PatchKind::Bilinear;
+    fn name(self) -> &'static str {
+        PatchKind::name(self)
+    }
+    fn from_name(name: &str) -> Option<Self> {
+        PatchKind::from_name(name)
+    }
+}
+
+/// What is wrong with a recorded setting `v` in a store opened with `open`, if anything.
+pub(crate) fn setting_problem<T: Setting>(v: &[u8], open: T) -> Option<String> {
+    match T::from_name(&String::from_utf8_lossy(v)) {
+        Some(t) if t == open => None,
+        Some(t) => Some(format!(
+            "{} {} differs from the open store's",
+            T::WHAT,
+            t.name()
+        )),
+        None => Some(format!(
+            "{} names no {}",
+            String::from_utf8_lossy(T::KEY),
+            T::WHAT
+        )),
+    }
+}
+
+/// A store's setting: the recorded one, or for a store that has none, the legacy one when it
 /// already holds surveys (they were built before the choice) and `configured` when it is new,
 /// recorded then. On a disk too full to record it, it is used unrecorded: no survey can be
 /// written there either.
-fn mipmap_of(
+fn setting_of<T: Setting>(
     db: &sled::Db,
     dir: &Path,
     guard: &SpaceGuard,
-    configured: Filter,
-) -> Result<Filter, StoreError> {
-    if let Some(v) = db.get(keys::MIPMAP)? {
+    configured: T,
+) -> Result<T, StoreError> {
+    let key = String::from_utf8_lossy(T::KEY);
+    if let Some(v) = db.get(T::KEY)? {
         let name = String::from_utf8_lossy(&v);
-        return Filter::from_name(&name)
-            .ok_or_else(|| StoreError::Corrupt(format!("meta/mipmap names no filter: {name:?}")));
+        return T::from_name(&name)
+            .ok_or_else(|| StoreError::Corrupt(format!("{key} names no choice: {name:?}")));
     }
     let legacy = db.scan_prefix(keys::SURVEY_PREFIX).next().is_some();
-    let f = if legacy { Filter::Smooth } else { configured };
+    let v = if legacy { T::LEGACY } else { configured };
     if guard.check(dir, 64).is_ok() {
-        db.insert(keys::MIPMAP, f.name())?;
+        db.insert(T::KEY, v.name())?;
     }
-    Ok(f)
+    Ok(v)
+}
+
+/// The store's recipe, each part by [`setting_of`].
+fn recipe_of(
+    db: &sled::Db,
+    dir: &Path,
+    guard: &SpaceGuard,
+    configured: Recipe,
+) -> Result<Recipe, StoreError> {
+    Ok(Recipe {
+        mipmap: setting_of(db, dir, guard, configured.mipmap)?,
+        patches: setting_of(db, dir, guard, configured.patches)?,
+    })
 }
 
 pub(crate) fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, StoreError> {
@@ -511,7 +579,7 @@ pub struct Store {
     dir: PathBuf,
     layout: PatchLayout,
     index: IndexConfig,
-    mipmap: Filter,
+    recipe: Recipe,
     crs: RwLock<Option<u32>>,
     /// Commits read the store (CRS, records) before writing it; one at a time keeps the read
     /// and the batch consistent.
@@ -618,7 +686,7 @@ impl Store {
         };
         let layout: PatchLayout = decode(&get(keys::LAYOUT)?, "meta/layout")?;
         let index: IndexConfig = decode(&get(keys::INDEX)?, "meta/index")?;
-        let mipmap = mipmap_of(&db, &dir, &guard, opts.mipmap)?;
+        let recipe = recipe_of(&db, &dir, &guard, opts.recipe)?;
         let crs = db
             .get(keys::CRS)?
             .map(|v| decode_u32(&v, "meta/crs"))
@@ -638,7 +706,7 @@ impl Store {
             dir,
             layout,
             index,
-            mipmap,
+            recipe,
             crs: RwLock::new(crs),
             writer: Mutex::new(()),
             migrated,
@@ -666,9 +734,9 @@ impl Store {
         self.layout
     }
 
-    /// The mipmap filter every survey of this store is built with.
-    pub fn mipmap(&self) -> Filter {
-        self.mipmap
+    /// The mipmap filter and patch kind every survey of this store is built with.
+    pub fn recipe(&self) -> Recipe {
+        self.recipe
     }
 
     /// The index settings the stored tops were computed with.
@@ -860,6 +928,7 @@ impl Store {
             spec: r.spec(),
             crs: r.crs,
             layout: self.layout,
+            kind: self.recipe.patches,
             tiling,
             kernel_accuracy,
             shapes: r.levels.iter().map(LevelHeader::shape).collect(),
@@ -1245,7 +1314,7 @@ impl Store {
             pins: self.pins()?,
             crs: self.crs(),
             layout: self.layout,
-            mipmap: self.mipmap,
+            recipe: self.recipe,
         })
     }
 

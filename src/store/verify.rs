@@ -6,15 +6,14 @@
 use super::chunks::{chunk_counts, chunk_rect, decode as decode_chunk, read_chunk};
 use super::pack::ChunkStore;
 use super::{
-    decode, decode_state, decode_u32, keys, migrate, FailedRecord, Status, Store, StoreError,
-    StoredPatches, SurveyRecord,
+    decode, decode_state, decode_u32, keys, migrate, setting_problem, FailedRecord, Status, Store,
+    StoreError, StoredPatches, SurveyRecord,
 };
 use crate::index::lod::{BoxState, IndexConfig};
 use crate::model::accuracy::Deviation;
 use crate::model::edge::{self, EdgePatch};
 use crate::model::grid::Grid;
 use crate::model::ids::{PatchId, SurveyId};
-use crate::model::mipmap::Filter;
 use crate::model::patch::PatchLayout;
 use crate::model::survey::Survey;
 use std::collections::{BTreeMap, HashMap};
@@ -290,14 +289,8 @@ impl Store {
                 (l != self.layout).then(|| format!("layout {l:?} differs from the open store's"))
             }),
             keys::REBUILD => Ok(None),
-            keys::MIPMAP => Ok(match Filter::from_name(&String::from_utf8_lossy(v)) {
-                Some(f) if f == self.mipmap => None,
-                Some(f) => Some(format!(
-                    "mipmap filter {} differs from the open store's",
-                    f.name()
-                )),
-                None => Some(format!("{what} names no filter")),
-            }),
+            keys::MIPMAP => Ok(setting_problem(v, self.recipe.mipmap)),
+            keys::PATCHES => Ok(setting_problem(v, self.recipe.patches)),
             // Bytes past the committed length are a commit that did not happen (or has not
             // yet): an open cuts them. Fewer bytes than committed would be lost chunks.
             keys::PACK_LEN => match <[u8; 8]>::try_from(v) {

@@ -372,5 +372,14 @@ pub fn turned(grid: &Grid, degrees: f64) -> Grid {
 
 /// A real crop as a survey: exact (ε = 0), EPSG:4326, the default patch layout.
 pub fn real_survey(g: Grid) -> Arc<Survey> {
-    Arc::new(Survey::build(g, 0.0, Some(4326), PatchLayout::default()).unwrap())
+    real_survey_of(g, patchwork::model::patch::PatchKind::Bilinear)
+}
+
+/// [`real_survey`] with patches of `kind`.
+pub fn real_survey_of(g: Grid, kind: patchwork::model::patch::PatchKind) -> Arc<Survey> {
+    let recipe = patchwork::model::survey::Recipe {
+        patches: kind,
+        ..Default::default()
+    };
+    Arc::new(Survey::build_with(g, 0.0, Some(4326), PatchLayout::default(), recipe).unwrap())
 }
