@@ -1,7 +1,8 @@
 //! The Python client package (clients/python), installed as a user installs it into a virtual
 //! environment under the target folder, against a daemon: every Terrain call, `resample`
 //! against the daemon's tiles, a view session, and the README's example
-//! (tests/python/client.py). Its committed stubs must match the protos.
+//! (tests/python/client.py), and `resample` again in a store of bicubic patches. Its committed
+//! stubs must match the protos.
 
 mod common;
 
@@ -27,7 +28,26 @@ fn the_python_client_package_reproduces_the_daemon() {
     );
 
     let tmp = tempfile::tempdir().unwrap();
-    let d = Daemon::start(tmp.path());
+    let d = four_surveys(tmp.path(), Setup::default());
+    run_client(&python, &d, &[]);
+}
+
+#[test]
+fn the_python_client_resamples_bicubic_patches() {
+    let python = python();
+    let tmp = tempfile::tempdir().unwrap();
+    let setup = Setup {
+        env: vec![("PATCHWORK_PATCHES".into(), "bicubic".into())],
+        ..Setup::default()
+    };
+    let d = four_surveys(tmp.path(), setup);
+    run_client(&python, &d, &["--bicubic"]);
+}
+
+/// A daemon under `root` holding the Copernicus, NASADEM and SRTM voids crops, and a coarser
+/// copy of part of the first on a rotated lattice.
+fn four_surveys(root: &Path, setup: Setup) -> Daemon {
+    let d = Daemon::start_with(root, setup);
     for (name, as_name) in [
         ("copernicus_n34w119_crop.tif", "a.tif"),
         ("nasadem_n34w119_crop.tif", "b.tif"),
@@ -46,7 +66,7 @@ fn the_python_client_package_reproduces_the_daemon() {
     );
     rotated.georef.theta = 0.15;
     rotated.georef.origin[0] += 0.3 * rotated.georef.step[0];
-    let staged = tmp.path().join("rotated.tif");
+    let staged = root.join("rotated.tif");
     patchwork::read::write_tiff::write_geotiff_f32(
         &staged,
         rotated.cols,
@@ -59,11 +79,17 @@ fn the_python_client_package_reproduces_the_daemon() {
     .unwrap();
     drop_by_rename(&staged, &d.inbox(), "d.tif");
     d.wait("the four surveys to be active", |s| count(s, "active") == 4);
+    d
+}
 
-    let out = Command::new(&python)
+/// Runs tests/python/client.py against the daemon, with `args` after its address.
+fn run_client(python: &Path, d: &Daemon, args: &[&str]) {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = Command::new(python)
         .current_dir(repo)
         .arg("tests/python/client.py")
         .arg(format!("127.0.0.1:{}", d.port))
+        .args(args)
         .output()
         .expect("run python3 tests/python/client.py");
     let stdout = String::from_utf8_lossy(&out.stdout);

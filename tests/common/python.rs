@@ -7,8 +7,14 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// The environment's interpreter, with the requirements and the client package installed.
+/// The environment's interpreter, with the requirements and the client package installed:
+/// once per test binary, whose tests may ask for it at the same time.
 pub fn python() -> PathBuf {
+    static ONCE: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    ONCE.get_or_init(install).clone()
+}
+
+fn install() -> PathBuf {
     let bin = environment();
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
     // Built from a copy, since pip builds in the source folder and the working tree should not

@@ -63,6 +63,30 @@ def check_resample(c, roi, error, width, height):
     return patches, diff
 
 
+def resample_tiles(c):
+    """check_resample where two surveys meet (with fallback patches at e = 0 where the coarser
+    one alone has data), at voids and borders: the largest difference, the kinds of patch met,
+    the fallback patches and each kind's wire bytes."""
+    worst, kinds, fallback = 0.0, set(), 0
+    per_patch = {}
+    for roi, error in [(MEET, 0.0), (MEET, 5.0), (MEET, 20.0), (MEET, 100.0), (VOIDS, 0.0), (VOIDS, 20.0)]:
+        patches, diff = check_resample(c, roi, error, 300, 240)
+        worst = max(worst, diff)
+        kinds |= {p.kind for p in patches}
+        fallback += sum(p.fallback for p in patches)
+        for p in patches:
+            per_patch.setdefault(p.kind, []).append(p.wire_bytes)
+    return worst, kinds, fallback, per_patch
+
+
+def run_bicubic(address):
+    """In a store of bicubic patches, `resample` is the daemon's tile."""
+    with pc.Client(address) as c:
+        worst, kinds, fallback, _ = resample_tiles(c)
+        require(kinds == {"bicubic", "edge"}, f"the cuts hold only {kinds} patches")
+    print(f"ok: bicubic patches; resample within {worst * 1000:.3g} mm of the daemon on 6 tiles ({fallback} fallback patches)")
+
+
 def run(address):
     with grpc.insecure_channel(address) as ch:
         try:
@@ -77,17 +101,8 @@ def run(address):
         active = [s for s in surveys if s.status == "active"]
         require(len(active) == 4, f"want 4 active surveys, have {[(s.source, s.status) for s in surveys]}")
 
-        # 1. resample over streamed patches is the daemon's tile: where two surveys meet (with
-        # fallback patches at e = 0 where the coarser one alone has data), at voids and borders.
-        worst, kinds, fallback = 0.0, set(), 0
-        per_patch = {}
-        for roi, error in [(MEET, 0.0), (MEET, 5.0), (MEET, 20.0), (MEET, 100.0), (VOIDS, 0.0), (VOIDS, 20.0)]:
-            patches, diff = check_resample(c, roi, error, 300, 240)
-            worst = max(worst, diff)
-            kinds |= {p.kind for p in patches}
-            fallback += sum(p.fallback for p in patches)
-            for p in patches:
-                per_patch.setdefault(p.kind, []).append(p.wire_bytes)
+        # 1. resample over streamed patches is the daemon's tile.
+        worst, kinds, fallback, per_patch = resample_tiles(c)
         require(kinds == {"bilinear", "edge"}, f"the cuts hold only {kinds} patches")
         bytes_per_patch = {k: int(np.median(v)) for k, v in per_patch.items()}
 
@@ -151,11 +166,11 @@ def run(address):
 
 
 def main(argv):
-    if len(argv) != 2:
-        print(f"usage: {argv[0]} HOST:PORT", file=sys.stderr)
+    if len(argv) not in (2, 3) or argv[2:] not in ([], ["--bicubic"]):
+        print(f"usage: {argv[0]} HOST:PORT [--bicubic]", file=sys.stderr)
         return 2
     try:
-        run(argv[1])
+        (run_bicubic if argv[2:] else run)(argv[1])
     except Failure as e:
         print(f"FAIL: {e}", file=sys.stderr)
         return 1

@@ -37,7 +37,9 @@ class Patch:
     id: int
     survey: int
     level: int
-    #: "bilinear" (a window of one level of one survey) or "edge" (see the daemon's README).
+    #: "bilinear" (a window of one level of one survey), "bicubic" (the same in a store of C2
+    #: patches: the natural bicubic spline through the samples) or "edge" (see the daemon's
+    #: README).
     kind: str
     #: The patch serves errors in [error, max_error), metres.
     error: float
@@ -65,6 +67,8 @@ class Patch:
     fallback: bool
     #: The patch's size as a protobuf message, bytes.
     wire_bytes: int
+    #: Bicubic patches: the (rows + 2) × (cols + 2) B-spline coefficients of their spline.
+    coef: Optional[np.ndarray] = None
 
     @staticmethod
     def from_proto(p: "pb.Patch") -> "Patch":
@@ -83,7 +87,7 @@ class Patch:
             id=p.id,
             survey=p.survey,
             level=p.level,
-            kind="edge" if edge else "bilinear",
+            kind=_KINDS[p.kind],
             error=p.error,
             max_error=p.max_error,
             bounds=(p.bounds.xmin, p.bounds.ymin, p.bounds.xmax, p.bounds.ymax),
@@ -99,6 +103,7 @@ class Patch:
             flags=flags,
             fallback=p.fallback,
             wire_bytes=p.ByteSize(),
+            coef=_spline_fit(z.reshape(rows, cols)) if p.kind == pb.PATCH_KIND_BICUBIC else None,
         )
 
     def to_grid(self, x: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -117,6 +122,11 @@ class Patch:
         reach = (np.abs(tx) < 1) & (np.abs(ty) < 1) & (gx >= 0) & (gy >= 0) & (gx <= cols - 1) & (gy <= rows - 1)
         if self.kind == "edge":
             z, hit_weight = _edge_eval(self.samples, self.flags, gx, gy)
+        elif self.kind == "bicubic":
+            # Where the bilinear patch is defined (the same validity), the spline's height.
+            z = _bilinear(self.samples, gx, gy)
+            z = np.where(np.isnan(z), np.nan, _spline_eval(self.coef, gx, gy))
+            hit_weight = 1.0
         else:
             z, hit_weight = _bilinear(self.samples, gx, gy), 1.0
         reach &= ~np.isnan(z)
@@ -127,8 +137,77 @@ class Patch:
         return np.where(reach, w, 0.0), np.where(reach, z, np.nan), covered, reach
 
     def _weight(self, t: np.ndarray) -> np.ndarray:
-        w = 1.0 - np.abs(t)
+        a = np.minimum(np.abs(t), 1.0)
+        w = 1.0 - a
+        if self.kind == "bicubic":
+            return w**3 * (3.0 * a + 1.0)
         return np.minimum(w * self.flat, 1.0) if self.flat > 0 else w
+
+
+_KINDS = {
+    pb.PATCH_KIND_BILINEAR: "bilinear",
+    pb.PATCH_KIND_EDGE: "edge",
+    pb.PATCH_KIND_BICUBIC: "bicubic",
+}
+
+
+def _fill_voids(z: np.ndarray) -> np.ndarray:
+    """Void samples filled, ring by ring inwards, with the mean of their valid 4-neighbours."""
+    z = z.astype(np.float64)
+    while np.isnan(z).any():
+        p = np.pad(z, 1, constant_values=np.nan)
+        near = np.stack([p[1:-1, :-2], p[1:-1, 2:], p[:-2, 1:-1], p[2:, 1:-1]])
+        n = (~np.isnan(near)).sum(axis=0)
+        fill = np.isnan(z) & (n > 0)
+        if not fill.any():
+            return np.where(np.isnan(z), 0.0, z)
+        z = np.where(fill, np.nansum(near, axis=0) / np.maximum(n, 1), z)
+    return z
+
+
+def _fit_lines(z: np.ndarray) -> np.ndarray:
+    """The natural cubic spline through each column of z (n × k), as n + 2 B-spline
+    coefficients per column."""
+    n = z.shape[0]
+    c = np.empty((n + 2,) + z.shape[1:])
+    if n == 1:
+        c[:] = z[0]
+        return c
+    c[1:-1] = z
+    if n > 2:
+        m = n - 2
+        a = 4.0 * np.eye(m) + np.eye(m, k=1) + np.eye(m, k=-1)
+        rhs = 6.0 * z[1:-1]
+        rhs[0] -= z[0]
+        rhs[-1] -= z[-1]
+        c[2:-2] = np.linalg.solve(a, rhs)
+    c[0] = 2.0 * c[1] - c[2]
+    c[-1] = 2.0 * c[-2] - c[-3]
+    return c
+
+
+def _spline_fit(samples: np.ndarray) -> np.ndarray:
+    """The natural bicubic spline through a window's samples, voids filled for the fit: its
+    (rows + 2) × (cols + 2) B-spline coefficients, the daemon's `Spline::fit`."""
+    z = _fill_voids(samples)
+    return _fit_lines(_fit_lines(z.T).T)
+
+
+def _basis(t: np.ndarray) -> np.ndarray:
+    s = 1.0 - t
+    return np.stack([s**3 / 6.0, (3 * t**3 - 6 * t**2 + 4) / 6.0, (-3 * t**3 + 3 * t**2 + 3 * t + 1) / 6.0, t**3 / 6.0])
+
+
+def _spline_eval(coef: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    rows, cols = coef.shape[0] - 2, coef.shape[1] - 2
+    i = np.clip(np.floor(np.nan_to_num(gx)), 0, max(cols - 2, 0)).astype(np.int64)
+    j = np.clip(np.floor(np.nan_to_num(gy)), 0, max(rows - 2, 0)).astype(np.int64)
+    bx, by = _basis(gx - i), _basis(gy - j)
+    z = np.zeros(np.shape(gx))
+    for b in range(4):
+        for a in range(4):
+            z += by[b] * bx[a] * coef[np.minimum(j + b, rows + 1), np.minimum(i + a, cols + 1)]
+    return z
 
 
 def _snap(g: np.ndarray) -> np.ndarray:
