@@ -4,7 +4,7 @@ maximum error, on the same surveys.
 Usage: python3 bench/mesh_compare.py OUT_DIR
 
 Reads what `patchwork bench` wrote in OUT_DIR: the surveys it used (tiles/manifest.json) and
-variants.csv, each survey's uniform cut at every error for each mipmap filter, with the
+variants.csv, each survey's uniform cut at every error for each mipmap filter and patch kind, with the
 surveys taken as exact so that e is the largest deviation from the samples' surface. For each
 survey and error, martini and delatin triangulate the same samples within the same maximum
 error; their vertex counts go beside our samples shipped. Writes OUT_DIR/meshes.csv and the
@@ -109,14 +109,19 @@ def charts(out, datasets, rows, mesh_rows):
         fig, axes = plt.subplots(1, len(datasets), figsize=(5.5 * len(datasets), 4.5), squeeze=False)
         for ax, name in zip(axes[0], datasets):
             ours = [r for r in rows if r["dataset"] == name]
-            for flt in dict.fromkeys(r["filter"] for r in ours):
-                pts = [r for r in ours if r["filter"] == flt and float(r["error_m"]) > 0]
+            for flt, kind in dict.fromkeys((r["filter"], r["kind"]) for r in ours):
+                pts = [
+                    r
+                    for r in ours
+                    if (r["filter"], r["kind"]) == (flt, kind) and float(r["error_m"]) > 0
+                ]
                 x = [float(r["error_m"]) for r in pts]
                 if what == "samples":
                     y = [int(r["samples"]) for r in pts]
                 else:
                     y = [float(r["query_ms"]) + float(r["resample_ms"]) for r in pts]
-                ax.plot(x, y, "o-", label=f"patches, {flt} mipmap")
+                style = "o-" if kind == "bilinear" else "^:"
+                ax.plot(x, y, style, label=f"{kind} patches, {flt} mipmap")
             for method in ("martini", "delatin"):
                 pts = [m for m in mesh_rows if m["dataset"] == name and m["method"] == method]
                 x = [m["error_m"] for m in pts]
