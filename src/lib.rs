@@ -20,9 +20,8 @@ pub mod store;
 pub mod terrain;
 pub mod watch;
 
-/// Helpers shared by the unit tests.
-#[cfg(test)]
-pub(crate) mod testing {
+/// Reproducible pseudo-random numbers, for the bench's scenes and the unit tests.
+pub(crate) mod rng {
     /// Uniform numbers in [0, 1) from a 64-bit LCG: reproducible, and enough for spreading
     /// test points.
     pub fn uniform(seed: u64) -> impl FnMut() -> f64 {

@@ -229,6 +229,56 @@ pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) ->
             scatter: false,
         },
     )?;
+    // Where methods break: the largest deviation each case measured with bicubic patches,
+    // the worst with bilinear ones (whose bound is y = e), and the largest bound the bicubic
+    // cuts had to keep; each the worst over the filters at each e.
+    let worst = |keep: &dyn Fn(&super::stability::StabilityRow) -> bool,
+                 f: fn(&super::stability::StabilityRow) -> f64|
+     -> Vec<(f64, f64)> {
+        super::stability::ERRORS
+            .iter()
+            .map(|&e| {
+                let v = r
+                    .stability
+                    .iter()
+                    .filter(|s| s.error == e && keep(s))
+                    .map(f)
+                    .fold(0.0f64, f64::max);
+                (e, v)
+            })
+            .collect()
+    };
+    use crate::model::patch::PatchKind;
+    let mut stab = vec![(
+        "bilinear, every case".to_string(),
+        worst(&|s| s.recipe.patches == PatchKind::Bilinear, |s| s.measured),
+    )];
+    for case in ["cliff", "spikes", "voids", "rotated"] {
+        stab.push((
+            format!("bicubic, {case}"),
+            worst(
+                &|s| s.recipe.patches == PatchKind::Bicubic && s.case == case,
+                |s| s.measured,
+            ),
+        ));
+    }
+    stab.push((
+        "bicubic, the bound kept".to_string(),
+        worst(&|s| s.recipe.patches == PatchKind::Bicubic, |s| s.bound),
+    ));
+    both(
+        out,
+        "stability",
+        &Chart {
+            title: "Largest deviation at cliffs, spikes, voids and rotations",
+            x: "requested error e (m)",
+            y: "metres",
+            series: stab,
+            log_y: true,
+            diagonal: true,
+            scatter: false,
+        },
+    )?;
     let view_t = vec![(
         "median query time (ms)".to_string(),
         r.view.iter().map(|v| (v.pixel_error, v.query_ms)).collect(),

@@ -9,6 +9,7 @@
 pub mod charts;
 pub mod flight;
 pub mod meet;
+pub mod stability;
 pub mod variants;
 
 use crate::config::Config;
@@ -73,6 +74,7 @@ pub struct Report {
     pub ingest: Vec<IngestRow>,
     pub disk_bytes: u64,
     pub scenes: meet::Scenes,
+    pub stability: Vec<stability::StabilityRow>,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -384,6 +386,12 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         scenes.mosaic.0, scenes.mosaic.1
     );
     meet::write_csv(&opts.out, &scenes)?;
+    // Where methods break: the middle 600² of that crop (its whole, smoke-sized, in a smoke
+    // run), 2,000 points a row.
+    let s_side = g.cols.min(g.rows).min(600);
+    let middle = g.window((g.cols - s_side) / 2, (g.rows - s_side) / 2, s_side, s_side);
+    let stability = stability::run(&middle, base.crs, if opts.smoke { 300 } else { 2000 })?;
+    stability::write_csv(&opts.out, &stability)?;
     let report = Report {
         uniform,
         flight,
@@ -392,6 +400,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         ingest,
         disk_bytes,
         scenes,
+        stability,
     };
     write_csv(&opts.out, &report)?;
     charts::draw(&opts.out, &report, &t, &rois[1].1, opts.smoke)?;

@@ -243,7 +243,7 @@ mod tests {
     fn coverage_never_claims_points_that_are_uncovered() {
         // Random rotated configurations: whenever coverage is claimed, dense point samples
         // of the target must all lie in some rectangle.
-        let mut rnd = crate::testing::uniform(12345);
+        let mut rnd = crate::rng::uniform(12345);
         let t = r(0.0, 0.0, 1.0, 1.0);
         let mut claimed = 0;
         for _ in 0..300 {

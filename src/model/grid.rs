@@ -326,6 +326,27 @@ impl Grid {
         }
     }
 
+    /// The same samples on a lattice turned by `degrees` about the grid's centre: a rotated
+    /// survey over the same ground.
+    pub fn turned(&self, degrees: f64) -> Grid {
+        let mid = [(self.cols - 1) as f64 / 2.0, (self.rows - 1) as f64 / 2.0];
+        let centre = self.georef.to_world(mid[0], mid[1]);
+        let g = Georef {
+            theta: degrees.to_radians(),
+            ..self.georef
+        };
+        let off = g.to_world(mid[0], mid[1]);
+        let mut out = self.clone();
+        out.georef = Georef {
+            origin: [
+                g.origin[0] + centre[0] - off[0],
+                g.origin[1] + centre[1] - off[1],
+            ],
+            ..g
+        };
+        out
+    }
+
     /// Axis-aligned world bounds of the sample positions.
     pub fn world_bounds(&self) -> crate::index::geom::Aabb {
         self.shape().world_bounds()

@@ -903,7 +903,7 @@ mod tests {
             }
         });
         let levels = mipmap::build(g.clone(), 8);
-        let mut next = crate::testing::uniform(99);
+        let mut next = crate::rng::uniform(99);
         for lv in 0..levels.len().min(3) {
             let coarse = &levels[lv];
             let f = (1usize << lv) as f64;

@@ -352,22 +352,7 @@ pub fn survey_with(
 /// The same samples turned by `degrees` about the grid's centre: a rotated grid over the
 /// original.
 pub fn turned(grid: &Grid, degrees: f64) -> Grid {
-    let mid = [(grid.cols - 1) as f64 / 2.0, (grid.rows - 1) as f64 / 2.0];
-    let centre = grid.georef.to_world(mid[0], mid[1]);
-    let g = Georef {
-        theta: degrees.to_radians(),
-        ..grid.georef
-    };
-    let off = g.to_world(mid[0], mid[1]);
-    let mut out = grid.clone();
-    out.georef = Georef {
-        origin: [
-            g.origin[0] + centre[0] - off[0],
-            g.origin[1] + centre[1] - off[1],
-        ],
-        ..g
-    };
-    out
+    grid.turned(degrees)
 }
 
 /// A real crop as a survey: exact (ε = 0), EPSG:4326, the default patch layout.
