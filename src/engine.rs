@@ -148,6 +148,20 @@ pub enum Cut {
     View(ViewQuery),
 }
 
+/// Most vertices a side of a mesh: a 2049² grid resamples 4.2 M heights.
+pub const MAX_MESH_SIZE: usize = 2049;
+
+/// A mesh of a uniform cut and what it was made from.
+#[derive(Clone, Debug)]
+pub struct MeshTile {
+    pub mesh: crate::mesh::Mesh,
+    /// The tile its grid spans.
+    pub roi: Aabb,
+    /// The patches blended, in id order.
+    pub patches: Vec<Extracted>,
+    pub backend: &'static str,
+}
+
 /// What a tile is, told with each of its bands.
 #[derive(Clone, Copy, Debug)]
 pub struct TileHead<'a> {
@@ -997,6 +1011,58 @@ impl Engine {
         backend: Backend,
     ) -> Result<(Tile, &'static str), EngineError> {
         self.tile_until(cut, width, height, backend, &Cancel::default())
+    }
+
+    /// A mesh of a uniform cut: the resampled heights at the corners of a `size × size` grid
+    /// of vertices over `roi` (a tile over the ROI grown by half a cell, whose pixel centres
+    /// fall on them), triangulated within `mesh_error` of them, with skirts `skirt` metres
+    /// deep when that is positive.
+    #[allow(clippy::too_many_arguments)]
+    pub fn mesh_until(
+        &self,
+        roi: &Aabb,
+        error: f64,
+        size: usize,
+        mesh_error: f64,
+        skirt: f64,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<MeshTile, EngineError> {
+        if !crate::mesh::valid_size(size) || size > MAX_MESH_SIZE {
+            return Err(EngineError::Invalid(format!(
+                "a mesh is 2^n + 1 vertices a side, from 3 to {MAX_MESH_SIZE}: got {size}"
+            )));
+        }
+        if !(mesh_error.is_finite() && mesh_error >= 0.0) {
+            return Err(EngineError::Invalid(format!(
+                "mesh_error must be a finite number of metres ≥ 0, got {mesh_error}"
+            )));
+        }
+        if !(skirt.is_finite() && skirt >= 0.0) {
+            return Err(EngineError::Invalid(format!(
+                "skirt_m must be a finite number of metres ≥ 0, got {skirt}"
+            )));
+        }
+        let n = (size - 1) as f64;
+        let (hx, hy) = (roi.width() / n / 2.0, roi.height() / n / 2.0);
+        let grown = Aabb::new(
+            roi.min[0] - hx,
+            roi.min[1] - hy,
+            roi.max[0] + hx,
+            roi.max[1] + hy,
+        );
+        let cut = Cut::Uniform { roi: grown, error };
+        let (tile, used) = self.tile_until(&cut, size as u32, size as u32, backend, cancel)?;
+        let mut mesh = crate::mesh::rtin(&tile.heights, size, mesh_error);
+        if skirt > 0.0 {
+            crate::mesh::add_skirts(&mut mesh, skirt as f32);
+        }
+        Ok(MeshTile {
+            mesh,
+            roi: *roi,
+            patches: tile.patches,
+            backend: used,
+        })
     }
 
     /// A resampled tile, given up once `cancel` is set.

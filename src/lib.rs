@@ -3,14 +3,16 @@
 //! Data flows read → model → index → store → serve, and so do the modules: [`read`] decodes
 //! DEM files, [`model`] turns grids into mipmaps and patches, [`index`] keeps the
 //! order-independent LOD space and answers cuts through it, [`resample`] blends extracted
-//! patches into heights, [`terrain`] ties them together in memory, [`store`] keeps them on
-//! disk, and [`engine`], [`watch`] and [`serve`] make the daemon.
+//! patches into heights, [`mesh`] triangulates them for renderers, [`terrain`] ties them
+//! together in memory, [`store`] keeps them on disk, and [`engine`], [`watch`] and [`serve`]
+//! make the daemon.
 
 pub mod bench;
 pub mod config;
 pub mod engine;
 pub mod index;
 pub mod ingest;
+pub mod mesh;
 pub mod model;
 pub mod read;
 pub mod resample;

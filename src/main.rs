@@ -3,10 +3,11 @@
 use clap::{Args, Parser, Subcommand};
 use patchwork::config::Config;
 use patchwork::engine::Engine;
+use patchwork::mesh::encode;
 use patchwork::serve::proto::{
     self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
 };
-use patchwork::serve::{api, grpc};
+use patchwork::serve::{api, convert, grpc};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -143,6 +144,29 @@ enum Cmd {
         error: f64,
         #[arg(long, value_name = "auto|cpu|gpu", default_value = "auto")]
         backend: String,
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Triangulate a uniform cut's surface and write it as OBJ (.obj), binary glTF (.glb) or
+    /// Cesium quantized-mesh (.terrain; a geographic store only).
+    Mesh {
+        #[arg(long, value_name = "XMIN,YMIN,XMAX,YMAX", allow_hyphen_values = true)]
+        roi: String,
+        /// The cut's error, metres.
+        #[arg(long, value_name = "E", default_value_t = 0.0)]
+        error: f64,
+        /// How far the triangles may depart from the resampled heights, metres.
+        #[arg(long, value_name = "M", default_value_t = 1.0)]
+        mesh_error: f64,
+        /// Grid vertices a side: 2^n + 1.
+        #[arg(long, value_name = "N", default_value_t = 257)]
+        size: u32,
+        /// Depth of the skirts under the tile's border, metres (0: none). Quantized-mesh
+        /// leaves them out: Cesium makes its own from the edge vertices.
+        #[arg(long, value_name = "M", default_value_t = 0.0)]
+        skirt: f64,
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
         #[command(flatten)]
@@ -852,6 +876,75 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 }
                 println!("{} patches", patches.len());
             }
+            Ok(())
+        }
+        Cmd::Mesh {
+            roi,
+            error,
+            mesh_error,
+            size,
+            skirt,
+            out,
+            target,
+        } => {
+            let kind = out.extension().and_then(|e| e.to_str()).unwrap_or("");
+            if !["obj", "glb", "terrain"].contains(&kind) {
+                return Err(
+                    format!("--out {}: write .obj, .glb or .terrain", out.display()).into(),
+                );
+            }
+            let mut c = Client::connect(&target).await?;
+            let req = pb::MeshRequest {
+                cut: Some(pb::UniformCut {
+                    roi: Some(rect(&roi)?),
+                    error,
+                }),
+                size,
+                mesh_error,
+                skirt_m: skirt,
+                backend: pb::Backend::Auto as i32,
+            };
+            let m = match &mut c {
+                Client::Remote { terrain, .. } => terrain
+                    .mesh_tile(req)
+                    .await
+                    .map_err(|s| -> Fail { s.message().to_string().into() })?
+                    .into_inner(),
+                Client::Local(engine) => {
+                    let engine = engine.clone();
+                    tokio::task::spawn_blocking(move || {
+                        api::mesh_tile(&engine, &req, &Default::default())
+                    })
+                    .await??
+                }
+            };
+            let (mesh, tile) = convert::mesh_of(&m)?;
+            let bytes = match kind {
+                "obj" => encode::obj(&mesh, &tile).into_bytes(),
+                "glb" => encode::glb(&mesh, &tile),
+                _ => {
+                    if !patchwork::engine::is_geographic(m.crs) {
+                        return Err(format!(
+                            "quantized-mesh tiles are in longitude and latitude; this store's CRS is EPSG:{}",
+                            m.crs
+                        )
+                        .into());
+                    }
+                    encode::quantized_mesh(&mesh, &tile)
+                }
+            };
+            std::fs::write(&out, bytes)?;
+            println!(
+                "wrote {} ({} vertices, {} triangles of which {} skirt; max deviation {:.3} m from the resampled heights; {} patches, max error {:.3} m, {})",
+                out.display(),
+                mesh.grid.len(),
+                mesh.triangles.len(),
+                mesh.triangles.len() - mesh.skirt_triangles,
+                mesh.max_deviation,
+                m.patches,
+                m.max_error,
+                m.backend
+            );
             Ok(())
         }
         Cmd::Tile {

@@ -203,6 +203,34 @@ fn tile_cut(engine: &Engine, r: &pb::TileRequest) -> Result<(Cut, Backend), Engi
     Ok((cut_of(engine, u, v)?, convert::backend(r.backend)?))
 }
 
+/// Vertices a side of a mesh when the request does not say.
+pub const MESH_SIZE: u32 = 257;
+
+pub fn mesh_tile(
+    engine: &Engine,
+    r: &pb::MeshRequest,
+    cancel: &Cancel,
+) -> Result<pb::Mesh, EngineError> {
+    let u = r
+        .cut
+        .as_ref()
+        .ok_or_else(|| EngineError::Invalid("a mesh needs a uniform cut (roi + error)".into()))?;
+    let Cut::Uniform { roi, error } = convert::uniform_cut(u)? else {
+        unreachable!("a uniform cut")
+    };
+    let size = if r.size == 0 { MESH_SIZE } else { r.size };
+    let m = engine.mesh_until(
+        &roi,
+        error,
+        size as usize,
+        r.mesh_error,
+        r.skirt_m,
+        convert::backend(r.backend)?,
+        cancel,
+    )?;
+    Ok(convert::mesh(&m, engine.crs()))
+}
+
 pub fn sample_heights(
     engine: &Engine,
     r: &pb::SampleRequest,

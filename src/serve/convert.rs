@@ -3,10 +3,12 @@
 
 use super::proto as pb;
 use crate::engine::{
-    Backend, Conflict, Cut, Engine, EngineError, Event, Ingested, Stats, SurveyListing, TileHead,
+    Backend, Conflict, Cut, Engine, EngineError, Event, Ingested, MeshTile, Stats, SurveyListing,
+    TileHead,
 };
 use crate::index::geom::Aabb;
 use crate::index::query::Extracted;
+use crate::mesh::Mesh;
 use crate::model::grid::{Georef, SampleRect};
 use crate::model::patch::{CellRect, PatchKind};
 use crate::model::source::SampleError;
@@ -263,6 +265,67 @@ pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {
         crs: crs.unwrap_or(0),
         max_error: max_error(&t.patches),
     }
+}
+
+pub fn mesh(m: &MeshTile, crs: Option<u32>) -> pb::Mesh {
+    let mesh = &m.mesh;
+    pb::Mesh {
+        roi: Some(rect(&m.roi)),
+        size: mesh.size as u32,
+        columns: mesh.grid.iter().map(|g| g[0]).collect(),
+        rows: mesh.grid.iter().map(|g| g[1]).collect(),
+        heights: mesh.heights.clone(),
+        indices: mesh.triangles.iter().flatten().copied().collect(),
+        skirt_vertices: mesh.skirt_vertices as u32,
+        skirt_triangles: mesh.skirt_triangles as u32,
+        max_deviation: mesh.max_deviation,
+        patches: m.patches.len() as u32,
+        max_error: max_error(&m.patches),
+        backend: m.backend.into(),
+        crs: crs.unwrap_or(0),
+    }
+}
+
+/// A mesh message back as a mesh and the tile it spans, checked: what a client of
+/// `MeshTile` encodes.
+pub fn mesh_of(m: &pb::Mesh) -> Result<(Mesh, Aabb), String> {
+    let n = m.columns.len();
+    if m.rows.len() != n || m.heights.len() != n || !m.indices.len().is_multiple_of(3) {
+        return Err(format!(
+            "a mesh of {n} columns, {} rows, {} heights and {} indices",
+            m.rows.len(),
+            m.heights.len(),
+            m.indices.len()
+        ));
+    }
+    if !crate::mesh::valid_size(m.size as usize)
+        || m.columns.iter().chain(&m.rows).any(|&c| c >= m.size)
+        || m.indices.iter().any(|&i| i as usize >= n)
+        || m.skirt_vertices as usize > n
+        || m.skirt_triangles as usize > m.indices.len() / 3
+    {
+        return Err("the mesh's grid positions or indices are out of range".into());
+    }
+    let roi = aabb(&m.roi).map_err(|e| e.to_string())?;
+    let mesh = Mesh {
+        size: m.size as usize,
+        grid: m
+            .columns
+            .iter()
+            .zip(&m.rows)
+            .map(|(&c, &r)| [c, r])
+            .collect(),
+        heights: m.heights.clone(),
+        triangles: m
+            .indices
+            .chunks_exact(3)
+            .map(|t| [t[0], t[1], t[2]])
+            .collect(),
+        skirt_vertices: m.skirt_vertices as usize,
+        skirt_triangles: m.skirt_triangles as usize,
+        max_deviation: m.max_deviation,
+    };
+    Ok((mesh, roi))
 }
 
 /// The largest error of the patches a tile blended.

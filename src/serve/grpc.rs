@@ -249,6 +249,13 @@ impl terrain_server::Terrain for Service {
             .map(Response::new)
     }
 
+    async fn mesh_tile(&self, r: Request<pb::MeshRequest>) -> Result<Response<pb::Mesh>, Status> {
+        let r = r.into_inner();
+        self.run(move |e, c| api::mesh_tile(e, &r, c))
+            .await
+            .map(Response::new)
+    }
+
     type TileBandsStream = BoxStream<pb::TileBand>;
 
     async fn tile_bands(

@@ -60,6 +60,11 @@ class TerrainStub:
                 request_serializer=patchwork_dot_v1_dot_terrain__pb2.SampleRequest.SerializeToString,
                 response_deserializer=patchwork_dot_v1_dot_terrain__pb2.Samples.FromString,
                 _registered_method=True)
+        self.MeshTile = channel.unary_unary(
+                '/patchwork.v1.Terrain/MeshTile',
+                request_serializer=patchwork_dot_v1_dot_terrain__pb2.MeshRequest.SerializeToString,
+                response_deserializer=patchwork_dot_v1_dot_terrain__pb2.Mesh.FromString,
+                _registered_method=True)
         self.Subscribe = channel.unary_stream(
                 '/patchwork.v1.Terrain/Subscribe',
                 request_serializer=patchwork_dot_v1_dot_terrain__pb2.SubscribeRequest.SerializeToString,
@@ -104,6 +109,16 @@ class TerrainServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def MeshTile(self, request, context):
+        """A triangle mesh of a uniform cut: the resampled heights on a (2^n + 1)² grid over the
+        ROI, triangulated as a right-triangulated irregular network within mesh_error of them at
+        every vertex, without a T-junction inside the tile, holes left open at voids, and skirts
+        under the border when asked.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Subscribe(self, request, context):
         """Needs the admin token when the daemon has one: events name files and their errors.
         """
@@ -138,6 +153,11 @@ def add_TerrainServicer_to_server(servicer, server):
                     servicer.SampleHeights,
                     request_deserializer=patchwork_dot_v1_dot_terrain__pb2.SampleRequest.FromString,
                     response_serializer=patchwork_dot_v1_dot_terrain__pb2.Samples.SerializeToString,
+            ),
+            'MeshTile': grpc.unary_unary_rpc_method_handler(
+                    servicer.MeshTile,
+                    request_deserializer=patchwork_dot_v1_dot_terrain__pb2.MeshRequest.FromString,
+                    response_serializer=patchwork_dot_v1_dot_terrain__pb2.Mesh.SerializeToString,
             ),
             'Subscribe': grpc.unary_stream_rpc_method_handler(
                     servicer.Subscribe,
@@ -280,6 +300,33 @@ class Terrain:
             '/patchwork.v1.Terrain/SampleHeights',
             patchwork_dot_v1_dot_terrain__pb2.SampleRequest.SerializeToString,
             patchwork_dot_v1_dot_terrain__pb2.Samples.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def MeshTile(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/patchwork.v1.Terrain/MeshTile',
+            patchwork_dot_v1_dot_terrain__pb2.MeshRequest.SerializeToString,
+            patchwork_dot_v1_dot_terrain__pb2.Mesh.FromString,
             options,
             channel_credentials,
             insecure,

@@ -1,0 +1,328 @@
+//! Meshes of uniform cuts (`MeshTile`): within their error of the resampled surface, holes
+//! left open at voids, tiles of different errors that fit under their skirts, and encodings
+//! that independent decoders read (tests/python/meshes.py).
+
+mod common;
+
+use patchwork::config::Config;
+use patchwork::engine::{Engine, Origin};
+use patchwork::index::geom::Aabb;
+use patchwork::mesh::{edges, encode, Mesh};
+use patchwork::serve::{api, convert, proto as pb};
+use std::path::Path;
+use std::process::Command;
+use std::sync::Arc;
+
+/// An engine holding the committed crops named, each taken as exact (ε = 0), so that a cut's
+/// error bounds its distance from the survey.
+fn engine_with(tmp: &Path, crops: &[&str]) -> Arc<Engine> {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let cfg = Config {
+        data_dir: tmp.join("data"),
+        ingest_roots: vec![data.clone()],
+        ..Config::default()
+    };
+    let engine = Arc::new(Engine::open(cfg).unwrap());
+    for c in crops {
+        let done = engine
+            .ingest(&data.join(c), Some(0.0), Origin::Request)
+            .unwrap();
+        assert!(done.error.is_empty(), "{}", done.error);
+    }
+    engine
+}
+
+fn mesh_of(
+    engine: &Engine,
+    roi: &Aabb,
+    error: f64,
+    size: u32,
+    mesh_error: f64,
+    skirt: f64,
+) -> (Mesh, pb::Mesh) {
+    let req = pb::MeshRequest {
+        cut: Some(pb::UniformCut {
+            roi: Some(convert::rect(roi)),
+            error,
+        }),
+        size,
+        mesh_error,
+        skirt_m: skirt,
+        backend: pb::Backend::Cpu as i32,
+    };
+    let m = api::mesh_tile(engine, &req, &Default::default()).unwrap();
+    (convert::mesh_of(&m).unwrap().0, m)
+}
+
+/// The resampled heights the mesh was made from: the same tile `MeshTile` resamples.
+fn grid_heights(engine: &Engine, roi: &Aabb, error: f64, size: usize) -> Vec<f32> {
+    let n = (size - 1) as f64;
+    let (hx, hy) = (roi.width() / n / 2.0, roi.height() / n / 2.0);
+    let grown = Aabb::new(
+        roi.min[0] - hx,
+        roi.min[1] - hy,
+        roi.max[0] + hx,
+        roi.max[1] + hy,
+    );
+    let cut = patchwork::engine::Cut::Uniform { roi: grown, error };
+    let (t, _) = engine
+        .tile(
+            &cut,
+            size as u32,
+            size as u32,
+            patchwork::resample::Backend::Cpu,
+        )
+        .unwrap();
+    t.heights
+}
+
+/// The mesh's surface height at every grid vertex (NaN outside every surface triangle).
+fn surface_at_vertices(m: &Mesh) -> Vec<f64> {
+    let s = m.size;
+    let mut out = vec![f64::NAN; s * s];
+    for t in &m.triangles[..m.skirt_triangles] {
+        let p = t.map(|v| m.grid[v as usize].map(|c| c as f64));
+        let z = t.map(|v| m.heights[v as usize] as f64);
+        let area =
+            (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]);
+        let lo = [0, 1].map(|k| p.iter().map(|q| q[k]).fold(f64::MAX, f64::min) as usize);
+        let hi = [0, 1].map(|k| p.iter().map(|q| q[k]).fold(0.0, f64::max) as usize);
+        for y in lo[1]..=hi[1] {
+            for x in lo[0]..=hi[0] {
+                let q = [x as f64, y as f64];
+                let w = |a: [f64; 2], b: [f64; 2]| {
+                    ((b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0])) / area
+                };
+                let (wa, wb, wc) = (w(p[1], p[2]), w(p[2], p[0]), w(p[0], p[1]));
+                if wa >= -1e-12 && wb >= -1e-12 && wc >= -1e-12 {
+                    out[y * s + x] = wa * z[0] + wb * z[1] + wc * z[2];
+                }
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn meshes_keep_their_error_and_leave_holes_open() {
+    let tmp = tempfile::tempdir().unwrap();
+    let engine = engine_with(
+        tmp.path(),
+        &["copernicus_n34w119_crop.tif", "srtm_n44e005_voids_crop.tif"],
+    );
+    let voids = common::real_crop("srtm_n44e005_voids_crop.tif").world_bounds();
+    let cop = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
+    for (name, roi) in [("copernicus", cop), ("voids", voids)] {
+        for (error, mesh_error, size) in [(0.0, 0.5, 129), (5.0, 2.0, 129), (20.0, 10.0, 65)] {
+            let (m, msg) = mesh_of(&engine, &roi, error, size, mesh_error, 0.0);
+            let h = grid_heights(&engine, &roi, error, size as usize);
+            let got = surface_at_vertices(&m);
+            let (mut worst, mut holes) = (0.0f64, 0);
+            for (g, z) in got.iter().zip(&h) {
+                // No triangle reaches a void vertex.
+                assert!(!z.is_nan() || g.is_nan(), "{name} at e = {error}");
+                if z.is_nan() {
+                    holes += 1;
+                } else if !g.is_nan() {
+                    worst = worst.max((g - *z as f64).abs());
+                }
+            }
+            // Every cell with four valid corners is meshed: nothing but voids (and samples
+            // with no valid cell beside them) is lost.
+            let s = size as usize;
+            for r in 0..s - 1 {
+                for c in 0..s - 1 {
+                    let corners = [(c, r), (c + 1, r), (c, r + 1), (c + 1, r + 1)];
+                    if corners.iter().all(|&(x, y)| !h[y * s + x].is_nan()) {
+                        assert!(
+                            corners.iter().all(|&(x, y)| !got[y * s + x].is_nan()),
+                            "{name} at e = {error}: cell ({c}, {r}) is not meshed"
+                        );
+                    }
+                }
+            }
+            assert!(worst <= mesh_error + 1e-4, "{name}: {worst} > {mesh_error}");
+            assert!((worst - msg.max_deviation).abs() < 1e-3);
+            let full = 2 * (size as usize - 1).pow(2);
+            println!(
+                "{name} e = {error} m, mesh within {mesh_error} m, {size}²: {} vertices, {} triangles ({:.1}% of the grid's), max deviation {worst:.3} m, {holes} void vertices, {} patches",
+                m.grid.len(),
+                m.triangles.len(),
+                100.0 * m.triangles.len() as f64 / full as f64,
+                msg.patches
+            );
+            if name == "voids" {
+                assert!(holes > 0, "the voids crop has voids");
+            }
+        }
+    }
+}
+
+/// Which grid coordinate runs along a side of [`edges`]: the row on the west and east sides,
+/// the column on the south and north ones.
+fn axis_along(side: usize) -> usize {
+    usize::from(side.is_multiple_of(2))
+}
+
+/// One polyline of a tile's border: the heights of its edge vertices, by grid position along
+/// the side, linearly interpolated at every grid position.
+fn along(m: &Mesh, side: usize) -> Vec<f64> {
+    let e = &edges(m)[side];
+    let pos = |v: u32| m.grid[v as usize][axis_along(side)];
+    let mut out = vec![f64::NAN; m.size];
+    for w in e.windows(2) {
+        let (a, b) = (pos(w[0]), pos(w[1]));
+        let (za, zb) = (
+            m.heights[w[0] as usize] as f64,
+            m.heights[w[1] as usize] as f64,
+        );
+        for k in a..=b {
+            let f = (k - a) as f64 / (b - a).max(1) as f64;
+            out[k as usize] = za + (zb - za) * f;
+        }
+    }
+    out
+}
+
+#[test]
+fn adjacent_tiles_of_different_errors_fit_under_skirts() {
+    let tmp = tempfile::tempdir().unwrap();
+    let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
+    let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
+    // A 3 × 3 grid of tiles inside the crop, each at its own cut error and mesh error.
+    let (w, h) = (b.width() / 3.2, b.height() / 3.2);
+    let (x0, y0) = (b.min[0] + 0.1 * w, b.min[1] + 0.1 * h);
+    let spec = |i: usize, j: usize| {
+        let k = i + 3 * j;
+        ([0.0, 5.0, 20.0, 2.0, 50.0][k % 5], [0.5, 2.0, 5.0][k % 3])
+    };
+    let bound = |i: usize, j: usize| {
+        let (e, m) = spec(i, j);
+        e + m
+    };
+    // Deep enough for any two neighbours: each is within e + m of the survey at its vertices.
+    let skirt = 2.0 * (0..9).map(|k| bound(k % 3, k / 3)).fold(0.0, f64::max);
+    let size = 65u32;
+    let tiles: Vec<Vec<Mesh>> = (0..3)
+        .map(|j| {
+            (0..3)
+                .map(|i| {
+                    let roi = Aabb::new(
+                        x0 + i as f64 * w,
+                        y0 + (2 - j) as f64 * h,
+                        x0 + (i + 1) as f64 * w,
+                        y0 + (3 - j) as f64 * h,
+                    );
+                    let (e, m) = spec(i, j);
+                    mesh_of(&engine, &roi, e, size, m, skirt).0
+                })
+                .collect()
+        })
+        .collect();
+    let (mut pairs, mut worst_gap, mut shared) = (0, 0.0f64, 0usize);
+    for j in 0..3 {
+        for i in 0..3 {
+            // East neighbour: this tile's east side against its west side; south neighbour:
+            // this tile's south side against its north side.
+            let mut check = |a: &Mesh, sa: usize, b: &Mesh, sb: usize, pair: (usize, usize)| {
+                let (pa, pb) = (along(a, sa), along(b, sb));
+                let limit = bound(i, j) + bound(pair.0, pair.1);
+                for (za, zb) in pa.iter().zip(&pb) {
+                    assert!(
+                        !za.is_nan() && !zb.is_nan(),
+                        "a border without edge vertices"
+                    );
+                    let gap = (za - zb).abs();
+                    worst_gap = worst_gap.max(gap);
+                    // The surfaces meet within what both errors allow, and the skirt under
+                    // the higher one reaches the lower.
+                    assert!(
+                        gap <= limit + 1e-3,
+                        "a {gap} m step where {limit} m is allowed"
+                    );
+                    assert!(
+                        gap <= skirt,
+                        "a {gap} m crack deeper than the {skirt} m skirts"
+                    );
+                }
+                // Vertices both tiles have on the shared side are at one position.
+                let ea: std::collections::HashSet<u32> = edges(a)[sa]
+                    .iter()
+                    .map(|&v| a.grid[v as usize][axis_along(sa)])
+                    .collect();
+                let eb: std::collections::HashSet<u32> = edges(b)[sb]
+                    .iter()
+                    .map(|&v| b.grid[v as usize][axis_along(sb)])
+                    .collect();
+                shared += ea.intersection(&eb).count();
+                pairs += 1;
+            };
+            if i + 1 < 3 {
+                check(&tiles[j][i], 2, &tiles[j][i + 1], 0, (i + 1, j));
+            }
+            if j + 1 < 3 {
+                check(&tiles[j][i], 1, &tiles[j + 1][i], 3, (i, j + 1));
+            }
+        }
+    }
+    // Every tile hangs a skirt from each border edge, skirt_m below it.
+    for m in tiles.iter().flatten() {
+        let border: usize = edges(m).iter().map(|e| e.len() - 1).sum();
+        assert_eq!(m.triangles.len() - m.skirt_triangles, 2 * border);
+    }
+    assert_eq!(pairs, 12);
+    println!(
+        "12 shared sides: largest step between neighbours {worst_gap:.2} m, under skirts {skirt:.1} m deep; {shared} border positions where both have a vertex"
+    );
+}
+
+#[test]
+fn independent_decoders_read_the_encodings() {
+    let tmp = tempfile::tempdir().unwrap();
+    let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
+    let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
+    let (m, msg) = mesh_of(&engine, &b, 5.0, 129, 2.0, 30.0);
+    let (mesh, roi) = convert::mesh_of(&msg).unwrap();
+    assert_eq!(mesh, m);
+    let out = tmp.path().join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(
+        out.join("tile.terrain"),
+        encode::quantized_mesh(&mesh, &roi),
+    )
+    .unwrap();
+    std::fs::write(out.join("tile.glb"), encode::glb(&mesh, &roi)).unwrap();
+    std::fs::write(out.join("tile.obj"), encode::obj(&mesh, &roi)).unwrap();
+    let surface = &mesh.heights[..mesh.skirt_vertices];
+    let range = |v: &[f32]| {
+        v.iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &z| {
+                (a.min(z), b.max(z))
+            })
+    };
+    let expected = serde_json::json!({
+        "roi": [roi.min[0], roi.min[1], roi.max[0], roi.max[1]],
+        "vertices": mesh.grid.len(),
+        "triangles": mesh.triangles.len(),
+        "surface_vertices": mesh.skirt_vertices,
+        "surface_triangles": mesh.skirt_triangles,
+        "edges": edges(&mesh).iter().map(|e| e.len()).collect::<Vec<_>>(),
+        "height_range": <[f32; 2]>::from(range(surface)),
+        "all_height_range": <[f32; 2]>::from(range(&mesh.heights)),
+    });
+    std::fs::write(out.join("expected.json"), expected.to_string()).unwrap();
+    let python = common::python::python();
+    let run = Command::new(&python)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .arg("tests/python/meshes.py")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    println!("{}", stdout.trim_end());
+}
