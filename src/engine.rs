@@ -1015,8 +1015,8 @@ impl Engine {
 
     /// A mesh of a uniform cut: the resampled heights at the corners of a `size × size` grid
     /// of vertices over `roi` (a tile over the ROI grown by half a cell, whose pixel centres
-    /// fall on them), triangulated within `mesh_error` of them, with skirts `skirt` metres
-    /// deep when that is positive.
+    /// fall on them), triangulated within `mesh_error` of them, its border kept as `border`
+    /// says, with skirts `skirt` metres deep when that is positive.
     #[allow(clippy::too_many_arguments)]
     pub fn mesh_until(
         &self,
@@ -1025,6 +1025,7 @@ impl Engine {
         size: usize,
         mesh_error: f64,
         skirt: f64,
+        border: crate::mesh::Border,
         backend: Backend,
         cancel: &Cancel,
     ) -> Result<MeshTile, EngineError> {
@@ -1053,7 +1054,7 @@ impl Engine {
         );
         let cut = Cut::Uniform { roi: grown, error };
         let (tile, used) = self.tile_until(&cut, size as u32, size as u32, backend, cancel)?;
-        let mut mesh = crate::mesh::rtin(&tile.heights, size, mesh_error);
+        let mut mesh = crate::mesh::rtin_with(&tile.heights, size, mesh_error, border);
         if skirt > 0.0 {
             crate::mesh::add_skirts(&mut mesh, skirt as f32);
         }

@@ -167,6 +167,10 @@ enum Cmd {
         /// leaves them out: Cesium makes its own from the edge vertices.
         #[arg(long, value_name = "M", default_value_t = 0.0)]
         skirt: f64,
+        /// `shared` keeps every border vertex, so that tiles of one error fit without cracks;
+        /// `adaptive` simplifies the border too.
+        #[arg(long, value_name = "shared|adaptive", default_value = "shared")]
+        border: String,
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
         #[command(flatten)]
@@ -884,9 +888,17 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             mesh_error,
             size,
             skirt,
+            border,
             out,
             target,
         } => {
+            let border = match border.as_str() {
+                "shared" => pb::MeshBorder::Shared,
+                "adaptive" => pb::MeshBorder::Adaptive,
+                other => {
+                    return Err(format!("--border: {other:?} is not shared or adaptive").into())
+                }
+            };
             let kind = out.extension().and_then(|e| e.to_str()).unwrap_or("");
             if !["obj", "glb", "terrain"].contains(&kind) {
                 return Err(
@@ -903,6 +915,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 mesh_error,
                 skirt_m: skirt,
                 backend: pb::Backend::Auto as i32,
+                border: border as i32,
             };
             let m = match &mut c {
                 Client::Remote { terrain, .. } => terrain

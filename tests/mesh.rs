@@ -39,6 +39,7 @@ fn mesh_of(
     size: u32,
     mesh_error: f64,
     skirt: f64,
+    border: pb::MeshBorder,
 ) -> (Mesh, pb::Mesh) {
     let req = pb::MeshRequest {
         cut: Some(pb::UniformCut {
@@ -49,6 +50,7 @@ fn mesh_of(
         mesh_error,
         skirt_m: skirt,
         backend: pb::Backend::Cpu as i32,
+        border: border as i32,
     };
     let m = api::mesh_tile(engine, &req, &Default::default()).unwrap();
     (convert::mesh_of(&m).unwrap().0, m)
@@ -114,7 +116,15 @@ fn meshes_keep_their_error_and_leave_holes_open() {
     let cop = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
     for (name, roi) in [("copernicus", cop), ("voids", voids)] {
         for (error, mesh_error, size) in [(0.0, 0.5, 129), (5.0, 2.0, 129), (20.0, 10.0, 65)] {
-            let (m, msg) = mesh_of(&engine, &roi, error, size, mesh_error, 0.0);
+            let (m, msg) = mesh_of(
+                &engine,
+                &roi,
+                error,
+                size,
+                mesh_error,
+                0.0,
+                pb::MeshBorder::Shared,
+            );
             let h = grid_heights(&engine, &roi, error, size as usize);
             let got = surface_at_vertices(&m);
             let (mut worst, mut holes) = (0.0f64, 0);
@@ -214,7 +224,7 @@ fn adjacent_tiles_of_different_errors_fit_under_skirts() {
                         y0 + (3 - j) as f64 * h,
                     );
                     let (e, m) = spec(i, j);
-                    mesh_of(&engine, &roi, e, size, m, skirt).0
+                    mesh_of(&engine, &roi, e, size, m, skirt, pb::MeshBorder::Adaptive).0
                 })
                 .collect()
         })
@@ -281,7 +291,7 @@ fn independent_decoders_read_the_encodings() {
     let tmp = tempfile::tempdir().unwrap();
     let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
     let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
-    let (m, msg) = mesh_of(&engine, &b, 5.0, 129, 2.0, 30.0);
+    let (m, msg) = mesh_of(&engine, &b, 5.0, 129, 2.0, 30.0, pb::MeshBorder::Adaptive);
     let (mesh, roi) = convert::mesh_of(&msg).unwrap();
     assert_eq!(mesh, m);
     let out = tmp.path().join("out");
@@ -325,4 +335,58 @@ fn independent_decoders_read_the_encodings() {
         String::from_utf8_lossy(&run.stderr)
     );
     println!("{}", stdout.trim_end());
+}
+
+#[test]
+fn tiles_of_one_error_with_shared_borders_fit_without_skirts() {
+    let tmp = tempfile::tempdir().unwrap();
+    let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
+    let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
+    let (w, h) = (b.width() / 2.2, b.height() / 2.2);
+    let (x0, y0) = (b.min[0] + 0.1 * w, b.min[1] + 0.1 * h);
+    let size = 65;
+    for (error, mesh_error) in [(0.0, 1.0), (5.0, 2.0), (20.0, 10.0)] {
+        let tile = |i: usize, j: usize| {
+            let roi = Aabb::new(
+                x0 + i as f64 * w,
+                y0 + (1 - j) as f64 * h,
+                x0 + (i + 1) as f64 * w,
+                y0 + (2 - j) as f64 * h,
+            );
+            mesh_of(
+                &engine,
+                &roi,
+                error,
+                size,
+                mesh_error,
+                0.0,
+                pb::MeshBorder::Shared,
+            )
+            .0
+        };
+        let t = [[tile(0, 0), tile(1, 0)], [tile(0, 1), tile(1, 1)]];
+        let mut worst = 0.0f64;
+        for (a, sa, b, sb) in [
+            (&t[0][0], 2, &t[0][1], 0),
+            (&t[1][0], 2, &t[1][1], 0),
+            (&t[0][0], 1, &t[1][0], 3),
+            (&t[0][1], 1, &t[1][1], 3),
+        ] {
+            // Both sides hold every grid vertex of the shared side, at one height.
+            let (ea, eb) = (&edges(a)[sa], &edges(b)[sb]);
+            assert_eq!(ea.len(), size as usize);
+            assert_eq!(eb.len(), size as usize);
+            for (&va, &vb) in ea.iter().zip(eb) {
+                let along = axis_along(sa);
+                assert_eq!(a.grid[va as usize][along], b.grid[vb as usize][along]);
+                let gap = (a.heights[va as usize] - b.heights[vb as usize]).abs() as f64;
+                worst = worst.max(gap);
+            }
+        }
+        // No step along a shared side: the same cut gives a point the same height in every
+        // tile that holds it.
+        assert!(worst <= 1e-3, "e = {error}: a {worst} m step between tiles");
+        let tris: usize = t.iter().flatten().map(|m| m.triangles.len()).sum();
+        println!("e = {error} m, mesh within {mesh_error} m: 4 tiles of {size}², {tris} triangles, largest step at shared sides {worst:.1e} m");
+    }
 }

@@ -13,6 +13,18 @@
 
 pub mod encode;
 
+/// What a mesh keeps on the tile's border.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Border {
+    /// Every grid vertex on the border is a mesh vertex, so two tiles of one grid spacing
+    /// that share a side share all its vertices: tiles of one error fit without a crack.
+    #[default]
+    Shared,
+    /// The border is simplified like the inside: fewest triangles, but a neighbour's border
+    /// vertices differ, and only skirts hide the T-junctions.
+    Adaptive,
+}
+
 /// A mesh of one tile in grid coordinates.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mesh {
@@ -124,8 +136,10 @@ fn triangle_error(h: &[f32], size: usize, t: &Tri) -> f64 {
     worst
 }
 
-/// The error kept for every midpoint vertex, computed from the smallest triangles up.
-fn midpoint_errors(h: &[f32], size: usize) -> Vec<f64> {
+/// The error kept for every midpoint vertex, computed from the smallest triangles up. With a
+/// shared border, a midpoint on the border gets an infinite one, so that every border vertex
+/// is kept and the triangles above split down to it.
+fn midpoint_errors(h: &[f32], size: usize, border: Border) -> Vec<f64> {
     let mut errors = vec![0.0f64; size * size];
     let mut levels: Vec<Vec<Tri>> = vec![roots(size).to_vec()];
     while !levels.last().expect("the roots")[0].is_leaf() {
@@ -144,11 +158,17 @@ fn midpoint_errors(h: &[f32], size: usize) -> Vec<f64> {
         let own: Vec<f64> = level.iter().map(|t| triangle_error(h, size, t)).collect();
         for (t, e) in level.iter().zip(own) {
             let mut e = e;
+            let m = t.mid();
+            let last = size as i64 - 1;
+            if border == Border::Shared && (m[0] == 0 || m[1] == 0 || m[0] == last || m[1] == last)
+            {
+                e = f64::INFINITY;
+            }
             let [l, r] = t.children();
             if !l.is_leaf() {
                 e = e.max(errors[key(l.mid())]).max(errors[key(r.mid())]);
             }
-            let m = key(t.mid());
+            let m = key(m);
             errors[m] = errors[m].max(e);
         }
     }
@@ -156,14 +176,19 @@ fn midpoint_errors(h: &[f32], size: usize) -> Vec<f64> {
 }
 
 /// The RTIN mesh of `heights` (`size × size`, row 0 north) within `max_error` of them at every
-/// grid vertex, without triangles over voids.
+/// grid vertex, without triangles over voids, its border simplified like the rest.
 ///
 /// # Panics
 /// If `size` is not 2ⁿ + 1 or `heights` does not hold `size²` values.
 pub fn rtin(heights: &[f32], size: usize, max_error: f64) -> Mesh {
+    rtin_with(heights, size, max_error, Border::Adaptive)
+}
+
+/// [`rtin`], keeping the border as `border` says.
+pub fn rtin_with(heights: &[f32], size: usize, max_error: f64, border: Border) -> Mesh {
     assert!(valid_size(size), "a mesh grid is 2^n + 1 vertices a side");
     assert_eq!(heights.len(), size * size);
-    let errors = midpoint_errors(heights, size);
+    let errors = midpoint_errors(heights, size, border);
     let key = |p: [i64; 2]| p[1] as usize * size + p[0] as usize;
     let mut index = vec![u32::MAX; size * size];
     let mut mesh = Mesh {
@@ -395,6 +420,17 @@ mod tests {
                 assert_eq!(n, if on_border { 1 } else { 2 }, "{p:?}–{q:?} at e = {e}");
             }
         }
+    }
+
+    #[test]
+    fn a_shared_border_keeps_every_border_vertex() {
+        let size = 33;
+        let h = rough(size);
+        let m = rtin_with(&h, size, 1e9, Border::Shared);
+        assert!(edges(&m).iter().all(|e| e.len() == size));
+        let loose = rtin(&h, size, 1e9);
+        assert!(edges(&loose).iter().all(|e| e.len() == 2));
+        assert_eq!(loose.triangles.len(), 2);
     }
 
     #[test]

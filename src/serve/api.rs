@@ -225,6 +225,7 @@ pub fn mesh_tile(
         size as usize,
         r.mesh_error,
         r.skirt_m,
+        convert::mesh_border(r.border)?,
         convert::backend(r.backend)?,
         cancel,
     )?;

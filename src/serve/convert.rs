@@ -48,6 +48,16 @@ pub fn view_cut(engine: &Engine, v: &pb::ViewCut) -> Result<Cut, EngineError> {
     )?))
 }
 
+pub fn mesh_border(b: i32) -> Result<crate::mesh::Border, EngineError> {
+    match pb::MeshBorder::try_from(b) {
+        Ok(pb::MeshBorder::Shared) => Ok(crate::mesh::Border::Shared),
+        Ok(pb::MeshBorder::Adaptive) => Ok(crate::mesh::Border::Adaptive),
+        Err(_) => Err(EngineError::Invalid(format!(
+            "unknown mesh border {b}: use shared or adaptive"
+        ))),
+    }
+}
+
 pub fn backend(b: i32) -> Result<Backend, EngineError> {
     match pb::Backend::try_from(b) {
         Ok(pb::Backend::Auto) => Ok(Backend::Auto),
