@@ -102,7 +102,8 @@ fn roots(size: usize) -> [Tri; 2] {
 }
 
 /// The largest |plane − height| over the grid vertices in a triangle (edges included), or
-/// infinity if one is void.
+/// infinity if one is void. Row by row: each edge bounds a row's run of columns, found exactly
+/// in integers, and the plane is evaluated from its gradient along the run.
 fn triangle_error(h: &[f32], size: usize, t: &Tri) -> f64 {
     let at = |p: [i64; 2]| h[p[1] as usize * size + p[0] as usize] as f64;
     let (za, zb, zc) = (at(t.a), at(t.b), at(t.c));
@@ -111,26 +112,46 @@ fn triangle_error(h: &[f32], size: usize, t: &Tri) -> f64 {
     }
     let [a, b, c] = [t.a, t.b, t.c];
     let area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
-    let edge = |p: [i64; 2], q: [i64; 2], r: [i64; 2]| {
-        ((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])) * area.signum()
+    let sign = area.signum();
+    // Each edge p → q as A·x + B·y + C ≥ 0 on the inside.
+    let edge = |p: [i64; 2], q: [i64; 2]| {
+        let (ea, eb) = (-(q[1] - p[1]) * sign, (q[0] - p[0]) * sign);
+        (ea, eb, -(ea * p[0] + eb * p[1]))
     };
-    let (x0, x1) = (a[0].min(b[0]).min(c[0]), a[0].max(b[0]).max(c[0]));
+    let edges = [edge(b, c), edge(c, a), edge(a, b)];
+    // The plane's gradient, from the two legs.
+    let inv = 1.0 / area as f64;
+    let (ux, uy, uz) = ((b[0] - a[0]) as f64, (b[1] - a[1]) as f64, zb - za);
+    let (vx, vy, vz) = ((c[0] - a[0]) as f64, (c[1] - a[1]) as f64, zc - za);
+    let gx = (uz * vy - vz * uy) * inv;
+    let gy = (vz * ux - uz * vx) * inv;
     let (y0, y1) = (a[1].min(b[1]).min(c[1]), a[1].max(b[1]).max(c[1]));
-    let inv = 1.0 / area.abs() as f64;
+    let (x0, x1) = (a[0].min(b[0]).min(c[0]), a[0].max(b[0]).max(c[0]));
     let mut worst = 0.0f64;
     for y in y0..=y1 {
-        for x in x0..=x1 {
-            let p = [x, y];
-            let (wa, wb, wc) = (edge(b, c, p), edge(c, a, p), edge(a, b, p));
-            if wa < 0 || wb < 0 || wc < 0 {
-                continue;
+        let (mut lo, mut hi) = (x0, x1);
+        for &(ea, eb, ec) in &edges {
+            let rest = eb * y + ec;
+            match ea.signum() {
+                1 => lo = lo.max((-rest).div_euclid(ea) + i64::from((-rest).rem_euclid(ea) != 0)),
+                -1 => hi = hi.min(rest.div_euclid(-ea)),
+                _ if rest < 0 => hi = lo - 1,
+                _ => {}
             }
-            let z = at(p);
-            if z.is_nan() {
+        }
+        if lo > hi {
+            continue;
+        }
+        let row = &h[y as usize * size..][lo as usize..=hi as usize];
+        let base = za + (lo - a[0]) as f64 * gx + (y - a[1]) as f64 * gy;
+        for (k, &z) in row.iter().enumerate() {
+            let d = (base + k as f64 * gx - z as f64).abs();
+            // NaN (a void vertex) fails every comparison: caught below.
+            if d > worst {
+                worst = d;
+            } else if d.is_nan() {
                 return f64::INFINITY;
             }
-            let plane = (wa as f64 * za + wb as f64 * zb + wc as f64 * zc) * inv;
-            worst = worst.max((plane - z).abs());
         }
     }
     worst
@@ -141,25 +162,24 @@ fn triangle_error(h: &[f32], size: usize, t: &Tri) -> f64 {
 /// is kept and the triangles above split down to it.
 fn midpoint_errors(h: &[f32], size: usize, border: Border) -> Vec<f64> {
     let mut errors = vec![0.0f64; size * size];
-    let mut levels: Vec<Vec<Tri>> = vec![roots(size).to_vec()];
-    while !levels.last().expect("the roots")[0].is_leaf() {
-        let next = levels
-            .last()
-            .expect("a level")
-            .iter()
-            .flat_map(|t| t.children())
-            .collect();
-        levels.push(next);
-    }
+    // The levels that have a midpoint vertex: the roots (legs of 2ⁿ cells) down to the one
+    // above the leaves (half cells); two levels halve the legs.
+    let levels = 2 * (size - 1).trailing_zeros() as usize;
     let key = |p: [i64; 2]| p[1] as usize * size + p[0] as usize;
-    // Leaves have no midpoint vertex; every coarser level, deepest first, so that a parent
-    // reads its children's midpoints once both triangles sharing each have written them.
-    for level in levels.iter().rev().skip(1) {
-        let own: Vec<f64> = level.iter().map(|t| triangle_error(h, size, t)).collect();
-        for (t, e) in level.iter().zip(own) {
-            let mut e = e;
+    let last = size as i64 - 1;
+    // Deepest level first, so that a parent reads its children's midpoints once both
+    // triangles sharing each have written them. A level's triangles are found by descending
+    // from the roots rather than kept: the finest levels hold millions.
+    let mut stack = Vec::with_capacity(2 * levels + 2);
+    for depth in (0..levels).rev() {
+        stack.extend(roots(size).map(|t| (t, 0usize)));
+        while let Some((t, d)) = stack.pop() {
+            if d < depth {
+                stack.extend(t.children().map(|c| (c, d + 1)));
+                continue;
+            }
+            let mut e = triangle_error(h, size, &t);
             let m = t.mid();
-            let last = size as i64 - 1;
             if border == Border::Shared && (m[0] == 0 || m[1] == 0 || m[0] == last || m[1] == last)
             {
                 e = f64::INFINITY;
