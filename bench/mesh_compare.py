@@ -8,7 +8,9 @@ variants.csv, each survey's uniform cut at every error for each mipmap filter an
 surveys taken as exact so that e is the largest deviation from the samples' surface. For each
 survey and error, martini and delatin triangulate the same samples within the same maximum
 error; their vertex counts go beside our samples shipped. Writes OUT_DIR/meshes.csv and the
-charts samples_vs_error.png and variants_time.png.
+charts samples_vs_error.png and variants_time.png. Then the crops of rtin.csv, which our mesh
+triangulation made at each error, go to martini and delatin too: rtin_compare.csv,
+mesh_triangles.png and mesh_time.png.
 
 Neither mesher takes voids: they get the survey with voids filled from their neighbours, and
 martini a grid padded by repeating the edge to 2^n + 1 samples a side (vertices in the padding
@@ -72,6 +74,103 @@ def delatin_counts(z, errors):
     return out
 
 
+# Meshes with more triangles than this are not measured: matplotlib's point location needs
+# tens of GB for millions of triangles.
+MEASURE_TRIANGLES = 400_000
+
+
+def measured_error(z, vertices, triangles):
+    """The largest |mesh − z| over every sample of z, the mesh's vertices given as (x, y)
+    sample positions: the mesh interpolated linearly at every sample. NaN for a mesh of more
+    than MEASURE_TRIANGLES triangles."""
+    from matplotlib.tri import LinearTriInterpolator, Triangulation
+
+    if len(triangles) // (1 if np.ndim(triangles) == 2 else 3) > MEASURE_TRIANGLES:
+        return float("nan")
+    h, w = z.shape
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 2)
+    tri = Triangulation(v[:, 0], v[:, 1], np.asarray(triangles, dtype=np.int64).reshape(-1, 3))
+    heights = z[v[:, 1].astype(int), v[:, 0].astype(int)]
+    ys, xs = np.mgrid[0:h, 0:w]
+    at = LinearTriInterpolator(tri, heights)(xs.ravel().astype(np.float64), ys.ravel().astype(np.float64))
+    return float(np.nanmax(np.abs(np.asarray(at).reshape(h, w) - z)))
+
+
+def delatin_xy(d, rows):
+    """delatin's vertices as (column, row): its y runs north, from the last row."""
+    v = np.asarray(d.vertices)
+    return np.column_stack([v[:, 0], (rows - 1) - v[:, 1]])
+
+
+def rtin_compare(out, sources):
+    """The crops of rtin.csv meshed by martini and delatin at the same errors, beside ours:
+    rtin_compare.csv and the charts mesh_triangles.png and mesh_time.png."""
+    ours = list(csv.DictReader(open(out / "rtin.csv")))
+    rows = []
+    for name in dict.fromkeys(r["dataset"] for r in ours):
+        mine = [r for r in ours if r["dataset"] == name]
+        c0, r0, size = (int(mine[0][k]) for k in ("c0", "r0", "size"))
+        path = next(s for s in sources if Path(s).name == name)
+        z = np.ascontiguousarray(heights(path)[r0:r0 + size, c0:c0 + size])
+        errors = [float(r["error_m"]) for r in mine]
+        for r in mine:
+            rows.append({"dataset": name, "method": "patchwork RTIN", "error_m": float(r["error_m"]),
+                         "vertices": int(r["vertices"]), "triangles": int(r["triangles"]), "ms": float(r["ms"]),
+                         "max_deviation_m": float(r["max_deviation_m"])})
+        from pymartini import Martini
+        from pydelatin import Delatin
+
+        t0 = time.perf_counter()
+        tile = Martini(size).create_tile(np.ascontiguousarray(z.T).ravel())
+        build = time.perf_counter() - t0
+        for e in errors:
+            t0 = time.perf_counter()
+            v, t = tile.get_mesh(e)
+            ms = (time.perf_counter() - t0 + build) * 1e3
+            # martini's vertices are (x, y) of the transposed grid it was given: (row, column).
+            v = np.asarray(v).reshape(-1, 2)[:, ::-1]
+            rows.append({"dataset": name, "method": "martini", "error_m": e, "vertices": len(v),
+                         "triangles": len(t) // 3, "ms": ms, "max_deviation_m": measured_error(z, v, t)})
+            t0 = time.perf_counter()
+            d = Delatin(z, width=size, height=size, max_error=e)
+            ms = (time.perf_counter() - t0) * 1e3
+            rows.append({"dataset": name, "method": "delatin", "error_m": e, "vertices": len(d.vertices),
+                         "triangles": len(d.triangles), "ms": ms,
+                         "max_deviation_m": measured_error(z, delatin_xy(d, size), d.triangles)})
+        for r in rows[-3 * len(errors):]:
+            print(f"{name} {size}² {r['method']:>15} e = {r['error_m']:>4} m: {r['triangles']} triangles, "
+                  f"{r['ms']:.1f} ms, max deviation {r['max_deviation_m']:.2f} m")
+    with open(out / "rtin_compare.csv", "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=["dataset", "method", "error_m", "vertices", "triangles", "ms", "max_deviation_m"])
+        wr.writeheader()
+        for r in rows:
+            wr.writerow({**r, "ms": f"{r['ms']:.2f}", "max_deviation_m": f"{r['max_deviation_m']:.4f}"})
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    datasets = list(dict.fromkeys(r["dataset"] for r in rows))
+    for what, ylabel, fname in (("triangles", "triangles", "mesh_triangles.png"), ("ms", "ms (build and extract)", "mesh_time.png")):
+        fig, axes = plt.subplots(1, len(datasets), figsize=(5.5 * len(datasets), 4.5), squeeze=False)
+        for ax, name in zip(axes[0], datasets):
+            for method, style in (("patchwork RTIN", "o-"), ("martini", "s--"), ("delatin", "^:")):
+                pts = [r for r in rows if r["dataset"] == name and r["method"] == method]
+                ax.plot([r["error_m"] for r in pts], [r[what] for r in pts], style, label=method)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("maximum error (m)")
+            ax.set_ylabel(ylabel)
+            size = next(int(r["size"]) for r in ours if r["dataset"] == name)
+            ax.set_title(f"{name}, middle {size}²", fontsize=10)
+            ax.grid(True, which="both", alpha=0.3)
+        axes[0][0].legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / fname, dpi=90)
+        plt.close(fig)
+
+
 def main(argv):
     if len(argv) != 2:
         sys.exit(__doc__)
@@ -94,6 +193,7 @@ def main(argv):
         wr.writeheader()
         wr.writerows(mesh_rows)
     charts(out, datasets, rows, mesh_rows)
+    rtin_compare(out, sources)
 
 
 def charts(out, datasets, rows, mesh_rows):

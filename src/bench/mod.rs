@@ -9,6 +9,7 @@
 pub mod charts;
 pub mod flight;
 pub mod meet;
+pub mod meshes;
 pub mod stability;
 pub mod variants;
 
@@ -347,6 +348,8 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     flight::write_csv(&opts.out, &flight)?;
     let variants = variants::run(&opts.files, &errors_used, tile_side)?;
     variants::write_csv(&opts.out, &variants)?;
+    let meshes = meshes::run(&opts.files, if opts.smoke { 129 } else { 2049 })?;
+    meshes::write_csv(&opts.out, &meshes)?;
     // Where surveys meet, made from the first file's survey (its middle, at most 1,800
     // samples a side, so the scenes take seconds).
     let base = first_survey

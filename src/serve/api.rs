@@ -215,9 +215,7 @@ pub fn mesh_tile(
         .cut
         .as_ref()
         .ok_or_else(|| EngineError::Invalid("a mesh needs a uniform cut (roi + error)".into()))?;
-    let Cut::Uniform { roi, error } = convert::uniform_cut(u)? else {
-        unreachable!("a uniform cut")
-    };
+    let (roi, error) = (convert::aabb(&u.roi)?, u.error);
     let size = if r.size == 0 { MESH_SIZE } else { r.size };
     let m = engine.mesh_until(
         &roi,
