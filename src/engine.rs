@@ -1015,8 +1015,8 @@ impl Engine {
 
     /// A mesh of a uniform cut: the resampled heights at the corners of a `size × size` grid
     /// of vertices over `roi` (a tile over the ROI grown by half a cell, whose pixel centres
-    /// fall on them), triangulated within `mesh_error` of them, its border kept as `border`
-    /// says, with skirts `skirt` metres deep when that is positive.
+    /// fall on them), triangulated by `method` within `mesh_error` of them, its border kept
+    /// as `border` says, with skirts `skirt` metres deep when that is positive.
     #[allow(clippy::too_many_arguments)]
     pub fn mesh_until(
         &self,
@@ -1026,6 +1026,7 @@ impl Engine {
         mesh_error: f64,
         skirt: f64,
         border: crate::mesh::Border,
+        method: crate::mesh::Method,
         backend: Backend,
         cancel: &Cancel,
     ) -> Result<MeshTile, EngineError> {
@@ -1054,7 +1055,7 @@ impl Engine {
         );
         let cut = Cut::Uniform { roi: grown, error };
         let (tile, used) = self.tile_until(&cut, size as u32, size as u32, backend, cancel)?;
-        let mut mesh = crate::mesh::rtin_with(&tile.heights, size, mesh_error, border);
+        let mut mesh = crate::mesh::triangulate(&tile.heights, size, mesh_error, border, method);
         if skirt > 0.0 {
             crate::mesh::add_skirts(&mut mesh, skirt as f32);
         }

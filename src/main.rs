@@ -171,6 +171,9 @@ enum Cmd {
         /// `adaptive` simplifies the border too.
         #[arg(long, value_name = "shared|adaptive", default_value = "shared")]
         border: String,
+        /// `rtin` (a triangle bintree) or `quadtree` (a restricted quadtree of fans).
+        #[arg(long, value_name = "rtin|quadtree", default_value = "rtin")]
+        method: String,
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
         #[command(flatten)]
@@ -889,9 +892,15 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             size,
             skirt,
             border,
+            method,
             out,
             target,
         } => {
+            let method = match method.as_str() {
+                "rtin" => pb::MeshMethod::Rtin,
+                "quadtree" => pb::MeshMethod::Quadtree,
+                other => return Err(format!("--method: {other:?} is not rtin or quadtree").into()),
+            };
             let border = match border.as_str() {
                 "shared" => pb::MeshBorder::Shared,
                 "adaptive" => pb::MeshBorder::Adaptive,
@@ -916,6 +925,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 skirt_m: skirt,
                 backend: pb::Backend::Auto as i32,
                 border: border as i32,
+                method: method as i32,
             };
             let m = match &mut c {
                 Client::Remote { terrain, .. } => terrain

@@ -32,6 +32,9 @@ fn engine_with(tmp: &Path, crops: &[&str]) -> Arc<Engine> {
     engine
 }
 
+const METHODS: [pb::MeshMethod; 2] = [pb::MeshMethod::Rtin, pb::MeshMethod::Quadtree];
+
+#[allow(clippy::too_many_arguments)]
 fn mesh_of(
     engine: &Engine,
     roi: &Aabb,
@@ -40,6 +43,7 @@ fn mesh_of(
     mesh_error: f64,
     skirt: f64,
     border: pb::MeshBorder,
+    method: pb::MeshMethod,
 ) -> (Mesh, pb::Mesh) {
     let req = pb::MeshRequest {
         cut: Some(pb::UniformCut {
@@ -51,6 +55,7 @@ fn mesh_of(
         skirt_m: skirt,
         backend: pb::Backend::Cpu as i32,
         border: border as i32,
+        method: method as i32,
     };
     let m = api::mesh_tile(engine, &req, &Default::default()).unwrap();
     (convert::mesh_of(&m).unwrap().0, m)
@@ -115,7 +120,10 @@ fn meshes_keep_their_error_and_leave_holes_open() {
     let voids = common::real_crop("srtm_n44e005_voids_crop.tif").world_bounds();
     let cop = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
     for (name, roi) in [("copernicus", cop), ("voids", voids)] {
-        for (error, mesh_error, size) in [(0.0, 0.5, 129), (5.0, 2.0, 129), (20.0, 10.0, 65)] {
+        let cases = [(0.0, 0.5, 129), (5.0, 2.0, 129), (20.0, 10.0, 65)];
+        for ((error, mesh_error, size), method) in
+            cases.into_iter().flat_map(|c| METHODS.map(|m| (c, m)))
+        {
             let (m, msg) = mesh_of(
                 &engine,
                 &roi,
@@ -124,6 +132,7 @@ fn meshes_keep_their_error_and_leave_holes_open() {
                 mesh_error,
                 0.0,
                 pb::MeshBorder::Shared,
+                method,
             );
             let h = grid_heights(&engine, &roi, error, size as usize);
             let got = surface_at_vertices(&m);
@@ -155,7 +164,7 @@ fn meshes_keep_their_error_and_leave_holes_open() {
             assert!((worst - msg.max_deviation).abs() < 1e-3);
             let full = 2 * (size as usize - 1).pow(2);
             println!(
-                "{name} e = {error} m, mesh within {mesh_error} m, {size}²: {} vertices, {} triangles ({:.1}% of the grid's), max deviation {worst:.3} m, {holes} void vertices, {} patches",
+                "{name} {method:?} e = {error} m, mesh within {mesh_error} m, {size}²: {} vertices, {} triangles ({:.1}% of the grid's), max deviation {worst:.3} m, {holes} void vertices, {} patches",
                 m.grid.len(),
                 m.triangles.len(),
                 100.0 * m.triangles.len() as f64 / full as f64,
@@ -224,7 +233,19 @@ fn adjacent_tiles_of_different_errors_fit_under_skirts() {
                         y0 + (3 - j) as f64 * h,
                     );
                     let (e, m) = spec(i, j);
-                    mesh_of(&engine, &roi, e, size, m, skirt, pb::MeshBorder::Adaptive).0
+                    // Neighbours of both methods, so that they are seen to fit each other.
+                    let method = METHODS[(i + j) % 2];
+                    mesh_of(
+                        &engine,
+                        &roi,
+                        e,
+                        size,
+                        m,
+                        skirt,
+                        pb::MeshBorder::Adaptive,
+                        method,
+                    )
+                    .0
                 })
                 .collect()
         })
@@ -291,7 +312,16 @@ fn independent_decoders_read_the_encodings() {
     let tmp = tempfile::tempdir().unwrap();
     let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
     let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
-    let (m, msg) = mesh_of(&engine, &b, 5.0, 129, 2.0, 30.0, pb::MeshBorder::Adaptive);
+    let (m, msg) = mesh_of(
+        &engine,
+        &b,
+        5.0,
+        129,
+        2.0,
+        30.0,
+        pb::MeshBorder::Adaptive,
+        pb::MeshMethod::Rtin,
+    );
     let (mesh, roi) = convert::mesh_of(&msg).unwrap();
     assert_eq!(mesh, m);
     let out = tmp.path().join("out");
@@ -361,6 +391,7 @@ fn tiles_of_one_error_with_shared_borders_fit_without_skirts() {
                 mesh_error,
                 0.0,
                 pb::MeshBorder::Shared,
+                METHODS[(i + j) % 2],
             )
             .0
         };
@@ -387,6 +418,6 @@ fn tiles_of_one_error_with_shared_borders_fit_without_skirts() {
         // tile that holds it.
         assert!(worst <= 1e-3, "e = {error}: a {worst} m step between tiles");
         let tris: usize = t.iter().flatten().map(|m| m.triangles.len()).sum();
-        println!("e = {error} m, mesh within {mesh_error} m: 4 tiles of {size}², {tris} triangles, largest step at shared sides {worst:.1e} m");
+        println!("e = {error} m, mesh within {mesh_error} m: 4 tiles of {size}² (RTIN and quadtree side by side), {tris} triangles, largest step at shared sides {worst:.1e} m");
     }
 }

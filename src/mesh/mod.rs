@@ -12,6 +12,32 @@
 //! share a hypotenuse always split together: the mesh has no T-junction inside the tile.
 
 pub mod encode;
+pub mod quadtree;
+
+/// How the grid is triangulated.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Method {
+    /// The right-triangulated irregular network ([`rtin_with`]).
+    #[default]
+    Rtin,
+    /// The restricted quadtree with omitted edge vertices ([`quadtree::mesh`]).
+    Quadtree,
+}
+
+/// The mesh of `heights` by `method`: within `max_error` of them at every grid vertex, no
+/// triangle over a void, the border kept as `border` says.
+pub fn triangulate(
+    heights: &[f32],
+    size: usize,
+    max_error: f64,
+    border: Border,
+    method: Method,
+) -> Mesh {
+    match method {
+        Method::Rtin => rtin_with(heights, size, max_error, border),
+        Method::Quadtree => quadtree::mesh(heights, size, max_error, border),
+    }
+}
 
 /// What a mesh keeps on the tile's border.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -210,16 +236,7 @@ pub fn rtin_with(heights: &[f32], size: usize, max_error: f64, border: Border) -
     assert_eq!(heights.len(), size * size);
     let errors = midpoint_errors(heights, size, border);
     let key = |p: [i64; 2]| p[1] as usize * size + p[0] as usize;
-    let mut index = vec![u32::MAX; size * size];
-    let mut mesh = Mesh {
-        size,
-        grid: Vec::new(),
-        heights: Vec::new(),
-        triangles: Vec::new(),
-        skirt_vertices: 0,
-        skirt_triangles: 0,
-        max_deviation: 0.0,
-    };
+    let mut out = Builder::new(heights, size);
     let mut stack: Vec<Tri> = roots(size).to_vec();
     while let Some(t) = stack.pop() {
         if !t.is_leaf() && errors[key(t.mid())] > max_error {
@@ -228,20 +245,52 @@ pub fn rtin_with(heights: &[f32], size: usize, max_error: f64, border: Border) -
             stack.push(l);
             continue;
         }
-        let e = triangle_error(heights, size, &t);
-        if !e.is_finite() {
-            // A leaf with a void corner: the hole stays open.
-            continue;
+        out.push(&t);
+    }
+    out.finish()
+}
+
+/// A mesh being put together: each grid vertex once, triangles turned counter-clockwise.
+struct Builder<'a> {
+    heights: &'a [f32],
+    index: Vec<u32>,
+    mesh: Mesh,
+}
+
+impl<'a> Builder<'a> {
+    fn new(heights: &'a [f32], size: usize) -> Self {
+        Builder {
+            heights,
+            index: vec![u32::MAX; size * size],
+            mesh: Mesh {
+                size,
+                grid: Vec::new(),
+                heights: Vec::new(),
+                triangles: Vec::new(),
+                skirt_vertices: 0,
+                skirt_triangles: 0,
+                max_deviation: 0.0,
+            },
         }
-        mesh.max_deviation = mesh.max_deviation.max(e);
+    }
+
+    /// Adds a triangle, unless it holds a void vertex: the hole stays open.
+    fn push(&mut self, t: &Tri) {
+        let size = self.mesh.size;
+        let e = triangle_error(self.heights, size, t);
+        if !e.is_finite() {
+            return;
+        }
+        let m = &mut self.mesh;
+        m.max_deviation = m.max_deviation.max(e);
         let mut ids = [t.a, t.b, t.c].map(|p| {
-            let k = key(p);
-            if index[k] == u32::MAX {
-                index[k] = mesh.grid.len() as u32;
-                mesh.grid.push([p[0] as u32, p[1] as u32]);
-                mesh.heights.push(heights[k]);
+            let k = p[1] as usize * size + p[0] as usize;
+            if self.index[k] == u32::MAX {
+                self.index[k] = m.grid.len() as u32;
+                m.grid.push([p[0] as u32, p[1] as u32]);
+                m.heights.push(self.heights[k]);
             }
-            index[k]
+            self.index[k]
         });
         // Rows run south, so counter-clockwise in the world is clockwise on the grid.
         let [a, b, c] = [t.a, t.b, t.c];
@@ -249,11 +298,14 @@ pub fn rtin_with(heights: &[f32], size: usize, max_error: f64, border: Border) -
         if cross > 0 {
             ids.swap(1, 2);
         }
-        mesh.triangles.push(ids);
+        m.triangles.push(ids);
     }
-    mesh.skirt_vertices = mesh.grid.len();
-    mesh.skirt_triangles = mesh.triangles.len();
-    mesh
+
+    fn finish(mut self) -> Mesh {
+        self.mesh.skirt_vertices = self.mesh.grid.len();
+        self.mesh.skirt_triangles = self.mesh.triangles.len();
+        self.mesh
+    }
 }
 
 /// The mesh's vertices on each side of the tile, west, south, east and north, in order along

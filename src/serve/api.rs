@@ -224,6 +224,7 @@ pub fn mesh_tile(
         r.mesh_error,
         r.skirt_m,
         convert::mesh_border(r.border)?,
+        convert::mesh_method(r.method)?,
         convert::backend(r.backend)?,
         cancel,
     )?;

@@ -58,6 +58,16 @@ pub fn mesh_border(b: i32) -> Result<crate::mesh::Border, EngineError> {
     }
 }
 
+pub fn mesh_method(m: i32) -> Result<crate::mesh::Method, EngineError> {
+    match pb::MeshMethod::try_from(m) {
+        Ok(pb::MeshMethod::Rtin) => Ok(crate::mesh::Method::Rtin),
+        Ok(pb::MeshMethod::Quadtree) => Ok(crate::mesh::Method::Quadtree),
+        Err(_) => Err(EngineError::Invalid(format!(
+            "unknown mesh method {m}: use rtin or quadtree"
+        ))),
+    }
+}
+
 pub fn backend(b: i32) -> Result<Backend, EngineError> {
     match pb::Backend::try_from(b) {
         Ok(pb::Backend::Auto) => Ok(Backend::Auto),

@@ -1,0 +1,316 @@
+//! The restricted quadtree of seed 002: square nodes, each drawn as a fan of eight triangles
+//! around its centre through its corners and the midpoints of its sides, split while that fan
+//! departs from the grid by more than the error; neighbours kept within one level of each
+//! other; and where a node meets a coarser one, the midpoint of the shared side *omitted* from
+//! its fan, so that both draw that side as one edge and no T-junction is left.
+//!
+//! Every error is exact (the fans' triangles against every grid vertex inside them, as in
+//! [`super::rtin_with`]), measured on the triangles actually drawn: a node whose omissions
+//! take it past the error is split, or, at the finest nodes, its coarser neighbour is.
+
+use super::{triangle_error, Border, Builder, Mesh, Tri};
+use std::collections::BTreeSet;
+
+/// A node: its north-west grid vertex and its side in cells (a power of two, 2 at least, so
+/// that it has a centre vertex).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+struct Node {
+    x: i64,
+    y: i64,
+    span: i64,
+}
+
+/// The sides, in the order a fan walks them: north, east, south, west.
+const SIDES: usize = 4;
+
+impl Node {
+    fn children(self) -> [Node; 4] {
+        let h = self.span / 2;
+        [(0, 0), (h, 0), (0, h), (h, h)].map(|(dx, dy)| Node {
+            x: self.x + dx,
+            y: self.y + dy,
+            span: h,
+        })
+    }
+
+    fn contains(self, c: [i64; 2]) -> bool {
+        c[0] >= self.x && c[0] < self.x + self.span && c[1] >= self.y && c[1] < self.y + self.span
+    }
+
+    /// A cell just across each side, or None past the tile's border (`last` = size − 1).
+    fn across(self, last: i64) -> [Option<[i64; 2]>; SIDES] {
+        let (x, y, s) = (self.x, self.y, self.span);
+        [
+            (y > 0).then_some([x, y - 1]),
+            (x + s < last).then_some([x + s, y]),
+            (y + s < last).then_some([x, y + s]),
+            (x > 0).then_some([x - 1, y]),
+        ]
+    }
+
+    /// The fan's triangles, the midpoints of the sides in `omit` left out.
+    fn fan(self, omit: [bool; SIDES]) -> Vec<Tri> {
+        let (x, y, s, h) = (self.x, self.y, self.span, self.span / 2);
+        let centre = [x + h, y + h];
+        let corners = [[x, y], [x + s, y], [x + s, y + s], [x, y + s]];
+        let mids = [[x + h, y], [x + s, y + h], [x + h, y + s], [x, y + h]];
+        let mut ring = Vec::with_capacity(8);
+        for side in 0..SIDES {
+            ring.push(corners[side]);
+            if !omit[side] {
+                ring.push(mids[side]);
+            }
+        }
+        (0..ring.len())
+            .map(|k| Tri {
+                a: ring[k],
+                b: ring[(k + 1) % ring.len()],
+                c: centre,
+            })
+            .collect()
+    }
+
+    fn error(self, h: &[f32], size: usize, omit: [bool; SIDES]) -> f64 {
+        self.fan(omit)
+            .iter()
+            .map(|t| triangle_error(h, size, t))
+            .fold(0.0, f64::max)
+    }
+
+    fn on_border(self, last: i64) -> bool {
+        self.x == 0 || self.y == 0 || self.x + self.span == last || self.y + self.span == last
+    }
+}
+
+struct Tree {
+    root: Node,
+    leaves: BTreeSet<Node>,
+}
+
+impl Tree {
+    /// The leaf holding cell `c`.
+    fn leaf_at(&self, c: [i64; 2]) -> Node {
+        let mut n = self.root;
+        while !self.leaves.contains(&n) {
+            n = n
+                .children()
+                .into_iter()
+                .find(|k| k.contains(c))
+                .expect("a child holds the cell");
+        }
+        n
+    }
+
+    fn split(&mut self, n: Node) {
+        self.leaves.remove(&n);
+        self.leaves.extend(n.children());
+    }
+
+    /// Each side's neighbour where it is coarser: the sides to omit.
+    fn omitted(&self, n: Node, last: i64) -> ([bool; SIDES], [Option<Node>; SIDES]) {
+        let mut omit = [false; SIDES];
+        let mut coarser = [None; SIDES];
+        for (side, c) in n.across(last).into_iter().enumerate() {
+            if let Some(c) = c {
+                let m = self.leaf_at(c);
+                if m.span > n.span {
+                    omit[side] = true;
+                    coarser[side] = Some(m);
+                }
+            }
+        }
+        (omit, coarser)
+    }
+}
+
+/// The restricted-quadtree mesh of `heights` (`size × size`, row 0 north) within `max_error`
+/// of them at every grid vertex, without triangles over voids. A shared border keeps every
+/// border vertex (its nodes are split to the finest).
+///
+/// # Panics
+/// If `size` is not 2ⁿ + 1 with n ≥ 1, or `heights` does not hold `size²` values.
+pub fn mesh(heights: &[f32], size: usize, max_error: f64, border: Border) -> Mesh {
+    assert!(
+        super::valid_size(size),
+        "a mesh grid is 2^n + 1 vertices a side"
+    );
+    assert_eq!(heights.len(), size * size);
+    let last = size as i64 - 1;
+    let root = Node {
+        x: 0,
+        y: 0,
+        span: last,
+    };
+    let mut tree = Tree {
+        root,
+        leaves: BTreeSet::new(),
+    };
+    // Refine: split while the whole fan departs from the grid by more than the error.
+    let mut stack = vec![root];
+    while let Some(n) = stack.pop() {
+        let refine = n.span > 2
+            && ((border == Border::Shared && n.on_border(last))
+                || n.error(heights, size, [false; SIDES]) > max_error);
+        if refine {
+            stack.extend(n.children());
+        } else {
+            tree.leaves.insert(n);
+        }
+    }
+    loop {
+        // Restrict: no leaf more than one level coarser than a neighbour.
+        let mut changed = false;
+        for n in tree.leaves.clone() {
+            for c in n.across(last).into_iter().flatten() {
+                let m = tree.leaf_at(c);
+                if m.span > 2 * n.span {
+                    tree.split(m);
+                    changed = true;
+                }
+            }
+        }
+        if changed {
+            continue;
+        }
+        // The fans as drawn, with the omitted midpoints: too far from the grid, and the node
+        // is split, or at the finest its coarser neighbours are.
+        for n in tree.leaves.clone() {
+            if !tree.leaves.contains(&n) {
+                continue;
+            }
+            let (omit, coarser) = tree.omitted(n, last);
+            if !omit.iter().any(|&o| o) {
+                continue;
+            }
+            // Only the triangles over omitted sides differ from the fan the refinement
+            // measured; a void under one (even its own) must not be drawn over either.
+            let drawn = n
+                .fan(omit)
+                .iter()
+                .filter(|t| is_omitted_side(n, t))
+                .map(|t| triangle_error(heights, size, t))
+                .fold(0.0, f64::max);
+            if drawn <= max_error {
+                continue;
+            }
+            if n.span > 2 {
+                tree.split(n);
+            } else {
+                for m in coarser.into_iter().flatten() {
+                    if tree.leaves.contains(&m) {
+                        tree.split(m);
+                    }
+                }
+            }
+            changed = true;
+        }
+        if !changed {
+            break;
+        }
+    }
+    let mut out = Builder::new(heights, size);
+    for &n in &tree.leaves {
+        let (omit, _) = tree.omitted(n, last);
+        for t in n.fan(omit) {
+            out.push(&t);
+        }
+    }
+    out.finish()
+}
+
+/// Whether a fan triangle spans a whole side of its node (its side's midpoint omitted).
+fn is_omitted_side(n: Node, t: &Tri) -> bool {
+    (t.a[0] - t.b[0]).abs() + (t.a[1] - t.b[1]).abs() == n.span
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::edges;
+    use std::collections::HashMap;
+
+    fn rough(size: usize) -> Vec<f32> {
+        let mut next = crate::rng::uniform(5);
+        (0..size * size)
+            .map(|k| {
+                let (x, y) = ((k % size) as f32, (k / size) as f32);
+                (x * 0.2).sin() * 40.0 + (y * 0.11).cos() * 25.0 + next() as f32 * 2.0
+            })
+            .collect()
+    }
+
+    /// Every edge inside the tile is shared by two triangles, every border edge by one.
+    fn conforming(m: &Mesh) -> bool {
+        let mut uses = HashMap::new();
+        for t in &m.triangles {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                *uses.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+            }
+        }
+        let last = m.size as u32 - 1;
+        uses.into_iter().all(|((a, b), n)| {
+            let (p, q) = (m.grid[a as usize], m.grid[b as usize]);
+            let border = (p[0] == q[0] && (p[0] == 0 || p[0] == last))
+                || (p[1] == q[1] && (p[1] == 0 || p[1] == last));
+            n == if border { 1 } else { 2 }
+        })
+    }
+
+    #[test]
+    fn the_quadtree_keeps_the_error_without_t_junctions() {
+        let size = 65;
+        let h = rough(size);
+        for e in [0.5, 3.0, 15.0, 60.0] {
+            let m = mesh(&h, size, e, Border::Adaptive);
+            assert!(m.max_deviation <= e, "e = {e}: {}", m.max_deviation);
+            assert!(conforming(&m), "e = {e}: a T-junction");
+            let area: i64 = m
+                .triangles
+                .iter()
+                .map(|t| {
+                    let p = t.map(|v| m.grid[v as usize].map(i64::from));
+                    ((p[1][0] - p[0][0]) * (p[2][1] - p[0][1])
+                        - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]))
+                        .abs()
+                })
+                .sum();
+            // Twice the tile's area in cells: the triangles cover it once.
+            assert_eq!(area, 2 * (size as i64 - 1).pow(2), "e = {e}");
+        }
+        let coarse = mesh(&h, size, 60.0, Border::Adaptive);
+        let fine = mesh(&h, size, 0.5, Border::Adaptive);
+        assert!(coarse.triangles.len() * 4 < fine.triangles.len());
+        let shared = mesh(&h, size, 60.0, Border::Shared);
+        assert!(edges(&shared).iter().all(|e| e.len() == size));
+        assert!(conforming(&shared));
+    }
+
+    #[test]
+    fn the_quadtree_leaves_voids_open() {
+        let size = 33;
+        let mut h = rough(size);
+        for y in 9..13 {
+            for x in 4..19 {
+                h[y * size + x] = f32::NAN;
+            }
+        }
+        let m = mesh(&h, size, 1e9, Border::Adaptive);
+        for t in &m.triangles {
+            for v in t {
+                assert!(!m.heights[*v as usize].is_nan());
+            }
+            let p = t.map(|v| m.grid[v as usize].map(i64::from));
+            let tri = Tri {
+                a: p[0],
+                b: p[1],
+                c: p[2],
+            };
+            assert!(
+                triangle_error(&h, size, &tri).is_finite(),
+                "a triangle over a void"
+            );
+        }
+        assert!(!m.triangles.is_empty());
+    }
+}
