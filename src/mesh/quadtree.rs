@@ -82,12 +82,33 @@ impl Node {
     }
 }
 
-struct Tree {
+struct Tree<'a> {
     root: Node,
     leaves: BTreeSet<Node>,
+    heights: &'a [f32],
+    size: usize,
+    max_error: f64,
+    border: Border,
 }
 
-impl Tree {
+impl Tree<'_> {
+    /// Makes `n` a leaf, or splits it and its children while their whole fans depart from
+    /// the grid by more than the error (or a shared border wants them finest).
+    fn refine(&mut self, n: Node) {
+        let last = self.size as i64 - 1;
+        let mut stack = vec![n];
+        while let Some(n) = stack.pop() {
+            let split = n.span > 2
+                && ((self.border == Border::Shared && n.on_border(last))
+                    || n.error(self.heights, self.size, [false; SIDES]) > self.max_error);
+            if split {
+                stack.extend(n.children());
+            } else {
+                self.leaves.insert(n);
+            }
+        }
+    }
+
     /// The leaf holding cell `c`.
     fn leaf_at(&self, c: [i64; 2]) -> Node {
         let mut n = self.root;
@@ -101,9 +122,13 @@ impl Tree {
         n
     }
 
+    /// Splits a leaf whose neighbours need it finer: its children are refined in turn, since
+    /// a finer fan is not always closer to the grid than the one it replaces.
     fn split(&mut self, n: Node) {
         self.leaves.remove(&n);
-        self.leaves.extend(n.children());
+        for c in n.children() {
+            self.refine(c);
+        }
     }
 
     /// Each side's neighbour where it is coarser: the sides to omit.
@@ -144,19 +169,12 @@ pub fn mesh(heights: &[f32], size: usize, max_error: f64, border: Border) -> Mes
     let mut tree = Tree {
         root,
         leaves: BTreeSet::new(),
+        heights,
+        size,
+        max_error,
+        border,
     };
-    // Refine: split while the whole fan departs from the grid by more than the error.
-    let mut stack = vec![root];
-    while let Some(n) = stack.pop() {
-        let refine = n.span > 2
-            && ((border == Border::Shared && n.on_border(last))
-                || n.error(heights, size, [false; SIDES]) > max_error);
-        if refine {
-            stack.extend(n.children());
-        } else {
-            tree.leaves.insert(n);
-        }
-    }
+    tree.refine(root);
     loop {
         // Restrict: no leaf more than one level coarser than a neighbour.
         let mut changed = false;
@@ -284,6 +302,32 @@ mod tests {
         let shared = mesh(&h, size, 60.0, Border::Shared);
         assert!(edges(&shared).iter().all(|e| e.len() == size));
         assert!(conforming(&shared));
+    }
+
+    #[test]
+    fn nodes_split_for_their_neighbours_still_keep_the_error() {
+        // Ridges and valleys of every scale: a random walk in both directions.
+        for seed in 1..4 {
+            let size = 129;
+            let mut next = crate::rng::uniform(seed);
+            let mut h = vec![0.0f32; size * size];
+            for y in 0..size {
+                for x in 0..size {
+                    let left = if x > 0 { h[y * size + x - 1] } else { 0.0 };
+                    let up = if y > 0 { h[(y - 1) * size + x] } else { left };
+                    h[y * size + x] = 0.5 * (left + up) + (next() as f32 - 0.5) * 12.0;
+                }
+            }
+            for e in [2.0, 10.0, 40.0] {
+                let m = mesh(&h, size, e, Border::Adaptive);
+                assert!(
+                    m.max_deviation <= e,
+                    "seed {seed}, e = {e}: {}",
+                    m.max_deviation
+                );
+                assert!(conforming(&m));
+            }
+        }
     }
 
     #[test]
