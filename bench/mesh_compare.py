@@ -9,7 +9,7 @@ surveys taken as exact so that e is the largest deviation from the samples' surf
 survey and error, martini and delatin triangulate the same samples within the same maximum
 error; their vertex counts go beside our samples shipped. Writes OUT_DIR/meshes.csv and the
 charts samples_vs_error.png and variants_time.png. Then the crops of rtin.csv, which our mesh
-triangulation made at each error, go to martini and delatin too: rtin_compare.csv,
+triangulations made at each error, go to martini and delatin too: rtin_compare.csv,
 mesh_triangles.png and mesh_time.png.
 
 Neither mesher takes voids: they get the survey with voids filled from their neighbours, and
@@ -112,9 +112,10 @@ def rtin_compare(out, sources):
         c0, r0, size = (int(mine[0][k]) for k in ("c0", "r0", "size"))
         path = next(s for s in sources if Path(s).name == name)
         z = np.ascontiguousarray(heights(path)[r0:r0 + size, c0:c0 + size])
-        errors = [float(r["error_m"]) for r in mine]
+        errors = sorted({float(r["error_m"]) for r in mine})
         for r in mine:
-            rows.append({"dataset": name, "method": "patchwork RTIN", "error_m": float(r["error_m"]),
+            label = {"rtin": "patchwork RTIN", "quadtree": "patchwork quadtree"}[r["method"]]
+            rows.append({"dataset": name, "method": label, "error_m": float(r["error_m"]),
                          "vertices": int(r["vertices"]), "triangles": int(r["triangles"]), "ms": float(r["ms"]),
                          "max_deviation_m": float(r["max_deviation_m"])})
         from pymartini import Martini
@@ -137,7 +138,7 @@ def rtin_compare(out, sources):
             rows.append({"dataset": name, "method": "delatin", "error_m": e, "vertices": len(d.vertices),
                          "triangles": len(d.triangles), "ms": ms,
                          "max_deviation_m": measured_error(z, delatin_xy(d, size), d.triangles)})
-        for r in rows[-3 * len(errors):]:
+        for r in rows[-(len(mine) + 2 * len(errors)):]:
             print(f"{name} {size}² {r['method']:>15} e = {r['error_m']:>4} m: {r['triangles']} triangles, "
                   f"{r['ms']:.1f} ms, max deviation {r['max_deviation_m']:.2f} m")
     with open(out / "rtin_compare.csv", "w", newline="") as f:
@@ -155,7 +156,7 @@ def rtin_compare(out, sources):
     for what, ylabel, fname in (("triangles", "triangles", "mesh_triangles.png"), ("ms", "ms (build and extract)", "mesh_time.png")):
         fig, axes = plt.subplots(1, len(datasets), figsize=(5.5 * len(datasets), 4.5), squeeze=False)
         for ax, name in zip(axes[0], datasets):
-            for method, style in (("patchwork RTIN", "o-"), ("martini", "s--"), ("delatin", "^:")):
+            for method, style in (("patchwork RTIN", "o-"), ("patchwork quadtree", "D-"), ("martini", "s--"), ("delatin", "^:")):
                 pts = [r for r in rows if r["dataset"] == name and r["method"] == method]
                 ax.plot([r["error_m"] for r in pts], [r[what] for r in pts], style, label=method)
             ax.set_xscale("log")

@@ -1,10 +1,11 @@
-//! The mesh triangulation against martini and delatin: the middle (2ⁿ + 1)² of each survey's
-//! own samples (as a cut at e = 0 gives them), triangulated within each error by
-//! [`crate::mesh::rtin`], counted in vertices and triangles and timed, with the largest
+//! The mesh triangulations against martini and delatin: the middle (2ⁿ + 1)² of each survey's
+//! own samples (as a cut at e = 0 gives them), triangulated within each error by each
+//! [`Method`] (adaptive border), counted in vertices and triangles and timed, with the largest
 //! deviation measured. `bench/mesh_compare.py` meshes the same crops with pymartini and
 //! pydelatin (voids filled, as they take none) and charts the three.
 
 use super::timed;
+use crate::mesh::{Border, Method};
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -15,6 +16,7 @@ pub struct MeshRow {
     pub c0: usize,
     pub r0: usize,
     pub size: usize,
+    pub method: Method,
     pub error: f64,
     pub vertices: usize,
     pub triangles: usize,
@@ -50,10 +52,15 @@ pub fn run(
         let (c0, r0) = ((grid.cols - size) / 2, (grid.rows - size) / 2);
         let crop = grid.window(c0, r0, size, size);
         let voids = crop.samples.iter().filter(|z| z.is_nan()).count();
-        for e in ERRORS {
-            let (ms, m) = timed(3, || crate::mesh::rtin(&crop.samples, size, e));
+        for (method, e) in [Method::Rtin, Method::Quadtree]
+            .into_iter()
+            .flat_map(|m| ERRORS.map(|e| (m, e)))
+        {
+            let (ms, m) = timed(3, || {
+                crate::mesh::triangulate(&crop.samples, size, e, Border::Adaptive, method)
+            });
             println!(
-                "{name} mesh {size}² e = {e:>4} m: {} vertices, {} triangles, {ms:.1} ms, max deviation {:.3} m",
+                "{name} {method:?} mesh {size}² e = {e:>4} m: {} vertices, {} triangles, {ms:.1} ms, max deviation {:.3} m",
                 m.grid.len(),
                 m.triangles.len(),
                 m.max_deviation
@@ -63,6 +70,7 @@ pub fn run(
                 c0,
                 r0,
                 size,
+                method,
                 error: e,
                 vertices: m.grid.len(),
                 triangles: m.triangles.len(),
@@ -77,16 +85,20 @@ pub fn run(
 
 pub fn write_csv(out: &Path, rows: &[MeshRow]) -> std::io::Result<()> {
     let mut s = String::from(
-        "dataset,c0,r0,size,error_m,vertices,triangles,ms,max_deviation_m,void_samples\n",
+        "dataset,c0,r0,size,method,error_m,vertices,triangles,ms,max_deviation_m,void_samples\n",
     );
     for r in rows {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{:.2},{:.4},{}",
+            "{},{},{},{},{},{},{},{},{:.2},{:.4},{}",
             r.dataset,
             r.c0,
             r.r0,
             r.size,
+            match r.method {
+                Method::Rtin => "rtin",
+                Method::Quadtree => "quadtree",
+            },
             r.error,
             r.vertices,
             r.triangles,
