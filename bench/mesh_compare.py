@@ -1,7 +1,7 @@
 """Patchwork's cuts beside the meshes of martini (RTIN) and delatin (greedy Delaunay) at the same
 maximum error, on the same surveys.
 
-Usage: python3 bench/mesh_compare.py OUT_DIR
+Usage: python3 bench/mesh_compare.py OUT_DIR [--meshes-only]
 
 Reads what `patchwork bench` wrote in OUT_DIR: the surveys it used (tiles/manifest.json) and
 variants.csv, each survey's uniform cut at every error for each mipmap filter and patch kind, with the
@@ -11,6 +11,8 @@ error; their vertex counts go beside our samples shipped. Writes OUT_DIR/meshes.
 charts samples_vs_error.png and variants_time.png. Then the crops of rtin.csv, which our mesh
 triangulations made at each error, go to martini and delatin too: rtin_compare.csv,
 mesh_triangles.png and mesh_time.png.
+
+With --meshes-only, only that last comparison runs again, from the rtin.csv already there.
 
 Neither mesher takes voids: they get the survey with voids filled from their neighbours, and
 martini a grid padded by repeating the edge to 2^n + 1 samples a side (vertices in the padding
@@ -85,7 +87,7 @@ def measured_error(z, vertices, triangles):
     than MEASURE_TRIANGLES triangles."""
     from matplotlib.tri import LinearTriInterpolator, Triangulation
 
-    if len(triangles) // (1 if np.ndim(triangles) == 2 else 3) > MEASURE_TRIANGLES:
+    if len(np.asarray(triangles).reshape(-1, 3)) > MEASURE_TRIANGLES:
         return float("nan")
     h, w = z.shape
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 2)
@@ -130,8 +132,9 @@ def rtin_compare(out, sources):
             ms = (time.perf_counter() - t0 + build) * 1e3
             # martini's vertices are (x, y) of the transposed grid it was given: (row, column).
             v = np.asarray(v).reshape(-1, 2)[:, ::-1]
+            t = np.asarray(t).reshape(-1, 3)
             rows.append({"dataset": name, "method": "martini", "error_m": e, "vertices": len(v),
-                         "triangles": len(t) // 3, "ms": ms, "max_deviation_m": measured_error(z, v, t)})
+                         "triangles": len(t), "ms": ms, "max_deviation_m": measured_error(z, v, t)})
             t0 = time.perf_counter()
             d = Delatin(z, width=size, height=size, max_error=e)
             ms = (time.perf_counter() - t0) * 1e3
@@ -173,10 +176,14 @@ def rtin_compare(out, sources):
 
 
 def main(argv):
-    if len(argv) != 2:
+    if len(argv) not in (2, 3) or argv[2:] not in ([], ["--meshes-only"]):
         sys.exit(__doc__)
     out = Path(argv[1])
     sources = json.loads((out / "tiles" / "manifest.json").read_text())["sources"]
+    if argv[2:]:
+        # Only the comparison of the mesh triangulations (rtin.csv), again.
+        rtin_compare(out, sources)
+        return
     rows = list(csv.DictReader(open(out / "variants.csv")))
     datasets = list(dict.fromkeys(r["dataset"] for r in rows))
     mesh_rows = []
