@@ -1045,15 +1045,10 @@ impl Engine {
                 "skirt_m must be a finite number of metres ≥ 0, got {skirt}"
             )));
         }
-        let n = (size - 1) as f64;
-        let (hx, hy) = (roi.width() / n / 2.0, roi.height() / n / 2.0);
-        let grown = Aabb::new(
-            roi.min[0] - hx,
-            roi.min[1] - hy,
-            roi.max[0] + hx,
-            roi.max[1] + hy,
-        );
-        let cut = Cut::Uniform { roi: grown, error };
+        let cut = Cut::Uniform {
+            roi: crate::mesh::pixel_roi(roi, size),
+            error,
+        };
         let (tile, used) = self.tile_until(&cut, size as u32, size as u32, backend, cancel)?;
         let mut mesh = crate::mesh::triangulate(&tile.heights, size, mesh_error, border, method);
         if skirt > 0.0 {

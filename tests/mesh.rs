@@ -63,15 +63,10 @@ fn mesh_of(
 
 /// The resampled heights the mesh was made from: the same tile `MeshTile` resamples.
 fn grid_heights(engine: &Engine, roi: &Aabb, error: f64, size: usize) -> Vec<f32> {
-    let n = (size - 1) as f64;
-    let (hx, hy) = (roi.width() / n / 2.0, roi.height() / n / 2.0);
-    let grown = Aabb::new(
-        roi.min[0] - hx,
-        roi.min[1] - hy,
-        roi.max[0] + hx,
-        roi.max[1] + hy,
-    );
-    let cut = patchwork::engine::Cut::Uniform { roi: grown, error };
+    let cut = patchwork::engine::Cut::Uniform {
+        roi: patchwork::mesh::pixel_roi(roi, size),
+        error,
+    };
     let (t, _) = engine
         .tile(
             &cut,
@@ -81,33 +76,6 @@ fn grid_heights(engine: &Engine, roi: &Aabb, error: f64, size: usize) -> Vec<f32
         )
         .unwrap();
     t.heights
-}
-
-/// The mesh's surface height at every grid vertex (NaN outside every surface triangle).
-fn surface_at_vertices(m: &Mesh) -> Vec<f64> {
-    let s = m.size;
-    let mut out = vec![f64::NAN; s * s];
-    for t in &m.triangles[..m.skirt_triangles] {
-        let p = t.map(|v| m.grid[v as usize].map(|c| c as f64));
-        let z = t.map(|v| m.heights[v as usize] as f64);
-        let area =
-            (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]);
-        let lo = [0, 1].map(|k| p.iter().map(|q| q[k]).fold(f64::MAX, f64::min) as usize);
-        let hi = [0, 1].map(|k| p.iter().map(|q| q[k]).fold(0.0, f64::max) as usize);
-        for y in lo[1]..=hi[1] {
-            for x in lo[0]..=hi[0] {
-                let q = [x as f64, y as f64];
-                let w = |a: [f64; 2], b: [f64; 2]| {
-                    ((b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0])) / area
-                };
-                let (wa, wb, wc) = (w(p[1], p[2]), w(p[2], p[0]), w(p[0], p[1]));
-                if wa >= -1e-12 && wb >= -1e-12 && wc >= -1e-12 {
-                    out[y * s + x] = wa * z[0] + wb * z[1] + wc * z[2];
-                }
-            }
-        }
-    }
-    out
 }
 
 #[test]
@@ -135,7 +103,7 @@ fn meshes_keep_their_error_and_leave_holes_open() {
                 method,
             );
             let h = grid_heights(&engine, &roi, error, size as usize);
-            let got = surface_at_vertices(&m);
+            let got = m.surface_at_vertices();
             let (mut worst, mut holes) = (0.0f64, 0);
             for (g, z) in got.iter().zip(&h) {
                 // No triangle reaches a void vertex.
@@ -203,14 +171,26 @@ fn along(m: &Mesh, side: usize) -> Vec<f64> {
     out
 }
 
+/// Tile (i, j), row j counted from the north, of an n × n grid of tiles inside the bounds `b`,
+/// with a tenth of a tile's margin at the south-west.
+fn grid_tile(b: &Aabb, n: usize, i: usize, j: usize) -> Aabb {
+    let side = n as f64 + 0.2;
+    let (w, h) = (b.width() / side, b.height() / side);
+    let (x0, y0) = (b.min[0] + 0.1 * w, b.min[1] + 0.1 * h);
+    Aabb::new(
+        x0 + i as f64 * w,
+        y0 + (n - 1 - j) as f64 * h,
+        x0 + (i + 1) as f64 * w,
+        y0 + (n - j) as f64 * h,
+    )
+}
+
 #[test]
 fn adjacent_tiles_of_different_errors_fit_under_skirts() {
     let tmp = tempfile::tempdir().unwrap();
     let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
     let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
     // A 3 × 3 grid of tiles inside the crop, each at its own cut error and mesh error.
-    let (w, h) = (b.width() / 3.2, b.height() / 3.2);
-    let (x0, y0) = (b.min[0] + 0.1 * w, b.min[1] + 0.1 * h);
     let spec = |i: usize, j: usize| {
         let k = i + 3 * j;
         ([0.0, 5.0, 20.0, 2.0, 50.0][k % 5], [0.5, 2.0, 5.0][k % 3])
@@ -226,12 +206,7 @@ fn adjacent_tiles_of_different_errors_fit_under_skirts() {
         .map(|j| {
             (0..3)
                 .map(|i| {
-                    let roi = Aabb::new(
-                        x0 + i as f64 * w,
-                        y0 + (2 - j) as f64 * h,
-                        x0 + (i + 1) as f64 * w,
-                        y0 + (3 - j) as f64 * h,
-                    );
+                    let roi = grid_tile(&b, 3, i, j);
                     let (e, m) = spec(i, j);
                     // Neighbours of both methods, so that they are seen to fit each other.
                     let method = METHODS[(i + j) % 2];
@@ -372,17 +347,10 @@ fn tiles_of_one_error_with_shared_borders_fit_without_skirts() {
     let tmp = tempfile::tempdir().unwrap();
     let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
     let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
-    let (w, h) = (b.width() / 2.2, b.height() / 2.2);
-    let (x0, y0) = (b.min[0] + 0.1 * w, b.min[1] + 0.1 * h);
     let size = 65;
     for (error, mesh_error) in [(0.0, 1.0), (5.0, 2.0), (20.0, 10.0)] {
         let tile = |i: usize, j: usize| {
-            let roi = Aabb::new(
-                x0 + i as f64 * w,
-                y0 + (1 - j) as f64 * h,
-                x0 + (i + 1) as f64 * w,
-                y0 + (2 - j) as f64 * h,
-            );
+            let roi = grid_tile(&b, 2, i, j);
             mesh_of(
                 &engine,
                 &roi,

@@ -397,27 +397,16 @@ fn every_recipe_keeps_the_bound_at_cliffs_spikes_voids_and_rotations() {
     use patchwork::model::mipmap::Filter;
     use patchwork::model::patch::PatchKind;
     use patchwork::model::survey::Recipe;
+    // The bench's cases (a 400 m cliff, spikes and pits every 997 samples, the crop turned
+    // 25°), with the SRTM crop's real voids for its synthetic ones.
     let cop = real_crop("copernicus_n34w119_crop.tif");
-    let mut cliff = cop.clone();
-    for (k, z) in cliff.samples.iter_mut().enumerate() {
-        if k % cliff.cols >= cliff.cols / 2 {
-            *z += 400.0;
-        }
-    }
-    let mut spikes = cop.clone();
-    for (k, z) in spikes.samples.iter_mut().enumerate() {
-        match k % 997 {
-            0 => *z += 1500.0,
-            500 => *z -= 800.0,
-            _ => {}
-        }
-    }
-    let cases = [
-        ("cliff", cliff),
-        ("spikes", spikes),
-        ("voids", real_crop("srtm_n44e005_voids_crop.tif")),
-        ("rotated", turned(&cop, 25.0)),
-    ];
+    let cases: Vec<(&str, _)> = patchwork::bench::stability::cases(&cop)
+        .into_iter()
+        .map(|(name, g)| match name {
+            "voids" => (name, real_crop("srtm_n44e005_voids_crop.tif")),
+            _ => (name, g),
+        })
+        .collect();
     let mut rng = Rng(7);
     for (name, grid) in &cases {
         let recipes = PatchKind::ALL

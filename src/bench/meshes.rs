@@ -95,10 +95,7 @@ pub fn write_csv(out: &Path, rows: &[MeshRow]) -> std::io::Result<()> {
             r.c0,
             r.r0,
             r.size,
-            match r.method {
-                Method::Rtin => "rtin",
-                Method::Quadtree => "quadtree",
-            },
+            r.method.name(),
             r.error,
             r.vertices,
             r.triangles,

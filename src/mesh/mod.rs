@@ -14,6 +14,8 @@
 pub mod encode;
 pub mod quadtree;
 
+use crate::index::geom::Aabb;
+
 /// How the grid is triangulated.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Method {
@@ -22,6 +24,15 @@ pub enum Method {
     Rtin,
     /// The restricted quadtree with omitted edge vertices ([`quadtree::mesh`]).
     Quadtree,
+}
+
+impl Method {
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Rtin => "rtin",
+            Method::Quadtree => "quadtree",
+        }
+    }
 }
 
 /// The mesh of `heights` by `method`: within `max_error` of them at every grid vertex, no
@@ -103,6 +114,49 @@ impl Tri {
             },
         ]
     }
+}
+
+impl Mesh {
+    /// The surface's height at every grid vertex, row-major, from the surface triangle that
+    /// holds it (skirts left out); NaN where none does.
+    pub fn surface_at_vertices(&self) -> Vec<f64> {
+        let s = self.size;
+        let mut out = vec![f64::NAN; s * s];
+        for t in &self.triangles[..self.skirt_triangles] {
+            let p = t.map(|v| self.grid[v as usize].map(|c| c as f64));
+            let z = t.map(|v| self.heights[v as usize] as f64);
+            let area = (p[1][0] - p[0][0]) * (p[2][1] - p[0][1])
+                - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]);
+            let lo = [0, 1].map(|k| p.iter().map(|q| q[k]).fold(f64::MAX, f64::min) as usize);
+            let hi = [0, 1].map(|k| p.iter().map(|q| q[k]).fold(0.0, f64::max) as usize);
+            for y in lo[1]..=hi[1] {
+                for x in lo[0]..=hi[0] {
+                    let q = [x as f64, y as f64];
+                    let w = |a: [f64; 2], b: [f64; 2]| {
+                        ((b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0])) / area
+                    };
+                    let (wa, wb, wc) = (w(p[1], p[2]), w(p[2], p[0]), w(p[0], p[1]));
+                    if wa >= -1e-12 && wb >= -1e-12 && wc >= -1e-12 {
+                        out[y * s + x] = wa * z[0] + wb * z[1] + wc * z[2];
+                    }
+                }
+            }
+        }
+        out
+    }
+}
+
+/// The tile whose `size × size` pixel centres are the corners of a mesh grid over `roi`: the
+/// ROI grown by half a grid cell on every side.
+pub fn pixel_roi(roi: &Aabb, size: usize) -> Aabb {
+    let n = (size - 1) as f64;
+    let (hx, hy) = (roi.width() / n / 2.0, roi.height() / n / 2.0);
+    Aabb::new(
+        roi.min[0] - hx,
+        roi.min[1] - hy,
+        roi.max[0] + hx,
+        roi.max[1] + hy,
+    )
 }
 
 /// Whether `size` is 2ⁿ + 1 with n ≥ 1.
@@ -377,46 +431,13 @@ mod tests {
             .collect()
     }
 
-    /// The height of the mesh at every grid vertex, from the triangle holding it.
-    fn mesh_heights(m: &Mesh) -> Vec<f64> {
-        let s = m.size;
-        let mut out = vec![f64::NAN; s * s];
-        for t in &m.triangles[..m.skirt_triangles] {
-            let p = t.map(|v| m.grid[v as usize].map(|c| c as f64));
-            let z = t.map(|v| m.heights[v as usize] as f64);
-            let area = (p[1][0] - p[0][0]) * (p[2][1] - p[0][1])
-                - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]);
-            let (x0, x1) = (
-                p.iter().map(|q| q[0]).fold(f64::MAX, f64::min),
-                p.iter().map(|q| q[0]).fold(0.0, f64::max),
-            );
-            let (y0, y1) = (
-                p.iter().map(|q| q[1]).fold(f64::MAX, f64::min),
-                p.iter().map(|q| q[1]).fold(0.0, f64::max),
-            );
-            for y in y0 as usize..=y1 as usize {
-                for x in x0 as usize..=x1 as usize {
-                    let q = [x as f64, y as f64];
-                    let w = |a: [f64; 2], b: [f64; 2]| {
-                        ((b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0])) / area
-                    };
-                    let (wa, wb, wc) = (w(p[1], p[2]), w(p[2], p[0]), w(p[0], p[1]));
-                    if wa >= -1e-12 && wb >= -1e-12 && wc >= -1e-12 {
-                        out[y * s + x] = wa * z[0] + wb * z[1] + wc * z[2];
-                    }
-                }
-            }
-        }
-        out
-    }
-
     #[test]
     fn the_mesh_keeps_the_error_and_covers_the_tile() {
         let size = 65;
         let h = rough(size);
         for e in [0.5, 2.0, 10.0, 50.0] {
             let m = rtin(&h, size, e);
-            let got = mesh_heights(&m);
+            let got = m.surface_at_vertices();
             let mut worst = 0.0f64;
             for (g, z) in got.iter().zip(&h) {
                 assert!(!g.is_nan(), "e = {e}: a grid vertex outside every triangle");
@@ -454,7 +475,7 @@ mod tests {
             }
         }
         let m = rtin(&h, size, 1e9);
-        let got = mesh_heights(&m);
+        let got = m.surface_at_vertices();
         for y in 0..size {
             for x in 0..size {
                 let void = h[y * size + x].is_nan();

@@ -134,7 +134,6 @@ impl PatchKind {
 /// surface GDAL interpolates and edge patches continue), anywhere in the patch's window where
 /// the patch is evaluated.
 pub trait PatchFunction: Send + Sync {
-    fn kind(&self) -> PatchKind;
     /// The patch's height at fractional level-grid coordinates inside its window, or None on void.
     fn eval(&self, level: &Grid, window: &CellRect, g: [f64; 2]) -> Option<f64>;
     /// The largest |patch − reference| over the window's valid cells, or a bound on it.
@@ -154,10 +153,6 @@ pub trait PatchFunction: Send + Sync {
 pub struct Bilinear;
 
 impl PatchFunction for Bilinear {
-    fn kind(&self) -> PatchKind {
-        PatchKind::Bilinear
-    }
-
     #[inline]
     fn eval(&self, level: &Grid, window: &CellRect, g: [f64; 2]) -> Option<f64> {
         if !window.contains_grid(g) {
@@ -296,10 +291,6 @@ impl Bicubic {
 }
 
 impl PatchFunction for Bicubic {
-    fn kind(&self) -> PatchKind {
-        PatchKind::Bicubic
-    }
-
     /// Where the bilinear patch is defined (the same validity), the spline's height.
     fn eval(&self, level: &Grid, window: &CellRect, g: [f64; 2]) -> Option<f64> {
         Bilinear.eval(level, window, g)?;
