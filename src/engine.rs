@@ -148,8 +148,28 @@ pub enum Cut {
     View(ViewQuery),
 }
 
-/// Most vertices a side of a mesh: a 2049² grid resamples 4.2 M heights.
+/// Most vertices a row or column of a mesh: a 2049² grid resamples 4.2 M heights.
 pub const MAX_MESH_SIZE: usize = 2049;
+
+/// A mesh asked of a uniform cut.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MeshSpec {
+    /// The tile the grid spans, and the cut's error in metres.
+    pub roi: Aabb,
+    pub error: f64,
+    /// Grid vertices a row, and rows: 2 to [`MAX_MESH_SIZE`] each.
+    pub cols: usize,
+    pub rows: usize,
+    /// How far the triangles may depart from the resampled heights at the grid's vertices.
+    pub mesh_error: f64,
+    /// Depth of the skirts under the border; 0 leaves them out.
+    pub skirt_m: f64,
+    pub border: crate::mesh::Border,
+    pub method: crate::mesh::Method,
+    /// How far the surface may be drawn over a void from the nearest measured vertex,
+    /// metres (seed 004's horizontal error); 0 keeps holes exact.
+    pub hole_reach_m: f64,
+}
 
 /// A mesh of a uniform cut and what it was made from.
 #[derive(Clone, Debug)]
@@ -1013,50 +1033,69 @@ impl Engine {
         self.tile_until(cut, width, height, backend, &Cancel::default())
     }
 
-    /// A mesh of a uniform cut: the resampled heights at the corners of a `size × size` grid
-    /// of vertices over `roi` (a tile over the ROI grown by half a cell, whose pixel centres
-    /// fall on them), triangulated by `method` within `mesh_error` of them, its border kept
-    /// as `border` says, with skirts `skirt` metres deep when that is positive.
-    #[allow(clippy::too_many_arguments)]
+    /// A mesh of a uniform cut: the resampled heights at the corners of a `cols × rows` grid
+    /// of vertices over the ROI (a tile over the ROI grown by half a cell, whose pixel
+    /// centres fall on them), triangulated as `spec` says.
     pub fn mesh_until(
         &self,
-        roi: &Aabb,
-        error: f64,
-        size: usize,
-        mesh_error: f64,
-        skirt: f64,
-        border: crate::mesh::Border,
-        method: crate::mesh::Method,
+        spec: &MeshSpec,
         backend: Backend,
         cancel: &Cancel,
     ) -> Result<MeshTile, EngineError> {
-        if !crate::mesh::valid_size(size) || size > MAX_MESH_SIZE {
-            return Err(EngineError::Invalid(format!(
-                "a mesh is 2^n + 1 vertices a side, from 3 to {MAX_MESH_SIZE}: got {size}"
-            )));
+        let MeshSpec {
+            roi, cols, rows, ..
+        } = *spec;
+        for (name, n) in [("columns", cols), ("rows", rows)] {
+            if !(2..=MAX_MESH_SIZE).contains(&n) {
+                return Err(EngineError::Invalid(format!(
+                    "a mesh has 2 to {MAX_MESH_SIZE} {name}: got {n}"
+                )));
+            }
         }
-        if !(mesh_error.is_finite() && mesh_error >= 0.0) {
-            return Err(EngineError::Invalid(format!(
-                "mesh_error must be a finite number of metres ≥ 0, got {mesh_error}"
-            )));
-        }
-        if !(skirt.is_finite() && skirt >= 0.0) {
-            return Err(EngineError::Invalid(format!(
-                "skirt_m must be a finite number of metres ≥ 0, got {skirt}"
-            )));
+        for (name, v) in [
+            ("mesh_error", spec.mesh_error),
+            ("skirt_m", spec.skirt_m),
+            ("hole_reach_m", spec.hole_reach_m),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(EngineError::Invalid(format!(
+                    "{name} must be a finite number of metres ≥ 0, got {v}"
+                )));
+            }
         }
         let cut = Cut::Uniform {
-            roi: crate::mesh::pixel_roi(roi, size),
-            error,
+            roi: crate::mesh::pixel_roi(&roi, cols, rows),
+            error: spec.error,
         };
-        let (tile, used) = self.tile_until(&cut, size as u32, size as u32, backend, cancel)?;
-        let mut mesh = crate::mesh::triangulate(&tile.heights, size, mesh_error, border, method);
-        if skirt > 0.0 {
-            crate::mesh::add_skirts(&mut mesh, skirt as f32);
+        let (tile, used) = self.tile_until(&cut, cols as u32, rows as u32, backend, cancel)?;
+        let holes = if spec.hole_reach_m > 0.0 {
+            let scale = self.metric_at((roi.min[1] + roi.max[1]) / 2.0).scale;
+            crate::mesh::Holes::Reach {
+                reach: spec.hole_reach_m,
+                cell: [
+                    roi.width() / (cols - 1) as f64 * scale[0],
+                    roi.height() / (rows - 1) as f64 * scale[1],
+                ],
+            }
+        } else {
+            crate::mesh::Holes::Exact
+        };
+        let options = crate::mesh::Options {
+            max_error: spec.mesh_error,
+            border: spec.border,
+            method: spec.method,
+            holes,
+        };
+        let mut mesh = crate::mesh::triangulate_until(&tile.heights, cols, rows, &options, &|| {
+            cancel.is_cancelled()
+        })
+        .ok_or(EngineError::Cancelled)?;
+        if spec.skirt_m > 0.0 {
+            crate::mesh::add_skirts(&mut mesh, spec.skirt_m as f32);
         }
         Ok(MeshTile {
             mesh,
-            roi: *roi,
+            roi,
             patches: tile.patches,
             backend: used,
         })

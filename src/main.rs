@@ -1,6 +1,6 @@
 //! `patchwork`: the daemon and its command line.
 
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use patchwork::config::Config;
 use patchwork::engine::Engine;
 use patchwork::mesh::encode;
@@ -142,8 +142,8 @@ enum Cmd {
         size: String,
         #[arg(long, value_name = "E", default_value_t = 0.0)]
         error: f64,
-        #[arg(long, value_name = "auto|cpu|gpu", default_value = "auto")]
-        backend: String,
+        #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
+        backend: BackendArg,
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
         #[command(flatten)]
@@ -160,25 +160,87 @@ enum Cmd {
         /// How far the triangles may depart from the resampled heights, metres.
         #[arg(long, value_name = "M", default_value_t = 1.0)]
         mesh_error: f64,
-        /// Grid vertices a side: 2^n + 1.
+        /// Grid vertices a row; 2^n + 1 wastes nothing, any other size is padded inside.
         #[arg(long, value_name = "N", default_value_t = 257)]
         size: u32,
+        /// Grid rows (default: as many as --size).
+        #[arg(long, value_name = "N")]
+        rows: Option<u32>,
+        /// How far the surface may be drawn over a void from the nearest measured vertex,
+        /// metres: narrow holes close and hole borders simplify (0: holes kept exact).
+        #[arg(long, value_name = "M", default_value_t = 0.0)]
+        hole_reach: f64,
         /// Depth of the skirts under the tile's border, metres (0: none). Quantized-mesh
         /// leaves them out: Cesium makes its own from the edge vertices.
         #[arg(long, value_name = "M", default_value_t = 0.0)]
         skirt: f64,
-        /// `shared` keeps every border vertex, so that tiles of one error fit without cracks;
-        /// `adaptive` simplifies the border too.
-        #[arg(long, value_name = "shared|adaptive", default_value = "shared")]
-        border: String,
-        /// `rtin` (a triangle bintree) or `quadtree` (a restricted quadtree of fans).
-        #[arg(long, value_name = "rtin|quadtree", default_value = "rtin")]
-        method: String,
+        #[arg(long, value_enum, default_value_t = BorderArg::Shared)]
+        border: BorderArg,
+        #[arg(long, value_enum, default_value_t = MethodArg::Rtin)]
+        method: MethodArg,
+        /// Where the cut is resampled.
+        #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
+        backend: BackendArg,
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
         #[command(flatten)]
         target: Target,
     },
+}
+
+/// Where a tile is resampled.
+#[derive(Clone, Copy, ValueEnum)]
+enum BackendArg {
+    /// The GPU when there is one, else the CPU.
+    Auto,
+    Cpu,
+    Gpu,
+}
+
+impl From<BackendArg> for pb::Backend {
+    fn from(b: BackendArg) -> Self {
+        match b {
+            BackendArg::Auto => pb::Backend::Auto,
+            BackendArg::Cpu => pb::Backend::Cpu,
+            BackendArg::Gpu => pb::Backend::Gpu,
+        }
+    }
+}
+
+/// How a mesh is triangulated.
+#[derive(Clone, Copy, ValueEnum)]
+enum MethodArg {
+    /// A triangle bintree: the fewest triangles.
+    Rtin,
+    /// A restricted quadtree of fans, midpoints omitted where a coarser node meets.
+    Quadtree,
+}
+
+impl From<MethodArg> for pb::MeshMethod {
+    fn from(m: MethodArg) -> Self {
+        match m {
+            MethodArg::Rtin => pb::MeshMethod::Rtin,
+            MethodArg::Quadtree => pb::MeshMethod::Quadtree,
+        }
+    }
+}
+
+/// What a mesh keeps on the tile's border.
+#[derive(Clone, Copy, ValueEnum)]
+enum BorderArg {
+    /// Every border vertex, so that tiles of one error fit without cracks.
+    Shared,
+    /// Simplified like the inside: fewer triangles, cracks hidden only by skirts.
+    Adaptive,
+}
+
+impl From<BorderArg> for pb::MeshBorder {
+    fn from(b: BorderArg) -> Self {
+        match b {
+            BorderArg::Shared => pb::MeshBorder::Shared,
+            BorderArg::Adaptive => pb::MeshBorder::Adaptive,
+        }
+    }
 }
 
 #[derive(Args, Clone)]
@@ -890,24 +952,15 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             error,
             mesh_error,
             size,
+            rows,
+            hole_reach,
             skirt,
             border,
             method,
+            backend,
             out,
             target,
         } => {
-            let method = match method.as_str() {
-                "rtin" => pb::MeshMethod::Rtin,
-                "quadtree" => pb::MeshMethod::Quadtree,
-                other => return Err(format!("--method: {other:?} is not rtin or quadtree").into()),
-            };
-            let border = match border.as_str() {
-                "shared" => pb::MeshBorder::Shared,
-                "adaptive" => pb::MeshBorder::Adaptive,
-                other => {
-                    return Err(format!("--border: {other:?} is not shared or adaptive").into())
-                }
-            };
             let kind = out.extension().and_then(|e| e.to_str()).unwrap_or("");
             if !["obj", "glb", "terrain"].contains(&kind) {
                 return Err(
@@ -921,11 +974,13 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                     error,
                 }),
                 size,
+                rows: rows.unwrap_or(size),
                 mesh_error,
+                hole_reach_m: hole_reach,
                 skirt_m: skirt,
-                backend: pb::Backend::Auto as i32,
-                border: border as i32,
-                method: method as i32,
+                backend: pb::Backend::from(backend) as i32,
+                border: pb::MeshBorder::from(border) as i32,
+                method: pb::MeshMethod::from(method) as i32,
             };
             let m = match &mut c {
                 Client::Remote { terrain, .. } => terrain
@@ -958,12 +1013,13 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             };
             std::fs::write(&out, bytes)?;
             println!(
-                "wrote {} ({} vertices, {} triangles of which {} skirt; max deviation {:.3} m from the resampled heights; {} patches, max error {:.3} m, {})",
+                "wrote {} ({} vertices, {} triangles of which {} skirt; max deviation {:.3} m from the resampled heights, surface up to {:.1} m over voids; {} patches, max error {:.3} m, {})",
                 out.display(),
                 mesh.grid.len(),
                 mesh.triangles.len(),
                 mesh.triangles.len() - mesh.skirt_triangles,
                 mesh.max_deviation,
+                mesh.max_reach,
                 m.patches,
                 m.max_error,
                 m.backend
@@ -984,12 +1040,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 .split_once(['x', 'X'])
                 .and_then(|(a, b)| Some((a.parse::<u32>().ok()?, b.parse::<u32>().ok()?)))
                 .ok_or_else(|| format!("--size: expected WxH, e.g. 512x512, got {size:?}"))?;
-            let backend = match backend.as_str() {
-                "auto" => pb::Backend::Auto,
-                "cpu" => pb::Backend::Cpu,
-                "gpu" => pb::Backend::Gpu,
-                other => return Err(format!("--backend: {other:?} is not auto, cpu or gpu").into()),
-            };
+            let backend = pb::Backend::from(backend);
             let req = pb::TileRequest {
                 cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
                     roi: Some(roi),

@@ -35,6 +35,38 @@ fn engine_with(tmp: &Path, crops: &[&str]) -> Arc<Engine> {
 const METHODS: [pb::MeshMethod; 2] = [pb::MeshMethod::Rtin, pb::MeshMethod::Quadtree];
 
 #[allow(clippy::too_many_arguments)]
+fn request(
+    roi: &Aabb,
+    error: f64,
+    size: u32,
+    mesh_error: f64,
+    skirt: f64,
+    border: pb::MeshBorder,
+    method: pb::MeshMethod,
+) -> pb::MeshRequest {
+    pb::MeshRequest {
+        cut: Some(pb::UniformCut {
+            roi: Some(convert::rect(roi)),
+            error,
+        }),
+        size,
+        rows: 0,
+        mesh_error,
+        skirt_m: skirt,
+        backend: pb::Backend::Cpu as i32,
+        border: border as i32,
+        method: method as i32,
+        hole_reach_m: 0.0,
+    }
+}
+
+/// The mesh a request gets, as the message and as a mesh read back from it.
+fn run(engine: &Engine, req: &pb::MeshRequest) -> (Mesh, pb::Mesh) {
+    let m = api::mesh_tile(engine, req, &Default::default()).unwrap();
+    (convert::mesh_of(&m).unwrap().0, m)
+}
+
+#[allow(clippy::too_many_arguments)]
 fn mesh_of(
     engine: &Engine,
     roi: &Aabb,
@@ -45,37 +77,95 @@ fn mesh_of(
     border: pb::MeshBorder,
     method: pb::MeshMethod,
 ) -> (Mesh, pb::Mesh) {
-    let req = pb::MeshRequest {
-        cut: Some(pb::UniformCut {
-            roi: Some(convert::rect(roi)),
-            error,
-        }),
-        size,
-        mesh_error,
-        skirt_m: skirt,
-        backend: pb::Backend::Cpu as i32,
-        border: border as i32,
-        method: method as i32,
-    };
-    let m = api::mesh_tile(engine, &req, &Default::default()).unwrap();
-    (convert::mesh_of(&m).unwrap().0, m)
+    let req = request(roi, error, size, mesh_error, skirt, border, method);
+    run(engine, &req)
 }
 
 /// The resampled heights the mesh was made from: the same tile `MeshTile` resamples.
-fn grid_heights(engine: &Engine, roi: &Aabb, error: f64, size: usize) -> Vec<f32> {
+fn grid_heights(engine: &Engine, roi: &Aabb, error: f64, cols: usize, rows: usize) -> Vec<f32> {
     let cut = patchwork::engine::Cut::Uniform {
-        roi: patchwork::mesh::pixel_roi(roi, size),
+        roi: patchwork::mesh::pixel_roi(roi, cols, rows),
         error,
     };
     let (t, _) = engine
         .tile(
             &cut,
-            size as u32,
-            size as u32,
+            cols as u32,
+            rows as u32,
             patchwork::resample::Backend::Cpu,
         )
         .unwrap();
     t.heights
+}
+
+/// What every mesh of `h` must be: within `mesh_error` of every measured height it covers
+/// (as the reply says), every cell with four measured corners covered, and no vertex drawn
+/// that is void beyond `reach` cells, metres through `cell`. Returns the worst deviation
+/// and the void vertices under the surface.
+fn check_mesh(
+    what: &str,
+    m: &Mesh,
+    msg: &pb::Mesh,
+    h: &[f32],
+    mesh_error: f64,
+    reach: f64,
+    cell: [f64; 2],
+) -> (f64, usize) {
+    let (cols, rows) = (m.cols, m.rows);
+    assert_eq!(h.len(), cols * rows, "{what}");
+    let got = m.surface_at_vertices();
+    let measured: Vec<(usize, usize)> = (0..cols * rows)
+        .filter(|&k| !h[k].is_nan())
+        .map(|k| (k % cols, k / cols))
+        .collect();
+    let (mut worst, mut drawn_voids, mut far) = (0.0f64, 0, 0.0f64);
+    for (k, (g, z)) in got.iter().zip(h).enumerate() {
+        if g.is_nan() {
+            continue;
+        }
+        if z.is_nan() {
+            // A void under the surface: no farther than the reach from a measured vertex.
+            let (c, r) = (k % cols, k / cols);
+            let d = measured
+                .iter()
+                .map(|&(x, y)| {
+                    ((x as f64 - c as f64) * cell[0]).hypot((y as f64 - r as f64) * cell[1])
+                })
+                .fold(f64::INFINITY, f64::min);
+            assert!(
+                d <= reach + 1e-6,
+                "{what}: ({c}, {r}) drawn {d} m from data"
+            );
+            far = far.max(d);
+            drawn_voids += 1;
+        } else {
+            worst = worst.max((g - *z as f64).abs());
+        }
+    }
+    // Every cell with four measured corners is meshed: nothing measured is lost but samples
+    // with no measured cell beside them.
+    for r in 0..rows - 1 {
+        for c in 0..cols - 1 {
+            let corners = [(c, r), (c + 1, r), (c, r + 1), (c + 1, r + 1)];
+            if corners.iter().all(|&(x, y)| !h[y * cols + x].is_nan()) {
+                assert!(
+                    corners.iter().all(|&(x, y)| !got[y * cols + x].is_nan()),
+                    "{what}: cell ({c}, {r}) is not meshed"
+                );
+            }
+        }
+    }
+    assert!(worst <= mesh_error + 1e-4, "{what}: {worst} > {mesh_error}");
+    assert!((worst - msg.max_deviation).abs() < 1e-3, "{what}");
+    // Reaches are kept as f32: to a few millimetres.
+    let slack = 1e-3 + 1e-6 * reach;
+    assert!(
+        far <= msg.max_hole_reach_m + slack,
+        "{what}: {far} vs {}",
+        msg.max_hole_reach_m
+    );
+    assert!(msg.max_hole_reach_m <= reach + slack, "{what}");
+    (worst, drawn_voids)
 }
 
 #[test]
@@ -102,34 +192,11 @@ fn meshes_keep_their_error_and_leave_holes_open() {
                 pb::MeshBorder::Shared,
                 method,
             );
-            let h = grid_heights(&engine, &roi, error, size as usize);
-            let got = m.surface_at_vertices();
-            let (mut worst, mut holes) = (0.0f64, 0);
-            for (g, z) in got.iter().zip(&h) {
-                // No triangle reaches a void vertex.
-                assert!(!z.is_nan() || g.is_nan(), "{name} at e = {error}");
-                if z.is_nan() {
-                    holes += 1;
-                } else if !g.is_nan() {
-                    worst = worst.max((g - *z as f64).abs());
-                }
-            }
-            // Every cell with four valid corners is meshed: nothing but voids (and samples
-            // with no valid cell beside them) is lost.
-            let s = size as usize;
-            for r in 0..s - 1 {
-                for c in 0..s - 1 {
-                    let corners = [(c, r), (c + 1, r), (c, r + 1), (c + 1, r + 1)];
-                    if corners.iter().all(|&(x, y)| !h[y * s + x].is_nan()) {
-                        assert!(
-                            corners.iter().all(|&(x, y)| !got[y * s + x].is_nan()),
-                            "{name} at e = {error}: cell ({c}, {r}) is not meshed"
-                        );
-                    }
-                }
-            }
-            assert!(worst <= mesh_error + 1e-4, "{name}: {worst} > {mesh_error}");
-            assert!((worst - msg.max_deviation).abs() < 1e-3);
+            let (s, what) = (size as usize, format!("{name} {method:?} at e = {error}"));
+            let h = grid_heights(&engine, &roi, error, s, s);
+            let (worst, drawn) = check_mesh(&what, &m, &msg, &h, mesh_error, 0.0, [1.0; 2]);
+            assert_eq!(drawn, 0, "{what}: no triangle reaches a void vertex");
+            let holes = h.iter().filter(|z| z.is_nan()).count();
             let full = 2 * (size as usize - 1).pow(2);
             println!(
                 "{name} {method:?} e = {error} m, mesh within {mesh_error} m, {size}²: {} vertices, {} triangles ({:.1}% of the grid's), max deviation {worst:.3} m, {holes} void vertices, {} patches",
@@ -145,6 +212,63 @@ fn meshes_keep_their_error_and_leave_holes_open() {
     }
 }
 
+#[test]
+fn meshes_of_any_size_and_holes_drawn_within_a_reach() {
+    let tmp = tempfile::tempdir().unwrap();
+    let engine = engine_with(tmp.path(), &["srtm_n44e005_voids_crop.tif"]);
+    let roi = common::real_crop("srtm_n44e005_voids_crop.tif").world_bounds();
+    let lat = (roi.min[1] + roi.max[1]) / 2.0;
+    let scale = patchwork::index::query::Metric::geographic(lat).scale;
+    let (error, mesh_error) = (0.0, 5.0);
+    for [cols, rows] in [[129u32, 129], [100, 61], [2, 2], [3, 130]] {
+        let (c, r) = (cols as usize, rows as usize);
+        let h = grid_heights(&engine, &roi, error, c, r);
+        let cell = [
+            roi.width() / (c - 1) as f64 * scale[0],
+            roi.height() / (r - 1) as f64 * scale[1],
+        ];
+        let holes = h.iter().filter(|z| z.is_nan()).count();
+        let mut counts = Vec::new();
+        for method in METHODS {
+            // Reaches of none, one, three and eight cells.
+            for cells in [0.0, 1.0, 3.0, 8.0] {
+                let reach = cells * cell[0].max(cell[1]);
+                let req = pb::MeshRequest {
+                    rows,
+                    hole_reach_m: reach,
+                    ..request(
+                        &roi,
+                        error,
+                        cols,
+                        mesh_error,
+                        0.0,
+                        pb::MeshBorder::Shared,
+                        method,
+                    )
+                };
+                let (m, msg) = run(&engine, &req);
+                assert_eq!((m.cols, m.rows), (c, r));
+                let what = format!("{cols} × {rows} {method:?}, reach {reach:.0} m");
+                let (worst, drawn) = check_mesh(&what, &m, &msg, &h, mesh_error, reach, cell);
+                if cells == 0.0 {
+                    assert_eq!(drawn, 0, "{what}: exact holes are open");
+                }
+                counts.push(format!(
+                    "{} {:.0} m: {} triangles, {drawn} voids drawn, max deviation {worst:.2} m, max reach {:.0} m",
+                    method.as_str_name(),
+                    reach,
+                    m.triangles.len(),
+                    msg.max_hole_reach_m
+                ));
+            }
+        }
+        println!(
+            "{cols} × {rows}, {holes} void vertices:\n  {}",
+            counts.join("\n  ")
+        );
+    }
+}
+
 /// Which grid coordinate runs along a side of [`edges`]: the row on the west and east sides,
 /// the column on the south and north ones.
 fn axis_along(side: usize) -> usize {
@@ -156,7 +280,12 @@ fn axis_along(side: usize) -> usize {
 fn along(m: &Mesh, side: usize) -> Vec<f64> {
     let e = &edges(m)[side];
     let pos = |v: u32| m.grid[v as usize][axis_along(side)];
-    let mut out = vec![f64::NAN; m.size];
+    let n = if axis_along(side) == 1 {
+        m.rows
+    } else {
+        m.cols
+    };
+    let mut out = vec![f64::NAN; n];
     for w in e.windows(2) {
         let (a, b) = (pos(w[0]), pos(w[1]));
         let (za, zb) = (
@@ -347,21 +476,30 @@ fn tiles_of_one_error_with_shared_borders_fit_without_skirts() {
     let tmp = tempfile::tempdir().unwrap();
     let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
     let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
-    let size = 65;
-    for (error, mesh_error) in [(0.0, 1.0), (5.0, 2.0), (20.0, 10.0)] {
+    // Square 2ⁿ + 1 grids, and ones that are neither (padded inside the mesher).
+    let cases = [
+        (0.0, 1.0, [65, 65]),
+        (5.0, 2.0, [65, 65]),
+        (20.0, 10.0, [65, 65]),
+        (0.0, 1.0, [50, 37]),
+        (5.0, 2.0, [100, 71]),
+    ];
+    for (error, mesh_error, [cols, rows]) in cases {
         let tile = |i: usize, j: usize| {
             let roi = grid_tile(&b, 2, i, j);
-            mesh_of(
-                &engine,
-                &roi,
-                error,
-                size,
-                mesh_error,
-                0.0,
-                pb::MeshBorder::Shared,
-                METHODS[(i + j) % 2],
-            )
-            .0
+            let req = pb::MeshRequest {
+                rows,
+                ..request(
+                    &roi,
+                    error,
+                    cols,
+                    mesh_error,
+                    0.0,
+                    pb::MeshBorder::Shared,
+                    METHODS[(i + j) % 2],
+                )
+            };
+            run(&engine, &req).0
         };
         let t = [[tile(0, 0), tile(1, 0)], [tile(0, 1), tile(1, 1)]];
         let mut worst = 0.0f64;
@@ -373,10 +511,11 @@ fn tiles_of_one_error_with_shared_borders_fit_without_skirts() {
         ] {
             // Both sides hold every grid vertex of the shared side, at one height.
             let (ea, eb) = (&edges(a)[sa], &edges(b)[sb]);
-            assert_eq!(ea.len(), size as usize);
-            assert_eq!(eb.len(), size as usize);
+            let along = axis_along(sa);
+            let n = if along == 1 { rows } else { cols } as usize;
+            assert_eq!(ea.len(), n);
+            assert_eq!(eb.len(), n);
             for (&va, &vb) in ea.iter().zip(eb) {
-                let along = axis_along(sa);
                 assert_eq!(a.grid[va as usize][along], b.grid[vb as usize][along]);
                 let gap = (a.heights[va as usize] - b.heights[vb as usize]).abs() as f64;
                 worst = worst.max(gap);
@@ -386,6 +525,6 @@ fn tiles_of_one_error_with_shared_borders_fit_without_skirts() {
         // tile that holds it.
         assert!(worst <= 1e-3, "e = {error}: a {worst} m step between tiles");
         let tris: usize = t.iter().flatten().map(|m| m.triangles.len()).sum();
-        println!("e = {error} m, mesh within {mesh_error} m: 4 tiles of {size}² (RTIN and quadtree side by side), {tris} triangles, largest step at shared sides {worst:.1e} m");
+        println!("e = {error} m, mesh within {mesh_error} m: 4 tiles of {cols} × {rows} (RTIN and quadtree side by side), {tris} triangles, largest step at shared sides {worst:.1e} m");
     }
 }

@@ -5,7 +5,7 @@
 //! pydelatin (voids filled, as they take none) and charts the three.
 
 use super::timed;
-use crate::mesh::{Border, Method};
+use crate::mesh::{Border, Holes, Method, Options};
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -57,7 +57,13 @@ pub fn run(
             .flat_map(|m| ERRORS.map(|e| (m, e)))
         {
             let (ms, m) = timed(3, || {
-                crate::mesh::triangulate(&crop.samples, size, e, Border::Adaptive, method)
+                let o = Options {
+                    max_error: e,
+                    border: Border::Adaptive,
+                    method,
+                    holes: Holes::Exact,
+                };
+                crate::mesh::triangulate(&crop.samples, size, size, &o)
             });
             println!(
                 "{name} {method:?} mesh {size}² e = {e:>4} m: {} vertices, {} triangles, {ms:.1} ms, max deviation {:.3} m",

@@ -3,7 +3,7 @@
 //! extension.
 //!
 //! Positions are in the store's CRS and heights in metres. The tile spans `roi`: grid vertex
-//! (c, r) lies at x = xmin + c·(xmax − xmin)/(size − 1), y = ymax − r·(ymax − ymin)/(size − 1).
+//! (c, r) lies at x = xmin + c·(xmax − xmin)/(cols − 1), y = ymax − r·(ymax − ymin)/(rows − 1).
 
 use super::{edges, Mesh};
 use crate::index::geom::Aabb;
@@ -12,10 +12,9 @@ use std::fmt::Write as _;
 /// A vertex's position in the store's CRS and its height.
 fn position(m: &Mesh, roi: &Aabb, v: usize) -> [f64; 3] {
     let [c, r] = m.grid[v];
-    let n = (m.size - 1) as f64;
     [
-        roi.min[0] + c as f64 * roi.width() / n,
-        roi.max[1] - r as f64 * roi.height() / n,
+        roi.min[0] + c as f64 * roi.width() / (m.cols - 1) as f64,
+        roi.max[1] - r as f64 * roi.height() / (m.rows - 1) as f64,
         m.heights[v] as f64,
     ]
 }

@@ -8,7 +8,7 @@
 //! [`super::rtin_with`]), measured on the triangles actually drawn: a node whose omissions
 //! take it past the error is split, or, at the finest nodes, its coarser neighbour is.
 
-use super::{triangle_error, Border, Builder, Mesh, Tri};
+use super::{split_error, Border, Builder, Field, Mesh, Tri, STOP_EVERY};
 use std::collections::BTreeSet;
 
 /// A node: its north-west grid vertex and its side in cells (a power of two, 2 at least, so
@@ -70,23 +70,28 @@ impl Node {
             .collect()
     }
 
-    fn error(self, h: &[f32], size: usize, omit: [bool; SIDES]) -> f64 {
+    fn error(self, f: &Field, omit: [bool; SIDES]) -> f64 {
         self.fan(omit)
             .iter()
-            .map(|t| triangle_error(h, size, t))
+            .map(|t| split_error(f, t))
             .fold(0.0, f64::max)
     }
 
-    fn on_border(self, last: i64) -> bool {
-        self.x == 0 || self.y == 0 || self.x + self.span == last || self.y + self.span == last
+    /// Whether the node's square holds a vertex of the tile's border.
+    fn on_border(self, f: &Field) -> bool {
+        let (lc, lr) = (f.cols as i64 - 1, f.rows as i64 - 1);
+        let (x1, y1) = (self.x + self.span, self.y + self.span);
+        let meets = |lo: i64, hi: i64, line: i64| lo <= line && line <= hi;
+        let (in_x, in_y) = (self.x <= lc, self.y <= lr);
+        (in_y && (meets(self.x, x1, 0) || meets(self.x, x1, lc)))
+            || (in_x && (meets(self.y, y1, 0) || meets(self.y, y1, lr)))
     }
 }
 
 struct Tree<'a> {
     root: Node,
     leaves: BTreeSet<Node>,
-    heights: &'a [f32],
-    size: usize,
+    field: &'a Field,
     max_error: f64,
     border: Border,
 }
@@ -95,12 +100,11 @@ impl Tree<'_> {
     /// Makes `n` a leaf, or splits it and its children while their whole fans depart from
     /// the grid by more than the error (or a shared border wants them finest).
     fn refine(&mut self, n: Node) {
-        let last = self.size as i64 - 1;
         let mut stack = vec![n];
         while let Some(n) = stack.pop() {
             let split = n.span > 2
-                && ((self.border == Border::Shared && n.on_border(last))
-                    || n.error(self.heights, self.size, [false; SIDES]) > self.max_error);
+                && ((self.border == Border::Shared && n.on_border(self.field))
+                    || n.error(self.field, [false; SIDES]) > self.max_error);
             if split {
                 stack.extend(n.children());
             } else {
@@ -148,19 +152,15 @@ impl Tree<'_> {
     }
 }
 
-/// The restricted-quadtree mesh of `heights` (`size × size`, row 0 north) within `max_error`
-/// of them at every grid vertex, without triangles over voids. A shared border keeps every
-/// border vertex (its nodes are split to the finest).
-///
-/// # Panics
-/// If `size` is not 2ⁿ + 1 with n ≥ 1, or `heights` does not hold `size²` values.
-pub fn mesh(heights: &[f32], size: usize, max_error: f64, border: Border) -> Mesh {
-    assert!(
-        super::valid_size(size),
-        "a mesh grid is 2^n + 1 vertices a side"
-    );
-    assert_eq!(heights.len(), size * size);
-    let last = size as i64 - 1;
+/// The restricted-quadtree mesh of the field within `max_error` at every measured grid
+/// vertex. A shared border keeps every border vertex (its nodes are split to the finest).
+pub(super) fn mesh(
+    field: &Field,
+    max_error: f64,
+    border: Border,
+    stop: &dyn Fn() -> bool,
+) -> Option<Mesh> {
+    let last = field.side as i64 - 1;
     let root = Node {
         x: 0,
         y: 0,
@@ -169,8 +169,7 @@ pub fn mesh(heights: &[f32], size: usize, max_error: f64, border: Border) -> Mes
     let mut tree = Tree {
         root,
         leaves: BTreeSet::new(),
-        heights,
-        size,
+        field,
         max_error,
         border,
     };
@@ -178,7 +177,13 @@ pub fn mesh(heights: &[f32], size: usize, max_error: f64, border: Border) -> Mes
     loop {
         // Restrict: no leaf more than one level coarser than a neighbour.
         let mut changed = false;
-        for n in tree.leaves.clone() {
+        if stop() {
+            return None;
+        }
+        for (k, n) in tree.leaves.clone().into_iter().enumerate() {
+            if k.is_multiple_of(STOP_EVERY) && stop() {
+                return None;
+            }
             for c in n.across(last).into_iter().flatten() {
                 let m = tree.leaf_at(c);
                 if m.span > 2 * n.span {
@@ -206,7 +211,7 @@ pub fn mesh(heights: &[f32], size: usize, max_error: f64, border: Border) -> Mes
                 .fan(omit)
                 .iter()
                 .filter(|t| is_omitted_side(n, t))
-                .map(|t| triangle_error(heights, size, t))
+                .map(|t| split_error(field, t))
                 .fold(0.0, f64::max);
             if drawn <= max_error {
                 continue;
@@ -226,14 +231,14 @@ pub fn mesh(heights: &[f32], size: usize, max_error: f64, border: Border) -> Mes
             break;
         }
     }
-    let mut out = Builder::new(heights, size);
+    let mut out = Builder::new(field);
     for &n in &tree.leaves {
         let (omit, _) = tree.omitted(n, last);
         for t in n.fan(omit) {
             out.push(&t);
         }
     }
-    out.finish()
+    Some(out.finish())
 }
 
 /// Whether a fan triangle spans a whole side of its node (its side's midpoint omitted).
@@ -244,7 +249,17 @@ fn is_omitted_side(n: Node, t: &Tri) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::edges;
+    use crate::mesh::{edges, fit, triangulate, Holes, Method, Options};
+
+    fn mesh(h: &[f32], size: usize, max_error: f64, border: Border) -> Mesh {
+        let o = Options {
+            max_error,
+            border,
+            method: Method::Quadtree,
+            holes: Holes::Exact,
+        };
+        triangulate(h, size, size, &o)
+    }
     use std::collections::HashMap;
 
     fn rough(size: usize) -> Vec<f32> {
@@ -266,11 +281,11 @@ mod tests {
                 *uses.entry((a.min(b), a.max(b))).or_insert(0) += 1;
             }
         }
-        let last = m.size as u32 - 1;
+        let (lc, lr) = (m.cols as u32 - 1, m.rows as u32 - 1);
         uses.into_iter().all(|((a, b), n)| {
             let (p, q) = (m.grid[a as usize], m.grid[b as usize]);
-            let border = (p[0] == q[0] && (p[0] == 0 || p[0] == last))
-                || (p[1] == q[1] && (p[1] == 0 || p[1] == last));
+            let border = (p[0] == q[0] && (p[0] == 0 || p[0] == lc))
+                || (p[1] == q[1] && (p[1] == 0 || p[1] == lr));
             n == if border { 1 } else { 2 }
         })
     }
@@ -340,6 +355,7 @@ mod tests {
             }
         }
         let m = mesh(&h, size, 1e9, Border::Adaptive);
+        let field = Field::new(&h, size, size, Holes::Exact);
         for t in &m.triangles {
             for v in t {
                 assert!(!m.heights[*v as usize].is_nan());
@@ -351,7 +367,7 @@ mod tests {
                 c: p[2],
             };
             assert!(
-                triangle_error(&h, size, &tri).is_finite(),
+                fit(&field, &tri).is_some_and(|f| f.error.is_finite()),
                 "a triangle over a void"
             );
         }

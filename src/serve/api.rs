@@ -3,7 +3,7 @@
 
 use super::convert;
 use super::proto as pb;
-use crate::engine::{Backend, Cut, Engine, EngineError, Origin};
+use crate::engine::{Backend, Cut, Engine, EngineError, MeshSpec, Origin};
 use crate::index::query::Extracted;
 use crate::resample::{Cancel, BLOCK};
 use crate::store::StoreError;
@@ -215,19 +215,19 @@ pub fn mesh_tile(
         .cut
         .as_ref()
         .ok_or_else(|| EngineError::Invalid("a mesh needs a uniform cut (roi + error)".into()))?;
-    let (roi, error) = (convert::aabb(&u.roi)?, u.error);
-    let size = if r.size == 0 { MESH_SIZE } else { r.size };
-    let m = engine.mesh_until(
-        &roi,
-        error,
-        size as usize,
-        r.mesh_error,
-        r.skirt_m,
-        convert::mesh_border(r.border)?,
-        convert::mesh_method(r.method)?,
-        convert::backend(r.backend)?,
-        cancel,
-    )?;
+    let cols = if r.size == 0 { MESH_SIZE } else { r.size } as usize;
+    let spec = MeshSpec {
+        roi: convert::aabb(&u.roi)?,
+        error: u.error,
+        cols,
+        rows: if r.rows == 0 { cols } else { r.rows as usize },
+        mesh_error: r.mesh_error,
+        skirt_m: r.skirt_m,
+        border: convert::mesh_border(r.border)?,
+        method: convert::mesh_method(r.method)?,
+        hole_reach_m: r.hole_reach_m,
+    };
+    let m = engine.mesh_until(&spec, convert::backend(r.backend)?, cancel)?;
     Ok(convert::mesh(&m, engine.crs()))
 }
 

@@ -291,7 +291,8 @@ pub fn mesh(m: &MeshTile, crs: Option<u32>) -> pb::Mesh {
     let mesh = &m.mesh;
     pb::Mesh {
         roi: Some(rect(&m.roi)),
-        size: mesh.size as u32,
+        size: mesh.cols as u32,
+        grid_rows: mesh.rows as u32,
         columns: mesh.grid.iter().map(|g| g[0]).collect(),
         rows: mesh.grid.iter().map(|g| g[1]).collect(),
         heights: mesh.heights.clone(),
@@ -299,6 +300,7 @@ pub fn mesh(m: &MeshTile, crs: Option<u32>) -> pb::Mesh {
         skirt_vertices: mesh.skirt_vertices as u32,
         skirt_triangles: mesh.skirt_triangles as u32,
         max_deviation: mesh.max_deviation,
+        max_hole_reach_m: mesh.max_reach,
         patches: m.patches.len() as u32,
         max_error: max_error(&m.patches),
         backend: m.backend.into(),
@@ -318,8 +320,10 @@ pub fn mesh_of(m: &pb::Mesh) -> Result<(Mesh, Aabb), String> {
             m.indices.len()
         ));
     }
-    if !crate::mesh::valid_size(m.size as usize)
-        || m.columns.iter().chain(&m.rows).any(|&c| c >= m.size)
+    if m.size < 2
+        || m.grid_rows < 2
+        || m.columns.iter().any(|&c| c >= m.size)
+        || m.rows.iter().any(|&r| r >= m.grid_rows)
         || m.indices.iter().any(|&i| i as usize >= n)
         || m.skirt_vertices as usize > n
         || m.skirt_triangles as usize > m.indices.len() / 3
@@ -328,7 +332,8 @@ pub fn mesh_of(m: &pb::Mesh) -> Result<(Mesh, Aabb), String> {
     }
     let roi = aabb(&m.roi).map_err(|e| e.to_string())?;
     let mesh = Mesh {
-        size: m.size as usize,
+        cols: m.size as usize,
+        rows: m.grid_rows as usize,
         grid: m
             .columns
             .iter()
@@ -344,6 +349,7 @@ pub fn mesh_of(m: &pb::Mesh) -> Result<(Mesh, Aabb), String> {
         skirt_vertices: m.skirt_vertices as usize,
         skirt_triangles: m.skirt_triangles as usize,
         max_deviation: m.max_deviation,
+        max_reach: m.max_hole_reach_m,
     };
     Ok((mesh, roi))
 }

@@ -110,10 +110,11 @@ class TerrainServicer:
         raise NotImplementedError('Method not implemented!')
 
     def MeshTile(self, request, context):
-        """A triangle mesh of a uniform cut: the resampled heights on a (2^n + 1)² grid over the
-        ROI, triangulated as a right-triangulated irregular network within mesh_error of them at
-        every vertex, without a T-junction inside the tile, holes left open at voids, and skirts
-        under the border when asked.
+        """A triangle mesh of a uniform cut: the resampled heights on a grid over the ROI,
+        triangulated (a right-triangulated irregular network or a restricted quadtree) within
+        mesh_error of them at every measured vertex, without a T-junction inside the tile, holes
+        left open at voids or drawn over within hole_reach_m, and skirts under the border when
+        asked.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
