@@ -23,8 +23,10 @@ pub mod encode;
 pub mod quadtree;
 
 use crate::index::geom::Aabb;
+use rayon::prelude::*;
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// How the grid is triangulated.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -91,13 +93,14 @@ pub fn triangulate(heights: &[f32], cols: usize, rows: usize, options: &Options)
         .expect("never stopped, so always made")
 }
 
-/// [`triangulate`], given up (None) soon after `stop` says so.
+/// [`triangulate`], given up (None) soon after `stop` says so: it is asked now and then, from
+/// any thread.
 pub fn triangulate_until(
     heights: &[f32],
     cols: usize,
     rows: usize,
     options: &Options,
-    stop: &dyn Fn() -> bool,
+    stop: &(dyn Fn() -> bool + Sync),
 ) -> Option<Mesh> {
     let field = Field::new(heights, cols, rows, options.holes);
     match options.method {
@@ -444,49 +447,84 @@ fn split_error(f: &Field, t: &Tri) -> f64 {
 /// How many triangles are measured between two looks at whether to stop.
 const STOP_EVERY: usize = 1 << 16;
 
+/// Triangles at this depth split a level of the RTIN into tasks run in parallel: 512 of them.
+const TASK_DEPTH: usize = 8;
+
 /// The error kept for every midpoint vertex, computed from the smallest triangles up. With a
 /// shared border, a midpoint on the tile's border gets an infinite one, so that every border
 /// vertex is kept and the triangles above split down to it.
-fn midpoint_errors(f: &Field, border: Border, stop: &dyn Fn() -> bool) -> Option<Vec<f64>> {
+fn midpoint_errors(
+    f: &Field,
+    border: Border,
+    stop: &(dyn Fn() -> bool + Sync),
+) -> Option<Vec<f64>> {
     let side = f.side;
-    let mut errors = vec![0.0f64; side * side];
+    // Errors are ≥ 0 (or infinite), whose bits order like the numbers: the two triangles
+    // sharing a midpoint may be measured on two threads, and the larger is kept.
+    let errors: Vec<AtomicU64> = (0..side * side).map(|_| AtomicU64::new(0)).collect();
+    let error_at = |p: [i64; 2]| f64::from_bits(errors[f.at(p)].load(Ordering::Relaxed));
     // The levels that have a midpoint vertex: the roots (legs of 2ⁿ cells) down to the one
     // above the leaves (half cells); two levels halve the legs.
     let levels = 2 * (side - 1).trailing_zeros() as usize;
     // Deepest level first, so that a parent reads its children's midpoints once both
-    // triangles sharing each have written them. A level's triangles are found by descending
-    // from the roots rather than kept: the finest levels hold millions.
-    let mut stack = Vec::with_capacity(2 * levels + 2);
-    let mut seen = 0usize;
+    // triangles sharing each have written them (each level finishes before the next
+    // starts). A level's triangles are found by descending from the roots rather than kept:
+    // the finest levels hold millions.
     for depth in (0..levels).rev() {
-        stack.extend(roots(side).map(|t| (t, 0usize)));
+        let top = depth.min(TASK_DEPTH);
+        let mut tasks = Vec::with_capacity(2 << top);
+        let mut stack: Vec<(Tri, usize)> = roots(side).map(|t| (t, 0)).to_vec();
         while let Some((t, d)) = stack.pop() {
-            if d < depth {
+            if d < top {
                 stack.extend(t.children().map(|c| (c, d + 1)));
-                continue;
+            } else {
+                tasks.push(t);
             }
-            seen += 1;
-            if seen.is_multiple_of(STOP_EVERY) && stop() {
+        }
+        tasks.into_par_iter().try_for_each(|t| {
+            if stop() {
                 return None;
             }
-            let mut e = split_error(f, &t);
-            let m = t.mid();
-            if border == Border::Shared && f.on_border(m) {
-                e = f64::INFINITY;
+            let mut stack = vec![(t, top)];
+            let mut seen = 0usize;
+            while let Some((t, d)) = stack.pop() {
+                if d < depth {
+                    stack.extend(t.children().map(|c| (c, d + 1)));
+                    continue;
+                }
+                seen += 1;
+                if seen.is_multiple_of(STOP_EVERY) && stop() {
+                    return None;
+                }
+                let mut e = split_error(f, &t);
+                let m = t.mid();
+                if border == Border::Shared && f.on_border(m) {
+                    e = f64::INFINITY;
+                }
+                let [l, r] = t.children();
+                if !l.is_leaf() {
+                    e = e.max(error_at(l.mid())).max(error_at(r.mid()));
+                }
+                errors[f.at(m)].fetch_max(e.to_bits(), Ordering::Relaxed);
             }
-            let [l, r] = t.children();
-            if !l.is_leaf() {
-                e = e.max(errors[f.at(l.mid())]).max(errors[f.at(r.mid())]);
-            }
-            let m = f.at(m);
-            errors[m] = errors[m].max(e);
-        }
+            Some(())
+        })?;
     }
-    Some(errors)
+    Some(
+        errors
+            .into_iter()
+            .map(|e| f64::from_bits(e.into_inner()))
+            .collect(),
+    )
 }
 
 /// The RTIN mesh of the field within `max_error` at every measured grid vertex.
-fn rtin(f: &Field, max_error: f64, border: Border, stop: &dyn Fn() -> bool) -> Option<Mesh> {
+fn rtin(
+    f: &Field,
+    max_error: f64,
+    border: Border,
+    stop: &(dyn Fn() -> bool + Sync),
+) -> Option<Mesh> {
     let errors = midpoint_errors(f, border, stop)?;
     let mut out = Builder::new(f);
     let mut stack: Vec<Tri> = roots(f.side).to_vec();
@@ -940,16 +978,21 @@ mod tests {
                 method,
                 ..Options::default()
             };
-            let looks = std::cell::Cell::new(0);
+            let looks = std::sync::atomic::AtomicUsize::new(0);
             let stop = || {
-                looks.set(looks.get() + 1);
+                looks.fetch_add(1, Ordering::Relaxed);
                 true
             };
             assert!(
                 triangulate_until(&h, size, size, &o, &stop).is_none(),
                 "{method:?}"
             );
-            assert_eq!(looks.get(), 1, "{method:?}: stopped at the first look");
+            // Once for each task started before the first said to stop, at most.
+            let n = looks.load(Ordering::Relaxed);
+            assert!(
+                n >= 1 && n <= rayon::current_num_threads(),
+                "{method:?}: {n}"
+            );
             let never = triangulate_until(&h, size, size, &o, &|| false);
             assert_eq!(never, Some(triangulate(&h, size, size, &o)), "{method:?}");
         }

@@ -158,7 +158,7 @@ pub(super) fn mesh(
     field: &Field,
     max_error: f64,
     border: Border,
-    stop: &dyn Fn() -> bool,
+    stop: &(dyn Fn() -> bool + Sync),
 ) -> Option<Mesh> {
     let last = field.side as i64 - 1;
     let root = Node {

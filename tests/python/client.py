@@ -8,8 +8,8 @@ Copernicus and NASADEM crops of N34 W119, the SRTM voids crop of N44 E005 (tests
 coarser copy of part of the Copernicus crop on a rotated lattice.
 Checks health, every Terrain call through `patchwork_client`, that `resample` over streamed
 patches reproduces the daemon's tile within 1 mm with the same nodata mask (where surveys
-meet, at voids and borders), that a view session's patches are the view cut at every step,
-and runs the README's hillshade example. Prints one summary line and exits 0, or says what
+meet, at voids and borders), that meshes are made of the cut's heights, that a view
+session's patches are the view cut at every step, and runs the README's hillshade example. Prints one summary line and exits 0, or says what
 went wrong and exits 1.
 """
 
@@ -128,7 +128,23 @@ def run(address):
         z = c.sample(np.stack([X.ravel(), Y.ravel()], axis=1), 5.0).reshape(hgt, w)
         require(np.allclose(z, tile, atol=1e-3, equal_nan=True), "sample() differs from the tile")
 
-        # 4. A view session follows the view cut along a flight.
+        # 4. A mesh's vertices are the cut's heights at its grid's corners, within the ROI; a
+        # reach draws the surface over voids, no farther from data than it says.
+        for roi, kw in [(MEET, dict(size=65, rows=40)), (VOIDS, dict(size=129, hole_reach=300.0))]:
+            m = c.mesh(roi, 5.0, mesh_error=2.0, backend="cpu", **kw)
+            v = m.vertices
+            require(len(m.triangles) > 0 and m.triangles.max() < len(v), f"mesh over {roi}: {len(m.triangles)} triangles")
+            inside = (v[:, 0] >= roi[0] - 1e-9) & (v[:, 0] <= roi[2] + 1e-9) & (v[:, 1] >= roi[1] - 1e-9) & (v[:, 1] <= roi[3] + 1e-9)
+            require(inside.all(), f"mesh over {roi}: vertices outside it")
+            z = c.sample(v[:, :2], 5.0)
+            measured = ~np.isnan(z)
+            require(np.allclose(v[measured, 2], z[measured], atol=1e-3), f"mesh over {roi}: vertex heights are not the cut's")
+            require(m.max_deviation <= 2.0 + 1e-9, f"mesh over {roi}: max deviation {m.max_deviation}")
+            require(0.0 <= m.max_hole_reach <= kw.get("hole_reach", 0.0) + 1e-3, f"mesh over {roi}: reach {m.max_hole_reach}")
+            if roi is VOIDS:
+                require((~measured).any() and m.max_hole_reach > 0, "the voids crop's mesh draws no void over")
+
+        # 5. A view session follows the view cut along a flight.
         steps = []
         with c.view_session() as session:
             for k in range(8):
@@ -142,13 +158,13 @@ def run(address):
         require(all(s.frame == k for k, s in enumerate(steps)), "frames out of order")
         require(sum(len(s.added) for s in steps[1:]) < sum(s.patches for s in steps[1:]), "deltas resend the whole cut")
 
-        # 5. Admin calls.
+        # 6. Admin calls.
         stats = c.stats()
         require(stats.surveys == 4 and stats.patches > 0, f"stats: {stats}")
         v = c.verify()
         require(v.ok, f"verify: {v.problems}")
 
-    # 6. The README's example, as written there, with this daemon's address.
+    # 7. The README's example, as written there, with this daemon's address.
     readme = open(os.path.join(REPO, "clients", "python", "README.md")).read()
     example = re.search(r"```python\n(.*?)```", readme, re.S).group(1)
     out = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"hillshade-{os.getpid()}.png")

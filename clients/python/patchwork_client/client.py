@@ -50,6 +50,33 @@ class TileInfo:
 
 
 @dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh of a uniform cut (:meth:`Client.mesh`)."""
+
+    #: n × 3 float64: x and y in the store's CRS, height in metres.
+    vertices: np.ndarray
+    #: m × 3 uint32 indices into ``vertices``, counter-clockwise seen from above (x east,
+    #: y north).
+    triangles: np.ndarray
+    #: Vertices and triangles from these on are the skirts' (equal to the counts without).
+    skirt_vertices: int
+    skirt_triangles: int
+    #: The largest distance between the surface and the resampled heights at the grid's
+    #: measured vertices (metres), and the farthest void under the surface from data.
+    max_deviation: float
+    max_hole_reach: float
+    #: What the cut resampled: patches blended, their largest error, "cpu" or "gpu", EPSG.
+    patches: int
+    max_error: float
+    backend: str
+    crs: int
+
+
+MESH_METHODS = {"rtin": terrain_pb2.MESH_METHOD_RTIN, "quadtree": terrain_pb2.MESH_METHOD_QUADTREE}
+MESH_BORDERS = {"shared": terrain_pb2.MESH_BORDER_SHARED, "adaptive": terrain_pb2.MESH_BORDER_ADAPTIVE}
+
+
+@dataclass(frozen=True)
 class Conflict:
     survey: str
     max_m: float
@@ -200,6 +227,35 @@ class Client:
         """The view-dependent tile a camera sees: its screen grid projected onto the ground."""
         req = terrain_pb2.TileRequest(view=camera.to_proto(), width=width, height=height, backend=BACKENDS[backend])
         return self._bands(req)[0]
+
+    def mesh(self, roi: Rect, error: float, size: int = 257, rows: int = 0, mesh_error: float = 1.0,
+             skirt: float = 0.0, border: str = "shared", method: str = "rtin", hole_reach: float = 0.0,
+             backend: str = "auto") -> Mesh:
+        """A triangle mesh of the cut's surface over ``roi`` within ``mesh_error`` metres of
+        it, on a ``size`` × ``rows`` grid of vertices (``rows`` 0: square) whose corners are
+        the ROI's; ``border`` "shared" keeps every border vertex, ``method`` "rtin" or
+        "quadtree", skirts ``skirt`` metres deep, voids within ``hole_reach`` metres of data
+        drawn over."""
+        req = terrain_pb2.MeshRequest(
+            cut=terrain_pb2.UniformCut(roi=_rect(roi), error=error), size=size, rows=rows,
+            mesh_error=mesh_error, skirt_m=skirt, border=MESH_BORDERS[border], method=MESH_METHODS[method],
+            hole_reach_m=hole_reach, backend=BACKENDS[backend],
+        )
+        m = self._call(self.terrain.MeshTile, req)
+        r = m.roi
+        col = np.asarray(m.columns, dtype=np.float64)
+        row = np.asarray(m.rows, dtype=np.float64)
+        vertices = np.stack([
+            r.xmin + col * (r.xmax - r.xmin) / (m.size - 1),
+            r.ymax - row * (r.ymax - r.ymin) / (m.grid_rows - 1),
+            np.asarray(m.heights, dtype=np.float64),
+        ], axis=1)
+        return Mesh(
+            vertices=vertices, triangles=np.asarray(m.indices, dtype=np.uint32).reshape(-1, 3),
+            skirt_vertices=m.skirt_vertices, skirt_triangles=m.skirt_triangles,
+            max_deviation=m.max_deviation, max_hole_reach=m.max_hole_reach_m, patches=m.patches,
+            max_error=m.max_error, backend=m.backend, crs=m.crs,
+        )
 
     def _bands(self, req):
         """TileBands put back together: each band is whole rows of f32 little-endian."""
