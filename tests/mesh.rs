@@ -60,25 +60,32 @@ fn request(
     }
 }
 
+/// A request for a `cols × rows` grid with a shared border and no skirts.
+fn shared(
+    roi: &Aabb,
+    error: f64,
+    [cols, rows]: [u32; 2],
+    mesh_error: f64,
+    method: pb::MeshMethod,
+) -> pb::MeshRequest {
+    pb::MeshRequest {
+        rows,
+        ..request(
+            roi,
+            error,
+            cols,
+            mesh_error,
+            0.0,
+            pb::MeshBorder::Shared,
+            method,
+        )
+    }
+}
+
 /// The mesh a request gets, as the message and as a mesh read back from it.
 fn run(engine: &Engine, req: &pb::MeshRequest) -> (Mesh, pb::Mesh) {
     let m = api::mesh_tile(engine, req, &Default::default()).unwrap();
     (convert::mesh_of(&m).unwrap().0, m)
-}
-
-#[allow(clippy::too_many_arguments)]
-fn mesh_of(
-    engine: &Engine,
-    roi: &Aabb,
-    error: f64,
-    size: u32,
-    mesh_error: f64,
-    skirt: f64,
-    border: pb::MeshBorder,
-    method: pb::MeshMethod,
-) -> (Mesh, pb::Mesh) {
-    let req = request(roi, error, size, mesh_error, skirt, border, method);
-    run(engine, &req)
 }
 
 /// The resampled heights the mesh was made from: the same tile `MeshTile` resamples.
@@ -182,15 +189,17 @@ fn meshes_keep_their_error_and_leave_holes_open() {
         for ((error, mesh_error, size), method) in
             cases.into_iter().flat_map(|c| METHODS.map(|m| (c, m)))
         {
-            let (m, msg) = mesh_of(
+            let (m, msg) = run(
                 &engine,
-                &roi,
-                error,
-                size,
-                mesh_error,
-                0.0,
-                pb::MeshBorder::Shared,
-                method,
+                &request(
+                    &roi,
+                    error,
+                    size,
+                    mesh_error,
+                    0.0,
+                    pb::MeshBorder::Shared,
+                    method,
+                ),
             );
             let (s, what) = (size as usize, format!("{name} {method:?} at e = {error}"));
             let h = grid_heights(&engine, &roi, error, s, s);
@@ -234,17 +243,8 @@ fn meshes_of_any_size_and_holes_drawn_within_a_reach() {
             for cells in [0.0, 1.0, 3.0, 8.0] {
                 let reach = cells * cell[0].max(cell[1]);
                 let req = pb::MeshRequest {
-                    rows,
                     hole_reach_m: reach,
-                    ..request(
-                        &roi,
-                        error,
-                        cols,
-                        mesh_error,
-                        0.0,
-                        pb::MeshBorder::Shared,
-                        method,
-                    )
+                    ..shared(&roi, error, [cols, rows], mesh_error, method)
                 };
                 let (m, msg) = run(&engine, &req);
                 assert_eq!((m.cols, m.rows), (c, r));
@@ -339,15 +339,9 @@ fn adjacent_tiles_of_different_errors_fit_under_skirts() {
                     let (e, m) = spec(i, j);
                     // Neighbours of both methods, so that they are seen to fit each other.
                     let method = METHODS[(i + j) % 2];
-                    mesh_of(
+                    run(
                         &engine,
-                        &roi,
-                        e,
-                        size,
-                        m,
-                        skirt,
-                        pb::MeshBorder::Adaptive,
-                        method,
+                        &request(&roi, e, size, m, skirt, pb::MeshBorder::Adaptive, method),
                     )
                     .0
                 })
@@ -416,16 +410,21 @@ fn independent_decoders_read_the_encodings() {
     let tmp = tempfile::tempdir().unwrap();
     let engine = engine_with(tmp.path(), &["copernicus_n34w119_crop.tif"]);
     let b = common::real_crop("copernicus_n34w119_crop.tif").world_bounds();
-    let (m, msg) = mesh_of(
-        &engine,
-        &b,
-        5.0,
-        129,
-        2.0,
-        30.0,
-        pb::MeshBorder::Adaptive,
-        pb::MeshMethod::Rtin,
-    );
+    // A grid that is not square, nor 2ⁿ + 1 rows.
+    let req = pb::MeshRequest {
+        rows: 97,
+        ..request(
+            &b,
+            5.0,
+            129,
+            2.0,
+            30.0,
+            pb::MeshBorder::Adaptive,
+            pb::MeshMethod::Rtin,
+        )
+    };
+    let (m, msg) = run(&engine, &req);
+    assert_eq!((m.cols, m.rows), (129, 97));
     let (mesh, roi) = convert::mesh_of(&msg).unwrap();
     assert_eq!(mesh, m);
     let out = tmp.path().join("out");
@@ -487,18 +486,7 @@ fn tiles_of_one_error_with_shared_borders_fit_without_skirts() {
     for (error, mesh_error, [cols, rows]) in cases {
         let tile = |i: usize, j: usize| {
             let roi = grid_tile(&b, 2, i, j);
-            let req = pb::MeshRequest {
-                rows,
-                ..request(
-                    &roi,
-                    error,
-                    cols,
-                    mesh_error,
-                    0.0,
-                    pb::MeshBorder::Shared,
-                    METHODS[(i + j) % 2],
-                )
-            };
+            let req = shared(&roi, error, [cols, rows], mesh_error, METHODS[(i + j) % 2]);
             run(&engine, &req).0
         };
         let t = [[tile(0, 0), tile(1, 0)], [tile(0, 1), tile(1, 1)]];

@@ -799,9 +799,22 @@ mod tests {
         }
     }
 
+    /// Twice the area the surface triangles cover, in cells.
+    pub(super) fn doubled_area(m: &Mesh) -> i64 {
+        m.triangles[..m.skirt_triangles]
+            .iter()
+            .map(|t| {
+                let p = t.map(|v| m.grid[v as usize].map(i64::from));
+                ((p[1][0] - p[0][0]) * (p[2][1] - p[0][1])
+                    - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]))
+                    .abs()
+            })
+            .sum()
+    }
+
     /// Every edge inside the tile is shared by two triangles, every border edge by one: no
     /// T-junction, no overlap.
-    fn conforming(m: &Mesh) -> bool {
+    pub(super) fn conforming(m: &Mesh) -> bool {
         let mut uses = std::collections::HashMap::new();
         for t in &m.triangles[..m.skirt_triangles] {
             for k in 0..3 {
@@ -853,18 +866,8 @@ mod tests {
                         "{what}: {worst}"
                     );
                     assert!(conforming(&m), "{what}: a T-junction");
-                    let area: i64 = m
-                        .triangles
-                        .iter()
-                        .map(|t| {
-                            let p = t.map(|v| m.grid[v as usize].map(i64::from));
-                            ((p[1][0] - p[0][0]) * (p[2][1] - p[0][1])
-                                - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]))
-                                .abs()
-                        })
-                        .sum();
                     assert_eq!(
-                        area,
+                        doubled_area(&m),
                         2 * (cols as i64 - 1) * (rows as i64 - 1),
                         "{what}: covered once"
                     );

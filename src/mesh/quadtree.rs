@@ -249,6 +249,7 @@ fn is_omitted_side(n: Node, t: &Tri) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mesh::tests::{conforming, doubled_area};
     use crate::mesh::{edges, fit, triangulate, Holes, Method, Options};
 
     fn mesh(h: &[f32], size: usize, max_error: f64, border: Border) -> Mesh {
@@ -260,7 +261,6 @@ mod tests {
         };
         triangulate(h, size, size, &o)
     }
-    use std::collections::HashMap;
 
     fn rough(size: usize) -> Vec<f32> {
         let mut next = crate::rng::uniform(5);
@@ -272,24 +272,6 @@ mod tests {
             .collect()
     }
 
-    /// Every edge inside the tile is shared by two triangles, every border edge by one.
-    fn conforming(m: &Mesh) -> bool {
-        let mut uses = HashMap::new();
-        for t in &m.triangles {
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                *uses.entry((a.min(b), a.max(b))).or_insert(0) += 1;
-            }
-        }
-        let (lc, lr) = (m.cols as u32 - 1, m.rows as u32 - 1);
-        uses.into_iter().all(|((a, b), n)| {
-            let (p, q) = (m.grid[a as usize], m.grid[b as usize]);
-            let border = (p[0] == q[0] && (p[0] == 0 || p[0] == lc))
-                || (p[1] == q[1] && (p[1] == 0 || p[1] == lr));
-            n == if border { 1 } else { 2 }
-        })
-    }
-
     #[test]
     fn the_quadtree_keeps_the_error_without_t_junctions() {
         let size = 65;
@@ -298,18 +280,8 @@ mod tests {
             let m = mesh(&h, size, e, Border::Adaptive);
             assert!(m.max_deviation <= e, "e = {e}: {}", m.max_deviation);
             assert!(conforming(&m), "e = {e}: a T-junction");
-            let area: i64 = m
-                .triangles
-                .iter()
-                .map(|t| {
-                    let p = t.map(|v| m.grid[v as usize].map(i64::from));
-                    ((p[1][0] - p[0][0]) * (p[2][1] - p[0][1])
-                        - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]))
-                        .abs()
-                })
-                .sum();
             // Twice the tile's area in cells: the triangles cover it once.
-            assert_eq!(area, 2 * (size as i64 - 1).pow(2), "e = {e}");
+            assert_eq!(doubled_area(&m), 2 * (size as i64 - 1).pow(2), "e = {e}");
         }
         let coarse = mesh(&h, size, 60.0, Border::Adaptive);
         let fine = mesh(&h, size, 0.5, Border::Adaptive);
