@@ -65,12 +65,12 @@ pub enum Holes {
     /// No triangle holds a void vertex: holes keep their border at full resolution.
     #[default]
     Exact,
-    /// Seed 004's horizontal error: a void vertex within `reach` of a measured one (straight
-    /// line, in the units of `cell`, one grid cell's width and height) may be drawn over,
-    /// its height filled in from its neighbours. Holes narrower than twice the reach close,
-    /// and a hole's border is simplified like the rest of the surface, drawn at most `reach`
-    /// into the hole. Every measured vertex stays within the vertical error; only voids are
-    /// drawn over, so nothing measured is lost.
+    /// Seed 004's horizontal error: a void vertex within `reach` of a measured one (along
+    /// steps to the eight neighbours, never shorter than the straight line, in the units of
+    /// `cell`, one grid cell's width and height) may be drawn over, its height filled in from
+    /// its neighbours. Holes narrower than twice the reach close, and a wider hole's border
+    /// may move into it by the reach at most. Every measured vertex stays within the vertical
+    /// error; only voids are drawn over, so nothing measured is lost.
     Reach { reach: f64, cell: [f64; 2] },
 }
 
