@@ -2,12 +2,12 @@
 //! horizontal error): triangles, the time to make them (median of three), the largest vertical
 //! deviation at measured samples and the farthest void drawn over. The surveys are meshed at
 //! their own size (1201² and 200²: neither is 2ⁿ + 1), at their own samples, as a cut at
-//! e = 0 gives them. Last, the middle 2049² of the Copernicus tile (no voids, a 2ⁿ + 1 grid)
-//! at 20 m, the bench's own case, for the time the exact error costs where nothing is padded.
+//! e = 0 gives them. Last, the middle 2049² of the Copernicus tile (no voids, a 2ⁿ + 1 grid),
+//! the bench's own case, for the time each method takes where nothing is padded.
 //!
-//! cargo run --release --example mesh_holes -- [DATA_DIR]
+//! cargo run --release --example mesh_holes -- [DATA_DIR] [--baseline]
 //!
-//! DATA_DIR defaults to ../shared/data.
+//! DATA_DIR defaults to ../shared/data; `--baseline` runs only the Copernicus part.
 
 use patchwork::index::query::Metric;
 use patchwork::mesh::{triangulate, Border, Holes, Method, Options};
@@ -15,14 +15,21 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let baseline_only = args.iter().any(|a| a == "--baseline");
     let data = PathBuf::from(
-        std::env::args()
-            .nth(1)
-            .unwrap_or_else(|| "../shared/data".into()),
+        args.iter()
+            .find(|a| !a.starts_with("--"))
+            .map_or("../shared/data", |a| a.as_str()),
     );
     println!("| survey | size | voids | method | e (m) | reach (cells) | triangles | ms | max deviation (m) | farthest void drawn (m) |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
-    for name in ["N44E005.hgt", "N44E005_big_hole.tif"] {
+    let surveys: &[&str] = if baseline_only {
+        &[]
+    } else {
+        &["N44E005.hgt", "N44E005_big_hole.tif"]
+    };
+    for name in surveys {
         let raster = patchwork::read::read_raster(&data.join(name), &Default::default())
             .unwrap_or_else(|e| panic!("{name}: {e}"));
         let grid = raster.into_grid().expect("a grid");
@@ -69,28 +76,36 @@ fn main() {
             }
         }
     }
+    println!();
     let name = "Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif";
     let raster = patchwork::read::read_raster(&data.join(name), &Default::default())
         .unwrap_or_else(|e| panic!("{name}: {e}"));
     let grid = raster.into_grid().expect("a grid");
     let side = 2049;
     let crop = grid.window((grid.cols - side) / 2, (grid.rows - side) / 2, side, side);
-    let o = Options {
-        max_error: 20.0,
-        border: Border::Adaptive,
-        method: Method::Rtin,
-        holes: Holes::Exact,
-    };
-    let mut times = Vec::new();
-    let mut count = 0;
-    for _ in 0..3 {
-        let t = Instant::now();
-        count = triangulate(&crop.samples, side, side, &o).triangles.len();
-        times.push(t.elapsed().as_secs_f64() * 1e3);
+    for (method, e) in [
+        (Method::Rtin, 20.0),
+        (Method::Quadtree, 20.0),
+        (Method::Quadtree, 5.0),
+    ] {
+        let o = Options {
+            max_error: e,
+            border: Border::Adaptive,
+            method,
+            holes: Holes::Exact,
+        };
+        let mut times = Vec::new();
+        let mut count = 0;
+        for _ in 0..3 {
+            let t = Instant::now();
+            count = triangulate(&crop.samples, side, side, &o).triangles.len();
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        times.sort_by(f64::total_cmp);
+        println!(
+            "{name}, middle {side}², {}, {e} m, adaptive border: {count} triangles, {:.0} ms",
+            method.name(),
+            times[1]
+        );
     }
-    times.sort_by(f64::total_cmp);
-    println!(
-        "\n{name}, middle {side}², rtin, 20 m, adaptive border: {count} triangles, {:.0} ms",
-        times[1]
-    );
 }

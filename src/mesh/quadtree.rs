@@ -9,7 +9,6 @@
 //! take it past the error is split, or, at the finest nodes, its coarser neighbour is.
 
 use super::{split_error, Border, Builder, Field, Mesh, Tri, STOP_EVERY};
-use std::collections::BTreeSet;
 
 /// A node: its north-west grid vertex and its side in cells (a power of two, 2 at least, so
 /// that it has a centre vertex).
@@ -31,10 +30,6 @@ impl Node {
             y: self.y + dy,
             span: h,
         })
-    }
-
-    fn contains(self, c: [i64; 2]) -> bool {
-        c[0] >= self.x && c[0] < self.x + self.span && c[1] >= self.y && c[1] < self.y + self.span
     }
 
     /// A cell just across each side, or None past the tile's border (`last` = size − 1).
@@ -88,9 +83,14 @@ impl Node {
     }
 }
 
+/// The leaves, as the level of the leaf that holds each block of 2 × 2 cells (the finest
+/// node): the leaf holding a cell is found in one look, which the restriction makes millions
+/// of.
 struct Tree<'a> {
-    root: Node,
-    leaves: BTreeSet<Node>,
+    /// log₂ of the span of the leaf holding each block, row-major.
+    level: Vec<u8>,
+    /// Blocks a side.
+    blocks: usize,
     field: &'a Field,
     max_error: f64,
     border: Border,
@@ -108,28 +108,61 @@ impl Tree<'_> {
             if split {
                 stack.extend(n.children());
             } else {
-                self.leaves.insert(n);
+                self.set_leaf(n);
             }
         }
     }
 
-    /// The leaf holding cell `c`.
-    fn leaf_at(&self, c: [i64; 2]) -> Node {
-        let mut n = self.root;
-        while !self.leaves.contains(&n) {
-            n = n
-                .children()
-                .into_iter()
-                .find(|k| k.contains(c))
-                .expect("a child holds the cell");
+    fn set_leaf(&mut self, n: Node) {
+        let level = n.span.trailing_zeros() as u8;
+        let (bx, by, bs) = (
+            (n.x / 2) as usize,
+            (n.y / 2) as usize,
+            (n.span / 2) as usize,
+        );
+        for row in by..by + bs {
+            let start = row * self.blocks + bx;
+            self.level[start..start + bs].fill(level);
         }
-        n
+    }
+
+    /// The leaf holding cell `c`: nodes lie at multiples of their span.
+    fn leaf_at(&self, c: [i64; 2]) -> Node {
+        let k = (c[1] / 2) as usize * self.blocks + (c[0] / 2) as usize;
+        let span = 1i64 << self.level[k];
+        Node {
+            x: c[0] - c[0] % span,
+            y: c[1] - c[1] % span,
+            span,
+        }
+    }
+
+    fn is_leaf(&self, n: Node) -> bool {
+        self.leaf_at([n.x, n.y]) == n
+    }
+
+    /// Every leaf, north-west corners in row order.
+    fn leaves(&self) -> Vec<Node> {
+        let mut out = Vec::new();
+        for by in 0..self.blocks {
+            for bx in 0..self.blocks {
+                let span = 1usize << self.level[by * self.blocks + bx];
+                let (x, y) = (2 * bx, 2 * by);
+                if x % span == 0 && y % span == 0 {
+                    out.push(Node {
+                        x: x as i64,
+                        y: y as i64,
+                        span: span as i64,
+                    });
+                }
+            }
+        }
+        out
     }
 
     /// Splits a leaf whose neighbours need it finer: its children are refined in turn, since
     /// a finer fan is not always closer to the grid than the one it replaces.
     fn split(&mut self, n: Node) {
-        self.leaves.remove(&n);
         for c in n.children() {
             self.refine(c);
         }
@@ -166,9 +199,10 @@ pub(super) fn mesh(
         y: 0,
         span: last,
     };
+    let blocks = (field.side - 1) / 2;
     let mut tree = Tree {
-        root,
-        leaves: BTreeSet::new(),
+        level: vec![0; blocks * blocks],
+        blocks,
         field,
         max_error,
         border,
@@ -180,7 +214,7 @@ pub(super) fn mesh(
         if stop() {
             return None;
         }
-        for (k, n) in tree.leaves.clone().into_iter().enumerate() {
+        for (k, n) in tree.leaves().into_iter().enumerate() {
             if k.is_multiple_of(STOP_EVERY) && stop() {
                 return None;
             }
@@ -197,8 +231,8 @@ pub(super) fn mesh(
         }
         // The fans as drawn, with the omitted midpoints: too far from the grid, and the node
         // is split, or at the finest its coarser neighbours are.
-        for n in tree.leaves.clone() {
-            if !tree.leaves.contains(&n) {
+        for n in tree.leaves() {
+            if !tree.is_leaf(n) {
                 continue;
             }
             let (omit, coarser) = tree.omitted(n, last);
@@ -220,7 +254,7 @@ pub(super) fn mesh(
                 tree.split(n);
             } else {
                 for m in coarser.into_iter().flatten() {
-                    if tree.leaves.contains(&m) {
+                    if tree.is_leaf(m) {
                         tree.split(m);
                     }
                 }
@@ -232,7 +266,7 @@ pub(super) fn mesh(
         }
     }
     let mut out = Builder::new(field);
-    for &n in &tree.leaves {
+    for n in tree.leaves() {
         let (omit, _) = tree.omitted(n, last);
         for t in n.fan(omit) {
             out.push(&t);
