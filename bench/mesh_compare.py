@@ -1,7 +1,7 @@
 """Patchwork's cuts beside the meshes of martini (RTIN) and delatin (greedy Delaunay) at the same
 maximum error, on the same surveys.
 
-Usage: python3 bench/mesh_compare.py OUT_DIR [--meshes-only]
+Usage: python3 bench/mesh_compare.py OUT_DIR [--meshes-only [SURVEY ...]]
 
 Reads what `patchwork bench` wrote in OUT_DIR: the surveys it used (tiles/manifest.json) and
 variants.csv, each survey's uniform cut at every error for each mipmap filter and patch kind, with the
@@ -12,7 +12,8 @@ charts samples_vs_error.png and variants_time.png. Then the crops of rtin.csv, w
 triangulations made at each error, go to martini and delatin too: rtin_compare.csv,
 mesh_triangles.png and mesh_time.png.
 
-With --meshes-only, only that last comparison runs again, from the rtin.csv already there.
+With --meshes-only, only that last comparison runs again, from the rtin.csv already there and
+the surveys named (by default those of tiles/manifest.json): `patchwork bench --meshes-only`.
 
 Neither mesher takes voids: they get the survey with voids filled from their neighbours, and
 martini a grid padded by repeating the edge to 2^n + 1 samples a side (vertices in the padding
@@ -176,10 +177,13 @@ def rtin_compare(out, sources):
 
 
 def main(argv):
-    if len(argv) not in (2, 3) or argv[2:] not in ([], ["--meshes-only"]):
+    if len(argv) < 2 or (argv[2:] and argv[2] != "--meshes-only"):
         sys.exit(__doc__)
     out = Path(argv[1])
-    sources = json.loads((out / "tiles" / "manifest.json").read_text())["sources"]
+    if argv[3:]:
+        sources = argv[3:]
+    else:
+        sources = json.loads((out / "tiles" / "manifest.json").read_text())["sources"]
     if argv[2:]:
         # Only the comparison of the mesh triangulations (rtin.csv), again.
         rtin_compare(out, sources)

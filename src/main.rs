@@ -129,6 +129,10 @@ enum Cmd {
         /// same surveys (python3 -m pip install -r bench/requirements.txt).
         #[arg(long)]
         no_gdal: bool,
+        /// Only the mesh triangulations, and their comparison with martini and delatin: a
+        /// few minutes where the whole bench takes half an hour.
+        #[arg(long)]
+        meshes_only: bool,
     },
     /// List the GPU adapters with compute shaders, one a line. The daemon runs this in a child
     /// process, so that drivers it will not use are never loaded into it.
@@ -608,7 +612,13 @@ async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     Ok(())
 }
 
-fn bench(files: Vec<PathBuf>, out: PathBuf, smoke: bool, no_gdal: bool) -> Result<(), Fail> {
+fn bench(
+    files: Vec<PathBuf>,
+    out: PathBuf,
+    smoke: bool,
+    no_gdal: bool,
+    meshes_only: bool,
+) -> Result<(), Fail> {
     let files = if !files.is_empty() {
         files
     } else if smoke {
@@ -633,12 +643,17 @@ fn bench(files: Vec<PathBuf>, out: PathBuf, smoke: bool, no_gdal: bool) -> Resul
         .map(|f| shared.join(f))
         .collect()
     };
-    patchwork::bench::run(&patchwork::bench::Options {
+    let opts = patchwork::bench::Options {
         files,
         out: out.clone(),
         smoke,
-    })?;
-    if !no_gdal {
+    };
+    if meshes_only {
+        patchwork::bench::run_meshes(&opts)?;
+    } else {
+        patchwork::bench::run(&opts)?;
+    }
+    if !no_gdal && !meshes_only {
         let status = std::process::Command::new("python3")
             .arg("bench/gdal_compare.py")
             .arg(out.join("tiles/manifest.json"))
@@ -650,9 +665,13 @@ fn bench(files: Vec<PathBuf>, out: PathBuf, smoke: bool, no_gdal: bool) -> Resul
         if !status.success() {
             return Err("the GDAL comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
         }
+    }
+    if !no_gdal {
         let status = std::process::Command::new("python3")
             .arg("bench/mesh_compare.py")
             .arg(&out)
+            .args(meshes_only.then_some("--meshes-only"))
+            .args(if meshes_only { &opts.files[..] } else { &[] })
             .status()
             .map_err(|e| format!("cannot run python3 for the mesh comparison: {e}"))?;
         if !status.success() {
@@ -670,8 +689,9 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             out,
             smoke,
             no_gdal,
+            meshes_only,
         } => tokio::task::spawn_blocking(move || {
-            bench(files, out, smoke, no_gdal).map_err(|e| e.to_string())
+            bench(files, out, smoke, no_gdal, meshes_only).map_err(|e| e.to_string())
         })
         .await?
         .map_err(Into::into),

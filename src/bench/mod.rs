@@ -151,6 +151,14 @@ fn square(c: [f64; 2], half: f64) -> Aabb {
     Aabb::new(c[0] - half, c[1] - half, c[0] + half, c[1] + half)
 }
 
+/// The mesh triangulations alone (`rtin.csv`): the part of the bench `--meshes-only` runs.
+pub fn run_meshes(opts: &Options) -> Result<(), Box<dyn std::error::Error>> {
+    std::fs::create_dir_all(&opts.out)?;
+    let meshes = meshes::run(&opts.files, if opts.smoke { 129 } else { 2049 })?;
+    meshes::write_csv(&opts.out, &meshes)?;
+    Ok(())
+}
+
 pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     std::fs::create_dir_all(opts.out.join("tiles"))?;
     let tmp = tempfile::tempdir()?;
@@ -348,8 +356,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     flight::write_csv(&opts.out, &flight)?;
     let variants = variants::run(&opts.files, &errors_used, tile_side)?;
     variants::write_csv(&opts.out, &variants)?;
-    let meshes = meshes::run(&opts.files, if opts.smoke { 129 } else { 2049 })?;
-    meshes::write_csv(&opts.out, &meshes)?;
+    run_meshes(opts)?;
     // Where surveys meet, made from the first file's survey (its middle, at most 1,800
     // samples a side, so the scenes take seconds).
     let base = first_survey
