@@ -2,7 +2,7 @@
 
 Usage: python3 bench/gdal_compare.py MANIFEST.json OUT.csv
 
-For every tile `patchwork bench` wrote, GDAL (through rasterio, which bundles it) warps the same
+For every tile `patchwork-bench` wrote, GDAL (through rasterio, which bundles it) warps the same
 source files onto the same north-up grid with bilinear resampling, the way `gdal.Warp` or a VRT
 mosaic does: sources are drawn in order and each overwrites the last where it has data, so in an
 overlap the last source wins. Patchwork instead blends every patch that meets the requested

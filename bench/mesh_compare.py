@@ -3,7 +3,7 @@ maximum error, on the same surveys.
 
 Usage: python3 bench/mesh_compare.py OUT_DIR [--meshes-only [SURVEY ...]]
 
-Reads what `patchwork bench` wrote in OUT_DIR: the surveys it used (tiles/manifest.json) and
+Reads what `patchwork-bench` wrote in OUT_DIR: the surveys it used (tiles/manifest.json) and
 variants.csv, each survey's uniform cut at every error for each mipmap filter and patch kind, with the
 surveys taken as exact so that e is the largest deviation from the samples' surface. For each
 survey and error, martini and delatin triangulate the same samples within the same maximum
@@ -13,7 +13,7 @@ triangulations made at each error, go to martini and delatin too: rtin_compare.c
 mesh_triangles.png and mesh_time.png.
 
 With --meshes-only, only that last comparison runs again, from the rtin.csv already there and
-the surveys named (by default those of tiles/manifest.json): `patchwork bench --meshes-only`.
+the surveys named (by default those of tiles/manifest.json): `patchwork-bench --meshes-only`.
 
 Neither mesher takes voids: they get the survey with voids filled from their neighbours, and
 martini a grid padded by repeating the edge to 2^n + 1 samples a side (vertices in the padding

@@ -114,26 +114,6 @@ enum Cmd {
         #[command(flatten)]
         target: Target,
     },
-    /// Measure speed against accuracy on real surveys, with GDAL on the same tiles.
-    Bench {
-        /// Surveys to ingest; by default the Copernicus + NASADEM N34W119 pair and N44E005.hgt
-        /// from the shared data folder (the committed crops with --smoke).
-        files: Vec<PathBuf>,
-        /// Where the CSV, charts and tiles go.
-        #[arg(long, default_value = "docs/bench")]
-        out: PathBuf,
-        /// A run of a few seconds that proves the bench still works.
-        #[arg(long)]
-        smoke: bool,
-        /// Skip the comparisons in Python: GDAL on the same tiles, martini and delatin on the
-        /// same surveys (python3 -m pip install -r bench/requirements.txt).
-        #[arg(long)]
-        no_gdal: bool,
-        /// Only the mesh triangulations, and their comparison with martini and delatin: a
-        /// few minutes where the whole bench takes half an hour.
-        #[arg(long)]
-        meshes_only: bool,
-    },
     /// List the GPU adapters with compute shaders, one a line. The daemon runs this in a child
     /// process, so that drivers it will not use are never loaded into it.
     #[command(hide = true)]
@@ -535,7 +515,7 @@ fn write_tile(out: &Path, t: &pb::Tile, roi: &pb::Rect) -> Result<(), Fail> {
             )?;
         }
         Some("npy") => {
-            patchwork::bench::write_npy(out, t.height as usize, t.width as usize, &t.heights)?
+            patchwork::read::write_npy(out, t.height as usize, t.width as usize, &t.heights)?
         }
         _ => return Err(format!("--out {}: use a .tif or .npy name", out.display()).into()),
     }
@@ -612,89 +592,8 @@ async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     Ok(())
 }
 
-fn bench(
-    files: Vec<PathBuf>,
-    out: PathBuf,
-    smoke: bool,
-    no_gdal: bool,
-    meshes_only: bool,
-) -> Result<(), Fail> {
-    let files = if !files.is_empty() {
-        files
-    } else if smoke {
-        [
-            "copernicus_n34w119_crop.tif",
-            "nasadem_n34w119_crop.tif",
-            "srtm_n44e005_voids_crop.tif",
-        ]
-        .iter()
-        .map(|f| Path::new("tests/data").join(f))
-        .collect()
-    } else {
-        let shared = std::env::var_os("PATCHWORK_SHARED_DATA")
-            .map(PathBuf::from)
-            .unwrap_or_else(|| PathBuf::from("../shared/data"));
-        [
-            "Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif",
-            "NASADEM_HGT_n34w119.tif",
-            "N44E005.hgt",
-        ]
-        .iter()
-        .map(|f| shared.join(f))
-        .collect()
-    };
-    let opts = patchwork::bench::Options {
-        files,
-        out: out.clone(),
-        smoke,
-    };
-    if meshes_only {
-        patchwork::bench::run_meshes(&opts)?;
-    } else {
-        patchwork::bench::run(&opts)?;
-    }
-    if !no_gdal && !meshes_only {
-        let status = std::process::Command::new("python3")
-            .arg("bench/gdal_compare.py")
-            .arg(out.join("tiles/manifest.json"))
-            .arg(out.join("gdal.csv"))
-            .status()
-            .map_err(|e| {
-                format!("cannot run python3 for the GDAL comparison: {e}; use --no-gdal to skip it")
-            })?;
-        if !status.success() {
-            return Err("the GDAL comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
-        }
-    }
-    if !no_gdal {
-        let status = std::process::Command::new("python3")
-            .arg("bench/mesh_compare.py")
-            .arg(&out)
-            .args(meshes_only.then_some("--meshes-only"))
-            .args(if meshes_only { &opts.files[..] } else { &[] })
-            .status()
-            .map_err(|e| format!("cannot run python3 for the mesh comparison: {e}"))?;
-        if !status.success() {
-            return Err("the mesh comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
-        }
-    }
-    println!("wrote {}", out.display());
-    Ok(())
-}
-
 async fn run(cli: Cli) -> Result<(), Fail> {
     match cli.cmd {
-        Cmd::Bench {
-            files,
-            out,
-            smoke,
-            no_gdal,
-            meshes_only,
-        } => tokio::task::spawn_blocking(move || {
-            bench(files, out, smoke, no_gdal, meshes_only).map_err(|e| e.to_string())
-        })
-        .await?
-        .map_err(Into::into),
         Cmd::Serve { config } => serve(config).await,
         Cmd::ProbeGpu => {
             for line in patchwork::resample::gpu::list_adapters() {

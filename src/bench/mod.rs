@@ -1,4 +1,4 @@
-//! `patchwork bench`: speed beside accuracy, on real surveys, with GDAL on the same tiles.
+//! `patchwork-bench`: speed beside accuracy, on real surveys, with GDAL on the same tiles.
 //!
 //! Ingests the surveys into a temporary store, then measures uniform cuts over three ROIs at
 //! a range of errors (query time, patches, bytes on the wire, resample time, samples, and the
@@ -18,6 +18,7 @@ use crate::engine::{Cut, Engine};
 use crate::index::geom::Aabb;
 use crate::index::query::{Metric, ViewQuery};
 use crate::model::grid::Grid;
+use crate::read::write_npy;
 use crate::resample::SampleGrid;
 use crate::serve::convert;
 use crate::terrain::Terrain;
@@ -130,21 +131,6 @@ pub fn errors(heights: &[f32], lo: &[f32], hi: &[f32]) -> Vec<f64> {
         .filter(|(h, (l, _))| !h.is_nan() && !l.is_nan())
         .map(|(h, (l, u))| ((*l - *h).max(*h - *u).max(0.0)) as f64)
         .collect()
-}
-
-/// Writes a float32 numpy array (`shape` rows × cols).
-pub fn write_npy(path: &Path, rows: usize, cols: usize, data: &[f32]) -> std::io::Result<()> {
-    let header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({rows}, {cols}), }}");
-    let pad = 64 - (10 + header.len() + 1) % 64;
-    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
-    bytes.extend_from_slice(&((header.len() + pad + 1) as u16).to_le_bytes());
-    bytes.extend_from_slice(header.as_bytes());
-    bytes.extend(std::iter::repeat_n(b' ', pad));
-    bytes.push(b'\n');
-    for z in data {
-        bytes.extend_from_slice(&z.to_le_bytes());
-    }
-    std::fs::write(path, bytes)
 }
 
 fn square(c: [f64; 2], half: f64) -> Aabb {

@@ -5,6 +5,7 @@ pub mod ascii;
 pub mod crs;
 pub mod geotiff;
 pub mod hgt;
+pub mod write_npy;
 pub mod write_tiff;
 
 use std::fs::File;
@@ -15,6 +16,7 @@ use std::sync::Arc;
 pub use ascii::AsciiGridReader;
 pub use geotiff::GeoTiffReader;
 pub use hgt::HgtReader;
+pub use write_npy::write_npy;
 pub use write_tiff::{write_geotiff_f32, write_geotiff_i16};
 
 /// A raster as read from a file, before it becomes a model Grid.
