@@ -151,7 +151,8 @@ enum Cmd {
         #[arg(long, value_name = "N")]
         rows: Option<u32>,
         /// How far the surface may be drawn over a void from the nearest measured vertex,
-        /// metres: narrow holes close and hole borders simplify (0: holes kept exact).
+        /// metres: holes narrower than twice this close, wider ones shrink by this much at
+        /// most (0: holes kept exact).
         #[arg(long, value_name = "M", default_value_t = 0.0)]
         hole_reach: f64,
         /// Depth of the skirts under the tile's border, metres (0: none). Quantized-mesh

@@ -199,9 +199,9 @@ impl Field {
             (0, 1, cell[1]),
             (1, 1, diagonal),
         ];
-        let void = |reach: &[f32], c: i64, r: i64| {
-            c >= 0 && r >= 0 && c < cols && r < rows && reach[(r * side + c) as usize] != 0.0
-        };
+        let inside = |c: i64, r: i64| c >= 0 && r >= 0 && c < cols && r < rows;
+        let void =
+            |reach: &[f32], c: i64, r: i64| inside(c, r) && reach[(r * side + c) as usize] != 0.0;
         // Distances as their bits: positive floats order like their bit patterns.
         let mut best = vec![f64::INFINITY; self.reach.len()];
         let mut heap = BinaryHeap::new();
@@ -228,7 +228,7 @@ impl Field {
                 let (mut sum, mut n) = (0.0f64, 0u32);
                 for &(dc, dr, _) in &steps {
                     let (c2, r2) = (c + dc, r + dr);
-                    if c2 >= 0 && r2 >= 0 && c2 < cols && r2 < rows {
+                    if inside(c2, r2) {
                         let z = self.z[(r2 * side + c2) as usize];
                         if !z.is_nan() {
                             sum += z as f64;
