@@ -34,7 +34,15 @@ fn grid(name: &str) -> Grid {
 }
 
 fn survey(g: Grid) -> Arc<Survey> {
-    Arc::new(Survey::build(g, 0.0, Some(4326), PatchLayout::default()).unwrap())
+    Arc::new(
+        Survey::build(
+            g,
+            0.0,
+            Some(patchwork::crs::Crs::epsg(4326).unwrap()),
+            PatchLayout::default(),
+        )
+        .unwrap(),
+    )
 }
 
 struct Pair {
@@ -89,7 +97,15 @@ fn patch_generation(c: &mut Criterion) {
     group.sample_size(10);
     group.throughput(Throughput::Elements((g.cols * g.rows) as u64));
     group.bench_function("copernicus_1024x1024", |b| {
-        b.iter(|| Survey::build(g.clone(), 0.0, Some(4326), PatchLayout::default()).unwrap())
+        b.iter(|| {
+            Survey::build(
+                g.clone(),
+                0.0,
+                Some(patchwork::crs::Crs::epsg(4326).unwrap()),
+                PatchLayout::default(),
+            )
+            .unwrap()
+        })
     });
     group.finish();
 }

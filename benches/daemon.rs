@@ -92,6 +92,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         ymax: 34.4,
     };
     let req = pb::TileRequest {
+        crs: String::new(),
         cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
             roi: Some(roi),
             error: 5.0,
@@ -104,7 +105,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut last = None;
     for _ in 0..n {
         let t = Instant::now();
-        let tile = terrain.resample_tile(req).await?.into_inner();
+        let tile = terrain.resample_tile(req.clone()).await?.into_inner();
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         last = Some(tile);
     }
@@ -152,6 +153,7 @@ async fn load(
                     );
                     let (x, y) = (-119.0 + 0.95 * fx, 34.0 + 0.95 * fy);
                     let req = pb::TileRequest {
+                        crs: String::new(),
                         cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
                             roi: Some(pb::Rect {
                                 xmin: x,
@@ -166,7 +168,7 @@ async fn load(
                         backend: pb::Backend::Cpu as i32,
                     };
                     let t0 = Instant::now();
-                    let mut s = t.tile_bands(req).await?.into_inner();
+                    let mut s = t.tile_bands(req.clone()).await?.into_inner();
                     while s.message().await?.is_some() {}
                     ms.push(t0.elapsed().as_secs_f64() * 1e3);
                     k += 1;

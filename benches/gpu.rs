@@ -49,7 +49,15 @@ fn main() {
         .unwrap_or_else(|e| panic!("{name}: {e}"))
         .into_grid()
         .unwrap();
-    let s = Arc::new(Survey::build(grid, 0.0, Some(4326), PatchLayout::default()).unwrap());
+    let s = Arc::new(
+        Survey::build(
+            grid,
+            0.0,
+            Some(patchwork::crs::Crs::epsg(4326).unwrap()),
+            PatchLayout::default(),
+        )
+        .unwrap(),
+    );
     let mut t = Terrain::new(IndexConfig::default());
     t.insert(s.clone());
     println!(

@@ -243,6 +243,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
             let x0 = mosaic[0] + next() * (mosaic[2] - mosaic[0] - side);
             let y0 = mosaic[1] + next() * (mosaic[3] - mosaic[1] - side);
             let req = pb::TileRequest {
+                crs: String::new(),
                 cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
                     roi: Some(pb::Rect {
                         xmin: x0,
@@ -257,7 +258,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                 backend: pb::Backend::Cpu as i32,
             };
             let t = Instant::now();
-            let tile = terrain.resample_tile(req).await?.into_inner();
+            let tile = terrain.resample_tile(req.clone()).await?.into_inner();
             cold.push(t.elapsed().as_secs_f64() * 1e3);
             patches += tile.patches as u64;
             let t = Instant::now();

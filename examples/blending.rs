@@ -111,7 +111,7 @@ fn main() {
     let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
     let survey = |name: &str| {
         let r = patchwork::read::read_raster(&data.join(name), &Default::default()).unwrap();
-        let crs = r.epsg;
+        let crs = r.crs.crs.clone();
         let g = r.into_grid().unwrap();
         Arc::new(Survey::build(g, 0.0, crs, PatchLayout::default()).unwrap())
     };

@@ -81,7 +81,7 @@ fn main() {
         SIZE,
         &c.samples,
         c.geotransform,
-        c.epsg,
+        c.crs.crs.as_ref(),
         None,
     )
     .unwrap();
@@ -94,7 +94,7 @@ fn main() {
         SIZE,
         &i16s(&n),
         n.geotransform,
-        n.epsg,
+        n.crs.crs.as_ref(),
         Some(-32768.0),
     )
     .unwrap();
@@ -113,7 +113,7 @@ fn main() {
         SIZE,
         &i16s(&h),
         h.geotransform,
-        h.epsg,
+        h.crs.crs.as_ref(),
         Some(-32768.0),
     )
     .unwrap();
@@ -133,7 +133,7 @@ fn main() {
         side,
         &i16s(&v),
         v.geotransform,
-        v.epsg,
+        v.crs.crs.as_ref(),
         Some(-32768.0),
     )
     .unwrap();

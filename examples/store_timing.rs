@@ -33,7 +33,15 @@ fn ingest(store: &Store, terrain: &mut Terrain, path: &Path) -> Arc<Survey> {
         .unwrap();
     let read_ms = ms(t);
     let t = Instant::now();
-    let s = Arc::new(Survey::build(grid, 0.0, Some(4326), store.layout()).unwrap());
+    let s = Arc::new(
+        Survey::build(
+            grid,
+            0.0,
+            Some(patchwork::crs::Crs::epsg(4326).unwrap()),
+            store.layout(),
+        )
+        .unwrap(),
+    );
     let build_ms = ms(t);
     let t = Instant::now();
     let mut next = terrain.clone();

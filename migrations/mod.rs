@@ -7,6 +7,8 @@ use super::Step;
 mod v0_to_v1;
 mod v1_to_v2;
 mod v2_to_v3;
+mod v3;
+mod v3_to_v4;
 
 /// Every step, as (from version, to version, step). `migrate` follows them from the version a
 /// store records up to `migrate::CURRENT`.
@@ -14,4 +16,5 @@ pub(super) const STEPS: &[(u32, u32, Step)] = &[
     (0, 1, v0_to_v1::run),
     (1, 2, v1_to_v2::run),
     (2, 3, v2_to_v3::run),
+    (3, 4, v3_to_v4::run),
 ];

@@ -7,9 +7,9 @@
 //! patches version 2 adds) and writes every box state and overlap in one batch.
 
 use super::super::Ctx;
+use super::v3::{GeorefV3, LevelV3, RecordV3};
 use crate::model::accuracy::AccuracySource;
-use crate::model::grid::Georef;
-use crate::store::{decode, encode, keys, IngestTimings, LevelHeader, Status, SurveyRecord};
+use crate::store::{decode, encode, keys, IngestTimings, Status};
 use serde::Deserialize;
 
 #[derive(Deserialize)]
@@ -57,8 +57,8 @@ struct RecordV1 {
     created_unix: u64,
 }
 
-fn georef(g: GeorefV1) -> Georef {
-    Georef {
+fn georef(g: GeorefV1) -> GeorefV3 {
+    GeorefV3 {
         origin: g.origin,
         theta: g.theta,
         step: g.step,
@@ -72,7 +72,7 @@ pub(super) fn run(tree: &sled::Tree, _: &Ctx) -> Result<sled::Batch, String> {
         any = true;
         let (k, v) = kv.map_err(|e| e.to_string())?;
         let old: RecordV1 = decode(&v, &String::from_utf8_lossy(&k)).map_err(|e| e.to_string())?;
-        let rec = SurveyRecord {
+        let rec = RecordV3 {
             id: old.id,
             source: old.source,
             content_id: old.content_id,
@@ -90,7 +90,7 @@ pub(super) fn run(tree: &sled::Tree, _: &Ctx) -> Result<sled::Batch, String> {
             levels: old
                 .levels
                 .into_iter()
-                .map(|l| LevelHeader {
+                .map(|l| LevelV3 {
                     cols: l.cols,
                     rows: l.rows,
                     georef: georef(l.georef),

@@ -10,11 +10,12 @@
 //! rebuild, which writes them with every box state.
 
 use super::super::Ctx;
+use super::v3::RecordV3;
 use crate::model::edge;
 use crate::model::grid::Grid;
 use crate::model::lattice::Lattice;
 use crate::model::patch::Patch;
-use crate::store::{chunks, decode, encode, keys, StoredPatches, SurveyRecord};
+use crate::store::{chunks, decode, encode, keys, StoredPatches};
 
 /// Version 2's rows per band.
 const BAND_ROWS: usize = 64;
@@ -39,7 +40,7 @@ pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
             continue;
         };
         any = true;
-        let rec: SurveyRecord = decode(&v, "survey record").map_err(|e| e.to_string())?;
+        let rec: RecordV3 = decode(&v, "survey record").map_err(|e| e.to_string())?;
         let mut level0 = None;
         for (level, h) in rec.levels.iter().enumerate() {
             let (cols, rows) = (h.cols as usize, h.rows as usize);
@@ -63,7 +64,7 @@ pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
                         .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes"))),
                 );
             }
-            let g = Grid::new(cols, rows, samples, h.georef)
+            let g = Grid::new(cols, rows, samples, h.georef.now())
                 .map_err(|e| format!("level {level} of survey {id}: {e}"))?;
             let (ks, bytes): (Vec<usize>, Vec<Vec<u8>>) =
                 chunks::encode_level(&g).into_iter().unzip();

@@ -1,6 +1,8 @@
 //! Configuration: compiled-in defaults, then an optional TOML file, then environment overrides
 //! for the top-level keys (`PATCHWORK_<KEY>`). `config/patchwork.toml` documents every key.
 
+use crate::crs::vertical::VerticalCrs;
+use crate::crs::Crs;
 use crate::index::lod::IndexConfig;
 use crate::model::mipmap::Filter;
 use crate::model::patch::{PatchKind, PatchLayout};
@@ -166,7 +168,8 @@ pub struct Config {
     pub tls_key: Option<PathBuf>,
     /// ε for files with no sidecar and no `--accuracy`.
     pub accuracy_m: DefaultAccuracy,
-    /// The store's CRS as "EPSG:n"; unset adopts the first survey's.
+    /// The store's horizontal CRS: an EPSG code, a WKT or a PROJ string; unset adopts the
+    /// first survey's.
     pub crs: Option<String>,
     /// How long a file's size and mtime must stay unchanged before it is ingested.
     pub settle_ms: u64,
@@ -184,6 +187,18 @@ pub struct Config {
     pub patches: Patches,
     /// How a new store makes its surveys' coarser levels; an existing store keeps its own.
     pub mipmap: Filter,
+    pub vertical: Vertical,
+}
+
+/// The `[vertical]` section: the store's vertical CRS and the geoid grids that carry heights
+/// into it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Vertical {
+    /// "EPSG:n" or "ellipsoidal"; unset adopts the first survey's that names one.
+    pub crs: Option<String>,
+    /// Geoid undulation grids, by the vertical CRS ("EPSG:n") they relate to the ellipsoid.
+    pub geoids: std::collections::BTreeMap<String, PathBuf>,
 }
 
 /// The `[patches]` section: the layout every store keeps, and the kind of a new store.
@@ -251,6 +266,7 @@ impl Default for Config {
             index: IndexConfig::default(),
             patches: Patches::default(),
             mipmap: Filter::default(),
+            vertical: Vertical::default(),
         }
     }
 }
@@ -356,6 +372,9 @@ impl Config {
         if let Some(v) = get("PATCHWORK_CRS") {
             self.crs = Some(v);
         }
+        if let Some(v) = get("PATCHWORK_VERTICAL_CRS") {
+            self.vertical.crs = Some(v);
+        }
         if let Some(v) = get("PATCHWORK_SETTLE_MS") {
             self.settle_ms = num("PATCHWORK_SETTLE_MS", &v)?;
         }
@@ -414,10 +433,19 @@ impl Config {
             }
         }
         if let Some(c) = &self.crs {
-            if parse_epsg(c).is_none() {
-                return Err(ConfigError::Invalid(format!(
-                    "crs must look like \"EPSG:4326\", got {c:?}"
-                )));
+            Crs::parse(c).map_err(|e| ConfigError::Invalid(format!("crs: {e}")))?;
+        }
+        if let Some(v) = &self.vertical.crs {
+            VerticalCrs::parse(v)
+                .map_err(|e| ConfigError::Invalid(format!("vertical.crs: {e}")))?;
+        }
+        for k in self.vertical.geoids.keys() {
+            let v = VerticalCrs::parse(k)
+                .map_err(|e| ConfigError::Invalid(format!("vertical.geoids: {e}")))?;
+            if v.is_ellipsoidal() {
+                return Err(ConfigError::Invalid(
+                    "vertical.geoids: ellipsoidal heights need no geoid grid".into(),
+                ));
             }
         }
         if self.patches.kernel < 2 || self.patches.margin < 1 {
@@ -475,8 +503,17 @@ impl Config {
         Ok(())
     }
 
-    pub fn crs_epsg(&self) -> Option<u32> {
-        self.crs.as_deref().and_then(parse_epsg)
+    /// The store's horizontal CRS, as the config sets it.
+    pub fn crs_def(&self) -> Option<Crs> {
+        self.crs.as_deref().and_then(|c| Crs::parse(c).ok())
+    }
+
+    /// The store's vertical CRS, as the config sets it.
+    pub fn vertical_crs(&self) -> Option<VerticalCrs> {
+        self.vertical
+            .crs
+            .as_deref()
+            .and_then(|c| VerticalCrs::parse(c).ok())
     }
 }
 

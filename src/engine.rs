@@ -12,13 +12,16 @@
 //! writing, says why, and keeps serving reads from what it has published.
 
 use crate::config::Config;
+use crate::crs::vertical::VerticalCrs;
+use crate::crs::{Crs, Reprojection};
 use crate::index::geom::Aabb;
 use crate::index::lod::ChangeStats;
 use crate::index::query::{Extracted, Metric, ViewQuery};
 pub use crate::ingest::Phase;
-use crate::ingest::{open_file, prepare_with, IngestError, IngestSettings};
-use crate::model::accuracy::{AccuracySource, Deviation};
+use crate::ingest::{open_file, prepare_with, Geoids, IngestError, IngestSettings};
+use crate::model::accuracy::Deviation;
 use crate::model::ids::SurveyId;
+use crate::model::place::Planes;
 use crate::model::survey::Survey;
 pub use crate::read::REFUSED_PATH;
 use crate::read::{content_id, file_content_id, ReadError, ReadLimits};
@@ -144,15 +147,36 @@ pub struct SurveyListing {
 /// A query's cut through LOD space.
 #[derive(Clone, Debug)]
 pub enum Cut {
-    Uniform { roi: Aabb, error: f64 },
+    /// Over a rectangle of the store's CRS.
+    Uniform {
+        roi: Aabb,
+        error: f64,
+    },
+    /// Over a rectangle of another CRS: a tile of it is resampled at its own sample
+    /// positions, carried into the store's.
+    UniformIn {
+        crs: Crs,
+        roi: Aabb,
+        error: f64,
+    },
     View(ViewQuery),
+}
+
+impl Cut {
+    /// The CRS the cut's region and a tile's positions are in; None for the store's.
+    pub fn crs(&self) -> Option<&Crs> {
+        match self {
+            Cut::UniformIn { crs, .. } => Some(crs),
+            _ => None,
+        }
+    }
 }
 
 /// Most vertices a row or column of a mesh: a 2049² grid resamples 4.2 M heights.
 pub const MAX_MESH_SIZE: usize = 2049;
 
 /// A mesh asked of a uniform cut.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct MeshSpec {
     /// The tile the grid spans, and the cut's error in metres.
     pub roi: Aabb,
@@ -169,6 +193,8 @@ pub struct MeshSpec {
     /// How far the surface may be drawn over a void from the nearest measured vertex,
     /// metres (seed 004's horizontal error); 0 keeps holes exact.
     pub hole_reach_m: f64,
+    /// The CRS of the ROI and of the vertices; None for the store's.
+    pub crs: Option<Crs>,
 }
 
 /// A mesh of a uniform cut and what it was made from.
@@ -203,7 +229,8 @@ pub struct Stats {
     pub active_boxes: u64,
     pub samples: u64,
     pub disk_bytes: u64,
-    pub crs: Option<u32>,
+    pub crs: Option<Crs>,
+    pub vertical_crs: Option<VerticalCrs>,
     /// "cpu", or "gpu (adapter)".
     pub backend: String,
     pub quadtree_nodes: u32,
@@ -261,11 +288,10 @@ pub struct Engine {
     gpu: Mutex<Option<GpuResampler>>,
     /// The store's chunk reader, for cache figures without the writer.
     reader: RwLock<Arc<ChunkReader>>,
-}
-
-/// Whether an EPSG code names a geographic (longitude/latitude) CRS.
-pub fn is_geographic(epsg: u32) -> bool {
-    (4000..5000).contains(&epsg)
+    /// The geoid grids the config names, read once each when a conversion needs them.
+    geoids: Arc<Geoids>,
+    /// The maps from the CRSs requests have named to the store's.
+    request_crs: Mutex<HashMap<Crs, Arc<Reprojection>>>,
 }
 
 impl Engine {
@@ -290,13 +316,31 @@ impl Engine {
         for w in &opened.warnings {
             tracing::warn!(warning = %w, "store opened with a problem; `patchwork verify` tells more");
         }
-        if let (Some(want), Some(have)) = (cfg.crs_epsg(), opened.store.crs()) {
+        if let (Some(want), Some(have)) = (cfg.crs_def(), opened.store.crs()) {
             if want != have {
                 return Err(EngineError::Invalid(format!(
-                    "the config says EPSG:{want} but the store at {} is in EPSG:{have}",
-                    cfg.data_dir.display()
+                    "the config says crs = {} but the store at {} is in {}",
+                    want.label(),
+                    cfg.data_dir.display(),
+                    have.label()
                 )));
             }
+        }
+        if let (Some(want), Some(have)) = (cfg.vertical_crs(), opened.store.vertical_crs()) {
+            if !want.same_reference(&have) {
+                return Err(EngineError::Invalid(format!(
+                    "the config says vertical.crs = {} but the heights of the store at {} are \
+                     in {}",
+                    want.label(),
+                    cfg.data_dir.display(),
+                    have.label()
+                )));
+            }
+        }
+        let mut opened = opened;
+        if let (None, Some(c)) = (opened.terrain.crs(), cfg.crs_def()) {
+            // An empty store takes the config's CRS, not its first survey's.
+            opened.terrain.set_crs(c);
         }
         if let Err(e) = opened.store.writable() {
             tracing::warn!(reason = %e, "serving read-only: writes resume once the disk has room");
@@ -316,6 +360,8 @@ impl Engine {
             writer: Mutex::new(Some(opened.store)),
             broken: OnceLock::new(),
             ingest_slots: (Mutex::new(0), std::sync::Condvar::new()),
+            geoids: Arc::new(Geoids::new(&cfg.vertical.geoids)),
+            request_crs: Mutex::new(HashMap::new()),
             cfg,
             events,
             gpu: Mutex::new(None),
@@ -498,8 +544,16 @@ impl Engine {
         });
     }
 
-    pub fn crs(&self) -> Option<u32> {
-        self.cfg.crs_epsg().or(self.catalog().crs)
+    /// The store's horizontal CRS: the config's, else the one it took from its first survey.
+    pub fn crs(&self) -> Option<Crs> {
+        self.cfg.crs_def().or_else(|| self.catalog().crs.clone())
+    }
+
+    /// The store's vertical CRS, once it has one.
+    pub fn vertical_crs(&self) -> Option<VerticalCrs> {
+        self.cfg
+            .vertical_crs()
+            .or_else(|| self.catalog().vertical.clone())
     }
 
     /// The folders files may be ingested from, as they resolve now: a folder that appears
@@ -671,7 +725,8 @@ impl Engine {
             accuracy,
             default_accuracy: self.cfg.accuracy_m,
             max_accuracy: self.cfg.index.max_error,
-            store_crs: self.crs(),
+            store_vertical: self.vertical_crs(),
+            geoids: self.geoids.clone(),
             // An existing store keeps the layout its tops were computed with, and the recipe
             // its surveys were built with.
             layout: catalog.layout,
@@ -684,7 +739,28 @@ impl Engine {
         };
         let prepared =
             prepare_with(path, &settings, &|p| self.set_phase(source, p)).map_err(file)?;
-        let survey = Arc::new(prepared.survey);
+        // Placed in the store's CRS, on the terrain's planes (whose lattices cache what they
+        // have worked out): a survey in another CRS gets its frames, and its patches' errors
+        // what the reprojection can cost them. The writer checks that the store's CRS is
+        // still the one it was placed in.
+        let store_crs = self
+            .crs()
+            .or_else(|| self.snapshot().crs().cloned())
+            .or_else(|| prepared.survey.crs.clone());
+        let survey = match store_crs {
+            Some(c) => {
+                let planes = match self.snapshot().planes() {
+                    Some(p) if *p.store_crs() == c => p.clone(),
+                    _ => Arc::new(Planes::new(c)),
+                };
+                prepared
+                    .survey
+                    .placed(&planes)
+                    .map_err(|e| Refusal::File(e.to_string()))?
+            }
+            None => prepared.survey.clone(),
+        };
+        let survey = Arc::new(survey);
         let samples = survey.levels[0].valid_count() as u64;
         let t1 = Instant::now();
         let mut conflicts = Vec::new();
@@ -707,14 +783,7 @@ impl Engine {
                     // The record, once the index work is done, so that it can say how long
                     // that took.
                     let rec = || {
-                        record(
-                            &survey,
-                            source,
-                            &content,
-                            prepared.source,
-                            prepared.timings,
-                            t1,
-                        )
+                        record(&survey, source, &content, &prepared, t1)
                     };
                     let old_patches: Vec<_> = previous
                         .as_ref()
@@ -729,7 +798,9 @@ impl Engine {
                                 Some(old) => next.try_retire(old.id)?.unwrap_or_default(),
                                 None => ChangeStats::default(),
                             };
-                            let insert = next.try_insert(&survey)?;
+                            let insert = next
+                                .try_insert(&survey)
+                                .map_err(restore::terrain_error)?;
                             let overlaps = next.overlaps(&survey)?;
                             Ok((retire, insert, overlaps))
                         },
@@ -922,7 +993,8 @@ impl Engine {
             active_boxes: t.index().active_count() as u64,
             samples: active.iter().map(|r| r.samples).sum(),
             disk_bytes: crate::store::dir_bytes(&self.dir),
-            crs: self.cfg.crs_epsg().or(c.crs),
+            crs: self.cfg.crs_def().or_else(|| c.crs.clone()),
+            vertical_crs: self.cfg.vertical_crs().or_else(|| c.vertical.clone()),
             backend: self.backend_name(),
             quadtree_nodes: t.index().tree_stats().nodes as u32,
             read_only: self.read_only(),
@@ -972,7 +1044,7 @@ impl Engine {
 
     fn metric_at(&self, lat: f64) -> Metric {
         match self.crs() {
-            Some(c) if is_geographic(c) => Metric::geographic(lat),
+            Some(c) if c.is_geographic() => Metric::geographic(lat),
             _ => Metric::PROJECTED,
         }
     }
@@ -998,6 +1070,80 @@ impl Engine {
         Ok(v)
     }
 
+    /// The map from a CRS to the store's, None for the store's own: one per CRS, kept, so
+    /// that its lattice's nodes are worked out once for every request in it.
+    pub fn to_store(&self, crs: &Crs) -> Result<Option<Arc<Reprojection>>, EngineError> {
+        let Some(store) = self.crs() else {
+            return Err(EngineError::Unavailable(
+                "the store has no CRS yet (no survey and none in the config): ask in its own \
+                 coordinates once it has one"
+                    .into(),
+            ));
+        };
+        if *crs == store {
+            return Ok(None);
+        }
+        let mut cache = self.request_crs.lock().expect("request CRS cache");
+        if let Some(r) = cache.get(crs).filter(|r| *r.to() == store) {
+            return Ok(Some(r.clone()));
+        }
+        let r = Arc::new(
+            Reprojection::new(crs, &store).map_err(|e| EngineError::Invalid(e.to_string()))?,
+        );
+        // Clients name few CRSs; a bound keeps a client naming many from holding memory.
+        if cache.len() >= 64 {
+            cache.clear();
+        }
+        cache.insert(crs.clone(), r.clone());
+        Ok(Some(r))
+    }
+
+    /// A CRS a request names: None for the store's own (or no CRS named).
+    pub fn request_crs(&self, text: &str) -> Result<Option<Crs>, EngineError> {
+        if text.trim().is_empty() {
+            return Ok(None);
+        }
+        let c = Crs::parse(text).map_err(|e| EngineError::Invalid(format!("crs: {e}")))?;
+        Ok((Some(&c) != self.crs().as_ref()).then_some(c))
+    }
+
+    /// The store-plane bounds of a rectangle of another CRS: its border carried over.
+    fn store_roi(&self, crs: &Crs, roi: &Aabb) -> Result<Aabb, EngineError> {
+        let Some(r) = self.to_store(crs)? else {
+            return Ok(*roi);
+        };
+        let n = 32;
+        let mut pts = Vec::with_capacity(4 * n + 1);
+        for k in 0..=n {
+            let t = k as f64 / n as f64;
+            let x = roi.min[0] + t * roi.width();
+            let y = roi.min[1] + t * roi.height();
+            pts.extend([
+                [x, roi.min[1]],
+                [x, roi.max[1]],
+                [roi.min[0], y],
+                [roi.max[0], y],
+            ]);
+        }
+        let mapped: Option<Vec<[f64; 2]>> = pts.iter().map(|&p| r.at(p)).collect();
+        let mapped = mapped.ok_or_else(|| {
+            EngineError::Invalid(format!(
+                "part of the region lies where {} cannot be carried into the store's {}",
+                crs.label(),
+                r.to().label()
+            ))
+        })?;
+        // A side bows between the points by far less than a thousandth of the extent.
+        let b = Aabb::of_points(&mapped);
+        let m = 1e-3 * b.width().max(b.height());
+        Ok(Aabb::new(
+            b.min[0] - m,
+            b.min[1] - m,
+            b.max[0] + m,
+            b.max[1] + m,
+        ))
+    }
+
     /// The patches of a cut, with the snapshot they came from.
     pub fn query(&self, cut: &Cut) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
         let t = self.snapshot();
@@ -1006,6 +1152,11 @@ impl Engine {
                 check_roi(roi)?;
                 check_error(*error)?;
                 t.uniform(roi, *error)
+            }
+            Cut::UniformIn { crs, roi, error } => {
+                check_roi(roi)?;
+                check_error(*error)?;
+                t.uniform(&self.store_roi(crs, roi)?, *error)
             }
             Cut::View(v) => {
                 v.validate().map_err(EngineError::Invalid)?;
@@ -1042,9 +1193,7 @@ impl Engine {
         backend: Backend,
         cancel: &Cancel,
     ) -> Result<MeshTile, EngineError> {
-        let MeshSpec {
-            roi, cols, rows, ..
-        } = *spec;
+        let (roi, cols, rows) = (spec.roi, spec.cols, spec.rows);
         for (name, n) in [("columns", cols), ("rows", rows)] {
             if !(2..=MAX_MESH_SIZE).contains(&n) {
                 return Err(EngineError::Invalid(format!(
@@ -1063,13 +1212,28 @@ impl Engine {
                 )));
             }
         }
-        let cut = Cut::Uniform {
-            roi: crate::mesh::pixel_roi(&roi, cols, rows),
-            error: spec.error,
+        let pixels = crate::mesh::pixel_roi(&roi, cols, rows);
+        let cut = match &spec.crs {
+            Some(crs) => Cut::UniformIn {
+                crs: crs.clone(),
+                roi: pixels,
+                error: spec.error,
+            },
+            None => Cut::Uniform {
+                roi: pixels,
+                error: spec.error,
+            },
         };
         let (tile, used) = self.tile_until(&cut, cols as u32, rows as u32, backend, cancel)?;
         let holes = if spec.hole_reach_m > 0.0 {
-            let scale = self.metric_at((roi.min[1] + roi.max[1]) / 2.0).scale;
+            let mid = (roi.min[1] + roi.max[1]) / 2.0;
+            let scale = match &spec.crs {
+                Some(c) => match c.unit_m() {
+                    Some(m) => [m, m],
+                    None => Metric::geographic(mid).scale,
+                },
+                None => self.metric_at(mid).scale,
+            };
             crate::mesh::Holes::Reach {
                 reach: spec.hole_reach_m,
                 cell: [
@@ -1162,6 +1326,17 @@ impl Engine {
         let (t, ps) = self.query(cut)?;
         let grid = match cut {
             Cut::Uniform { roi, .. } => SampleGrid::uniform(roi, width as usize, height as usize),
+            Cut::UniformIn { crs, roi, .. } => {
+                // The tile's own positions, carried into the store's plane.
+                let own = SampleGrid::uniform(roi, width as usize, height as usize);
+                match self.to_store(crs)? {
+                    Some(r) => {
+                        let pts: Vec<[f64; 2]> = own.points().collect();
+                        SampleGrid::of_points(own.width, own.height, r.map(&pts))
+                    }
+                    None => own,
+                }
+            }
             Cut::View(v) => SampleGrid::view(v, width as usize, height as usize, v.look[2]),
         };
         let head = |backend| TileHead {
@@ -1233,6 +1408,19 @@ impl Engine {
         e: f64,
         cancel: &Cancel,
     ) -> Result<Vec<f32>, EngineError> {
+        self.sample_in(points, None, e, cancel)
+    }
+
+    /// Heights at points of `crs` (None for the store's), given up once `cancel` is set: the
+    /// points are carried into the store's plane as a tile's positions are, so a point has
+    /// the height any tile of that CRS holding it gives.
+    pub fn sample_in(
+        &self,
+        points: &[[f64; 2]],
+        crs: Option<&Crs>,
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Vec<f32>, EngineError> {
         if points.len() as u64 > self.cfg.limits.max_points {
             return Err(EngineError::TooLarge(format!(
                 "{} points, more than the limit of {}: send them in smaller requests",
@@ -1247,6 +1435,14 @@ impl Engine {
             return Err(EngineError::Invalid("points must be finite".into()));
         }
         check_error(e)?;
+        let carried;
+        let points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
+            Some(r) => {
+                carried = r.map(points);
+                &carried
+            }
+            None => points,
+        };
         self.snapshot()
             .try_sample_until(points, e, cancel)
             .map_err(StoreError::from)?
@@ -1366,22 +1562,25 @@ fn record(
     s: &Survey,
     source: &str,
     content: &str,
-    accuracy_source: AccuracySource,
-    t: crate::ingest::Timings,
+    prepared: &crate::ingest::Prepared,
     index_start: Instant,
 ) -> SurveyRecord {
-    SurveyRecord::new(
+    let t = prepared.timings;
+    let mut rec = SurveyRecord::new(
         s,
         source,
         content,
-        accuracy_source,
+        prepared.source,
         IngestTimings {
             read_ms: t.read_ms as f64,
             build_ms: t.build_ms as f64,
             index_ms: index_start.elapsed().as_secs_f64() * 1e3,
             commit_ms: 0.0,
         },
-    )
+    );
+    rec.vertical_source = prepared.vertical_source.clone();
+    rec.vertical_error_m = prepared.vertical_error_m;
+    rec
 }
 
 /// The absolute path a survey is known by.

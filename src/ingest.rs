@@ -1,12 +1,17 @@
 //! From a file to a survey: read, apply the sidecar, check the CRS, build the model.
 
-use crate::config::{parse_epsg, DefaultAccuracy};
+use crate::config::DefaultAccuracy;
+use crate::crs::vertical::VerticalCrs;
+use crate::crs::Crs;
 use crate::model::accuracy::{AccuracySource, AccuracySpec};
+use crate::model::geoid::{self, Geoid};
 use crate::model::patch::PatchLayout;
 use crate::model::survey::{Recipe, Survey, SurveyError};
 use crate::read::{open_untrusted, read_raster, OpenError, ReadError, ReadLimits, REFUSED_PATH};
 use serde::Deserialize;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use thiserror::Error;
 
@@ -19,19 +24,47 @@ pub enum IngestError {
     #[error("the file has no CRS: add a sidecar {sidecar} with crs = \"EPSG:…\"")]
     NoCrs { sidecar: PathBuf },
     #[error(
-        "the file's CRS is {found}, which matches no EPSG code Patchwork knows: add a sidecar \
-         {sidecar} with crs = \"EPSG:…\" naming it"
+        "the file's CRS cannot be used ({found}): add a sidecar {sidecar} with crs = \
+         \"EPSG:…\" (or a WKT or PROJ string) naming it"
     )]
     UnknownCrs { found: String, sidecar: PathBuf },
     #[error(
-        "sidecar {sidecar} says crs = EPSG:{sidecar_crs}, but the file itself is in \
-         EPSG:{file_crs}; remove the sidecar's crs or fix the file"
+        "sidecar {sidecar} says crs = {sidecar_crs}, but the file itself is in {file_crs}; \
+         remove the sidecar's crs or fix the file"
     )]
     CrsConflict {
         sidecar: PathBuf,
-        sidecar_crs: u32,
-        file_crs: u32,
+        sidecar_crs: String,
+        file_crs: String,
     },
+    #[error(
+        "sidecar {sidecar} says vertical_crs = {sidecar_crs}, but the file itself names \
+         {file_crs}; remove the sidecar's vertical_crs or fix the file"
+    )]
+    VerticalConflict {
+        sidecar: PathBuf,
+        sidecar_crs: String,
+        file_crs: String,
+    },
+    #[error(
+        "the heights are in {from} but the store's are in {to}, and converting them needs a \
+         geoid grid for {missing}: name one in the config, [vertical.geoids] \"{key}\" = \
+         \"<grid>.tif\" (PROJ's grids, from https://cdn.proj.org, are such GeoTIFFs)"
+    )]
+    NoGeoid {
+        from: String,
+        to: String,
+        missing: String,
+        key: String,
+    },
+    #[error("the geoid grid {path} for {vertical}: {message}")]
+    Geoid {
+        path: PathBuf,
+        vertical: String,
+        message: String,
+    },
+    #[error("converting the heights between vertical CRSs: {0}")]
+    Convert(#[from] crate::model::geoid::GeoidError),
     #[error(
         "accuracy {value} m ({given_by}) is refused: it must be a number of metres in \
          [0, {max}), the top of LOD space (index.max_error); a survey that inaccurate would \
@@ -42,8 +75,6 @@ pub enum IngestError {
         given_by: &'static str,
         max: f64,
     },
-    #[error("the file is in EPSG:{file} but the store is in EPSG:{store}; reproject it first")]
-    CrsMismatch { file: u32, store: u32 },
     #[error("georeference: {0}")]
     Grid(#[from] crate::model::grid::GridError),
     #[error("{0}")]
@@ -79,6 +110,7 @@ pub enum IngestError {
 pub struct Sidecar {
     pub accuracy_m: Option<f64>,
     pub crs: Option<String>,
+    pub vertical_crs: Option<String>,
 }
 
 /// A sidecar is a line or two; anything far larger is not one.
@@ -162,14 +194,16 @@ fn toml_error(text: &str, e: &toml::de::Error) -> String {
     let at = line.map(|l| format!(" at line {l}")).unwrap_or_default();
     let msg = e.message();
     let what = if msg.starts_with("unknown field") {
-        "a key other than accuracy_m and crs"
+        "a key other than accuracy_m, crs and vertical_crs"
     } else if msg.starts_with("invalid type") {
-        "a value of the wrong type (accuracy_m is a number, crs a string like \"EPSG:4326\")"
+        "a value of the wrong type (accuracy_m is a number, crs and vertical_crs strings like \
+         \"EPSG:4326\")"
     } else {
         "something that is not TOML"
     };
     format!(
-        "the sidecar has {what}{at}; it may set accuracy_m = <metres> and crs = \"EPSG:<code>\""
+        "the sidecar has {what}{at}; it may set accuracy_m = <metres>, crs = \"EPSG:<code>\" \
+         (or a WKT or PROJ string) and vertical_crs = \"EPSG:<code>\""
     )
 }
 
@@ -181,8 +215,10 @@ pub struct IngestSettings {
     pub default_accuracy: DefaultAccuracy,
     /// Accuracies must stay below this: the top of LOD space.
     pub max_accuracy: f64,
-    /// The store's CRS, once it has one.
-    pub store_crs: Option<u32>,
+    /// The store's vertical CRS, once it has one: heights in another are converted to it.
+    pub store_vertical: Option<VerticalCrs>,
+    /// The geoid grids the config names.
+    pub geoids: Arc<Geoids>,
     pub layout: PatchLayout,
     pub recipe: Recipe,
     pub read_limits: ReadLimits,
@@ -196,6 +232,10 @@ pub struct Prepared {
     pub survey: Survey,
     pub source: AccuracySource,
     pub timings: Timings,
+    /// The vertical CRS the file or its sidecar named.
+    pub vertical_source: Option<VerticalCrs>,
+    /// What converting the heights into the store's vertical CRS added to ε, metres.
+    pub vertical_error_m: f64,
 }
 
 /// ε as the sidecar, the caller and the config decide it, in that order.
@@ -255,28 +295,32 @@ pub fn prepare_with(
     let raster = read_raster(path, &s.read_limits)?;
     let read_ms = t0.elapsed().as_millis() as u64;
     check_heights(&raster.samples, s.heights)?;
+    // Not the CRS's own error: it quotes the text, and a sidecar could be any file.
+    let side_bad = |what: &str, _: crate::crs::CrsError| IngestError::Sidecar {
+        path: sidecar_path(path),
+        message: format!(
+            "{what} is not a CRS this build can read: give an EPSG code (\"EPSG:4326\"), a WKT \
+             or a PROJ string"
+        ),
+    };
     let side_crs = side
         .crs
         .as_deref()
-        .map(|c| {
-            parse_epsg(c).ok_or_else(|| IngestError::Sidecar {
-                path: sidecar_path(path),
-                message: "crs must look like \"EPSG:4326\"".into(),
-            })
-        })
+        .map(|c| Crs::parse(c).map_err(|e| side_bad("crs", e)))
         .transpose()?;
-    let crs = match (side_crs, raster.epsg, raster.crs_name.as_ref()) {
+    let file = raster.crs.clone();
+    let crs = match (side_crs, file.crs, file.unreadable) {
         (Some(sc), Some(fc), _) if sc != fc => {
             return Err(IngestError::CrsConflict {
                 sidecar: sidecar_path(path),
-                sidecar_crs: sc,
-                file_crs: fc,
+                sidecar_crs: sc.label(),
+                file_crs: fc.label(),
             })
         }
         (Some(c), _, _) | (None, Some(c), _) => c,
-        (None, None, Some(name)) => {
+        (None, None, Some(found)) => {
             return Err(IngestError::UnknownCrs {
-                found: crate::read::crs::crs_label(name),
+                found,
                 sidecar: sidecar_path(path),
             })
         }
@@ -286,15 +330,57 @@ pub fn prepare_with(
             })
         }
     };
-    if let Some(store) = s.store_crs {
-        if store != crs {
-            return Err(IngestError::CrsMismatch { file: crs, store });
+    let side_vertical = side
+        .vertical_crs
+        .as_deref()
+        .map(|c| VerticalCrs::parse(c).map_err(|e| side_bad("vertical_crs", e)))
+        .transpose()?;
+    let named = match (side_vertical, file.vertical) {
+        (Some(sv), Some(fv)) if !sv.same_reference(&fv) || sv.unit_m() != fv.unit_m() => {
+            return Err(IngestError::VerticalConflict {
+                sidecar: sidecar_path(path),
+                sidecar_crs: sv.label(),
+                file_crs: fv.label(),
+            })
         }
-    }
+        (Some(v), _) | (None, Some(v)) => Some(v),
+        (None, None) => None,
+    };
     let t1 = Instant::now();
     phase(Phase::Modelling);
-    let grid = raster.into_grid()?;
-    let survey = Survey::build_with(grid, spec, Some(crs), s.layout, s.recipe)?;
+    let mut grid = raster.into_grid()?;
+    // Heights in another vertical CRS than the store's are converted to it; a survey that
+    // names none is taken to be in the store's.
+    let (vertical, vertical_error_m) = match (&named, &s.store_vertical) {
+        (Some(from), Some(to)) => {
+            let geoid = |v: &VerticalCrs| s.geoids.for_conversion(v, from, to);
+            let (gf, gt) = if from.same_reference(to) {
+                (None, None)
+            } else {
+                (geoid(from)?, geoid(to)?)
+            };
+            let done = geoid::convert(&mut grid, &crs, from, to, gf.as_ref(), gt.as_ref())?;
+            (Some(to.clone()), done.error_m)
+        }
+        (Some(from), None) => {
+            // The store will take this survey's vertical CRS, in metres.
+            geoid::convert(&mut grid, &crs, from, from, None, None)?;
+            (Some(from.clone()), 0.0)
+        }
+        (None, to) => (to.clone(), 0.0),
+    };
+    let spec = match spec {
+        AccuracySpec::Fixed(a) => AccuracySpec::Fixed(a + vertical_error_m),
+        auto => auto,
+    };
+    let extra = match spec {
+        AccuracySpec::Auto => vertical_error_m,
+        AccuracySpec::Fixed(_) => 0.0,
+    };
+    let mut survey = Survey::build_adding(grid, spec, Some(crs), s.layout, s.recipe, extra)?;
+    std::sync::Arc::get_mut(&mut survey.meta)
+        .expect("a survey just built is not shared")
+        .vertical = vertical;
     if survey.accuracy >= s.max_accuracy {
         return Err(IngestError::BadAccuracy {
             value: survey.accuracy,
@@ -309,7 +395,74 @@ pub fn prepare_with(
             read_ms,
             build_ms: t1.elapsed().as_millis() as u64,
         },
+        vertical_source: named,
+        vertical_error_m,
     })
+}
+
+/// The geoid grids the config names, read on first use and kept.
+#[derive(Debug, Default)]
+pub struct Geoids {
+    /// Grid files by the key of the vertical CRS they relate to the ellipsoid.
+    paths: BTreeMap<String, PathBuf>,
+    loaded: Mutex<HashMap<String, Arc<Geoid>>>,
+    limits: ReadLimits,
+}
+
+impl Geoids {
+    /// The grids of the config's `[vertical.geoids]`; keys that do not parse are left out
+    /// (the config's validation refuses them).
+    pub fn new(paths: &BTreeMap<String, PathBuf>) -> Geoids {
+        Geoids {
+            paths: paths
+                .iter()
+                .filter_map(|(k, p)| {
+                    Some((VerticalCrs::parse(k).ok()?.key().to_string(), p.clone()))
+                })
+                .collect(),
+            loaded: Mutex::new(HashMap::new()),
+            limits: ReadLimits::mb(4096),
+        }
+    }
+
+    /// The geoid of `v` for a conversion from `from` to `to`: None for ellipsoidal heights, an
+    /// error naming the config key when no grid is configured.
+    fn for_conversion(
+        &self,
+        v: &VerticalCrs,
+        from: &VerticalCrs,
+        to: &VerticalCrs,
+    ) -> Result<Option<Arc<Geoid>>, IngestError> {
+        if v.is_ellipsoidal() {
+            return Ok(None);
+        }
+        let key = v.key().to_string();
+        if let Some(g) = self.loaded.lock().expect("geoids").get(&key) {
+            return Ok(Some(g.clone()));
+        }
+        let Some(path) = self.paths.get(&key) else {
+            return Err(IngestError::NoGeoid {
+                from: from.label(),
+                to: to.label(),
+                missing: v.label(),
+                key,
+            });
+        };
+        let bad = |message: String| IngestError::Geoid {
+            path: path.clone(),
+            vertical: v.label(),
+            message,
+        };
+        let raster = read_raster(path, &self.limits).map_err(|e| bad(e.to_string()))?;
+        let crs = raster.crs.crs.clone().unwrap_or_else(Crs::wgs84);
+        let grid = raster.into_grid().map_err(|e| bad(e.to_string()))?;
+        let g = Arc::new(
+            Geoid::new(v.clone(), grid, crs, path.display().to_string())
+                .map_err(|e| bad(e.to_string()))?,
+        );
+        self.loaded.lock().expect("geoids").insert(key, g.clone());
+        Ok(Some(g))
+    }
 }
 
 /// Refuses samples that cannot be heights on Earth in metres: random bytes, feet, or an
@@ -359,7 +512,8 @@ mod tests {
             accuracy: None,
             default_accuracy: DefaultAccuracy::Auto,
             max_accuracy: 10_000.0,
-            store_crs: None,
+            store_vertical: None,
+            geoids: Default::default(),
             layout: PatchLayout::default(),
             recipe: Recipe::default(),
             read_limits: ReadLimits::mb(64),
@@ -390,7 +544,11 @@ mod tests {
         let mut s = settings();
         let got = prepare(&p, &s).unwrap();
         assert_eq!(got.source, AccuracySource::Estimated);
-        assert_eq!(got.survey.crs, Some(32631), "the ESRI UTM zone resolves");
+        assert_eq!(
+            got.survey.crs.as_ref().and_then(|c| c.epsg_code()),
+            Some(32631),
+            "the ESRI UTM zone resolves"
+        );
         s.default_accuracy = DefaultAccuracy::Metres(3.0);
         assert_eq!(prepare(&p, &s).unwrap().source, AccuracySource::Config);
         s.accuracy = Some(2.0);
@@ -464,13 +622,22 @@ mod tests {
     #[test]
     fn a_crs_is_resolved_named_or_refused_when_the_sidecar_contradicts_it() {
         let dir = tempfile::tempdir().unwrap();
-        let lambert = r#"PROJCS["RGF93_Lambert_93",GEOGCS["GCS_RGF_1993",DATUM["D_RGF_1993",SPHEROID["GRS_1980",6378137.0,298.257222101]]],PROJECTION["Lambert_Conformal_Conic"]]"#;
-        let p = grid(dir.path(), "l.asc", Some(lambert));
+        // A projection this build does not have.
+        let bonne = r#"PROJCS["Bonne_Custom",GEOGCS["GCS_RGF_1993",DATUM["D_RGF_1993",SPHEROID["GRS_1980",6378137.0,298.257222101]]],PROJECTION["Bonne"],PARAMETER["Standard_Parallel_1",45.0]]"#;
+        let p = grid(dir.path(), "l.asc", Some(bonne));
         let e = prepare(&p, &settings()).unwrap_err().to_string();
-        assert!(e.contains("RGF93_Lambert_93") && e.contains("crs"), "{e}");
+        assert!(e.contains("Bonne_Custom") && e.contains("crs"), "{e}");
         // A sidecar may name the code for a CRS the file only describes...
         std::fs::write(sidecar_path(&p), "crs = \"EPSG:2154\"\n").unwrap();
-        assert_eq!(prepare(&p, &settings()).unwrap().survey.crs, Some(2154));
+        assert_eq!(
+            prepare(&p, &settings())
+                .unwrap()
+                .survey
+                .crs
+                .as_ref()
+                .and_then(|c| c.epsg_code()),
+            Some(2154)
+        );
         // ...but not contradict one the file states.
         let q = grid(
             dir.path(),

@@ -128,8 +128,32 @@ enum Cmd {
         error: f64,
         #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
         backend: BackendArg,
+        /// The tile's CRS (an EPSG code such as EPSG:3857, a WKT or a PROJ string): --roi is
+        /// in it, and so are the tile's samples and its GeoTIFF. The store's by default.
+        #[arg(long, value_name = "CRS")]
+        crs: Option<String>,
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
+        #[command(flatten)]
+        target: Target,
+    },
+    /// Heights at points, or along a line: what any tile holding them gives there.
+    Sample {
+        /// Points as X,Y pairs: X1,Y1,X2,Y2,...
+        #[arg(long, value_name = "X,Y,...", allow_hyphen_values = true)]
+        points: Option<String>,
+        /// A line from X0,Y0 to X1,Y1, sampled at --count evenly spaced points.
+        #[arg(long, value_name = "X0,Y0,X1,Y1", allow_hyphen_values = true)]
+        line: Option<String>,
+        #[arg(long, value_name = "N", default_value_t = 100)]
+        count: usize,
+        #[arg(long, value_name = "E", default_value_t = 0.0)]
+        error: f64,
+        /// The points' CRS; the store's by default.
+        #[arg(long, value_name = "CRS")]
+        crs: Option<String>,
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         target: Target,
     },
@@ -166,6 +190,10 @@ enum Cmd {
         /// Where the cut is resampled.
         #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
         backend: BackendArg,
+        /// The CRS of --roi and of the vertices (an EPSG code, a WKT or a PROJ string); the
+        /// store's by default.
+        #[arg(long, value_name = "CRS")]
+        crs: Option<String>,
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
         #[command(flatten)]
@@ -244,6 +272,9 @@ struct CutArgs {
     viewport: u32,
     #[arg(long, value_name = "P", default_value_t = 1.0)]
     pixel_error: f64,
+    /// The CRS of --roi (an EPSG code, a WKT or a PROJ string); the store's by default.
+    #[arg(long, value_name = "CRS")]
+    crs: Option<String>,
 }
 
 type Fail = Box<dyn std::error::Error>;
@@ -464,6 +495,7 @@ fn assemble(bands: Vec<pb::TileBand>) -> Result<pb::Tile, Fail> {
         patches: first.patches,
         backend: first.backend.clone(),
         crs: first.crs,
+        crs_key: first.crs_key.clone(),
         max_error: first.max_error,
         heights: Vec::with_capacity(width * height),
         valid: Vec::new(),
@@ -494,6 +526,14 @@ fn assemble(bands: Vec<pb::TileBand>) -> Result<pb::Tile, Fail> {
     Ok(t)
 }
 
+/// The CRS a reply names by its key; None for an empty key.
+fn tile_crs(key: &str) -> Result<Option<patchwork::crs::Crs>, Fail> {
+    if key.is_empty() {
+        return Ok(None);
+    }
+    Ok(Some(patchwork::crs::Crs::parse(key)?))
+}
+
 fn write_tile(out: &Path, t: &pb::Tile, roi: &pb::Rect) -> Result<(), Fail> {
     match out.extension().and_then(|e| e.to_str()) {
         Some("tif") | Some("tiff") => {
@@ -511,7 +551,7 @@ fn write_tile(out: &Path, t: &pb::Tile, roi: &pb::Rect) -> Result<(), Fail> {
                 t.height as usize,
                 &t.heights,
                 gt,
-                (t.crs != 0).then_some(t.crs),
+                tile_crs(&t.crs_key)?.as_ref(),
                 Some(-9999.0),
             )?;
         }
@@ -758,9 +798,17 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             if json {
                 println!("{}", serde_json::to_string_pretty(&StatsJson::of(&s))?);
             } else {
-                println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {}\nbackend {}",
-                    s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes,
-                    if s.crs == 0 { "none yet".to_string() } else { format!("EPSG:{}", s.crs) }, s.backend);
+                let crs = match tile_crs(&s.crs_key)? {
+                    Some(c) => c.label(),
+                    None => "none yet".into(),
+                };
+                let vertical = if s.vertical_crs.is_empty() {
+                    "none yet".to_string()
+                } else {
+                    s.vertical_crs.clone()
+                };
+                println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {crs}\nvertical crs {vertical}\nbackend {}",
+                    s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes, s.backend);
                 println!(
                     "cache {} of {} bytes, {} hits, {} misses",
                     s.cache_bytes, s.cache_capacity_bytes, s.cache_hits, s.cache_misses
@@ -803,12 +851,88 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             );
             Ok(())
         }
+        Cmd::Sample {
+            points,
+            line,
+            count,
+            error,
+            crs,
+            json,
+            target,
+        } => {
+            let pts: Vec<[f64; 2]> = match (&points, &line) {
+                (Some(p), None) => {
+                    let v: Vec<f64> = p
+                        .split(',')
+                        .map(|t| t.trim().parse::<f64>())
+                        .collect::<Result<_, _>>()
+                        .map_err(|_| format!("--points: expected X,Y pairs, got {p:?}"))?;
+                    if v.is_empty() || !v.len().is_multiple_of(2) {
+                        return Err(format!("--points: expected X,Y pairs, got {p:?}").into());
+                    }
+                    v.chunks(2).map(|c| [c[0], c[1]]).collect()
+                }
+                (None, Some(l)) => {
+                    let [x0, y0, x1, y1] = numbers::<4>(l, "--line")?;
+                    let n = count.max(2);
+                    (0..n)
+                        .map(|k| {
+                            let t = k as f64 / (n - 1) as f64;
+                            [x0 + t * (x1 - x0), y0 + t * (y1 - y0)]
+                        })
+                        .collect()
+                }
+                _ => return Err("give either --points or --line".into()),
+            };
+            let mut c = Client::connect(&target).await?;
+            let req = pb::SampleRequest {
+                points: pts.iter().map(|p| pb::Point { x: p[0], y: p[1] }).collect(),
+                error,
+                crs: crs.unwrap_or_default(),
+            };
+            let r = match &mut c {
+                Client::Remote { terrain, .. } => terrain
+                    .sample_heights(req)
+                    .await
+                    .map_err(|s| -> Fail { s.message().to_string().into() })?
+                    .into_inner(),
+                Client::Local(engine) => {
+                    let engine = engine.clone();
+                    tokio::task::spawn_blocking(move || {
+                        api::sample_heights(&engine, &req, &Default::default())
+                    })
+                    .await??
+                }
+            };
+            let height = |k: usize| (r.valid.get(k) == Some(&1)).then(|| r.heights[k]);
+            if json {
+                let v: Vec<SampleJson> = pts
+                    .iter()
+                    .enumerate()
+                    .map(|(k, p)| SampleJson {
+                        x: p[0],
+                        y: p[1],
+                        height: height(k),
+                    })
+                    .collect();
+                println!("{}", serde_json::to_string_pretty(&v)?);
+            } else {
+                for (k, p) in pts.iter().enumerate() {
+                    match height(k) {
+                        Some(z) => println!("{} {} {z}", p[0], p[1]),
+                        None => println!("{} {} nodata", p[0], p[1]),
+                    }
+                }
+            }
+            Ok(())
+        }
         Cmd::Query { cut, json, target } => {
             let mut c = Client::connect(&target).await?;
             let q = match (view_of(&cut)?, &cut.roi) {
                 (Some(v), None) => pb::PatchQuery {
                     cut: Some(pb::patch_query::Cut::View(v)),
                     batch_size: 0,
+                    crs: cut.crs.clone().unwrap_or_default(),
                 },
                 (None, Some(roi)) => pb::PatchQuery {
                     cut: Some(pb::patch_query::Cut::Uniform(pb::UniformCut {
@@ -816,6 +940,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                         error: cut.error.ok_or("--roi needs --error")?,
                     })),
                     batch_size: 0,
+                    crs: cut.crs.clone().unwrap_or_default(),
                 },
                 _ => return Err("give either --roi with --error, or --eye and --look".into()),
             };
@@ -878,6 +1003,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             border,
             method,
             backend,
+            crs,
             out,
             target,
         } => {
@@ -901,6 +1027,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 backend: pb::Backend::from(backend) as i32,
                 border: pb::MeshBorder::from(border) as i32,
                 method: pb::MeshMethod::from(method) as i32,
+                crs: crs.unwrap_or_default(),
             };
             let m = match &mut c {
                 Client::Remote { terrain, .. } => terrain
@@ -921,10 +1048,11 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 "obj" => encode::obj(&mesh, &tile).into_bytes(),
                 "glb" => encode::glb(&mesh, &tile),
                 _ => {
-                    if !patchwork::engine::is_geographic(m.crs) {
+                    let crs = tile_crs(&m.crs_key)?;
+                    if !crs.as_ref().is_some_and(|c| c.is_geographic()) {
                         return Err(format!(
-                            "quantized-mesh tiles are in longitude and latitude; this store's CRS is EPSG:{}",
-                            m.crs
+                            "quantized-mesh tiles are in longitude and latitude; this mesh is in {} (ask with --crs EPSG:4326)",
+                            crs.map_or("no CRS".into(), |c| c.label())
                         )
                         .into());
                     }
@@ -951,6 +1079,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             size,
             error,
             backend,
+            crs,
             out,
             target,
         } => {
@@ -969,6 +1098,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 width: w,
                 height: h,
                 backend: backend as i32,
+                crs: crs.unwrap_or_default(),
             };
             let bands = match &mut c {
                 Client::Remote { terrain, .. } => {
@@ -1027,6 +1157,12 @@ struct SurveyJson<'a> {
     error: Option<&'a str>,
     accuracy_m: f64,
     accuracy_source: Option<&'a str>,
+    /// The survey's own CRS ("EPSG:n" or a WKT 2 definition), and the vertical CRS its file
+    /// named ("unknown" where none); null for failures.
+    crs: Option<&'a str>,
+    vertical_crs: Option<&'a str>,
+    /// What converting its heights into the store's vertical CRS added to ε.
+    vertical_error_m: f64,
     samples: u64,
     patches: u32,
     conflicts: Vec<ConflictJson<'a>>,
@@ -1049,6 +1185,9 @@ impl<'a> SurveyJson<'a> {
             error: failed.then_some(s.error.as_str()),
             accuracy_m: s.accuracy_m,
             accuracy_source: (!failed).then_some(s.accuracy_source.as_str()),
+            crs: (!failed).then_some(s.crs_key.as_str()),
+            vertical_crs: (!failed).then_some(s.vertical_crs.as_str()),
+            vertical_error_m: s.vertical_error_m,
             samples: s.samples,
             patches: s.patches,
             conflicts: s
@@ -1064,6 +1203,14 @@ impl<'a> SurveyJson<'a> {
     }
 }
 
+/// `sample --json`: a point and its height, null where there is no data.
+#[derive(Serialize)]
+struct SampleJson {
+    x: f64,
+    y: f64,
+    height: Option<f32>,
+}
+
 /// `stats --json`.
 #[derive(Serialize)]
 struct StatsJson<'a> {
@@ -1074,7 +1221,9 @@ struct StatsJson<'a> {
     active_boxes: u64,
     samples: u64,
     disk_bytes: u64,
-    crs: Option<String>,
+    /// "EPSG:n", or a WKT 2 definition; null until the store has one.
+    crs: Option<&'a str>,
+    vertical_crs: Option<&'a str>,
     backend: &'a str,
     quadtree_nodes: u32,
     /// Why writes are refused now; null when they are not.
@@ -1100,7 +1249,8 @@ impl<'a> StatsJson<'a> {
             active_boxes: s.active_boxes,
             samples: s.samples,
             disk_bytes: s.disk_bytes,
-            crs: (s.crs != 0).then(|| format!("EPSG:{}", s.crs)),
+            crs: (!s.crs_key.is_empty()).then_some(s.crs_key.as_str()),
+            vertical_crs: (!s.vertical_crs.is_empty()).then_some(s.vertical_crs.as_str()),
             backend: &s.backend,
             quadtree_nodes: s.quadtree_nodes,
             read_only: (!s.read_only.is_empty()).then_some(s.read_only.as_str()),

@@ -11,10 +11,19 @@ use crate::model::source::SampleSource;
 use crate::store::{
     encode, CompactReport, Contents, Loaded, Store, StoreError, StoreOptions, VerifyReport,
 };
-use crate::terrain::Terrain;
+use crate::terrain::{Terrain, TerrainError};
 use std::collections::HashSet;
 use std::path::Path;
 use std::sync::Arc;
+
+/// A terrain's failure as the store's caller sees it: samples it could not read, or a survey
+/// it could not place.
+pub fn terrain_error(e: TerrainError) -> StoreError {
+    match e {
+        TerrainError::Samples(e) => StoreError::Samples(e),
+        TerrainError::Place(e) => StoreError::Place(e),
+    }
+}
 
 /// A store opened, and the terrain it holds.
 pub struct Opened {
@@ -57,8 +66,14 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
         derive(&store, &mut warnings)?
     } else {
         let source: Arc<dyn SampleSource> = store.reader();
-        let (terrain, missing) =
-            Terrain::restore(store.index_config(), surveys, edges, &tops, source);
+        let (terrain, missing) = Terrain::restore(
+            store.index_config(),
+            store.crs().as_ref(),
+            surveys,
+            edges,
+            &tops,
+            source,
+        );
         if let Some(p) = missing.first() {
             // A patch without a state would be a hole; deriving the index again costs an
             // insertion per survey and writes every state.
@@ -96,14 +111,14 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
 fn derive(store: &Store, warnings: &mut Vec<String>) -> Result<Terrain, StoreError> {
     let mut surveys = store.whole_surveys()?;
     surveys.sort_by_key(|s| s.id);
-    let mut t = Terrain::new(store.index_config());
+    let mut t = Terrain::with_crs(store.index_config(), store.crs().as_ref(), None);
     let mut overlaps: Vec<(SurveyId, SurveyId, Deviation)> = Vec::new();
     for s in &surveys {
         // Against the surveys before it, as an insertion measures them.
         for (o, d) in t.overlaps(s)? {
             overlaps.push((s.id, o, d));
         }
-        t.insert(s.clone());
+        t.try_insert(s).map_err(terrain_error)?;
     }
     let tops: Vec<(PatchId, BoxState)> = t
         .index()
@@ -158,9 +173,9 @@ pub fn verify(store: &Store) -> Result<VerifyReport, StoreError> {
     } = checked;
     if let Some(mut whole) = whole {
         whole.sort_by_key(|s| s.id);
-        let mut terrain = Terrain::new(store.index_config());
+        let mut terrain = Terrain::with_crs(store.index_config(), store.crs().as_ref(), None);
         for s in whole {
-            terrain.insert(s);
+            terrain.try_insert(&s).map_err(terrain_error)?;
         }
         for (id, (span, exposed)) in terrain.index().state() {
             match tops.remove(&id) {

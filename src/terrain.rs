@@ -2,6 +2,7 @@
 //! and the queries and tiles built on them. It does no I/O: the samples of stored surveys come
 //! through a [`SampleSource`], and the store persists what it holds.
 
+use crate::crs::Crs;
 use crate::index::geom::Aabb;
 use crate::index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, PatchBox};
 use crate::index::query::{Extracted, ViewQuery};
@@ -11,12 +12,79 @@ use crate::model::grid::{Grid, SampleRect, Window};
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::lattice::{tile_of, Lattice};
 use crate::model::patch::Patch;
+use crate::model::place::{
+    self, Frame, PlaceError, Plane, PlaneId, Planes, Residuals, STORE_PLANE,
+};
 use crate::model::source::{SampleError, SampleSource};
 use crate::model::survey::{Survey, SurveyMeta};
 use crate::resample::{cpu, Cancel, PatchSet, ResolvedPatch, SampleGrid};
 use rayon::prelude::*;
 use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
+
+/// Why a survey could not be inserted or retired.
+#[derive(Clone, Debug, thiserror::Error, PartialEq)]
+pub enum TerrainError {
+    #[error(transparent)]
+    Samples(#[from] SampleError),
+    #[error(transparent)]
+    Place(#[from] PlaceError),
+}
+
+/// The bounds, in a plane, of a rectangle of the store's plane: its border carried there
+/// (the store's plane itself for None), a thousandth of its extent wider.
+fn native_bounds(plane: Option<&Plane>, b: &Aabb) -> Option<Aabb> {
+    let Some(plane) = plane else {
+        return Some(*b);
+    };
+    let n = 32;
+    let mut pts = Vec::with_capacity(4 * n);
+    for k in 0..n {
+        let t = k as f64 / n as f64;
+        let (x, y) = (b.min[0] + t * b.width(), b.min[1] + t * b.height());
+        for p in [
+            [x, b.min[1]],
+            [b.max[0], y],
+            [b.max[0] - t * b.width(), b.max[1]],
+            [b.min[0], b.max[1] - t * b.height()],
+        ] {
+            pts.push(plane.to_native.at(p)?);
+        }
+    }
+    let a = Aabb::of_points(&pts);
+    let m = 1e-3 * a.width().max(a.height());
+    Some(Aabb::new(
+        a.min[0] - m,
+        a.min[1] - m,
+        a.max[0] + m,
+        a.max[1] + m,
+    ))
+}
+
+/// What the reprojection can cost an edge patch's heights: as for a survey's patch (see
+/// [`place::reprojection_error`]), with the largest slope of its own cells.
+fn edge_reprojection_error(e: &EdgePatch, rho: f64) -> f64 {
+    let g = &e.grid;
+    let mut slope = 0.0f64;
+    for r in 0..g.rows {
+        for c in 0..g.cols {
+            let z = g.heights[r * g.cols + c] as f64;
+            if z.is_nan() {
+                continue;
+            }
+            for (dc, dr) in [(1, 0), (0, 1)] {
+                let (cc, rr) = (c + dc, r + dr);
+                if cc < g.cols && rr < g.rows {
+                    let w = g.heights[rr * g.cols + cc] as f64;
+                    if !w.is_nan() {
+                        slope = slope.max((w - z).abs());
+                    }
+                }
+            }
+        }
+    }
+    std::f64::consts::SQRT_2 * rho * g.georef.cells_per_unit() * slope
+}
 
 /// Heights resampled from a set of patches. NaN marks nodata.
 #[derive(Clone, Debug)]
@@ -90,9 +158,11 @@ impl GroupMember {
     }
 }
 
-/// The surveys that share one lattice, and the edge patch of each of its tiles that has one.
+/// The surveys that share one lattice of one plane, and the edge patch of each of its tiles
+/// that has one.
 #[derive(Clone, Debug)]
 struct LatticeGroup {
+    plane: PlaneId,
     lattice: Lattice,
     members: Vec<GroupMember>,
     tiles: HashMap<[i64; 2], SurveyId>,
@@ -124,6 +194,8 @@ impl LatticeGroup {
 
 #[derive(Clone, Debug)]
 pub struct Terrain {
+    /// The store's CRS and the planes of surveys in others, once the terrain has a CRS.
+    planes: Option<Arc<Planes>>,
     index: LodIndex,
     surveys: HashMap<SurveyId, Arc<SurveyMeta>>,
     edges: HashMap<SurveyId, Arc<EdgePatch>>,
@@ -141,6 +213,7 @@ type EdgeDiff = (Vec<SurveyId>, Vec<Arc<EdgePatch>>);
 impl Terrain {
     pub fn new(cfg: IndexConfig) -> Self {
         Terrain {
+            planes: None,
             index: LodIndex::new(cfg),
             surveys: HashMap::new(),
             edges: HashMap::new(),
@@ -149,6 +222,59 @@ impl Terrain {
             resident: HashMap::new(),
             source: None,
         }
+    }
+
+    /// A terrain in the plane of `crs`, with the planes of surveys in other CRSs shared with
+    /// `planes` where given (their lattices keep caches worth keeping).
+    pub fn with_crs(cfg: IndexConfig, crs: Option<&Crs>, planes: Option<Arc<Planes>>) -> Self {
+        let mut t = Terrain::new(cfg);
+        t.planes = match (planes, crs) {
+            (Some(p), Some(c)) if p.store_crs() == c => Some(p),
+            (_, Some(c)) => Some(Arc::new(Planes::new(c.clone()))),
+            (_, None) => None,
+        };
+        t
+    }
+
+    /// Gives a terrain without a CRS yet its store's.
+    ///
+    /// # Panics
+    /// For a terrain that has one already: a store's CRS never changes.
+    pub fn set_crs(&mut self, crs: Crs) {
+        assert!(self.planes.is_none(), "a terrain's CRS is set once");
+        self.planes = Some(Arc::new(Planes::new(crs)));
+    }
+
+    /// The terrain's CRS: its store's, once it has one.
+    pub fn crs(&self) -> Option<&Crs> {
+        self.planes.as_ref().map(|p| p.store_crs())
+    }
+
+    /// The planes of the terrain's CRS, for surveys in others.
+    pub fn planes(&self) -> Option<&Arc<Planes>> {
+        self.planes.as_ref()
+    }
+
+    /// A survey as this terrain holds it: placed in its CRS (see [`Survey::placed`]). A
+    /// terrain without a CRS yet takes the survey's.
+    pub fn place(&mut self, s: &Survey) -> Result<Survey, PlaceError> {
+        if self.planes.is_none() {
+            if let Some(c) = s.placed_for() {
+                self.planes = Some(Arc::new(Planes::new(c)));
+            }
+        }
+        match &self.planes {
+            Some(p) => s.placed(p),
+            None => Ok(s.clone()),
+        }
+    }
+
+    /// The CRS of a plane of the terrain's; None for the store's own.
+    pub fn plane_crs(&self, id: PlaneId) -> Option<Crs> {
+        if id == STORE_PLANE {
+            return None;
+        }
+        self.planes.as_ref()?.by_id(id).map(|p| p.crs.clone())
     }
 
     /// Reads the samples of surveys not in memory from `source`.
@@ -202,15 +328,34 @@ impl Terrain {
     /// Rebuilds a terrain from what a store keeps: the surveys without their samples, the
     /// edge patches and the box states, without running the cutter or reading a sample.
     /// Returns the patches that had no stored state, restored as empty.
+    ///
+    /// Surveys of another CRS than `crs` get their patches' frames in its plane; their errors
+    /// are as stored. One that cannot be placed (which a store never holds) is left out and
+    /// named in the second list.
     pub fn restore(
         cfg: IndexConfig,
+        crs: Option<&Crs>,
         surveys: Vec<Arc<SurveyMeta>>,
         edges: Vec<Arc<EdgePatch>>,
         states: &HashMap<PatchId, BoxState>,
         source: Arc<dyn SampleSource>,
     ) -> (Self, Vec<PatchId>) {
-        let mut t = Terrain::new(cfg);
+        let mut t = Terrain::with_crs(cfg, crs, None);
         t.source = Some(source);
+        let surveys: Vec<Arc<SurveyMeta>> = surveys
+            .into_par_iter()
+            .map(|s| match (&t.planes, s.placement.is_none()) {
+                (Some(planes), true) => match s.placement_in(planes) {
+                    Ok(Some(p)) => {
+                        let mut m = (*s).clone();
+                        m.placement = Some(p);
+                        Arc::new(m)
+                    }
+                    _ => s,
+                },
+                _ => s,
+            })
+            .collect();
         let mut group_of_survey = HashMap::new();
         for s in surveys {
             let gi = t.group_of(&s);
@@ -242,10 +387,11 @@ impl Terrain {
             });
             units.push((s.id, boxes.collect()));
         }
-        for e in t.edges.values() {
-            let b = PatchBox::edge(e);
+        let boxes: Vec<(SurveyId, PatchBox)> =
+            t.edges.values().map(|e| (e.owner, t.edge_box(e))).collect();
+        for (owner, b) in boxes {
             let st = state(b.id);
-            units.push((e.owner, vec![(b, st)]));
+            units.push((owner, vec![(b, st)]));
         }
         missing.sort_unstable();
         t.index = LodIndex::restore(cfg, units);
@@ -274,13 +420,20 @@ impl Terrain {
         }
     }
 
-    /// The lattice group a survey belongs to, made if it is the first on its lattice.
+    /// The lattice group a survey belongs to, made if it is the first on its lattice: one
+    /// lattice of one plane (the same numbers in two CRSs are two lattices).
     fn group_of(&mut self, s: &SurveyMeta) -> usize {
         let l = Lattice::of(&s.shapes[0].georef);
-        match self.lattices.iter().position(|g| g.lattice.same(&l)) {
+        let plane = s.plane_id();
+        match self
+            .lattices
+            .iter()
+            .position(|g| g.plane == plane && g.lattice.same(&l))
+        {
             Some(i) => i,
             None => {
                 self.lattices.push(LatticeGroup {
+                    plane,
                     lattice: l,
                     members: Vec::new(),
                     tiles: HashMap::new(),
@@ -288,6 +441,48 @@ impl Terrain {
                 self.lattices.len() - 1
             }
         }
+    }
+
+    /// The plane, and its residuals over the members an edge patch reads, of a group of
+    /// another plane; None for the store's.
+    fn edge_plane(&self, members: &[SurveyId]) -> Option<(Arc<Plane>, Residuals)> {
+        let mut out: Option<(Arc<Plane>, Residuals)> = None;
+        // The groups' members, not the registered surveys: an insertion builds its edge
+        // patches before it registers the survey.
+        let all = self.lattices.iter().flat_map(|g| &g.members);
+        for m in all.filter(|g| members.contains(&g.survey.id)) {
+            let Some(p) = m.survey.placement.clone() else {
+                continue;
+            };
+            let r = out.get_or_insert_with(|| (p.plane.clone(), Residuals::default()));
+            r.1.to_native = r.1.to_native.max(p.residuals.to_native);
+            r.1.to_store = r.1.to_store.max(p.residuals.to_store);
+        }
+        out
+    }
+
+    /// An edge patch as LOD space sees it: in its lattice's plane, framed in the store's
+    /// for a lattice of another CRS.
+    fn edge_box(&self, e: &EdgePatch) -> PatchBox {
+        let framed = self.edge_frame(e);
+        PatchBox::edge(e, framed.as_ref().map(|(id, f)| (*id, f)))
+    }
+
+    fn edge_frame(&self, e: &EdgePatch) -> Option<(PlaneId, Frame)> {
+        let (plane, rho) = self.edge_plane(&e.members)?;
+        let frame = plane
+            .frame(&e.grid.georef, &e.window, &rho)
+            .unwrap_or(Frame {
+                // Every edge patch lies within its surveys' samples, which all have images;
+                // should the fit still fail, a frame that reaches everywhere keeps coverage
+                // conservative.
+                map: crate::index::geom::Affine {
+                    origin: [0.0; 2],
+                    m: [[1.0, 0.0], [0.0, 1.0]],
+                },
+                rho: f64::INFINITY,
+            });
+        Some((plane.id, frame))
     }
 
     /// The edge patches of `tiles` as the group's members now call for, against those there:
@@ -320,7 +515,14 @@ impl Terrain {
             .collect::<Result<_, SampleError>>()?;
         let mut gone = Vec::new();
         let mut come = Vec::new();
-        for (t, e) in built {
+        for (t, mut e) in built {
+            // An edge patch of another plane, like its surveys' patches, answers for where the
+            // reprojection moves its points: its error grows as theirs do.
+            if let Some(e) = e.as_mut() {
+                if let Some((_, rho)) = self.edge_plane(&e.members) {
+                    e.error += edge_reprojection_error(e, rho.to_native);
+                }
+            }
             let old = g.tiles.get(&t).copied();
             let new = e.as_ref().map(|e| e.owner);
             if old == new {
@@ -383,15 +585,29 @@ impl Terrain {
     /// When a neighbour's samples cannot be read, which only a terrain with a source can
     /// meet: such a terrain calls [`Terrain::try_insert`].
     pub fn insert(&mut self, s: Arc<Survey>) -> ChangeStats {
-        self.try_insert(&s).expect("samples held in memory")
+        self.try_insert(&s)
+            .expect("samples held in memory, and a survey that can be placed")
     }
 
     /// Adds a survey, reading its neighbours' samples where edge patches need them. On an
     /// error the terrain is as it was.
-    pub fn try_insert(&mut self, s: &Survey) -> Result<ChangeStats, SampleError> {
+    ///
+    /// A survey not yet placed in the terrain's CRS is placed first (see [`Terrain::place`]);
+    /// a caller that commits the survey elsewhere too places it itself, and inserts that.
+    pub fn try_insert(&mut self, s: &Survey) -> Result<ChangeStats, TerrainError> {
         if self.surveys.contains_key(&s.id) {
             return Ok(ChangeStats::default());
         }
+        let placed_here = s.placed_in.is_some()
+            && s.placed_in.as_ref() == self.crs()
+            && (s.placement.is_some() || s.crs.as_ref() == self.crs());
+        let placed;
+        let s = if placed_here {
+            s
+        } else {
+            placed = self.place(s)?;
+            &placed
+        };
         let meta = s.meta();
         let gi = self.group_of(&meta);
         let m = GroupMember::new(meta.clone(), &self.lattices[gi].lattice);
@@ -406,11 +622,11 @@ impl Terrain {
                 if self.lattices[gi].members.is_empty() {
                     self.lattices.remove(gi);
                 }
-                return Err(e);
+                return Err(e.into());
             }
         };
         let mut insert = vec![(s.id, meta.boxes())];
-        insert.extend(come.iter().map(|e| (e.owner, vec![PatchBox::edge(e)])));
+        insert.extend(come.iter().map(|e| (e.owner, vec![self.edge_box(e)])));
         let stats = self.index.apply(&gone, insert);
         self.register(meta);
         for o in gone {
@@ -465,7 +681,7 @@ impl Terrain {
         self.resident.remove(&id);
         let insert = come
             .iter()
-            .map(|e| (e.owner, vec![PatchBox::edge(e)]))
+            .map(|e| (e.owner, vec![self.edge_box(e)]))
             .collect();
         let edge_gone = gone.clone();
         gone.push(id);
@@ -486,31 +702,84 @@ impl Terrain {
     /// samples of the finer of the two against the other's surface (see
     /// [`SurveyMeta::finer_than`]). Each of the two is read over the other's bounds, whichever
     /// came first, so the figure does not depend on the order of insertion.
+    ///
+    /// Surveys of two planes are compared through the store's: each sample of the finer is
+    /// carried into the other's CRS by the maps that place them (exactly as a tile would
+    /// evaluate the other there); surveys of one plane, in that plane.
     pub fn overlaps(&self, s: &Survey) -> Result<Vec<(SurveyId, Deviation)>, SampleError> {
-        let mine = s.levels[0].world_bounds();
+        let mine_plane = self.placement_of(s);
+        let mine = match &mine_plane {
+            Some(p) => p.footprint,
+            None => s.shapes[0].world_bounds(),
+        };
         let mut out = Vec::new();
         for o in self.surveys.values() {
             if o.id == s.id {
                 continue;
             }
-            let theirs = o.shapes[0].world_bounds();
+            let theirs = o.footprint();
             if !mine.intersects(&theirs) {
                 continue;
             }
-            let (Some(rs), Some(ro)) =
-                (s.shapes[0].rect_over(&theirs), o.shapes[0].rect_over(&mine))
-            else {
+            let (ps, po) = (
+                mine_plane.as_ref().map(|p| p.plane.clone()),
+                o.placement.as_ref().map(|p| p.plane.clone()),
+            );
+            let same = ps.as_ref().map(|p| p.id) == po.as_ref().map(|p| p.id);
+            // Each one's bounds in the other's plane.
+            let (theirs_here, mine_there) = if same {
+                (o.shapes[0].world_bounds(), s.shapes[0].world_bounds())
+            } else {
+                let (Some(a), Some(b)) = (
+                    native_bounds(ps.as_deref(), &theirs),
+                    native_bounds(po.as_deref(), &mine),
+                ) else {
+                    continue;
+                };
+                (a, b)
+            };
+            let (Some(rs), Some(ro)) = (
+                s.shapes[0].rect_over(&theirs_here),
+                o.shapes[0].rect_over(&mine_there),
+            ) else {
                 continue;
             };
             let a = s.levels[0].window(rs.c0, rs.r0, rs.cols(), rs.rows());
             let b = self.samples(o, 0, ro)?;
-            let (fine, coarse) = if s.finer_than(o) { (&a, &b) } else { (&b, &a) };
-            if let Some(d) = accuracy::deviation(fine, coarse) {
+            let s_finer = s.finer_than(o);
+            let (fine, coarse) = if s_finer { (&a, &b) } else { (&b, &a) };
+            let d = if same {
+                accuracy::deviation(fine, coarse)
+            } else {
+                let (from, to) = if s_finer { (&ps, &po) } else { (&po, &ps) };
+                let carry = |p: [f64; 2]| -> Option<[f64; 2]> {
+                    let q = match from {
+                        Some(f) => f.to_store.at(p)?,
+                        None => p,
+                    };
+                    match to {
+                        Some(t) => t.to_native.at(q),
+                        None => Some(q),
+                    }
+                };
+                let bounds = if s_finer { &theirs_here } else { &mine_there };
+                accuracy::deviation_across(fine, coarse, bounds, &carry)
+            };
+            if let Some(d) = d {
                 out.push((o.id, d));
             }
         }
         out.sort_by_key(|(id, _)| *id);
         Ok(out)
+    }
+
+    /// A survey's placement in the terrain's plane: its own, or worked out for one read back
+    /// from a store (which keeps the errors but not the frames).
+    fn placement_of(&self, s: &SurveyMeta) -> Option<Arc<place::Placement>> {
+        if let Some(p) = &s.placement {
+            return Some(p.clone());
+        }
+        s.placement_in(self.planes.as_ref()?).ok().flatten()
     }
 
     pub fn uniform(&self, roi: &Aabb, e: f64) -> Vec<Extracted> {
@@ -530,11 +799,31 @@ impl Terrain {
     }
 
     /// The samples and geometry of extracted patches, read where they are not in memory.
+    ///
+    /// Patches of surveys in other CRSs read each sample's position in their own plane: the
+    /// set carries the maps there, one per plane, numbered in plane-id order.
     pub fn try_resolve(&self, ps: &[Extracted]) -> Result<PatchSet, SampleError> {
+        let mut ids: Vec<PlaneId> = ps
+            .iter()
+            .map(|x| x.plane)
+            .filter(|&p| p != STORE_PLANE)
+            .collect();
+        ids.sort_unstable();
+        ids.dedup();
+        let planes: Vec<Arc<Plane>> = ids
+            .iter()
+            .filter_map(|&id| self.planes.as_ref()?.by_id(id))
+            .collect();
+        let index_of = |id: PlaneId| -> u16 {
+            match id {
+                STORE_PLANE => 0,
+                id => 1 + planes.iter().position(|p| p.id == id).unwrap_or(0) as u16,
+            }
+        };
         let patches = ps
             .par_iter()
             .filter_map(|x| {
-                Some(match self.patch(x.id)? {
+                let r = match self.patch(x.id)? {
                     PatchRef::Survey(s, p) => {
                         let level = p.level as usize;
                         let rect = ResolvedPatch::reads(p, &s.shapes[level]);
@@ -542,10 +831,21 @@ impl Terrain {
                             .map(|w| ResolvedPatch::new(w, p, s.kind, x.fallback))
                     }
                     PatchRef::Edge(e) => Ok(ResolvedPatch::edge(e, x.fallback)),
-                })
+                };
+                Some(r.map(|mut r| {
+                    if x.plane != STORE_PLANE {
+                        r.plane = index_of(x.plane);
+                        // Its reach in the store's plane, where samples are binned.
+                        r.window_aabb = x.window.aabb();
+                    }
+                    r
+                }))
             })
             .collect::<Result<Vec<_>, _>>()?;
-        Ok(PatchSet::new(patches))
+        Ok(
+            PatchSet::new(patches)
+                .with_planes(planes.iter().map(|p| p.to_native.clone()).collect()),
+        )
     }
 
     /// Resamples patches at the points of a grid on the CPU.
@@ -594,10 +894,16 @@ impl Terrain {
         e: f64,
         cancel: &Cancel,
     ) -> Result<Option<Vec<f32>>, SampleError> {
-        if points.is_empty() {
-            return Ok(Some(Vec::new()));
+        // A point that is nowhere (outside where its CRS reaches the store's) has no height.
+        let finite: Vec<[f64; 2]> = points
+            .iter()
+            .copied()
+            .filter(|p| p[0].is_finite() && p[1].is_finite())
+            .collect();
+        if finite.is_empty() {
+            return Ok(Some(vec![f32::NAN; points.len()]));
         }
-        let ps = self.uniform(&Aabb::of_points(points), e);
+        let ps = self.uniform(&Aabb::of_points(&finite), e);
         let set = self.try_resolve(&ps)?;
         // Rows of points, so that they resample on every core and a cancel is seen between
         // rows; each point's height depends on the point alone. The last row is padded with

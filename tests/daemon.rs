@@ -141,7 +141,8 @@ fn bare_tiff(width: u32, height: u32, bits: u16, format: u16) -> Vec<u8> {
 fn small_geotiff(path: &Path, samples: &[f32], epsg: u32) {
     let n = (samples.len() as f64).sqrt() as usize;
     let gt = [500_000.0, 30.0, 0.0, 4_900_000.0, 0.0, -30.0];
-    write_geotiff_f32(path, n, n, samples, gt, Some(epsg), Some(-9999.0)).unwrap();
+    let crs = patchwork::crs::Crs::epsg(epsg).unwrap();
+    write_geotiff_f32(path, n, n, samples, gt, Some(&crs), Some(-9999.0)).unwrap();
 }
 
 #[test]
@@ -177,6 +178,7 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
         &[f32::NAN, f32::INFINITY, f32::NEG_INFINITY, f32::NAN].repeat(16 * 16),
         4326,
     );
+    // Not a bad file: a survey in another CRS than the store's is taken as it is.
     small_geotiff(
         &stage.join("utm.tif"),
         &(0..64 * 64).map(|i| i as f32).collect::<Vec<_>>(),
@@ -209,7 +211,6 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
         ("u64.tif", "64-bit"),
         ("allvoid.tif", "nodata"),
         ("nonfinite.tif", "nodata"),
-        ("utm.tif", "EPSG:32631"),
         ("folder.tif", "directory"),
         ("dangling.tif", "symlinks followed"),
         ("outside.tif", "symlinks followed"),
@@ -217,7 +218,7 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
         ("mislabelled.tif", "EPSG:32630"),
     ];
     let s = d.wait("every bad file to be reported", |s| {
-        count(s, "failed") == expect.len()
+        count(s, "failed") == expect.len() && count(s, "active") == 2
     });
     for (name, needle) in expect {
         let rec = s
@@ -231,13 +232,12 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
             "{name}: {msg:?} does not mention {needle:?}"
         );
     }
-    assert!(s
+    let utm = s
         .iter()
         .find(|v| v["source"].as_str().unwrap().ends_with("utm.tif"))
-        .unwrap()["error"]
-        .as_str()
-        .unwrap()
-        .contains("EPSG:4326"));
+        .unwrap();
+    assert_eq!(utm["status"], "active", "{utm:#}");
+    assert_eq!(utm["crs"], "EPSG:32631");
     let mislabelled = s
         .iter()
         .find(|v| v["source"].as_str().unwrap().ends_with("mislabelled.tif"))
@@ -252,7 +252,7 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
     std::fs::remove_file(inbox.join("empty.tif")).unwrap();
     drop_by_rename(&crop("nasadem_n34w119_crop.tif"), &inbox, "empty.tif");
     d.wait("the repaired file", |s| {
-        count(s, "active") == 2 && count(s, "failed") == expect.len() - 1
+        count(s, "active") == 3 && count(s, "failed") == expect.len() - 1
     });
 }
 
@@ -283,7 +283,7 @@ fn big_survey(dir: &Path) -> std::path::PathBuf {
         n,
         &samples,
         r.geotransform,
-        r.epsg,
+        r.crs.crs.as_ref(),
         None,
     )
     .unwrap();
@@ -460,6 +460,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
             .chain([[0.0, 0.0]])
             .collect();
         let req = pb::SampleRequest {
+            crs: String::new(),
             points: pts.iter().map(|p| pb::Point { x: p[0], y: p[1] }).collect(),
             error: 0.0,
         };
@@ -481,6 +482,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
             .collect();
         for pts in [&along[..1], &along[..12], &along[12..]] {
             let req = pb::SampleRequest {
+                crs: String::new(),
                 points: pts.iter().map(|p| pb::Point { x: p[0], y: p[1] }).collect(),
                 error: 0.0,
             };
@@ -494,6 +496,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
         // At or past the top of LOD space, the coarsest cut.
         let b = grid.world_bounds();
         let coarsest = |e: f64| pb::PatchQuery {
+            crs: String::new(),
             cut: Some(pb::patch_query::Cut::Uniform(pb::UniformCut {
                 roi: Some(pb::Rect {
                     xmin: b.min[0],
@@ -537,7 +540,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
             n,
             &mound,
             [o[0], st[0], 0.0, o[1], 0.0, -st[1]],
-            Some(4326),
+            Some(&patchwork::crs::Crs::epsg(4326).unwrap()),
             None,
         )
         .unwrap();
@@ -571,6 +574,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
 
         // A view cut streams patches, fewer at a coarser pixel error.
         let view = |px: f64| pb::PatchQuery {
+            crs: String::new(),
             cut: Some(pb::patch_query::Cut::View(pb::ViewCut {
                 eye_x: -119.0,
                 eye_y: 34.45,
@@ -605,6 +609,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
 
         // Wrong requests say what to change.
         let tile = |w: u32, roi: pb::Rect, backend: pb::Backend| pb::TileRequest {
+            crs: String::new(),
             cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
                 roi: Some(roi),
                 error: 1.0,
@@ -639,6 +644,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
         assert!(bad.message().contains("xmin < xmax"), "{}", bad.message());
         let none = t
             .resample_tile(pb::TileRequest {
+                crs: String::new(),
                 cut: None,
                 width: 8,
                 height: 8,

@@ -311,10 +311,28 @@ fn small_tiffs(dir: &Path) -> Vec<Vec<u8>> {
     let f = dir.join("f.tif");
     let samples: Vec<f32> = (0..64).map(|i| i as f32 * 1.5).collect();
     let gt = [600000.0, 30.0, 0.0, 5000000.0, 0.0, -30.0];
-    write_geotiff_f32(&f, 8, 8, &samples, gt, Some(32631), Some(-9999.0)).unwrap();
+    write_geotiff_f32(
+        &f,
+        8,
+        8,
+        &samples,
+        gt,
+        Some(&patchwork::crs::Crs::epsg(32631).unwrap()),
+        Some(-9999.0),
+    )
+    .unwrap();
     let i = dir.join("i.tif");
     let gt = [5.0, 0.001, 0.0, 45.0, 0.0, -0.001];
-    write_geotiff_i16(&i, 4, 4, &[5i16; 16], gt, Some(4326), None).unwrap();
+    write_geotiff_i16(
+        &i,
+        4,
+        4,
+        &[5i16; 16],
+        gt,
+        Some(&patchwork::crs::Crs::epsg(4326).unwrap()),
+        None,
+    )
+    .unwrap();
     vec![std::fs::read(f).unwrap(), std::fs::read(i).unwrap()]
 }
 

@@ -75,6 +75,7 @@ async fn ask(
         Kind::Tile => {
             let r = t
                 .resample_tile(pb::TileRequest {
+                    crs: String::new(),
                     cut: Some(pb::tile_request::Cut::Uniform(cut(0.0))),
                     width: 48,
                     height: 48,
@@ -87,6 +88,7 @@ async fn ask(
         Kind::Sample => {
             let r = t
                 .sample_heights(pb::SampleRequest {
+                    crs: String::new(),
                     points: points(),
                     error: 2.0,
                 })
@@ -97,6 +99,7 @@ async fn ask(
         Kind::Query => {
             let mut s = t
                 .query_patches(pb::PatchQuery {
+                    crs: String::new(),
                     cut: Some(pb::patch_query::Cut::Uniform(cut(5.0))),
                     batch_size: 64,
                 })

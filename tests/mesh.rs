@@ -45,6 +45,7 @@ fn request(
     method: pb::MeshMethod,
 ) -> pb::MeshRequest {
     pb::MeshRequest {
+        crs: String::new(),
         cut: Some(pb::UniformCut {
             roi: Some(convert::rect(roi)),
             error,

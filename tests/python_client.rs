@@ -73,7 +73,7 @@ fn four_surveys(root: &Path, setup: Setup) -> Daemon {
         rotated.rows,
         &rotated.samples,
         rotated.georef.geotransform(),
-        Some(4326),
+        Some(&patchwork::crs::Crs::epsg(4326).unwrap()),
         Some(-9999.0),
     )
     .unwrap();

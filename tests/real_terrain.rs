@@ -198,7 +198,15 @@ fn voids_stay_nodata_and_valid_samples_get_heights() {
 #[test]
 fn a_query_below_every_accuracy_returns_the_best_data_without_holes() {
     let cop = real_crop("copernicus_n34w119_crop.tif");
-    let rough = Arc::new(Survey::build(cop, 4.0, Some(4326), PatchLayout::default()).unwrap());
+    let rough = Arc::new(
+        Survey::build(
+            cop,
+            4.0,
+            Some(patchwork::crs::Crs::epsg(4326).unwrap()),
+            PatchLayout::default(),
+        )
+        .unwrap(),
+    );
     let fine = real_survey(real_crop("nasadem_n34w119_crop.tif"));
     let mut t = Terrain::new(IndexConfig::default());
     t.insert(rough.clone());
@@ -243,8 +251,14 @@ fn an_index_restored_from_stored_tops_is_the_same_index() {
     let metas = all.iter().map(|s| s.meta()).collect();
     let edges = t.edges().cloned().collect();
     let source = Arc::new(MemorySource::of(all.iter().map(|s| s.as_ref())));
-    let (restored, missing) =
-        Terrain::restore(IndexConfig::default(), metas, edges, &states, source);
+    let (restored, missing) = Terrain::restore(
+        IndexConfig::default(),
+        t.crs(),
+        metas,
+        edges,
+        &states,
+        source,
+    );
     assert!(
         missing.is_empty(),
         "{} patches without a state",
@@ -355,7 +369,7 @@ fn estimated_accuracies_and_edge_patches_do_not_depend_on_order() {
             Survey::build(
                 real_crop(n),
                 patchwork::model::accuracy::AccuracySpec::Auto,
-                Some(4326),
+                Some(patchwork::crs::Crs::epsg(4326).unwrap()),
                 PatchLayout::default(),
             )
             .unwrap(),
@@ -417,7 +431,7 @@ fn every_recipe_keeps_the_bound_at_cliffs_spikes_voids_and_rotations() {
                 Survey::build_with(
                     grid.clone(),
                     0.0,
-                    Some(4326),
+                    Some(patchwork::crs::Crs::epsg(4326).unwrap()),
                     PatchLayout::default(),
                     recipe,
                 )

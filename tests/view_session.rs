@@ -37,6 +37,7 @@ async fn full_cut(
 ) -> BTreeMap<u64, Vec<u8>> {
     let mut s = t
         .query_patches(pb::PatchQuery {
+            crs: String::new(),
             cut: Some(pb::patch_query::Cut::View(*v)),
             batch_size: 0,
         })

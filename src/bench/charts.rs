@@ -420,8 +420,8 @@ fn map(out: &Path, t: &Terrain, roi: &Aabb, n: usize) -> Result<(), Fail> {
         BitMapBackend::new(&path, ((n * 3 + 40) as u32, (n + 50) as u32)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| format!("{e:?}"))?;
     let grid = SampleGrid::uniform(roi, n, n);
-    let metric = match t.surveys().next().and_then(|s| s.crs) {
-        Some(c) if crate::engine::is_geographic(c) => {
+    let metric = match t.surveys().next().and_then(|s| s.crs.clone()) {
+        Some(c) if c.is_geographic() => {
             crate::index::query::Metric::geographic((roi.min[1] + roi.max[1]) / 2.0)
         }
         _ => crate::index::query::Metric::PROJECTED,

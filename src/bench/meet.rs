@@ -12,6 +12,7 @@
 //! - *estimator*: copies decimated by 2, 3, 4 and 8, each kernel's estimated ε beside the
 //!   largest deviation of the copy from the original over that kernel.
 
+use crate::crs::Crs;
 use crate::index::geom::Aabb;
 use crate::index::lod::IndexConfig;
 use crate::model::accuracy::{self, AccuracySpec};
@@ -71,7 +72,7 @@ pub struct Scenes {
     pub mosaic: (f64, usize),
 }
 
-fn survey(g: Grid, spec: AccuracySpec, crs: Option<u32>) -> Result<Arc<Survey>, Fail> {
+fn survey(g: Grid, spec: AccuracySpec, crs: Option<Crs>) -> Result<Arc<Survey>, Fail> {
     Ok(Arc::new(Survey::build(
         g,
         spec,
@@ -109,14 +110,14 @@ fn against(g: &Grid, grid: &SampleGrid, heights: &[f32]) -> (f64, f64) {
 }
 
 /// Runs the scenes on `g` (north-up). `side` is the tile size, `errors` the errors tried.
-pub fn run(g: &Grid, crs: Option<u32>, side: usize, errors: &[f64]) -> Result<Scenes, Fail> {
+pub fn run(g: &Grid, crs: Option<Crs>, side: usize, errors: &[f64]) -> Result<Scenes, Fail> {
     let mut mixed = Vec::new();
     let (c, r) = (g.cols as f64, g.rows as f64);
     let roi = pixels(g, 0.2 * c, 0.2 * r, 0.8 * c, 0.8 * r);
     let grid = SampleGrid::uniform(&roi, side, side);
 
-    let fine = survey(g.clone(), AccuracySpec::Auto, crs)?;
-    let coarse = survey(g.decimated(3), AccuracySpec::Auto, crs)?;
+    let fine = survey(g.clone(), AccuracySpec::Auto, crs.clone())?;
+    let coarse = survey(g.decimated(3), AccuracySpec::Auto, crs.clone())?;
     let copies_accuracy = (fine.accuracy, coarse.accuracy);
     let t = terrain(&[fine.clone(), coarse]);
     for &e in errors {
@@ -136,10 +137,10 @@ pub fn run(g: &Grid, crs: Option<u32>, side: usize, errors: &[f64]) -> Result<Sc
 
     let (w0, h0) = (g.cols / 3, g.rows / 3);
     let middle = g.window(w0, h0, w0, h0);
-    let nested_fine = survey(middle.clone(), AccuracySpec::Fixed(2.0), crs)?;
+    let nested_fine = survey(middle.clone(), AccuracySpec::Fixed(2.0), crs.clone())?;
     let t = terrain(&[
         nested_fine.clone(),
-        survey(g.decimated(2), AccuracySpec::Fixed(20.0), crs)?,
+        survey(g.decimated(2), AccuracySpec::Fixed(20.0), crs.clone())?,
     ]);
     for &e in errors {
         let tile = t.tile(&roi, side, side, e);
@@ -197,9 +198,9 @@ pub fn run(g: &Grid, crs: Option<u32>, side: usize, errors: &[f64]) -> Result<Sc
     ];
     let pieces: Vec<Arc<Survey>> = pieces
         .into_iter()
-        .map(|p| survey(p, AccuracySpec::Fixed(1.0), crs))
+        .map(|p| survey(p, AccuracySpec::Fixed(1.0), crs.clone()))
         .collect::<Result<_, _>>()?;
-    let whole = terrain(&[survey(g.clone(), AccuracySpec::Fixed(1.0), crs)?]);
+    let whole = terrain(&[survey(g.clone(), AccuracySpec::Fixed(1.0), crs.clone())?]);
     let mosaic = terrain(&pieces);
     let all = pixels(g, 0.0, 0.0, c, r);
     let a = whole.tile(&all, side, side, 0.0).heights;

@@ -283,11 +283,11 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
             }
         }
     }
-    let crs = engine.crs().unwrap_or(0);
+    let crs = engine.crs();
     std::fs::write(
         opts.out.join("tiles/manifest.json"),
         serde_json::to_string_pretty(&Manifest {
-            crs: format!("EPSG:{crs}"),
+            crs: crs.as_ref().map_or(String::new(), |c| c.key().to_string()),
             sources: opts
                 .files
                 .iter()
@@ -299,7 +299,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
 
     // A flight along the survey's diagonal, 1,500 m up, looking ahead.
     let metric = match engine.crs() {
-        Some(c) if crate::engine::is_geographic(c) => Metric::geographic(c_lat(&first)),
+        Some(c) if c.is_geographic() => Metric::geographic(c_lat(&first)),
         _ => Metric::PROJECTED,
     };
     let stops = if opts.smoke { 2 } else { 8 };
@@ -360,7 +360,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         r1: (shape.rows - side) / 2 + side,
     };
     let g = t.samples(base, 0, rect)?;
-    let scenes = meet::run(&g, base.crs, tile_side, &errors_used)?;
+    let scenes = meet::run(&g, base.crs.clone(), tile_side, &errors_used)?;
     for m in &scenes.mixed {
         println!(
             "{:>6} e = {:>5} m: {} patches ({} of the finer survey), max error {:.3} m, RMS {:.3} m, sub-tiles within {:.2e} m",
@@ -386,7 +386,11 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     // run), 2,000 points a row.
     let s_side = g.cols.min(g.rows).min(600);
     let middle = g.window((g.cols - s_side) / 2, (g.rows - s_side) / 2, s_side, s_side);
-    let stability = stability::run(&middle, base.crs, if opts.smoke { 300 } else { 2000 })?;
+    let stability = stability::run(
+        &middle,
+        base.crs.clone(),
+        if opts.smoke { 300 } else { 2000 },
+    )?;
     stability::write_csv(&opts.out, &stability)?;
     let report = Report {
         uniform,

@@ -78,7 +78,11 @@ pub fn cases(g: &Grid) -> Vec<(&'static str, Grid)> {
 }
 
 /// Every case under every recipe at every error, `points` random valid points each.
-pub fn run(g: &Grid, crs: Option<u32>, points: usize) -> Result<Vec<StabilityRow>, Fail> {
+pub fn run(
+    g: &Grid,
+    crs: Option<crate::crs::Crs>,
+    points: usize,
+) -> Result<Vec<StabilityRow>, Fail> {
     let mut rows = Vec::new();
     for (case, grid) in cases(g) {
         let cells: Vec<(usize, usize)> = {
@@ -92,7 +96,7 @@ pub fn run(g: &Grid, crs: Option<u32>, points: usize) -> Result<Vec<StabilityRow
             let s = Arc::new(Survey::build_with(
                 grid.clone(),
                 AccuracySpec::Fixed(0.0),
-                crs,
+                crs.clone(),
                 PatchLayout::default(),
                 recipe,
             )?);

@@ -76,7 +76,7 @@ pub fn run(
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default();
         let raster = crate::read::read_raster(f, &Default::default())?;
-        let crs = raster.epsg;
+        let crs = raster.crs.crs.clone();
         let grid = raster.into_grid()?;
         let raw = grid.valid_count();
         for recipe in RECIPES {
@@ -84,7 +84,7 @@ pub fn run(
             let s = Survey::build_with(
                 grid.clone(),
                 AccuracySpec::Fixed(0.0),
-                crs,
+                crs.clone(),
                 PatchLayout::default(),
                 recipe,
             )?;

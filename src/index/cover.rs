@@ -1,6 +1,8 @@
-//! Does a union of rectangles cover a rectangle? The answer is exact for rectangles that share
-//! the target's orientation and conservative otherwise: it may say "not covered" for a region
-//! that is covered, never the reverse. The cutter and the query fallback rely on that
+//! Does a union of parallelograms cover a parallelogram? Everything is carried into the
+//! target's own frame, where it is the rectangle [0, size] and every other shape a
+//! parallelogram. The answer is exact for shapes that share the target's orientation (their
+//! sides along its axes there) and conservative otherwise: it may say "not covered" for a
+//! region that is covered, never the reverse. The cutter and the query fallback rely on that
 //! direction: a false "covered" would open a hole in the terrain.
 
 use super::geom::ORect;
@@ -91,8 +93,8 @@ pub fn covered(target: &ORect, by: &[ORect]) -> bool {
 
 fn to_frame(target: &ORect, q: &ORect) -> Shape {
     let o = target.local(q.origin);
-    let u = [dot(q.u, target.u), dot(q.u, target.v)];
-    let v = [dot(q.v, target.u), dot(q.v, target.v)];
+    let u = target.local_dir(q.u);
+    let v = target.local_dir(q.v);
     // Grids that share an orientation (or differ by quarter turns) stay exact.
     if u[0].abs() < 1e-12 || u[1].abs() < 1e-12 {
         let a = [o[0] + u[0] * q.size[0], o[1] + u[1] * q.size[0]];
@@ -111,11 +113,6 @@ fn to_frame(target: &ORect, q: &ORect) -> Shape {
             size: q.size,
         })
     }
-}
-
-#[inline]
-fn dot(a: [f64; 2], b: [f64; 2]) -> f64 {
-    a[0] * b[0] + a[1] * b[1]
 }
 
 fn cover(

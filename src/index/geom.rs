@@ -91,8 +91,10 @@ impl Aabb {
     }
 }
 
-/// The rectangle `origin + a·u + b·v` for `a ∈ [0, size[0]]`, `b ∈ [0, size[1]]`, with `u` and
-/// `v` perpendicular unit vectors: a kernel or window of a possibly rotated grid.
+/// The parallelogram `origin + a·u + b·v` for `a ∈ [0, size[0]]`, `b ∈ [0, size[1]]`: a kernel
+/// or window of a grid, rotated, skewed or mirrored, or such a shape carried into another
+/// plane. `u` and `v` are independent unit vectors; for every grid that is not skewed they
+/// are perpendicular, and the shape is a rectangle.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ORect {
     pub origin: [f64; 2],
@@ -106,8 +108,76 @@ fn dot(a: [f64; 2], b: [f64; 2]) -> f64 {
     a[0] * b[0] + a[1] * b[1]
 }
 
+#[inline]
+fn cross(a: [f64; 2], b: [f64; 2]) -> f64 {
+    a[0] * b[1] - a[1] * b[0]
+}
+
+/// Whether a vector is a unit vector to rounding.
+#[inline]
+fn unit(a: [f64; 2]) -> bool {
+    (dot(a, a) - 1.0).abs() < 1e-12
+}
+
+/// An affine map of the plane: `p ↦ origin + p[0]·m[0] + p[1]·m[1]`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Affine {
+    pub origin: [f64; 2],
+    /// The images of the unit vectors along x and along y.
+    pub m: [[f64; 2]; 2],
+}
+
+impl Affine {
+    #[inline]
+    pub fn apply(&self, p: [f64; 2]) -> [f64; 2] {
+        [
+            self.origin[0] + p[0] * self.m[0][0] + p[1] * self.m[1][0],
+            self.origin[1] + p[0] * self.m[0][1] + p[1] * self.m[1][1],
+        ]
+    }
+
+    /// The image of a vector: the linear part alone.
+    #[inline]
+    pub fn apply_vec(&self, w: [f64; 2]) -> [f64; 2] {
+        [
+            w[0] * self.m[0][0] + w[1] * self.m[1][0],
+            w[0] * self.m[0][1] + w[1] * self.m[1][1],
+        ]
+    }
+
+    pub fn det(&self) -> f64 {
+        cross(self.m[0], self.m[1])
+    }
+
+    /// The inverse map; None for a map that flattens the plane.
+    pub fn inverse(&self) -> Option<Affine> {
+        let det = self.det();
+        if !(det.is_finite() && det != 0.0) {
+            return None;
+        }
+        let [a, b] = self.m;
+        let m = [[b[1] / det, -a[1] / det], [-b[0] / det, a[0] / det]];
+        let inv = Affine {
+            origin: [0.0; 2],
+            m,
+        };
+        let o = inv.apply_vec(self.origin);
+        Some(Affine {
+            origin: [-o[0], -o[1]],
+            m,
+        })
+    }
+
+    /// The largest factor by which the map stretches a length: its spectral norm.
+    pub fn stretch(&self) -> f64 {
+        let [a, b] = self.m;
+        let (p, q, r) = (dot(a, a), dot(a, b), dot(b, b));
+        (0.5 * (p + r + ((p - r) * (p - r) + 4.0 * q * q).sqrt())).sqrt()
+    }
+}
+
 impl ORect {
-    /// The world rectangle spanned by a range of cells (sample c0 to sample c1).
+    /// The world parallelogram spanned by a range of cells (sample c0 to sample c1).
     pub fn from_cells(g: &Georef, c: &CellRect) -> ORect {
         let [u, v] = g.axes();
         ORect {
@@ -118,7 +188,7 @@ impl ORect {
         }
     }
 
-    /// The world rectangle spanned by fractional grid coordinates (c0, r0, c1, r1).
+    /// The world parallelogram spanned by fractional grid coordinates (c0, r0, c1, r1).
     pub fn from_grid(g: &Georef, r: [f64; 4]) -> ORect {
         let [u, v] = g.axes();
         ORect {
@@ -138,6 +208,13 @@ impl ORect {
         }
     }
 
+    /// Whether the shape is a rectangle: perpendicular unit axes, so that a point's
+    /// coordinates in its frame are dot products.
+    #[inline]
+    pub fn is_rect(&self) -> bool {
+        dot(self.u, self.v).abs() < 1e-15 && unit(self.u) && unit(self.v)
+    }
+
     #[inline]
     pub fn at(&self, a: f64, b: f64) -> [f64; 2] {
         [
@@ -146,11 +223,20 @@ impl ORect {
         ]
     }
 
-    /// Coordinates of a world point in this rectangle's frame.
+    /// Coordinates of a world point in this shape's frame: the (a, b) of `origin + a·u + b·v`.
     #[inline]
     pub fn local(&self, p: [f64; 2]) -> [f64; 2] {
-        let d = [p[0] - self.origin[0], p[1] - self.origin[1]];
-        [dot(d, self.u), dot(d, self.v)]
+        self.local_dir([p[0] - self.origin[0], p[1] - self.origin[1]])
+    }
+
+    /// Coordinates of a world vector in this shape's frame.
+    #[inline]
+    pub fn local_dir(&self, d: [f64; 2]) -> [f64; 2] {
+        if self.is_rect() {
+            return [dot(d, self.u), dot(d, self.v)];
+        }
+        let det = cross(self.u, self.v);
+        [cross(d, self.v) / det, cross(self.u, d) / det]
     }
 
     pub fn corners(&self) -> [[f64; 2]; 4] {
@@ -167,7 +253,10 @@ impl ORect {
     }
 
     pub fn area(&self) -> f64 {
-        self.size[0] * self.size[1]
+        if self.is_rect() {
+            return self.size[0] * self.size[1];
+        }
+        self.size[0] * self.size[1] * cross(self.u, self.v).abs()
     }
 
     pub fn centre(&self) -> [f64; 2] {
@@ -180,7 +269,56 @@ impl ORect {
         l[0] >= 0.0 && l[1] >= 0.0 && l[0] <= self.size[0] && l[1] <= self.size[1]
     }
 
-    /// Projection of this rectangle on a unit axis, as an interval.
+    /// How far along `a` and along `b` the sides move when each moves `d` along its normal.
+    fn offsets(&self, d: f64) -> [f64; 2] {
+        if self.is_rect() {
+            return [d, d];
+        }
+        let c = cross(self.u, self.v).abs();
+        [d / c, d / c]
+    }
+
+    /// The shape with every side moved `d` outwards: it holds every point within `d` of it.
+    pub fn inflated(&self, d: f64) -> ORect {
+        if d <= 0.0 {
+            return *self;
+        }
+        let [da, db] = self.offsets(d);
+        ORect {
+            origin: self.at(-da, -db),
+            size: [self.size[0] + 2.0 * da, self.size[1] + 2.0 * db],
+            ..*self
+        }
+    }
+
+    /// The shape with every side moved `d` inwards: the points whose every point within `d`
+    /// is in the shape. None when nothing is left.
+    pub fn deflated(&self, d: f64) -> Option<ORect> {
+        if d <= 0.0 {
+            return Some(*self);
+        }
+        let [da, db] = self.offsets(d);
+        let size = [self.size[0] - 2.0 * da, self.size[1] - 2.0 * db];
+        (size[0] > 0.0 && size[1] > 0.0).then(|| ORect {
+            origin: self.at(da, db),
+            size,
+            ..*self
+        })
+    }
+
+    /// The image of the shape under an affine map, itself a parallelogram.
+    pub fn mapped(&self, f: &Affine) -> ORect {
+        let (a, b) = (f.apply_vec(self.u), f.apply_vec(self.v));
+        let (la, lb) = (dot(a, a).sqrt(), dot(b, b).sqrt());
+        ORect {
+            origin: f.apply(self.origin),
+            u: [a[0] / la, a[1] / la],
+            v: [b[0] / lb, b[1] / lb],
+            size: [self.size[0] * la, self.size[1] * lb],
+        }
+    }
+
+    /// Projection of this shape on an axis, as an interval.
     fn project(&self, axis: [f64; 2]) -> (f64, f64) {
         let o = dot(self.origin, axis);
         let a = self.size[0] * dot(self.u, axis);
@@ -188,9 +326,20 @@ impl ORect {
         (o + a.min(0.0) + b.min(0.0), o + a.max(0.0) + b.max(0.0))
     }
 
-    /// Separating-axis test; closed, so rectangles that only touch intersect.
+    /// The directions across this shape's sides: its axes for a rectangle, the normals of its
+    /// sides otherwise.
+    pub fn normals(&self) -> [[f64; 2]; 2] {
+        if self.is_rect() {
+            return [self.u, self.v];
+        }
+        [[-self.u[1], self.u[0]], [-self.v[1], self.v[0]]]
+    }
+
+    /// Separating-axis test; closed, so shapes that only touch intersect.
     pub fn intersects(&self, o: &ORect) -> bool {
-        for axis in [self.u, self.v, o.u, o.v] {
+        let [a, b] = self.normals();
+        let [c, d] = o.normals();
+        for axis in [a, b, c, d] {
             let (a0, a1) = self.project(axis);
             let (b0, b1) = o.project(axis);
             if a1 < b0 || b1 < a0 {
@@ -224,5 +373,62 @@ mod tests {
         assert!(!a.intersects(&b));
         let touching = ORect::from_aabb(&Aabb::new(0.8, 0.6, 2.0, 2.0));
         assert!(a.intersects(&touching));
+    }
+
+    #[test]
+    fn skewed_shapes_find_their_points_and_grow_and_shrink_by_distance() {
+        // Sheared: the b axis leans 30° from the a axis.
+        let (s, c) = (30f64.to_radians().sin(), 30f64.to_radians().cos());
+        let p = ORect {
+            origin: [1.0, 2.0],
+            u: [1.0, 0.0],
+            v: [s, c],
+            size: [4.0, 2.0],
+        };
+        assert!(!p.is_rect());
+        let q = p.at(1.5, 0.5);
+        let l = p.local(q);
+        assert!((l[0] - 1.5).abs() < 1e-12 && (l[1] - 0.5).abs() < 1e-12);
+        assert!((p.area() - 8.0 * c).abs() < 1e-12);
+        // Every point within d of the shape is in the inflated one, and every point of the
+        // deflated one has its whole d-disc inside.
+        let d = 0.1;
+        let (big, small) = (p.inflated(d), p.deflated(d).unwrap());
+        let mut next = crate::rng::uniform(3);
+        for _ in 0..4000 {
+            let x = [next() * 8.0 - 1.0, next() * 6.0];
+            let inside = p.contains_point(x);
+            let near = inside
+                || (0..32).any(|k| {
+                    let t = k as f64 * std::f64::consts::TAU / 32.0;
+                    p.contains_point([x[0] + d * t.cos(), x[1] + d * t.sin()])
+                });
+            if near {
+                assert!(big.contains_point(x), "{x:?}");
+            }
+            if small.contains_point(x) {
+                assert!((0..32).all(|k| {
+                    let t = k as f64 * std::f64::consts::TAU / 32.0;
+                    p.contains_point([x[0] + d * t.cos(), x[1] + d * t.sin()])
+                }));
+            }
+        }
+        assert!(p.deflated(1.0).is_none());
+        // An affine map carries it to a parallelogram holding exactly the images.
+        let f = Affine {
+            origin: [10.0, -3.0],
+            m: [[2.0, 0.5], [-0.3, 1.5]],
+        };
+        let img = p.mapped(&f);
+        let inv = f.inverse().unwrap();
+        for (a, b) in [(0.0, 0.0), (4.0, 2.0), (1.0, 1.7)] {
+            let w = f.apply(p.at(a, b));
+            let l = img.local(w);
+            assert!((l[0] / img.size[0] - a / 4.0).abs() < 1e-12);
+            assert!((l[1] / img.size[1] - b / 2.0).abs() < 1e-12);
+            let back = inv.apply(w);
+            let want = p.at(a, b);
+            assert!((back[0] - want[0]).abs() < 1e-12 && (back[1] - want[1]).abs() < 1e-12);
+        }
     }
 }

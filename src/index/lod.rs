@@ -16,12 +16,13 @@
 //! patches too, recomputed for the same neighbourhood of a change as the tops.
 
 use super::cover::covered_all;
-use super::geom::{Aabb, ORect};
+use super::geom::{Aabb, Affine, ORect};
 use super::quadtree::{Entry, MsQuadtree, TreeStats};
 use crate::model::edge::EdgePatch;
 use crate::model::grid::Georef;
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::patch::Patch;
+use crate::model::place::{Frame, PlaneId, STORE_PLANE};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::cmp::Ordering;
@@ -47,63 +48,198 @@ impl Default for IndexConfig {
 }
 
 /// A patch as LOD space sees it: its kernel, its valid part, and its error.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+///
+/// Its shapes are in its own plane: the store's, or the CRS of a survey in another (see
+/// [`crate::model::place`]). Coverage between patches of one plane is decided there, exactly
+/// as ever; between planes, through the store's plane, on each patch's frame, with the shapes
+/// grown or shrunk by the frames' bounds so that the answer stays conservative.
+#[derive(Clone, Debug, PartialEq)]
 pub struct PatchBox {
     pub id: PatchId,
     /// The unit the patch is inserted and retired with: its survey, or its edge patch's owner.
     pub survey: SurveyId,
     pub level: u8,
-    /// Nominal kernel area, the first key of the global order.
+    /// Nominal kernel area in the store's plane, the first key of the global order.
     pub area: f64,
     /// Bottom of the box: the patch's error ε + δ.
     pub min_z: f64,
+    /// The plane `kernel`, `valid` and `window` lie in.
+    pub plane: PlaneId,
     pub kernel: ORect,
     pub valid: Vec<ORect>,
     /// Where the patch can contribute to a blend.
     pub window: ORect,
-    /// Bounds of the kernel.
+    /// For a patch of another plane, where it lies in the store's.
+    pub placed: Option<Box<Placed>>,
+    /// Store-plane bounds of the kernel.
     pub aabb: Aabb,
-    /// Bounds of the window.
+    /// Store-plane bounds of the window.
     pub window_aabb: Aabb,
 }
 
+/// A patch of another plane in the store's: its shapes carried through its frame, each
+/// within `rho` of the true image of the patch's own.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Placed {
+    pub frame: Affine,
+    /// The frame's inverse: from the store's plane into the patch's.
+    pub inverse: Affine,
+    /// How far the frame may be from the true image anywhere in the window, store units.
+    pub rho: f64,
+    pub kernel: ORect,
+    pub valid: Vec<ORect>,
+    pub window: ORect,
+}
+
 impl PatchBox {
-    pub fn new(p: &Patch, g: &Georef, kernel_cells: usize) -> Self {
+    /// The box of a survey's patch on a level georeferenced by `g`; `framed` places a patch
+    /// of another plane in the store's.
+    pub fn new(
+        p: &Patch,
+        g: &Georef,
+        kernel_cells: usize,
+        framed: Option<(PlaneId, &Frame)>,
+    ) -> Self {
         let kernel = ORect::from_cells(g, &p.kernel);
         let window = ORect::from_cells(g, &p.window);
-        let side = kernel_cells as f64;
-        PatchBox {
-            id: p.id,
-            survey: p.survey,
-            level: p.level,
-            area: side * g.step[0] * side * g.step[1],
-            min_z: p.error,
+        let valid = p.valid.iter().map(|c| ORect::from_cells(g, c)).collect();
+        Self::placed(
+            p.id,
+            p.survey,
+            p.level,
+            nominal_area(g, kernel_cells as f64),
+            p.error,
             kernel,
-            valid: p.valid.iter().map(|c| ORect::from_cells(g, c)).collect(),
+            valid,
             window,
-            aabb: kernel.aabb(),
-            window_aabb: window.aabb(),
-        }
+            framed,
+        )
     }
 
     /// The box of an edge patch. Its nominal area is a level-0 kernel's, whatever its tile's
     /// size: its samples are level 0's, so it is ordered with level-0 patches.
-    pub fn edge(e: &EdgePatch) -> Self {
+    pub fn edge(e: &EdgePatch, framed: Option<(PlaneId, &Frame)>) -> Self {
         let g = &e.grid.georef;
-        let kernel = ORect::from_cells(g, &e.kernel);
-        let window = ORect::from_cells(g, &e.window);
-        let side = e.kernel_cells as f64;
+        Self::placed(
+            e.id,
+            e.owner,
+            0,
+            nominal_area(g, e.kernel_cells as f64),
+            e.error,
+            ORect::from_cells(g, &e.kernel),
+            e.valid.iter().map(|r| ORect::from_grid(g, *r)).collect(),
+            ORect::from_cells(g, &e.window),
+            framed,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn placed(
+        id: PatchId,
+        survey: SurveyId,
+        level: u8,
+        area: f64,
+        min_z: f64,
+        kernel: ORect,
+        valid: Vec<ORect>,
+        window: ORect,
+        framed: Option<(PlaneId, &Frame)>,
+    ) -> Self {
+        let Some((plane, f)) = framed else {
+            return PatchBox {
+                id,
+                survey,
+                level,
+                area,
+                min_z,
+                plane: STORE_PLANE,
+                aabb: kernel.aabb(),
+                window_aabb: window.aabb(),
+                kernel,
+                valid,
+                window,
+                placed: None,
+            };
+        };
+        let inverse = f
+            .map
+            .inverse()
+            .expect("a frame maps the plane onto the plane");
+        let placed = Placed {
+            frame: f.map,
+            inverse,
+            rho: f.rho,
+            kernel: kernel.mapped(&f.map),
+            valid: valid.iter().map(|v| v.mapped(&f.map)).collect(),
+            window: window.mapped(&f.map),
+        };
         PatchBox {
-            id: e.id,
-            survey: e.owner,
-            level: 0,
-            area: side * g.step[0] * side * g.step[1],
-            min_z: e.error,
+            id,
+            survey,
+            level,
+            // In the store's units, so that patches of every plane order together.
+            area: area * f.map.det().abs(),
+            min_z,
+            plane,
+            aabb: placed.kernel.inflated(f.rho).aabb(),
+            window_aabb: placed.window.inflated(f.rho).aabb(),
             kernel,
-            valid: e.valid.iter().map(|r| ORect::from_grid(g, *r)).collect(),
+            valid,
             window,
-            aabb: kernel.aabb(),
-            window_aabb: window.aabb(),
+            placed: Some(Box::new(placed)),
+        }
+    }
+
+    /// How far this box's store-plane shapes may be from the truth.
+    pub fn rho(&self) -> f64 {
+        self.placed.as_ref().map_or(0.0, |p| p.rho)
+    }
+
+    /// The kernel in the store's plane (through the frame, for a patch of another plane).
+    pub fn store_kernel(&self) -> ORect {
+        self.placed.as_ref().map_or(self.kernel, |p| p.kernel)
+    }
+
+    /// Everywhere in the store's plane the patch can contribute to a blend: its window, grown
+    /// by the frame's bound for a patch of another plane.
+    pub fn reach(&self) -> ORect {
+        match &self.placed {
+            Some(p) => p.window.inflated(p.rho),
+            None => self.window,
+        }
+    }
+
+    fn store_valid(&self) -> &[ORect] {
+        self.placed.as_ref().map_or(&self.valid, |p| &p.valid)
+    }
+
+    /// Whether two kernels may meet: exactly within one plane, through the store's plane
+    /// (with both frames' bounds) between two.
+    fn meets(&self, o: &PatchBox) -> bool {
+        if self.plane == o.plane {
+            return self.kernel.intersects(&o.kernel);
+        }
+        self.store_kernel()
+            .inflated(self.rho() + o.rho())
+            .intersects(&o.store_kernel())
+    }
+
+    /// This box's valid parts as seen from `t`'s plane, shrunk where they are known only to
+    /// within a frame's bound, so that whatever they cover there they truly cover.
+    fn seen_from(&self, t: &PatchBox, out: &mut Vec<ORect>) {
+        if self.plane == t.plane {
+            out.extend_from_slice(&self.valid);
+            return;
+        }
+        let shrink = self.rho() + t.rho();
+        for v in self.store_valid() {
+            let Some(v) = v.deflated(shrink) else {
+                continue;
+            };
+            out.push(match &t.placed {
+                Some(p) => v.mapped(&p.inverse),
+                None => v,
+            });
         }
     }
 
@@ -126,6 +262,17 @@ impl PatchBox {
             Ordering::Equal => self.order(o) == Ordering::Greater,
         }
     }
+}
+
+/// The area of a kernel of `side` × `side` cells of a grid: the first key of the global order.
+fn nominal_area(g: &Georef, side: f64) -> f64 {
+    let skew = if g.is_orthogonal() {
+        1.0
+    } else {
+        let [u, v] = g.axes();
+        (u[0] * v[1] - u[1] * v[0]).abs()
+    };
+    side * g.step[0] * side * g.step[1] * skew
 }
 
 /// A box's current z-span `[min_z, max_z)`; empty when the patch is cut to nothing.
@@ -307,7 +454,7 @@ impl LodIndex {
     fn neighbours(&self, p: &PatchBox, keep: impl Fn(&PatchBox) -> bool) -> Vec<&Arc<PatchBox>> {
         self.boxes_in(&p.aabb)
             .into_iter()
-            .filter(|q| q.id != p.id && q.kernel.intersects(&p.kernel) && keep(q))
+            .filter(|q| q.id != p.id && q.meets(p) && keep(q))
             .collect()
     }
 
@@ -327,10 +474,11 @@ impl LodIndex {
         }
         cands.sort_by(|a, b| a.min_z.total_cmp(&b.min_z).then(a.id.cmp(&b.id)));
         let rects_upto = |n: usize| -> Vec<ORect> {
-            cands[..n]
-                .iter()
-                .flat_map(|q| q.valid.iter().copied())
-                .collect()
+            let mut out = Vec::new();
+            for q in &cands[..n] {
+                q.seen_from(p, &mut out);
+            }
+            out
         };
         if !covered_all(&p.valid, &rects_upto(cands.len())) {
             return top;
@@ -356,11 +504,10 @@ impl LodIndex {
     /// Whether some of `p`'s valid kernel is covered by no more accurate patch among `near`.
     /// Like the top, a pure function of the set of patches.
     fn exposed(&self, p: &PatchBox, near: &[&Arc<PatchBox>]) -> bool {
-        let better: Vec<ORect> = near
-            .iter()
-            .filter(|q| q.more_accurate(p))
-            .flat_map(|q| q.valid.iter().copied())
-            .collect();
+        let mut better: Vec<ORect> = Vec::new();
+        for q in near.iter().filter(|q| q.more_accurate(p)) {
+            q.seen_from(p, &mut better);
+        }
         better.is_empty() || !covered_all(&p.valid, &better)
     }
 

@@ -3,6 +3,7 @@
 use super::geom::{Aabb, ORect};
 use super::lod::{LodIndex, PatchBox, Span};
 use crate::model::ids::{PatchId, SurveyId};
+use crate::model::place::PlaneId;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -15,6 +16,8 @@ pub struct Extracted {
     pub span: Span,
     pub kernel: ORect,
     pub window: ORect,
+    /// The plane its grid is in (see [`PatchBox::plane`]).
+    pub plane: PlaneId,
     /// Taken because no data is as accurate as the cut asks somewhere in its kernel, and it is
     /// the most accurate data there: blended only where nothing the cut asked for is.
     pub fallback: bool,
@@ -27,8 +30,9 @@ impl Extracted {
             survey: b.survey,
             level: b.level,
             span,
-            kernel: b.kernel,
-            window: b.window,
+            kernel: b.store_kernel(),
+            window: b.reach(),
+            plane: b.plane,
             fallback,
         }
     }
@@ -69,7 +73,7 @@ impl Roi {
         Aabb::of_points(&self.points)
     }
 
-    /// Separating-axis test against a rectangle; closed.
+    /// Separating-axis test against a parallelogram; closed.
     pub fn intersects(&self, r: &ORect) -> bool {
         let n = self.points.len();
         let corners = r.corners();
@@ -80,7 +84,7 @@ impl Roi {
                     (lo.min(d), hi.max(d))
                 })
         };
-        let mut axes: Vec<[f64; 2]> = vec![r.u, r.v];
+        let mut axes: Vec<[f64; 2]> = r.normals().to_vec();
         for i in 0..n {
             let p = self.points[i];
             let q = self.points[(i + 1) % n];
@@ -131,7 +135,7 @@ impl LodIndex {
         ids.into_par_iter()
             .filter_map(|id| {
                 let (b, span) = self.get(id)?;
-                if !roi.intersects(&b.window) {
+                if !roi.intersects(&b.reach()) {
                     return None;
                 }
                 // Judged on its kernel, within the ROI where the kernel reaches into it.

@@ -286,8 +286,20 @@ pub struct Deviation {
 
 /// The deviation of `other` from `grid`'s samples; None where they share no ground.
 pub fn deviation(grid: &Grid, other: &Grid) -> Option<Deviation> {
+    deviation_across(grid, other, &other.world_bounds(), &Some)
+}
+
+/// [`deviation`] between grids of two planes: `to_other` carries a point of `grid`'s plane
+/// to `other`'s (None where it has no image), and `bounds` bounds `other`'s samples in
+/// `grid`'s plane.
+pub fn deviation_across(
+    grid: &Grid,
+    other: &Grid,
+    bounds: &crate::index::geom::Aabb,
+    to_other: &(dyn Fn([f64; 2]) -> Option<[f64; 2]> + Sync),
+) -> Option<Deviation> {
     // Only the samples of `grid` under `other`'s bounds can meet it.
-    let (lo, hi) = grid.shape().grid_bounds(&other.world_bounds());
+    let (lo, hi) = grid.shape().grid_bounds(bounds);
     let range = |k: usize, n: usize| {
         let a = lo[k].floor().max(0.0);
         let z = hi[k].ceil().min(n as f64 - 1.0);
@@ -305,7 +317,7 @@ pub fn deviation(grid: &Grid, other: &Grid) -> Option<Deviation> {
                     continue;
                 }
                 let p = grid.georef.to_world(c as f64, r as f64);
-                if let Some(h) = other.bilinear(p) {
+                if let Some(h) = to_other(p).and_then(|q| other.bilinear(q)) {
                     let d = (h - z as f64).abs();
                     acc = (acc.0.max(d), acc.1 + d * d, acc.2 + 1);
                 }

@@ -3,11 +3,13 @@
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-/// Where a grid's samples sit in the store's plane.
+/// Where a grid's samples sit in its CRS's plane.
 ///
-/// Sample `(col, row)` sits at `origin + col·sx·u + row·sy·v`, with `u = (cos θ, sin θ)` and
-/// `v = (sin θ, −cos θ)`. At θ = 0 this is a north-up raster: columns run east, rows run south,
-/// exactly as GDAL places pixel centres.
+/// Sample `(col, row)` sits at `origin + col·sx·u + row·sy·v`, with `u = (cos θ, sin θ)` and,
+/// for every north-up or rotated raster, `v = (sin θ, −cos θ)`: the column axis turned
+/// clockwise by 90°. At θ = 0 this is a north-up raster: columns run east, rows run south,
+/// exactly as GDAL places pixel centres. A skewed or mirrored geotransform has a row axis of
+/// its own, `v = (sin ψ, −cos ψ)` with ψ = `row_theta` (ψ = θ + π for rows that run north).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Georef {
     /// Position of sample (0, 0), the centre of the first pixel for PixelIsArea rasters.
@@ -16,14 +18,17 @@ pub struct Georef {
     pub theta: f64,
     /// Spacing between columns (sX) and between rows (sY), both positive, in CRS units.
     pub step: [f64; 2],
+    /// The row axis's angle ψ where the row axis is not the column axis turned clockwise by
+    /// 90° (skewed or mirrored grids); None for every other grid.
+    pub row_theta: Option<f64>,
 }
 
 #[derive(Debug, Error, PartialEq)]
 pub enum GeorefError {
     #[error("sample spacing must be positive and finite, got {0:?}")]
     BadStep([f64; 2]),
-    #[error("the geotransform is skewed or mirrored; only rotations are supported")]
-    Skewed,
+    #[error("the geotransform's column and row axes are parallel: it maps the grid onto a line")]
+    Degenerate,
     #[error("the georeference has non-finite values")]
     NotFinite,
 }
@@ -34,11 +39,13 @@ impl Georef {
             origin,
             theta: 0.0,
             step,
+            row_theta: None,
         }
     }
 
     /// Builds the georeference from a GDAL geotransform, whose origin is the outer corner of
-    /// pixel (0, 0). A transform that mirrors or skews the axes has no rotated-grid equivalent.
+    /// pixel (0, 0). Any affine transform that does not flatten the grid is taken: rotated,
+    /// skewed or mirrored.
     pub fn from_geotransform(gt: [f64; 6]) -> Result<Self, GeorefError> {
         if gt.iter().any(|v| !v.is_finite()) {
             return Err(GeorefError::NotFinite);
@@ -50,18 +57,22 @@ impl Georef {
         if sx <= 0.0 || sy <= 0.0 {
             return Err(GeorefError::BadStep([sx, sy]));
         }
+        if (cx * ry - cy * rx).abs() <= 1e-12 * sx * sy {
+            return Err(GeorefError::Degenerate);
+        }
         let theta = cy.atan2(cx);
         let (s, c) = theta.sin_cos();
-        // The row axis must be the column axis turned clockwise by 90°, as in any north-up raster.
+        // The row axis of a north-up or rotated raster is the column axis turned clockwise by
+        // 90°; any other is kept as an angle of its own.
         let tol = 1e-9 * sy;
-        if (rx - sy * s).abs() > tol || (ry + sy * c).abs() > tol {
-            return Err(GeorefError::Skewed);
-        }
+        let row_theta =
+            ((rx - sy * s).abs() > tol || (ry + sy * c).abs() > tol).then(|| rx.atan2(-ry));
         let origin = [gt[0] + 0.5 * (cx + rx), gt[3] + 0.5 * (cy + ry)];
         Ok(Georef {
             origin,
             theta,
             step: [sx, sy],
+            row_theta,
         })
     }
 
@@ -84,7 +95,37 @@ impl Georef {
     #[inline]
     pub fn axes(&self) -> [[f64; 2]; 2] {
         let (s, c) = self.theta.sin_cos();
-        [[c, s], [s, -c]]
+        let v = match self.row_theta {
+            None => [s, -c],
+            Some(psi) => {
+                let (s, c) = psi.sin_cos();
+                [s, -c]
+            }
+        };
+        [[c, s], v]
+    }
+
+    /// Whether the axes are perpendicular, so that a point's grid coordinates are its
+    /// projections on them: every grid but a skewed one.
+    #[inline]
+    pub fn is_orthogonal(&self) -> bool {
+        self.row_theta.is_none() || {
+            let [u, v] = self.axes();
+            u[0] * v[0] + u[1] * v[1] == 0.0
+        }
+    }
+
+    /// The vectors whose dot products with an offset from the origin, divided by the steps,
+    /// give its grid coordinates: the axes themselves when they are perpendicular, else the
+    /// rows of the inverse of the axes' matrix.
+    #[inline]
+    pub fn duals(&self) -> [[f64; 2]; 2] {
+        let [u, v] = self.axes();
+        if self.row_theta.is_none() || u[0] * v[0] + u[1] * v[1] == 0.0 {
+            return [u, v];
+        }
+        let det = u[0] * v[1] - u[1] * v[0];
+        [[v[1] / det, -v[0] / det], [-u[1] / det, u[0] / det]]
     }
 
     /// World position of fractional grid coordinates.
@@ -102,8 +143,13 @@ impl Georef {
     /// Fractional grid coordinates of a world position.
     #[inline]
     pub fn to_grid(&self, p: [f64; 2]) -> [f64; 2] {
-        let [u, v] = self.axes();
-        let d = [p[0] - self.origin[0], p[1] - self.origin[1]];
+        self.coords([p[0] - self.origin[0], p[1] - self.origin[1]])
+    }
+
+    /// Grid coordinates of an offset `d` from the origin.
+    #[inline]
+    pub fn coords(&self, d: [f64; 2]) -> [f64; 2] {
+        let [u, v] = self.duals();
         [
             (d[0] * u[0] + d[1] * u[1]) / self.step[0],
             (d[0] * v[0] + d[1] * v[1]) / self.step[1],
@@ -113,18 +159,38 @@ impl Georef {
     /// The georeference of a grid whose sample (i, j) sits at this grid's (i·f, j·f).
     pub fn coarsened(&self, factor: f64) -> Georef {
         Georef {
-            origin: self.origin,
-            theta: self.theta,
             step: [self.step[0] * factor, self.step[1] * factor],
+            ..*self
         }
     }
 
+    /// The largest distance in grid cells that a world offset of length 1 can move a point:
+    /// 1 / (the smaller step) for perpendicular axes, more for skewed ones.
+    pub fn cells_per_unit(&self) -> f64 {
+        let [u, v] = self.duals();
+        let a = [u[0] / self.step[0], u[1] / self.step[0]];
+        let b = [v[0] / self.step[1], v[1] / self.step[1]];
+        // The spectral norm of the 2 × 2 matrix with rows a and b.
+        let (p, q, r) = (
+            a[0] * a[0] + a[1] * a[1],
+            a[0] * b[0] + a[1] * b[1],
+            b[0] * b[0] + b[1] * b[1],
+        );
+        (0.5 * (p + r + ((p - r) * (p - r) + 4.0 * q * q).sqrt())).sqrt()
+    }
+
     pub fn validate(&self) -> Result<(), GeorefError> {
-        if !(self.origin.iter().all(|v| v.is_finite()) && self.theta.is_finite()) {
+        let row = self.row_theta.unwrap_or(0.0);
+        if !(self.origin.iter().all(|v| v.is_finite()) && self.theta.is_finite() && row.is_finite())
+        {
             return Err(GeorefError::NotFinite);
         }
         if !(self.step.iter().all(|s| s.is_finite() && *s > 0.0)) {
             return Err(GeorefError::BadStep(self.step));
+        }
+        let [u, v] = self.axes();
+        if (u[0] * v[1] - u[1] * v[0]).abs() <= 1e-12 {
+            return Err(GeorefError::Degenerate);
         }
         Ok(())
     }
@@ -538,9 +604,41 @@ mod tests {
     }
 
     #[test]
-    fn mirrored_transform_is_refused() {
-        let gt = [0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
-        assert_eq!(Georef::from_geotransform(gt), Err(GeorefError::Skewed));
+    fn skewed_and_mirrored_transforms_round_trip_and_flat_ones_are_refused() {
+        for gt in [
+            // Rows that run north.
+            [0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            // A shear: rows lean east by a third of a cell.
+            [500.0, 2.0, 0.7, 900.0, 0.0, -2.0],
+            // Rotated and sheared, with unequal steps.
+            [10.0, 3.0, 1.0, 20.0, 0.5, -2.5],
+        ] {
+            let g = Georef::from_geotransform(gt).unwrap();
+            assert!(g.row_theta.is_some(), "{gt:?}");
+            let back = g.geotransform();
+            for (a, b) in gt.iter().zip(back.iter()) {
+                assert!((a - b).abs() < 1e-9, "{gt:?} vs {back:?}");
+            }
+            for (c, r) in [(0.0, 0.0), (7.25, 3.5), (-2.0, 11.0)] {
+                let p = g.to_world(c, r);
+                // GDAL's own arithmetic for the centre of pixel (c, r).
+                let q = [
+                    gt[0] + (c + 0.5) * gt[1] + (r + 0.5) * gt[2],
+                    gt[3] + (c + 0.5) * gt[4] + (r + 0.5) * gt[5],
+                ];
+                assert!((p[0] - q[0]).abs() < 1e-9 && (p[1] - q[1]).abs() < 1e-9);
+                let back = g.to_grid(p);
+                assert!((back[0] - c).abs() < 1e-9 && (back[1] - r).abs() < 1e-9);
+            }
+        }
+        let flat = [0.0, 1.0, 2.0, 0.0, 1.0, 2.0];
+        assert_eq!(
+            Georef::from_geotransform(flat),
+            Err(GeorefError::Degenerate)
+        );
+        // A north-up raster keeps no row angle of its own.
+        let up = [0.0, 1.0, 0.0, 0.0, 0.0, -1.0];
+        assert_eq!(Georef::from_geotransform(up).unwrap().row_theta, None);
     }
 
     #[test]

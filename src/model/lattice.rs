@@ -20,6 +20,8 @@ const PHASE_TOL: f64 = 1e-6;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Lattice {
     pub theta: f64,
+    /// The row axis's own angle, for skewed or mirrored grids (see [`Georef::row_theta`]).
+    pub row_theta: Option<f64>,
     pub step: [f64; 2],
     /// Where the lattice sits along each axis, as a fraction of a step in [10⁻⁶, 1 − 10⁻⁶], or
     /// 0.
@@ -41,6 +43,7 @@ impl Lattice {
         });
         Lattice {
             theta: g.theta,
+            row_theta: g.row_theta,
             step: g.step,
             phase,
         }
@@ -51,7 +54,16 @@ impl Lattice {
         let close = |a: f64, b: f64| (a - b).abs() <= STEP_TOL * a.abs().max(b.abs());
         let angle = (self.theta - o.theta).rem_euclid(std::f64::consts::TAU);
         let angle_ok = angle <= STEP_TOL || std::f64::consts::TAU - angle <= STEP_TOL;
+        let rows_ok = match (self.row_theta, o.row_theta) {
+            (None, None) => true,
+            (Some(a), Some(b)) => {
+                let d = (a - b).rem_euclid(std::f64::consts::TAU);
+                d <= STEP_TOL || std::f64::consts::TAU - d <= STEP_TOL
+            }
+            _ => false,
+        };
         angle_ok
+            && rows_ok
             && close(self.step[0], o.step[0])
             && close(self.step[1], o.step[1])
             && (0..2).all(|k| {
@@ -74,11 +86,7 @@ impl Lattice {
 /// A point's coordinates along the grid's column and row axes, in steps, from the plane's
 /// origin.
 fn axis_coords(g: &Georef, p: [f64; 2]) -> [f64; 2] {
-    let [u, v] = g.axes();
-    [
-        (p[0] * u[0] + p[1] * u[1]) / g.step[0],
-        (p[0] * v[0] + p[1] * v[1]) / g.step[1],
-    ]
+    g.coords(p)
 }
 
 /// The tile of `kernel` lattice cells that holds lattice index `i`, for any sign of `i`.

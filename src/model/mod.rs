@@ -2,11 +2,13 @@
 
 pub mod accuracy;
 pub mod edge;
+pub mod geoid;
 pub mod grid;
 pub mod ids;
 pub mod lattice;
 pub mod mipmap;
 pub mod patch;
+pub mod place;
 pub mod source;
 pub mod spline;
 pub mod survey;

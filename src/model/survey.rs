@@ -7,7 +7,11 @@ use super::ids::{hash64, SurveyId};
 use super::lattice::Lattice;
 use super::mipmap;
 use super::mipmap::Filter;
-use super::patch::{make_patches, Patch, PatchKind, PatchLayout, Tiling};
+use super::patch::{make_patches, CellRect, Patch, PatchKind, PatchLayout, Tiling};
+use super::place::{self, PlaceError, Placement, PlaneId, Planes, STORE_PLANE};
+use crate::crs::vertical::VerticalCrs;
+use crate::crs::Crs;
+use crate::index::geom::Aabb;
 use crate::index::lod::PatchBox;
 use std::sync::Arc;
 use thiserror::Error;
@@ -38,8 +42,17 @@ pub struct SurveyMeta {
     /// ε, in metres: the largest over the survey's kernels.
     pub accuracy: f64,
     pub spec: AccuracySpec,
-    /// EPSG code of the survey's horizontal CRS, where known.
-    pub crs: Option<u32>,
+    /// The survey's horizontal CRS, where known: its plane.
+    pub crs: Option<Crs>,
+    /// What its heights are measured from, where known: the store's vertical CRS, once
+    /// heights in another were converted to it.
+    pub vertical: Option<VerticalCrs>,
+    /// Where it lies in the store's plane, for a survey in another CRS; None in the store's
+    /// own (see [`Survey::placed`]).
+    pub placement: Option<Arc<Placement>>,
+    /// The CRS of the store its patches' errors were made for, once placed in one (see
+    /// [`Survey::placed`]); None for a survey just built.
+    pub placed_in: Option<Crs>,
     pub layout: PatchLayout,
     /// The function its patches evaluate.
     pub kind: PatchKind,
@@ -86,10 +99,52 @@ impl SurveyMeta {
 
     /// The patches as LOD-space boxes.
     pub fn boxes(&self) -> Vec<PatchBox> {
+        let frames = self.placement.as_ref().map(|pl| (pl.plane.id, &pl.frames));
         self.patches
             .iter()
-            .map(|p| PatchBox::new(p, &self.shapes[p.level as usize].georef, self.layout.kernel))
+            .enumerate()
+            .map(|(k, p)| {
+                let g = &self.shapes[p.level as usize].georef;
+                let framed = frames.map(|(plane, f)| (plane, &f[k]));
+                PatchBox::new(p, g, self.layout.kernel, framed)
+            })
             .collect()
+    }
+
+    /// The CRS of the store the survey is placed in, or would be by default: the store it
+    /// was placed for, else its own.
+    pub fn placed_for(&self) -> Option<Crs> {
+        self.placed_in.clone().or_else(|| self.crs.clone())
+    }
+
+    /// The plane the survey's grid is in: the store's, or its own CRS's.
+    pub fn plane_id(&self) -> PlaneId {
+        self.placement.as_ref().map_or(STORE_PLANE, |p| p.plane.id)
+    }
+
+    /// The store-plane bounds of the survey's samples.
+    pub fn footprint(&self) -> Aabb {
+        match &self.placement {
+            Some(p) => p.footprint,
+            None => self.shapes[0].world_bounds(),
+        }
+    }
+
+    /// Where its patches lie in the store's plane, for a survey of another CRS whose patches
+    /// (and their errors) are as a store of this CRS keeps them. None for the store's own.
+    pub fn placement_in(&self, planes: &Planes) -> Result<Option<Arc<Placement>>, PlaceError> {
+        let Some(crs) = &self.crs else {
+            return Ok(None);
+        };
+        let Some(plane) = planes.get(crs)? else {
+            return Ok(None);
+        };
+        let windows: Vec<(usize, CellRect)> = self
+            .patches
+            .iter()
+            .map(|p| (p.level as usize, p.window))
+            .collect();
+        Placement::new(plane, &self.shapes, windows).map(|p| Some(Arc::new(p)))
     }
 
     /// Area of one level-0 cell.
@@ -123,7 +178,7 @@ impl SurveyMeta {
 impl Survey {
     /// The id of a survey's content. Two files with the same samples, georeference, CRS and
     /// accuracy (or both with an estimated one) are the same survey.
-    pub fn id_of(grid: &Grid, spec: AccuracySpec, crs: Option<u32>) -> SurveyId {
+    pub fn id_of(grid: &Grid, spec: AccuracySpec, crs: Option<&Crs>) -> SurveyId {
         let mut h = blake3::Hasher::new();
         h.update(b"patchwork.survey.v1");
         h.update(&(grid.cols as u64).to_le_bytes());
@@ -132,12 +187,28 @@ impl Survey {
         for v in [g.origin[0], g.origin[1], g.theta, g.step[0], g.step[1]] {
             h.update(&v.to_bits().to_le_bytes());
         }
+        // Only a skewed or mirrored grid has a row angle of its own, and only it hashes one:
+        // every other survey keeps the id it always had.
+        if let Some(psi) = g.row_theta {
+            h.update(b"row_theta");
+            h.update(&psi.to_bits().to_le_bytes());
+        }
         match spec {
             AccuracySpec::Fixed(a) => h.update(&a.to_bits().to_le_bytes()),
             // The estimate is a function of the samples, so the samples name it.
             AccuracySpec::Auto => h.update(b"auto.v1"),
         };
-        h.update(&crs.unwrap_or(0).to_le_bytes());
+        // An EPSG CRS hashes its code, as every survey always has; a definition without one,
+        // its canonical text.
+        match crs.map(|c| (c.epsg_code(), c)) {
+            None => h.update(&0u32.to_le_bytes()),
+            Some((Some(code), _)) => h.update(&code.to_le_bytes()),
+            Some((None, c)) => {
+                h.update(&0u32.to_le_bytes());
+                h.update(b"crs");
+                h.update(c.key().as_bytes())
+            }
+        };
         // One NaN bit pattern for every void, so that how a file spelled nodata does not matter.
         let mut buf = Vec::with_capacity(4 * 4096);
         for chunk in grid.samples.chunks(4096) {
@@ -161,7 +232,7 @@ impl Survey {
     pub fn build(
         grid: Grid,
         spec: impl Into<AccuracySpec>,
-        crs: Option<u32>,
+        crs: Option<Crs>,
         layout: PatchLayout,
     ) -> Result<Survey, SurveyError> {
         Self::build_with(grid, spec, crs, layout, Recipe::default())
@@ -172,9 +243,24 @@ impl Survey {
     pub fn build_with(
         grid: Grid,
         spec: impl Into<AccuracySpec>,
-        crs: Option<u32>,
+        crs: Option<Crs>,
         layout: PatchLayout,
         recipe: Recipe,
+    ) -> Result<Survey, SurveyError> {
+        Self::build_adding(grid, spec, crs, layout, recipe, 0.0)
+    }
+
+    /// [`Survey::build_with`], with `extra` metres added to an estimated ε everywhere: what a
+    /// conversion of the heights between vertical CRSs may have added to their error. (A
+    /// fixed ε comes with it added already, so that the survey's id hashes what its record
+    /// keeps.)
+    pub fn build_adding(
+        grid: Grid,
+        spec: impl Into<AccuracySpec>,
+        crs: Option<Crs>,
+        layout: PatchLayout,
+        recipe: Recipe,
+        extra: f64,
     ) -> Result<Survey, SurveyError> {
         let spec = spec.into();
         if let AccuracySpec::Fixed(a) = spec {
@@ -188,11 +274,17 @@ impl Survey {
         if grid.valid_count() == 0 {
             return Err(SurveyError::AllNodata);
         }
-        let id = Self::id_of(&grid, spec, crs);
+        let id = Self::id_of(&grid, spec, crs.as_ref());
         let tiling = Self::tiling_of(&grid, &layout);
         let kernel_accuracy = match spec {
             AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
-            AccuracySpec::Auto => accuracy::estimate(&grid, &tiling, layout.margin as u32).kernels,
+            AccuracySpec::Auto => {
+                let mut k = accuracy::estimate(&grid, &tiling, layout.margin as u32).kernels;
+                if extra > 0.0 {
+                    k.values.iter_mut().for_each(|v| *v += extra);
+                }
+                k
+            }
         };
         let levels = mipmap::build_with(Arc::new(grid), layout.kernel, recipe.mipmap);
         let func = recipe.patches.function();
@@ -215,7 +307,7 @@ impl Survey {
     pub fn restore(
         id: SurveyId,
         spec: AccuracySpec,
-        crs: Option<u32>,
+        crs: Option<Crs>,
         layout: PatchLayout,
         kind: PatchKind,
         tiling: Tiling,
@@ -231,6 +323,9 @@ impl Survey {
                 accuracy: kernel_accuracy.max(),
                 spec,
                 crs,
+                vertical: None,
+                placement: None,
+                placed_in: None,
                 layout,
                 kind,
                 tiling,
@@ -246,5 +341,64 @@ impl Survey {
     /// What the index keeps of the survey.
     pub fn meta(&self) -> Arc<SurveyMeta> {
         self.meta.clone()
+    }
+
+    /// The survey as a store of the planes' CRS keeps it: in the store's own CRS unchanged;
+    /// in another, placed in the store's plane, every patch's error grown by what the
+    /// reprojection can cost there (see [`crate::model::place`]).
+    ///
+    /// A survey already placed in a store of that CRS (one read back from it) keeps its
+    /// errors, and gets its patches' frames; one placed for another store is refused.
+    pub fn placed(&self, planes: &Planes) -> Result<Survey, PlaceError> {
+        let store = planes.store_crs();
+        let keep = match &self.placed_in {
+            Some(c) if c == store => true,
+            Some(c) => {
+                return Err(PlaceError::Elsewhere {
+                    placed: c.label(),
+                    store: store.label(),
+                })
+            }
+            None => false,
+        };
+        let placement = match (&self.placement, keep) {
+            (Some(p), true) => Some(p.clone()),
+            _ => self.placement_in(planes)?,
+        };
+        let mut meta = (*self.meta).clone();
+        meta.placed_in = Some(store.clone());
+        let Some(placement) = placement else {
+            meta.placement = None;
+            return Ok(Survey {
+                meta: Arc::new(meta),
+                levels: self.levels.clone(),
+            });
+        };
+        if keep {
+            meta.placement = Some(placement);
+            return Ok(Survey {
+                meta: Arc::new(meta),
+                levels: self.levels.clone(),
+            });
+        }
+        let rho = placement.residuals.to_native;
+        let g0 = &self.shapes[0].georef;
+        let slopes = place::kernel_slopes(&self.levels[0], &self.tiling);
+        let [cw, ch] = self.shapes[0].cells();
+        for p in meta.patches.iter_mut() {
+            let f = 1u32 << p.level;
+            let under = CellRect {
+                c0: p.window.c0 * f,
+                r0: p.window.r0 * f,
+                c1: (p.window.c1 * f).min(cw as u32),
+                r1: (p.window.r1 * f).min(ch as u32),
+            };
+            p.error += place::reprojection_error(rho, g0, &slopes, &self.tiling, &under);
+        }
+        meta.placement = Some(placement);
+        Ok(Survey {
+            meta: Arc::new(meta),
+            levels: self.levels.clone(),
+        })
     }
 }

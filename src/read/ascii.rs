@@ -206,14 +206,13 @@ pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadE
         )));
     }
 
-    let (epsg, crs_name) = sidecar_crs(path, limits)?;
+    let crs = sidecar_crs(path, limits)?;
     Ok(Raster {
         cols,
         rows,
         samples,
         geotransform,
-        epsg,
-        crs_name,
+        crs,
         nodata: h.nodata,
     })
 }
@@ -232,12 +231,8 @@ fn parse_sample(tok: &str, index: usize, nodata: Option<f32>) -> Result<f32, Rea
 /// Extensions of the projection file beside a grid, which the reader opens.
 pub const PRJ_EXTENSIONS: [&str; 2] = ["prj", "PRJ"];
 
-/// The CRS of the `.prj` next to the grid, if there is one: its EPSG code, or the name of a
-/// CRS it describes that has none.
-fn sidecar_crs(
-    path: &Path,
-    limits: &ReadLimits,
-) -> Result<(Option<u32>, Option<String>), ReadError> {
+/// The CRS of the `.prj` next to the grid, if there is one.
+fn sidecar_crs(path: &Path, limits: &ReadLimits) -> Result<super::crs::FileCrs, ReadError> {
     for ext in PRJ_EXTENSIONS {
         let prj = path.with_extension(ext);
         // No entry at all is no projection file; anything else is opened like the grid.
@@ -250,12 +245,9 @@ fn sidecar_crs(
         file.take(1 << 20)
             .read_to_string(&mut text)
             .map_err(|_| ReadError::invalid(format!("{} is not a text file", prj.display())))?;
-        return Ok(match super::crs::epsg_from_wkt(&text) {
-            Ok(c) => (Some(c), None),
-            Err(name) => (None, Some(name)),
-        });
+        return Ok(super::crs::FileCrs::of_text(&text));
     }
-    Ok((None, None))
+    Ok(super::crs::FileCrs::default())
 }
 
 #[cfg(test)]
@@ -278,7 +270,7 @@ mod tests {
         // a cellsize of nine digits, and an ESRI .prj beside it.
         let r = read(&crate::read::test_support::data_file("ventoux.asc")).unwrap();
         assert_eq!((r.cols, r.rows), (120, 100));
-        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.crs.epsg(), Some(4326));
         assert_eq!(r.nodata, Some(-32768.0));
         assert_eq!(r.nodata_count(), 0);
         crate::read::test_support::assert_gt_close(
@@ -310,7 +302,7 @@ mod tests {
         assert_eq!((r.cols, r.rows), (3, 2));
         assert_eq!(r.geotransform, [100.0, 10.0, 0.0, 220.0, 0.0, -10.0]);
         assert_eq!(r.nodata, Some(-9999.0));
-        assert_eq!(r.epsg, None);
+        assert_eq!(r.crs.epsg(), None);
         assert_eq!(r.get(0, 0), 1.0);
         assert_eq!(r.get(1, 0), 2.5);
         assert!(r.get(2, 0).is_nan());
@@ -355,14 +347,15 @@ mod tests {
             ),
             (
                 "utm_noauth",
-                r#"PROJCS["WGS 84 / UTM zone 31N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],AUTHORITY["EPSG","4326"]],PROJECTION["Transverse_Mercator"]]"#,
-                // No code of its own: its name and datum make it WGS 84 / UTM 31N.
+                r#"PROJCS["UTM 31 on WGS 84",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],AUTHORITY["EPSG","4326"]],PROJECTION["Transverse_Mercator"],PARAMETER["latitude_of_origin",0],PARAMETER["central_meridian",3],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],PARAMETER["false_northing",0],UNIT["metre",1]]"#,
+                // No code of its own: its datum and parameters make it WGS 84 / UTM 31N.
                 Some(32631),
             ),
             (
                 "lambert",
                 r#"GEOGCS["RGF93",DATUM["Reseau_Geodesique_Francais_1993",SPHEROID["GRS 1980",6378137,298.257222101]]]"#,
-                None,
+                // Its datum named, and nothing else to tell it apart: RGF93 v1, geographic.
+                Some(4171),
             ),
             (
                 "wkt2",
@@ -374,12 +367,10 @@ mod tests {
             let p = write(&dir, &format!("{name}.asc"), grid);
             write(&dir, &format!("{name}.prj"), wkt);
             let r = read(&p).unwrap();
-            assert_eq!(r.epsg, want, "{name}");
-            // What has no code is named, so that the error can say what was found.
-            assert_eq!(r.crs_name.is_some(), want.is_none(), "{name}");
+            assert_eq!(r.crs.epsg(), want, "{name}");
+            // What cannot be read is named, so that the error can say what was found.
+            assert_eq!(r.crs.unreadable.is_some(), r.crs.crs.is_none(), "{name}");
         }
-        let p = dir.path().join("lambert.asc");
-        assert_eq!(read(&p).unwrap().crs_name.as_deref(), Some("RGF93"));
     }
 
     #[test]

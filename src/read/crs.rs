@@ -1,130 +1,51 @@
-//! Naming a CRS by its EPSG code when a file describes it by parameters instead: WKT in a
-//! `.prj` without an authority, or a GeoTIFF whose projection is "user-defined".
-//!
-//! Only what DEM files commonly carry is recognised: geographic WGS 84, NAD83 and ETRS89, UTM
-//! zones on those datums, and Web Mercator. Anything else is reported by name, so that the user
-//! can say which code it is in a sidecar.
+//! The CRS a file describes, as [`crate::crs`] reads it: a WKT (a `.prj`, a GeoTIFF
+//! citation), or GeoTIFF keys, whether they name an EPSG code or give a user-defined
+//! projection by its parameters. What cannot be read is named, so that the error can say what
+//! the file held.
 
-/// A geodetic datum with EPSG codes of its own.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Datum {
-    Wgs84,
-    Nad83,
-    Etrs89,
+use crate::crs::vertical::VerticalCrs;
+use crate::crs::Crs;
+
+/// What a file says of its CRS.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FileCrs {
+    pub crs: Option<Crs>,
+    /// A CRS the file describes that could not be read, by name (for the error).
+    pub unreadable: Option<String>,
+    /// The vertical CRS, where the file names one.
+    pub vertical: Option<VerticalCrs>,
 }
 
-impl Datum {
-    /// The geographic CRS of the datum.
-    pub fn geographic(self) -> u32 {
-        match self {
-            Datum::Wgs84 => 4326,
-            Datum::Nad83 => 4269,
-            Datum::Etrs89 => 4258,
+impl FileCrs {
+    /// The horizontal CRS's EPSG code, where it has one.
+    pub fn epsg(&self) -> Option<u32> {
+        self.crs.as_ref().and_then(|c| c.epsg_code())
+    }
+
+    /// The CRS of a WKT text (or any other definition [`Crs::parse`] reads).
+    ///
+    /// A WKT too incomplete to define a CRS (no projection parameters, say) that bears the
+    /// exact name of an EPSG CRS is that CRS, as GDAL would take it.
+    pub fn of_text(text: &str) -> FileCrs {
+        match Crs::parse(text) {
+            Ok(c) => FileCrs {
+                crs: Some(c),
+                unreadable: None,
+                vertical: VerticalCrs::of_compound(text),
+            },
+            Err(e) => match first_name(text).and_then(by_name) {
+                Some(c) => FileCrs {
+                    crs: Some(c),
+                    unreadable: None,
+                    vertical: None,
+                },
+                None => FileCrs {
+                    crs: None,
+                    unreadable: Some(e.to_string()),
+                    vertical: None,
+                },
+            },
         }
-    }
-
-    /// The UTM zone's projected CRS on this datum, where EPSG defines one.
-    pub fn utm(self, zone: u32, north: bool) -> Option<u32> {
-        if !(1..=60).contains(&zone) {
-            return None;
-        }
-        match (self, north) {
-            (Datum::Wgs84, true) => Some(32600 + zone),
-            (Datum::Wgs84, false) => Some(32700 + zone),
-            // NAD83 zones 1–23 and ETRS89 zones 28–38 are the ones EPSG numbers this way.
-            (Datum::Nad83, true) if zone <= 23 => Some(26900 + zone),
-            (Datum::Etrs89, true) if (28..=38).contains(&zone) => Some(25800 + zone),
-            _ => None,
-        }
-    }
-
-    /// The datum a name or citation mentions, if one of ours. A TOWGS84[...] node names the
-    /// transformation to WGS 84, not the datum, so it is left out.
-    pub fn in_text(text: &str) -> Option<Datum> {
-        let t = squash(&without_towgs84(text));
-        if t.contains("nad83") || t.contains("northamericandatum1983") {
-            Some(Datum::Nad83)
-        } else if t.contains("etrs89")
-            || t.contains("etrs1989")
-            || t.contains("europeanterrestrial")
-        {
-            Some(Datum::Etrs89)
-        } else if t.contains("wgs84")
-            || t.contains("wgs1984")
-            || t.contains("worldgeodeticsystem1984")
-        {
-            Some(Datum::Wgs84)
-        } else {
-            None
-        }
-    }
-}
-
-/// The text with every TOWGS84[...] node removed.
-fn without_towgs84(text: &str) -> String {
-    let mut out = String::with_capacity(text.len());
-    let upper = text.to_ascii_uppercase();
-    let mut i = 0;
-    while let Some(k) = upper[i..].find("TOWGS84[") {
-        out.push_str(&text[i..i + k]);
-        let rest = i + k;
-        i = upper[rest..].find(']').map_or(text.len(), |e| rest + e + 1);
-    }
-    out.push_str(&text[i..]);
-    out
-}
-
-/// Lower-case letters and digits only: "WGS_1984_UTM_Zone_31N" and "WGS 84 / UTM zone 31N"
-/// compare alike.
-fn squash(s: &str) -> String {
-    s.chars()
-        .filter(|c| c.is_ascii_alphanumeric())
-        .map(|c| c.to_ascii_lowercase())
-        .collect()
-}
-
-/// A UTM zone and hemisphere named in text: "UTM zone 31N", "UTM_Zone_31N",
-/// "UTM Zone 31, Northern Hemisphere", "utm31s".
-pub fn utm_in_text(text: &str) -> Option<(u32, bool)> {
-    let t = squash(text);
-    let at = t.find("utm")?;
-    let rest = t[at + 3..].strip_prefix("zone").unwrap_or(&t[at + 3..]);
-    let digits: String = rest.chars().take_while(|c| c.is_ascii_digit()).collect();
-    let zone: u32 = digits.parse().ok()?;
-    let after = &rest[digits.len()..];
-    let north = if after.starts_with("northern") || after.starts_with('n') {
-        true
-    } else if after.starts_with("southern") || after.starts_with('s') {
-        false
-    } else {
-        return None;
-    };
-    (1..=60).contains(&zone).then_some((zone, north))
-}
-
-/// The UTM zone a Transverse Mercator with these parameters is, if it is one.
-pub fn utm_from_parameters(
-    central_meridian: f64,
-    scale: f64,
-    false_easting: f64,
-    false_northing: f64,
-    latitude_of_origin: f64,
-) -> Option<(u32, bool)> {
-    let zone = ((central_meridian + 183.0) / 6.0).round();
-    let standard = (scale - 0.9996).abs() < 1e-9
-        && (false_easting - 500_000.0).abs() < 1e-6
-        && latitude_of_origin.abs() < 1e-9
-        && (central_meridian - (6.0 * zone - 183.0)).abs() < 1e-9
-        && (1.0..=60.0).contains(&zone);
-    if !standard {
-        return None;
-    }
-    if false_northing.abs() < 1e-6 {
-        Some((zone as u32, true))
-    } else if (false_northing - 10_000_000.0).abs() < 1e-6 {
-        Some((zone as u32, false))
-    } else {
-        None
     }
 }
 
@@ -143,120 +64,278 @@ pub fn crs_label(name: &str) -> String {
     }
 }
 
-/// The EPSG code of a WKT CRS: its own AUTHORITY (or WKT2 ID), else what its name or its
-/// parameters identify. Otherwise the error names the CRS the WKT describes.
-pub fn epsg_from_wkt(wkt: &str) -> Result<u32, String> {
-    if let Some(code) = top_level_authority(wkt) {
-        return Ok(code);
+/// The name of a WKT's outermost node: its first quoted string.
+fn first_name(text: &str) -> Option<&str> {
+    let a = text.find('"')?;
+    let b = text[a + 1..].find('"')?;
+    Some(&text[a + 1..a + 1 + b])
+}
+
+/// The EPSG CRS whose registry name is `name` (case and runs of spaces aside), as a GeoTIFF
+/// citation such as "WGS 84 / UTM zone 33S" names one.
+pub fn by_name(name: &str) -> Option<Crs> {
+    let norm = |s: &str| {
+        s.split_whitespace()
+            .collect::<Vec<_>>()
+            .join(" ")
+            .to_ascii_lowercase()
+    };
+    let want = norm(name);
+    if want.is_empty() || want.len() > 120 {
+        return None;
     }
-    let upper = wkt.to_ascii_uppercase();
-    let projected = upper.contains("PROJCS[") || upper.contains("PROJCRS[");
-    let name = first_quoted(wkt).unwrap_or_else(|| "a CRS without a name".into());
-    let datum = Datum::in_text(wkt);
-    if !projected {
-        let geographic = upper.contains("GEOGCS[") || upper.contains("GEOGCRS[");
-        return match datum {
-            Some(d) if geographic => Ok(d.geographic()),
-            _ => Err(name),
-        };
-    }
-    let sq = squash(&name);
-    if sq.contains("webmercator")
-        || sq.contains("pseudomercator")
-        || sq.contains("popularvisualisation")
-    {
-        return Ok(3857);
-    }
-    let utm = utm_in_text(&name).or_else(|| {
-        let p = |keys: &[&str]| parameter(wkt, keys);
-        let tm = squash(wkt).contains("transversemercator");
-        if !tm {
-            return None;
+    (1024..32768u32)
+        .find(|&c| {
+            proj_core::lookup_epsg(c)
+                .is_some_and(|d| (d.is_projected() || d.is_geographic()) && norm(d.name()) == want)
+        })
+        .and_then(|c| Crs::epsg(c).ok())
+}
+
+/// The parts of a user-defined GeoTIFF CRS, as its keys give them (GeoTIFF 1.1, §7).
+#[derive(Clone, Debug, Default)]
+pub struct GeoTiffCrs<'a> {
+    /// GeographicTypeGeoKey, GeogGeodeticDatumGeoKey and GeogEllipsoidGeoKey, where codes.
+    pub geographic: Option<u16>,
+    pub datum: Option<u16>,
+    pub ellipsoid: Option<u16>,
+    /// GeogSemiMajorAxisGeoKey and GeogInvFlatteningGeoKey (or GeogSemiMinorAxisGeoKey).
+    pub semi_major: Option<f64>,
+    pub inv_flattening: Option<f64>,
+    pub semi_minor: Option<f64>,
+    /// GeogTOWGS84GeoKey: 3 or 7 Helmert parameters.
+    pub towgs84: Option<Vec<f64>>,
+    /// ProjectionGeoKey (a code of a standard projection, such as 16031 for UTM zone 31N).
+    pub projection: Option<u16>,
+    /// ProjCoordTransGeoKey and the parameters, by key.
+    pub transform: Option<u16>,
+    pub params: Vec<(u16, f64)>,
+    /// ProjLinearUnitsGeoKey.
+    pub linear_units: Option<u16>,
+    pub name: &'a str,
+}
+
+// Projection parameter keys.
+const STD_PARALLEL1: u16 = 3078;
+const STD_PARALLEL2: u16 = 3079;
+const NAT_ORIGIN_LONG: u16 = 3080;
+const NAT_ORIGIN_LAT: u16 = 3081;
+const FALSE_EASTING: u16 = 3082;
+const FALSE_NORTHING: u16 = 3083;
+const FALSE_ORIGIN_LONG: u16 = 3084;
+const FALSE_ORIGIN_LAT: u16 = 3085;
+const FALSE_ORIGIN_EASTING: u16 = 3086;
+const FALSE_ORIGIN_NORTHING: u16 = 3087;
+const CENTER_LONG: u16 = 3088;
+const CENTER_LAT: u16 = 3089;
+const SCALE_AT_NAT_ORIGIN: u16 = 3092;
+const STRAIGHT_VERT_POLE_LONG: u16 = 3095;
+
+impl GeoTiffCrs<'_> {
+    /// The geographic part as WKT 1: the registry's CRS where a code names it (its datum
+    /// code names its geographic CRS, 2000 below it, for EPSG's datums), else one built from
+    /// the ellipsoid's figures and any shift to WGS 84.
+    fn geogcs(&self) -> Option<String> {
+        let code = self
+            .geographic
+            .filter(|&c| c != 0 && c != super::geotiff::USER_DEFINED)
+            .map(u32::from)
+            .or_else(|| {
+                self.datum
+                    .filter(|&d| (6000..7000).contains(&d))
+                    .map(|d| u32::from(d) - 2000)
+            });
+        if let Some(code) = code {
+            if let Some(w) = proj_core::lookup_epsg(code)
+                .filter(|d| d.is_geographic())
+                .and_then(|d| proj_wkt::to_wkt(&d).ok())
+            {
+                // A declared shift overrides the registry's choice, as GDAL reads it.
+                return Some(match &self.towgs84 {
+                    Some(t) => with_towgs84(&w, t),
+                    None => w,
+                });
+            }
         }
-        utm_from_parameters(
-            p(&[
-                "central_meridian",
-                "longitude_of_center",
-                "longitude of natural origin",
-            ])?,
-            p(&["scale_factor", "scale factor at natural origin"])?,
-            p(&["false_easting", "false easting"])?,
-            p(&["false_northing", "false northing"])?,
-            p(&["latitude_of_origin", "latitude of natural origin"]).unwrap_or(0.0),
-        )
-    });
-    match (datum, utm) {
-        (Some(d), Some((zone, north))) => d.utm(zone, north).ok_or(name),
-        _ => Err(name),
+        let (a, rf) = match self.ellipsoid {
+            Some(7030) => (6_378_137.0, 298.257_223_563),
+            Some(7019) => (6_378_137.0, 298.257_222_101),
+            Some(7022) => (6_378_388.0, 297.0),
+            Some(7004) => (6_377_397.155, 299.152_812_8),
+            _ => {
+                let a = self.semi_major?;
+                let rf = self.inv_flattening.or_else(|| {
+                    let b = self.semi_minor?;
+                    (a > b).then(|| a / (a - b))
+                })?;
+                (a, rf)
+            }
+        };
+        let shift = self
+            .towgs84
+            .as_ref()
+            .map(|t| format!(",TOWGS84[{}]", join(t)))
+            .unwrap_or_default();
+        Some(format!(
+            "GEOGCS[\"unknown\",DATUM[\"unknown\",SPHEROID[\"unknown\",{a},{rf}]{shift}],\
+             PRIMEM[\"Greenwich\",0],UNIT[\"degree\",0.0174532925199433]]"
+        ))
+    }
+
+    /// The CRS, as WKT 1 built from the keys; None when they do not define one.
+    pub fn wkt(&self, projected: bool) -> Option<String> {
+        let geog = self.geogcs()?;
+        if !projected {
+            return Some(geog);
+        }
+        let p = |k: u16| self.params.iter().find(|(id, _)| *id == k).map(|(_, v)| *v);
+        let unit = match self.linear_units {
+            None | Some(9001) => "UNIT[\"metre\",1]".to_string(),
+            Some(9002) => "UNIT[\"foot\",0.3048]".into(),
+            Some(9003) => "UNIT[\"US survey foot\",0.304800609601219]".into(),
+            Some(_) => return None,
+        };
+        let (method, params): (&str, Vec<(&str, f64)>) = match (self.projection, self.transform) {
+            // EPSG's UTM projection codes: 16001–16060 north, 16101–16160 south.
+            (Some(c @ 16001..=16060), _) | (Some(c @ 16101..=16160), _) => {
+                let south = c > 16100;
+                let zone = f64::from(c - if south { 16100 } else { 16000 });
+                (
+                    "Transverse_Mercator",
+                    vec![
+                        ("latitude_of_origin", 0.0),
+                        ("central_meridian", 6.0 * zone - 183.0),
+                        ("scale_factor", 0.9996),
+                        ("false_easting", 500_000.0),
+                        ("false_northing", if south { 10_000_000.0 } else { 0.0 }),
+                    ],
+                )
+            }
+            (_, Some(1)) => (
+                "Transverse_Mercator",
+                vec![
+                    ("latitude_of_origin", p(NAT_ORIGIN_LAT).unwrap_or(0.0)),
+                    ("central_meridian", p(NAT_ORIGIN_LONG)?),
+                    ("scale_factor", p(SCALE_AT_NAT_ORIGIN)?),
+                    ("false_easting", p(FALSE_EASTING).unwrap_or(0.0)),
+                    ("false_northing", p(FALSE_NORTHING).unwrap_or(0.0)),
+                ],
+            ),
+            (_, Some(7)) => (
+                "Mercator_1SP",
+                vec![
+                    ("central_meridian", p(NAT_ORIGIN_LONG).unwrap_or(0.0)),
+                    ("scale_factor", p(SCALE_AT_NAT_ORIGIN).unwrap_or(1.0)),
+                    ("false_easting", p(FALSE_EASTING).unwrap_or(0.0)),
+                    ("false_northing", p(FALSE_NORTHING).unwrap_or(0.0)),
+                ],
+            ),
+            (_, Some(8)) => (
+                "Lambert_Conformal_Conic_2SP",
+                vec![
+                    ("standard_parallel_1", p(STD_PARALLEL1)?),
+                    ("standard_parallel_2", p(STD_PARALLEL2)?),
+                    ("latitude_of_origin", p(FALSE_ORIGIN_LAT)?),
+                    ("central_meridian", p(FALSE_ORIGIN_LONG)?),
+                    ("false_easting", p(FALSE_ORIGIN_EASTING).unwrap_or(0.0)),
+                    ("false_northing", p(FALSE_ORIGIN_NORTHING).unwrap_or(0.0)),
+                ],
+            ),
+            (_, Some(9)) => (
+                "Lambert_Conformal_Conic_1SP",
+                vec![
+                    ("latitude_of_origin", p(NAT_ORIGIN_LAT)?),
+                    ("central_meridian", p(NAT_ORIGIN_LONG)?),
+                    ("scale_factor", p(SCALE_AT_NAT_ORIGIN).unwrap_or(1.0)),
+                    ("false_easting", p(FALSE_EASTING).unwrap_or(0.0)),
+                    ("false_northing", p(FALSE_NORTHING).unwrap_or(0.0)),
+                ],
+            ),
+            (_, Some(10)) => (
+                "Lambert_Azimuthal_Equal_Area",
+                vec![
+                    ("latitude_of_center", p(CENTER_LAT)?),
+                    ("longitude_of_center", p(CENTER_LONG)?),
+                    ("false_easting", p(FALSE_EASTING).unwrap_or(0.0)),
+                    ("false_northing", p(FALSE_NORTHING).unwrap_or(0.0)),
+                ],
+            ),
+            (_, Some(11)) => (
+                "Albers_Conic_Equal_Area",
+                vec![
+                    ("standard_parallel_1", p(STD_PARALLEL1)?),
+                    ("standard_parallel_2", p(STD_PARALLEL2)?),
+                    ("latitude_of_center", p(NAT_ORIGIN_LAT)?),
+                    ("longitude_of_center", p(NAT_ORIGIN_LONG)?),
+                    ("false_easting", p(FALSE_EASTING).unwrap_or(0.0)),
+                    ("false_northing", p(FALSE_NORTHING).unwrap_or(0.0)),
+                ],
+            ),
+            (_, Some(15)) => (
+                "Polar_Stereographic",
+                vec![
+                    ("latitude_of_origin", p(NAT_ORIGIN_LAT)?),
+                    ("central_meridian", p(STRAIGHT_VERT_POLE_LONG)?),
+                    ("scale_factor", p(SCALE_AT_NAT_ORIGIN).unwrap_or(1.0)),
+                    ("false_easting", p(FALSE_EASTING).unwrap_or(0.0)),
+                    ("false_northing", p(FALSE_NORTHING).unwrap_or(0.0)),
+                ],
+            ),
+            (_, Some(16)) => (
+                "Oblique_Stereographic",
+                vec![
+                    ("latitude_of_origin", p(NAT_ORIGIN_LAT)?),
+                    ("central_meridian", p(NAT_ORIGIN_LONG)?),
+                    ("scale_factor", p(SCALE_AT_NAT_ORIGIN).unwrap_or(1.0)),
+                    ("false_easting", p(FALSE_EASTING).unwrap_or(0.0)),
+                    ("false_northing", p(FALSE_NORTHING).unwrap_or(0.0)),
+                ],
+            ),
+            _ => return None,
+        };
+        let params: String = params
+            .iter()
+            .map(|(k, v)| format!(",PARAMETER[\"{k}\",{v}]"))
+            .collect();
+        let name = crs_label(self.name).replace('"', "");
+        Some(format!(
+            "PROJCS[\"{name}\",{geog},PROJECTION[\"{method}\"]{params},{unit}]"
+        ))
     }
 }
 
-/// AUTHORITY["EPSG",..] (or ID["EPSG",..]) attached to the outermost node. Nested authorities
-/// (datum, base CRS, units) describe parts, not the CRS itself, and are ignored.
-fn top_level_authority(wkt: &str) -> Option<u32> {
-    let bytes = wkt.as_bytes();
+fn join(v: &[f64]) -> String {
+    v.iter()
+        .map(|x| x.to_string())
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// A WKT 1 GEOGCS with a TOWGS84 node put in its DATUM (replacing any there).
+fn with_towgs84(geogcs: &str, t: &[f64]) -> String {
+    let Some(d) = geogcs.find("DATUM[") else {
+        return geogcs.to_string();
+    };
+    // The DATUM node ends where its brackets balance.
     let mut depth = 0usize;
-    let mut in_quote = false;
-    for i in 0..bytes.len() {
-        match bytes[i] {
-            b'"' => in_quote = !in_quote,
-            b'[' | b'(' if !in_quote => depth += 1,
-            b']' | b')' if !in_quote => depth = depth.saturating_sub(1),
-            _ if !in_quote && depth == 1 => {
-                // Compared as bytes: `i` may fall inside a multi-byte character. A match is
-                // ASCII, so the text after it starts on a character boundary.
-                let rest = &bytes[i..];
-                let keyword_start = i == 0 || matches!(bytes[i - 1], b',' | b'[' | b'(' | b' ');
-                for kw in ["AUTHORITY[", "ID["] {
-                    if keyword_start
-                        && rest.len() >= kw.len()
-                        && rest[..kw.len()].eq_ignore_ascii_case(kw.as_bytes())
-                    {
-                        if let Some(code) = parse_authority(&wkt[i + kw.len()..]) {
-                            return Some(code);
-                        }
-                    }
+    let mut end = None;
+    for (i, ch) in geogcs[d..].char_indices() {
+        match ch {
+            '[' => depth += 1,
+            ']' => {
+                depth -= 1;
+                if depth == 0 {
+                    end = Some(d + i);
+                    break;
                 }
             }
             _ => {}
         }
     }
-    None
-}
-
-/// `"EPSG","32631"]` or `"EPSG",32631]` → 32631.
-fn parse_authority(args: &str) -> Option<u32> {
-    let end = args.find([']', ')'])?;
-    let mut parts = args[..end].split(',');
-    let name = parts.next()?.trim().trim_matches('"');
-    if !name.eq_ignore_ascii_case("EPSG") {
-        return None;
-    }
-    parts.next()?.trim().trim_matches('"').parse().ok()
-}
-
-fn first_quoted(wkt: &str) -> Option<String> {
-    let a = wkt.find('"')?;
-    let b = wkt[a + 1..].find('"')?;
-    Some(wkt[a + 1..a + 1 + b].to_string())
-}
-
-/// The value of PARAMETER["name", value] for the first of `names` present (case and
-/// punctuation aside).
-fn parameter(wkt: &str, names: &[&str]) -> Option<f64> {
-    let upper = wkt.to_ascii_uppercase();
-    let mut from = 0;
-    while let Some(k) = upper[from..].find("PARAMETER[") {
-        let start = from + k + "PARAMETER[".len();
-        let end = start + wkt[start..].find([']', ')'])?;
-        let mut parts = wkt[start..end].splitn(2, ',');
-        let name = squash(parts.next()?);
-        if names.iter().any(|n| squash(n) == name) {
-            return parts.next()?.trim().parse().ok();
-        }
-        from = end;
-    }
-    None
+    let Some(end) = end else {
+        return geogcs.to_string();
+    };
+    format!("{},TOWGS84[{}]{}", &geogcs[..end], join(t), &geogcs[end..])
 }
 
 #[cfg(test)]
@@ -264,47 +343,63 @@ mod tests {
     use super::*;
 
     #[test]
-    fn text_that_is_not_ascii_is_no_problem() {
-        // Found by fuzzing: a two-byte character where a keyword could start.
-        let wkt = "PROJCS[\"x\",\u{77e},AUTHORITY[\"EPSG\",\"32631\"]]";
-        assert_eq!(epsg_from_wkt(wkt), Ok(32631));
-        assert!(epsg_from_wkt("PROJCS[\"é\",ÿÿÿ,é]").is_err());
-    }
-
-    #[test]
-    fn esri_and_ogc_utm_without_authority_resolve() {
+    fn esri_ogc_and_cited_crss_are_read_by_the_library() {
         let esri = r#"PROJCS["WGS_1984_UTM_Zone_31N",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]],PRIMEM["Greenwich",0.0],UNIT["Degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["False_Easting",500000.0],PARAMETER["False_Northing",0.0],PARAMETER["Central_Meridian",3.0],PARAMETER["Scale_Factor",0.9996],PARAMETER["Latitude_Of_Origin",0.0],UNIT["Meter",1.0]]"#;
-        assert_eq!(epsg_from_wkt(esri), Ok(32631));
-        // Named only by its parameters.
-        let unnamed = esri.replace("WGS_1984_UTM_Zone_31N", "custom");
-        assert_eq!(epsg_from_wkt(&unnamed), Ok(32631));
-        let south = esri
-            .replace("WGS_1984_UTM_Zone_31N", "x")
-            .replace("\"False_Northing\",0.0", "\"False_Northing\",10000000.0");
-        assert_eq!(epsg_from_wkt(&south), Ok(32731));
-        let nad = r#"PROJCS["NAD83 / UTM zone 15N",GEOGCS["NAD83",DATUM["North_American_Datum_1983",SPHEROID["GRS 1980",6378137,298.257222101]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],UNIT["metre",1]]"#;
-        assert_eq!(epsg_from_wkt(nad), Ok(26915));
-        let with_id = r#"PROJCS["x",GEOGCS["WGS 84"],AUTHORITY["EPSG","32630"]]"#;
-        assert_eq!(epsg_from_wkt(with_id), Ok(32630));
-        let geo = r#"GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]]]"#;
-        assert_eq!(epsg_from_wkt(geo), Ok(4326));
-        // A datum of its own with a transformation to WGS 84 is not WGS 84.
-        let ed50 = r#"PROJCS["ED50 / UTM zone 31N",GEOGCS["ED50",DATUM["European_Datum_1950",SPHEROID["International 1924",6378388,297],TOWGS84[-87,-98,-121,0,0,0,0]]],PROJECTION["Transverse_Mercator"]]"#;
-        assert_eq!(epsg_from_wkt(ed50), Err("ED50 / UTM zone 31N".to_string()));
+        let f = FileCrs::of_text(esri);
+        assert_eq!(f.crs.and_then(|c| c.epsg_code()), Some(32631));
+        let lcc = r#"PROJCS["RGF93_Lambert_93",GEOGCS["GCS_RGF_1993",DATUM["D_RGF_1993",SPHEROID["GRS_1980",6378137.0,298.257222101]],PRIMEM["Greenwich",0.0],UNIT["Degree",0.0174532925199433]],PROJECTION["Lambert_Conformal_Conic"],PARAMETER["False_Easting",700000.0],PARAMETER["False_Northing",6600000.0],PARAMETER["Central_Meridian",3.0],PARAMETER["Standard_Parallel_1",49.0],PARAMETER["Standard_Parallel_2",44.0],PARAMETER["Latitude_Of_Origin",46.5],UNIT["Meter",1.0]]"#;
+        assert_eq!(
+            FileCrs::of_text(lcc).crs.and_then(|c| c.epsg_code()),
+            Some(2154)
+        );
+        assert_eq!(
+            by_name("WGS 84 / UTM zone 33S").and_then(|c| c.epsg_code()),
+            Some(32733)
+        );
+        assert!(by_name("no such CRS").is_none());
+        // A compound CRS gives its vertical part too.
+        let compound = format!(
+            "COMPD_CS[\"x\",{esri},VERT_CS[\"EGM96 height\",VERT_DATUM[\"EGM96 geoid\",2005,AUTHORITY[\"EPSG\",\"5171\"]],UNIT[\"metre\",1],AUTHORITY[\"EPSG\",\"5773\"]]]"
+        );
+        let f = FileCrs::of_text(&compound);
+        assert_eq!(f.crs.and_then(|c| c.epsg_code()), Some(32631));
+        assert_eq!(
+            f.vertical.map(|v| v.key().to_string()).as_deref(),
+            Some("EPSG:5773")
+        );
+        let bad = FileCrs::of_text("PROJCS[\"Mystery\",PROJECTION[\"Nowhere\"]]");
+        assert!(bad.crs.is_none() && bad.unreadable.unwrap().contains("Mystery"));
     }
 
     #[test]
-    fn an_unknown_projection_is_named() {
-        let lcc = r#"PROJCS["Lambert_Conformal_Conic_Custom",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]]],PROJECTION["Lambert_Conformal_Conic"],PARAMETER["Central_Meridian",3.0]]"#;
-        assert_eq!(
-            epsg_from_wkt(lcc),
-            Err("Lambert_Conformal_Conic_Custom".to_string())
-        );
-        assert_eq!(
-            utm_in_text("UTM Zone 31, Northern Hemisphere"),
-            Some((31, true))
-        );
-        assert_eq!(utm_in_text("WGS 84 / UTM zone 33S"), Some((33, false)));
-        assert_eq!(utm_in_text("no zone here"), None);
+    fn user_defined_geotiff_projections_are_built_from_their_parameters() {
+        let k = GeoTiffCrs {
+            datum: Some(6171),
+            transform: Some(8),
+            params: vec![
+                (STD_PARALLEL1, 49.0),
+                (STD_PARALLEL2, 44.0),
+                (FALSE_ORIGIN_LAT, 46.5),
+                (FALSE_ORIGIN_LONG, 3.0),
+                (FALSE_ORIGIN_EASTING, 700_000.0),
+                (FALSE_ORIGIN_NORTHING, 6_600_000.0),
+            ],
+            name: "Lambert-93",
+            ..Default::default()
+        };
+        let c = Crs::parse(&k.wkt(true).unwrap()).unwrap();
+        assert_eq!(c.epsg_code(), Some(2154), "{:?}", k.wkt(true));
+        // UTM by its projection code on GRS 80 with a zero shift: a CRS of its own, that
+        // transforms like the WGS 84 zone.
+        let k = GeoTiffCrs {
+            ellipsoid: Some(7019),
+            towgs84: Some(vec![0.0; 7]),
+            projection: Some(16015),
+            ..Default::default()
+        };
+        let c = Crs::parse(&k.wkt(true).unwrap()).unwrap();
+        let t = crate::crs::Transform::new(&c, &Crs::epsg(32615).unwrap()).unwrap();
+        let p = t.apply([431_000.0, 4_870_000.0]).unwrap();
+        assert!((p[0] - 431_000.0).abs() < 1e-3 && (p[1] - 4_870_000.0).abs() < 1e-3);
     }
 }

@@ -10,8 +10,10 @@ use tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
 use tiff::tags::Tag;
 use tiff::{TiffError, TiffFormatError};
 
-use super::crs::{epsg_from_wkt, utm_from_parameters, utm_in_text, Datum};
+use super::crs::{by_name, crs_label, FileCrs, GeoTiffCrs};
 use super::{has_extension, open_regular_file, Raster, RasterReader, ReadError, ReadLimits};
+use crate::crs::vertical::VerticalCrs;
+use crate::crs::Crs;
 
 const GEO_KEY_MODEL_TYPE: u16 = 1024;
 const GEO_KEY_RASTER_TYPE: u16 = 1025;
@@ -21,7 +23,7 @@ const RASTER_PIXEL_IS_POINT: u16 = 2;
 const MODEL_TYPE_PROJECTED: u16 = 1;
 const MODEL_TYPE_GEOGRAPHIC: u16 = 2;
 /// GeoTIFF's marker for a CRS described by parameters instead of a code.
-const USER_DEFINED: u16 = 32767;
+pub(crate) const USER_DEFINED: u16 = 32767;
 
 /// Reads single-band GeoTIFF and COG files (first, full-resolution image only).
 pub struct GeoTiffReader;
@@ -219,7 +221,7 @@ fn decode_with(
     let (cols, rows) = (width as usize, height as usize);
 
     let kind = sample_kind(&mut dec)?;
-    let (geotransform, (epsg, crs_name)) = georeference(&mut dec)?;
+    let (geotransform, crs) = georeference(&mut dec)?;
     let nodata = gdal_nodata(&mut dec)?;
     let chunks = chunk_layout_check(&mut dec, file_len)?;
     let expansion = codec_expansion(&mut dec)?;
@@ -258,8 +260,7 @@ fn decode_with(
         rows,
         samples,
         geotransform,
-        epsg,
-        crs_name,
+        crs,
         nodata,
     })
 }
@@ -311,9 +312,6 @@ fn sample_kind<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<SampleKind, ReadE
         }
     })
 }
-
-/// The CRS a GeoTIFF names: its EPSG code, or the name of one it describes without a code.
-type FileCrs = (Option<u32>, Option<String>);
 
 /// Geotransform (GDAL convention, PixelIsArea) and CRS from the GeoTIFF tags.
 fn georeference<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<([f64; 6], FileCrs), ReadError> {
@@ -416,22 +414,23 @@ fn f64_tag<R: Read + Seek>(
 /// their parameter tags.
 struct GeoKeys {
     short: Vec<(u16, u16)>,
-    double: Vec<(u16, f64)>,
+    double: Vec<(u16, Vec<f64>)>,
     ascii: Vec<(u16, String)>,
 }
 
 const GEO_KEY_CITATION: u16 = 1026;
+const GEO_KEY_GEOG_CITATION: u16 = 2049;
 const GEO_KEY_GEODETIC_DATUM: u16 = 2050;
+const GEO_KEY_ELLIPSOID: u16 = 2056;
+const GEO_KEY_SEMI_MAJOR: u16 = 2057;
+const GEO_KEY_SEMI_MINOR: u16 = 2058;
+const GEO_KEY_INV_FLATTENING: u16 = 2059;
+const GEO_KEY_TOWGS84: u16 = 2062;
 const GEO_KEY_PCS_CITATION: u16 = 3073;
 const GEO_KEY_PROJECTION: u16 = 3074;
 const GEO_KEY_COORD_TRANS: u16 = 3075;
-const GEO_KEY_NAT_ORIGIN_LONG: u16 = 3080;
-const GEO_KEY_NAT_ORIGIN_LAT: u16 = 3081;
-const GEO_KEY_FALSE_EASTING: u16 = 3082;
-const GEO_KEY_FALSE_NORTHING: u16 = 3083;
-const GEO_KEY_CENTER_LONG: u16 = 3088;
-const GEO_KEY_SCALE_AT_NAT_ORIGIN: u16 = 3092;
-const CT_TRANSVERSE_MERCATOR: u16 = 1;
+const GEO_KEY_LINEAR_UNITS: u16 = 3076;
+const GEO_KEY_VERTICAL_CS_TYPE: u16 = 4096;
 
 impl GeoKeys {
     fn parse(raw: &[u16], doubles: &[f64], ascii: &str) -> GeoKeys {
@@ -449,8 +448,8 @@ impl GeoKeys {
             match loc {
                 0 => keys.short.push((id, k[3])),
                 34736 => {
-                    if let Some(&v) = doubles.get(at).filter(|_| n >= 1) {
-                        keys.double.push((id, v));
+                    if let Some(v) = doubles.get(at..at + n).filter(|_| n >= 1) {
+                        keys.double.push((id, v.to_vec()));
                     }
                 }
                 34737 => {
@@ -470,7 +469,14 @@ impl GeoKeys {
     }
 
     fn double(&self, id: u16) -> Option<f64> {
-        self.double.iter().find(|(k, _)| *k == id).map(|(_, v)| *v)
+        self.doubles(id).map(|v| v[0])
+    }
+
+    fn doubles(&self, id: u16) -> Option<Vec<f64>> {
+        self.double
+            .iter()
+            .find(|(k, _)| *k == id)
+            .map(|(_, v)| v.clone())
     }
 
     fn text(&self, id: u16) -> Option<&str> {
@@ -499,81 +505,95 @@ impl GeoKeys {
         }
     }
 
-    /// The datum, from the geographic CRS or datum codes, else from the citations.
-    fn datum(&self) -> Option<Datum> {
-        match self
-            .get(GEO_KEY_GEOGRAPHIC_TYPE)
-            .or(self.get(GEO_KEY_GEODETIC_DATUM))
-        {
-            Some(4326 | 6326) => Some(Datum::Wgs84),
-            Some(4269 | 6269) => Some(Datum::Nad83),
-            Some(4258 | 6258) => Some(Datum::Etrs89),
-            _ => [GEO_KEY_PCS_CITATION, GEO_KEY_CITATION]
-                .iter()
-                .find_map(|&k| self.text(k).and_then(Datum::in_text)),
-        }
-    }
-
-    /// The EPSG code, or what a CRS without one is called. A user-defined projection is
-    /// recognised when it is a UTM zone, by its projection code, its parameters or its
-    /// citation.
-    fn crs(&self) -> (Option<u32>, Option<String>) {
+    /// The CRS the keys describe: an EPSG code; a WKT GDAL wrote into a citation; a
+    /// user-defined CRS built from its parameters (GeoTIFF's projection codes and
+    /// transformation parameters, through [`GeoTiffCrs`]); or an EPSG CRS a citation names.
+    /// What none of those reads is named, from its citation.
+    fn crs(&self) -> FileCrs {
+        let vertical = self
+            .get(GEO_KEY_VERTICAL_CS_TYPE)
+            .filter(|&v| v != 0 && v != USER_DEFINED)
+            .and_then(|v| VerticalCrs::epsg(u32::from(v)));
+        let found = |crs: Crs| FileCrs {
+            crs: Some(crs),
+            unreadable: None,
+            vertical: vertical.clone(),
+        };
         if let Some(c) = self.epsg() {
-            return (Some(c), None);
+            return match Crs::epsg(c) {
+                Ok(crs) => found(crs),
+                Err(e) => FileCrs {
+                    crs: None,
+                    unreadable: Some(e.to_string()),
+                    vertical,
+                },
+            };
         }
-        let citation = [GEO_KEY_PCS_CITATION, GEO_KEY_CITATION]
-            .iter()
-            .find_map(|&k| self.text(k));
+        let citation = [
+            GEO_KEY_PCS_CITATION,
+            GEO_KEY_CITATION,
+            GEO_KEY_GEOG_CITATION,
+        ]
+        .iter()
+        .find_map(|&k| self.text(k));
         let model = self.get(GEO_KEY_MODEL_TYPE);
         let projected = model == Some(MODEL_TYPE_PROJECTED)
             || (model.is_none() && self.get(GEO_KEY_PROJECTED_CS_TYPE).is_some());
-        if !projected {
-            if model == Some(MODEL_TYPE_GEOGRAPHIC) {
-                return match self.datum() {
-                    Some(d) => (Some(d.geographic()), None),
-                    None => (
-                        None,
-                        Some(citation.unwrap_or("a user-defined geographic CRS").into()),
-                    ),
-                };
-            }
-            return (None, None);
+        if model.is_none() && !projected && self.get(GEO_KEY_GEOGRAPHIC_TYPE).is_none() {
+            return FileCrs::default();
         }
         // GDAL writes a whole WKT into the citation when it has nothing better.
-        if let Some(w) = citation.and_then(|c| c.find("PROJCS[").map(|i| &c[i..])) {
-            if let Ok(code) = epsg_from_wkt(w) {
-                return (Some(code), None);
+        if let Some(w) = citation.and_then(|c| {
+            ["PROJCS[", "GEOGCS[", "PROJCRS[", "GEOGCRS[", "COMPD_CS["]
+                .iter()
+                .filter_map(|k| c.find(k))
+                .min()
+                .map(|i| &c[i..])
+        }) {
+            let f = FileCrs::of_text(w);
+            if f.crs.is_some() {
+                return FileCrs {
+                    vertical: f.vertical.or(vertical),
+                    ..f
+                };
             }
         }
-        let utm = match self.get(GEO_KEY_PROJECTION) {
-            Some(p @ 16001..=16060) => Some((u32::from(p - 16000), true)),
-            Some(p @ 16101..=16160) => Some((u32::from(p - 16100), false)),
-            _ => None,
+        let param_keys = [
+            3078u16, 3079, 3080, 3081, 3082, 3083, 3084, 3085, 3086, 3087, 3088, 3089, 3092, 3095,
+        ];
+        let user = GeoTiffCrs {
+            geographic: self.get(GEO_KEY_GEOGRAPHIC_TYPE),
+            datum: self.get(GEO_KEY_GEODETIC_DATUM),
+            ellipsoid: self.get(GEO_KEY_ELLIPSOID),
+            semi_major: self.double(GEO_KEY_SEMI_MAJOR),
+            inv_flattening: self.double(GEO_KEY_INV_FLATTENING),
+            semi_minor: self.double(GEO_KEY_SEMI_MINOR),
+            towgs84: self
+                .doubles(GEO_KEY_TOWGS84)
+                .filter(|t| t.len() == 3 || t.len() == 7),
+            projection: self.get(GEO_KEY_PROJECTION),
+            transform: self.get(GEO_KEY_COORD_TRANS),
+            params: param_keys
+                .iter()
+                .filter_map(|&k| self.double(k).map(|v| (k, v)))
+                .collect(),
+            linear_units: self.get(GEO_KEY_LINEAR_UNITS),
+            name: citation.unwrap_or("user-defined"),
+        };
+        if let Some(crs) = user.wkt(projected).and_then(|w| Crs::parse(&w).ok()) {
+            return found(crs);
         }
-        .or_else(|| {
-            (self.get(GEO_KEY_COORD_TRANS) == Some(CT_TRANSVERSE_MERCATOR))
-                .then(|| {
-                    utm_from_parameters(
-                        self.double(GEO_KEY_NAT_ORIGIN_LONG)
-                            .or(self.double(GEO_KEY_CENTER_LONG))?,
-                        self.double(GEO_KEY_SCALE_AT_NAT_ORIGIN)?,
-                        self.double(GEO_KEY_FALSE_EASTING)?,
-                        self.double(GEO_KEY_FALSE_NORTHING)?,
-                        self.double(GEO_KEY_NAT_ORIGIN_LAT).unwrap_or(0.0),
-                    )
-                })
-                .flatten()
-        })
-        .or_else(|| citation.and_then(utm_in_text));
-        match (self.datum(), utm) {
-            (Some(d), Some((zone, north))) => match d.utm(zone, north) {
-                Some(c) => (Some(c), None),
-                None => (None, citation.map(String::from)),
-            },
-            _ => (
-                None,
-                Some(citation.unwrap_or("a user-defined projected CRS").into()),
-            ),
+        if let Some(crs) = citation.and_then(by_name) {
+            return found(crs);
+        }
+        FileCrs {
+            crs: None,
+            unreadable: Some(match citation {
+                Some(c) => crs_label(c),
+                None if projected => "a user-defined projected CRS".into(),
+                None => "a user-defined geographic CRS".into(),
+            }),
+            vertical,
         }
     }
 }
@@ -1059,7 +1079,7 @@ mod tests {
     fn copernicus_cog_tiled_deflate_float_predictor() {
         let r = real("copernicus_cog.tif");
         assert_eq!((r.cols, r.rows), (300, 300));
-        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.crs.epsg(), Some(4326));
         assert_eq!(r.nodata, None);
         assert_gt_close(r.geotransform, n34w119_crop_geotransform(), 1e-12);
         assert_close(r.geotransform[0], -119.000138889, 1e-9, "origin x");
@@ -1099,7 +1119,7 @@ mod tests {
     fn nasadem_i16_pixel_is_point() {
         let r = real("nasadem_strips.tif");
         assert_eq!((r.cols, r.rows), (300, 300));
-        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.crs.epsg(), Some(4326));
         assert_eq!(r.nodata, Some(-32768.0));
         assert_gt_close(r.geotransform, n34w119_crop_geotransform(), 1e-12);
         assert_eq!(r.nodata_count(), 0, "NASADEM is void-filled");
@@ -1109,7 +1129,7 @@ mod tests {
     fn srtm_utm_projected_epsg_and_voids() {
         let r = real("srtm_utm.tif");
         assert_eq!((r.cols, r.rows), (200, 240));
-        assert_eq!(r.epsg, Some(32631));
+        assert_eq!(r.crs.epsg(), Some(32631));
         assert_eq!(r.nodata, Some(-32768.0));
         assert_eq!(r.nodata_count(), 3456);
         // PixelIsPoint, 90 m, cut 300 columns in.
@@ -1131,7 +1151,7 @@ mod tests {
     fn philondenx_nodata_zero_and_nan() {
         let r = real("philondenx_zero_nan.tif");
         assert_eq!((r.cols, r.rows), (512, 64));
-        assert_eq!(r.epsg, Some(32630));
+        assert_eq!(r.crs.epsg(), Some(32630));
         assert_eq!(r.nodata, Some(0.0));
         // 10,124 samples equal to the declared nodata 0 plus one NaN.
         assert_eq!(r.nodata_count(), 10_125);
@@ -1147,7 +1167,7 @@ mod tests {
     fn rhine_deflate_strips_nodata() {
         let r = real("rhine_deflate_strips.tif");
         assert_eq!((r.cols, r.rows), (200, 150));
-        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.crs.epsg(), Some(4326));
         assert_eq!(r.nodata, Some(-9999.0));
         // Part of the rectangle lies outside the basin.
         assert_eq!(r.nodata_count(), 5321);
@@ -1170,7 +1190,7 @@ mod tests {
         // 200 x 200 in 128 x 128 tiles: the last tile column and row are partly padding.
         let r = real("lidar_tiles_padded.tif");
         assert_eq!((r.cols, r.rows), (200, 200));
-        assert_eq!(r.epsg, Some(26915));
+        assert_eq!(r.crs.epsg(), Some(26915));
         assert_eq!(r.nodata_count(), 0);
         let (min, max) = min_max(&r.samples);
         assert_close(min as f64, 379.65933, 1e-4, "min");
@@ -1186,7 +1206,7 @@ mod tests {
     fn big_hole_file_has_its_declared_nodata() {
         let r = real("srtm_big_hole.tif");
         assert_eq!((r.cols, r.rows), (200, 200));
-        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.crs.epsg(), Some(4326));
         // The file really declares -32678 (sic), and its holes hold that value.
         assert_eq!(r.nodata, Some(-32678.0));
         assert_eq!(r.nodata_count(), 30_368);
@@ -1392,7 +1412,7 @@ mod tests {
 
         let dir = tempfile::tempdir().unwrap();
         let r = read(&write_temp(&dir, "zstd.tif", &bytes)).unwrap();
-        assert_eq!((r.cols, r.rows, r.epsg), (20, 18, Some(32631)));
+        assert_eq!((r.cols, r.rows, r.crs.epsg()), (20, 18, Some(32631)));
         assert_eq!(r.geotransform, [500000.0, 2.0, 0.0, 4000000.0, 0.0, -2.0]);
         for row in 0..h {
             for col in 0..w {
@@ -1583,7 +1603,7 @@ mod tests {
         .unwrap();
         let expect: Vec<f32> = values.iter().map(|&v| f32::from(v)).collect();
         assert_eq!(r.samples, expect);
-        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.crs.epsg(), Some(4326));
         // GDAL: origin -= half a pixel along both pixel axes.
         assert_gt_close(
             r.geotransform,
@@ -1628,7 +1648,7 @@ mod tests {
             img.write_data(&data).unwrap();
             let r = read(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
             assert_eq!(r.samples, data, "{name}");
-            assert_eq!(r.epsg, None, "{name}");
+            assert_eq!(r.crs.epsg(), None, "{name}");
         }
     }
 
@@ -1730,7 +1750,7 @@ mod tests {
             vec![],
             "",
         );
-        assert_eq!((r.epsg, r.crs_name), (Some(32631), None));
+        assert_eq!((r.crs.epsg(), r.crs.unreadable), (Some(32631), None));
         // Transverse Mercator given by its parameters: UTM 31N.
         let r = tiff(
             "params.tif",
@@ -1741,7 +1761,7 @@ mod tests {
             vec![3.0, 0.0, 500_000.0, 0.0, 0.9996],
             "",
         );
-        assert_eq!(r.epsg, Some(32631));
+        assert_eq!(r.crs.epsg(), Some(32631));
         // Only a citation, as GDAL writes for a WKT it cannot encode: UTM 33S on WGS 84.
         let r = tiff(
             "cited.tif",
@@ -1749,7 +1769,7 @@ mod tests {
             vec![],
             "WGS 84 / UTM zone 33S|",
         );
-        assert_eq!(r.epsg, Some(32733));
+        assert_eq!(r.crs.epsg(), Some(32733));
         // A projection we do not know is named, not reported as missing.
         let r = tiff(
             "lambert.tif",
@@ -1759,8 +1779,8 @@ mod tests {
             vec![],
             "RGF93 / Lambert-93|",
         );
-        assert_eq!(r.epsg, None);
-        assert_eq!(r.crs_name.as_deref(), Some("RGF93 / Lambert-93"));
+        assert_eq!(r.crs.epsg(), None);
+        assert_eq!(r.crs.unreadable.as_deref(), Some("RGF93 / Lambert-93"));
     }
 
     #[test]
@@ -1936,7 +1956,7 @@ mod tests {
             8,
             &samples,
             [600000.0, 30.0, 0.0, 5000000.0, 0.0, -30.0],
-            Some(32631),
+            Some(&crate::crs::Crs::epsg(32631).unwrap()),
             Some(-9999.0),
         )
         .unwrap();
@@ -1955,7 +1975,7 @@ mod tests {
             4,
             &[5i16; 16],
             [0.0, 1.0, 0.0, 4.0, 0.0, -1.0],
-            Some(4326),
+            Some(&crate::crs::Crs::epsg(4326).unwrap()),
             None,
         )
         .unwrap();

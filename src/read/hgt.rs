@@ -109,8 +109,12 @@ pub fn read_hgt(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
         rows: n,
         samples,
         geotransform,
-        epsg: Some(4326),
-        crs_name: None,
+        // SRTM's heights, and NASADEM's after it, are above the EGM96 geoid.
+        crs: super::crs::FileCrs {
+            crs: Some(crate::crs::Crs::wgs84()),
+            unreadable: None,
+            vertical: crate::crs::vertical::VerticalCrs::epsg(5773),
+        },
         nodata: Some(f64::from(HGT_VOID)),
     })
 }
@@ -147,7 +151,8 @@ mod tests {
         // void (tests/data/make_fixtures.py).
         let r = read_hgt(&data_file("hgt/N44E005.hgt"), &ReadLimits::default()).unwrap();
         assert_eq!((r.cols, r.rows), (1201, 1201));
-        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.crs.epsg(), Some(4326));
+        assert_eq!(r.crs.vertical.as_ref().map(|v| v.key()), Some("EPSG:5773"));
         assert_eq!(r.nodata, Some(-32768.0));
         assert_eq!(r.nodata_count(), 1_282_407);
         let s = 1.0 / 1200.0;

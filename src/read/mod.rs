@@ -32,11 +32,9 @@ pub struct Raster {
     /// the sample (col,row) sits at the pixel centre of the returned transform, exactly as GDAL does
     /// (shift the origin by -0.5 pixel in both axes).
     pub geotransform: [f64; 6],
-    /// EPSG code of the horizontal CRS if the file says (e.g. 4326, 32631), else None.
-    pub epsg: Option<u32>,
-    /// The name of a CRS the file describes but no EPSG code could be found for, so that the
-    /// error can say what was there.
-    pub crs_name: Option<String>,
+    /// The CRS the file gives, if any: the horizontal CRS, a vertical one where it names
+    /// one, and what it describes that could not be read.
+    pub crs: crs::FileCrs,
     /// The declared nodata value if any (already applied: such samples are NaN in `samples`).
     pub nodata: Option<f64>,
 }
@@ -65,8 +63,8 @@ impl Raster {
 }
 
 impl Raster {
-    /// The raster as a model grid. Fails for skewed or mirrored georeferences and rasters of
-    /// fewer than 2×2 samples.
+    /// The raster as a model grid. Fails for degenerate georeferences and rasters of fewer
+    /// than 2×2 samples.
     pub fn into_grid(self) -> Result<crate::model::grid::Grid, crate::model::grid::GridError> {
         let georef = crate::model::grid::Georef::from_geotransform(self.geotransform)?;
         crate::model::grid::Grid::new(self.cols, self.rows, self.samples, georef)
@@ -99,8 +97,7 @@ impl Raster {
                 gt[4],
                 gt[5],
             ],
-            epsg: self.epsg,
-            crs_name: self.crs_name.clone(),
+            crs: self.crs.clone(),
             nodata: self.nodata,
         }
     }
@@ -113,7 +110,7 @@ impl std::fmt::Debug for Raster {
             .field("cols", &self.cols)
             .field("rows", &self.rows)
             .field("geotransform", &self.geotransform)
-            .field("epsg", &self.epsg)
+            .field("crs", &self.crs.crs)
             .field("nodata", &self.nodata)
             .finish_non_exhaustive()
     }

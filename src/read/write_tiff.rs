@@ -11,6 +11,7 @@ use tiff::tags::{Predictor, Tag};
 use tiff::TiffError;
 
 use super::ReadError;
+use crate::crs::Crs;
 
 /// Writes an f32 GeoTIFF. NaN samples are written as `nodata` when one is given.
 pub fn write_geotiff_f32(
@@ -19,7 +20,7 @@ pub fn write_geotiff_f32(
     rows: usize,
     samples: &[f32],
     geotransform: [f64; 6],
-    epsg: Option<u32>,
+    crs: Option<&Crs>,
     nodata: Option<f64>,
 ) -> Result<(), ReadError> {
     check_shape(cols, rows, samples.len())?;
@@ -49,7 +50,7 @@ pub fn write_geotiff_f32(
         rows,
         &data,
         geotransform,
-        epsg,
+        crs,
         nodata,
         Predictor::None,
     )
@@ -62,7 +63,7 @@ pub fn write_geotiff_i16(
     rows: usize,
     samples: &[i16],
     geotransform: [f64; 6],
-    epsg: Option<u32>,
+    crs: Option<&Crs>,
     nodata: Option<f64>,
 ) -> Result<(), ReadError> {
     check_shape(cols, rows, samples.len())?;
@@ -79,7 +80,7 @@ pub fn write_geotiff_i16(
         rows,
         samples,
         geotransform,
-        epsg,
+        crs,
         nodata,
         Predictor::Horizontal,
     )
@@ -106,7 +107,7 @@ fn write<C: ColorType>(
     rows: usize,
     samples: &[C::Inner],
     gt: [f64; 6],
-    epsg: Option<u32>,
+    crs: Option<&Crs>,
     nodata: Option<f64>,
     predictor: Predictor,
 ) -> Result<(), ReadError>
@@ -123,11 +124,13 @@ where
              rotated ones, can be written, got {gt:?}"
         )));
     }
-    let geo_keys = geo_key_directory(epsg)?;
+    let (geo_keys, ascii) = geo_key_directory(crs)?;
 
     let file = BufWriter::new(File::create(path)?);
-    let mut file = encode::<C, _>(file, cols, rows, samples, gt, &geo_keys, nodata, predictor)
-        .map_err(encode_error)?;
+    let mut file = encode::<C, _>(
+        file, cols, rows, samples, gt, &geo_keys, &ascii, nodata, predictor,
+    )
+    .map_err(encode_error)?;
     // BufWriter swallows errors on drop; a full disk must surface here.
     file.flush()?;
     Ok(())
@@ -141,6 +144,7 @@ fn encode<C: ColorType, W: Write + Seek>(
     samples: &[C::Inner],
     gt: [f64; 6],
     geo_keys: &[u16],
+    ascii: &str,
     nodata: Option<f64>,
     predictor: Predictor,
 ) -> Result<W, TiffError>
@@ -171,6 +175,9 @@ where
             )?;
         }
         dir.write_tag(Tag::GeoKeyDirectoryTag, geo_keys)?;
+        if !ascii.is_empty() {
+            dir.write_tag(Tag::GeoAsciiParamsTag, ascii)?;
+        }
         if let Some(nd) = nodata {
             dir.write_tag(Tag::GdalNodata, format_nodata(nd).as_str())?;
         }
@@ -191,32 +198,45 @@ fn format_nodata(v: f64) -> String {
     }
 }
 
-fn geo_key_directory(epsg: Option<u32>) -> Result<Vec<u16>, ReadError> {
+/// The GeoKeyDirectory of a CRS, and its ASCII parameters. An EPSG CRS is its code; one
+/// without a code is user-defined, its WKT in the citation as GDAL writes it ("ESRI PE String
+/// = …"), which GDAL and this crate's reader both read back.
+fn geo_key_directory(crs: Option<&Crs>) -> Result<(Vec<u16>, String), ReadError> {
     const PIXEL_IS_AREA: u16 = 1;
+    const USER_DEFINED: u16 = 32767;
     let mut keys: Vec<[u16; 4]> = Vec::new();
-    if let Some(code) = epsg {
-        let code16 = u16::try_from(code)
-            .ok()
-            .filter(|&c| c != 0 && c != 32767)
-            .ok_or_else(|| {
-                ReadError::unsupported(format!("EPSG:{code} cannot be written as a GeoTIFF key"))
-            })?;
-        // EPSG's geographic 2D CRS codes live in 4000..5000; everything else we write is
-        // treated as projected.
-        let geographic = (4000..5000).contains(&code16);
-        keys.push([1024, 0, 1, if geographic { 2 } else { 1 }]);
-        keys.push([1025, 0, 1, PIXEL_IS_AREA]);
-        keys.push(if geographic {
-            [2048, 0, 1, code16]
-        } else {
-            [3072, 0, 1, code16]
-        });
-    } else {
-        keys.push([1025, 0, 1, PIXEL_IS_AREA]);
+    let mut ascii = String::new();
+    match crs {
+        Some(c) => {
+            let geographic = c.is_geographic();
+            keys.push([1024, 0, 1, if geographic { 2 } else { 1 }]);
+            keys.push([1025, 0, 1, PIXEL_IS_AREA]);
+            let code_key = if geographic { 2048 } else { 3072 };
+            match c.epsg_code().and_then(|code| u16::try_from(code).ok()) {
+                Some(code) if code != 0 && code != USER_DEFINED => {
+                    keys.push([code_key, 0, 1, code]);
+                }
+                _ => {
+                    let wkt = c.wkt1().ok_or_else(|| {
+                        ReadError::unsupported(format!(
+                            "{} has no WKT 1 form to write in a GeoTIFF",
+                            c.label()
+                        ))
+                    })?;
+                    ascii = format!("ESRI PE String = {wkt}|");
+                    let citation = if geographic { 2049 } else { 3073 };
+                    keys.push([code_key, 0, 1, USER_DEFINED]);
+                    keys.push([citation, 34737, ascii.len() as u16, 0]);
+                }
+            }
+        }
+        None => keys.push([1025, 0, 1, PIXEL_IS_AREA]),
     }
+    // Readers may look keys up by bisection: they go in ascending order.
+    keys.sort_by_key(|k| k[0]);
     let mut dir = vec![1, 1, 0, keys.len() as u16];
     dir.extend(keys.iter().flatten());
-    Ok(dir)
+    Ok((dir, ascii))
 }
 
 fn encode_error(e: TiffError) -> ReadError {
@@ -241,12 +261,21 @@ mod tests {
         samples[3] = f32::NAN;
         samples[20] = f32::NAN;
         let gt = [5.0, 1.0 / 1200.0, 0.0, 45.0, 0.0, -1.0 / 1200.0];
-        write_geotiff_f32(&path, cols, rows, &samples, gt, Some(4326), Some(-9999.0)).unwrap();
+        write_geotiff_f32(
+            &path,
+            cols,
+            rows,
+            &samples,
+            gt,
+            Some(&crate::crs::Crs::epsg(4326).unwrap()),
+            Some(-9999.0),
+        )
+        .unwrap();
 
         let r = read_raster(&path, &ReadLimits::default()).unwrap();
         assert_eq!((r.cols, r.rows), (cols, rows));
         assert_eq!(r.geotransform, gt);
-        assert_eq!(r.epsg, Some(4326));
+        assert_eq!(r.crs.epsg(), Some(4326));
         assert_eq!(r.nodata, Some(-9999.0));
         for (i, (a, b)) in r.samples.iter().zip(&samples).enumerate() {
             assert!(
@@ -266,7 +295,7 @@ mod tests {
         write_geotiff_f32(&path, 2, 2, &samples, gt, None, Some(f64::NAN)).unwrap();
         let r = read_geotiff(&path, &ReadLimits::default()).unwrap();
         assert!(r.nodata.unwrap().is_nan());
-        assert_eq!(r.epsg, None);
+        assert_eq!(r.crs.epsg(), None);
         assert_eq!(r.geotransform, gt);
         assert!(r.samples[1].is_nan());
         assert_eq!(r.samples[3], 4.0);
@@ -287,12 +316,21 @@ mod tests {
             })
             .collect();
         let gt = [657596.0, 90.0, 0.0, 4987377.0, 0.0, -90.0];
-        write_geotiff_i16(&path, cols, rows, &samples, gt, Some(32631), Some(-32768.0)).unwrap();
+        write_geotiff_i16(
+            &path,
+            cols,
+            rows,
+            &samples,
+            gt,
+            Some(&crate::crs::Crs::epsg(32631).unwrap()),
+            Some(-32768.0),
+        )
+        .unwrap();
 
         let r = read_raster(&path, &ReadLimits::default()).unwrap();
         assert_eq!((r.cols, r.rows), (cols, rows));
         assert_eq!(r.geotransform, gt);
-        assert_eq!(r.epsg, Some(32631));
+        assert_eq!(r.crs.epsg(), Some(32631));
         assert_eq!(r.nodata, Some(-32768.0));
         for (i, (&a, &b)) in r.samples.iter().zip(&samples).enumerate() {
             if b == -32768 {
@@ -310,7 +348,16 @@ mod tests {
         let (s, c) = 0.3f64.sin_cos();
         let gt = [1000.0, 2.0 * c, 3.0 * s, 5000.0, 2.0 * s, -3.0 * c];
         let samples: Vec<f32> = (0..12).map(|i| i as f32 * 1.5).collect();
-        write_geotiff_f32(&path, 4, 3, &samples, gt, Some(32631), None).unwrap();
+        write_geotiff_f32(
+            &path,
+            4,
+            3,
+            &samples,
+            gt,
+            Some(&crate::crs::Crs::epsg(32631).unwrap()),
+            None,
+        )
+        .unwrap();
         let r = read_raster(&path, &ReadLimits::default()).unwrap();
         assert_eq!((r.cols, r.rows, r.samples.clone()), (4, 3, samples));
         for (a, b) in r.geotransform.iter().zip(gt) {
@@ -320,15 +367,43 @@ mod tests {
 
     #[test]
     fn geo_keys_follow_crs_kind() {
+        let keys = |code: u32| geo_key_directory(Some(&Crs::epsg(code).unwrap())).unwrap();
         assert_eq!(
-            geo_key_directory(Some(4326)).unwrap(),
-            vec![1, 1, 0, 3, 1024, 0, 1, 2, 1025, 0, 1, 1, 2048, 0, 1, 4326]
+            keys(4326),
+            (
+                vec![1, 1, 0, 3, 1024, 0, 1, 2, 1025, 0, 1, 1, 2048, 0, 1, 4326],
+                String::new()
+            )
         );
         assert_eq!(
-            geo_key_directory(Some(32630)).unwrap(),
+            keys(32630).0,
             vec![1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32630]
         );
-        assert!(geo_key_directory(Some(102100)).is_err());
+        // A CRS without a code is written user-defined, its WKT in the citation, and read
+        // back as a CRS that places every point where it did. (The WKT writer names a datum
+        // with a null shift on GRS 80 NAD83, so the names may differ.)
+        let custom = Crs::parse("+proj=tmerc +lat_0=0 +lon_0=-93 +k=0.9996 +x_0=500000 +y_0=0 +ellps=GRS80 +towgs84=0,0,0,0,0,0,0 +units=m").unwrap();
+        assert_eq!(custom.epsg_code(), None);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("custom.tif");
+        let gt = [431_000.0, 1.0, 0.0, 4_870_000.0, 0.0, -1.0];
+        write_geotiff_f32(&path, 2, 2, &[1.0, 2.0, 3.0, 4.0], gt, Some(&custom), None).unwrap();
+        let r = read_raster(&path, &ReadLimits::default()).unwrap();
+        let back = r.crs.crs.unwrap();
+        let wgs = Crs::wgs84();
+        let p = [431_000.0, 4_870_000.0];
+        let a = crate::crs::Transform::new(&custom, &wgs)
+            .unwrap()
+            .apply(p)
+            .unwrap();
+        let b = crate::crs::Transform::new(&back, &wgs)
+            .unwrap()
+            .apply(p)
+            .unwrap();
+        assert!(
+            (a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9,
+            "{a:?} {b:?}"
+        );
     }
 
     #[test]

@@ -128,6 +128,8 @@ pub fn resample_bands(
 ) -> Option<()> {
     let rows = rows.max(1).div_ceil(BLOCK) * BLOCK;
     let bins = bin(&set.patches, grid);
+    // Where each sample lies in the planes of surveys of other CRSs, once for the tile.
+    let planes = set.positions(grid);
     // A north-up tile: what a patch makes of a column's x is worked out once for the tile,
     // and of a row's y once for the row, where a point at a time works both out for every
     // patch at every sample. The answer is the same, term for term (tested).
@@ -140,8 +142,10 @@ pub fn resample_bands(
     for j0 in (0..grid.height).step_by(rows) {
         let mut out = vec![f32::NAN; grid.width * (grid.height - j0).min(rows)];
         match (&grid.axes, &columns) {
-            (Some(axes), Some(columns)) => by_axes(set, axes, columns, &bins, j0, &mut out, cancel),
-            _ => by_points(set, grid, &bins, j0, &mut out, cancel),
+            (Some(axes), Some(columns)) => {
+                by_axes(set, axes, columns, &bins, &planes, j0, &mut out, cancel)
+            }
+            _ => by_points(set, grid, &bins, &planes, j0, &mut out, cancel),
         }
         if cancel.is_cancelled() || !sink(j0, out) {
             return None;
@@ -155,6 +159,7 @@ fn by_points(
     set: &PatchSet,
     grid: &SampleGrid,
     bins: &[Vec<u32>],
+    planes: &[Vec<[f64; 2]>],
     j0: usize,
     out: &mut [f32],
     cancel: &Cancel,
@@ -174,17 +179,33 @@ fn by_points(
                     continue;
                 }
                 let bin = &bins[(j / BLOCK) * bx + i / BLOCK];
-                *o = blend_by(set, bin, &mut tiers, |k| set.patches[k].at(p));
+                let at = j * grid.width + i;
+                *o = blend_by(set, bin, &mut tiers, |k| {
+                    let q = &set.patches[k];
+                    q.at(in_plane(q, p, planes, at))
+                });
             }
         });
 }
 
+/// A sample's position in a patch's plane: `p` itself in the store's, else where `planes`
+/// carried sample `at` of the grid.
+#[inline(always)]
+fn in_plane(q: &ResolvedPatch, p: [f64; 2], planes: &[Vec<[f64; 2]>], at: usize) -> [f64; 2] {
+    match q.plane {
+        0 => p,
+        k => planes[k as usize - 1][at],
+    }
+}
+
 /// The rows from `j0` (the first of a block) that `out` holds, of a north-up tile.
+#[allow(clippy::too_many_arguments)]
 fn by_axes(
     set: &PatchSet,
     axes: &super::Axes,
     columns: &[Option<Columns>],
     bins: &[Vec<u32>],
+    planes: &[Vec<[f64; 2]>],
     j0: usize,
     out: &mut [f32],
     cancel: &Cancel,
@@ -213,7 +234,8 @@ fn by_axes(
                 if cancel.is_cancelled() {
                     return;
                 }
-                let y = axes.ys[b * BLOCK + dj];
+                let row_j = b * BLOCK + dj;
+                let y = axes.ys[row_j];
                 for (h, &k) in rows.iter_mut().zip(&near) {
                     if columns[k as usize].is_some() {
                         *h = set.patches[k as usize].along(1, y);
@@ -254,7 +276,9 @@ fn by_axes(
                             }
                             None => {
                                 for (t, i) in sums {
-                                    if let Some((w, h)) = p.at([axes.xs[i], y]) {
+                                    let at = row_j * width + i;
+                                    let q = in_plane(p, [axes.xs[i], y], planes, at);
+                                    if let Some((w, h)) = p.at(q) {
                                         t.add(w, h.z, h.covered);
                                     }
                                 }
@@ -363,9 +387,17 @@ impl Tier {
     }
 }
 
-/// Formula 1 at one point.
+/// Formula 1 at one point of the store's plane.
 pub fn blend(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
-    blend_by(set, bin, &mut Vec::new(), |k| set.patches[k].at(p))
+    let planes: Vec<Vec<[f64; 2]>> = set
+        .planes
+        .iter()
+        .map(|r| vec![r.at(p).unwrap_or([f64::NAN; 2])])
+        .collect();
+    blend_by(set, bin, &mut Vec::new(), |k| {
+        let q = &set.patches[k];
+        q.at(in_plane(q, p, &planes, 0))
+    })
 }
 
 /// Formula 1 at one point, where `at(k)` is patch k's weight and answer there, with `tiers`

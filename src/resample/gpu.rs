@@ -113,7 +113,9 @@ struct GpuPatch {
     rows: u32,
     kind: u32,
     flat: f32,
-    _pad: [f32; 3],
+    /// Where the patch's plane's positions start in the points buffer.
+    points: u32,
+    _pad: [f32; 2],
 }
 
 #[repr(C)]
@@ -346,13 +348,24 @@ impl GpuResampler {
         let Some(origin) = grid.points().find(|p| !p[0].is_nan() && !p[1].is_nan()) else {
             return Ok((out, tm));
         };
+        // The samples' positions in each other plane of the set, each relative to an origin
+        // of its own, after the store plane's.
+        let planes = set.positions(grid);
+        let origins: Vec<[f64; 2]> = std::iter::once(origin)
+            .chain(planes.iter().map(|ps| {
+                ps.iter()
+                    .copied()
+                    .find(|p| !p[0].is_nan() && !p[1].is_nan())
+                    .unwrap_or([0.0; 2])
+            }))
+            .collect();
         if set.patches.is_empty() {
             return Ok((out, tm));
         }
         let bx = grid.width.div_ceil(BLOCK);
         let by = grid.height.div_ceil(BLOCK);
         let wg_max = self.device.limits().max_compute_workgroups_per_dimension as usize;
-        if (n * 16) as u64 > self.max_binding || bx > wg_max || by > wg_max {
+        if (n * 16 * (1 + planes.len())) as u64 > self.max_binding || bx > wg_max || by > wg_max {
             return Err(GpuError::TooLarge(format!(
                 "a {}×{} grid is more than this device takes in one dispatch",
                 grid.width, grid.height
@@ -372,25 +385,29 @@ impl GpuResampler {
             // Bindings cannot be empty; the offsets keep the shader from reading this.
             flat.push(0);
         }
-        let points: Vec<[f32; 4]> = grid
-            .points()
-            .map(|p| {
-                if p[0].is_nan() || p[1].is_nan() {
-                    [VOID, 0.0, 0.0, 0.0]
-                } else {
-                    let [xh, xl] = split(p[0] - origin[0]);
-                    let [yh, yl] = split(p[1] - origin[1]);
-                    [xh, yh, xl, yl]
-                }
-            })
-            .collect();
+        let pack = |p: [f64; 2], origin: [f64; 2]| {
+            if p[0].is_nan() || p[1].is_nan() {
+                [VOID, 0.0, 0.0, 0.0]
+            } else {
+                let [xh, xl] = split(p[0] - origin[0]);
+                let [yh, yl] = split(p[1] - origin[1]);
+                [xh, yh, xl, yl]
+            }
+        };
+        let mut points: Vec<[f32; 4]> = grid.points().map(|p| pack(p, origin)).collect();
+        for (ps, o) in planes.iter().zip(&origins[1..]) {
+            points.extend(ps.iter().map(|&p| pack(p, *o)));
+        }
         let (placed, samples) = self.place(set)?;
         let max_norm = set.patches.iter().map(|p| p.norm).fold(0.0f64, f64::max);
         let table: Vec<GpuPatch> = set
             .patches
             .iter()
             .zip(&placed)
-            .map(|(p, a)| gpu_patch(p, a, origin, max_norm))
+            .map(|(p, a)| {
+                let k = p.plane as usize;
+                gpu_patch(p, a, origins[k], (k * n) as u32, max_norm)
+            })
             .collect();
         tm.prepare = t0.elapsed();
 
@@ -804,12 +821,21 @@ fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     }
 }
 
-fn gpu_patch(p: &ResolvedPatch, a: &Uploaded, origin: [f64; 2], max_norm: f64) -> GpuPatch {
+/// The shader's record of a patch, its first sample relative to `origin`, the origin of its
+/// plane's positions, which start at `points` in the points buffer.
+fn gpu_patch(
+    p: &ResolvedPatch,
+    a: &Uploaded,
+    origin: [f64; 2],
+    points: u32,
+    max_norm: f64,
+) -> GpuPatch {
     let (c0, r0) = (a.c0 as f64, a.r0 as f64);
     // The first uploaded sample, from the same origin and axes `to_grid` uses.
+    let [u, v] = p.axes;
     let o = [
-        p.origin[0] + c0 * p.u[0] / p.inv_step[0] + r0 * p.v[0] / p.inv_step[1],
-        p.origin[1] + c0 * p.u[1] / p.inv_step[0] + r0 * p.v[1] / p.inv_step[1],
+        p.origin[0] + c0 * u[0] / p.inv_step[0] + r0 * v[0] / p.inv_step[1],
+        p.origin[1] + c0 * u[1] / p.inv_step[0] + r0 * v[1] / p.inv_step[1],
     ];
     let [xh, xl] = split(o[0] - origin[0]);
     let [yh, yl] = split(o[1] - origin[1]);
@@ -854,6 +880,7 @@ fn gpu_patch(p: &ResolvedPatch, a: &Uploaded, origin: [f64; 2], max_norm: f64) -
             Surface::Edge(_) => KIND_EDGE,
         },
         flat: p.flat as f32,
-        _pad: [0.0; 3],
+        points,
+        _pad: [0.0; 2],
     }
 }

@@ -4,6 +4,7 @@
 pub mod cpu;
 pub mod gpu;
 
+use crate::crs::Reprojection;
 use crate::index::geom::{Aabb, ORect};
 use crate::index::query::ViewQuery;
 use crate::model::edge::{EdgeGrid, EdgePatch};
@@ -270,7 +271,15 @@ pub struct ResolvedPatch {
     /// at a point no cut patch covers, the fallback patches of the best rank covering it are
     /// blended, with any of better rank that reach it.
     pub rank: u32,
+    /// Which positions of a sample the patch reads: 0 for the grid's own (the store's
+    /// plane), k for those [`PatchSet::planes`]`[k − 1]` carries them to, in the CRS of a
+    /// survey of another plane.
+    pub plane: u16,
     pub(crate) origin: [f64; 2],
+    /// The level's column and row axes, unit vectors in the world.
+    pub(crate) axes: [[f64; 2]; 2],
+    /// What a world offset is dotted with for grid coordinates ([`Georef::duals`]): the axes
+    /// themselves but on a skewed grid.
     pub(crate) u: [f64; 2],
     pub(crate) v: [f64; 2],
     pub(crate) inv_step: [f64; 2],
@@ -290,6 +299,7 @@ impl ResolvedPatch {
     ) -> Self {
         let g = *surface.georef();
         let [u, v] = g.axes();
+        let [du, dv] = g.duals();
         let nominal = ORect {
             origin: g.to_world(centre[0] - half[0], centre[1] - half[1]),
             u,
@@ -309,9 +319,11 @@ impl ResolvedPatch {
             error,
             fallback,
             rank: 0,
+            plane: 0,
             origin: g.origin,
-            u,
-            v,
+            axes: [u, v],
+            u: du,
+            v: dv,
             inv_step: [1.0 / g.step[0], 1.0 / g.step[1]],
             surface,
         }
@@ -388,9 +400,14 @@ impl ResolvedPatch {
     }
 
     /// Whether the patch's grid coordinate along x depends on x alone and along y on y alone
-    /// (a north-up level), and it is a bilinear patch: what [`Self::along`] needs.
+    /// (a north-up level of the store's plane), and it is a bilinear patch: what
+    /// [`Self::along`] needs. A patch of another plane reads positions carried into it, which
+    /// no tile's axes give.
     pub fn separable(&self) -> bool {
-        matches!(self.surface, Surface::Bilinear(_)) && self.u[1] == 0.0 && self.v[0] == 0.0
+        self.plane == 0
+            && matches!(self.surface, Surface::Bilinear(_))
+            && self.u[1] == 0.0
+            && self.v[0] == 0.0
     }
 
     /// For a [`Self::separable`] patch, everything [`Self::at`] works out from one coordinate:
@@ -470,7 +487,8 @@ impl ResolvedPatch {
         let g = self.to_grid(p);
         let tx = (g[0] - self.centre[0]) * self.inv_half[0];
         let ty = (g[1] - self.centre[1]) * self.inv_half[1];
-        if tx.abs() >= 1.0 || ty.abs() >= 1.0 {
+        // A point with no position in the patch's plane (NaN) reaches nothing.
+        if !(tx.abs() < 1.0 && ty.abs() < 1.0) {
             return None;
         }
         let hit = match &self.surface {
@@ -539,11 +557,24 @@ fn snap(x: f64) -> f64 {
 }
 
 /// The patches of one request, in a fixed order so that sums are reproducible.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Default)]
 pub struct PatchSet {
     pub patches: Vec<ResolvedPatch>,
     /// Whether any patch is a fallback, so that blending must mind tiers.
     pub has_fallback: bool,
+    /// The maps from the store's plane to the planes of the set's surveys of other CRSs: a
+    /// patch of plane k reads a sample's position carried by `planes[k − 1]`.
+    pub planes: Vec<Arc<Reprojection>>,
+}
+
+impl std::fmt::Debug for PatchSet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PatchSet")
+            .field("patches", &self.patches.len())
+            .field("has_fallback", &self.has_fallback)
+            .field("planes", &self.planes.len())
+            .finish()
+    }
 }
 
 impl PatchSet {
@@ -562,6 +593,23 @@ impl PatchSet {
         PatchSet {
             has_fallback: !errors.is_empty(),
             patches,
+            planes: Vec::new(),
         }
+    }
+
+    /// The set with patches of other planes: `planes[k − 1]` carries a sample to plane k.
+    pub fn with_planes(mut self, planes: Vec<Arc<Reprojection>>) -> Self {
+        self.planes = planes;
+        self
+    }
+
+    /// Every sample's position in every other plane of the set, row-major, NaN where it has
+    /// none: the lattice's answer for each point alone, so the same from any grid.
+    pub fn positions(&self, grid: &SampleGrid) -> Vec<Vec<[f64; 2]>> {
+        if self.planes.is_empty() {
+            return Vec::new();
+        }
+        let points: Vec<[f64; 2]> = grid.points().collect();
+        self.planes.iter().map(|r| r.map(&points)).collect()
     }
 }

@@ -3,9 +3,11 @@
 // Where a set holds fallback patches, a first pass over the bin finds the tier that serves the
 // sample (see `cpu.rs`) and the second blends that tier.
 //
-// Positions arrive as (hi, lo) f32 pairs relative to a tile origin, and grid coordinates are
-// formed as (hi, lo) pairs with error-free sums and products: they carry about 48 bits, so
-// that the cell, the position inside it and the side of every edge test come out as with f64.
+// Positions arrive as (hi, lo) f32 pairs relative to a tile origin (one origin per plane: a
+// sample's positions in the CRSs of surveys of other CRSs follow the store plane's), and grid
+// coordinates are formed as (hi, lo) pairs with error-free sums and products: they carry about
+// 48 bits, so that the cell, the position inside it and the side of every edge test come out
+// as with f64.
 // Heights arrive relative to a per-patch base, and the result is returned relative to the base
 // of the first patch that contributed: f32 then only ever holds height differences.
 
@@ -63,7 +65,9 @@ struct Patch {
     kind: u32,
     // `ResolvedPatch::flat`: 0 for the tent, else the slope of a weight flat on the kernel.
     flat: f32,
-    _pad0: f32,
+    // Where the positions of the patch's plane start in `points`: 0 for the store's plane,
+    // k · width · height for the k-th plane of a survey in another CRS.
+    points: u32,
     _pad1: f32,
     _pad2: f32,
 }
@@ -314,8 +318,12 @@ fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
     }
 }
 
-// The patch's weight and answer at a tile point: (weight, height, covered, reaches).
-fn sample_patch(q: Patch, pt: vec4<f32>) -> vec4<f32> {
+// The patch's weight and answer at sample i: (weight, height, covered, reaches).
+fn sample_patch(q: Patch, i: u32) -> vec4<f32> {
+    let pt = points[q.points + i];
+    if pt.x >= VOID {
+        return vec4<f32>(0.0);
+    }
     let sx = two_sum(pt.x, -q.origin_hi.x);
     let sy = two_sum(pt.y, -q.origin_hi.y);
     let dh = vec2<f32>(sx.x, sy.x);
@@ -386,7 +394,7 @@ fn main(
     if params.has_fallback != 0u {
         for (var b = first; b < end; b++) {
             let q = patches[bins[b]];
-            let s = sample_patch(q, pt);
+            let s = sample_patch(q, i);
             if s.w == 0.0 || s.z == 0.0 {
                 continue;
             }
@@ -407,7 +415,7 @@ fn main(
         if (q.flags & PATCH_FALLBACK) != 0u && (cut_covers || q.rank > best) {
             continue;
         }
-        let s = sample_patch(q, pt);
+        let s = sample_patch(q, i);
         if s.w == 0.0 {
             continue;
         }

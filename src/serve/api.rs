@@ -15,9 +15,13 @@ fn cut_of(
     engine: &Engine,
     u: Option<&pb::UniformCut>,
     v: Option<&pb::ViewCut>,
+    crs: &str,
 ) -> Result<Cut, EngineError> {
     match (u, v) {
-        (Some(u), None) => convert::uniform_cut(u),
+        (Some(u), None) => convert::uniform_cut(engine, u, crs),
+        (None, Some(_)) if !crs.trim().is_empty() => Err(EngineError::Invalid(
+            "a view cut is in the store's CRS: leave crs empty".into(),
+        )),
         (None, Some(v)) => convert::view_cut(engine, v),
         _ => Err(EngineError::Invalid(
             "give exactly one cut: uniform (roi + error) or view".into(),
@@ -36,7 +40,7 @@ pub fn patch_cut(
         Some(pb::patch_query::Cut::View(v)) => (None, Some(v)),
         None => (None, None),
     };
-    let cut = cut_of(engine, u, v)?;
+    let cut = cut_of(engine, u, v, &r.crs)?;
     let (t, ps) = engine.query(&cut)?;
     let size = if r.batch_size == 0 {
         BATCH
@@ -147,8 +151,9 @@ pub fn resample_tile(
     r: &pb::TileRequest,
     cancel: &Cancel,
 ) -> Result<pb::Tile, EngineError> {
-    let (tile, used) = tile_of(engine, r, cancel)?;
-    Ok(convert::tile(&tile, used, engine.crs()))
+    let (cut, backend) = tile_cut(engine, r)?;
+    let (tile, used) = engine.tile_until(&cut, r.width, r.height, backend, cancel)?;
+    Ok(convert::tile(&tile, used, tile_crs(engine, &cut).as_ref()))
 }
 
 /// The tile of [`resample_tile`] as bands of f32 bytes, each handed to `send` as soon as it
@@ -160,7 +165,7 @@ pub fn tile_bands(
     send: &mut dyn FnMut(pb::TileBand) -> bool,
 ) -> Result<(), EngineError> {
     let (cut, backend) = tile_cut(engine, r)?;
-    let crs = engine.crs();
+    let crs = tile_crs(engine, &cut);
     // Whole blocks of the resampler in a band where a band holds that many rows.
     let rows = convert::band_rows(r.width as usize);
     let rows = if rows >= BLOCK {
@@ -176,7 +181,7 @@ pub fn tile_bands(
         rows,
         cancel,
         &mut |head, row, heights| {
-            convert::tile_bands(head, row, &heights, crs)
+            convert::tile_bands(head, row, &heights, crs.as_ref())
                 .into_iter()
                 .all(&mut *send)
         },
@@ -184,13 +189,9 @@ pub fn tile_bands(
     Ok(())
 }
 
-fn tile_of(
-    engine: &Engine,
-    r: &pb::TileRequest,
-    cancel: &Cancel,
-) -> Result<(crate::terrain::Tile, &'static str), EngineError> {
-    let (cut, backend) = tile_cut(engine, r)?;
-    engine.tile_until(&cut, r.width, r.height, backend, cancel)
+/// The CRS a cut's tile is in: the request's, else the store's.
+fn tile_crs(engine: &Engine, cut: &Cut) -> Option<crate::crs::Crs> {
+    cut.crs().cloned().or_else(|| engine.crs())
 }
 
 /// The cut and backend a tile request asks for.
@@ -200,7 +201,7 @@ fn tile_cut(engine: &Engine, r: &pb::TileRequest) -> Result<(Cut, Backend), Engi
         Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
         None => (None, None),
     };
-    Ok((cut_of(engine, u, v)?, convert::backend(r.backend)?))
+    Ok((cut_of(engine, u, v, &r.crs)?, convert::backend(r.backend)?))
 }
 
 /// Vertices a side of a mesh when the request does not say.
@@ -226,9 +227,11 @@ pub fn mesh_tile(
         border: convert::mesh_border(r.border)?,
         method: convert::mesh_method(r.method)?,
         hole_reach_m: r.hole_reach_m,
+        crs: engine.request_crs(&r.crs)?,
     };
     let m = engine.mesh_until(&spec, convert::backend(r.backend)?, cancel)?;
-    Ok(convert::mesh(&m, engine.crs()))
+    let crs = spec.crs.clone().or_else(|| engine.crs());
+    Ok(convert::mesh(&m, crs.as_ref()))
 }
 
 pub fn sample_heights(
@@ -237,7 +240,8 @@ pub fn sample_heights(
     cancel: &Cancel,
 ) -> Result<pb::Samples, EngineError> {
     let pts: Vec<[f64; 2]> = r.points.iter().map(|p| [p.x, p.y]).collect();
-    let heights = engine.sample_until(&pts, r.error, cancel)?;
+    let crs = engine.request_crs(&r.crs)?;
+    let heights = engine.sample_in(&pts, crs.as_ref(), r.error, cancel)?;
     Ok(pb::Samples {
         valid: heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
         heights,

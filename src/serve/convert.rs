@@ -2,6 +2,7 @@
 //! print the same thing.
 
 use super::proto as pb;
+use crate::crs::Crs;
 use crate::engine::{
     Backend, Conflict, Cut, Engine, EngineError, Event, Ingested, MeshTile, Stats, SurveyListing,
     TileHead,
@@ -31,11 +32,21 @@ pub fn aabb(r: &Option<pb::Rect>) -> Result<Aabb, EngineError> {
     Ok(Aabb::new(r.xmin, r.ymin, r.xmax, r.ymax))
 }
 
-pub fn uniform_cut(c: &pb::UniformCut) -> Result<Cut, EngineError> {
-    Ok(Cut::Uniform {
-        roi: aabb(&c.roi)?,
-        error: c.error,
+/// A uniform cut over a region of the CRS a request names (`crs`, empty for the store's).
+pub fn uniform_cut(engine: &Engine, c: &pb::UniformCut, crs: &str) -> Result<Cut, EngineError> {
+    let (roi, error) = (aabb(&c.roi)?, c.error);
+    Ok(match engine.request_crs(crs)? {
+        Some(crs) => Cut::UniformIn { crs, roi, error },
+        None => Cut::Uniform { roi, error },
     })
+}
+
+/// A CRS's EPSG code for the wire (0 for none) and its key (empty for none).
+pub fn crs_fields(crs: Option<&Crs>) -> (u32, String) {
+    match crs {
+        Some(c) => (c.epsg_code().unwrap_or(0), c.key().to_string()),
+        None => (0, String::new()),
+    }
 }
 
 pub fn view_cut(engine: &Engine, v: &pb::ViewCut) -> Result<Cut, EngineError> {
@@ -148,6 +159,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
     let (c0, r0) = (w.c0 as f64, w.r0 as f64);
     let o = p.georef.to_world(c0, r0);
     let packed = Packed::of(&p.samples);
+    let crs = t.plane_crs(x.plane).map(|c| c.key().to_string());
     Ok(Some(pb::Patch {
         id: x.id.0,
         survey: x.survey.0,
@@ -161,6 +173,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
             theta: p.georef.theta,
             step_x: p.georef.step[0],
             step_y: p.georef.step[1],
+            row_theta: p.georef.row_theta,
         }),
         cols: w.cols() + 1,
         rows: w.rows() + 1,
@@ -190,6 +203,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                 r1: v[3] - r0,
             })
             .collect(),
+        crs: crs.unwrap_or_default(),
     }))
 }
 
@@ -274,7 +288,8 @@ impl Packed {
     }
 }
 
-pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {
+pub fn tile(t: &Tile, backend: &str, crs: Option<&Crs>) -> pb::Tile {
+    let (code, key) = crs_fields(crs);
     pb::Tile {
         width: t.width as u32,
         height: t.height as u32,
@@ -282,13 +297,15 @@ pub fn tile(t: &Tile, backend: &str, crs: Option<u32>) -> pb::Tile {
         heights: t.heights.clone(),
         patches: t.patches.len() as u32,
         backend: backend.into(),
-        crs: crs.unwrap_or(0),
+        crs: code,
+        crs_key: key,
         max_error: max_error(&t.patches),
     }
 }
 
-pub fn mesh(m: &MeshTile, crs: Option<u32>) -> pb::Mesh {
+pub fn mesh(m: &MeshTile, crs: Option<&Crs>) -> pb::Mesh {
     let mesh = &m.mesh;
+    let (code, key) = crs_fields(crs);
     pb::Mesh {
         roi: Some(rect(&m.roi)),
         size: mesh.cols as u32,
@@ -304,7 +321,8 @@ pub fn mesh(m: &MeshTile, crs: Option<u32>) -> pb::Mesh {
         patches: m.patches.len() as u32,
         max_error: max_error(&m.patches),
         backend: m.backend.into(),
-        crs: crs.unwrap_or(0),
+        crs: code,
+        crs_key: key,
     }
 }
 
@@ -373,9 +391,10 @@ pub fn tile_bands(
     head: &TileHead,
     row: usize,
     heights: &[f32],
-    crs: Option<u32>,
+    crs: Option<&Crs>,
 ) -> Vec<pb::TileBand> {
     let width = head.width.max(1);
+    let (code, key) = crs_fields(crs);
     let rows = band_rows(width);
     heights
         .chunks(rows * width)
@@ -394,7 +413,8 @@ pub fn tile_bands(
                 } else {
                     String::new()
                 },
-                crs: if first { crs.unwrap_or(0) } else { 0 },
+                crs: if first { code } else { 0 },
+                crs_key: if first { key.clone() } else { String::new() },
                 max_error: if first { max_error(head.patches) } else { 0.0 },
             }
         })
@@ -447,7 +467,13 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
             accuracy_m: r.accuracy,
             accuracy_source: r.accuracy_source.as_str().into(),
             samples: r.samples,
-            crs: r.crs.unwrap_or(0),
+            crs: crs_fields(r.crs.as_ref()).0,
+            crs_key: crs_fields(r.crs.as_ref()).1,
+            vertical_crs: r
+                .vertical_source
+                .as_ref()
+                .map_or("unknown".into(), |v| v.key().to_string()),
+            vertical_error_m: r.vertical_error_m,
             patches: t.index().survey_patches(r.id).map_or(0, |p| p.len() as u32),
             conflicts: l
                 .conflicts
@@ -476,7 +502,13 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         active_boxes: s.active_boxes,
         samples: s.samples,
         disk_bytes: s.disk_bytes,
-        crs: s.crs.unwrap_or(0),
+        crs: crs_fields(s.crs.as_ref()).0,
+        crs_key: crs_fields(s.crs.as_ref()).1,
+        vertical_crs: s
+            .vertical_crs
+            .as_ref()
+            .map(|v| v.key().to_string())
+            .unwrap_or_default(),
         backend: s.backend.clone(),
         quadtree_nodes: s.quadtree_nodes,
         read_only: s.read_only.clone().unwrap_or_default(),

@@ -6,6 +6,7 @@ use crate::model::ids::{PatchId, SurveyId};
 
 pub const SCHEMA: &[u8] = b"meta/schema";
 pub const CRS: &[u8] = b"meta/crs";
+pub const VERTICAL_CRS: &[u8] = b"meta/vertical_crs";
 pub const LAYOUT: &[u8] = b"meta/layout";
 pub const INDEX: &[u8] = b"meta/index";
 /// The name of the mipmap filter every survey of the store is built with; absent in stores

@@ -7,7 +7,8 @@
 //! | key | value |
 //! | --- | --- |
 //! | `meta/schema` | `u32` LE: the schema version (see `migrations/`) |
-//! | `meta/crs` | `u32` LE: EPSG code of the store, set by the first survey that has one |
+//! | `meta/crs` | the store's horizontal CRS as its [`Crs::key`] (UTF-8): the config's, or the first survey's |
+//! | `meta/vertical_crs` | the store's vertical CRS as its [`VerticalCrs::key`] (UTF-8): the config's, or the first survey's that names one |
 //! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
 //! | `meta/mipmap` | the name of the mipmap [`Filter`] its surveys are built with, set when the store is made (absent: `smooth`, a store from before the choice) |
 //! | `meta/patches` | the name of the [`PatchKind`] its surveys' patches are, set when the store is made (absent: `bilinear`, a store from before the choice) |
@@ -50,6 +51,8 @@ use pack::{ChunkStore, PackFile};
 pub use space::{DiskSpace, SpaceGuard, SystemDisk};
 pub use verify::{Checked, VerifyReport};
 
+use crate::crs::vertical::VerticalCrs;
+use crate::crs::Crs;
 use crate::index::lod::{BoxState, ChangeStats, IndexConfig};
 use crate::model::accuracy::{AccuracySource, AccuracySpec, Deviation, KernelAccuracy};
 use crate::model::edge::EdgePatch;
@@ -137,11 +140,24 @@ pub enum StoreError {
     Corrupt(String),
     #[error("migration of the store from schema {from} to {to} failed: {msg}")]
     Migration { from: u32, to: u32, msg: String },
-    #[error("survey {survey} is in EPSG:{survey_crs}, but the store holds EPSG:{store_crs}")]
+    #[error(
+        "survey {survey} was placed in {placed_in}, but the store's CRS is {store_crs}; the \
+         engine places a survey in the store's CRS before committing it"
+    )]
     CrsMismatch {
         survey: SurveyId,
-        survey_crs: u32,
-        store_crs: u32,
+        placed_in: String,
+        store_crs: String,
+    },
+    #[error(
+        "survey {survey}'s heights are in {survey_vertical}, but the store's are in \
+         {store_vertical}: the store took that vertical CRS while the file was read; it will \
+         be ingested again"
+    )]
+    VerticalMismatch {
+        survey: SurveyId,
+        survey_vertical: String,
+        store_vertical: String,
     },
     #[error("survey {0} is already stored and active")]
     Duplicate(SurveyId),
@@ -166,6 +182,8 @@ pub enum StoreError {
     /// Samples a read or an index change needed could not be read back.
     #[error(transparent)]
     Samples(#[from] crate::model::source::SampleError),
+    #[error("{0}")]
+    Place(#[from] crate::model::place::PlaceError),
 }
 
 impl From<sled::Error> for StoreError {
@@ -243,7 +261,15 @@ pub struct SurveyRecord {
     /// ε in metres: the largest of the survey's kernels'.
     pub accuracy: f64,
     pub accuracy_source: AccuracySource,
-    pub crs: Option<u32>,
+    /// Its horizontal CRS: the plane its grid is in, which may not be the store's.
+    pub crs: Option<Crs>,
+    /// The vertical CRS its file or sidecar named; None where nothing did.
+    pub vertical_source: Option<VerticalCrs>,
+    /// What its stored heights are measured from: the store's vertical CRS where they were
+    /// converted to it; None where nothing was named.
+    pub vertical: Option<VerticalCrs>,
+    /// What converting its heights between vertical CRSs added to ε, in metres.
+    pub vertical_error_m: f64,
     pub status: Status,
     pub cols: u64,
     pub rows: u64,
@@ -278,7 +304,10 @@ impl SurveyRecord {
             } else {
                 accuracy_source
             },
-            crs: s.crs,
+            crs: s.crs.clone(),
+            vertical_source: s.vertical.clone(),
+            vertical: s.vertical.clone(),
+            vertical_error_m: 0.0,
             status: Status::Active,
             cols: l0.cols as u64,
             rows: l0.rows as u64,
@@ -312,7 +341,8 @@ pub struct Catalog {
     pub overlaps: HashMap<SurveyId, Vec<(SurveyId, Deviation)>>,
     /// Sources retired by hand, with the content that stays retired (see [`Store::pins`]).
     pub pins: HashMap<String, String>,
-    pub crs: Option<u32>,
+    pub crs: Option<Crs>,
+    pub vertical: Option<VerticalCrs>,
     pub layout: PatchLayout,
     pub recipe: Recipe,
 }
@@ -472,6 +502,17 @@ pub(crate) fn decode_state(b: &[u8], what: &str) -> Result<BoxState, StoreError>
     })
 }
 
+/// A CRS recorded as its key.
+fn decode_crs<T>(
+    b: &[u8],
+    what: &str,
+    parse: impl Fn(&str) -> Result<T, crate::crs::CrsError>,
+) -> Result<T, StoreError> {
+    let text = std::str::from_utf8(b)
+        .map_err(|_| StoreError::Decode(format!("{what}: not UTF-8 text")))?;
+    parse(text).map_err(|e| StoreError::Decode(format!("{what}: {e}")))
+}
+
 fn decode_u32(b: &[u8], what: &str) -> Result<u32, StoreError> {
     let a: [u8; 4] = b
         .try_into()
@@ -580,7 +621,8 @@ pub struct Store {
     layout: PatchLayout,
     index: IndexConfig,
     recipe: Recipe,
-    crs: RwLock<Option<u32>>,
+    /// The horizontal and vertical CRSs, once set.
+    crs: RwLock<(Option<Crs>, Option<VerticalCrs>)>,
     /// Commits read the store (CRS, records) before writing it; one at a time keeps the read
     /// and the batch consistent.
     writer: Mutex<()>,
@@ -613,7 +655,7 @@ pub struct Loaded {
 struct Staged {
     key: Vec<u8>,
     rec: SurveyRecord,
-    crs: Option<u32>,
+    crs: (Option<Crs>, Option<VerticalCrs>),
 }
 
 impl Store {
@@ -687,10 +729,14 @@ impl Store {
         let layout: PatchLayout = decode(&get(keys::LAYOUT)?, "meta/layout")?;
         let index: IndexConfig = decode(&get(keys::INDEX)?, "meta/index")?;
         let recipe = recipe_of(&db, &dir, &guard, opts.recipe)?;
-        let crs = db
-            .get(keys::CRS)?
-            .map(|v| decode_u32(&v, "meta/crs"))
-            .transpose()?;
+        let crs = (
+            db.get(keys::CRS)?
+                .map(|v| decode_crs(&v, "meta/crs", Crs::parse))
+                .transpose()?,
+            db.get(keys::VERTICAL_CRS)?
+                .map(|v| decode_crs(&v, "meta/vertical_crs", VerticalCrs::parse))
+                .transpose()?,
+        );
         let reader = Arc::new(ChunkReader::new(
             (*db).clone(),
             pack.clone(),
@@ -749,8 +795,14 @@ impl Store {
         &self.migrated
     }
 
-    pub fn crs(&self) -> Option<u32> {
-        *self.crs.read().unwrap_or_else(|e| e.into_inner())
+    /// The store's horizontal CRS, once it has one.
+    pub fn crs(&self) -> Option<Crs> {
+        self.crs.read().unwrap_or_else(|e| e.into_inner()).0.clone()
+    }
+
+    /// The store's vertical CRS, once it has one.
+    pub fn vertical_crs(&self) -> Option<VerticalCrs> {
+        self.crs.read().unwrap_or_else(|e| e.into_inner()).1.clone()
     }
 
     /// The reader the terrain gets its samples through.
@@ -926,7 +978,11 @@ impl Store {
             id: r.id,
             accuracy: kernel_accuracy.max(),
             spec: r.spec(),
-            crs: r.crs,
+            crs: r.crs.clone(),
+            vertical: r.vertical.clone(),
+            placement: None,
+            // Every survey of a store was placed in it before it was committed.
+            placed_in: self.crs().or_else(|| r.crs.clone()),
             layout: self.layout,
             kind: self.recipe.patches,
             tiling,
@@ -957,8 +1013,10 @@ impl Store {
             .transpose()
     }
 
-    /// Adds a survey's writes to `batch`. `crs` is the store's CRS as the batch leaves it.
-    /// `replacing` is a survey the same batch retires, which may be this very one.
+    /// Adds a survey's writes to `batch`. The survey was placed in a store of some CRS (see
+    /// [`SurveyMeta::placed_for`]): this store's, which the batch sets if the store had none,
+    /// as it sets the vertical CRS the survey's heights are in. `replacing` is a survey the
+    /// same batch retires, which may be this very one.
     #[allow(clippy::too_many_arguments)]
     fn stage_survey(
         &self,
@@ -967,7 +1025,6 @@ impl Store {
         rec: &SurveyRecord,
         change: &ChangeStats,
         overlaps: &[(SurveyId, Deviation)],
-        crs: Option<u32>,
         replacing: Option<SurveyId>,
         packed: Packed,
     ) -> Result<Staged, StoreError> {
@@ -1000,20 +1057,36 @@ impl Store {
                 }
             }
         }
-        let crs = match (crs, s.crs) {
-            (Some(store_crs), Some(survey_crs)) if store_crs != survey_crs => {
+        let (crs, vertical) = (self.crs(), self.vertical_crs());
+        let crs = match (crs, s.placed_for()) {
+            (Some(c), Some(placed)) if c != placed => {
                 return Err(StoreError::CrsMismatch {
                     survey: s.id,
-                    survey_crs,
-                    store_crs,
+                    placed_in: placed.label(),
+                    store_crs: c.label(),
                 })
             }
-            (None, Some(c)) => {
-                batch.insert(keys::CRS, &c.to_le_bytes());
-                Some(c)
+            (None, Some(placed)) => {
+                batch.insert(keys::CRS, placed.key().as_bytes());
+                Some(placed)
             }
             (c, _) => c,
         };
+        let vertical = match (vertical, &s.vertical) {
+            (Some(v), Some(w)) if !v.same_reference(w) => {
+                return Err(StoreError::VerticalMismatch {
+                    survey: s.id,
+                    survey_vertical: w.label(),
+                    store_vertical: v.label(),
+                })
+            }
+            (None, Some(w)) => {
+                batch.insert(keys::VERTICAL_CRS, w.key().as_bytes());
+                Some(w.clone())
+            }
+            (v, _) => v,
+        };
+        let crs = (crs, vertical);
         let mut rec = rec.clone();
         rec.status = Status::Active;
         let key = keys::survey(s.id);
@@ -1147,16 +1220,7 @@ impl Store {
         let _w = self.lock_writer();
         let t0 = Instant::now();
         let mut batch = Writes::default();
-        let staged = self.stage_survey(
-            &mut batch,
-            s,
-            rec,
-            change,
-            overlaps,
-            self.crs(),
-            None,
-            packed,
-        )?;
+        let staged = self.stage_survey(&mut batch, s, rec, change, overlaps, None, packed)?;
         stage_edges(&mut batch, edges)?;
         self.apply(batch)?;
         self.finish(staged, t0)
@@ -1212,7 +1276,6 @@ impl Store {
             rec,
             insert_change,
             overlaps,
-            self.crs(),
             Some(old),
             packed,
         )?;
@@ -1313,6 +1376,7 @@ impl Store {
             overlaps: self.all_overlaps()?,
             pins: self.pins()?,
             crs: self.crs(),
+            vertical: self.vertical_crs(),
             layout: self.layout,
             recipe: self.recipe,
         })

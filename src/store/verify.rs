@@ -6,8 +6,8 @@
 use super::chunks::{chunk_counts, chunk_rect, decode as decode_chunk, read_chunk};
 use super::pack::ChunkStore;
 use super::{
-    decode, decode_state, decode_u32, keys, migrate, setting_problem, FailedRecord, Status, Store,
-    StoreError, StoredPatches, SurveyRecord,
+    decode, decode_crs, decode_state, decode_u32, keys, migrate, setting_problem, FailedRecord,
+    Status, Store, StoreError, StoredPatches, SurveyRecord,
 };
 use crate::index::lod::{BoxState, IndexConfig};
 use crate::model::accuracy::Deviation;
@@ -167,7 +167,7 @@ impl Store {
         rep.chunks = chunks.len();
         rep.tops = tops.len();
 
-        let store_crs = self.crs();
+        let store_vertical = self.vertical_crs();
         let mut whole: Vec<Arc<Survey>> = Vec::new();
         for (id, r) in &records {
             if r.status == Status::Retired {
@@ -177,11 +177,17 @@ impl Store {
                 continue;
             }
             rep.active += 1;
-            if let (Some(c), Some(s)) = (r.crs, store_crs) {
-                if c != s {
+            // Surveys of any horizontal CRS share a store; their heights are all in its
+            // vertical CRS.
+            if let (Some(v), Some(s)) = (&r.vertical, &store_vertical) {
+                if !v.same_reference(s) {
                     pr.add(
-                        "crs",
-                        format!("survey {id} is in EPSG:{c}, the store in EPSG:{s}"),
+                        "vertical_crs",
+                        format!(
+                            "survey {id}'s heights are in {}, the store's in {}",
+                            v.label(),
+                            s.label()
+                        ),
                     );
                 }
             }
@@ -284,7 +290,10 @@ impl Store {
                     )
                 })
             }),
-            keys::CRS => decode_u32(v, &what).map(|_| None),
+            keys::CRS => decode_crs(v, &what, crate::crs::Crs::parse).map(|_| None),
+            keys::VERTICAL_CRS => {
+                decode_crs(v, &what, crate::crs::vertical::VerticalCrs::parse).map(|_| None)
+            }
             keys::LAYOUT => decode::<PatchLayout>(v, &what).map(|l| {
                 (l != self.layout).then(|| format!("layout {l:?} differs from the open store's"))
             }),
@@ -405,7 +414,7 @@ impl Store {
                     ),
                 );
             }
-            let hashed = Survey::id_of(&g, r.spec(), r.crs);
+            let hashed = Survey::id_of(&g, r.spec(), r.crs.as_ref());
             if hashed != id {
                 pr.add(
                     "content",

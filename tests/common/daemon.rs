@@ -255,6 +255,7 @@ pub fn drop_by_rename(from: &Path, inbox: &Path, name: &str) {
 pub fn crop_tile(w: u32, h: u32) -> patchwork::serve::proto::TileRequest {
     use patchwork::serve::proto as pb;
     pb::TileRequest {
+        crs: String::new(),
         cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
             roi: Some(pb::Rect {
                 xmin: -119.0,

@@ -52,6 +52,7 @@ impl Spec {
             origin: self.origin,
             theta: self.theta,
             step: self.step,
+            row_theta: None,
         };
         let mut s = Vec::with_capacity(self.cols * self.rows);
         for r in 0..self.rows {
@@ -76,9 +77,14 @@ impl Spec {
         } else {
             self.accuracy.into()
         };
-        Survey::build(self.grid(), spec, Some(32631), LAYOUT)
-            .ok()
-            .map(Arc::new)
+        Survey::build(
+            self.grid(),
+            spec,
+            Some(patchwork::crs::Crs::epsg(32631).unwrap()),
+            LAYOUT,
+        )
+        .ok()
+        .map(Arc::new)
     }
 }
 
@@ -346,7 +352,15 @@ pub fn survey_with(
     g: Grid,
     spec: impl Into<patchwork::model::accuracy::AccuracySpec>,
 ) -> Arc<Survey> {
-    Arc::new(Survey::build(g, spec, Some(4326), PatchLayout::default()).unwrap())
+    Arc::new(
+        Survey::build(
+            g,
+            spec,
+            Some(patchwork::crs::Crs::epsg(4326).unwrap()),
+            PatchLayout::default(),
+        )
+        .unwrap(),
+    )
 }
 
 /// The same samples turned by `degrees` about the grid's centre: a rotated grid over the
@@ -366,5 +380,14 @@ pub fn real_survey_of(g: Grid, kind: patchwork::model::patch::PatchKind) -> Arc<
         patches: kind,
         ..Default::default()
     };
-    Arc::new(Survey::build_with(g, 0.0, Some(4326), PatchLayout::default(), recipe).unwrap())
+    Arc::new(
+        Survey::build_with(
+            g,
+            0.0,
+            Some(patchwork::crs::Crs::epsg(4326).unwrap()),
+            PatchLayout::default(),
+            recipe,
+        )
+        .unwrap(),
+    )
 }

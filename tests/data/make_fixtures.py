@@ -74,6 +74,13 @@ def main():
     # SRTM with every sample above 1,000 m removed; the file declares -32678 (sic).
     crop("N44E005_big_hole.tif", "srtm_big_hole.tif", 600, 225, 200, 200,
          tiled=False, blockysize=3)
+    # Mont Ventoux in two CRSs, for surveys of different CRSs in one store: SRTM3 in
+    # geographic WGS 84 (from the .hgt), and the same ground as shareloc resampled it to UTM
+    # 31N, the two windows overlapping over most of the summit.
+    crop("N44E005.hgt", "ventoux_geographic.tif", 240, 900, 200, 200,
+         driver="GTiff", tiled=False, blockysize=8, compress="deflate")
+    crop("N44E005_UTM.tif", "ventoux_utm31.tif", 240, 960, 160, 200,
+         tiled=False, blockysize=8, compress="deflate")
     # An SRTM3 .hgt must be the whole 1201 x 1201 tile: Mont Ventoux's 400 x 400 samples are
     # kept, the rest made void, which keeps the file small in the repository.
     with open(os.path.join(SHARED, "N44E005.hgt"), "rb") as f:

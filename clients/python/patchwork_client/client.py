@@ -45,15 +45,17 @@ class TileInfo:
     #: Patches blended, and the largest error among them (metres).
     patches: int
     max_error: float
-    #: EPSG code of the store's CRS, 0 if unknown.
+    #: The tile's CRS (the one asked for, else the store's): its EPSG code, 0 if it has none,
+    #: and its key ("EPSG:n", or a WKT 2 definition).
     crs: int
+    crs_key: str = ""
 
 
 @dataclass(frozen=True)
 class Mesh:
     """A triangle mesh of a uniform cut (:meth:`Client.mesh`)."""
 
-    #: n × 3 float64: x and y in the store's CRS, height in metres.
+    #: n × 3 float64: x and y in the mesh's CRS (``crs_key``), height in metres.
     vertices: np.ndarray
     #: m × 3 uint32 indices into ``vertices``, counter-clockwise seen from above (x east,
     #: y north).
@@ -70,6 +72,7 @@ class Mesh:
     max_error: float
     backend: str
     crs: int
+    crs_key: str = ""
 
 
 MESH_METHODS = {"rtin": terrain_pb2.MESH_METHOD_RTIN, "quadtree": terrain_pb2.MESH_METHOD_QUADTREE}
@@ -96,6 +99,11 @@ class Survey:
     patches: int
     crs: int
     conflicts: List[Conflict]
+    #: The survey's own CRS ("EPSG:n", or a WKT 2 definition), the vertical CRS its file
+    #: named ("unknown" where none), and what converting its heights added to ε.
+    crs_key: str = ""
+    vertical_crs: str = ""
+    vertical_error_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -199,10 +207,12 @@ class Client:
 
     # --- Terrain -----------------------------------------------------------------------
 
-    def query_patches(self, roi: Rect, error: float) -> List[Patch]:
-        """The uniform cut over ``roi`` = (xmin, ymin, xmax, ymax) at ``error`` metres."""
+    def query_patches(self, roi: Rect, error: float, crs: str = "") -> List[Patch]:
+        """The uniform cut over ``roi`` = (xmin, ymin, xmax, ymax) at ``error`` metres;
+        ``crs`` names the ROI's CRS ("EPSG:3857", a WKT or a PROJ string; the store's by
+        default). Each patch comes in its own frame, in the CRS its ``crs`` names."""
         cut = terrain_pb2.UniformCut(roi=_rect(roi), error=error)
-        return self._patches(terrain_pb2.PatchQuery(uniform=cut))
+        return self._patches(terrain_pb2.PatchQuery(uniform=cut, crs=crs))
 
     def query_view(self, camera: Camera) -> List[Patch]:
         """The view-dependent cut for a camera."""
@@ -214,14 +224,19 @@ class Client:
             out.extend(Patch.from_proto(p) for p in batch.patches)
         return out
 
-    def tile(self, roi: Rect, width: int, height: int, error: float, backend: str = "auto") -> np.ndarray:
-        """A height × width float32 tile over ``roi``, north row first, NaN for nodata."""
-        return self.tile_with_info(roi, width, height, error, backend)[0]
+    def tile(self, roi: Rect, width: int, height: int, error: float, backend: str = "auto",
+             crs: str = "") -> np.ndarray:
+        """A height × width float32 tile over ``roi``, north row first, NaN for nodata. With
+        ``crs`` ("EPSG:3857", a UTM zone, a WKT or a PROJ string), the ROI and the tile are in
+        that CRS; the store's by default."""
+        return self.tile_with_info(roi, width, height, error, backend, crs)[0]
 
-    def tile_with_info(self, roi: Rect, width: int, height: int, error: float, backend: str = "auto"):
+    def tile_with_info(self, roi: Rect, width: int, height: int, error: float, backend: str = "auto",
+                       crs: str = ""):
         """:meth:`tile`, with what the daemon says of it (:class:`TileInfo`)."""
         cut = terrain_pb2.UniformCut(roi=_rect(roi), error=error)
-        return self._bands(terrain_pb2.TileRequest(uniform=cut, width=width, height=height, backend=BACKENDS[backend]))
+        return self._bands(terrain_pb2.TileRequest(uniform=cut, width=width, height=height,
+                                                   backend=BACKENDS[backend], crs=crs))
 
     def view_tile(self, camera: Camera, width: int, height: int, backend: str = "auto") -> np.ndarray:
         """The view-dependent tile a camera sees: its screen grid projected onto the ground."""
@@ -230,16 +245,17 @@ class Client:
 
     def mesh(self, roi: Rect, error: float, size: int = 257, rows: int = 0, mesh_error: float = 1.0,
              skirt: float = 0.0, border: str = "shared", method: str = "rtin", hole_reach: float = 0.0,
-             backend: str = "auto") -> Mesh:
+             backend: str = "auto", crs: str = "") -> Mesh:
         """A triangle mesh of the cut's surface over ``roi`` within ``mesh_error`` metres of
         it, on a ``size`` × ``rows`` grid of vertices (``rows`` 0: square) whose corners are
         the ROI's; ``border`` "shared" keeps every border vertex, ``method`` "rtin" or
         "quadtree", skirts ``skirt`` metres deep, voids within ``hole_reach`` metres of data
-        drawn over."""
+        drawn over. ``crs`` names the CRS of the ROI and the vertices (the store's by
+        default)."""
         req = terrain_pb2.MeshRequest(
             cut=terrain_pb2.UniformCut(roi=_rect(roi), error=error), size=size, rows=rows,
             mesh_error=mesh_error, skirt_m=skirt, border=MESH_BORDERS[border], method=MESH_METHODS[method],
-            hole_reach_m=hole_reach, backend=BACKENDS[backend],
+            hole_reach_m=hole_reach, backend=BACKENDS[backend], crs=crs,
         )
         m = self._call(self.terrain.MeshTile, req)
         r = m.roi
@@ -254,7 +270,7 @@ class Client:
             vertices=vertices, triangles=np.asarray(m.indices, dtype=np.uint32).reshape(-1, 3),
             skirt_vertices=m.skirt_vertices, skirt_triangles=m.skirt_triangles,
             max_deviation=m.max_deviation, max_hole_reach=m.max_hole_reach_m, patches=m.patches,
-            max_error=m.max_error, backend=m.backend, crs=m.crs,
+            max_error=m.max_error, backend=m.backend, crs=m.crs, crs_key=m.crs_key,
         )
 
     def _bands(self, req):
@@ -263,19 +279,20 @@ class Client:
         for band in self._call(self.terrain.TileBands, req):
             if out is None:
                 out = np.empty((band.height, band.width), dtype=np.float32)
-                info = TileInfo(backend=band.backend, patches=band.patches, max_error=band.max_error, crs=band.crs)
+                info = TileInfo(backend=band.backend, patches=band.patches, max_error=band.max_error,
+                                crs=band.crs, crs_key=band.crs_key)
             rows = np.frombuffer(band.heights, dtype="<f4").reshape(band.rows, band.width)
             out[band.row:band.row + band.rows] = rows
         if out is None:
             raise RuntimeError("the tile came back empty")
         return out, info
 
-    def sample(self, points, error: float) -> np.ndarray:
-        """Heights at points, an n × 2 array (or a sequence of (x, y)); float32, NaN where
-        there is no data."""
+    def sample(self, points, error: float, crs: str = "") -> np.ndarray:
+        """Heights at points, an n × 2 array (or a sequence of (x, y)) in ``crs`` (the
+        store's by default); float32, NaN where there is no data."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         req = terrain_pb2.SampleRequest(
-            points=[terrain_pb2.Point(x=x, y=y) for x, y in pts], error=error
+            points=[terrain_pb2.Point(x=x, y=y) for x, y in pts], error=error, crs=crs
         )
         r = self._call(self.terrain.SampleHeights, req)
         z = np.asarray(r.heights, dtype=np.float32)
@@ -310,7 +327,8 @@ class Client:
         r = self._call(self.admin.ListSurveys, admin_pb2.ListSurveysRequest())
         return [Survey(id=s.id, source=s.source, status=s.status, error=s.error, accuracy_m=s.accuracy_m,
                        accuracy_source=s.accuracy_source, samples=s.samples, patches=s.patches, crs=s.crs,
-                       conflicts=_conflicts(s.conflicts))
+                       conflicts=_conflicts(s.conflicts), crs_key=s.crs_key, vertical_crs=s.vertical_crs,
+                       vertical_error_m=s.vertical_error_m)
                 for s in r.surveys]
 
     def retire(self, id_or_source: str):

@@ -46,6 +46,9 @@ class Patch:
     max_error: float
     #: The kernel's bounds in the store's CRS: (xmin, ymin, xmax, ymax).
     bounds: Rect
+    #: The frame: sample (c, r) of the window at origin + c·step_x·(cos θ, sin θ) +
+    #: r·step_y·(sin ψ, −cos ψ), ψ = row_theta for a skewed or mirrored grid, else θ; in
+    #: the CRS ``crs`` names (empty: the store's).
     origin: Tuple[float, float]
     theta: float
     step: Tuple[float, float]
@@ -69,6 +72,9 @@ class Patch:
     wire_bytes: int
     #: Bicubic patches: the (rows + 2) × (cols + 2) B-spline coefficients of their spline.
     coef: Optional[np.ndarray] = None
+    row_theta: Optional[float] = None
+    #: The CRS of the frame, "EPSG:n" or a WKT 2 definition; empty for the store's.
+    crs: str = ""
 
     @staticmethod
     def from_proto(p: "pb.Patch") -> "Patch":
@@ -104,13 +110,23 @@ class Patch:
             fallback=p.fallback,
             wire_bytes=p.ByteSize(),
             coef=_spline_fit(z.reshape(rows, cols)) if p.kind == pb.PATCH_KIND_BICUBIC else None,
+            row_theta=p.frame.row_theta if p.frame.HasField("row_theta") else None,
+            crs=p.crs,
         )
 
     def to_grid(self, x: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Window grid coordinates of world points, snapped onto grid lines within SNAP."""
+        """Window grid coordinates of points of the patch's CRS, snapped onto grid lines
+        within SNAP."""
         c, s = np.cos(self.theta), np.sin(self.theta)
         dx, dy = x - self.origin[0], y - self.origin[1]
-        return _snap((dx * c + dy * s) / self.step[0]), _snap((dx * s - dy * c) / self.step[1])
+        if self.row_theta is None:
+            return _snap((dx * c + dy * s) / self.step[0]), _snap((dx * s - dy * c) / self.step[1])
+        # A skewed or mirrored grid: the inverse of the axes' matrix.
+        vx, vy = np.sin(self.row_theta), -np.cos(self.row_theta)
+        det = c * vy - s * vx
+        a = (dx * vy - dy * vx) / det
+        b = (c * dy - s * dx) / det
+        return _snap(a / self.step[0]), _snap(b / self.step[1])
 
     def at(self, x: np.ndarray, y: np.ndarray):
         """Weight, height and whether the patch covers each point; weight 0 where it does not
@@ -325,17 +341,32 @@ def _cell_surface(z, v, fx, fy):
     return np.where(n == 4, bil, np.where(anti, anti_z, main_z))
 
 
-def resample(patches: Sequence[Patch], roi: Rect, width: int, height: int) -> np.ndarray:
+def resample(patches: Sequence[Patch], roi: Rect, width: int, height: int, crs: str = "") -> np.ndarray:
     """Formula 1 over a cut's patches: a height × width float32 tile over ``roi``, north row
     first, sample (i, j) at its pixel's centre, NaN where no patch covers it.
 
     Pass every patch of the cut the tile's daemon would use (``Client.query_patches`` with the
     same ROI and error): fallback patches are ranked among themselves, so a subset can blend
-    differently.
+    differently. A patch of a survey in another CRS than the store's (its ``crs`` set) is
+    evaluated at the samples carried into its CRS, with pyproj: give the store's CRS as
+    ``crs`` (``Client.stats().crs_key``).
     """
     xmin, ymin, xmax, ymax = roi
     xs = xmin + (np.arange(width) + 0.5) * ((xmax - xmin) / width)
     ys = ymax - (np.arange(height) + 0.5) * ((ymax - ymin) / height)
+    carried = {}
+
+    def in_crs(target: str):
+        """The tile's samples in another CRS, once per CRS."""
+        if target not in carried:
+            if not crs:
+                raise ValueError("a patch is in another CRS than the store's: pass the store's CRS as crs")
+            import pyproj
+
+            t = pyproj.Transformer.from_crs(pyproj.CRS(crs), pyproj.CRS(target), always_xy=True)
+            X, Y = np.meshgrid(xs, ys)
+            carried[target] = t.transform(X, Y)
+        return carried[target]
     # Fallback patches blend by rank of error, equal errors sharing one.
     ranks = {e: k for k, e in enumerate(sorted({p.error for p in patches if p.fallback}))}
     tiers = 1 + len(ranks)
@@ -343,10 +374,15 @@ def resample(patches: Sequence[Patch], roi: Rect, width: int, height: int) -> np
     total, wsum = np.zeros(shape), np.zeros(shape)
     covered, present = np.zeros(shape, bool), np.zeros(shape, bool)
     for p in patches:
-        i0, i1, j0, j1 = _reach(p, xs, ys)
-        if i0 >= i1 or j0 >= j1:
-            continue
-        X, Y = np.meshgrid(xs[i0:i1], ys[j0:j1])
+        if p.crs:
+            # Its reach is decided in its own plane, over the whole tile.
+            i0, i1, j0, j1 = 0, width, 0, height
+            X, Y = in_crs(p.crs)
+        else:
+            i0, i1, j0, j1 = _reach(p, xs, ys)
+            if i0 >= i1 or j0 >= j1:
+                continue
+            X, Y = np.meshgrid(xs[i0:i1], ys[j0:j1])
         w, z, cov, reach = p.at(X, Y)
         t = 1 + ranks[p.error] if p.fallback else 0
         box = (t, slice(j0, j1), slice(i0, i1))
@@ -375,8 +411,10 @@ def _reach(p: Patch, xs: np.ndarray, ys: np.ndarray):
     rows, cols = p.samples.shape
     cx, cy = np.meshgrid([0.0, cols - 1.0], [0.0, rows - 1.0])
     c, s = np.cos(p.theta), np.sin(p.theta)
-    wx = p.origin[0] + cx * p.step[0] * c + cy * p.step[1] * s
-    wy = p.origin[1] + cx * p.step[0] * s - cy * p.step[1] * c
+    psi = p.theta if p.row_theta is None else p.row_theta
+    vx, vy = np.sin(psi), -np.cos(psi)
+    wx = p.origin[0] + cx * p.step[0] * c + cy * p.step[1] * vx
+    wy = p.origin[1] + cx * p.step[0] * s + cy * p.step[1] * vy
     px = abs(xs[1] - xs[0]) if len(xs) > 1 else np.inf
     py = abs(ys[1] - ys[0]) if len(ys) > 1 else np.inf
     i0 = int(np.searchsorted(xs, wx.min() - px, side="left"))
