@@ -95,8 +95,11 @@ fn to_frame(target: &ORect, q: &ORect) -> Shape {
     let o = target.local(q.origin);
     let u = target.local_dir(q.u);
     let v = target.local_dir(q.v);
-    // Grids that share an orientation (or differ by quarter turns) stay exact.
-    if u[0].abs() < 1e-12 || u[1].abs() < 1e-12 {
+    // Grids that share an orientation (or differ by quarter turns) stay exact: both sides
+    // along the target's axes. (One side along an axis says nothing of the other when either
+    // grid is skewed.)
+    let flat = |w: [f64; 2], k: usize| w[k].abs() < 1e-12;
+    if (flat(u, 1) && flat(v, 0)) || (flat(u, 0) && flat(v, 1)) {
         let a = [o[0] + u[0] * q.size[0], o[1] + u[1] * q.size[0]];
         let b = [o[0] + v[0] * q.size[1], o[1] + v[1] * q.size[1]];
         let c = [a[0] + v[0] * q.size[1], a[1] + v[1] * q.size[1]];
