@@ -2,7 +2,8 @@
 //! f32 steps of the height, which is 2 mm above 8,192 m), plus 2·10⁻⁵ of the spread of the
 //! heights blended at the point (see `src/resample/gpu.rs`: where the weight ramp at a survey's
 //! edge blends surveys hundreds of metres apart, the f32 weight's rounding shows), on synthetic
-//! rotated grids with voids, on the committed real crops, and where surveys meet, for uniform
+//! rotated grids with voids, on the committed real crops, where surveys meet, and with surveys
+//! of other CRSs read through the store-to-survey lattice, for uniform
 //! and view-dependent sample grids.
 //!
 //! Without a GPU adapter these tests say so and pass, unless PATCHWORK_REQUIRE_GPU=1 (as CI
@@ -52,14 +53,20 @@ fn compare(
         .unwrap_or_else(|e| panic!("{what}: {e}"));
     let bins = cpu::bin(&set.patches, grid);
     let bx = grid.width.div_ceil(patchwork::resample::BLOCK);
-    // The spread of the heights the patches reaching a point give there.
+    let positions = set.positions(grid);
+    // The spread of the heights the patches reaching a point give there, each patch read at
+    // the point's position in its own plane.
     let spread = |k: usize| {
-        let p = grid.point(k);
+        let at = |plane: u16| match plane {
+            0 => grid.point(k),
+            n => positions[n as usize - 1][k],
+        };
         let bin = &bins[(k / grid.width / patchwork::resample::BLOCK) * bx
             + (k % grid.width) / patchwork::resample::BLOCK];
-        let zs = bin
-            .iter()
-            .filter_map(|&i| set.patches[i as usize].at(p).map(|(_, h)| h.z));
+        let zs = bin.iter().filter_map(|&i| {
+            let p = &set.patches[i as usize];
+            p.at(at(p.plane)).map(|(_, h)| h.z)
+        });
         let (lo, hi) = zs.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), z| {
             (a.min(z), b.max(z))
         });
@@ -368,6 +375,86 @@ fn gpu_matches_cpu_where_surveys_meet() {
         check(&t, &all, 256, 256, e, "ε 2 in ε 20");
     }
     println!("where surveys meet: max |gpu − cpu| = {worst:.3e} m");
+}
+
+/// A committed crop as a survey of its own CRS, its accuracy estimated.
+fn survey_in_own_crs(name: &str) -> Arc<Survey> {
+    use patchwork::read::{read_raster, ReadLimits};
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name);
+    let r = read_raster(&path, &ReadLimits::default()).unwrap();
+    let crs = r.crs.crs.clone();
+    let grid = r.into_grid().unwrap();
+    Arc::new(
+        Survey::build(
+            grid,
+            patchwork::model::accuracy::AccuracySpec::Auto,
+            crs,
+            patchwork::model::patch::PatchLayout::default(),
+        )
+        .unwrap(),
+    )
+}
+
+#[test]
+fn gpu_matches_cpu_across_crss() {
+    use patchwork::crs::Crs;
+    use patchwork::index::lod::IndexConfig;
+    let Some(mut g) = gpu() else { return };
+    // Mont Ventoux in geographic WGS 84 and in UTM 31N, each in a store of the other's CRS
+    // and of its own: every patch of the other survey reads positions carried to its plane.
+    let geo = survey_in_own_crs("real/ventoux_geographic.tif");
+    let utm = survey_in_own_crs("real/ventoux_utm31.tif");
+    let mut worst = 0.0f64;
+    for store in [Crs::wgs84(), Crs::epsg(32631).unwrap()] {
+        let mut t = Terrain::with_crs(IndexConfig::default(), Some(&store), None);
+        t.insert(geo.clone());
+        t.insert(utm.clone());
+        let both = t
+            .survey(geo.id)
+            .unwrap()
+            .footprint()
+            .intersection(&t.survey(utm.id).unwrap().footprint())
+            .expect("the surveys overlap");
+        for (e, size) in [(0.0, 256), (3.0, 200), (10.0, 128), (50.0, 64)] {
+            let grid = SampleGrid::uniform(&both, size, size);
+            let what = format!("Ventoux pair in {} at e = {e}, {size}²", store.key());
+            worst = worst.max(compare(&mut g, &t, t.uniform(&both, e), &grid, &what));
+        }
+        // Only the other CRS's survey: all of the tile through the lattice.
+        let mut alone = Terrain::with_crs(IndexConfig::default(), Some(&store), None);
+        let other = if store.is_geographic() { &utm } else { &geo };
+        alone.insert(other.clone());
+        let roi = alone.survey(other.id).unwrap().footprint();
+        let grid = SampleGrid::uniform(&roi, 300, 300);
+        let what = format!("survey {} alone in {}", other.id, store.key());
+        worst = worst.max(compare(
+            &mut g,
+            &alone,
+            alone.uniform(&roi, 0.0),
+            &grid,
+            &what,
+        ));
+        // A view across the pair, its metric the store's.
+        let metric = if store.is_geographic() {
+            Metric::geographic((both.min[1] + both.max[1]) / 2.0)
+        } else {
+            Metric::PROJECTED
+        };
+        let v = ViewQuery {
+            eye: [both.min[0], both.min[1], 2500.0],
+            look: [both.max[0], both.max[1], 1200.0],
+            fov_deg: 60.0,
+            viewport_px: 800,
+            pixel_error: 2.0,
+            metric,
+        };
+        let grid = SampleGrid::view(&v, 240, 160, v.look[2]);
+        let what = format!("view across the pair in {}", store.key());
+        worst = worst.max(compare(&mut g, &t, t.view(&v), &grid, &what));
+    }
+    println!("across CRSs: max |gpu − cpu| = {worst:.3e} m");
 }
 
 #[test]

@@ -1,7 +1,8 @@
 //! The Python client package (clients/python), installed as a user installs it into a virtual
 //! environment under the target folder, against a daemon: every Terrain call, `resample`
 //! against the daemon's tiles, a view session, and the README's example
-//! (tests/python/client.py), and `resample` again in a store of bicubic patches. Its committed
+//! (tests/python/client.py), `resample` again in a store of bicubic patches, and across CRSs
+//! in a geographic store holding a UTM survey. Its committed
 //! stubs must match the protos.
 
 mod common;
@@ -42,6 +43,25 @@ fn the_python_client_resamples_bicubic_patches() {
     };
     let d = four_surveys(tmp.path(), setup);
     run_client(&python, &d, &["--bicubic"]);
+}
+
+#[test]
+fn the_python_client_resamples_across_crss() {
+    let python = python();
+    let tmp = tempfile::tempdir().unwrap();
+    let setup = Setup {
+        env: vec![("PATCHWORK_CRS".into(), "EPSG:4326".into())],
+        ..Setup::default()
+    };
+    let d = Daemon::start_with(tmp.path(), setup);
+    for (name, as_name) in [
+        ("real/ventoux_geographic.tif", "geo.tif"),
+        ("real/ventoux_utm31.tif", "utm.tif"),
+    ] {
+        drop_by_rename(&crop(name), &d.inbox(), as_name);
+    }
+    d.wait("both surveys to be active", |s| count(s, "active") == 2);
+    run_client(&python, &d, &["--crs"]);
 }
 
 /// A daemon under `root` holding the Copernicus, NASADEM and SRTM voids crops, and a coarser

@@ -9,8 +9,10 @@ coarser copy of part of the Copernicus crop on a rotated lattice.
 Checks health, every Terrain call through `patchwork_client`, that `resample` over streamed
 patches reproduces the daemon's tile within 1 mm with the same nodata mask (where surveys
 meet, at voids and borders), that meshes are made of the cut's heights, that a view
-session's patches are the view cut at every step, and runs the README's hillshade example. Prints one summary line and exits 0, or says what
-went wrong and exits 1.
+session's patches are the view cut at every step, and runs the README's hillshade example.
+With --bicubic, `resample` again in a store of bicubic patches; with --crs, `resample`, points
+and tiles across CRSs in a geographic store holding a UTM survey. Prints one summary line and
+exits 0, or says what went wrong and exits 1.
 """
 
 import os
@@ -85,6 +87,73 @@ def run_bicubic(address):
         worst, kinds, fallback, _ = resample_tiles(c)
         require(kinds == {"bicubic", "edge"}, f"the cuts hold only {kinds} patches")
     print(f"ok: bicubic patches; resample within {worst * 1000:.3g} mm of the daemon on 6 tiles ({fallback} fallback patches)")
+
+
+def run_crs(address):
+    """In a geographic store holding Mont Ventoux in WGS 84 and in UTM 31N: `resample`, given
+    the store's CRS, carries the samples to the UTM survey's patches with pyproj and is the
+    daemon's tile (which carries them through its lattice); a tile, a cut and points asked in
+    UTM 31N are the same ground as in the store's CRS."""
+    import pyproj
+
+    with pc.Client(address) as c:
+        stats = c.stats()
+        require(stats.crs_key == "EPSG:4326", f"the store's CRS is {stats.crs_key!r}")
+        crss = sorted(s.crs_key for s in c.surveys() if s.status == "active")
+        require(crss == ["EPSG:32631", "EPSG:4326"], f"the surveys' CRSs are {crss}")
+        worst, others = 0.0, 0
+        # The pair's overlap, the UTM survey's part alone (its east), and a tile across both.
+        for roi in [(5.26, 44.12, 5.34, 44.21), (5.37, 44.10, 5.41, 44.22), (5.22, 44.10, 5.40, 44.22)]:
+            for error in (0.0, 5.0, 30.0):
+                patches = c.query_patches(roi, error)
+                others += sum(bool(p.crs) for p in patches)
+                try:
+                    pc.resample(patches, roi, 200, 160)
+                    raise Failure("resample took patches of another CRS without the store's")
+                except ValueError:
+                    pass
+                daemon = c.tile(roi, 200, 160, error, backend="cpu")
+                ours = pc.resample(patches, roi, 200, 160, crs=stats.crs_key)
+                dn, on = np.isnan(daemon), np.isnan(ours)
+                require(np.array_equal(dn, on), f"{roi} at {error} m: nodata differs at {int((dn != on).sum())} samples")
+                require((~dn).any(), f"{roi} at {error} m: the tile has no data")
+                diff = float(np.max(np.abs(daemon[~dn] - ours[~dn])))
+                require(diff <= 1e-3, f"{roi} at {error} m: resample is {diff:.4g} m off the daemon's tile")
+                worst = max(worst, diff)
+        require(others > 0, "no cut held a patch of the UTM survey")
+
+        # Points asked in UTM 31N are the store's heights at the same ground, to pyproj's
+        # transformation.
+        to_utm = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:32631", always_xy=True)
+        rng = np.random.default_rng(7)
+        lon, lat = rng.uniform(5.22, 5.38, 200), rng.uniform(44.12, 44.20, 200)
+        x, y = to_utm.transform(lon, lat)
+        geo = c.sample(np.column_stack([lon, lat]), 0.0)
+        utm = c.sample(np.column_stack([x, y]), 0.0, crs="EPSG:32631")
+        ok = ~np.isnan(geo)
+        require(ok.sum() > 150 and np.array_equal(ok, ~np.isnan(utm)), f"{ok.sum()} of 200 points have heights")
+        point_diff = float(np.max(np.abs(geo[ok] - utm[ok])))
+        require(point_diff <= 1e-3, f"points asked in UTM are {point_diff:.4g} m off the same ground asked in degrees")
+
+        # A UTM tile is in UTM: its info names the CRS, and its heights are the store's at
+        # its pixels' centres carried back to degrees.
+        box = (x.min(), y.min(), x.min() + 4000.0, y.min() + 3000.0)
+        tile, info = c.tile_with_info(box, 80, 60, 0.0, crs="EPSG:32631")
+        require(info.crs_key == "EPSG:32631", f"the UTM tile says it is in {info.crs_key!r}")
+        cx = box[0] + (np.arange(80) + 0.5) * 50.0
+        cy = box[3] - (np.arange(60) + 0.5) * 50.0
+        X, Y = np.meshgrid(cx, cy)
+        lon2, lat2 = to_utm.transform(X.ravel(), Y.ravel(), direction="INVERSE")
+        back = c.sample(np.column_stack([lon2, lat2]), 0.0).reshape(60, 80)
+        tn = np.isnan(tile)
+        require(np.array_equal(tn, np.isnan(back)) and (~tn).any(), "the UTM tile's nodata is not the store's")
+        tile_diff = float(np.max(np.abs(tile[~tn] - back[~tn])))
+        require(tile_diff <= 1e-3, f"the UTM tile is {tile_diff:.4g} m off the store's heights at its pixels")
+    print(
+        f"ok: a geographic store with a UTM survey; resample across CRSs within {worst * 1000:.3g} mm of the "
+        f"daemon on 9 tiles ({others} patches of the UTM survey); points and tiles asked in UTM within "
+        f"{max(point_diff, tile_diff) * 1000:.3g} mm of the same ground asked in degrees"
+    )
 
 
 def run(address):
@@ -182,11 +251,12 @@ def run(address):
 
 
 def main(argv):
-    if len(argv) not in (2, 3) or argv[2:] not in ([], ["--bicubic"]):
-        print(f"usage: {argv[0]} HOST:PORT [--bicubic]", file=sys.stderr)
+    modes = {(): run, ("--bicubic",): run_bicubic, ("--crs",): run_crs}
+    if len(argv) < 2 or tuple(argv[2:]) not in modes:
+        print(f"usage: {argv[0]} HOST:PORT [--bicubic | --crs]", file=sys.stderr)
         return 2
     try:
-        (run_bicubic if argv[2:] else run)(argv[1])
+        modes[tuple(argv[2:])](argv[1])
     except Failure as e:
         print(f"FAIL: {e}", file=sys.stderr)
         return 1
