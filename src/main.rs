@@ -1046,7 +1046,10 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             let (mesh, tile) = convert::mesh_of(&m)?;
             let bytes = match kind {
                 "obj" => encode::obj(&mesh, &tile).into_bytes(),
-                "glb" => encode::glb(&mesh, &tile),
+                "glb" => {
+                    let lonlat = tile_crs(&m.crs_key)?.is_some_and(|c| c.is_geographic());
+                    encode::glb(&mesh, &tile, lonlat)
+                }
                 _ => {
                     let crs = tile_crs(&m.crs_key)?;
                     if !crs.as_ref().is_some_and(|c| c.is_geographic()) {

@@ -435,7 +435,10 @@ fn independent_decoders_read_the_encodings() {
         encode::quantized_mesh(&mesh, &roi),
     )
     .unwrap();
-    std::fs::write(out.join("tile.glb"), encode::glb(&mesh, &roi)).unwrap();
+    // The store is geographic: glTF in metres about the tile's centre; and the same mesh as
+    // if its CRS were projected, placed by the node's translation.
+    std::fs::write(out.join("tile.glb"), encode::glb(&mesh, &roi, true)).unwrap();
+    std::fs::write(out.join("planar.glb"), encode::glb(&mesh, &roi, false)).unwrap();
     std::fs::write(out.join("tile.obj"), encode::obj(&mesh, &roi)).unwrap();
     let surface = &mesh.heights[..mesh.skirt_vertices];
     let range = |v: &[f32]| {

@@ -2,7 +2,7 @@
 //! quantized-mesh-1.0 (.terrain) with its edge indices and the oct-encoded vertex normals
 //! extension.
 //!
-//! Positions are in the store's CRS and heights in metres. The tile spans `roi`: grid vertex
+//! Positions are in the tile's CRS and heights in metres (glTF's in metres throughout). The tile spans `roi`: grid vertex
 //! (c, r) lies at x = xmin + c·(xmax − xmin)/(cols − 1), y = ymax − r·(ymax − ymin)/(rows − 1).
 
 use super::{edges, Mesh};
@@ -41,21 +41,47 @@ pub fn obj(m: &Mesh, roi: &Aabb) -> String {
     s
 }
 
-/// Binary glTF 2.0, skirts included. glTF is y-up: a vertex is (x − xmin, height, ymin − y),
-/// f32, and the node's translation (f64) puts the tile's south-west corner back, so the CRS
-/// position is exact to f32 relative to the tile, not to the CRS's origin.
-pub fn glb(m: &Mesh, roi: &Aabb) -> Vec<u8> {
+/// Binary glTF 2.0, skirts included. glTF is y-up and in metres, its positions f32.
+///
+/// In a projected CRS a vertex is (x − xmin, height, ymin − y) and the node's translation
+/// (f64) puts the tile's south-west corner back, so the CRS position is exact to f32 relative
+/// to the tile, not to the CRS's origin. In longitude and latitude (`lonlat`) degrees are no
+/// unit for glTF: a vertex is (east, up, −north) in metres, in the plane tangent to the WGS 84
+/// ellipsoid under the tile's centre (the local east-north-up frame, so the earth's curvature
+/// shows as it is), and the node's `extras` name that centre.
+pub fn glb(m: &Mesh, roi: &Aabb, lonlat: bool) -> Vec<u8> {
+    let centre = [
+        (roi.min[0] + roi.max[0]) / 2.0,
+        (roi.min[1] + roi.max[1]) / 2.0,
+    ];
+    let enu = Enu::at(centre[0], centre[1]);
     let mut positions = Vec::with_capacity(m.grid.len() * 12);
     let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
     for v in 0..m.grid.len() {
         let [x, y, z] = position(m, roi, v);
-        let p = [(x - roi.min[0]) as f32, z as f32, (roi.min[1] - y) as f32];
+        let p = if lonlat {
+            let [e, n, u] = enu.of(ecef(x, y, z));
+            [e as f32, u as f32, -n as f32]
+        } else {
+            [(x - roi.min[0]) as f32, z as f32, (roi.min[1] - y) as f32]
+        };
         for k in 0..3 {
             lo[k] = lo[k].min(p[k]);
             hi[k] = hi[k].max(p[k]);
         }
         positions.extend(p.iter().flat_map(|c| c.to_le_bytes()));
     }
+    let node = if lonlat {
+        format!(
+            r#"{{"mesh":0,"extras":{{"frame":"east-north-up","origin_lon_lat_height":[{:?},{:?},0.0]}}}}"#,
+            centre[0], centre[1]
+        )
+    } else {
+        format!(
+            r#"{{"mesh":0,"translation":[{:?},0.0,{:?}]}}"#,
+            roi.min[0], -roi.min[1]
+        )
+    };
     let indices: Vec<u8> = m
         .triangles
         .iter()
@@ -65,7 +91,7 @@ pub fn glb(m: &Mesh, roi: &Aabb) -> Vec<u8> {
     let json = format!(
         concat!(
             r#"{{"asset":{{"version":"2.0","generator":"patchwork"}},"scene":0,"scenes":[{{"nodes":[0]}}],"#,
-            r#""nodes":[{{"mesh":0,"translation":[{x0:?},0.0,{z0:?}]}}],"#,
+            r#""nodes":[{node}],"#,
             r#""meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"mode":4}}]}}],"#,
             r#""buffers":[{{"byteLength":{len}}}],"#,
             r#""bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":{p},"target":34962}},"#,
@@ -73,8 +99,7 @@ pub fn glb(m: &Mesh, roi: &Aabb) -> Vec<u8> {
             r#""accessors":[{{"bufferView":0,"componentType":5126,"count":{n},"type":"VEC3","min":{lo:?},"max":{hi:?}}},"#,
             r#"{{"bufferView":1,"componentType":5125,"count":{t},"type":"SCALAR"}}]}}"#
         ),
-        x0 = roi.min[0],
-        z0 = -roi.min[1],
+        node = node,
         len = positions.len() + indices.len(),
         p = positions.len(),
         i = indices.len(),
@@ -119,6 +144,34 @@ pub fn ecef(lon: f64, lat: f64, h: f64) -> [f64; 3] {
         (n + h) * lat.cos() * lon.sin(),
         (n * (1.0 - e2) + h) * lat.sin(),
     ]
+}
+
+/// The east-north-up frame tangent to the WGS 84 ellipsoid at a longitude and latitude.
+struct Enu {
+    origin: [f64; 3],
+    /// The east, north and up unit vectors, in earth-fixed coordinates.
+    axes: [[f64; 3]; 3],
+}
+
+impl Enu {
+    fn at(lon: f64, lat: f64) -> Enu {
+        let (sl, cl) = lon.to_radians().sin_cos();
+        let (sp, cp) = lat.to_radians().sin_cos();
+        Enu {
+            origin: ecef(lon, lat, 0.0),
+            axes: [
+                [-sl, cl, 0.0],
+                [-sp * cl, -sp * sl, cp],
+                [cp * cl, cp * sl, sp],
+            ],
+        }
+    }
+
+    /// An earth-fixed point's east, north and up metres from the origin.
+    fn of(&self, p: [f64; 3]) -> [f64; 3] {
+        let d = sub(p, self.origin);
+        self.axes.map(|a| dot(a, d))
+    }
 }
 
 fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
@@ -316,6 +369,20 @@ mod tests {
         assert!((p[0] - 6_378_137.0).abs() < 1e-6 && p[1].abs() < 1e-6 && p[2].abs() < 1e-6);
         let pole = ecef(0.0, 90.0, 0.0);
         assert!((pole[2] - 6_356_752.314_245).abs() < 1e-3);
+    }
+
+    #[test]
+    fn the_tangent_frame_is_metres_east_north_and_up() {
+        let f = Enu::at(5.0, 44.0);
+        let up = f.of(ecef(5.0, 44.0, 100.0));
+        assert!(up[0].abs() < 1e-9 && up[1].abs() < 1e-9 && (up[2] - 100.0).abs() < 1e-9);
+        // A thousandth of a degree north is about 111 m north, and drops below the plane by
+        // the curvature, d²/2R.
+        let n = f.of(ecef(5.0, 44.001, 0.0));
+        assert!(n[0].abs() < 1e-6 && (n[1] - 111.1).abs() < 0.1, "{n:?}");
+        assert!((n[2] + n[1] * n[1] / (2.0 * 6.37e6)).abs() < 1e-4, "{n:?}");
+        let e = f.of(ecef(5.001, 44.0, 0.0));
+        assert!((e[0] - 80.2).abs() < 0.05 && e[1].abs() < 1e-3, "{e:?}");
     }
 
     #[test]
