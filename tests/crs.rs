@@ -475,3 +475,86 @@ fn a_survey_taken_as_exact_is_gdals_warp_of_it_to_a_millimetre() {
         assert!(worst <= 1e-3, "{store} {name}: {worst:.2e} m from GDAL");
     }
 }
+
+/// PROJ's answer to how far two surveys disagree, each's samples against the other's
+/// bilinear surface (tests/python/crs_reference.py): (max, rms) both ways.
+fn proj_deviation(a: &Path, b: &Path) -> [(f64, f64); 2] {
+    let out = tempfile::NamedTempFile::new().unwrap();
+    let (a, b) = (a.to_str().unwrap(), b.to_str().unwrap());
+    python(&["deviation", a, b, out.path().to_str().unwrap()]);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(out.path()).unwrap()).unwrap();
+    ["a_in_b", "b_in_a"].map(|k| {
+        let f = |m: &str| v[k][m].as_f64().unwrap();
+        (f("max_m"), f("rms_m"))
+    })
+}
+
+#[test]
+fn a_shifted_copy_in_another_crs_conflicts_by_as_much_as_proj_says() {
+    let tmp = tempfile::tempdir().unwrap();
+    // The UTM survey moved three cells (270 m) east: the same heights on the wrong ground.
+    let utm = crop("real/ventoux_utm31.tif");
+    let r = read_raster(&utm, &ReadLimits::default()).unwrap();
+    let mut gt = r.geotransform;
+    gt[0] += 3.0 * gt[1];
+    let shifted = tmp.path().join("shifted.tif");
+    patchwork::read::write_tiff::write_geotiff_f32(
+        &shifted,
+        r.cols,
+        r.rows,
+        &r.samples,
+        gt,
+        r.crs.crs.as_ref(),
+        r.nodata,
+    )
+    .unwrap();
+    let geo = crop("real/ventoux_geographic.tif");
+    let cfg = Config {
+        data_dir: tmp.path().join("data"),
+        ingest_roots: vec![crop(""), tmp.path().to_path_buf()],
+        crs: Some("EPSG:4326".into()),
+        ..Config::default()
+    };
+    let e = Engine::open(cfg).unwrap();
+    let ingest = |p: &Path| {
+        let done = e.ingest(p, None, Origin::Request).unwrap();
+        assert!(done.error.is_empty(), "{}: {}", p.display(), done.error);
+        done
+    };
+    let (g, u) = (ingest(&geo), ingest(&utm));
+    let accuracy = |id| e.snapshot().survey(id).unwrap().accuracy;
+    let (eg, eu) = (accuracy(g.survey.unwrap()), accuracy(u.survey.unwrap()));
+    let s = ingest(&shifted);
+    let es = accuracy(s.survey.unwrap());
+    // Each conflict is the deviation PROJ's transformation gives, one way or the other (the
+    // finer survey's samples against the coarser's surface).
+    let mut seen = Vec::new();
+    for (other, path, eo) in [(g.survey.unwrap(), &geo, eg), (u.survey.unwrap(), &utm, eu)] {
+        let c = s
+            .conflicts
+            .iter()
+            .find(|c| c.survey == other)
+            .unwrap_or_else(|| panic!("no conflict with {}: {:?}", path.display(), s.conflicts));
+        assert!(c.max_m > es + eo, "{c:?} within ε {es:.2} + {eo:.2}");
+        let proj = proj_deviation(&shifted, path);
+        let near = |(max, rms): (f64, f64)| {
+            (c.max_m - max).abs() <= 0.01 && (c.rms_m - rms).abs() <= 0.01 * rms
+        };
+        assert!(
+            proj.iter().any(|&d| near(d)),
+            "{}: ours {c:?}, PROJ's {proj:?}",
+            path.display()
+        );
+        seen.push(format!(
+            "{}: max {:.2} m, rms {:.2} m (PROJ {proj:?})",
+            path.file_name().unwrap().to_string_lossy(),
+            c.max_m,
+            c.rms_m
+        ));
+    }
+    println!(
+        "the shifted copy (ε {es:.2} m) conflicts with {}; the originals' conflicts: {:?}",
+        seen.join("; "),
+        u.conflicts
+    );
+}

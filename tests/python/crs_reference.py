@@ -13,6 +13,11 @@
         PROJ's transformation of points: IN is JSON [{"from", "to", "points": [[x, y]...]}],
         OUT the same with "out": [[x, y]...] (null where PROJ has none), coordinates in x/y
         (easting or longitude first) order.
+    crs_reference.py deviation A B OUT
+        How far two surveys of any CRSs disagree: each valid sample of A, at its pixel's
+        centre carried into B's CRS by PROJ, against B's bilinear surface there (where the
+        cell's four corners are data); and B's samples against A the same way. OUT gets JSON
+        {"a_in_b": {"max_m", "rms_m", "samples"}, "b_in_a": {...}}.
 """
 
 import json
@@ -76,5 +81,44 @@ def transform(inp, out):
         json.dump(cases, f)
 
 
+def _read(path):
+    with rasterio.open(path) as d:
+        band = d.read(1).astype(np.float64)
+        if d.nodata is not None:
+            band[band == d.nodata] = np.nan
+        return band, d.transform, d.crs
+
+
+def _against(a, b):
+    """A's samples against B's bilinear surface: the largest and RMS difference, and count."""
+    band, transform, crs = a
+    other, o_transform, o_crs = b
+    rows, cols = band.shape
+    c, r = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    x, y = transform * (c, r)
+    bx, by = pyproj.Transformer.from_crs(crs, o_crs, always_xy=True).transform(x, y)
+    col, row = ~o_transform * (bx, by)
+    gc, gr = col - 0.5, row - 0.5
+    c0, r0 = np.floor(gc).astype(np.int64), np.floor(gr).astype(np.int64)
+    o_rows, o_cols = other.shape
+    inside = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < o_cols) & (r0 + 1 < o_rows)
+    c0, r0 = np.clip(c0, 0, o_cols - 2), np.clip(r0, 0, o_rows - 2)
+    fx, fy = gc - c0, gr - r0
+    z00, z10 = other[r0, c0], other[r0, c0 + 1]
+    z01, z11 = other[r0 + 1, c0], other[r0 + 1, c0 + 1]
+    top = z00 + (z10 - z00) * fx
+    bottom = z01 + (z11 - z01) * fx
+    d = np.abs(top + (bottom - top) * fy - band)
+    ok = inside & np.isfinite(d)
+    d = d[ok]
+    return {"max_m": float(d.max()), "rms_m": float(np.sqrt(np.mean(d * d))), "samples": int(d.size)}
+
+
+def deviation(a, b, out):
+    a, b = _read(a), _read(b)
+    with open(out, "w") as f:
+        json.dump({"a_in_b": _against(a, b), "b_in_a": _against(b, a)}, f)
+
+
 if __name__ == "__main__":
-    {"warp": warp, "transform": transform}[sys.argv[1]](*sys.argv[2:])
+    {"warp": warp, "transform": transform, "deviation": deviation}[sys.argv[1]](*sys.argv[2:])
