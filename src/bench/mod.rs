@@ -7,6 +7,7 @@
 //! is compared on.
 
 pub mod charts;
+pub mod crs;
 pub mod flight;
 pub mod meet;
 pub mod meshes;
@@ -77,6 +78,7 @@ pub struct Report {
     pub disk_bytes: u64,
     pub scenes: meet::Scenes,
     pub stability: Vec<stability::StabilityRow>,
+    pub across: crs::Report,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -271,6 +273,8 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
                     let file = format!("{stem}_e{e}.npy");
                     write_npy(&opts.out.join("tiles").join(&file), n, n, &tile.heights)?;
                     manifest.push(ManifestTile {
+                        crs: None,
+                        sources: None,
                         size: n,
                         error: e,
                         ours: file,
@@ -284,18 +288,14 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         }
     }
     let crs = engine.crs();
-    std::fs::write(
-        opts.out.join("tiles/manifest.json"),
-        serde_json::to_string_pretty(&Manifest {
-            crs: crs.as_ref().map_or(String::new(), |c| c.key().to_string()),
-            sources: opts
-                .files
-                .iter()
-                .map(|f| std::path::absolute(f).unwrap_or(f.clone()))
-                .collect(),
-            tiles: manifest,
-        })?,
+    write_manifest(
+        &opts.out.join("tiles/manifest.json"),
+        crs.as_ref().map_or(String::new(), |c| c.key().to_string()),
+        &opts.files,
+        manifest,
     )?;
+    // Surveys of two CRSs in one store, and tiles in a third.
+    let across = run_crs(opts)?;
 
     // A flight along the survey's diagonal, 1,500 m up, looking ahead.
     let metric = match engine.crs() {
@@ -401,10 +401,48 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         disk_bytes,
         scenes,
         stability,
+        across,
     };
     write_csv(&opts.out, &report)?;
     charts::draw(&opts.out, &report, &t, &rois[1].1, opts.smoke)?;
     Ok(report)
+}
+
+/// Surveys of two CRSs in one store (`crs_*.csv`, and `tiles/crs_manifest.json`, the tiles
+/// GDAL is compared on): the part of the bench `--crs-only` runs.
+pub fn run_crs(opts: &Options) -> Result<crs::Report, Box<dyn std::error::Error>> {
+    std::fs::create_dir_all(opts.out.join("tiles"))?;
+    let mut tiles = Vec::new();
+    let report = crs::run(&opts.out, opts.smoke, &mut tiles)?;
+    let sources = tiles.first().map(|t| t.sources.clone()).unwrap_or_default();
+    let tiles = tiles.into_iter().map(ManifestTile::from).collect();
+    write_manifest(
+        &opts.out.join("tiles/crs_manifest.json"),
+        String::new(),
+        &sources,
+        tiles,
+    )?;
+    Ok(report)
+}
+
+fn write_manifest(
+    path: &Path,
+    crs: String,
+    sources: &[PathBuf],
+    tiles: Vec<ManifestTile>,
+) -> std::io::Result<()> {
+    let m = Manifest {
+        crs,
+        sources: sources
+            .iter()
+            .map(|f| std::path::absolute(f).unwrap_or(f.clone()))
+            .collect(),
+        tiles,
+    };
+    std::fs::write(
+        path,
+        serde_json::to_string_pretty(&m).expect("a manifest serializes"),
+    )
 }
 
 /// `tiles/manifest.json`: the tiles GDAL is compared on (bench/gdal_compare.py reads it).
@@ -417,6 +455,11 @@ struct Manifest {
 
 #[derive(serde::Serialize)]
 struct ManifestTile {
+    /// The tile's CRS and sources where they are not the manifest's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    crs: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    sources: Option<Vec<PathBuf>>,
     size: usize,
     error: f64,
     /// Our tile and the low and high reference, as .npy files beside the manifest.
@@ -425,6 +468,22 @@ struct ManifestTile {
     lo: String,
     hi: String,
     roi: [f64; 4],
+}
+
+impl From<crs::GdalTile> for ManifestTile {
+    fn from(t: crs::GdalTile) -> Self {
+        ManifestTile {
+            crs: Some(t.crs),
+            sources: Some(t.sources),
+            size: t.size,
+            error: t.error,
+            ours: t.ours,
+            ours_ms: t.ours_ms,
+            lo: t.lo,
+            hi: t.hi,
+            roi: t.roi,
+        }
+    }
 }
 
 fn c_lat(b: &Aabb) -> f64 {

@@ -27,6 +27,9 @@ struct Cli {
     /// minutes where the whole bench takes half an hour.
     #[arg(long)]
     meshes_only: bool,
+    /// Only the surveys of two CRSs in one store, and their tiles beside GDAL's warps.
+    #[arg(long, conflicts_with = "meshes_only")]
+    crs_only: bool,
 }
 
 fn main() -> ExitCode {
@@ -46,6 +49,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         smoke,
         no_gdal,
         meshes_only,
+        crs_only,
     } = cli;
     let files = if !files.is_empty() {
         files
@@ -78,23 +82,38 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
     };
     if meshes_only {
         patchwork::bench::run_meshes(&opts)?;
+    } else if crs_only {
+        patchwork::bench::run_crs(&opts)?;
     } else {
         patchwork::bench::run(&opts)?;
     }
     if !no_gdal && !meshes_only {
-        let status = std::process::Command::new("python3")
-            .arg("bench/gdal_compare.py")
-            .arg(out.join("tiles/manifest.json"))
-            .arg(out.join("gdal.csv"))
-            .status()
-            .map_err(|e| {
-                format!("cannot run python3 for the GDAL comparison: {e}; use --no-gdal to skip it")
-            })?;
-        if !status.success() {
-            return Err("the GDAL comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
+        // The main tiles, then those of surveys in two CRSs.
+        let runs: &[(&str, &str)] = if crs_only {
+            &[("crs_manifest.json", "crs_gdal.csv")]
+        } else {
+            &[
+                ("manifest.json", "gdal.csv"),
+                ("crs_manifest.json", "crs_gdal.csv"),
+            ]
+        };
+        for (manifest, csv) in runs {
+            let status = std::process::Command::new("python3")
+                .arg("bench/gdal_compare.py")
+                .arg(out.join("tiles").join(manifest))
+                .arg(out.join(csv))
+                .status()
+                .map_err(|e| {
+                    format!(
+                        "cannot run python3 for the GDAL comparison: {e}; use --no-gdal to skip it"
+                    )
+                })?;
+            if !status.success() {
+                return Err("the GDAL comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
+            }
         }
     }
-    if !no_gdal {
+    if !no_gdal && !crs_only {
         let status = std::process::Command::new("python3")
             .arg("bench/mesh_compare.py")
             .arg(&out)
