@@ -890,20 +890,10 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 error,
                 crs: crs.unwrap_or_default(),
             };
-            let r = match &mut c {
-                Client::Remote { terrain, .. } => terrain
-                    .sample_heights(req)
-                    .await
-                    .map_err(|s| -> Fail { s.message().to_string().into() })?
-                    .into_inner(),
-                Client::Local(engine) => {
-                    let engine = engine.clone();
-                    tokio::task::spawn_blocking(move || {
-                        api::sample_heights(&engine, &req, &Default::default())
-                    })
-                    .await??
-                }
-            };
+            let local = req.clone();
+            let r = call!(&mut c, terrain.sample_heights(req), move |e: &Engine| {
+                api::sample_heights(e, &local, &Default::default())
+            })?;
             let height = |k: usize| (r.valid.get(k) == Some(&1)).then(|| r.heights[k]);
             if json {
                 let v: Vec<SampleJson> = pts
@@ -1029,20 +1019,10 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 method: pb::MeshMethod::from(method) as i32,
                 crs: crs.unwrap_or_default(),
             };
-            let m = match &mut c {
-                Client::Remote { terrain, .. } => terrain
-                    .mesh_tile(req)
-                    .await
-                    .map_err(|s| -> Fail { s.message().to_string().into() })?
-                    .into_inner(),
-                Client::Local(engine) => {
-                    let engine = engine.clone();
-                    tokio::task::spawn_blocking(move || {
-                        api::mesh_tile(&engine, &req, &Default::default())
-                    })
-                    .await??
-                }
-            };
+            let local = req.clone();
+            let m = call!(&mut c, terrain.mesh_tile(req), move |e: &Engine| {
+                api::mesh_tile(e, &local, &Default::default())
+            })?;
             let (mesh, tile) = convert::mesh_of(&m)?;
             let bytes = match kind {
                 "obj" => encode::obj(&mesh, &tile).into_bytes(),

@@ -11,7 +11,6 @@ use patchwork::crs::{Crs, Reprojection, Transform};
 use patchwork::engine::{Cut, Engine, Origin};
 use patchwork::index::geom::Aabb;
 use patchwork::index::lod::IndexConfig;
-use patchwork::model::patch::PatchLayout;
 use patchwork::model::survey::Survey;
 use patchwork::read::{read_raster, ReadLimits};
 use patchwork::resample::Backend;
@@ -24,22 +23,6 @@ fn crop(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/data")
         .join(name)
-}
-
-/// A committed crop as a survey of its own CRS, its accuracy estimated.
-fn survey(name: &str) -> Arc<Survey> {
-    let r = read_raster(&crop(name), &ReadLimits::default()).unwrap();
-    let crs = r.crs.crs.clone();
-    let grid = r.into_grid().unwrap();
-    Arc::new(
-        Survey::build(
-            grid,
-            patchwork::model::accuracy::AccuracySpec::Auto,
-            crs,
-            PatchLayout::default(),
-        )
-        .unwrap(),
-    )
 }
 
 fn terrain(crs: &Crs, surveys: &[&Arc<Survey>]) -> Terrain {
@@ -70,8 +53,8 @@ fn bits(v: &[f32]) -> Vec<u32> {
 
 #[test]
 fn two_crss_make_one_terrain_whatever_the_order_and_retire_exactly() {
-    let geo = survey("real/ventoux_geographic.tif");
-    let utm = survey("real/ventoux_utm31.tif");
+    let geo = common::crop_survey("real/ventoux_geographic.tif");
+    let utm = common::crop_survey("real/ventoux_utm31.tif");
     assert_eq!(geo.crs.as_ref().and_then(|c| c.epsg_code()), Some(4326));
     assert_eq!(utm.crs.as_ref().and_then(|c| c.epsg_code()), Some(32631));
     for store in ["EPSG:4326", "EPSG:32631"] {

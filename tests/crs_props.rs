@@ -167,17 +167,7 @@ fn native(t: &Terrain, s: &Survey, p: [f64; 2]) -> Option<[f64; 2]> {
 
 /// A random point of a valid level-0 cell of a survey, in the store's plane.
 fn valid_point(s: &Survey, a: f64, b: f64, c: f64) -> Option<[f64; 2]> {
-    let g = &s.levels[0];
-    let [cw, ch] = g.cells();
-    let cells: Vec<(usize, usize)> = (0..ch)
-        .flat_map(|r| (0..cw).map(move |c| (c, r)))
-        .filter(|&(c, r)| g.cell_valid(c, r))
-        .collect();
-    if cells.is_empty() {
-        return None;
-    }
-    let (cc, rr) = cells[((a * cells.len() as f64) as usize).min(cells.len() - 1)];
-    let q = g.georef.to_world(cc as f64 + b, rr as f64 + c);
+    let q = common::valid_point(s, a, b, c)?;
     Transform::new(s.crs.as_ref().unwrap(), &store())
         .unwrap()
         .apply(q)

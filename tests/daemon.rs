@@ -875,3 +875,118 @@ fn tiles_come_as_bands_of_bytes_that_any_client_can_take_and_small_ones_at_once(
         assert!(ms[10] < 5.0, "a 16² tile takes {:.1} ms (median)", ms[10]);
     });
 }
+
+#[test]
+fn the_cli_asks_for_points_tiles_cuts_and_meshes_in_any_crs() {
+    use patchwork::crs::{Crs, Transform};
+    let tmp = tempfile::tempdir().unwrap();
+    let setup = Setup {
+        env: vec![("PATCHWORK_CRS".into(), "EPSG:4326".into())],
+        ..Setup::default()
+    };
+    let d = Daemon::start_with(tmp.path(), setup);
+    drop_by_rename(&crop("real/ventoux_geographic.tif"), &d.inbox(), "geo.tif");
+    drop_by_rename(&crop("real/ventoux_utm31.tif"), &d.inbox(), "utm.tif");
+    let surveys = d.wait("both surveys", |s| count(s, "active") == 2);
+    let mut crss: Vec<&str> = surveys.iter().map(|s| s["crs"].as_str().unwrap()).collect();
+    crss.sort();
+    assert_eq!(crss, ["EPSG:32631", "EPSG:4326"]);
+    assert!(surveys.iter().all(|s| s["vertical_crs"].is_string()));
+    assert_eq!(d.json(&["stats", "--json"])["crs"], "EPSG:4326");
+
+    // Points asked in UTM are the same ground as asked in degrees.
+    let utm = Crs::epsg(32631).unwrap();
+    let to_utm = Transform::new(&Crs::wgs84(), &utm).unwrap();
+    let lonlat = [[5.25, 44.15], [5.30, 44.18], [5.36, 44.20]];
+    let xy: Vec<[f64; 2]> = lonlat.iter().map(|&p| to_utm.apply(p).unwrap()).collect();
+    let list = |ps: &[[f64; 2]]| {
+        ps.iter()
+            .map(|p| format!("{},{}", p[0], p[1]))
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    let heights = |v: &Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["height"].as_f64().expect("a height"))
+            .collect()
+    };
+    let geo = heights(&d.json(&["sample", "--points", &list(&lonlat), "--json"]));
+    let (points, crs) = (list(&xy), "--crs=EPSG:32631");
+    let by_utm = heights(&d.json(&["sample", "--points", &points, crs, "--json"]));
+    for (a, b) in geo.iter().zip(&by_utm) {
+        assert!(
+            (a - b).abs() < 1e-3,
+            "{geo:?} asked in degrees, {by_utm:?} in UTM"
+        );
+    }
+    let line = d.json(&[
+        "sample",
+        "--line",
+        "5.25,44.15,5.36,44.20",
+        "--count",
+        "5",
+        "--json",
+    ]);
+    assert_eq!(line.as_array().unwrap().len(), 5);
+    assert!((heights(&line)[0] - geo[0]).abs() < 1e-3);
+
+    // A UTM cut, and a UTM tile: a GeoTIFF in UTM whose pixels are the store's heights there.
+    let (x0, y0) = (xy[0][0] - 3000.0, xy[0][1] - 2000.0);
+    let roi = format!("{x0},{y0},{},{}", x0 + 6400.0, y0 + 4800.0);
+    let cut = d.json(&["query", "--roi", &roi, "--error", "0", crs, "--json"]);
+    assert!(!cut["patches"].as_array().unwrap().is_empty());
+    let out = tmp.path().join("utm.tif");
+    let args = [
+        "tile", "--roi", &roi, "--size", "64x48", "--error", "0", crs, "--out",
+    ];
+    let done = d.cli(&[&args[..], &[out.to_str().unwrap()]].concat());
+    assert!(
+        done.status.success(),
+        "{}",
+        String::from_utf8_lossy(&done.stderr)
+    );
+    let r = patchwork::read::read_raster(&out, &Default::default()).unwrap();
+    assert_eq!(r.crs.crs.as_ref(), Some(&utm));
+    assert_eq!((r.cols, r.rows), (64, 48));
+    let gt = r.geotransform;
+    assert!(
+        (gt[0] - x0).abs() < 1e-6 && (gt[1] - 100.0).abs() < 1e-9 && (gt[5] + 100.0).abs() < 1e-9
+    );
+    let centres: Vec<[f64; 2]> = [(3, 5), (40, 20), (60, 44)]
+        .iter()
+        .map(|&(c, r)| {
+            [
+                gt[0] + (c as f64 + 0.5) * 100.0,
+                gt[3] - (r as f64 + 0.5) * 100.0,
+            ]
+        })
+        .collect();
+    let at = heights(&d.json(&["sample", "--points", &list(&centres), crs, "--json"]));
+    for ((&(c, row), want), p) in [(3, 5), (40, 20), (60, 44)].iter().zip(&at).zip(&centres) {
+        let got = r.samples[row * 64 + c] as f64;
+        assert!(
+            (got - want).abs() < 1e-3,
+            "pixel ({c}, {row}) at {p:?}: {got} in the tile, {want} sampled"
+        );
+    }
+
+    // A mesh in UTM as glTF; a quantized-mesh tile must be asked in degrees.
+    let glb = tmp.path().join("utm.glb");
+    let mesh = [
+        "mesh", "--roi", &roi, "--error", "5", "--size", "33", crs, "--out",
+    ];
+    let done = d.cli(&[&mesh[..], &[glb.to_str().unwrap()]].concat());
+    assert!(
+        done.status.success(),
+        "{}",
+        String::from_utf8_lossy(&done.stderr)
+    );
+    assert_eq!(&std::fs::read(&glb).unwrap()[..4], b"glTF");
+    let terrain = tmp.path().join("utm.terrain");
+    let done = d.cli(&[&mesh[..], &[terrain.to_str().unwrap()]].concat());
+    assert!(!done.status.success());
+    let e = String::from_utf8_lossy(&done.stderr);
+    assert!(e.contains("--crs EPSG:4326"), "{e}");
+}

@@ -377,26 +377,6 @@ fn gpu_matches_cpu_where_surveys_meet() {
     println!("where surveys meet: max |gpu − cpu| = {worst:.3e} m");
 }
 
-/// A committed crop as a survey of its own CRS, its accuracy estimated.
-fn survey_in_own_crs(name: &str) -> Arc<Survey> {
-    use patchwork::read::{read_raster, ReadLimits};
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name);
-    let r = read_raster(&path, &ReadLimits::default()).unwrap();
-    let crs = r.crs.crs.clone();
-    let grid = r.into_grid().unwrap();
-    Arc::new(
-        Survey::build(
-            grid,
-            patchwork::model::accuracy::AccuracySpec::Auto,
-            crs,
-            patchwork::model::patch::PatchLayout::default(),
-        )
-        .unwrap(),
-    )
-}
-
 #[test]
 fn gpu_matches_cpu_across_crss() {
     use patchwork::crs::Crs;
@@ -404,8 +384,8 @@ fn gpu_matches_cpu_across_crss() {
     let Some(mut g) = gpu() else { return };
     // Mont Ventoux in geographic WGS 84 and in UTM 31N, each in a store of the other's CRS
     // and of its own: every patch of the other survey reads positions carried to its plane.
-    let geo = survey_in_own_crs("real/ventoux_geographic.tif");
-    let utm = survey_in_own_crs("real/ventoux_utm31.tif");
+    let geo = crop_survey("real/ventoux_geographic.tif");
+    let utm = crop_survey("real/ventoux_utm31.tif");
     let mut worst = 0.0f64;
     for store in [Crs::wgs84(), Crs::epsg(32631).unwrap()] {
         let mut t = Terrain::with_crs(IndexConfig::default(), Some(&store), None);

@@ -321,6 +321,26 @@ pub fn real_crop(name: &str) -> Grid {
         .unwrap()
 }
 
+/// One of the committed crops as a survey of its own CRS (the file's), its accuracy
+/// estimated, with the default patch layout.
+pub fn crop_survey(name: &str) -> Arc<Survey> {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name);
+    let r = patchwork::read::read_raster(&path, &Default::default())
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
+    let crs = r.crs.crs.clone();
+    Arc::new(
+        Survey::build(
+            r.into_grid().unwrap(),
+            patchwork::model::accuracy::AccuracySpec::Auto,
+            crs,
+            PatchLayout::default(),
+        )
+        .unwrap(),
+    )
+}
+
 /// A window of a grid, georeferenced where it lies.
 pub fn window(g: &Grid, c0: usize, r0: usize, cols: usize, rows: usize) -> Grid {
     g.window(c0, r0, cols, rows)
