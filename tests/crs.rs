@@ -360,7 +360,7 @@ fn transformations_agree_with_proj_to_a_millimetre() {
         (4269, [-100.0, 30.0, -90.0, 45.0]),
         (28992, [3.5, 50.8, 7.1, 53.4]),
     ];
-    let mut next = patchwork_rng(7);
+    let mut next = common::uniform(7);
     let mut json = Vec::new();
     for &(code, [x0, y0, x1, y1]) in cases {
         let pts: Vec<[f64; 2]> = (0..200)
@@ -405,17 +405,6 @@ fn transformations_agree_with_proj_to_a_millimetre() {
             worst[0],
             worst[1]
         );
-    }
-}
-
-/// Reproducible uniform numbers in [0, 1).
-fn patchwork_rng(seed: u64) -> impl FnMut() -> f64 {
-    let mut state = seed;
-    move || {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (state >> 11) as f64 / (1u64 << 53) as f64
     }
 }
 

@@ -321,6 +321,17 @@ pub fn real_crop(name: &str) -> Grid {
         .unwrap()
 }
 
+/// Reproducible uniform numbers in [0, 1), from a 64-bit LCG.
+pub fn uniform(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
 /// One of the committed crops as a survey of its own CRS (the file's), its accuracy
 /// estimated, with the default patch layout.
 pub fn crop_survey(name: &str) -> Arc<Survey> {
