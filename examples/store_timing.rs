@@ -62,7 +62,13 @@ fn ingest(store: &Store, terrain: &mut Terrain, path: &Path) -> Arc<Survey> {
     );
     let t = Instant::now();
     store
-        .commit_survey(&s, &rec, &change, &next.edges_of(&[&change]), &[])
+        .commit_survey(
+            &s,
+            &rec,
+            &change,
+            &next.edges_of(&[&change]),
+            &next.pairs_of(s.id),
+        )
         .unwrap();
     let commit_ms = ms(t);
     *terrain = next;

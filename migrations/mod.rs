@@ -9,6 +9,7 @@ mod v1_to_v2;
 mod v2_to_v3;
 mod v3;
 mod v3_to_v4;
+mod v4_to_v5;
 
 /// Every step, as (from version, to version, step). `migrate` follows them from the version a
 /// store records up to `migrate::CURRENT`.
@@ -17,4 +18,5 @@ pub(super) const STEPS: &[(u32, u32, Step)] = &[
     (1, 2, v1_to_v2::run),
     (2, 3, v2_to_v3::run),
     (3, 4, v3_to_v4::run),
+    (4, 5, v4_to_v5::run),
 ];

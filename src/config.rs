@@ -4,6 +4,7 @@
 use crate::crs::vertical::VerticalCrs;
 use crate::crs::Crs;
 use crate::index::lod::IndexConfig;
+use crate::model::evidence::Contradicted;
 use crate::model::mipmap::Filter;
 use crate::model::patch::{PatchKind, PatchLayout};
 use crate::model::survey::Recipe;
@@ -188,6 +189,15 @@ pub struct Config {
     /// How a new store makes its surveys' coarser levels; an existing store keeps its own.
     pub mipmap: Filter,
     pub vertical: Vertical,
+    pub accuracy: Accuracy,
+}
+
+/// The `[accuracy]` section: what a new store does with accuracy claims that other surveys'
+/// evidence finds false (docs/MODEL.md, "Overlaps"); an existing store keeps its own.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Accuracy {
+    pub contradicted: Contradicted,
 }
 
 /// The `[vertical]` section: the store's vertical CRS and the geoid grids that carry heights
@@ -267,6 +277,7 @@ impl Default for Config {
             patches: Patches::default(),
             mipmap: Filter::default(),
             vertical: Vertical::default(),
+            accuracy: Accuracy::default(),
         }
     }
 }
@@ -395,6 +406,13 @@ impl Config {
         }
         if let Some(v) = get("PATCHWORK_LOG") {
             self.log = v;
+        }
+        if let Some(v) = get("PATCHWORK_CONTRADICTED") {
+            self.accuracy.contradicted =
+                Contradicted::from_name(&v).ok_or_else(|| ConfigError::Env {
+                    var: "PATCHWORK_CONTRADICTED".into(),
+                    message: format!("{v:?} is not a policy: use distrust or keep"),
+                })?;
         }
         if let Some(v) = get("PATCHWORK_MIPMAP") {
             self.mipmap = Filter::from_name(&v).ok_or_else(|| ConfigError::Env {

@@ -16,10 +16,10 @@ use crate::crs::vertical::VerticalCrs;
 use crate::crs::{Crs, Reprojection};
 use crate::index::geom::Aabb;
 use crate::index::lod::ChangeStats;
-use crate::index::query::{Extracted, Metric, ViewQuery};
+use crate::index::query::{Extracted, Metric, Shortfall, ViewQuery};
 pub use crate::ingest::Phase;
 use crate::ingest::{open_file, prepare_with, Geoids, IngestError, IngestSettings};
-use crate::model::accuracy::Deviation;
+use crate::model::evidence::Blame;
 use crate::model::ids::SurveyId;
 use crate::model::place::Planes;
 use crate::model::survey::Survey;
@@ -107,8 +107,66 @@ pub enum Origin {
 pub struct Conflict {
     /// The other survey.
     pub survey: SurveyId,
+    /// How far they differ where they overlap, measured at the finer one's samples.
     pub max_m: f64,
     pub rms_m: f64,
+    /// Where the other lies against this one, metres east, north and up, and how far they
+    /// differ once it is moved back; None where they could not be coregistered.
+    pub shift_m: Option<[f64; 3]>,
+    pub rms_after_m: Option<f64>,
+    /// Whose claim the evidence finds false.
+    pub distrusted: Distrusted,
+}
+
+/// Which claim of a conflicting pair is false, from one of the two's side.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Distrusted {
+    /// This survey's: a degraded copy of the other, or the one shifted from where a third
+    /// survey lies.
+    This,
+    Other,
+    /// Either could be: nothing tells them apart.
+    Both,
+}
+
+impl Distrusted {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Distrusted::This => "this",
+            Distrusted::Other => "other",
+            Distrusted::Both => "both",
+        }
+    }
+}
+
+/// The conflicts of a survey of `t`: its pairs whose evidence finds a claim false (where their
+/// claims contradict each other, or one is a degraded copy of the other), by the other's id.
+pub fn conflicts_of(t: &Terrain, id: SurveyId) -> Vec<Conflict> {
+    let mut out: Vec<Conflict> = t
+        .pairs_of(id)
+        .iter()
+        .filter_map(|p| {
+            let other = p.other(id);
+            let finer = p.finer == id;
+            let distrusted = match t.blame(id, other)? {
+                Blame::Finer if finer => Distrusted::This,
+                Blame::Coarser if !finer => Distrusted::This,
+                Blame::Finer | Blame::Coarser => Distrusted::Other,
+                Blame::Both => Distrusted::Both,
+            };
+            Some(Conflict {
+                survey: other,
+                max_m: p.deviation.max_m,
+                rms_m: p.deviation.rms_m,
+                // The pair measures the coarser against the finer.
+                shift_m: p.shift_m().map(|s| if finer { s } else { s.map(|v| -v) }),
+                rms_after_m: p.coreg.as_ref().map(|c| c.rms_after),
+                distrusted,
+            })
+        })
+        .collect();
+    out.sort_by_key(|c| c.survey);
+    out
 }
 
 /// A change to the store, for subscribers.
@@ -206,6 +264,8 @@ pub struct MeshTile {
     /// The patches blended, in id order.
     pub patches: Vec<Extracted>,
     pub backend: &'static str,
+    /// Where no data is as accurate as the cut asked.
+    pub shortfall: Option<Shortfall>,
 }
 
 /// What a tile is, told with each of its bands.
@@ -217,6 +277,8 @@ pub struct TileHead<'a> {
     pub patches: &'a [Extracted],
     /// The backend that resampled: "cpu" or "gpu".
     pub backend: &'static str,
+    /// Where no data is as accurate as the cut asked.
+    pub shortfall: Option<Shortfall>,
 }
 
 /// A store and the figures `stats` reports.
@@ -801,12 +863,11 @@ impl Engine {
                             let insert = next
                                 .try_insert(&survey)
                                 .map_err(restore::terrain_error)?;
-                            let overlaps = next.overlaps(&survey)?;
-                            Ok((retire, insert, overlaps))
+                            Ok((retire, insert, next.pairs_of(survey.id)))
                         },
                         || store.pack_survey(&survey),
                     );
-                    let ((retire, insert, overlaps), packed) = (indexed?, packed?);
+                    let ((retire, insert, pairs), packed) = (indexed?, packed?);
                     self.set_phase(source, Phase::Committing);
                     let outcome = match &previous {
                         Some(old) => {
@@ -818,10 +879,10 @@ impl Engine {
                                 &rec(),
                                 &insert,
                                 &next.edges_of(&[&retire, &insert]),
-                                &overlaps,
+                                &pairs,
                                 packed,
                             )?;
-                            (Outcome::Replaced, overlaps)
+                            (Outcome::Replaced, conflicts_of(&next, survey.id))
                         }
                         None => {
                             store.commit_packed(
@@ -829,17 +890,17 @@ impl Engine {
                                 &rec(),
                                 &insert,
                                 &next.edges_of(&[&insert]),
-                                &overlaps,
+                                &pairs,
                                 packed,
                             )?;
-                            (Outcome::Inserted, overlaps)
+                            (Outcome::Inserted, conflicts_of(&next, survey.id))
                         }
                     };
                     // The samples are on disk now; the terrain reads them from there.
                     next.page_out(survey.id);
                     Ok((outcome, Some(next)))
                 },
-                |(outcome, overlaps)| {
+                |(outcome, found)| {
                     if *outcome == Outcome::Unchanged {
                         return;
                     }
@@ -848,17 +909,7 @@ impl Engine {
                         let t = &r.ingest;
                         tracing::debug!(source = ?source, read_ms = t.read_ms, build_ms = t.build_ms, index_ms = t.index_ms, commit_ms = t.commit_ms, "ingest timings");
                     }
-                    let accuracy = |id: SurveyId| {
-                        catalog
-                            .records
-                            .iter()
-                            .find(|r| r.id == id)
-                            .map(|r| r.accuracy)
-                    };
-                    conflicts = overlaps
-                        .iter()
-                        .filter_map(|(o, d)| conflict(survey.accuracy, accuracy(*o)?, *o, d))
-                        .collect();
+                    conflicts = found.clone();
                     self.emit(*outcome, Some(survey.id), source, "", conflicts.clone());
                 },
             )
@@ -951,19 +1002,11 @@ impl Engine {
     /// conflicts, all of one commit.
     pub fn surveys(&self) -> (Arc<Terrain>, SurveyListing) {
         let (t, c) = self.published();
-        let accuracy: HashMap<SurveyId, f64> = c.active().map(|r| (r.id, r.accuracy)).collect();
         let mut conflicts = HashMap::new();
-        for (id, a) in &accuracy {
-            let mut mine: Vec<Conflict> = c
-                .overlaps
-                .get(id)
-                .into_iter()
-                .flatten()
-                .filter_map(|(o, d)| conflict(*a, *accuracy.get(o)?, *o, d))
-                .collect();
-            mine.sort_by_key(|c| c.survey);
+        for r in c.active() {
+            let mine = conflicts_of(&t, r.id);
             if !mine.is_empty() {
-                conflicts.insert(*id, mine);
+                conflicts.insert(r.id, mine);
             }
         }
         let listing = SurveyListing {
@@ -1262,6 +1305,7 @@ impl Engine {
             roi,
             patches: tile.patches,
             backend: used,
+            shortfall: tile.shortfall,
         })
     }
 
@@ -1274,7 +1318,7 @@ impl Engine {
         backend: Backend,
         cancel: &Cancel,
     ) -> Result<(Tile, &'static str), EngineError> {
-        let mut heights = Vec::new();
+        let (mut heights, mut shortfall) = (Vec::new(), None);
         let (patches, used) = self.tile_bands_until(
             cut,
             width,
@@ -1282,8 +1326,9 @@ impl Engine {
             backend,
             height as usize,
             cancel,
-            &mut |_, _, band| {
+            &mut |head, _, band| {
                 heights = band;
+                shortfall = head.shortfall;
                 true
             },
         )?;
@@ -1292,6 +1337,7 @@ impl Engine {
             height: height as usize,
             heights,
             patches,
+            shortfall,
         };
         Ok((tile, used))
     }
@@ -1339,11 +1385,13 @@ impl Engine {
             }
             Cut::View(v) => SampleGrid::view(v, width as usize, height as usize, v.look[2]),
         };
+        let shortfall = crate::terrain::tile_shortfall(&ps, &grid);
         let head = |backend| TileHead {
             width: grid.width,
             height: grid.height,
             patches: &ps,
             backend,
+            shortfall,
         };
         if backend != Backend::Cpu {
             let mut gpu = self.gpu.lock().expect("gpu lock");
@@ -1484,16 +1532,8 @@ fn store_options(cfg: &Config, guard: &SpaceGuard) -> StoreOptions {
         guard: guard.clone(),
         cache_bytes: cfg.cache_mb << 20,
         recipe: cfg.recipe(),
+        contradicted: cfg.accuracy.contradicted,
     }
-}
-
-/// A conflict, when two surveys of accuracies `a` and `b` disagree by more than a + b.
-fn conflict(a: f64, b: f64, other: SurveyId, d: &Deviation) -> Option<Conflict> {
-    (d.max_m > a + b).then_some(Conflict {
-        survey: other,
-        max_m: d.max_m,
-        rms_m: d.rms_m,
-    })
 }
 
 fn check_error(e: f64) -> Result<(), EngineError> {

@@ -5,6 +5,7 @@ use crate::crs::vertical::VerticalCrs;
 use crate::crs::Crs;
 use crate::model::accuracy::{AccuracySource, AccuracySpec};
 use crate::model::geoid::{self, Geoid};
+use crate::model::grid::Grid;
 use crate::model::patch::PatchLayout;
 use crate::model::survey::{Recipe, Survey, SurveyError};
 use crate::read::{open_untrusted, read_raster, OpenError, ReadError, ReadLimits, REFUSED_PATH};
@@ -111,6 +112,12 @@ pub struct Sidecar {
     pub accuracy_m: Option<f64>,
     pub crs: Option<String>,
     pub vertical_crs: Option<String>,
+    /// A correction of where the survey lies: moved east, north and up by these metres (the
+    /// negation of a conflict's `shift_m` puts it where the other survey lies).
+    pub offset_m: Option<[f64; 3]>,
+    /// What the correction leaves uncertain, metres of height, added to ε (default 0; a
+    /// conflict's `rms_after_m` is a safe figure).
+    pub offset_error_m: Option<f64>,
 }
 
 /// A sidecar is a line or two; anything far larger is not one.
@@ -194,16 +201,17 @@ fn toml_error(text: &str, e: &toml::de::Error) -> String {
     let at = line.map(|l| format!(" at line {l}")).unwrap_or_default();
     let msg = e.message();
     let what = if msg.starts_with("unknown field") {
-        "a key other than accuracy_m, crs and vertical_crs"
-    } else if msg.starts_with("invalid type") {
-        "a value of the wrong type (accuracy_m is a number, crs and vertical_crs strings like \
-         \"EPSG:4326\")"
+        "a key other than accuracy_m, crs, vertical_crs, offset_m and offset_error_m"
+    } else if msg.starts_with("invalid type") || msg.starts_with("invalid length") {
+        "a value of the wrong type (accuracy_m and offset_error_m are numbers, offset_m three \
+         numbers, crs and vertical_crs strings like \"EPSG:4326\")"
     } else {
         "something that is not TOML"
     };
     format!(
         "the sidecar has {what}{at}; it may set accuracy_m = <metres>, crs = \"EPSG:<code>\" \
-         (or a WKT or PROJ string) and vertical_crs = \"EPSG:<code>\""
+         (or a WKT or PROJ string), vertical_crs = \"EPSG:<code>\", offset_m = [east, north, \
+         up] and offset_error_m = <metres>"
     )
 }
 
@@ -369,12 +377,18 @@ pub fn prepare_with(
         }
         (None, to) => (to.clone(), 0.0),
     };
+    let offset_error_m =
+        correct(&mut grid, &crs, &side).map_err(|message| IngestError::Sidecar {
+            path: sidecar_path(path),
+            message,
+        })?;
+    let added = vertical_error_m + offset_error_m;
     let spec = match spec {
-        AccuracySpec::Fixed(a) => AccuracySpec::Fixed(a + vertical_error_m),
+        AccuracySpec::Fixed(a) => AccuracySpec::Fixed(a + added),
         auto => auto,
     };
     let extra = match spec {
-        AccuracySpec::Auto => vertical_error_m,
+        AccuracySpec::Auto => added,
         AccuracySpec::Fixed(_) => 0.0,
     };
     let mut survey = Survey::build_adding(grid, spec, Some(crs), s.layout, s.recipe, extra)?;
@@ -398,6 +412,38 @@ pub fn prepare_with(
         vertical_source: named,
         vertical_error_m,
     })
+}
+
+/// Applies a sidecar's `offset_m` to a grid: its georeference moved east and north (metres
+/// turned into the CRS's units at the grid's middle), its heights raised. Returns what the
+/// correction adds to ε.
+fn correct(grid: &mut Grid, crs: &Crs, side: &Sidecar) -> Result<f64, String> {
+    let error = side.offset_error_m.unwrap_or(0.0);
+    if !(error.is_finite() && error >= 0.0) {
+        return Err(format!(
+            "offset_error_m = {error} is not a height of 0 m or more"
+        ));
+    }
+    let Some([dx, dy, dz]) = side.offset_m else {
+        return Ok(error);
+    };
+    if ![dx, dy, dz].iter().all(|v| v.is_finite() && v.abs() < 1e6) {
+        return Err("offset_m must be three finite numbers of metres, under 1,000 km".into());
+    }
+    let per = if crs.is_geographic() {
+        let mid = grid
+            .georef
+            .to_world(grid.cols as f64 / 2.0, grid.rows as f64 / 2.0);
+        crate::crs::metres_per_degree(mid[1])
+    } else {
+        [crs.unit_m().unwrap_or(1.0); 2]
+    };
+    grid.georef.origin[0] += dx / per[0];
+    grid.georef.origin[1] += dy / per[1];
+    for z in grid.samples.iter_mut() {
+        *z += dz as f32;
+    }
+    Ok(error)
 }
 
 /// The geoid grids the config names, read on first use and kept.
@@ -534,6 +580,41 @@ mod tests {
             std::fs::write(p.with_extension("prj"), w).unwrap();
         }
         p
+    }
+
+    #[test]
+    fn a_sidecar_offset_moves_the_survey_and_counts_what_it_leaves_in_its_accuracy() {
+        let dir = tempfile::tempdir().unwrap();
+        let utm = r#"PROJCS["WGS_1984_UTM_Zone_31N",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]]],PROJECTION["Transverse_Mercator"],PARAMETER["False_Easting",500000.0],PARAMETER["False_Northing",0.0],PARAMETER["Central_Meridian",3.0],PARAMETER["Scale_Factor",0.9996],PARAMETER["Latitude_Of_Origin",0.0],UNIT["Meter",1.0]]"#;
+        let p = grid(dir.path(), "a.asc", Some(utm));
+        let mut s = settings();
+        s.default_accuracy = DefaultAccuracy::Metres(2.0);
+        let plain = prepare(&p, &s).unwrap().survey;
+        std::fs::write(
+            sidecar_path(&p),
+            "offset_m = [-30.0, 12.5, 4.0]\noffset_error_m = 1.5\n",
+        )
+        .unwrap();
+        let moved = prepare(&p, &s).unwrap().survey;
+        let (a, b) = (&plain.levels[0], &moved.levels[0]);
+        assert_eq!(
+            [
+                b.georef.origin[0] - a.georef.origin[0],
+                b.georef.origin[1] - a.georef.origin[1]
+            ],
+            [-30.0, 12.5]
+        );
+        assert!(a.samples.iter().zip(&b.samples).all(|(x, y)| y - x == 4.0));
+        assert_eq!(moved.accuracy, plain.accuracy + 1.5);
+        for bad in [
+            "offset_m = [1.0, 2.0]",
+            "offset_m = [1e9, 0.0, 0.0]",
+            "offset_error_m = -1.0",
+        ] {
+            std::fs::write(sidecar_path(&p), format!("{bad}\n")).unwrap();
+            let e = prepare(&p, &s).unwrap_err().to_string();
+            assert!(e.contains("offset"), "{bad}: {e}");
+        }
     }
 
     #[test]

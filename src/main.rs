@@ -483,6 +483,20 @@ fn view_of(c: &CutArgs) -> Result<Option<pb::ViewCut>, Fail> {
     }
 }
 
+/// What a tile or mesh achieved against the error `e` asked: its largest patch error, or
+/// where no data is as accurate as `e`, how much of it and what served there.
+fn achieved(e: f64, max_error: f64, short: Option<&pb::Shortfall>, what: &str) -> String {
+    match short {
+        Some(s) => format!(
+            "no data as accurate as {e} m over {:.0}% of the {what}: served the most accurate there, errors {:.1}–{:.1} m",
+            100.0 * s.share,
+            s.min_error_m,
+            s.max_error_m
+        ),
+        None => format!("max error {max_error:.3} m"),
+    }
+}
+
 /// A tile put back together from its bands, which must cover its rows in order.
 fn assemble(bands: Vec<pb::TileBand>) -> Result<pb::Tile, Fail> {
     let Some(first) = bands.first() else {
@@ -497,6 +511,7 @@ fn assemble(bands: Vec<pb::TileBand>) -> Result<pb::Tile, Fail> {
         crs: first.crs,
         crs_key: first.crs_key.clone(),
         max_error: first.max_error,
+        shortfall: first.shortfall,
         heights: Vec::with_capacity(width * height),
         valid: Vec::new(),
     };
@@ -737,21 +752,26 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                             printable(&s.error)
                         ),
                         st => {
+                            // What most of it achieves beside what all of it does.
+                            let claimed = if s.claimed_accuracy_m < s.accuracy_m {
+                                format!(", claimed {:.3} m", s.claimed_accuracy_m)
+                            } else {
+                                String::new()
+                            };
                             println!(
-                                "{:<16}  {:<7}  {}  ε={:.3} m ({})  {} samples  {} patches",
+                                "{:<16}  {:<7}  {}  ε median {:.3} m, 90% {:.3} m, largest {:.3} m ({}{claimed})  {} samples  {} patches",
                                 s.id,
                                 st,
                                 printable(&s.source),
+                                s.accuracy_median_m,
+                                s.accuracy_p90_m,
                                 s.accuracy_m,
                                 s.accuracy_source,
                                 s.samples,
                                 s.patches
                             );
                             for c in &s.conflicts {
-                                println!(
-                                    "{:<16}  conflicts with {}: up to {:.2} m apart, {:.2} m RMS",
-                                    "", c.survey, c.max_m, c.rms_m
-                                );
+                                println!("{:<16}  {}", "", conflict_line(c));
                             }
                         }
                     }
@@ -1044,7 +1064,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             };
             std::fs::write(&out, bytes)?;
             println!(
-                "wrote {} ({} vertices, {} triangles of which {} skirt; max deviation {:.3} m from the resampled heights, surface up to {:.1} m over voids; {} patches, max error {:.3} m, {})",
+                "wrote {} ({} vertices, {} triangles of which {} skirt; max deviation {:.3} m from the resampled heights, surface up to {:.1} m over voids; {} patches, {}, {})",
                 out.display(),
                 mesh.grid.len(),
                 mesh.triangles.len(),
@@ -1052,7 +1072,7 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 mesh.max_deviation,
                 mesh.max_reach,
                 m.patches,
-                m.max_error,
+                achieved(error, m.max_error, m.shortfall.as_ref(), "mesh"),
                 m.backend
             );
             Ok(())
@@ -1117,13 +1137,13 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             write_tile(&out, &t, &roi)?;
             let valid = t.heights.iter().filter(|z| !z.is_nan()).count();
             println!(
-                "wrote {} ({}×{}, {} valid samples, {} patches, max error {:.3} m, {})",
+                "wrote {} ({}×{}, {} valid samples, {} patches, {}, {})",
                 out.display(),
                 t.width,
                 t.height,
                 valid,
                 t.patches,
-                t.max_error,
+                achieved(error, t.max_error, t.shortfall.as_ref(), "tile"),
                 t.backend
             );
             Ok(())
@@ -1139,6 +1159,9 @@ struct SurveyJson<'a> {
     status: &'a str,
     error: Option<&'a str>,
     accuracy_m: f64,
+    accuracy_median_m: f64,
+    accuracy_p90_m: f64,
+    claimed_accuracy_m: f64,
     accuracy_source: Option<&'a str>,
     /// The survey's own CRS ("EPSG:n" or a WKT 2 definition), and the vertical CRS its file
     /// named ("unknown" where none); null for failures.
@@ -1156,6 +1179,40 @@ struct ConflictJson<'a> {
     survey: &'a str,
     max_m: f64,
     rms_m: f64,
+    /// Where the other lies against this one, [east, north, up] metres, and the RMS once it
+    /// is moved back; null where they could not be coregistered.
+    shift_m: Option<[f64; 3]>,
+    rms_after_m: Option<f64>,
+    /// Whose claim the evidence finds false: "this", "other" or "both".
+    distrusted: &'static str,
+}
+
+fn distrusted_name(d: i32) -> &'static str {
+    match pb::Distrusted::try_from(d) {
+        Ok(pb::Distrusted::This) => "this",
+        Ok(pb::Distrusted::Other) => "other",
+        _ => "both",
+    }
+}
+
+/// A conflict as `patchwork surveys` says it.
+fn conflict_line(c: &pb::Conflict) -> String {
+    let whose = match distrusted_name(c.distrusted) {
+        "this" => "this survey's claim is the false one",
+        "other" => "the other's claim is the false one",
+        _ => "either claim may be the false one",
+    };
+    let shift = match &c.shift {
+        Some(s) => format!(
+            "; it lies {:.1} m east, {:.1} m north and {:.2} m up of this one, {:.2} m RMS once moved back",
+            s.east_m, s.north_m, s.up_m, s.rms_after_m
+        ),
+        None => String::new(),
+    };
+    format!(
+        "conflicts with {}: up to {:.2} m apart, {:.2} m RMS{shift}; {whose}",
+        c.survey, c.max_m, c.rms_m
+    )
 }
 
 impl<'a> SurveyJson<'a> {
@@ -1167,6 +1224,9 @@ impl<'a> SurveyJson<'a> {
             status: &s.status,
             error: failed.then_some(s.error.as_str()),
             accuracy_m: s.accuracy_m,
+            accuracy_median_m: s.accuracy_median_m,
+            accuracy_p90_m: s.accuracy_p90_m,
+            claimed_accuracy_m: s.claimed_accuracy_m,
             accuracy_source: (!failed).then_some(s.accuracy_source.as_str()),
             crs: (!failed).then_some(s.crs_key.as_str()),
             vertical_crs: (!failed).then_some(s.vertical_crs.as_str()),
@@ -1180,6 +1240,9 @@ impl<'a> SurveyJson<'a> {
                     survey: &c.survey,
                     max_m: c.max_m,
                     rms_m: c.rms_m,
+                    shift_m: c.shift.as_ref().map(|s| [s.east_m, s.north_m, s.up_m]),
+                    rms_after_m: c.shift.as_ref().map(|s| s.rms_after_m),
+                    distrusted: distrusted_name(c.distrusted),
                 })
                 .collect(),
         }

@@ -4,8 +4,7 @@
 //! the stored one cannot be trusted.
 
 use crate::index::lod::{BoxState, IndexConfig};
-use crate::model::accuracy::Deviation;
-use crate::model::ids::{PatchId, SurveyId};
+use crate::model::ids::PatchId;
 use crate::model::patch::PatchLayout;
 use crate::model::source::SampleSource;
 use crate::store::{
@@ -58,6 +57,7 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
     } = loaded;
     let Contents {
         surveys,
+        pairs,
         edges,
         mut tops,
         rebuild,
@@ -69,7 +69,9 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
         let (terrain, missing) = Terrain::restore(
             store.index_config(),
             store.crs().as_ref(),
+            store.contradicted(),
             surveys,
+            pairs,
             edges,
             &tops,
             source,
@@ -104,20 +106,16 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
     })
 }
 
-/// Every active survey inserted again, in id order, and every box state, edge patch and
-/// overlap written in one batch. The result does not depend on the order, which only fixes
+/// Every active survey inserted again, in id order (each measured against those before it),
+/// and every box state, edge patch and pair written in one batch. The result does not depend on the order, which only fixes
 /// the work done. On a disk too full to take the writes, the terrain is still served and the
 /// next open tries again.
 fn derive(store: &Store, warnings: &mut Vec<String>) -> Result<Terrain, StoreError> {
     let mut surveys = store.whole_surveys()?;
     surveys.sort_by_key(|s| s.id);
     let mut t = Terrain::with_crs(store.index_config(), store.crs().as_ref(), None);
-    let mut overlaps: Vec<(SurveyId, SurveyId, Deviation)> = Vec::new();
+    t.set_contradicted(store.contradicted());
     for s in &surveys {
-        // Against the surveys before it, as an insertion measures them.
-        for (o, d) in t.overlaps(s)? {
-            overlaps.push((s.id, o, d));
-        }
         t.try_insert(s).map_err(terrain_error)?;
     }
     let tops: Vec<(PatchId, BoxState)> = t
@@ -135,7 +133,7 @@ fn derive(store: &Store, warnings: &mut Vec<String>) -> Result<Terrain, StoreErr
         })
         .collect();
     let edges: Vec<_> = t.edges().cloned().collect();
-    match store.write_derived(&tops, &edges, &overlaps) {
+    match store.write_derived(&tops, &edges, &t.pairs()) {
         Ok(()) => {}
         Err(e @ StoreError::Full { .. }) => warnings.push(format!(
             "the index was derived again but could not be stored: {e}"
@@ -174,6 +172,7 @@ pub fn verify(store: &Store) -> Result<VerifyReport, StoreError> {
     if let Some(mut whole) = whole {
         whole.sort_by_key(|s| s.id);
         let mut terrain = Terrain::with_crs(store.index_config(), store.crs().as_ref(), None);
+        terrain.set_contradicted(store.contradicted());
         for s in whole {
             terrain.try_insert(&s).map_err(terrain_error)?;
         }

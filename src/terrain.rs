@@ -5,9 +5,10 @@
 use crate::crs::Crs;
 use crate::index::geom::Aabb;
 use crate::index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, PatchBox};
-use crate::index::query::{Extracted, ViewQuery};
-use crate::model::accuracy::{self, Deviation};
+use crate::index::query::{shortfall, Extracted, Shortfall, ViewQuery};
+use crate::model::coreg::Degraded;
 use crate::model::edge::{self, EdgePatch, Member};
+use crate::model::evidence::{self, Blame, Contradicted, PairEvidence};
 use crate::model::grid::{Grid, SampleRect, Window};
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::lattice::{tile_of, Lattice};
@@ -19,7 +20,7 @@ use crate::model::source::{SampleError, SampleSource};
 use crate::model::survey::{Survey, SurveyMeta};
 use crate::resample::{cpu, Cancel, PatchSet, ResolvedPatch, SampleGrid};
 use rayon::prelude::*;
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 
 /// Why a survey could not be inserted or retired.
@@ -86,6 +87,29 @@ fn edge_reprojection_error(e: &EdgePatch, rho: f64) -> f64 {
     std::f64::consts::SQRT_2 * rho * g.georef.cells_per_unit() * slope
 }
 
+/// The key of a pair: its surveys' ids, smaller first.
+fn pair_key(a: SurveyId, b: SurveyId) -> (SurveyId, SurveyId) {
+    if a < b {
+        (a, b)
+    } else {
+        (b, a)
+    }
+}
+
+/// What a survey's claims are raised to where others contradict them: (row-major kernel
+/// index, least ε), ascending, as [`SurveyMeta::with_raised_claims`] takes it.
+type Raise = Arc<[(u32, f32)]>;
+
+/// A survey as the index takes it: its claims raised by `raise` (the survey itself when none
+/// are).
+fn effective(base: &Arc<SurveyMeta>, raise: &[(u32, f32)]) -> Arc<SurveyMeta> {
+    if raise.is_empty() {
+        base.clone()
+    } else {
+        Arc::new(base.with_raised_claims(raise))
+    }
+}
+
 /// Heights resampled from a set of patches. NaN marks nodata.
 #[derive(Clone, Debug)]
 pub struct Tile {
@@ -94,6 +118,23 @@ pub struct Tile {
     pub heights: Vec<f32>,
     /// The patches the heights were blended from, in id order.
     pub patches: Vec<Extracted>,
+    /// Where no data is as accurate as the cut asked (see [`tile_shortfall`]).
+    pub shortfall: Option<Shortfall>,
+}
+
+/// The [`Shortfall`] of a tile's patches over its grid, measured at no more than 64 × 64 of
+/// its points: a share to the percent, at a cost that does not grow with the tile.
+pub fn tile_shortfall(patches: &[Extracted], grid: &SampleGrid) -> Option<Shortfall> {
+    let (si, sj) = (
+        grid.width.div_ceil(64).max(1),
+        grid.height.div_ceil(64).max(1),
+    );
+    let points = (0..grid.height)
+        .step_by(sj)
+        .flat_map(|j| (0..grid.width).step_by(si).map(move |i| j * grid.width + i))
+        .map(|k| grid.point(k))
+        .filter(|p| !p[0].is_nan());
+    shortfall(patches, points)
 }
 
 /// A patch of the terrain: a survey's, or an edge patch.
@@ -205,6 +246,16 @@ pub struct Terrain {
     resident: HashMap<SurveyId, Arc<[Arc<Grid>]>>,
     /// Where the samples of every other survey are read.
     source: Option<Arc<dyn SampleSource>>,
+    /// The surveys as built, with their own claims; `surveys` holds them as the index takes
+    /// them, their claims raised where other surveys' evidence finds them false.
+    bases: HashMap<SurveyId, Arc<SurveyMeta>>,
+    /// What each overlapping pair of surveys says of the other, by (smaller id, larger id).
+    pairs: HashMap<(SurveyId, SurveyId), Arc<PairEvidence>>,
+    /// The surveys each survey has a pair with.
+    neighbours: HashMap<SurveyId, BTreeSet<SurveyId>>,
+    /// The raise of each survey's claims now in force (kernel, least ε); absent for none.
+    raises: HashMap<SurveyId, Raise>,
+    contradicted: Contradicted,
 }
 
 /// Edge patches to take out of the index and to put in.
@@ -221,6 +272,11 @@ impl Terrain {
             patches: HashMap::new(),
             resident: HashMap::new(),
             source: None,
+            bases: HashMap::new(),
+            pairs: HashMap::new(),
+            neighbours: HashMap::new(),
+            raises: HashMap::new(),
+            contradicted: Contradicted::default(),
         }
     }
 
@@ -330,17 +386,21 @@ impl Terrain {
     /// Returns the patches that had no stored state, restored as empty.
     ///
     /// Surveys of another CRS than `crs` get their patches' frames in its plane; their errors
-    /// are as stored. One that cannot be placed (which a store never holds) is left out and
-    /// named in the second list.
+    /// are as stored, raised where the stored `pairs` find their claims false under
+    /// `contradicted`.
+    #[allow(clippy::too_many_arguments)]
     pub fn restore(
         cfg: IndexConfig,
         crs: Option<&Crs>,
+        contradicted: Contradicted,
         surveys: Vec<Arc<SurveyMeta>>,
+        pairs: Vec<Arc<PairEvidence>>,
         edges: Vec<Arc<EdgePatch>>,
         states: &HashMap<PatchId, BoxState>,
         source: Arc<dyn SampleSource>,
     ) -> (Self, Vec<PatchId>) {
         let mut t = Terrain::with_crs(cfg, crs, None);
+        t.contradicted = contradicted;
         t.source = Some(source);
         let surveys: Vec<Arc<SurveyMeta>> = surveys
             .into_par_iter()
@@ -356,8 +416,20 @@ impl Terrain {
                 _ => s,
             })
             .collect();
+        for s in &surveys {
+            t.bases.insert(s.id, s.clone());
+        }
+        for p in pairs {
+            // A pair whose surveys are not both here would be stale.
+            if t.bases.contains_key(&p.finer) && t.bases.contains_key(&p.coarser) {
+                t.add_pair(p);
+            }
+        }
         let mut group_of_survey = HashMap::new();
-        for s in surveys {
+        for base in surveys {
+            let r = t.raise_of(&base);
+            let s = effective(&base, &r);
+            t.set_raise(base.id, r);
             let gi = t.group_of(&s);
             let m = GroupMember::new(s.clone(), &t.lattices[gi].lattice);
             t.lattices[gi].members.push(m);
@@ -608,34 +680,29 @@ impl Terrain {
             placed = self.place(s)?;
             &placed
         };
-        let meta = s.meta();
-        let gi = self.group_of(&meta);
-        let m = GroupMember::new(meta.clone(), &self.lattices[gi].lattice);
-        let affected = self.lattices[gi].affected_by(&m);
-        self.lattices[gi].members.push(m);
+        let base = s.meta();
         self.resident.insert(s.id, s.levels.clone().into());
-        let (gone, come) = match self.rebuild(gi, affected) {
-            Ok(d) => d,
+        // What it and every survey it overlaps say of each other's claims.
+        let pairs = match self.compare_with_all(&base) {
+            Ok(p) => p,
             Err(e) => {
                 self.resident.remove(&s.id);
-                self.lattices[gi].members.pop();
-                if self.lattices[gi].members.is_empty() {
-                    self.lattices.remove(gi);
-                }
                 return Err(e.into());
             }
         };
-        let mut insert = vec![(s.id, meta.boxes())];
-        insert.extend(come.iter().map(|e| (e.owner, vec![self.edge_box(e)])));
-        let stats = self.index.apply(&gone, insert);
-        self.register(meta);
-        for o in gone {
-            self.unregister_edge(gi, o);
+        for p in pairs {
+            self.add_pair(Arc::new(p));
         }
-        for e in come {
-            self.register_edge(gi, e);
+        // Its own claims are evidence in its neighbours' pairs.
+        self.bases.insert(s.id, base.clone());
+        let around = self.within_reach(s.id, self.neighbours.get(&s.id).cloned());
+        let result = self.change(Some(base.clone()), None, around);
+        if result.is_err() {
+            self.resident.remove(&s.id);
+            self.bases.remove(&s.id);
+            self.drop_pairs(s.id);
         }
-        Ok(stats)
+        result.map_err(TerrainError::from)
     }
 
     /// Removes a survey and the edge patches it changes; the terrain becomes the one that
@@ -650,127 +717,470 @@ impl Terrain {
     /// Removes a survey, reading its neighbours' samples where edge patches need them; None
     /// when it is not there. On an error the terrain is as it was.
     pub fn try_retire(&mut self, id: SurveyId) -> Result<Option<ChangeStats>, SampleError> {
-        let Some(gi) = self
-            .lattices
-            .iter()
-            .position(|g| g.members.iter().any(|m| m.survey.id == id))
-        else {
+        if !self.surveys.contains_key(&id) {
             return Ok(None);
-        };
-        let pos = self.lattices[gi]
-            .members
-            .iter()
-            .position(|m| m.survey.id == id)
-            .expect("member");
-        let affected = {
-            let g = &self.lattices[gi];
-            g.affected_by(&g.members[pos])
-        };
-        let member = self.lattices[gi].members.remove(pos);
-        let (mut gone, come) = match self.rebuild(gi, affected) {
-            Ok(d) => d,
+        }
+        let (dropped, around) = self.drop_pairs(id);
+        let around = self.within_reach(id, Some(around));
+        match self.change(None, Some(id), around) {
+            Ok(stats) => Ok(Some(stats)),
             Err(e) => {
-                self.lattices[gi].members.insert(pos, member);
-                return Err(e);
+                for p in dropped {
+                    self.add_pair(p);
+                }
+                Err(e)
             }
-        };
-        let s = self.surveys.remove(&id).expect("a member is a survey");
-        for p in &s.patches {
-            self.patches.remove(&p.id);
         }
-        self.resident.remove(&id);
-        let insert = come
-            .iter()
-            .map(|e| (e.owner, vec![self.edge_box(e)]))
-            .collect();
-        let edge_gone = gone.clone();
-        gone.push(id);
-        let stats = self.index.apply(&gone, insert);
-        for o in edge_gone {
-            self.unregister_edge(gi, o);
-        }
-        for e in come {
-            self.register_edge(gi, e);
-        }
-        if self.lattices[gi].members.is_empty() {
-            self.lattices.remove(gi);
-        }
-        Ok(Some(stats))
     }
 
-    /// How `s` and every survey of the terrain that it overlaps disagree, measured at the
-    /// samples of the finer of the two against the other's surface (see
-    /// [`SurveyMeta::finer_than`]). Each of the two is read over the other's bounds, whichever
-    /// came first, so the figure does not depend on the order of insertion.
+    /// Inserts `add` or retires `remove`, with everything that follows: the claims of the
+    /// surveys `around` it (those it overlaps, whose pairs with it, and with each other through
+    /// it as a third, came or went), the edge patches of every lattice tile any of them
+    /// touches, and the index, in one change. The pairs are already as they will be. On an
+    /// error the terrain is as it was, but for the pairs.
+    fn change(
+        &mut self,
+        add: Option<Arc<SurveyMeta>>,
+        remove: Option<SurveyId>,
+        around: BTreeSet<SurveyId>,
+    ) -> Result<ChangeStats, SampleError> {
+        let reclaimed: Vec<(SurveyId, Raise)> = around
+            .into_iter()
+            .filter_map(|o| {
+                let r = self.raise_of(&self.bases[&o]);
+                let now = self.raises.get(&o).map_or(&[][..], |r| &r[..]);
+                (r[..] != *now).then_some((o, r))
+            })
+            .collect();
+        let added = add.map(|base| {
+            let r = self.raise_of(&base);
+            let eff = effective(&base, &r);
+            (base, r, eff)
+        });
+        // The lattice groups as they will be, with the tiles to build again; the groups as
+        // they were, to put back on an error.
+        let mut saved: HashMap<usize, LatticeGroup> = HashMap::new();
+        let mut tiles: HashMap<usize, BTreeSet<[i64; 2]>> = HashMap::new();
+        let mut new_metas: Vec<(SurveyId, Arc<SurveyMeta>)> = Vec::new();
+        for (o, r) in &reclaimed {
+            let eff = effective(&self.bases[o], r);
+            let gi = self.group_index(*o).expect("a survey is a member");
+            saved.entry(gi).or_insert_with(|| self.lattices[gi].clone());
+            let g = &mut self.lattices[gi];
+            let m = g
+                .members
+                .iter_mut()
+                .find(|m| m.survey.id == *o)
+                .expect("member");
+            m.survey = eff.clone();
+            let m = m.clone();
+            tiles.entry(gi).or_default().extend(g.affected_by(&m));
+            new_metas.push((*o, eff));
+        }
+        let mut new_group = None;
+        if let Some((_, _, eff)) = &added {
+            let gi = self.group_of(eff);
+            if gi == self.lattices.len() - 1 && self.lattices[gi].members.is_empty() {
+                new_group = Some(gi);
+            }
+            saved.entry(gi).or_insert_with(|| self.lattices[gi].clone());
+            let m = GroupMember::new(eff.clone(), &self.lattices[gi].lattice);
+            let g = &mut self.lattices[gi];
+            tiles.entry(gi).or_default().extend(g.affected_by(&m));
+            g.members.push(m);
+        }
+        if let Some(id) = remove {
+            let gi = self.group_index(id).expect("a survey is a member");
+            saved.entry(gi).or_insert_with(|| self.lattices[gi].clone());
+            let g = &mut self.lattices[gi];
+            let pos = g
+                .members
+                .iter()
+                .position(|m| m.survey.id == id)
+                .expect("member");
+            tiles
+                .entry(gi)
+                .or_default()
+                .extend(g.affected_by(&g.members[pos]));
+            g.members.remove(pos);
+        }
+        // Every touched group's edge patches, built again.
+        let mut diffs: Vec<(usize, EdgeDiff)> = Vec::new();
+        let mut order: Vec<usize> = tiles.keys().copied().collect();
+        order.sort_unstable();
+        for gi in order {
+            let t: Vec<[i64; 2]> = tiles[&gi].iter().copied().collect();
+            match self.rebuild(gi, t) {
+                Ok(d) => diffs.push((gi, d)),
+                Err(e) => {
+                    for (gi, g) in saved {
+                        self.lattices[gi] = g;
+                    }
+                    if let Some(gi) = new_group {
+                        self.lattices.remove(gi);
+                    }
+                    return Err(e);
+                }
+            }
+        }
+        // One change of the index: the survey in or out, the surveys whose claims moved out
+        // and in again, and the edge patches.
+        let mut gone: Vec<SurveyId> = remove.into_iter().collect();
+        let mut insert: Vec<(SurveyId, Vec<PatchBox>)> = Vec::new();
+        if let Some((_, _, eff)) = &added {
+            insert.push((eff.id, eff.boxes()));
+        }
+        for (o, eff) in &new_metas {
+            gone.push(*o);
+            insert.push((*o, eff.boxes()));
+        }
+        for (_, (g, c)) in &diffs {
+            gone.extend(g.iter().copied());
+            insert.extend(c.iter().map(|e| (e.owner, vec![self.edge_box(e)])));
+        }
+        let stats = self.index.apply(&gone, insert);
+        // The terrain's own records.
+        if let Some(id) = remove {
+            let s = self.surveys.remove(&id).expect("a survey");
+            for p in &s.patches {
+                self.patches.remove(&p.id);
+            }
+            self.bases.remove(&id);
+            self.raises.remove(&id);
+            self.resident.remove(&id);
+        }
+        if let Some((base, r, eff)) = added {
+            self.set_raise(base.id, r);
+            self.bases.insert(base.id, base);
+            self.register(eff);
+        }
+        for ((o, r), (_, eff)) in reclaimed.into_iter().zip(new_metas) {
+            self.set_raise(o, r);
+            self.register(eff);
+        }
+        for (gi, (g, c)) in diffs {
+            for o in g {
+                self.unregister_edge(gi, o);
+            }
+            for e in c {
+                self.register_edge(gi, e);
+            }
+        }
+        // A group left without members goes (after its edge patches, which index it).
+        self.lattices.retain(|g| !g.members.is_empty());
+        Ok(stats)
+    }
+
+    fn set_raise(&mut self, id: SurveyId, r: Raise) {
+        if r.is_empty() {
+            self.raises.remove(&id);
+        } else {
+            self.raises.insert(id, r);
+        }
+    }
+
+    /// The group a survey is a member of.
+    fn group_index(&self, id: SurveyId) -> Option<usize> {
+        self.lattices
+            .iter()
+            .position(|g| g.members.iter().any(|m| m.survey.id == id))
+    }
+
+    fn add_pair(&mut self, p: Arc<PairEvidence>) {
+        let (a, b) = (p.finer, p.coarser);
+        self.neighbours.entry(a).or_default().insert(b);
+        self.neighbours.entry(b).or_default().insert(a);
+        self.pairs.insert(pair_key(a, b), p);
+    }
+
+    /// Takes a survey's pairs out: them, and the surveys it had them with.
+    fn drop_pairs(&mut self, id: SurveyId) -> (Vec<Arc<PairEvidence>>, BTreeSet<SurveyId>) {
+        let Some(ns) = self.neighbours.remove(&id) else {
+            return (Vec::new(), BTreeSet::new());
+        };
+        let mut out = Vec::new();
+        for n in &ns {
+            if let Some(set) = self.neighbours.get_mut(n) {
+                set.remove(&id);
+                if set.is_empty() {
+                    self.neighbours.remove(n);
+                }
+            }
+            out.extend(self.pairs.remove(&pair_key(id, *n)));
+        }
+        (out, ns)
+    }
+
+    /// Every overlapping pair's evidence, in key order.
+    pub fn pairs(&self) -> Vec<Arc<PairEvidence>> {
+        let mut v: Vec<(&(SurveyId, SurveyId), &Arc<PairEvidence>)> = self.pairs.iter().collect();
+        v.sort_by_key(|(k, _)| **k);
+        v.into_iter().map(|(_, p)| p.clone()).collect()
+    }
+
+    /// The evidence of every pair a survey is in, by the other survey's id.
+    pub fn pairs_of(&self, id: SurveyId) -> Vec<Arc<PairEvidence>> {
+        self.neighbours
+            .get(&id)
+            .into_iter()
+            .flatten()
+            .filter_map(|n| self.pairs.get(&pair_key(id, *n)).cloned())
+            .collect()
+    }
+
+    /// Which claim of the pair of `a` and `b` is false, where they contradict each other.
+    pub fn blame(&self, a: SurveyId, b: SurveyId) -> Option<Blame> {
+        let p = self.pairs.get(&pair_key(a, b))?;
+        self.blame_pair(p)
+    }
+
+    fn blame_pair(&self, p: &PairEvidence) -> Option<Blame> {
+        let (f, c) = (p.finer, p.coarser);
+        let empty = BTreeSet::new();
+        let nf = self.neighbours.get(&f).unwrap_or(&empty);
+        let nc = self.neighbours.get(&c).unwrap_or(&empty);
+        // A degraded copy of another survey lies where that one lies, and does not vote.
+        let thirds = nf
+            .intersection(nc)
+            .filter(|t| !self.a_copy(**t))
+            .filter_map(|t| {
+                Some((
+                    &**self.pairs.get(&pair_key(f, *t))?,
+                    &**self.pairs.get(&pair_key(c, *t))?,
+                ))
+            });
+        evidence::blame(p, thirds)
+    }
+
+    /// The surveys whose claims a change at `id` can move, given those it has (or had) pairs
+    /// with, `near`. A survey's claims follow from its pairs' verdicts (which the pairs of the
+    /// thirds that overlap both enter), from whether its partners are discredited (their
+    /// verdicts), and, for one derived from a partner, from the partner's contested claims
+    /// (whose partners' discredit enters, and so their verdicts): four overlaps away at most.
+    fn within_reach(&self, id: SurveyId, near: Option<BTreeSet<SurveyId>>) -> BTreeSet<SurveyId> {
+        let mut out = near.unwrap_or_default();
+        let mut ring = out.clone();
+        for _ in 0..3 {
+            let next: BTreeSet<SurveyId> = ring
+                .iter()
+                .flat_map(|n| self.neighbours.get(n).into_iter().flatten().copied())
+                .filter(|n| !out.contains(n))
+                .collect();
+            out.extend(next.iter().copied());
+            ring = next;
+        }
+        out.remove(&id);
+        out
+    }
+
+    /// Whether some pair of the survey finds it alone the false one: a degraded or misplaced
+    /// version of another survey carries nothing of its own, so where it disagrees with a third
+    /// its claim is no evidence against that third's.
+    fn discredited(&self, id: SurveyId) -> bool {
+        self.pairs_of(id).iter().any(|p| self.alone(p, id))
+    }
+
+    /// Whether some pair of the survey finds it, by itself, a degraded version of the other.
+    fn a_copy(&self, id: SurveyId) -> bool {
+        self.pairs_of(id).iter().any(|p| {
+            matches!(
+                (p.degraded(), p.finer == id),
+                (Degraded::Reference, true) | (Degraded::Other, false)
+            )
+        })
+    }
+
+    /// Whether the pair finds `id` alone the false one.
+    fn alone(&self, p: &PairEvidence, id: SurveyId) -> bool {
+        matches!(
+            (self.blame_pair(p), p.finer == id),
+            (Some(Blame::Finer), true) | (Some(Blame::Coarser), false)
+        )
+    }
+
+    /// What the pairs that cannot tell which claim is false raise a survey's claims to, each
+    /// kernel to the largest the other survey's claim allows there, by kernel. A survey
+    /// discredited elsewhere is no evidence against this one.
+    fn contested(&self, id: SurveyId) -> BTreeMap<u32, f32> {
+        let mut raise = BTreeMap::new();
+        for p in self.pairs_of(id) {
+            if self.blame_pair(&p) == Some(Blame::Both) && !self.discredited(p.other(id)) {
+                for &(k, v) in p.against(id) {
+                    let e = raise.entry(k).or_insert(0.0f32);
+                    *e = e.max(v);
+                }
+            }
+        }
+        raise
+    }
+
+    /// The raise of a survey's claims that its pairs call for: the contested claims' (see
+    /// [`Terrain::contested`]), and where a pair finds it alone the false one (a degraded or
+    /// misplaced version of the other), over the whole overlap the other's claim there, as
+    /// contested, plus how far it departs from the other. None under a `keep` policy.
+    fn raise_of(&self, base: &SurveyMeta) -> Raise {
+        if self.contradicted == Contradicted::Keep {
+            return Arc::from([]);
+        }
+        let id = base.id;
+        let mut raise = self.contested(id);
+        let own = &base.kernel_accuracy;
+        for p in self.pairs_of(id) {
+            if !self.alone(&p, id) {
+                continue;
+            }
+            let other = p.other(id);
+            let theirs = &self.bases[&other].kernel_accuracy;
+            let contested = self.contested(other);
+            for &(k, ko, d) in p.departs(id) {
+                let claim =
+                    theirs.values[ko as usize].max(contested.get(&ko).map_or(0.0, |&v| v as f64));
+                let need = d as f64 + claim;
+                if need > own.values[k as usize] * (1.0 + 1e-9) + 1e-9 {
+                    let e = raise.entry(k).or_insert(0.0);
+                    *e = e.max(need as f32);
+                }
+            }
+        }
+        raise.into_iter().collect()
+    }
+
+    /// The survey as built, with the claims it makes itself.
+    pub fn base(&self, id: SurveyId) -> Option<&Arc<SurveyMeta>> {
+        self.bases.get(&id)
+    }
+
+    /// How a terrain treats claims that other surveys contradict.
+    pub fn set_contradicted(&mut self, c: Contradicted) {
+        assert!(
+            self.surveys.is_empty(),
+            "a terrain's policy is set before its surveys"
+        );
+        self.contradicted = c;
+    }
+
+    pub fn contradicted(&self) -> Contradicted {
+        self.contradicted
+    }
+
+    /// What `s` and every survey of the terrain it overlaps say of each other (see
+    /// [`evidence::compare`]), measured at the samples of the finer of the two against the
+    /// other's surface (see [`SurveyMeta::finer_than`]), each read over the other's bounds, so
+    /// that the figures do not depend on the order of insertion. Its samples are read as any
+    /// survey's are: a survey being inserted holds them in memory.
     ///
     /// Surveys of two planes are compared through the store's: each sample of the finer is
     /// carried into the other's CRS by the maps that place them (exactly as a tile would
     /// evaluate the other there); surveys of one plane, in that plane.
-    pub fn overlaps(&self, s: &Survey) -> Result<Vec<(SurveyId, Deviation)>, SampleError> {
-        let mine_plane = self.placement_of(s);
-        let mine = match &mine_plane {
-            Some(p) => p.footprint,
-            None => s.shapes[0].world_bounds(),
-        };
+    fn compare_with_all(&self, s: &Arc<SurveyMeta>) -> Result<Vec<PairEvidence>, SampleError> {
+        let mut others: Vec<&Arc<SurveyMeta>> = self
+            .bases
+            .values()
+            .filter(|o| o.id != s.id && s.footprint().intersects(&o.footprint()))
+            .collect();
+        others.sort_by_key(|o| o.id);
         let mut out = Vec::new();
-        for o in self.surveys.values() {
-            if o.id == s.id {
-                continue;
-            }
-            let theirs = o.footprint();
-            if !mine.intersects(&theirs) {
-                continue;
-            }
-            let (ps, po) = (
-                mine_plane.as_ref().map(|p| p.plane.clone()),
-                o.placement.as_ref().map(|p| p.plane.clone()),
-            );
-            let same = ps.as_ref().map(|p| p.id) == po.as_ref().map(|p| p.id);
-            // Each one's bounds in the other's plane.
-            let (theirs_here, mine_there) = if same {
-                (o.shapes[0].world_bounds(), s.shapes[0].world_bounds())
-            } else {
-                let (Some(a), Some(b)) = (
-                    native_bounds(ps.as_deref(), &theirs),
-                    native_bounds(po.as_deref(), &mine),
-                ) else {
-                    continue;
-                };
-                (a, b)
-            };
-            let (Some(rs), Some(ro)) = (
-                s.shapes[0].rect_over(&theirs_here),
-                o.shapes[0].rect_over(&mine_there),
-            ) else {
-                continue;
-            };
-            let a = s.levels[0].window(rs.c0, rs.r0, rs.cols(), rs.rows());
-            let b = self.samples(o, 0, ro)?;
-            let s_finer = s.finer_than(o);
-            let (fine, coarse) = if s_finer { (&a, &b) } else { (&b, &a) };
-            let d = if same {
-                accuracy::deviation(fine, coarse)
-            } else {
-                let (from, to) = if s_finer { (&ps, &po) } else { (&po, &ps) };
-                let carry = |p: [f64; 2]| -> Option<[f64; 2]> {
-                    let q = match from {
-                        Some(f) => f.to_store.at(p)?,
-                        None => p,
-                    };
-                    match to {
-                        Some(t) => t.to_native.at(q),
-                        None => Some(q),
-                    }
-                };
-                let bounds = if s_finer { &theirs_here } else { &mine_there };
-                accuracy::deviation_across(fine, coarse, bounds, &carry)
-            };
-            if let Some(d) = d {
-                out.push((o.id, d));
+        for o in others {
+            let (fine, coarse) = if s.finer_than(o) { (s, o) } else { (o, s) };
+            if let Some(p) = self.compare_pair(fine, coarse)? {
+                out.push(p);
             }
         }
-        out.sort_by_key(|(id, _)| *id);
         Ok(out)
+    }
+
+    /// [`evidence::compare`] of two surveys of the terrain, `fine` the finer.
+    fn compare_pair(
+        &self,
+        fine: &SurveyMeta,
+        coarse: &SurveyMeta,
+    ) -> Result<Option<PairEvidence>, SampleError> {
+        let (pf, pc) = (self.placement_of(fine), self.placement_of(coarse));
+        let (ff, fc) = (
+            pf.as_ref()
+                .map_or(fine.shapes[0].world_bounds(), |p| p.footprint),
+            pc.as_ref()
+                .map_or(coarse.shapes[0].world_bounds(), |p| p.footprint),
+        );
+        if !ff.intersects(&fc) {
+            return Ok(None);
+        }
+        let (plf, plc) = (
+            pf.as_ref().map(|p| p.plane.clone()),
+            pc.as_ref().map(|p| p.plane.clone()),
+        );
+        let same = plf.as_ref().map(|p| p.id) == plc.as_ref().map(|p| p.id);
+        // Each one's bounds in the other's plane.
+        let (coarse_in_fine, fine_in_coarse) = if same {
+            (
+                coarse.shapes[0].world_bounds(),
+                fine.shapes[0].world_bounds(),
+            )
+        } else {
+            let (Some(a), Some(b)) = (
+                native_bounds(plf.as_deref(), &fc),
+                native_bounds(plc.as_deref(), &ff),
+            ) else {
+                return Ok(None);
+            };
+            (a, b)
+        };
+        let (Some(rf), Some(rc)) = (
+            fine.shapes[0].rect_over(&coarse_in_fine),
+            coarse.shapes[0].rect_over(&fine_in_coarse),
+        ) else {
+            return Ok(None);
+        };
+        let a = self.samples(fine, 0, rf)?;
+        let b = self.samples(coarse, 0, rc)?;
+        let through = |from: &Option<Arc<Plane>>, to: &Option<Arc<Plane>>, p: [f64; 2]| {
+            let q = match from {
+                Some(f) => f.to_store.at(p)?,
+                None => p,
+            };
+            match to {
+                Some(t) => t.to_native.at(q),
+                None => Some(q),
+            }
+        };
+        let to_coarse = |p: [f64; 2]| -> Option<[f64; 2]> {
+            if same {
+                Some(p)
+            } else {
+                through(&plf, &plc, p)
+            }
+        };
+        let to_fine = |p: [f64; 2]| -> Option<[f64; 2]> {
+            if same {
+                Some(p)
+            } else {
+                through(&plc, &plf, p)
+            }
+        };
+        let base_f = self.bases.get(&fine.id).map_or(fine, |b| b);
+        let base_c = self.bases.get(&coarse.id).map_or(coarse, |b| b);
+        let sf = evidence::Side {
+            id: fine.id,
+            grid: &a,
+            offset: [rf.c0, rf.r0],
+            tiling: &base_f.tiling,
+            accuracy: &base_f.kernel_accuracy,
+        };
+        let sc = evidence::Side {
+            id: coarse.id,
+            grid: &b,
+            offset: [rc.c0, rc.r0],
+            tiling: &base_c.tiling,
+            accuracy: &base_c.kernel_accuracy,
+        };
+        Ok(evidence::compare(
+            &sf,
+            &sc,
+            &to_coarse,
+            &to_fine,
+            &coarse_in_fine,
+            fine.metres_per_unit(),
+        ))
     }
 
     /// A survey's placement in the terrain's plane: its own, or worked out for one read back
@@ -865,6 +1275,7 @@ impl Terrain {
             width: grid.width,
             height: grid.height,
             heights: cpu::resample(&set, grid),
+            shortfall: tile_shortfall(&patches, grid),
             patches,
         })
     }

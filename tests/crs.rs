@@ -494,7 +494,8 @@ fn a_shifted_copy_in_another_crs_conflicts_by_as_much_as_proj_says() {
         done
     };
     let (g, u) = (ingest(&geo), ingest(&utm));
-    let accuracy = |id| e.snapshot().survey(id).unwrap().accuracy;
+    // Their own claims, before any evidence raises them.
+    let accuracy = |id| e.snapshot().base(id).unwrap().accuracy;
     let (eg, eu) = (accuracy(g.survey.unwrap()), accuracy(u.survey.unwrap()));
     let s = ingest(&shifted);
     let es = accuracy(s.survey.unwrap());
@@ -508,6 +509,11 @@ fn a_shifted_copy_in_another_crs_conflicts_by_as_much_as_proj_says() {
             .find(|c| c.survey == other)
             .unwrap_or_else(|| panic!("no conflict with {}: {:?}", path.display(), s.conflicts));
         assert!(c.max_m > es + eo, "{c:?} within ε {es:.2} + {eo:.2}");
+        // The copy's claim is the false one, and the original lies 270 m west of it, to a
+        // tenth of a cell.
+        assert_eq!(c.distrusted, patchwork::engine::Distrusted::This, "{c:?}");
+        let [dx, dy, _] = c.shift_m.expect("coregistered");
+        assert!((dx + 270.0).abs() < 9.0 && dy.abs() < 9.0, "{c:?}");
         let proj = proj_deviation(&shifted, path);
         let near = |(max, rms): (f64, f64)| {
             (c.max_m - max).abs() <= 0.01 && (c.rms_m - rms).abs() <= 0.01 * rms

@@ -566,7 +566,14 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
         let (a, m) = (of("a.tif"), of("mound.tif"));
         assert_eq!(a["accuracy_source"], "estimated");
         assert_eq!(m["accuracy_source"], "sidecar");
-        assert_eq!(m["accuracy_m"], 1.0);
+        // The claim is kept as given, and where the two contradict each other (neither is
+        // a blurred or shifted version of the other, and no third survey says which is
+        // right) both are trusted no more than the evidence allows.
+        assert_eq!(m["claimed_accuracy_m"], 1.0);
+        let raised = m["accuracy_m"].as_f64().unwrap();
+        assert!(raised > 30.0 && raised < 61.0, "{m}");
+        assert!(m["accuracy_median_m"].as_f64().unwrap() <= raised, "{m}");
+        assert_eq!(m["conflicts"][0]["distrusted"], "both", "{m}");
         assert_eq!(a["conflicts"][0]["survey"], m["id"]);
         assert_eq!(m["conflicts"][0]["survey"], a["id"]);
         let rms = m["conflicts"][0]["rms_m"].as_f64().unwrap();
@@ -946,6 +953,12 @@ fn the_cli_asks_for_points_tiles_cuts_and_meshes_in_any_crs() {
         done.status.success(),
         "{}",
         String::from_utf8_lossy(&done.stderr)
+    );
+    // No estimated accuracy is 0 m: the reply says so, and what served instead.
+    let said = String::from_utf8_lossy(&done.stdout);
+    assert!(
+        said.contains("no data as accurate as 0 m over 100% of the tile: served the most accurate there, errors "),
+        "{said}"
     );
     let r = patchwork::read::read_raster(&out, &Default::default()).unwrap();
     assert_eq!(r.crs.crs.as_ref(), Some(&utm));

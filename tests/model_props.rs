@@ -71,15 +71,17 @@ fn build(specs: &[Spec]) -> Vec<Arc<Survey>> {
 
 use patchwork::model::survey::Survey;
 
-/// ε of a survey at a point of one of its whole cells: its kernel's.
-fn accuracy_at(s: &Survey, p: [f64; 2]) -> Option<f64> {
+/// ε of a survey at a point of one of its whole cells: its kernel's, as the terrain takes it
+/// (raised where another survey's evidence finds its claim false).
+fn accuracy_at(t: &patchwork::terrain::Terrain, s: &Survey, p: [f64; 2]) -> Option<f64> {
     let g = &s.levels[0];
     let q = g.georef.to_grid(p);
     g.bilinear_grid(q)?;
     let [cw, ch] = g.cells();
     let c = (q[0].floor().max(0.0) as usize).min(cw - 1) as u32;
     let r = (q[1].floor().max(0.0) as usize).min(ch - 1) as u32;
-    Some(s.kernel_accuracy.at(s.tiling.kernel_at(c, r)))
+    let claims = &t.survey(s.id)?.kernel_accuracy;
+    Some(claims.at(s.tiling.kernel_at(c, r)))
 }
 
 fn answers(t: &patchwork::terrain::Terrain, roi: &Aabb) -> Vec<Vec<String>> {
@@ -257,7 +259,7 @@ proptest! {
             // them by the error of the best patch there.
             let accurate: Vec<Arc<Survey>> = surveys
                 .iter()
-                .filter(|s| accuracy_at(s, p).is_some_and(|a| a <= e))
+                .filter(|s| accuracy_at(&t, s, p).is_some_and(|a| a <= e))
                 .cloned()
                 .collect();
             let (pool, bound) = if accurate.is_empty() {

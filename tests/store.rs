@@ -58,7 +58,13 @@ fn ingest(store: &Store, t: &mut Terrain, s: &Arc<Survey>, source: &str) {
         IngestTimings::default(),
     );
     store
-        .commit_survey(s, &rec, &change, &next.edges_of(&[&change]), &[])
+        .commit_survey(
+            s,
+            &rec,
+            &change,
+            &next.edges_of(&[&change]),
+            &next.pairs_of(s.id),
+        )
         .expect("commit");
     *t = next;
 }
@@ -148,7 +154,10 @@ fn committed_surveys_come_back_as_the_same_terrain() {
     let mut t = Terrain::new(IndexConfig::default());
     {
         let Opened { store, terrain, .. } = open(&dir);
-        assert_eq!(store.migrations_run(), &[(0, 1), (1, 2), (2, 3), (3, 4)]);
+        assert_eq!(
+            store.migrations_run(),
+            &[(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)]
+        );
         assert_eq!(terrain.index().len(), 0);
         ingest(&store, &mut t, &a, "/data/a.tif");
         ingest(&store, &mut t, &b, "/data/b.tif");
@@ -173,8 +182,10 @@ fn committed_surveys_come_back_as_the_same_terrain() {
             assert_eq!(x.grid.georef, y.georef);
             assert_eq!(back.shapes[k], y.shape());
         }
-        assert_eq!(back.patches, s.patches);
-        assert_eq!(back.edge_tiles, s.edge_tiles);
+        // The patches as built; those served carry what the other survey says of them.
+        let base = terrain.base(s.id).unwrap();
+        assert_eq!(base.patches, s.patches);
+        assert_eq!(base.edge_tiles, s.edge_tiles);
     }
     let recs = store.surveys().unwrap();
     assert_eq!(recs.len(), 2);
@@ -254,7 +265,7 @@ fn a_replacement_is_one_commit() {
                 &rec,
                 &inserted,
                 &next.edges_of(&[&retired, &inserted]),
-                &[],
+                &next.pairs_of(a2.id),
                 store.pack_survey(&a2).unwrap(),
             )
             .unwrap();
@@ -647,7 +658,13 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
         Default::default(),
     );
     let e = store
-        .commit_survey(&b, &rec, &change, &next.edges_of(&[&change]), &[])
+        .commit_survey(
+            &b,
+            &rec,
+            &change,
+            &next.edges_of(&[&change]),
+            &next.pairs_of(b.id),
+        )
         .unwrap_err();
     assert!(
         matches!(
@@ -678,7 +695,13 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
     // Space returns, and so do writes.
     disk.0.store(u64::MAX, std::sync::atomic::Ordering::SeqCst);
     store
-        .commit_survey(&b, &rec, &change, &next.edges_of(&[&change]), &[])
+        .commit_survey(
+            &b,
+            &rec,
+            &change,
+            &next.edges_of(&[&change]),
+            &next.pairs_of(b.id),
+        )
         .unwrap();
     assert_verified(&store);
     drop(store);
@@ -706,7 +729,13 @@ fn a_pin_holds_the_content_of_a_survey_retired_by_hand_until_it_is_ingested_agai
         Default::default(),
     );
     store
-        .commit_survey(&a, &rec, &change, &t.edges_of(&[&change]), &[])
+        .commit_survey(
+            &a,
+            &rec,
+            &change,
+            &t.edges_of(&[&change]),
+            &t.pairs_of(a.id),
+        )
         .unwrap();
     let ids = patch_ids(&t, a.id);
     let change = t.retire(a.id).unwrap();
@@ -987,7 +1016,11 @@ struct RecordV1 {
 fn a_version_1_store_is_migrated_and_its_index_derived_again() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = store_dir(&tmp);
-    let (a, b) = pair();
+    // A version 1 store tiled every survey from its first sample: surveys on the lattice of
+    // the origin are tiled so still.
+    let a = spec(48, 40, [0.0, 0.0], 7, 0.0).survey().unwrap();
+    let b = spec(40, 36, [0.0, 0.0], 9, 1.0).survey().unwrap();
+    assert_eq!((a.tiling.offset, b.tiling.offset), ([0, 0], [0, 0]));
     let mut t = Terrain::new(IndexConfig::default());
     {
         let Opened { store, .. } = open(&dir);
@@ -1067,7 +1100,7 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(1, 2), (2, 3), (3, 4)]);
+    assert_eq!(store.migrations_run(), &[(1, 2), (2, 3), (3, 4), (4, 5)]);
     let roi = bounds_of(&[a.clone(), b.clone()]);
     assert_same(&terrain, &t, &roi);
     assert_eq!(terrain.index().state(), t.index().state());

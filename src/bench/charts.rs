@@ -519,3 +519,54 @@ fn level_colour(level: u8) -> RGBColor {
     let (a, b) = (STOPS[i], STOPS[i + 1]);
     RGBColor(mix(a.0, b.0), mix(a.1, b.1), mix(a.2, b.2))
 }
+
+/// For every kind of copy (numbered as in `copies.csv`) of the first scene: the median ε of
+/// the original and of the copy, estimated and as served, and the RMS error of the tile at
+/// the larger error against the original, with claims kept as made and distrusted.
+pub fn copies(out: &Path, cases: &[super::evidence::Case]) -> Result<(), Fail> {
+    for (k, scene) in cases
+        .iter()
+        .map(|c| c.scene.as_str())
+        .fold(Vec::<&str>::new(), |mut v, s| {
+            if !v.contains(&s) {
+                v.push(s);
+            }
+            v
+        })
+        .into_iter()
+        .enumerate()
+    {
+        let of: Vec<&super::evidence::Case> = cases.iter().filter(|c| c.scene == scene).collect();
+        let series = |f: &dyn Fn(&super::evidence::Case) -> f64| -> Vec<(f64, f64)> {
+            of.iter()
+                .enumerate()
+                .map(|(i, c)| ((i + 1) as f64, f(c)))
+                .collect()
+        };
+        let last = |c: &super::evidence::Case| *c.tiles.last().expect("tiles");
+        let title = format!("Copies of {scene}: ε and the served tile's error, before and after");
+        both(
+            out,
+            &format!("copies_{k}"),
+            &Chart {
+                title: &title,
+                x: "copy (1-3 blur σ 1-3, 4-6 shifts, 7-8 blur + shift (+ noise), 9 offset 30 m, 10-11 every 2nd, 3rd)",
+                y: "metres",
+                series: vec![
+                    ("original's ε (median), estimated".into(), series(&|c| c.orig_claimed)),
+                    ("copy's ε (median), estimated".into(), series(&|c| c.copy_claimed)),
+                    ("copy's ε (median), as served".into(), series(&|c| c.copy_served)),
+                    (
+                        format!("tile at e = {} off the original, RMS: claims kept", of[0].tiles.last().map_or(0.0, |t| t.error)),
+                        series(&|c| last(c).before_rms),
+                    ),
+                    ("the same, contradicted claims distrusted".into(), series(&|c| last(c).after_rms)),
+                ],
+                log_y: false,
+                diagonal: false,
+                scatter: false,
+            },
+        )?;
+    }
+    Ok(())
+}

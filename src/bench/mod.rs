@@ -7,7 +7,9 @@
 //! is compared on.
 
 pub mod charts;
+pub mod copies;
 pub mod crs;
+pub mod evidence;
 pub mod flight;
 pub mod meet;
 pub mod meshes;
@@ -392,6 +394,7 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
         if opts.smoke { 300 } else { 2000 },
     )?;
     stability::write_csv(&opts.out, &stability)?;
+    run_copies(opts)?;
     let report = Report {
         uniform,
         flight,
@@ -406,6 +409,55 @@ pub fn run(opts: &Options) -> Result<Report, Box<dyn std::error::Error>> {
     write_csv(&opts.out, &report)?;
     charts::draw(&opts.out, &report, &t, &rois[1].1, opts.smoke)?;
     Ok(report)
+}
+
+/// Copies of the surveys beside their originals (`copies.csv`, `coreg.csv`, the `copies`
+/// chart): the middle 600² of the first file, with the same ground of the second as a third
+/// survey, and the middle 600² of the third file alone (300² and the committed crops in a smoke
+/// run).
+pub fn run_copies(opts: &Options) -> Result<Vec<evidence::Case>, Box<dyn std::error::Error>> {
+    std::fs::create_dir_all(&opts.out)?;
+    let side = if opts.smoke { 300 } else { 600 };
+    type Read = Result<Option<(Grid, Option<crate::crs::Crs>)>, Box<dyn std::error::Error>>;
+    let read = |k: usize| -> Read {
+        let Some(f) = opts.files.get(k) else {
+            return Ok(None);
+        };
+        let r = crate::read::read_raster(f, &Default::default())?;
+        let crs = r.crs.crs.clone();
+        Ok(Some((r.into_grid()?, crs)))
+    };
+    let middle = |g: &Grid| {
+        let n = g.cols.min(g.rows).min(side);
+        g.window((g.cols - n) / 2, (g.rows - n) / 2, n, n)
+    };
+    let name = |k: usize| {
+        opts.files[k]
+            .file_name()
+            .map_or(String::new(), |n| n.to_string_lossy().to_string())
+    };
+    let mut scenes = Vec::new();
+    let mut crs = None;
+    if let Some((g, c)) = read(0)? {
+        let orig = middle(&g);
+        // The second file over the same ground, where it has it.
+        let third = read(1)?.and_then(|(h, _)| {
+            let r = h.shape().rect_over(&orig.world_bounds())?;
+            Some(h.window(r.c0, r.r0, r.cols(), r.rows()))
+        });
+        scenes.push((name(0), orig, third));
+        crs = c;
+    }
+    if let Some((g, c)) = read(2)? {
+        if c == crs {
+            scenes.push((name(2), middle(&g), None));
+        }
+    }
+    let cases = evidence::run(&scenes, crs)?;
+    evidence::print(&cases);
+    evidence::write_csv(&opts.out, &cases)?;
+    charts::copies(&opts.out, &cases)?;
+    Ok(cases)
 }
 
 /// Surveys of two CRSs in one store (`crs_*.csv`, and `tiles/crs_manifest.json`, the tiles

@@ -30,6 +30,10 @@ struct Cli {
     /// Only the surveys of two CRSs in one store, and their tiles beside GDAL's warps.
     #[arg(long, conflicts_with = "meshes_only")]
     crs_only: bool,
+    /// Only the copies of the surveys (blurred, shifted, offset, coarser) beside their
+    /// originals: what the store makes of each, before and after it distrusts them.
+    #[arg(long, conflicts_with_all = ["meshes_only", "crs_only"])]
+    copies_only: bool,
 }
 
 fn main() -> ExitCode {
@@ -50,6 +54,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         no_gdal,
         meshes_only,
         crs_only,
+        copies_only,
     } = cli;
     let files = if !files.is_empty() {
         files
@@ -80,6 +85,11 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         out: out.clone(),
         smoke,
     };
+    if copies_only {
+        patchwork::bench::run_copies(&opts)?;
+        println!("wrote {}", out.display());
+        return Ok(());
+    }
     if meshes_only {
         patchwork::bench::run_meshes(&opts)?;
     } else if crs_only {

@@ -23,6 +23,50 @@ pub struct Extracted {
     pub fallback: bool,
 }
 
+/// Where a cut falls short of its error: of the points that some patch's kernel holds, the
+/// share that only fallback patches hold (no data there is as accurate as asked), and the
+/// least and largest error of what serves those points (the best fallback patch at each).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Shortfall {
+    pub share: f64,
+    pub min_error: f64,
+    pub max_error: f64,
+}
+
+/// The [`Shortfall`] of a cut's patches over `points`; None where every point with data is
+/// met.
+pub fn shortfall(ps: &[Extracted], points: impl Iterator<Item = [f64; 2]>) -> Option<Shortfall> {
+    let (met, short): (Vec<&Extracted>, Vec<&Extracted>) = ps.iter().partition(|x| !x.fallback);
+    if short.is_empty() {
+        return None;
+    }
+    let (mut held, mut only) = (0usize, 0usize);
+    let (mut least, mut most) = (f64::INFINITY, 0.0f64);
+    for p in points {
+        if met.iter().any(|x| x.kernel.contains_point(p)) {
+            held += 1;
+            continue;
+        }
+        // The most accurate of the fallback patches there is what serves the point.
+        let best = short
+            .iter()
+            .filter(|x| x.kernel.contains_point(p))
+            .map(|x| x.span.min_z)
+            .fold(f64::INFINITY, f64::min);
+        if best.is_finite() {
+            held += 1;
+            only += 1;
+            least = least.min(best);
+            most = most.max(best);
+        }
+    }
+    (only > 0).then(|| Shortfall {
+        share: only as f64 / held as f64,
+        min_error: least,
+        max_error: most,
+    })
+}
+
 impl Extracted {
     fn of(b: &PatchBox, span: Span, fallback: bool) -> Self {
         Extracted {

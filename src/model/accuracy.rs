@@ -103,6 +103,18 @@ impl KernelAccuracy {
         m
     }
 
+    /// The `q`-quantile of the kernels' ε (the nearest rank): what most of a survey achieves,
+    /// where [`KernelAccuracy::max`] is what all of it does.
+    pub fn quantile(&self, q: f64) -> f64 {
+        if self.values.is_empty() {
+            return 0.0;
+        }
+        let mut v = self.values.clone();
+        v.sort_by(f64::total_cmp);
+        let k = ((q.clamp(0.0, 1.0) * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1;
+        v[k]
+    }
+
     /// The survey's ε: the largest of its kernels', since ε bounds the error everywhere.
     pub fn max(&self) -> f64 {
         self.values.iter().copied().fold(0.0, f64::max)

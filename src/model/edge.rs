@@ -525,7 +525,7 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
         ..first.survey.shapes[0].georef
     };
     let ids: Vec<SurveyId> = used.iter().map(|mb| mb.survey.id).collect();
-    let owner = owner_id(tile, k, &ids);
+    let owner = owner_id(tile, k, &ids, error, &heights);
     Some(EdgePatch {
         owner,
         id: PatchId::derive(owner, 0, [0, 0]),
@@ -557,15 +557,27 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
     })
 }
 
-/// The id of a tile's edge patch: its tile and the surveys it was made from.
-fn owner_id(tile: [i64; 2], side: i64, members: &[SurveyId]) -> SurveyId {
+/// The id of a tile's edge patch: its tile, the surveys it was made from, and what it holds.
+/// The members' claims (which other surveys' evidence can raise) decide whose sample it
+/// takes where they overlap and its error, so the same members can make another patch.
+fn owner_id(
+    tile: [i64; 2],
+    side: i64,
+    members: &[SurveyId],
+    error: f64,
+    heights: &[f32],
+) -> SurveyId {
     let mut h = blake3::Hasher::new();
-    h.update(b"patchwork.edge.v1");
+    h.update(b"patchwork.edge.v2");
     h.update(&side.to_le_bytes());
     h.update(&tile[0].to_le_bytes());
     h.update(&tile[1].to_le_bytes());
     for m in members {
         h.update(&m.0.to_le_bytes());
+    }
+    h.update(&error.to_bits().to_le_bytes());
+    for z in heights {
+        h.update(&z.to_bits().to_le_bytes());
     }
     SurveyId(hash64(h))
 }

@@ -1,7 +1,9 @@
 //! The model: grids, mipmaps and patches. Pure computation, no I/O.
 
 pub mod accuracy;
+pub mod coreg;
 pub mod edge;
+pub mod evidence;
 pub mod geoid;
 pub mod grid;
 pub mod ids;

@@ -651,6 +651,32 @@ impl Tiling {
     }
 }
 
+/// The part of a patch's error that the survey's claims make: for a level-0 patch its
+/// kernel's ε (in its extension zone it blends with patches of the same samples); for a
+/// coarser one, which departs from those samples, the largest ε of the level-0 kernels under
+/// its whole window. Its δ and whatever a placement adds come on top.
+pub fn claimed_error(
+    accuracy: &KernelAccuracy,
+    tiling0: &Tiling,
+    level: u8,
+    kernel: &CellRect,
+    window: &CellRect,
+) -> f64 {
+    if level == 0 {
+        let k = tiling0.kernel_at(kernel.c0, kernel.r0);
+        return accuracy.at(k);
+    }
+    let f = 1u32 << level;
+    let [cw, ch] = tiling0.cells;
+    let under = CellRect {
+        c0: window.c0 * f,
+        r0: window.r0 * f,
+        c1: (window.c1 * f).min(cw as u32),
+        r1: (window.r1 * f).min(ch as u32),
+    };
+    accuracy.max_over(tiling0, &under)
+}
+
 /// Cuts every level into patches and measures each patch's error, in parallel.
 ///
 /// `tiling0` cuts level 0; coarser levels are cut from their first sample. A level-0 patch's
@@ -701,22 +727,7 @@ pub fn make_patches(
                 return None;
             }
             let window = t.window(&kernel, m);
-            // A level-0 patch's error starts from its kernel's ε: in its extension zone it
-            // blends with patches of the same samples. A coarser one departs from those
-            // samples, and answers for the ground under its whole window.
-            let eps = if lv == 0 {
-                accuracy.at([pi, pj])
-            } else {
-                let f = 1u32 << lv;
-                let [cw, ch] = levels[0].cells();
-                let under = CellRect {
-                    c0: window.c0 * f,
-                    r0: window.r0 * f,
-                    c1: (window.c1 * f).min(cw as u32),
-                    r1: (window.r1 * f).min(ch as u32),
-                };
-                accuracy.max_over(tiling0, &under)
-            };
+            let eps = claimed_error(accuracy, tiling0, lv as u8, &kernel, &window);
             let half = layout.kernel as f64 / 2.0 + m as f64;
             Some(Patch {
                 id: PatchId::derive(survey, lv as u8, [pi, pj]),

@@ -97,6 +97,28 @@ impl SurveyMeta {
         self.kernel_accuracy.max_over(&self.tiling, &cell)
     }
 
+    /// The survey with its claims raised where other surveys' evidence contradicts them
+    /// (see [`super::evidence`]): each kernel listed (row-major index, least ε) to at least
+    /// that ε, and every patch's error by what that adds to the part its claims make.
+    pub fn with_raised_claims(&self, raise: &[(u32, f32)]) -> SurveyMeta {
+        let mut m = self.clone();
+        for &(k, v) in raise {
+            let e = &mut m.kernel_accuracy.values[k as usize];
+            *e = e.max(v as f64);
+        }
+        m.accuracy = m.kernel_accuracy.max();
+        for p in m.patches.iter_mut() {
+            let claim = |a: &KernelAccuracy| {
+                super::patch::claimed_error(a, &self.tiling, p.level, &p.kernel, &p.window)
+            };
+            let (before, after) = (claim(&self.kernel_accuracy), claim(&m.kernel_accuracy));
+            if after > before {
+                p.error += after - before;
+            }
+        }
+        m
+    }
+
     /// The patches as LOD-space boxes.
     pub fn boxes(&self) -> Vec<PatchBox> {
         let frames = self.placement.as_ref().map(|pl| (pl.plane.id, &pl.frames));
@@ -147,10 +169,27 @@ impl SurveyMeta {
         Placement::new(plane, &self.shapes, windows).map(|p| Some(Arc::new(p)))
     }
 
-    /// Area of one level-0 cell.
+    /// Metres per unit of the survey's own CRS along x and y, at its middle: its linear unit
+    /// for a projected CRS, the ellipsoid's local scale for a geographic one (1 without a
+    /// CRS).
+    pub fn metres_per_unit(&self) -> [f64; 2] {
+        match &self.crs {
+            Some(c) if c.is_geographic() => {
+                let g = &self.shapes[0];
+                let mid = g.georef.to_world(g.cols as f64 / 2.0, g.rows as f64 / 2.0);
+                crate::crs::metres_per_degree(mid[1])
+            }
+            Some(c) => [c.unit_m().unwrap_or(1.0); 2],
+            None => [1.0, 1.0],
+        }
+    }
+
+    /// Area of one level-0 cell on the ground, in square metres (so that surveys of two CRSs
+    /// compare).
     pub fn cell_area(&self) -> f64 {
         let s = self.shapes[0].georef.step;
-        s[0] * s[1]
+        let m = self.metres_per_unit();
+        s[0] * m[0] * s[1] * m[1]
     }
 
     /// Whether this survey's samples are the finer of two overlapping surveys': the smaller

@@ -4,11 +4,11 @@
 use super::proto as pb;
 use crate::crs::Crs;
 use crate::engine::{
-    Backend, Conflict, Cut, Engine, EngineError, Event, Ingested, MeshTile, Stats, SurveyListing,
-    TileHead,
+    Backend, Conflict, Cut, Distrusted, Engine, EngineError, Event, Ingested, MeshTile, Stats,
+    SurveyListing, TileHead,
 };
 use crate::index::geom::Aabb;
-use crate::index::query::Extracted;
+use crate::index::query::{Extracted, Shortfall};
 use crate::mesh::Mesh;
 use crate::model::grid::{Georef, SampleRect};
 use crate::model::patch::{CellRect, PatchKind};
@@ -300,6 +300,15 @@ pub fn tile(t: &Tile, backend: &str, crs: Option<&Crs>) -> pb::Tile {
         crs: code,
         crs_key: key,
         max_error: max_error(&t.patches),
+        shortfall: t.shortfall.map(shortfall),
+    }
+}
+
+fn shortfall(s: Shortfall) -> pb::Shortfall {
+    pb::Shortfall {
+        share: s.share,
+        min_error_m: s.min_error,
+        max_error_m: s.max_error,
     }
 }
 
@@ -323,6 +332,7 @@ pub fn mesh(m: &MeshTile, crs: Option<&Crs>) -> pb::Mesh {
         backend: m.backend.into(),
         crs: code,
         crs_key: key,
+        shortfall: m.shortfall.map(shortfall),
     }
 }
 
@@ -416,6 +426,7 @@ pub fn tile_bands(
                 crs: if first { code } else { 0 },
                 crs_key: if first { key.clone() } else { String::new() },
                 max_error: if first { max_error(head.patches) } else { 0.0 },
+                shortfall: head.shortfall.filter(|_| first).map(shortfall),
             }
         })
         .collect()
@@ -436,6 +447,17 @@ pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
             survey: c.survey.to_string(),
             max_m: c.max_m,
             rms_m: c.rms_m,
+            shift: c.shift_m.map(|[e, n, u]| pb::Shift {
+                east_m: e,
+                north_m: n,
+                up_m: u,
+                rms_after_m: c.rms_after_m.unwrap_or(f64::NAN),
+            }),
+            distrusted: match c.distrusted {
+                Distrusted::This => pb::Distrusted::This,
+                Distrusted::Other => pb::Distrusted::Other,
+                Distrusted::Both => pb::Distrusted::Both,
+            } as i32,
         })
         .collect()
 }
@@ -456,30 +478,45 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
     let mut out: Vec<pb::SurveyInfo> = l
         .records
         .iter()
-        .map(|r| pb::SurveyInfo {
-            id: r.id.to_string(),
-            source: r.source.clone(),
-            status: match r.status {
-                Status::Active => "active".into(),
-                Status::Retired => "retired".into(),
-            },
-            error: String::new(),
-            accuracy_m: r.accuracy,
-            accuracy_source: r.accuracy_source.as_str().into(),
-            samples: r.samples,
-            crs: crs_fields(r.crs.as_ref()).0,
-            crs_key: crs_fields(r.crs.as_ref()).1,
-            vertical_crs: r
-                .vertical_source
-                .as_ref()
-                .map_or("unknown".into(), |v| v.key().to_string()),
-            vertical_error_m: r.vertical_error_m,
-            patches: t.index().survey_patches(r.id).map_or(0, |p| p.len() as u32),
-            conflicts: l
-                .conflicts
-                .get(&r.id)
-                .map(|c| conflicts(c))
-                .unwrap_or_default(),
+        .map(|r| {
+            // As the store takes it: its kernels' claims, raised where evidence finds them
+            // false; a retired survey's as it claimed.
+            let (accuracy, median, p90) = match t.survey(r.id) {
+                Some(s) => (
+                    s.accuracy,
+                    s.kernel_accuracy.quantile(0.5),
+                    s.kernel_accuracy.quantile(0.9),
+                ),
+                None => (r.accuracy, r.accuracy, r.accuracy),
+            };
+            pb::SurveyInfo {
+                id: r.id.to_string(),
+                source: r.source.clone(),
+                status: match r.status {
+                    Status::Active => "active".into(),
+                    Status::Retired => "retired".into(),
+                },
+                error: String::new(),
+                accuracy_m: accuracy,
+                accuracy_median_m: median,
+                accuracy_p90_m: p90,
+                claimed_accuracy_m: r.accuracy,
+                accuracy_source: r.accuracy_source.as_str().into(),
+                samples: r.samples,
+                crs: crs_fields(r.crs.as_ref()).0,
+                crs_key: crs_fields(r.crs.as_ref()).1,
+                vertical_crs: r
+                    .vertical_source
+                    .as_ref()
+                    .map_or("unknown".into(), |v| v.key().to_string()),
+                vertical_error_m: r.vertical_error_m,
+                patches: t.index().survey_patches(r.id).map_or(0, |p| p.len() as u32),
+                conflicts: l
+                    .conflicts
+                    .get(&r.id)
+                    .map(|c| conflicts(c))
+                    .unwrap_or_default(),
+            }
         })
         .collect();
     out.extend(l.failures.iter().map(|f| pb::SurveyInfo {

@@ -15,6 +15,7 @@ pub const MIPMAP: &[u8] = b"meta/mipmap";
 /// The name of the patch kind every survey of the store is made of; absent in stores made
 /// before there was a choice, whose patches are all `bilinear`.
 pub const PATCHES: &[u8] = b"meta/patches";
+pub const CONTRADICTED: &[u8] = b"meta/contradicted";
 /// `u64` LE: how many bytes of the chunk pack are committed (see [`super::pack`]).
 pub const PACK_LEN: &[u8] = b"meta/pack_len";
 /// Present when the index must be derived again from the surveys on the next open (a

@@ -12,6 +12,7 @@
 //! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
 //! | `meta/mipmap` | the name of the mipmap [`Filter`] its surveys are built with, set when the store is made (absent: `smooth`, a store from before the choice) |
 //! | `meta/patches` | the name of the [`PatchKind`] its surveys' patches are, set when the store is made (absent: `bilinear`, a store from before the choice) |
+//! | `meta/contradicted` | `distrust` or `keep`: what the store does with a claim other surveys find false, set when the store is made |
 //! | `s/<survey>` | [`SurveyRecord`] (bincode) |
 //! | `p/<survey>` | where the survey's [`StoredPatches`] are in the pack: its patches and the edge tiles it reaches (bincode, sealed with [`chunks::seal`]) |
 //! | `a/<survey>` | the [`KernelAccuracy`] of a survey whose ε was estimated (bincode) |
@@ -19,7 +20,7 @@
 //! | `meta/pack_len` | `u64` LE: the committed length of the chunk pack |
 //! | `e/<patch>` | an [`EdgePatch`] the active surveys call for (bincode) |
 //! | `t/<patch>` | the patch's [`BoxState`] in the LOD index: `f64` LE top, then a byte that is 1 when the box is exposed; for active surveys' patches and the edge patches they call for |
-//! | `o/<survey>/<other>` | [`Deviation`] (bincode): how two surveys disagree where they overlap, under both orders |
+//! | `o/<survey>/<other>` | [`PairEvidence`] (bincode): what two overlapping surveys say of each other's claims, under both orders |
 //! | `f/<source path>` | [`FailedRecord`] (bincode); at most one a path, and a bounded number |
 //! | `r/<source path>` | hex content id of a file whose survey was retired by hand while the file stayed in the inbox |
 //! | `meta/rebuild` | present when the next open must derive the index again from the surveys |
@@ -54,8 +55,9 @@ pub use verify::{Checked, VerifyReport};
 use crate::crs::vertical::VerticalCrs;
 use crate::crs::Crs;
 use crate::index::lod::{BoxState, ChangeStats, IndexConfig};
-use crate::model::accuracy::{AccuracySource, AccuracySpec, Deviation, KernelAccuracy};
+use crate::model::accuracy::{AccuracySource, AccuracySpec, KernelAccuracy};
 use crate::model::edge::EdgePatch;
+use crate::model::evidence::{Contradicted, PairEvidence};
 use crate::model::grid::{Georef, Grid, Shape};
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::mipmap::Filter;
@@ -90,6 +92,8 @@ pub struct StoreOptions {
     pub cache_bytes: u64,
     /// The mipmap filter and patch kind of a new store; an existing one keeps its own.
     pub recipe: Recipe,
+    /// What a new store does with contradicted claims; an existing one keeps its own.
+    pub contradicted: Contradicted,
 }
 
 impl StoreOptions {
@@ -107,6 +111,7 @@ impl Default for StoreOptions {
             guard: SpaceGuard::default(),
             cache_bytes: DEFAULT_CACHE_BYTES,
             recipe: Recipe::default(),
+            contradicted: Contradicted::default(),
         }
     }
 }
@@ -337,8 +342,6 @@ pub struct Catalog {
     pub records: Vec<SurveyRecord>,
     /// Every recorded failure, in source order.
     pub failures: Vec<FailedRecord>,
-    /// How surveys disagree where they overlap, under both orders.
-    pub overlaps: HashMap<SurveyId, Vec<(SurveyId, Deviation)>>,
     /// Sources retired by hand, with the content that stays retired (see [`Store::pins`]).
     pub pins: HashMap<String, String>,
     pub crs: Option<Crs>,
@@ -402,6 +405,20 @@ impl Setting for Filter {
     }
     fn from_name(name: &str) -> Option<Self> {
         Filter::from_name(name)
+    }
+}
+
+impl Setting for Contradicted {
+    const KEY: &'static [u8] = keys::CONTRADICTED;
+    const WHAT: &'static str = "policy for contradicted claims";
+    // Stores made before the choice come to this one through the migration that measures
+    // their pairs, which derives their index again.
+    const LEGACY: Self = Contradicted::Distrust;
+    fn name(self) -> &'static str {
+        Contradicted::name(self)
+    }
+    fn from_name(name: &str) -> Option<Self> {
+        Contradicted::from_name(name)
     }
 }
 
@@ -621,6 +638,7 @@ pub struct Store {
     layout: PatchLayout,
     index: IndexConfig,
     recipe: Recipe,
+    contradicted: Contradicted,
     /// The horizontal and vertical CRSs, once set.
     crs: RwLock<(Option<Crs>, Option<VerticalCrs>)>,
     /// Commits read the store (CRS, records) before writing it; one at a time keeps the read
@@ -635,6 +653,8 @@ pub struct Store {
 /// `crate::restore`); the store reads and writes, and builds nothing.
 pub struct Contents {
     pub surveys: Vec<Arc<SurveyMeta>>,
+    /// What each overlapping pair says of the other's claims.
+    pub pairs: Vec<Arc<PairEvidence>>,
     pub edges: Vec<Arc<EdgePatch>>,
     pub tops: HashMap<PatchId, BoxState>,
     /// The index must be derived again from the surveys (a migration asked for it).
@@ -729,6 +749,7 @@ impl Store {
         let layout: PatchLayout = decode(&get(keys::LAYOUT)?, "meta/layout")?;
         let index: IndexConfig = decode(&get(keys::INDEX)?, "meta/index")?;
         let recipe = recipe_of(&db, &dir, &guard, opts.recipe)?;
+        let contradicted = setting_of(&db, &dir, &guard, opts.contradicted)?;
         let crs = (
             db.get(keys::CRS)?
                 .map(|v| decode_crs(&v, "meta/crs", Crs::parse))
@@ -753,6 +774,7 @@ impl Store {
             layout,
             index,
             recipe,
+            contradicted,
             crs: RwLock::new(crs),
             writer: Mutex::new(()),
             migrated,
@@ -783,6 +805,12 @@ impl Store {
     /// The mipmap filter and patch kind every survey of this store is built with.
     pub fn recipe(&self) -> Recipe {
         self.recipe
+    }
+
+    /// What the store does with claims other surveys contradict (see
+    /// [`crate::model::evidence`]).
+    pub fn contradicted(&self) -> Contradicted {
+        self.contradicted
     }
 
     /// The index settings the stored tops were computed with.
@@ -823,6 +851,7 @@ impl Store {
         if self.db.get(keys::REBUILD)?.is_some() {
             return Ok(Contents {
                 surveys,
+                pairs: Vec::new(),
                 edges: Vec::new(),
                 tops: HashMap::new(),
                 rebuild: true,
@@ -830,6 +859,7 @@ impl Store {
         }
         Ok(Contents {
             surveys,
+            pairs: self.all_pairs()?,
             edges: self.edges()?,
             tops: self.states()?,
             rebuild: false,
@@ -850,26 +880,22 @@ impl Store {
             .collect()
     }
 
-    /// Replaces every box state and edge patch, and writes overlaps, in one batch: an index
-    /// derived again from the surveys. Clears the mark that asked for it.
+    /// Replaces every box state, edge patch and pair, in one batch: an index derived again
+    /// from the surveys. Clears the mark that asked for it.
     pub fn write_derived(
         &self,
         tops: &[(PatchId, BoxState)],
         edges: &[Arc<EdgePatch>],
-        overlaps: &[(SurveyId, SurveyId, Deviation)],
+        pairs: &[Arc<PairEvidence>],
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let mut batch = Writes::default();
-        for prefix in [keys::TOP_PREFIX, keys::EDGE_PREFIX] {
+        for prefix in [keys::TOP_PREFIX, keys::EDGE_PREFIX, keys::OVERLAP_PREFIX] {
             for kv in self.db.scan_prefix(prefix) {
                 batch.remove(kv?.0);
             }
         }
-        for (a, b, d) in overlaps {
-            let v = encode(d)?;
-            batch.insert(keys::overlap(*a, *b), v.clone());
-            batch.insert(keys::overlap(*b, *a), v);
-        }
+        stage_pairs(&mut batch, pairs)?;
         for (id, st) in tops {
             batch.insert(keys::top(*id), &encode_state(st));
         }
@@ -1024,7 +1050,7 @@ impl Store {
         s: &Survey,
         rec: &SurveyRecord,
         change: &ChangeStats,
-        overlaps: &[(SurveyId, Deviation)],
+        pairs: &[Arc<PairEvidence>],
         replacing: Option<SurveyId>,
         packed: Packed,
     ) -> Result<Staged, StoreError> {
@@ -1105,11 +1131,7 @@ impl Store {
             batch.insert(keys::accuracy(s.id), encode(&s.kernel_accuracy)?);
         }
         stage_change(batch, change);
-        for (other, d) in overlaps {
-            let v = encode(d)?;
-            batch.insert(keys::overlap(s.id, *other), v.clone());
-            batch.insert(keys::overlap(*other, s.id), v);
-        }
+        stage_pairs(batch, pairs)?;
         batch.remove(keys::failure(&rec.source));
         batch.remove(keys::pin(&rec.source));
         Ok(Staged { key, rec, crs })
@@ -1201,10 +1223,10 @@ impl Store {
         rec: &SurveyRecord,
         change: &ChangeStats,
         edges: &[Arc<EdgePatch>],
-        overlaps: &[(SurveyId, Deviation)],
+        pairs: &[Arc<PairEvidence>],
     ) -> Result<(), StoreError> {
         let packed = self.pack_survey(s)?;
-        self.commit_packed(s, rec, change, edges, overlaps, packed)
+        self.commit_packed(s, rec, change, edges, pairs, packed)
     }
 
     /// [`Store::commit_survey`] with the survey's chunks already packed.
@@ -1214,13 +1236,13 @@ impl Store {
         rec: &SurveyRecord,
         change: &ChangeStats,
         edges: &[Arc<EdgePatch>],
-        overlaps: &[(SurveyId, Deviation)],
+        pairs: &[Arc<PairEvidence>],
         packed: Packed,
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
         let t0 = Instant::now();
         let mut batch = Writes::default();
-        let staged = self.stage_survey(&mut batch, s, rec, change, overlaps, None, packed)?;
+        let staged = self.stage_survey(&mut batch, s, rec, change, pairs, None, packed)?;
         stage_edges(&mut batch, edges)?;
         self.apply(batch)?;
         self.finish(staged, t0)
@@ -1261,7 +1283,7 @@ impl Store {
         rec: &SurveyRecord,
         insert_change: &ChangeStats,
         edges: &[Arc<EdgePatch>],
-        overlaps: &[(SurveyId, Deviation)],
+        pairs: &[Arc<PairEvidence>],
         packed: Packed,
     ) -> Result<(), StoreError> {
         let _w = self.lock_writer();
@@ -1275,7 +1297,7 @@ impl Store {
             new,
             rec,
             insert_change,
-            overlaps,
+            pairs,
             Some(old),
             packed,
         )?;
@@ -1352,28 +1374,27 @@ impl Store {
         self.apply(batch)
     }
 
-    /// Every overlap, by the first survey of its key.
-    pub fn all_overlaps(
-        &self,
-    ) -> Result<HashMap<SurveyId, Vec<(SurveyId, Deviation)>>, StoreError> {
-        let mut out: HashMap<SurveyId, Vec<(SurveyId, Deviation)>> = HashMap::new();
+    /// Every pair's evidence, once each (under its smaller id's key).
+    pub fn all_pairs(&self) -> Result<Vec<Arc<PairEvidence>>, StoreError> {
+        let mut out = Vec::new();
         for kv in self.db.scan_prefix(keys::OVERLAP_PREFIX) {
             let (k, v) = kv?;
             let (a, b) = keys::parse_overlap(&k).ok_or_else(|| {
                 StoreError::Corrupt(format!("bad overlap key {:?}", String::from_utf8_lossy(&k)))
             })?;
-            let d = decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?;
-            out.entry(a).or_default().push((b, d));
+            if a < b {
+                let p = decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?;
+                out.push(Arc::new(p));
+            }
         }
         Ok(out)
     }
 
-    /// The records, failures, overlaps and pins as they stand.
+    /// The records, failures and pins as they stand.
     pub fn catalog(&self) -> Result<Catalog, StoreError> {
         Ok(Catalog {
             records: self.surveys()?,
             failures: self.failures()?,
-            overlaps: self.all_overlaps()?,
             pins: self.pins()?,
             crs: self.crs(),
             vertical: self.vertical_crs(),
@@ -1403,22 +1424,13 @@ impl Store {
             .collect()
     }
 
-    /// How every survey that overlaps `id` disagrees with it, in id order.
-    pub fn overlaps(&self, id: SurveyId) -> Result<Vec<(SurveyId, Deviation)>, StoreError> {
+    /// The evidence of every pair `id` is in, by the other's id.
+    pub fn pairs_of(&self, id: SurveyId) -> Result<Vec<PairEvidence>, StoreError> {
         self.db
             .scan_prefix(keys::overlaps_of(id))
             .map(|kv| {
                 let (k, v) = kv?;
-                let (_, other) = keys::parse_overlap(&k).ok_or_else(|| {
-                    StoreError::Corrupt(format!(
-                        "bad overlap key {:?}",
-                        String::from_utf8_lossy(&k)
-                    ))
-                })?;
-                Ok((
-                    other,
-                    decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?,
-                ))
+                decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))
             })
             .collect()
     }
@@ -1462,6 +1474,16 @@ fn stage_change(batch: &mut Writes, change: &ChangeStats) {
     for (id, st) in &change.moved {
         batch.insert(keys::top(*id), &encode_state(st));
     }
+}
+
+/// Writes each pair's evidence under both its surveys' keys.
+fn stage_pairs(batch: &mut Writes, pairs: &[Arc<PairEvidence>]) -> Result<(), StoreError> {
+    for p in pairs {
+        let v = encode(p.as_ref())?;
+        batch.insert(keys::overlap(p.finer, p.coarser), v.clone());
+        batch.insert(keys::overlap(p.coarser, p.finer), v);
+    }
+    Ok(())
 }
 
 /// The edge patches a commit leaves in place, written after every removal it stages: one

@@ -10,8 +10,8 @@ use super::{
     Status, Store, StoreError, StoredPatches, SurveyRecord,
 };
 use crate::index::lod::{BoxState, IndexConfig};
-use crate::model::accuracy::Deviation;
 use crate::model::edge::{self, EdgePatch};
+use crate::model::evidence::PairEvidence;
 use crate::model::grid::Grid;
 use crate::model::ids::{PatchId, SurveyId};
 use crate::model::patch::PatchLayout;
@@ -146,9 +146,22 @@ impl Store {
                 }
             } else if let Some(id) = keys::parse_accuracy(&k) {
                 accuracies.push(id);
-            } else if let Some(pair) = keys::parse_overlap(&k) {
-                match decode::<Deviation>(&v, &key_str(&k)) {
-                    Ok(_) => overlaps.push(pair),
+            } else if let Some((a, b)) = keys::parse_overlap(&k) {
+                match decode::<PairEvidence>(&v, &key_str(&k)) {
+                    Ok(p)
+                        if !(p.finer == a && p.coarser == b || p.finer == b && p.coarser == a) =>
+                    {
+                        pr.add(
+                            "overlap",
+                            format!(
+                                "{} holds the pair of {} and {}",
+                                key_str(&k),
+                                p.finer,
+                                p.coarser
+                            ),
+                        )
+                    }
+                    Ok(_) => overlaps.push((a, b)),
                     Err(e) => pr.add("overlap", e.to_string()),
                 }
             } else if k.starts_with(keys::PIN_PREFIX) {
@@ -300,6 +313,7 @@ impl Store {
             keys::REBUILD => Ok(None),
             keys::MIPMAP => Ok(setting_problem(v, self.recipe.mipmap)),
             keys::PATCHES => Ok(setting_problem(v, self.recipe.patches)),
+            keys::CONTRADICTED => Ok(setting_problem(v, self.contradicted)),
             // Bytes past the committed length are a commit that did not happen (or has not
             // yet): an open cuts them. Fewer bytes than committed would be lost chunks.
             keys::PACK_LEN => match <[u8; 8]>::try_from(v) {

@@ -65,6 +65,28 @@ def check_resample(c, roi, error, width, height):
     return patches, diff
 
 
+def check_conflicts(active):
+    """Accuracies as served are what each survey claims, raised where the others contradict
+    it; each overlap says where the other survey lies. The rotated copy (d.tif) is a
+    misregistered version of the Copernicus crop, so it is the one distrusted."""
+    by_name = {os.path.basename(s.source): s for s in active}
+    for s in active:
+        require(s.accuracy_median_m <= s.accuracy_p90_m <= s.accuracy_m + 1e-9, f"{s}")
+        require(s.claimed_accuracy_m <= s.accuracy_m + 1e-9, f"{s}")
+        for k in s.conflicts:
+            require(k.shift_m is not None and k.rms_after_m is not None, f"{k}")
+    a, b, d = by_name["a.tif"], by_name["b.tif"], by_name["d.tif"]
+    (ab,) = [k for k in a.conflicts if k.survey == b.id]
+    (ba,) = [k for k in b.conflicts if k.survey == a.id]
+    # Copernicus and NASADEM lie within a metre or two of each other (a cell is ~30 m), and
+    # each says so of the other with the sign turned.
+    require(np.hypot(ab.shift_m[0], ab.shift_m[1]) < 5.0, f"{ab}")
+    require(np.allclose(ab.shift_m, [-v for v in ba.shift_m]), f"{ab} vs {ba}")
+    require(all(k.distrusted == "this" for k in d.conflicts) and len(d.conflicts) == 2, f"{d}")
+    require(all(k.distrusted == "other" for s in (a, b) for k in s.conflicts if k.survey == d.id), f"{a}")
+    require(d.accuracy_m > d.claimed_accuracy_m, f"{d}")
+
+
 def resample_tiles(c):
     """check_resample where two surveys meet (with fallback patches at e = 0 where the coarser
     one alone has data), at voids and borders: the largest difference, the kinds of patch met,
@@ -169,6 +191,7 @@ def run(address):
         surveys = c.surveys()
         active = [s for s in surveys if s.status == "active"]
         require(len(active) == 4, f"want 4 active surveys, have {[(s.source, s.status) for s in surveys]}")
+        check_conflicts(active)
 
         # 1. resample over streamed patches is the daemon's tile.
         worst, kinds, fallback, per_patch = resample_tiles(c)

@@ -84,6 +84,13 @@ class Conflict:
     survey: str
     max_m: float
     rms_m: float
+    #: Where the other survey's content lies against this one's (east, north, up, metres),
+    #: and the RMS difference once it is moved back; None where they could not be
+    #: coregistered.
+    shift_m: Optional[Tuple[float, float, float]] = None
+    rms_after_m: Optional[float] = None
+    #: Whose claim the evidence finds false: "this", "other", "both" or "" (neither).
+    distrusted: str = ""
 
 
 @dataclass(frozen=True)
@@ -93,6 +100,8 @@ class Survey:
     #: "active", "retired" or "failed".
     status: str
     error: str
+    #: The largest ε of the survey's kernels as served: its own claims, raised where an
+    #: overlapping survey contradicts them.
     accuracy_m: float
     accuracy_source: str
     samples: int
@@ -104,6 +113,11 @@ class Survey:
     crs_key: str = ""
     vertical_crs: str = ""
     vertical_error_m: float = 0.0
+    #: The median and 90th percentile of its kernels' ε as served, and the largest it claims
+    #: itself.
+    accuracy_median_m: float = 0.0
+    accuracy_p90_m: float = 0.0
+    claimed_accuracy_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -160,8 +174,20 @@ CompactResult = _message_dataclass("CompactResult", admin_pb2.CompactReply)
 RetireResult = _message_dataclass("RetireResult", admin_pb2.RetireReply)
 
 
+_DISTRUSTED = {admin_pb2.DISTRUSTED_THIS: "this", admin_pb2.DISTRUSTED_OTHER: "other",
+               admin_pb2.DISTRUSTED_BOTH: "both"}
+
+
+def _conflict(c) -> Conflict:
+    has = c.HasField("shift")
+    return Conflict(survey=c.survey, max_m=c.max_m, rms_m=c.rms_m,
+                    shift_m=(c.shift.east_m, c.shift.north_m, c.shift.up_m) if has else None,
+                    rms_after_m=c.shift.rms_after_m if has else None,
+                    distrusted=_DISTRUSTED.get(c.distrusted, ""))
+
+
 def _conflicts(cs) -> List[Conflict]:
-    return [Conflict(survey=c.survey, max_m=c.max_m, rms_m=c.rms_m) for c in cs]
+    return [_conflict(c) for c in cs]
 
 
 def _rect(roi: Rect) -> "terrain_pb2.Rect":
@@ -328,7 +354,8 @@ class Client:
         return [Survey(id=s.id, source=s.source, status=s.status, error=s.error, accuracy_m=s.accuracy_m,
                        accuracy_source=s.accuracy_source, samples=s.samples, patches=s.patches, crs=s.crs,
                        conflicts=_conflicts(s.conflicts), crs_key=s.crs_key, vertical_crs=s.vertical_crs,
-                       vertical_error_m=s.vertical_error_m)
+                       vertical_error_m=s.vertical_error_m, accuracy_median_m=s.accuracy_median_m,
+                       accuracy_p90_m=s.accuracy_p90_m, claimed_accuracy_m=s.claimed_accuracy_m)
                 for s in r.surveys]
 
     def retire(self, id_or_source: str):
