@@ -524,6 +524,7 @@ fn level_colour(level: u8) -> RGBColor {
 /// the original and of the copy, estimated and as served, and the RMS error of the tile at
 /// the larger error against the original, with claims kept as made and distrusted.
 pub fn copies(out: &Path, cases: &[super::evidence::Case]) -> Result<(), Fail> {
+    fonts();
     for (k, scene) in cases
         .iter()
         .map(|c| c.scene.as_str())
@@ -561,6 +562,7 @@ pub fn copies(out: &Path, cases: &[super::evidence::Case]) -> Result<(), Fail> {
                         series(&|c| last(c).before_rms),
                     ),
                     ("the same, contradicted claims distrusted".into(), series(&|c| last(c).after_rms)),
+                    ("the store without the copy".into(), series(&|c| last(c).without_rms)),
                 ],
                 log_y: false,
                 diagonal: false,

@@ -43,6 +43,9 @@ pub struct TileError {
     pub before_max: f64,
     pub after_rms: f64,
     pub after_max: f64,
+    /// The store without the copy, distrusting: what the copy should leave as it is.
+    pub without_rms: f64,
+    pub without_max: f64,
 }
 
 #[derive(Clone, Debug)]
@@ -83,9 +86,13 @@ pub fn run(scenes: &[(String, Grid, Option<Grid>)], crs: Option<Crs>) -> Result<
         } else {
             name.clone()
         };
+        let mut without = Terrain::new(IndexConfig::default());
+        for s in &base {
+            without.insert(s.clone());
+        }
         for c in copies::standard(g) {
             let copy = survey(&c.grid)?;
-            out.push(case(&scene, g, &orig, &base, &c, &copy)?);
+            out.push(case(&scene, g, &orig, &base, &without, &c, &copy)?);
         }
     }
     Ok(out)
@@ -96,6 +103,7 @@ fn case(
     g: &Grid,
     orig: &Arc<Survey>,
     base: &[Arc<Survey>],
+    without: &Terrain,
     c: &Copy,
     copy: &Arc<Survey>,
 ) -> Result<Case, Fail> {
@@ -158,12 +166,15 @@ fn case(
         .map(|&e| {
             let (br, bm) = off_original(&before, g, &roi, e);
             let (ar, am) = off_original(&after, g, &roi, e);
+            let (wr, wm) = off_original(without, g, &roi, e);
             TileError {
                 error: e,
                 before_rms: br,
                 before_max: bm,
                 after_rms: ar,
                 after_max: am,
+                without_rms: wr,
+                without_max: wm,
             }
         })
         .collect();
@@ -208,13 +219,13 @@ fn off_original(t: &Terrain, g: &Grid, roi: &Aabb, e: f64) -> (f64, f64) {
 
 pub fn write_csv(out: &Path, cases: &[Case]) -> std::io::Result<()> {
     let mut s = String::from(
-        "scene,copy,verdict,original_eps_median_m,original_served_median_m,copy_eps_median_m,copy_served_median_m,error_m,before_rms_m,before_max_m,after_rms_m,after_max_m\n",
+        "scene,copy,verdict,original_eps_median_m,original_served_median_m,copy_eps_median_m,copy_served_median_m,error_m,before_rms_m,before_max_m,after_rms_m,after_max_m,without_rms_m,without_max_m\n",
     );
     for c in cases {
         for t in &c.tiles {
             let _ = writeln!(
                 s,
-                "{},{},{},{:.3},{:.3},{:.3},{:.3},{},{:.3},{:.3},{:.3},{:.3}",
+                "{},\"{}\",{},{:.3},{:.3},{:.3},{:.3},{},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3}",
                 c.scene,
                 c.copy,
                 c.verdict,
@@ -226,7 +237,9 @@ pub fn write_csv(out: &Path, cases: &[Case]) -> std::io::Result<()> {
                 t.before_rms,
                 t.before_max,
                 t.after_rms,
-                t.after_max
+                t.after_max,
+                t.without_rms,
+                t.without_max
             );
         }
     }
@@ -236,7 +249,7 @@ pub fn write_csv(out: &Path, cases: &[Case]) -> std::io::Result<()> {
         for f in &c.found {
             let _ = writeln!(
                 s,
-                "{},{},{},{:.4},{:.3},{:.1}",
+                "{},\"{}\",{},{:.4},{:.3},{:.1}",
                 c.scene, c.copy, f.method, f.shift_error_px, f.dz_error_m, f.ms
             );
         }
@@ -254,7 +267,7 @@ pub fn print(cases: &[Case]) {
             .map(|f| format!("{} {:.2} px", f.method, f.shift_error_px))
             .collect();
         println!(
-            "{}, {}: distrusted {}; ε median original {:.2} → {:.2} m, copy {:.2} → {:.2} m; tile at e = {} off the original {:.2} m RMS ({:.1} max) before, {:.2} ({:.1}) after; shift off by {}",
+            "{}, {}: distrusted {}; ε median original {:.2} → {:.2} m, copy {:.2} → {:.2} m; tile at e = {} off the original {:.2} m RMS ({:.1} max) before, {:.2} ({:.1}) after, {:.2} ({:.1}) without the copy; shift off by {}",
             c.scene,
             c.copy,
             c.verdict,
@@ -267,6 +280,8 @@ pub fn print(cases: &[Case]) {
             t.before_max,
             t.after_rms,
             t.after_max,
+            t.without_rms,
+            t.without_max,
             f.join(", ")
         );
     }
