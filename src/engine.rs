@@ -30,11 +30,11 @@ pub use crate::resample::Backend;
 use crate::resample::{cpu, Cancel, SampleGrid};
 use crate::restore;
 use crate::store::{
-    now_unix, CacheStats, Catalog, ChunkReader, DiskSpace, FailedRecord, IngestTimings, SpaceGuard,
-    Store, StoreError, StoreOptions, SurveyRecord, SystemDisk,
+    now_unix, CacheStats, Catalog, ChunkReader, Damaged, DiskSpace, FailedRecord, IngestTimings,
+    SpaceGuard, Store, StoreError, StoreOptions, SurveyRecord, SystemDisk,
 };
 use crate::terrain::{Terrain, Tile};
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::time::Instant;
@@ -198,6 +198,8 @@ pub struct Ingested {
 pub struct SurveyListing {
     pub records: Vec<SurveyRecord>,
     pub failures: Vec<FailedRecord>,
+    /// Active surveys out of the terrain because they are damaged.
+    pub damaged: BTreeMap<SurveyId, Damaged>,
     /// Conflicts of each active survey, in the other survey's id order.
     pub conflicts: HashMap<SurveyId, Vec<Conflict>>,
 }
@@ -287,6 +289,8 @@ pub struct Stats {
     pub surveys: u32,
     pub retired: u32,
     pub failed: u32,
+    /// Active surveys out of the terrain because they are damaged.
+    pub damaged: u32,
     pub patches: u64,
     pub active_boxes: u64,
     pub samples: u64,
@@ -657,7 +661,8 @@ impl Engine {
             phase: Phase::Reading,
             started: Instant::now(),
         });
-        let result = self.ingest_inner(path, &source, accuracy, origin);
+        let mut content = None;
+        let result = self.ingest_inner(path, &source, accuracy, origin, &mut content);
         let idle = {
             let mut progress = self.progress.lock().expect("progress lock");
             progress.retain(|p| p.source != source);
@@ -675,7 +680,7 @@ impl Engine {
                 // A name in the inbox that leads outside (or nowhere) is a bad file like any
                 // other; a client's path is not remembered, or clients could fill the store.
                 if origin == Origin::Inbox {
-                    self.record_failure(path, &source, REFUSED_PATH);
+                    self.record_failure(path, &source, REFUSED_PATH, content.as_deref());
                 }
                 Ok(failed(REFUSED_PATH.into()))
             }
@@ -700,7 +705,7 @@ impl Engine {
             }
             Err(Refusal::File(error)) => {
                 tracing::warn!(source = ?source, error = ?error, "ingest failed");
-                self.record_failure(path, &source, &error);
+                self.record_failure(path, &source, &error, content.as_deref());
                 Ok(failed(error))
             }
         }
@@ -710,7 +715,7 @@ impl Engine {
     /// changes. Only names that are there are remembered: one with nothing behind it would
     /// only fill the store.
     /// Records a failed file, and says so to subscribers in commit order.
-    fn record_failure(&self, path: &Path, source: &str, error: &str) {
+    fn record_failure(&self, path: &Path, source: &str, error: &str, content: Option<&str>) {
         if path.symlink_metadata().is_err() {
             // Only names that exist are kept; the failure is still news.
             self.emit(Outcome::Failed, None, source, error, Vec::new());
@@ -723,6 +728,7 @@ impl Engine {
             size,
             mtime_unix,
             at_unix: now_unix(),
+            content_id: content.unwrap_or_default().into(),
         };
         let keep = self.cfg.limits.max_failures as usize;
         let recorded = self.write_and(
@@ -741,6 +747,7 @@ impl Engine {
         source: &str,
         accuracy: Option<f64>,
         origin: Origin,
+        content_out: &mut Option<String>,
     ) -> Result<(Outcome, SurveyId, u64, Vec<Conflict>), Refusal> {
         // Reading and modelling a file only to be refused at the commit would be wasted.
         if let Some(why) = self.broken.get() {
@@ -760,6 +767,15 @@ impl Engine {
         let content = content_id(&handle)
             .map_err(|e| Refusal::File(format!("cannot read {}: {e}", path.display())))?;
         drop(handle);
+        *content_out = Some(content.clone());
+        if path.to_str().is_none() {
+            // Sources are text everywhere (listings, events, the wire): a name that is not
+            // cannot be one. Recorded under its escaped name, so that it is seen and can be
+            // forgotten.
+            return Err(Refusal::File(format!(
+                "the file name {source} is not valid UTF-8: rename the file to ingest it"
+            )));
+        }
         let catalog = self.catalog();
         if origin == Origin::Inbox {
             // The inbox leaves alone a file whose survey is served as it is, or whose content
@@ -983,6 +999,17 @@ impl Engine {
         Ok(n)
     }
 
+    /// Drops every damaged survey for good (see [`Store::repair`]); what was dropped. The
+    /// terrain leaves them out already, so only the catalog changes: the inbox then ingests
+    /// their files afresh.
+    pub fn repair(&self) -> Result<Vec<Damaged>, EngineError> {
+        let dropped = self.write(|s, _| Ok((s.repair()?, None)))?;
+        for d in &dropped {
+            tracing::info!(survey = %d.id, source = ?d.source, reason = ?d.reason, "dropped a damaged survey");
+        }
+        Ok(dropped)
+    }
+
     /// Removes the failure recorded for `source`; whether there was one.
     pub fn forget(&self, source: &str) -> Result<bool, EngineError> {
         let absolute = source_name(Path::new(source));
@@ -1012,6 +1039,7 @@ impl Engine {
         let listing = SurveyListing {
             records: c.records.clone(),
             failures: c.failures.clone(),
+            damaged: c.damaged.clone(),
             conflicts,
         };
         (t, listing)
@@ -1030,8 +1058,13 @@ impl Engine {
         let active: Vec<_> = c.active().collect();
         Stats {
             surveys: active.len() as u32,
-            retired: (c.records.len() - active.len()) as u32,
+            retired: c
+                .records
+                .iter()
+                .filter(|r| r.status == crate::store::Status::Retired)
+                .count() as u32,
             failed: c.failures.len() as u32,
+            damaged: c.damaged.len() as u32,
             patches: t.index().len() as u64,
             active_boxes: t.index().active_count() as u64,
             samples: active.iter().map(|r| r.samples).sum(),
@@ -1634,7 +1667,22 @@ pub fn source_name(path: &Path) -> String {
             .map(|d| d.join(path))
             .unwrap_or_else(|_| path.to_path_buf()),
     };
-    abs.to_string_lossy().into_owned()
+    escaped(&abs)
+}
+
+/// A path as text: itself when it is UTF-8, else with each byte that is not written `\xNN`
+/// (U+FFFD would make different names one).
+pub fn escaped(path: &Path) -> String {
+    use std::os::unix::ffi::OsStrExt;
+    let bytes = path.as_os_str().as_bytes();
+    let mut out = String::with_capacity(bytes.len());
+    for chunk in bytes.utf8_chunks() {
+        out.push_str(chunk.valid());
+        for b in chunk.invalid() {
+            out.push_str(&format!("\\x{b:02x}"));
+        }
+    }
+    out
 }
 
 pub fn size_mtime(path: &Path) -> Option<(u64, u64)> {

@@ -537,7 +537,9 @@ fn check_heights(samples: &[f32], (lo, hi): (f64, f64)) -> Result<(), IngestErro
 
 /// Names the watcher leaves alone: files still being written or editor droppings.
 pub fn is_temporary(path: &Path) -> bool {
-    let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
+    // A name that is not UTF-8 is judged by what it can be read as: such a file is no less
+    // a DEM, and is reported rather than passed over.
+    let Some(name) = path.file_name().map(|n| n.to_string_lossy()) else {
         return true;
     };
     name.starts_with(".~")

@@ -100,6 +100,11 @@ enum Cmd {
         #[command(flatten)]
         target: Target,
     },
+    /// Drop damaged surveys for good, so that their files can be ingested again.
+    Repair {
+        #[command(flatten)]
+        target: Target,
+    },
     /// Remove retired surveys for good and give disk space back.
     Compact {
         #[command(flatten)]
@@ -827,6 +832,12 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                 } else {
                     s.vertical_crs.clone()
                 };
+                if s.damaged > 0 {
+                    println!(
+                        "damaged {} surveys, out of the terrain: `patchwork surveys` says why, `patchwork repair` drops them",
+                        s.damaged
+                    );
+                }
                 println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {crs}\nvertical crs {vertical}\nbackend {}",
                     s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes, s.backend);
                 println!(
@@ -857,6 +868,20 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             } else {
                 Err(format!("{} problem(s) found", v.problems.len()).into())
             }
+        }
+        Cmd::Repair { target } => {
+            let mut c = Client::connect(&target).await?;
+            let r = call!(&mut c, admin.repair(pb::RepairRequest {}), api::repair)?;
+            for d in &r.dropped {
+                let source = if d.source.is_empty() {
+                    "unreadable record".to_string()
+                } else {
+                    printable(&d.source).to_string()
+                };
+                println!("dropped {} ({source}): {}", d.id, d.reason);
+            }
+            println!("{} damaged surveys dropped", r.dropped.len());
+            Ok(())
         }
         Cmd::Compact { target } => {
             let mut c = Client::connect(&target).await?;
@@ -1263,6 +1288,7 @@ struct StatsJson<'a> {
     surveys: u32,
     retired: u32,
     failed: u32,
+    damaged: u32,
     patches: u64,
     active_boxes: u64,
     samples: u64,
@@ -1291,6 +1317,7 @@ impl<'a> StatsJson<'a> {
             surveys: s.surveys,
             retired: s.retired,
             failed: s.failed,
+            damaged: s.damaged,
             patches: s.patches,
             active_boxes: s.active_boxes,
             samples: s.samples,

@@ -61,6 +61,7 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
         edges,
         mut tops,
         rebuild,
+        damaged: _,
     } = contents;
     let terrain = if rebuild {
         derive(&store, &mut warnings)?

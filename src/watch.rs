@@ -4,18 +4,21 @@
 //! a full channel or changes made while the daemon was down all end in the same place: a
 //! store that matches the inbox.
 //!
-//! A file is ingested once its size and mtime have stayed the same for `settle_ms`, or at once
-//! when it is known complete: it arrived by rename (the usual way to publish a finished file),
-//! or its writer closed it. A file that fails is
-//! recorded once and not retried until its size or mtime changes; one the store could not take
-//! (a full disk) is tried again on a later pass.
+//! A file is ingested once its stamp (size, mtime, ctime, inode) has stayed the same for
+//! `settle_ms`, or at once when it is known complete: it arrived by rename (the usual way to
+//! publish a finished file), or its writer closed it. The stamp only says when to look: a file
+//! is unchanged only if its content is, which the engine decides by the hash of its bytes. A
+//! file rewritten in place with its size and mtime kept (`cp -p`, `rsync -a`, tar) still has
+//! a new ctime, and one renamed into place a new inode. A file that fails is recorded once
+//! and not retried until its stamp changes, and across restarts until its content does; one
+//! the store could not take (a full disk) is tried again on a later pass.
 //!
 //! Only a file seen missing from a folder that is there retires its survey. A folder that is
 //! gone, or empty while surveys came from it (a share not mounted yet), retires nothing: the
 //! watcher warns, keeps the surveys, and watches the folder again once it is back.
 
 use crate::config::OnDelete;
-use crate::engine::{size_mtime, source_name, Engine, EngineError, Ingested, Origin};
+use crate::engine::{escaped, source_name, Engine, EngineError, Ingested, Origin};
 use crate::ingest::is_temporary;
 use crate::read::file_content_id;
 use crate::store::Catalog;
@@ -68,8 +71,32 @@ fn is_dem_name(p: &Path) -> bool {
         .is_some_and(|e| DEM_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
 }
 
-/// A file's size and mtime, by which the watcher tells whether it changed.
-type Stamp = Option<(u64, u64)>;
+/// What a file's metadata says of it, by which the watcher tells when to look at it again:
+/// none of it can be set back by a writer but the mtime, and the ctime and inode change with
+/// any rewrite or rename. None when it cannot be read.
+type Stamp = Option<FileStamp>;
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct FileStamp {
+    pub size: u64,
+    mtime: (i64, i64),
+    ctime: (i64, i64),
+    dev: u64,
+    ino: u64,
+}
+
+/// The stamp of the file at `p`, following symlinks.
+fn stamp(p: &Path) -> Stamp {
+    use std::os::unix::fs::MetadataExt;
+    let m = std::fs::metadata(p).ok()?;
+    Some(FileStamp {
+        size: m.len(),
+        mtime: (m.mtime(), m.mtime_nsec()),
+        ctime: (m.ctime(), m.ctime_nsec()),
+        dev: m.dev(),
+        ino: m.ino(),
+    })
+}
 
 /// Every candidate under `dir`, with its stamp (None when unreadable), into `out`; folders
 /// that could not be listed whole go into `incomplete`, since what they hold is unknown, not
@@ -100,7 +127,11 @@ fn scan(dir: &Path, out: &mut HashMap<PathBuf, Stamp>, incomplete: &mut Vec<Path
             if is_dem_name(&p) {
                 out.insert(
                     p.clone(),
-                    if is_dir { Some((0, 0)) } else { size_mtime(&p) },
+                    if is_dir {
+                        Some(FileStamp::default())
+                    } else {
+                        stamp(&p)
+                    },
                 );
             } else if is_dir {
                 stack.push(p);
@@ -122,6 +153,8 @@ struct Root {
 /// the folders under them that could not be listed.
 struct Discovered {
     files: HashMap<PathBuf, Stamp>,
+    /// The files' sources, as [`escaped`] writes their paths.
+    sources: HashSet<String>,
     /// Resolved folders that are there.
     present: Vec<PathBuf>,
     incomplete: Vec<PathBuf>,
@@ -134,7 +167,7 @@ impl Discovered {
         let p = Path::new(source);
         self.present.iter().any(|r| p.starts_with(r))
             && !self.incomplete.iter().any(|d| p.starts_with(d))
-            && !self.files.contains_key(p)
+            && !self.sources.contains(source)
     }
 }
 
@@ -202,6 +235,7 @@ impl<S: Sink> Reconciler<S> {
     fn discover(&mut self, catalog: &Catalog) -> (Discovered, Vec<PathBuf>) {
         let mut found = Discovered {
             files: HashMap::new(),
+            sources: HashSet::new(),
             present: Vec::new(),
             incomplete: Vec::new(),
         };
@@ -229,6 +263,8 @@ impl<S: Sink> Reconciler<S> {
                 found.present.push(real);
             }
         }
+        // The roots are resolved, so the paths under them are already as sources name them.
+        found.sources = found.files.keys().map(|p| escaped(p)).collect();
         (found, back)
     }
 
@@ -238,26 +274,27 @@ impl<S: Sink> Reconciler<S> {
     }
 
     /// At start-up: a stored survey whose file still has the same content, a file retired by
-    /// hand whose content has not changed, and a failure whose file has not changed need
-    /// nothing; everything else is reconciled by the first pass. Returns the folders there.
+    /// hand whose content has not changed, and a failure whose file still holds the bytes
+    /// that failed need nothing; everything else (a damaged survey's file among them) is
+    /// reconciled by the first pass. Returns the folders there.
     pub fn startup(&mut self) -> Vec<PathBuf> {
         let catalog = self.sink.catalog();
         let (found, _) = self.discover(&catalog);
         for (p, stamp) in &found.files {
             let source = source_name(p);
-            let content = || file_content_id(p, None).ok();
             let served = catalog.active_from(&source).map(|r| r.content_id.clone());
             let pinned = catalog.pins.get(&source).cloned();
             let failed = catalog
                 .failures
                 .iter()
-                .any(|f| f.source == source && Some((f.size, f.mtime_unix)) == *stamp);
-            if failed
-                || ((served.is_some() || pinned.is_some()) && {
-                    let c = content();
-                    c.is_some() && (c == served || c == pinned)
-                })
-            {
+                .find(|f| f.source == source)
+                .map(|f| f.content_id.clone());
+            let known = [served, pinned, failed]
+                .into_iter()
+                .flatten()
+                .filter(|c| !c.is_empty())
+                .collect::<Vec<_>>();
+            if !known.is_empty() && file_content_id(p, None).is_ok_and(|c| known.contains(&c)) {
                 self.done.insert(source, *stamp);
             }
         }
@@ -325,10 +362,7 @@ impl<S: Sink> Reconciler<S> {
 
     /// Ingests files on up to [`Sink::parallel`] threads; the results in the files' order.
     #[allow(clippy::type_complexity)]
-    fn ingest_all(
-        &self,
-        ready: &[(PathBuf, String, Option<(u64, u64)>)],
-    ) -> Vec<Result<Ingested, EngineError>> {
+    fn ingest_all(&self, ready: &[(PathBuf, String, Stamp)]) -> Vec<Result<Ingested, EngineError>> {
         let workers = self.sink.parallel().clamp(1, ready.len().max(1));
         let next = std::sync::atomic::AtomicUsize::new(0);
         let results: Vec<std::sync::Mutex<Option<Result<Ingested, EngineError>>>> =
@@ -370,8 +404,8 @@ impl<S: Sink> Reconciler<S> {
             }
             // A copy of the same content elsewhere in the inbox was "unchanged" when it
             // arrived; it must now bring the survey back, so look at it again.
-            let size = self.done.get(&source).copied().flatten().map(|s| s.0);
-            self.done.retain(|_, st| st.map(|s| s.0) != size);
+            let size = self.done.get(&source).copied().flatten().map(|s| s.size);
+            self.done.retain(|_, st| st.map(|s| s.size) != size);
             self.done.remove(&source);
         }
     }
@@ -521,7 +555,8 @@ mod tests {
     #[test]
     fn a_file_is_gone_only_from_a_folder_that_is_there_and_was_listed_whole() {
         let found = Discovered {
-            files: [(PathBuf::from("/in/a.tif"), Some((1, 1)))].into(),
+            files: [(PathBuf::from("/in/a.tif"), Some(FileStamp::default()))].into(),
+            sources: ["/in/a.tif".to_string()].into(),
             present: vec![PathBuf::from("/in")],
             incomplete: vec![PathBuf::from("/in/stale")],
         };

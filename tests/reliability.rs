@@ -352,3 +352,161 @@ fn an_inbox_folder_that_goes_away_retires_nothing() {
     rec.pass();
     assert!(active(&e).is_empty());
 }
+
+/// An ESRI grid of 40² samples in UTM zone 31 at `base` metres, every height written with
+/// the same number of characters: grids of different bases are files of the same size.
+fn fixed_width_grid(base: f64) -> Vec<u8> {
+    let mut s =
+        String::from("ncols 40\nnrows 40\nxllcorner 650000\nyllcorner 4900000\ncellsize 30\n");
+    for r in 0..40 {
+        let row: Vec<String> = (0..40)
+            .map(|c| format!("{:07.1}", base + (r * 3 + c * 2) as f64 * 0.5))
+            .collect();
+        s.push_str(&row.join(" "));
+        s.push('\n');
+    }
+    s.into_bytes()
+}
+
+/// Writes `bytes` over the file at `p` in place (same inode), then puts its mtime back to
+/// `mtime`, as `cp -p`, `rsync -a` and tar do.
+fn rewrite_keeping_mtime(p: &Path, bytes: &[u8], mtime: std::time::SystemTime) {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new().write(true).open(p).unwrap();
+    f.write_all(bytes).unwrap();
+    f.set_modified(mtime).unwrap();
+}
+
+fn height_at_centre(e: &Engine) -> f64 {
+    let roi = Aabb::new(650_000.0, 4_900_000.0, 651_200.0, 4_901_200.0);
+    let t = e
+        .tile(&Cut::Uniform { roi, error: 0.0 }, 1, 1, Backend::Cpu)
+        .unwrap();
+    t.0.heights[0] as f64
+}
+
+#[test]
+fn a_file_rewritten_with_its_size_and_mtime_kept_is_seen_in_place_and_by_rename() {
+    let s = Setup::new();
+    let prj = r#"PROJCS["WGS 84 / UTM zone 31N",AUTHORITY["EPSG","32631"]]"#;
+    let a = s.at("inbox/a.asc");
+    std::fs::write(&a, fixed_width_grid(1000.0)).unwrap();
+    std::fs::write(a.with_extension("prj"), prj).unwrap();
+    let mtime = std::fs::metadata(&a).unwrap().modified().unwrap();
+    let e = s.engine();
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert_eq!(active(&e).len(), 1);
+    let before = height_at_centre(&e);
+    assert!((before - 1000.0).abs() < 100.0, "{before}");
+
+    // In place: same size, same mtime, new heights.
+    let len = std::fs::metadata(&a).unwrap().len();
+    rewrite_keeping_mtime(&a, &fixed_width_grid(1050.0), mtime);
+    assert_eq!(std::fs::metadata(&a).unwrap().len(), len);
+    assert_eq!(std::fs::metadata(&a).unwrap().modified().unwrap(), mtime);
+    rec.pass();
+    let after = height_at_centre(&e);
+    assert!((after - before - 50.0).abs() < 1e-3, "{before} → {after}");
+    assert_eq!(active(&e).len(), 1, "replaced, not added");
+
+    // By rename: a new file of the same size and mtime moved over the old one.
+    let staged = s.at("outside/a.asc");
+    std::fs::write(&staged, fixed_width_grid(1100.0)).unwrap();
+    std::fs::File::options()
+        .write(true)
+        .open(&staged)
+        .unwrap()
+        .set_modified(mtime)
+        .unwrap();
+    std::fs::rename(&staged, &a).unwrap();
+    rec.pass();
+    let renamed = height_at_centre(&e);
+    assert!(
+        (renamed - before - 100.0).abs() < 1e-3,
+        "{before} → {renamed}"
+    );
+
+    // While the daemon is down, the same again: the restart sees it too.
+    drop(rec);
+    drop(e);
+    rewrite_keeping_mtime(&a, &fixed_width_grid(1150.0), mtime);
+    let e = s.engine();
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert!((height_at_centre(&e) - before - 150.0).abs() < 1e-3);
+
+    // A pass with nothing changed ingests nothing: the unchanged file keeps its survey.
+    let id = e.catalog().active().next().unwrap().id;
+    rec.pass();
+    assert_eq!(e.catalog().active().next().unwrap().id, id);
+}
+
+#[test]
+fn a_failed_file_rewritten_with_its_size_and_mtime_kept_is_tried_again() {
+    let s = Setup::new();
+    let prj = r#"PROJCS["WGS 84 / UTM zone 31N",AUTHORITY["EPSG","32631"]]"#;
+    let a = s.at("inbox/a.asc");
+    let good = fixed_width_grid(1000.0);
+    // As long as the good grid, but heights no terrain has.
+    let bad = fixed_width_grid(99000.0);
+    let bad = &bad[..good.len()];
+    std::fs::write(&a, bad).unwrap();
+    std::fs::write(a.with_extension("prj"), prj).unwrap();
+    let mtime = std::fs::metadata(&a).unwrap().modified().unwrap();
+    let e = s.engine();
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert!(active(&e).is_empty());
+    assert_eq!(e.catalog().failures.len(), 1);
+    assert!(!e.catalog().failures[0].content_id.is_empty());
+    // Down, the file is fixed with its size and mtime kept; the restart tries it again.
+    drop(rec);
+    drop(e);
+    rewrite_keeping_mtime(&a, &good, mtime);
+    let e = s.engine();
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert_eq!(active(&e).len(), 1, "{:?}", e.catalog().failures);
+    assert!(e.catalog().failures.is_empty());
+    // And while it runs: another file fails, and is fixed in place the same way.
+    let b = s.at("inbox/b.asc");
+    std::fs::write(&b, bad).unwrap();
+    std::fs::write(b.with_extension("prj"), prj).unwrap();
+    let mtime = std::fs::metadata(&b).unwrap().modified().unwrap();
+    rec.pass();
+    assert_eq!(active(&e).len(), 1);
+    assert_eq!(e.catalog().failures.len(), 1);
+    let other = fixed_width_grid(2000.0);
+    rewrite_keeping_mtime(&b, &other[..good.len()], mtime);
+    rec.pass();
+    assert_eq!(active(&e).len(), 2, "{:?}", e.catalog().failures);
+}
+
+#[test]
+fn a_name_that_is_not_utf8_is_recorded_as_failed_under_an_escaped_name() {
+    use std::os::unix::ffi::OsStrExt;
+    let s = Setup::new();
+    let name = std::ffi::OsStr::from_bytes(b"caf\xe9.tif");
+    let p = s.at("inbox").join(name);
+    std::fs::copy(crop(COP), &p).unwrap();
+    let e = s.engine();
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    let failures = e.catalog().failures.clone();
+    assert_eq!(failures.len(), 1, "{failures:?}");
+    assert!(failures[0].source.ends_with("caf\\xe9.tif"), "{failures:?}");
+    assert!(
+        failures[0].error.contains("not valid UTF-8"),
+        "{failures:?}"
+    );
+    // Recorded once: later passes leave it, and nothing is retired or added.
+    rec.pass();
+    rec.pass();
+    assert_eq!(e.catalog().failures.len(), 1);
+    assert!(active(&e).is_empty());
+    // Renamed, it is ingested.
+    std::fs::rename(&p, s.at("inbox/cafe.tif")).unwrap();
+    rec.pass();
+    assert_eq!(active(&e).len(), 1);
+}

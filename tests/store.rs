@@ -562,6 +562,7 @@ fn failures_are_recorded_listed_and_cleared() {
         error: "not a GeoTIFF".into(),
         size: 1234,
         mtime_unix: 1_700_000_000,
+        content_id: String::new(),
         at_unix: 1_700_000_100,
     };
     {
@@ -595,6 +596,7 @@ fn failure_records_are_one_a_path_and_bounded_and_can_be_forgotten() {
         error: "not a GeoTIFF".into(),
         size: 1,
         mtime_unix: 1,
+        content_id: String::new(),
         at_unix,
     };
     for i in 0..50 {
@@ -686,6 +688,7 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
         error: "bad".into(),
         size: 1,
         mtime_unix: 1,
+        content_id: String::new(),
         at_unix: 1,
     };
     assert!(matches!(
@@ -829,6 +832,19 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
     ) = restore::compact(store, &live).unwrap();
     assert_eq!((rep.surveys_purged, rep.keys_removed), (0, 0));
     assert_same(&terrain, &t, &roi);
+    // With nothing to remove, compaction never grows the store, however often it runs.
+    let mut store = _store;
+    for round in 0..3 {
+        let (opened, rep) = restore::compact(store, &live).unwrap();
+        assert!(
+            rep.bytes_after <= rep.bytes_before,
+            "round {round}: {} → {} bytes, {rep:?}",
+            rep.bytes_before,
+            rep.bytes_after
+        );
+        assert_same(&opened.terrain, &t, &roi);
+        store = opened.store;
+    }
 }
 
 fn copy_dir(from: &Path, to: &Path) {
@@ -1218,4 +1234,242 @@ fn a_survey_of_many_chunks_reads_back_as_in_memory_inside_chunks_and_across_thei
         };
         assert_eq!(bits(&terrain), bits(&t), "e = {e}");
     }
+}
+
+/// Opens a store that may hold damage: warnings are expected, not a failure.
+fn open_damaged(dir: &Path) -> Opened {
+    restore::open(dir, LAYOUT, IndexConfig::default(), StoreOptions::default())
+        .expect("a damaged store still opens")
+}
+
+/// The store of `a` then `b`, and where `b`'s bytes lie in the pack: after `a`'s, to the end.
+fn store_of_two(dir: &Path) -> (Arc<Survey>, Arc<Survey>, Terrain, std::ops::Range<u64>) {
+    let (a, b) = pair();
+    let mut t = Terrain::new(IndexConfig::default());
+    let Opened { store, .. } = open(dir);
+    ingest(&store, &mut t, &a, "a");
+    let a_end = store.raw_pack().len();
+    ingest(&store, &mut t, &b, "b");
+    let end = store.raw_pack().len();
+    (a, b, t, a_end..end)
+}
+
+/// What a store whose survey `b` is damaged must be: `a` served as in a store that never had
+/// `b`, `b` listed as damaged, the stored index the one without it, and nothing else wrong.
+fn assert_quarantined(o: &Opened, a: &Arc<Survey>, b: &Arc<Survey>, at: &str) {
+    let damaged = o.store.damaged();
+    assert_eq!(
+        damaged.keys().copied().collect::<Vec<_>>(),
+        vec![b.id],
+        "{at}: {:?}",
+        o.warnings
+    );
+    assert!(
+        o.warnings
+            .iter()
+            .any(|w| w.contains(&b.id.to_string()) && w.contains("damaged")),
+        "{at}: {:?}",
+        o.warnings
+    );
+    let roi = bounds_of(&[a.clone(), b.clone()]);
+    assert_same(&o.terrain, &terrain_of(std::slice::from_ref(a)), &roi);
+    let catalog = o.store.catalog().unwrap();
+    assert_eq!(
+        catalog.active().map(|r| r.id).collect::<Vec<_>>(),
+        vec![a.id],
+        "{at}"
+    );
+    let r = restore::verify(&o.store).unwrap();
+    assert_eq!(r.damaged, 1, "{at}");
+    // The survey's own damage is listed; the index of the rest is checked and sound.
+    assert!(
+        r.problems.iter().any(|p| p.contains("damaged")),
+        "{at}: {:?}",
+        r.problems
+    );
+    assert!(
+        r.problems.iter().all(|p| p.contains(&b.id.to_string())),
+        "{at}: {:?}",
+        r.problems
+    );
+}
+
+#[test]
+fn a_damaged_survey_is_left_out_at_open_and_every_other_one_is_served() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pristine = store_dir(&tmp);
+    let (a, b, both, range) = store_of_two(&pristine);
+    let roi = bounds_of(&[a.clone(), b.clone()]);
+    let len = range.end - range.start;
+    // The first byte (the patch list's header), bytes through the chunks, the last byte.
+    let mut offsets: Vec<u64> = (0..12).map(|i| range.start + i * len / 12).collect();
+    offsets.extend([range.start + 1, range.start + 7, range.end - 1]);
+    for (n, at) in offsets.into_iter().enumerate() {
+        let dir = tmp.path().join(format!("flip{n}"));
+        copy_dir(&pristine, &dir);
+        let pack = dir.join(patchwork::store::pack::PACK_FILE);
+        let mut bytes = std::fs::read(&pack).unwrap();
+        bytes[at as usize] ^= 0x5a;
+        std::fs::write(&pack, &bytes).unwrap();
+        let what = format!("byte {at} flipped");
+        {
+            let o = open_damaged(&dir);
+            assert_quarantined(&o, &a, &b, &what);
+        }
+        // The next open restores the index it stored without the survey, as it was.
+        let o = open_damaged(&dir);
+        assert_quarantined(&o, &a, &b, &what);
+        let Opened {
+            store, mut terrain, ..
+        } = o;
+        if n % 2 == 0 {
+            // Repair drops the survey for good; its file can then come back as new.
+            let dropped = store.repair().unwrap();
+            assert_eq!(dropped.len(), 1);
+            assert_eq!((dropped[0].id, dropped[0].source.as_str()), (b.id, "b"));
+            assert!(store.damaged().is_empty());
+            assert_verified(&store);
+            ingest(&store, &mut terrain, &b, "b");
+        } else {
+            // Ingesting its file again heals it in one commit that replaces the damaged one.
+            let mut next = terrain.clone();
+            let change = next.insert(b.clone());
+            let rec =
+                SurveyRecord::new(&b, "b", "", AccuracySource::Flag, IngestTimings::default());
+            let packed = store.pack_survey(&b).unwrap();
+            store
+                .commit_replace(
+                    b.id,
+                    &[],
+                    &Default::default(),
+                    &b,
+                    &rec,
+                    &change,
+                    &next.edges_of(&[&change]),
+                    &next.pairs_of(b.id),
+                    packed,
+                )
+                .unwrap();
+            terrain = next;
+            assert!(store.damaged().is_empty());
+        }
+        assert_same(&terrain, &both, &roi);
+        assert_verified(&store);
+        drop(store);
+        let o = open(&dir);
+        assert_same(&o.terrain, &both, &roi);
+        assert_verified(&o.store);
+    }
+}
+
+#[test]
+fn a_truncated_pack_loses_only_the_surveys_whose_bytes_are_gone() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pristine = store_dir(&tmp);
+    let (a, b, _, range) = store_of_two(&pristine);
+    let mid = range.start + (range.end - range.start) / 2;
+    for (n, cut) in [range.start, range.start + 3, mid, range.end - 1]
+        .into_iter()
+        .enumerate()
+    {
+        let dir = tmp.path().join(format!("cut{n}"));
+        copy_dir(&pristine, &dir);
+        let pack = dir.join(patchwork::store::pack::PACK_FILE);
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&pack)
+            .unwrap()
+            .set_len(cut)
+            .unwrap();
+        let o = open_damaged(&dir);
+        assert!(
+            o.warnings
+                .iter()
+                .any(|w| w.contains("fewer than were committed")),
+            "{:?}",
+            o.warnings
+        );
+        assert_quarantined(&o, &a, &b, &format!("cut at {cut}"));
+        // New bytes go past the hole: no location of the lost survey ever holds them.
+        let Opened {
+            store, mut terrain, ..
+        } = o;
+        assert!(store.raw_pack().len() >= range.end);
+        store.repair().unwrap();
+        ingest(&store, &mut terrain, &b, "b");
+        assert_verified(&store);
+    }
+    // With everything gone, both surveys are damaged and an empty terrain is served.
+    let dir = tmp.path().join("empty");
+    copy_dir(&pristine, &dir);
+    std::fs::write(dir.join(patchwork::store::pack::PACK_FILE), b"").unwrap();
+    let o = open_damaged(&dir);
+    assert_eq!(o.store.damaged().len(), 2);
+    assert_eq!(o.terrain.surveys().count(), 0);
+}
+
+#[test]
+fn a_record_that_does_not_decode_is_damage_too() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, b, _, _) = store_of_two(&dir);
+    {
+        let o = open(&dir);
+        o.store
+            .raw()
+            .insert(format!("s/{}", b.id).as_bytes(), &b"\xff\xff\xff"[..])
+            .unwrap();
+        o.store.raw().flush().unwrap();
+    }
+    let o = open_damaged(&dir);
+    assert_eq!(
+        o.store.damaged().keys().copied().collect::<Vec<_>>(),
+        vec![b.id]
+    );
+    let roi = bounds_of(&[a.clone(), b.clone()]);
+    assert_same(&o.terrain, &terrain_of(std::slice::from_ref(&a)), &roi);
+    o.store.repair().unwrap();
+    assert_verified(&o.store);
+}
+
+#[test]
+fn a_version_5_store_keeps_its_failures_with_no_content_known() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (a, _) = pair();
+    let mut t = Terrain::new(IndexConfig::default());
+    {
+        let Opened { store, .. } = open(&dir);
+        ingest(&store, &mut t, &a, "a");
+        // A failure as version 5 wrote it: source, error, size, mtime, time recorded.
+        let old = (
+            "/in/bad.tif".to_string(),
+            "not a GeoTIFF".to_string(),
+            1234u64,
+            1_700_000_000u64,
+            1_700_000_100u64,
+        );
+        let v = bincode::serde::encode_to_vec(&old, bincode::config::standard()).unwrap();
+        store.raw().insert("f//in/bad.tif".as_bytes(), v).unwrap();
+        store
+            .raw()
+            .insert("meta/schema".as_bytes(), &5u32.to_le_bytes()[..])
+            .unwrap();
+        store.raw().flush().unwrap();
+    }
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_eq!(store.migrations_run(), &[(5, SCHEMA_VERSION)]);
+    assert_eq!(
+        store.failures().unwrap(),
+        vec![FailedRecord {
+            source: "/in/bad.tif".into(),
+            error: "not a GeoTIFF".into(),
+            size: 1234,
+            mtime_unix: 1_700_000_000,
+            at_unix: 1_700_000_100,
+            content_id: String::new(),
+        }]
+    );
+    assert_same(&terrain, &t, &bounds_of(std::slice::from_ref(&a)));
+    assert_verified(&store);
 }

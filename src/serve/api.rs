@@ -337,6 +337,20 @@ pub fn verify(engine: &Engine) -> Result<pb::VerifyReply, EngineError> {
     })
 }
 
+pub fn repair(engine: &Engine) -> Result<pb::RepairReply, EngineError> {
+    let dropped = engine.repair()?;
+    Ok(pb::RepairReply {
+        dropped: dropped
+            .into_iter()
+            .map(|d| pb::DroppedSurvey {
+                id: d.id.to_string(),
+                source: d.source,
+                reason: d.reason,
+            })
+            .collect(),
+    })
+}
+
 pub fn compact(engine: &Engine) -> Result<pb::CompactReply, EngineError> {
     let c = engine.compact()?;
     Ok(pb::CompactReply {

@@ -492,11 +492,15 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
             pb::SurveyInfo {
                 id: r.id.to_string(),
                 source: r.source.clone(),
-                status: match r.status {
-                    Status::Active => "active".into(),
-                    Status::Retired => "retired".into(),
+                status: match (r.status, l.damaged.get(&r.id)) {
+                    (Status::Active, Some(_)) => "damaged".into(),
+                    (Status::Active, None) => "active".into(),
+                    (Status::Retired, _) => "retired".into(),
                 },
-                error: String::new(),
+                error: l
+                    .damaged
+                    .get(&r.id)
+                    .map_or(String::new(), |d| d.reason.clone()),
                 accuracy_m: accuracy,
                 accuracy_median_m: median,
                 accuracy_p90_m: p90,
@@ -519,6 +523,19 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
             }
         })
         .collect();
+    // A survey whose record itself is unreadable has nothing to list but its id.
+    out.extend(
+        l.damaged
+            .values()
+            .filter(|d| !l.records.iter().any(|r| r.id == d.id))
+            .map(|d| pb::SurveyInfo {
+                id: d.id.to_string(),
+                source: d.source.clone(),
+                status: "damaged".into(),
+                error: d.reason.clone(),
+                ..Default::default()
+            }),
+    );
     out.extend(l.failures.iter().map(|f| pb::SurveyInfo {
         id: String::new(),
         source: f.source.clone(),
@@ -535,6 +552,7 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         surveys: s.surveys,
         retired: s.retired,
         failed: s.failed,
+        damaged: s.damaged,
         patches: s.patches,
         active_boxes: s.active_boxes,
         samples: s.samples,

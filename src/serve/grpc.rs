@@ -376,6 +376,13 @@ impl admin_server::Admin for Service {
         self.run_long(api::verify).await.map(Response::new)
     }
 
+    async fn repair(
+        &self,
+        _: Request<pb::RepairRequest>,
+    ) -> Result<Response<pb::RepairReply>, Status> {
+        self.run_long(api::repair).await.map(Response::new)
+    }
+
     async fn compact(
         &self,
         _: Request<pb::CompactRequest>,

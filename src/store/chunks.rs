@@ -80,6 +80,21 @@ fn checksum(payload: &[u8]) -> [u8; 4] {
     h.as_bytes()[..4].try_into().expect("4 bytes")
 }
 
+/// Whether a chunk's or a sealed record's bytes still match the checksum in their header: what
+/// an open checks of every chunk without decoding one.
+pub fn intact(bytes: &[u8]) -> Result<(), String> {
+    if bytes.len() < HEADER {
+        return Err(format!(
+            "{} bytes, shorter than a chunk header",
+            bytes.len()
+        ));
+    }
+    if checksum(&bytes[HEADER..]) != bytes[1..HEADER] {
+        return Err("the checksum does not match: the chunk is damaged".into());
+    }
+    Ok(())
+}
+
 fn with_header(codec: u8, payload: Vec<u8>) -> Vec<u8> {
     let mut out = Vec::with_capacity(HEADER + payload.len());
     out.push(codec);

@@ -21,6 +21,9 @@ pub const PACK_LEN: &[u8] = b"meta/pack_len";
 /// Present when the index must be derived again from the surveys on the next open (a
 /// migration that changed what the index keeps writes it).
 pub const REBUILD: &[u8] = b"meta/rebuild";
+/// The surveys the stored index was derived without, because their records or chunks are
+/// damaged (bincode `Vec<SurveyId>`, in id order); absent when there are none.
+pub const QUARANTINED: &[u8] = b"meta/quarantined";
 
 pub const META_PREFIX: &[u8] = b"meta/";
 pub const SURVEY_PREFIX: &[u8] = b"s/";

@@ -24,6 +24,15 @@
 //! | `f/<source path>` | [`FailedRecord`] (bincode); at most one a path, and a bounded number |
 //! | `r/<source path>` | hex content id of a file whose survey was retired by hand while the file stayed in the inbox |
 //! | `meta/rebuild` | present when the next open must derive the index again from the surveys |
+//! | `meta/quarantined` | the ids of the damaged surveys the stored index was derived without (bincode `Vec<SurveyId>`); absent when none are |
+//!
+//! A survey whose record, patch list, accuracies or chunks do not read back as written (a
+//! checksum that does not match, bytes past the end of a truncated pack) is *damaged*: every
+//! open checks them, leaves a damaged survey out of the terrain and serves the rest. The
+//! terrain without it is what the index would be had it never been inserted, so the index is
+//! derived again from the other surveys, once; `meta/quarantined` records which surveys the
+//! stored index leaves out, so that the next open restores it without deriving it again.
+//! Ingesting the survey's file again heals it; [`Store::repair`] drops it for good.
 //!
 //! Storing the box states and the edge patches is what lets `open` rebuild the index without
 //! running the cutter or reading a sample: the boxes follow from the patches and the level
@@ -69,7 +78,7 @@ use fs2::FileExt;
 use rayon::prelude::*;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, RwLock};
@@ -334,6 +343,17 @@ impl SurveyRecord {
     }
 }
 
+/// A survey whose records or chunks cannot be read back as they were written: out of the
+/// terrain until its file is ingested again or [`Store::repair`] drops it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Damaged {
+    pub id: SurveyId,
+    /// Its file; empty when its record itself is what is damaged.
+    pub source: String,
+    /// What was found wrong, first problem only.
+    pub reason: String,
+}
+
 /// Everything the store holds besides samples and patches: what listings, stats and the inbox
 /// read. The engine keeps it beside the terrain, so that they never wait on the disk.
 #[derive(Clone, Debug, Default)]
@@ -344,6 +364,8 @@ pub struct Catalog {
     pub failures: Vec<FailedRecord>,
     /// Sources retired by hand, with the content that stays retired (see [`Store::pins`]).
     pub pins: HashMap<String, String>,
+    /// Active surveys left out of the terrain because they are damaged, by id.
+    pub damaged: BTreeMap<SurveyId, Damaged>,
     pub crs: Option<Crs>,
     pub vertical: Option<VerticalCrs>,
     pub layout: PatchLayout,
@@ -352,18 +374,21 @@ pub struct Catalog {
 
 impl Catalog {
     /// The record of the active survey read from `source`, if any.
+    /// Not a damaged one: its file is to be ingested again.
     pub fn active_from(&self, source: &str) -> Option<&SurveyRecord> {
-        self.records
-            .iter()
-            .find(|r| r.status == Status::Active && r.source == source)
+        self.active().find(|r| r.source == source)
     }
 
+    /// The active surveys the terrain holds: damaged ones are not among them.
     pub fn active(&self) -> impl Iterator<Item = &SurveyRecord> {
-        self.records.iter().filter(|r| r.status == Status::Active)
+        self.records
+            .iter()
+            .filter(|r| r.status == Status::Active && !self.damaged.contains_key(&r.id))
     }
 }
 
-/// A file that could not be ingested. Size and mtime let a scanner skip it until it changes.
+/// A file that could not be ingested. The inbox leaves it alone until its content changes;
+/// size and mtime are what it had, for listings.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FailedRecord {
     pub source: String,
@@ -371,6 +396,9 @@ pub struct FailedRecord {
     pub size: u64,
     pub mtime_unix: u64,
     pub at_unix: u64,
+    /// Hex blake3 of the bytes that failed; empty when they could not be read (or the
+    /// failure was recorded before the store kept it), which matches no file.
+    pub content_id: String,
 }
 
 pub fn now_unix() -> u64 {
@@ -645,6 +673,8 @@ pub struct Store {
     /// and the batch consistent.
     writer: Mutex<()>,
     migrated: Vec<(u32, u32)>,
+    /// The damaged surveys the last open found, less those healed or dropped since.
+    damaged: RwLock<BTreeMap<SurveyId, Damaged>>,
     _lock: File,
 }
 
@@ -657,8 +687,11 @@ pub struct Contents {
     pub pairs: Vec<Arc<PairEvidence>>,
     pub edges: Vec<Arc<EdgePatch>>,
     pub tops: HashMap<PatchId, BoxState>,
-    /// The index must be derived again from the surveys (a migration asked for it).
+    /// The index must be derived again from the surveys (a migration asked for it, or a
+    /// survey is damaged that the stored index holds).
     pub rebuild: bool,
+    /// Active surveys left out because they are damaged; not among `surveys`.
+    pub damaged: Vec<Damaged>,
 }
 
 /// A store just opened, with what it holds for the index.
@@ -778,10 +811,32 @@ impl Store {
             crs: RwLock::new(crs),
             writer: Mutex::new(()),
             migrated,
+            damaged: RwLock::new(BTreeMap::new()),
             _lock: lock,
         };
-        let contents = store.load()?;
         let mut warnings = Vec::new();
+        if store.pack.lost() > 0 {
+            warnings.push(format!(
+                "{} holds {} bytes fewer than were committed: the surveys whose bytes are gone \
+                 are damaged",
+                store.pack.path().display(),
+                store.pack.lost()
+            ));
+        }
+        let contents = store.load()?;
+        for d in contents.damaged.iter() {
+            warnings.push(format!(
+                "survey {} ({}) is damaged and left out: {}; ingest its file again or run \
+                 `patchwork repair`",
+                d.id,
+                if d.source.is_empty() {
+                    "its record is unreadable"
+                } else {
+                    &d.source
+                },
+                d.reason
+            ));
+        }
         if let Err(e) = store.guard.restore(&store.dir) {
             warnings.push(format!("could not make the reserve file: {e}"));
         }
@@ -839,22 +894,52 @@ impl Store {
     }
 
     /// What the index needs of the active surveys, the edge patches and the box states; no
-    /// sample is read.
+    /// sample is decoded. Every active survey's records are decoded and its chunks checked
+    /// against their checksums: a damaged one is left out (see [`Damaged`]), and the index is
+    /// derived again without it unless the stored one already leaves out just these.
     fn load(&self) -> Result<Contents, StoreError> {
-        let active = self.active_records()?;
-        let surveys: Vec<Arc<SurveyMeta>> = active
+        let mut damaged: BTreeMap<SurveyId, Damaged> = self
+            .unreadable_records()?
+            .into_iter()
+            .map(|d| (d.id, d))
+            .collect();
+        let active = self.records_as_stored()?;
+        let checked: Vec<(&SurveyRecord, Result<SurveyMeta, String>)> = active
             .par_iter()
-            .map(|r| self.load_meta(r).map(Arc::new))
-            .collect::<Result<_, _>>()?;
-        // A store marked for a rebuild may hold tops of an older format: they are replaced,
-        // never read.
-        if self.db.get(keys::REBUILD)?.is_some() {
+            .filter(|r| r.status == Status::Active)
+            .map(|r| Ok((r, self.load_checked(r)?)))
+            .collect::<Result<_, StoreError>>()?;
+        let mut surveys = Vec::with_capacity(checked.len());
+        for (r, meta) in checked {
+            match meta {
+                Ok(m) => surveys.push(Arc::new(m)),
+                Err(reason) => {
+                    damaged.insert(
+                        r.id,
+                        Damaged {
+                            id: r.id,
+                            source: r.source.clone(),
+                            reason,
+                        },
+                    );
+                }
+            }
+        }
+        let left_out = self.quarantined()?;
+        let rebuild = self.db.get(keys::REBUILD)?.is_some()
+            || !damaged.keys().copied().eq(left_out.iter().copied());
+        let found: Vec<Damaged> = damaged.values().cloned().collect();
+        *self.damaged.write().unwrap_or_else(|e| e.into_inner()) = damaged;
+        // A store to be rebuilt may hold tops of an older format, or tops of an index with a
+        // survey now damaged: they are replaced, never read.
+        if rebuild {
             return Ok(Contents {
                 surveys,
                 pairs: Vec::new(),
                 edges: Vec::new(),
                 tops: HashMap::new(),
                 rebuild: true,
+                damaged: found,
             });
         }
         Ok(Contents {
@@ -863,12 +948,147 @@ impl Store {
             edges: self.edges()?,
             tops: self.states()?,
             rebuild: false,
+            damaged: found,
         })
+    }
+
+    /// A survey's meta, once its records decode and every chunk it should have is there and
+    /// matches its checksum; otherwise what is wrong. Only an error of the database itself
+    /// is an `Err`.
+    fn load_checked(&self, r: &SurveyRecord) -> Result<Result<SurveyMeta, String>, StoreError> {
+        let meta = match self.load_meta(r) {
+            Ok(m) => m,
+            Err(e @ (StoreError::Corrupt(_) | StoreError::Decode(_))) => {
+                return Ok(Err(e.to_string()))
+            }
+            Err(e) => return Err(e),
+        };
+        let mut locs: HashMap<(usize, usize), sled::IVec> = HashMap::new();
+        for kv in self.db.scan_prefix(keys::chunks_of(r.id)) {
+            let (k, v) = kv?;
+            if let Some((_, level, n)) = keys::parse_chunk(&k) {
+                locs.insert((level, n), v);
+            }
+        }
+        for (level, h) in r.levels.iter().enumerate() {
+            let [nx, ny] = chunks::chunk_counts(&h.shape());
+            for k in 0..nx * ny {
+                let what = || format!("chunk {k} of level {level}");
+                let Some(v) = locs.get(&(level, k)) else {
+                    return Ok(Err(format!("{} is missing", what())));
+                };
+                let Some(loc) = pack::Loc::from_bytes(v) else {
+                    return Ok(Err(format!(
+                        "{}: its location is {} bytes",
+                        what(),
+                        v.len()
+                    )));
+                };
+                let bytes = match self.pack.read(loc) {
+                    Ok(b) => b,
+                    Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => {
+                        return Ok(Err(format!(
+                            "{}: its bytes ({}..{}) are past the end of the pack",
+                            what(),
+                            loc.offset,
+                            loc.end()
+                        )))
+                    }
+                    Err(e) => return Err(e.into()),
+                };
+                if let Err(e) = chunks::intact(&bytes) {
+                    return Ok(Err(format!("{}: {e}", what())));
+                }
+            }
+        }
+        Ok(Ok(meta))
+    }
+
+    /// The ids the stored index was derived without.
+    fn quarantined(&self) -> Result<Vec<SurveyId>, StoreError> {
+        match self.db.get(keys::QUARANTINED)? {
+            None => Ok(Vec::new()),
+            Some(v) => decode(&v, "meta/quarantined"),
+        }
+    }
+
+    /// The damaged surveys, as the last open found them less those healed or dropped since.
+    pub fn damaged(&self) -> BTreeMap<SurveyId, Damaged> {
+        self.damaged
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    fn is_damaged(&self, id: SurveyId) -> bool {
+        self.damaged
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains_key(&id)
+    }
+
+    /// Writes `meta/quarantined` as it stands once `healed` are no longer damaged; nothing
+    /// when none of them was. Call [`Store::healed`] once the batch is applied.
+    fn stage_healed(&self, batch: &mut Writes, healed: &[SurveyId]) -> Result<(), StoreError> {
+        let damaged = self.damaged.read().unwrap_or_else(|e| e.into_inner());
+        if !healed.iter().any(|id| damaged.contains_key(id)) {
+            return Ok(());
+        }
+        let left: Vec<SurveyId> = damaged
+            .keys()
+            .copied()
+            .filter(|id| !healed.contains(id))
+            .collect();
+        if left.is_empty() {
+            batch.remove(keys::QUARANTINED);
+        } else {
+            batch.insert(keys::QUARANTINED, encode(&left)?);
+        }
+        Ok(())
+    }
+
+    fn healed(&self, ids: &[SurveyId]) {
+        let mut damaged = self.damaged.write().unwrap_or_else(|e| e.into_inner());
+        for id in ids {
+            damaged.remove(id);
+        }
+    }
+
+    /// Drops every damaged survey for good, in one batch: its record, patches, accuracies,
+    /// chunk locations and pairs (its bytes in the pack go at the next compaction). The index
+    /// already leaves them out. Its file, if still in the inbox, is then ingested afresh.
+    /// Returns what was dropped.
+    pub fn repair(&self) -> Result<Vec<Damaged>, StoreError> {
+        let _w = self.lock_writer();
+        let damaged: Vec<Damaged> = self.damaged().into_values().collect();
+        if damaged.is_empty() {
+            return Ok(damaged);
+        }
+        let mut batch = Writes::default();
+        for d in &damaged {
+            batch.remove(keys::survey(d.id));
+            batch.remove(keys::patches(d.id));
+            batch.remove(keys::accuracy(d.id));
+            for prefix in [keys::chunks_of(d.id), keys::overlaps_of(d.id)] {
+                for kv in self.db.scan_prefix(prefix) {
+                    let (k, _) = kv?;
+                    if let Some((_, other)) = keys::parse_overlap(&k) {
+                        batch.remove(keys::overlap(other, d.id));
+                    }
+                    batch.remove(k);
+                }
+            }
+        }
+        batch.remove(keys::QUARANTINED);
+        self.apply(batch)?;
+        let ids: Vec<SurveyId> = damaged.iter().map(|d| d.id).collect();
+        self.healed(&ids);
+        Ok(damaged)
     }
 
     fn active_records(&self) -> Result<Vec<SurveyRecord>, StoreError> {
         let mut all = self.surveys()?;
-        all.retain(|r| r.status == Status::Active);
+        all.retain(|r| r.status == Status::Active && !self.is_damaged(r.id));
         Ok(all)
     }
 
@@ -901,6 +1121,12 @@ impl Store {
         }
         stage_edges(&mut batch, edges)?;
         batch.remove(keys::REBUILD);
+        let left_out: Vec<SurveyId> = self.damaged().into_keys().collect();
+        if left_out.is_empty() {
+            batch.remove(keys::QUARANTINED);
+        } else {
+            batch.insert(keys::QUARANTINED, encode(&left_out)?);
+        }
         self.apply(batch)
     }
 
@@ -1244,7 +1470,9 @@ impl Store {
         let mut batch = Writes::default();
         let staged = self.stage_survey(&mut batch, s, rec, change, pairs, None, packed)?;
         stage_edges(&mut batch, edges)?;
+        self.stage_healed(&mut batch, &[s.id])?;
         self.apply(batch)?;
+        self.healed(&[s.id]);
         self.finish(staged, t0)
     }
 
@@ -1267,7 +1495,10 @@ impl Store {
         if pin && !rec.content_id.is_empty() {
             batch.insert(keys::pin(&rec.source), rec.content_id.as_bytes());
         }
-        self.apply(batch)
+        self.stage_healed(&mut batch, &[id])?;
+        self.apply(batch)?;
+        self.healed(&[id]);
+        Ok(())
     }
 
     /// Replaces one survey with another (a file that changed) in one batch: `retire_change`
@@ -1302,7 +1533,9 @@ impl Store {
             packed,
         )?;
         stage_edges(&mut batch, edges)?;
+        self.stage_healed(&mut batch, &[old, new.id])?;
         self.apply(batch)?;
+        self.healed(&[old, new.id]);
         self.finish(staged, t0)
     }
 
@@ -1396,6 +1629,7 @@ impl Store {
             records: self.surveys()?,
             failures: self.failures()?,
             pins: self.pins()?,
+            damaged: self.damaged(),
             crs: self.crs(),
             vertical: self.vertical_crs(),
             layout: self.layout,
@@ -1413,15 +1647,47 @@ impl Store {
         self.guard.check(&self.dir, 0)
     }
 
-    /// Every survey record, active and retired, in id order.
+    /// Every survey record, active and retired, in id order; a record that does not decode is
+    /// left out (it is among [`Store::damaged`]).
     pub fn surveys(&self) -> Result<Vec<SurveyRecord>, StoreError> {
-        self.db
-            .scan_prefix(keys::SURVEY_PREFIX)
-            .map(|kv| {
-                let (k, v) = kv?;
-                decode(&v, &format!("record {}", String::from_utf8_lossy(&k)))
-            })
-            .collect()
+        self.records_as_stored()
+    }
+
+    fn records_as_stored(&self) -> Result<Vec<SurveyRecord>, StoreError> {
+        let mut out = Vec::new();
+        for kv in self.db.scan_prefix(keys::SURVEY_PREFIX) {
+            let (k, v) = kv?;
+            let what = format!("record {}", String::from_utf8_lossy(&k));
+            match decode::<SurveyRecord>(&v, &what) {
+                Ok(r) if keys::parse_survey(&k) == Some(r.id) => out.push(r),
+                _ => {}
+            }
+        }
+        Ok(out)
+    }
+
+    /// The surveys whose records do not decode, by the id in their key.
+    fn unreadable_records(&self) -> Result<Vec<Damaged>, StoreError> {
+        let mut out = Vec::new();
+        for kv in self.db.scan_prefix(keys::SURVEY_PREFIX) {
+            let (k, v) = kv?;
+            let what = format!("record {}", String::from_utf8_lossy(&k));
+            let decoded = decode::<SurveyRecord>(&v, &what);
+            match (keys::parse_survey(&k), decoded) {
+                (Some(id), Err(e)) => out.push(Damaged {
+                    id,
+                    source: String::new(),
+                    reason: e.to_string(),
+                }),
+                (Some(id), Ok(r)) if r.id != id => out.push(Damaged {
+                    id,
+                    source: r.source,
+                    reason: format!("{what} holds the record of {}", r.id),
+                }),
+                _ => {}
+            }
+        }
+        Ok(out)
     }
 
     /// The evidence of every pair `id` is in, by the other's id.

@@ -69,11 +69,18 @@ pub struct PackFile {
     path: PathBuf,
     /// The end of the file: where the next append goes. Appends take it in turn.
     end: Mutex<u64>,
+    /// Committed bytes missing from the end of the file when it was opened.
+    lost: u64,
 }
 
 impl PackFile {
     /// Opens the pack in `dir`, made if missing, cut back to `committed` bytes: anything past
     /// that was appended by a commit that never reached the database.
+    ///
+    /// A pack shorter than `committed` has lost bytes that records point at (a truncated copy,
+    /// a damaged disk): it opens all the same, so that the surveys whose bytes are still there
+    /// are served, and appends go on at `committed`, past a hole, so that the lost locations
+    /// never hold another survey's bytes. [`PackFile::lost`] says how much is gone.
     pub fn open(dir: &Path, committed: u64) -> io::Result<PackFile> {
         let path = dir.join(PACK_FILE);
         let file = OpenOptions::new()
@@ -83,15 +90,6 @@ impl PackFile {
             .truncate(false)
             .open(&path)?;
         let len = file.metadata()?.len();
-        if len < committed {
-            return Err(io::Error::new(
-                io::ErrorKind::UnexpectedEof,
-                format!(
-                    "{} holds {len} bytes, but {committed} were committed: chunks are lost",
-                    path.display()
-                ),
-            ));
-        }
         if len > committed {
             file.set_len(committed)?;
             file.sync_all()?;
@@ -100,7 +98,13 @@ impl PackFile {
             file,
             path,
             end: Mutex::new(committed),
+            lost: committed.saturating_sub(len),
         })
+    }
+
+    /// Bytes the database says were committed that the file no longer holds.
+    pub fn lost(&self) -> u64 {
+        self.lost
     }
 
     pub fn path(&self) -> &Path {
@@ -165,8 +169,15 @@ mod tests {
         assert_eq!(std::fs::metadata(p.path()).unwrap().len(), 3);
         let locs = p.append(&[b"xy".to_vec()]).unwrap();
         assert_eq!(locs[0].offset, 3);
-        // A pack shorter than what was committed is an error, not silence.
+        // A pack shorter than what was committed opens, says how much is gone, and appends
+        // past the hole, so that no lost location is ever reused.
         drop(p);
-        assert!(PackFile::open(tmp.path(), 100).is_err());
+        let p = PackFile::open(tmp.path(), 100).unwrap();
+        assert_eq!(p.lost(), 95);
+        assert!(p.read(Loc { offset: 90, len: 4 }).is_err());
+        let locs = p.append(&[b"z".to_vec()]).unwrap();
+        assert_eq!(locs[0].offset, 100);
+        assert_eq!(p.read(locs[0]).unwrap(), b"z");
+        assert_eq!(p.read(Loc { offset: 3, len: 2 }).unwrap(), b"xy");
     }
 }

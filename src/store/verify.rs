@@ -27,6 +27,8 @@ pub struct VerifyReport {
     pub tops: usize,
     pub chunks: usize,
     pub failures: usize,
+    /// Active surveys left out of the terrain because they are damaged.
+    pub damaged: usize,
     pub keys: u64,
     /// Everything found wrong, one line each; empty for a sound store.
     pub problems: Vec<String>,
@@ -281,8 +283,36 @@ impl Store {
         // neighbours' tops and the edge patches depend on the missing one): what is wrong with
         // the surveys is reported above, and the index is checked once they are whole. After a
         // migration the index is derived on the next open; there are no states to check yet.
-        let whole =
-            (whole.len() == rep.active && self.db.get(keys::REBUILD)?.is_none()).then_some(whole);
+        // A damaged survey is out of the terrain, and the stored index was derived without it:
+        // the index is checked against the other surveys alone.
+        let damaged = self.damaged();
+        rep.damaged = damaged.len();
+        for d in damaged.values() {
+            pr.add(
+                "damaged",
+                format!(
+                    "survey {} ({}) is damaged and out of the terrain: {}; ingest its file again \
+                     or run `patchwork repair` to drop it",
+                    d.id,
+                    if d.source.is_empty() {
+                        "its record is unreadable"
+                    } else {
+                        &d.source
+                    },
+                    d.reason
+                ),
+            );
+        }
+        let left_out = self.quarantined()?;
+        let unreadable = damaged
+            .keys()
+            .filter(|id| !records.contains_key(id))
+            .count();
+        let whole = (whole.len() + damaged.len() == rep.active + unreadable
+            && whole.iter().all(|s| !damaged.contains_key(&s.id))
+            && damaged.keys().copied().eq(left_out.iter().copied())
+            && self.db.get(keys::REBUILD)?.is_none())
+        .then_some(whole);
         Ok(Checked {
             report: rep,
             problems: pr,
@@ -311,6 +341,7 @@ impl Store {
                 (l != self.layout).then(|| format!("layout {l:?} differs from the open store's"))
             }),
             keys::REBUILD => Ok(None),
+            keys::QUARANTINED => decode::<Vec<SurveyId>>(v, &what).map(|_| None),
             keys::MIPMAP => Ok(setting_problem(v, self.recipe.mipmap)),
             keys::PATCHES => Ok(setting_problem(v, self.recipe.patches)),
             keys::CONTRADICTED => Ok(setting_problem(v, self.contradicted)),
