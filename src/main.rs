@@ -597,6 +597,10 @@ async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
     patchwork::serve::auth::check_exposure(&cfg)?;
+    // Before the store opens and anything is said to be served.
+    if let (Some(cert), Some(key)) = (&cfg.tls_cert, &cfg.tls_key) {
+        patchwork::serve::tls::load(cert, key)?;
+    }
     std::fs::create_dir_all(&cfg.data_dir)?;
     let listen = cfg.listen.clone();
     let engine = Arc::new(

@@ -1473,3 +1473,84 @@ fn a_version_5_store_keeps_its_failures_with_no_content_known() {
     assert_same(&terrain, &t, &bounds_of(std::slice::from_ref(&a)));
     assert_verified(&store);
 }
+
+#[test]
+fn damaged_database_files_are_an_error_that_says_what_to_do_never_a_panic() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pristine = store_dir(&tmp);
+    let (a, _) = pair();
+    {
+        let Opened { store, .. } = open(&pristine);
+        let mut t = Terrain::new(IndexConfig::default());
+        ingest(&store, &mut t, &a, "a");
+    }
+    // sled writes a snapshot every so many operations: ask for one at once.
+    {
+        let db = sled::Config::new()
+            .path(&pristine)
+            .snapshot_after_ops(1)
+            .open()
+            .unwrap();
+        db.insert("meta/x", "1").unwrap();
+        db.remove("meta/x").unwrap();
+        db.flush().unwrap();
+    }
+    let files: Vec<String> = std::fs::read_dir(&pristine)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    // The database file cut short: sled panics inside its recovery at some lengths.
+    for (n, part) in [0.5, 0.25, 0.1, 0.75, 0.9].into_iter().enumerate() {
+        let dir = tmp.path().join(format!("cut{n}"));
+        copy_dir(&pristine, &dir);
+        let db = dir.join("db");
+        let len = std::fs::metadata(&db).unwrap().len();
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&db)
+            .unwrap()
+            .set_len((len as f64 * part) as u64)
+            .unwrap();
+        let opened = std::panic::catch_unwind(|| {
+            restore::open(
+                &dir,
+                LAYOUT,
+                IndexConfig::default(),
+                StoreOptions::default(),
+            )
+            .map(|_| ())
+        });
+        match opened.expect("no panic") {
+            // sled's log may still hold all that was committed.
+            Ok(()) => {}
+            Err(e) => {
+                let msg = e.to_string();
+                assert!(msg.contains("damaged") && msg.contains("backup"), "{msg}");
+            }
+        }
+    }
+    // A damaged snapshot: the message names the file to move away, and moving it works.
+    let snap = files
+        .iter()
+        .find(|f| f.starts_with("snap."))
+        .unwrap_or_else(|| panic!("{files:?}"));
+    let dir = tmp.path().join("snap");
+    copy_dir(&pristine, &dir);
+    let p = dir.join(snap);
+    let mut bytes = std::fs::read(&p).unwrap();
+    for b in bytes.iter_mut().skip(8) {
+        *b ^= 0xa5;
+    }
+    std::fs::write(&p, bytes).unwrap();
+    let msg = refused(&dir).to_string();
+    assert!(msg.contains(snap.as_str()) && msg.contains("move"), "{msg}");
+    assert!(!msg.contains("offset None"), "{msg}");
+    std::fs::remove_file(&p).unwrap();
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_same(
+        &terrain,
+        &terrain_of(std::slice::from_ref(&a)),
+        &bounds_of(&[a.clone()]),
+    );
+    assert_verified(&store);
+}

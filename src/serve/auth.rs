@@ -60,14 +60,20 @@ impl Gate {
         if self.is_open() {
             return Ok(());
         }
-        let Some(token) = header.and_then(|h| h.strip_prefix("Bearer ")) else {
+        // The scheme is case-insensitive (RFC 7235 §2.1), the token is not, and is taken as
+        // sent: a token with a space more is another token.
+        let token = header
+            .and_then(|h| h.split_once(' '))
+            .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+            .map(|(_, t)| t.trim_start_matches(' '));
+        let Some(token) = token else {
             return Err(Status::unauthenticated(format!(
                 "{} calls need a token: send the header \"authorization: Bearer <token>\" \
                  (the CLI reads PATCHWORK_TOKEN or --token-file)",
                 self.service
             )));
         };
-        let h = blake3::hash(token.trim().as_bytes());
+        let h = blake3::hash(token.as_bytes());
         // Every accepted hash is compared, whichever matches, to keep the time the same.
         let ok = self.accept.iter().fold(false, |ok, a| ok | (*a == h));
         if ok {
@@ -176,6 +182,28 @@ mod tests {
             Some(Code::PermissionDenied)
         );
         assert!(Gate::admin(&cfg(None, None)).is_open());
+    }
+
+    #[test]
+    fn the_scheme_is_any_case_and_the_token_exact() {
+        let admin = Gate::admin(&cfg(Some(ADMIN), None));
+        for scheme in ["Bearer", "bearer", "BEARER", "bEaReR"] {
+            assert_eq!(code(&admin, Some(&format!("{scheme} {ADMIN}"))), None);
+        }
+        assert_eq!(code(&admin, Some(&format!("Bearer  {ADMIN}"))), None);
+        for wrong in [
+            format!("Bearer {ADMIN} "),
+            format!("Bearer {ADMIN}\t"),
+            format!("Bearer {}", ADMIN.to_uppercase()),
+            format!("Basic {ADMIN}"),
+            format!("Bearer{ADMIN}"),
+        ] {
+            assert_eq!(
+                code(&admin, Some(&wrong)),
+                Some(Code::Unauthenticated),
+                "{wrong:?}"
+            );
+        }
     }
 
     #[test]

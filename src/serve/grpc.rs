@@ -430,11 +430,7 @@ pub async fn serve(
     // default window, which a multi-megabyte tile would otherwise wait on, window by window.
     let mut server = tonic::transport::Server::builder().http2_adaptive_window(Some(true));
     if let (Some(cert), Some(key)) = (&cfg.tls_cert, &cfg.tls_key) {
-        let read = |p: &std::path::Path, what: &str| {
-            std::fs::read(p).map_err(|e| format!("cannot read the TLS {what} {}: {e}", p.display()))
-        };
-        let identity =
-            tonic::transport::Identity::from_pem(read(cert, "certificate")?, read(key, "key")?);
+        let identity = super::tls::load(cert, key)?;
         server = server
             .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
             .map_err(|e| format!("TLS: {e}"))?;

@@ -7,3 +7,4 @@ pub mod convert;
 pub mod grpc;
 pub mod proto;
 pub mod status;
+pub mod tls;

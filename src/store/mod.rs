@@ -565,6 +565,60 @@ fn decode_u32(b: &[u8], what: &str) -> Result<u32, StoreError> {
     Ok(u32::from_le_bytes(a))
 }
 
+/// Runs `f`, turning a panic into its message without printing it (the default hook would
+/// print a backtrace over the message the caller gives instead).
+fn quietly<T>(f: impl FnOnce() -> T + std::panic::UnwindSafe) -> Result<T, String> {
+    thread_local!(static QUIET: std::cell::Cell<bool> = const { std::cell::Cell::new(false) });
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !QUIET.with(|q| q.get()) {
+                previous(info);
+            }
+        }));
+    });
+    QUIET.with(|q| q.set(true));
+    let r = std::panic::catch_unwind(f);
+    QUIET.with(|q| q.set(false));
+    r.map_err(|p| {
+        p.downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| p.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "a panic".into())
+    })
+}
+
+/// What to do about sled's own files being damaged: a snapshot file can go (sled rebuilds it
+/// from its log); otherwise the directory must come back from a backup.
+fn damaged_database(dir: &Path, what: &str) -> StoreError {
+    let snaps: Vec<String> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("snap."))
+        .collect();
+    let advice = if snaps.is_empty() {
+        format!(
+            "restore {} from a backup (the chunk pack beside it cannot be read without it)",
+            dir.display()
+        )
+    } else {
+        format!(
+            "first move {} out of {} and open again (sled rebuilds its snapshot from its log); \
+             if that does not help, restore the directory from a backup",
+            snaps.join(", "),
+            dir.display()
+        )
+    };
+    StoreError::Corrupt(format!(
+        "the database files in {} are damaged ({}): {advice}",
+        dir.display(),
+        what.lines().next().unwrap_or(what)
+    ))
+}
+
 /// A store's path to a sibling of its directory: `<dir><suffix>`.
 fn sibling(dir: &Path, suffix: &str) -> Result<PathBuf, StoreError> {
     let name = dir.file_name().ok_or_else(|| {
@@ -733,7 +787,25 @@ impl Store {
     ) -> Result<Loaded, StoreError> {
         let dir = std::path::absolute(dir)?;
         let lock = lock(&dir)?;
-        let mut opened = Self::open_locked(dir, lock, layout, index, opts.into())?;
+        let opts = opts.into();
+        // sled panics on some damage to its own files (a database file cut short) where it
+        // returns an error on other damage: both end here, as one message that says what to do.
+        let opened = quietly(std::panic::AssertUnwindSafe(|| {
+            Self::open_locked(dir.clone(), lock, layout, index, opts)
+        }));
+        let mut opened = match opened {
+            Ok(Err(StoreError::Sled(sled::Error::Corruption { .. }))) => {
+                return Err(damaged_database(
+                    &dir,
+                    "sled read data that fails its checksum",
+                ))
+            }
+            Ok(Err(StoreError::Sled(sled::Error::ReportableBug(why)))) => {
+                return Err(damaged_database(&dir, &why))
+            }
+            Ok(r) => r?,
+            Err(panic) => return Err(damaged_database(&dir, &panic)),
+        };
         if opened.released_reserve {
             opened.warnings.push(
                 "the disk was full: the store's reserve file was released so that it could open"
