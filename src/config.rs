@@ -132,6 +132,10 @@ pub struct Limits {
     pub max_ingest_paths: u64,
     /// Most failed files remembered; the oldest records go first.
     pub max_failures: u64,
+    /// Most streams that stay open (view sessions and subscriptions) at once, and on one
+    /// connection; more are refused with RESOURCE_EXHAUSTED.
+    pub max_streams: u64,
+    pub max_streams_per_connection: u64,
 }
 
 impl Default for Limits {
@@ -148,6 +152,8 @@ impl Default for Limits {
             max_height_m: 9_000.0,
             max_ingest_paths: 256,
             max_failures: 1000,
+            max_streams: 256,
+            max_streams_per_connection: 32,
         }
     }
 }
@@ -479,12 +485,14 @@ impl Config {
             l.max_ingest_paths,
             l.max_running_requests,
             l.ingest_parallel,
+            l.max_streams,
+            l.max_streams_per_connection,
         ];
         if !ordered || counts.contains(&0) {
             return Err(ConfigError::Invalid(
                 "limits.min_height_m must be below limits.max_height_m, and \
-                 limits.max_ingest_mb, max_failures, max_ingest_paths, max_running_requests \
-                 and ingest_parallel at least 1"
+                 limits.max_ingest_mb, max_failures, max_ingest_paths, max_running_requests, \
+                 ingest_parallel, max_streams and max_streams_per_connection at least 1"
                     .into(),
             ));
         }

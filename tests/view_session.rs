@@ -162,3 +162,94 @@ fn a_client_applying_the_deltas_holds_every_view_cut_along_a_flight() {
         assert_eq!(err.code(), tonic::Code::InvalidArgument, "{err:?}");
     });
 }
+
+#[test]
+fn unread_sessions_past_the_limits_are_refused_and_never_stall_a_tile() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let mut cfg = Config {
+        data_dir: tmp.path().join("data"),
+        ingest_roots: vec![data.clone()],
+        ..Config::default()
+    };
+    // The defaults but the deadline: a tile that waited behind the sessions' steps would miss
+    // it and fail.
+    cfg.limits.deadline_ms = 2000;
+    let (most, per_connection) = (cfg.limits.max_streams, cfg.limits.max_streams_per_connection);
+    let engine = Arc::new(Engine::open(cfg).unwrap());
+    let done = engine
+        .ingest(&data.join("copernicus_n34w119_crop.tif"), None, Origin::Request)
+        .unwrap();
+    assert!(done.error.is_empty(), "{}", done.error);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        tokio::spawn(patchwork::serve::grpc::serve(
+            engine.clone(),
+            listener,
+            std::future::pending(),
+        ));
+        // 500 sessions over 10 connections, each sent a camera and never read.
+        const CONNECTIONS: usize = 10;
+        const SESSIONS: usize = 500;
+        let mut clients = Vec::new();
+        for _ in 0..CONNECTIONS {
+            clients.push(TerrainClient::connect(url.clone()).await.unwrap());
+        }
+        let (mut held, mut refused) = (Vec::new(), 0usize);
+        for k in 0..SESSIONS {
+            let mut t = clients[k % CONNECTIONS].clone();
+            let (tx, rx) = tokio::sync::mpsc::channel(4);
+            tx.send(camera(k % 40, 40)).await.unwrap();
+            match t
+                .view_session(tokio_stream::wrappers::ReceiverStream::new(rx))
+                .await
+            {
+                Ok(stream) => held.push((tx, stream.into_inner())),
+                Err(s) => {
+                    assert_eq!(s.code(), tonic::Code::ResourceExhausted, "{s:?}");
+                    refused += 1;
+                }
+            }
+        }
+        let expected = (most as usize).min(CONNECTIONS * per_connection as usize);
+        assert_eq!(held.len(), expected);
+        assert_eq!(refused, SESSIONS - expected);
+        // A tile on a connection of its own answers within the deadline.
+        let mut t = TerrainClient::connect(url.clone()).await.unwrap();
+        let t0 = std::time::Instant::now();
+        let tile = t.resample_tile(common::daemon::crop_tile(64, 64)).await;
+        assert!(tile.is_ok(), "{tile:?}");
+        eprintln!(
+            "a 64² tile beside {} unread sessions ({refused} refused): {:.1} ms",
+            held.len(),
+            t0.elapsed().as_secs_f64() * 1e3
+        );
+        // A session within the limits works: its step is there to be read, whole.
+        let mut ids = BTreeMap::new();
+        let step = apply(&mut held[0].1, &mut ids, 0).await;
+        assert!(!step.is_empty() && !ids.is_empty());
+        // Sessions whose clients go give their slots back.
+        drop(held);
+        let t0 = std::time::Instant::now();
+        let mut deltas = loop {
+            let (tx, rx) = tokio::sync::mpsc::channel(4);
+            tx.send(camera(0, 40)).await.unwrap();
+            match clients[0]
+                .view_session(tokio_stream::wrappers::ReceiverStream::new(rx))
+                .await
+            {
+                Ok(s) => break (tx, s.into_inner()),
+                Err(s) if t0.elapsed().as_secs() < 10 => {
+                    assert_eq!(s.code(), tonic::Code::ResourceExhausted);
+                    tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                }
+                Err(s) => panic!("the slots did not come back: {s:?}"),
+            }
+        };
+        let mut ids = BTreeMap::new();
+        let step = apply(&mut deltas.1, &mut ids, 0).await;
+        assert!(!step.is_empty() && !ids.is_empty());
+    });
+}

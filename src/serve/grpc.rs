@@ -22,8 +22,71 @@ pub struct Service {
     /// clients that ask and hang up cannot pile up work without bound.
     running: Arc<tokio::sync::Semaphore>,
     load: Arc<Load>,
+    /// The view sessions' steps take their turns from this first: at most half the turns, so
+    /// that however many sessions wait, one-off requests still find one.
+    session_turns: Arc<tokio::sync::Semaphore>,
+    streams: Arc<Streams>,
     /// Subscribe is on the Terrain service but tells what the Admin listing tells.
     admin: Gate,
+}
+
+/// The long-lived streams (view sessions and subscriptions) open now, in all and by
+/// connection, within `limits.max_streams` and `max_streams_per_connection`.
+struct Streams {
+    open: std::sync::Mutex<(u64, std::collections::HashMap<std::net::SocketAddr, u64>)>,
+    most: u64,
+    most_per_connection: u64,
+}
+
+/// One open stream, counted for as long as it lives.
+struct StreamSlot {
+    streams: Arc<Streams>,
+    peer: Option<std::net::SocketAddr>,
+}
+
+impl Streams {
+    /// A slot for a stream from `peer`, or RESOURCE_EXHAUSTED naming the limit it is past.
+    fn open(self: &Arc<Self>, peer: Option<std::net::SocketAddr>) -> Result<StreamSlot, Status> {
+        let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        let (total, by_peer) = &mut *open;
+        if *total >= self.most {
+            return Err(Status::resource_exhausted(format!(
+                "{total} streams are open, the most the daemon keeps (limits.max_streams): close \
+                 a view session or subscription first"
+            )));
+        }
+        if let Some(p) = peer {
+            let n = by_peer.entry(p).or_default();
+            if *n >= self.most_per_connection {
+                return Err(Status::resource_exhausted(format!(
+                    "{n} streams are open on this connection, the most one may hold \
+                     (limits.max_streams_per_connection): use another connection or close one"
+                )));
+            }
+            *n += 1;
+        }
+        *total += 1;
+        Ok(StreamSlot {
+            streams: self.clone(),
+            peer,
+        })
+    }
+}
+
+impl Drop for StreamSlot {
+    fn drop(&mut self) {
+        let mut open = self.streams.open.lock().unwrap_or_else(|e| e.into_inner());
+        let (total, by_peer) = &mut *open;
+        *total -= 1;
+        if let Some(p) = self.peer {
+            if let Some(n) = by_peer.get_mut(&p) {
+                *n -= 1;
+                if *n == 0 {
+                    by_peer.remove(&p);
+                }
+            }
+        }
+    }
 }
 
 /// Counts of the requests that wait for a permit and that finished, for `stats`.
@@ -52,11 +115,19 @@ impl Drop for Waiting<'_> {
 
 impl Service {
     pub fn new(engine: Arc<Engine>) -> Self {
-        let n = engine.config().limits.max_running_requests as usize;
+        let limits = &engine.config().limits;
+        let n = limits.max_running_requests as usize;
+        let streams = Arc::new(Streams {
+            open: Default::default(),
+            most: limits.max_streams,
+            most_per_connection: limits.max_streams_per_connection,
+        });
         Service {
             admin: Gate::admin(engine.config()),
-            engine,
             running: Arc::new(tokio::sync::Semaphore::new(n)),
+            session_turns: Arc::new(tokio::sync::Semaphore::new((n / 2).max(1))),
+            streams,
+            engine,
             load: Arc::default(),
         }
     }
@@ -78,6 +149,20 @@ impl Service {
         T: Send + 'static,
         F: FnOnce(&Engine, &Cancel) -> Result<T, EngineError> + Send + 'static,
     {
+        self.run_in(None, f).await
+    }
+
+    /// [`Service::run`], taking a permit of `lane` first (within the deadline too), so that
+    /// the work of one kind holds no more turns than the lane has.
+    async fn run_in<T, F>(
+        &self,
+        lane: Option<Arc<tokio::sync::Semaphore>>,
+        f: F,
+    ) -> Result<T, Status>
+    where
+        T: Send + 'static,
+        F: FnOnce(&Engine, &Cancel) -> Result<T, EngineError> + Send + 'static,
+    {
         let engine = self.engine.clone();
         let ms = engine.config().limits.deadline_ms;
         let cancel = Cancel::default();
@@ -85,6 +170,14 @@ impl Service {
         let load = self.load.clone();
         let work = async {
             let waiting = Waiting::new(&self.load);
+            let lane = match lane {
+                Some(l) => Some(
+                    l.acquire_owned()
+                        .await
+                        .map_err(|_| Status::unavailable("the daemon is stopping"))?,
+                ),
+                None => None,
+            };
             let permit = self
                 .running
                 .clone()
@@ -95,6 +188,7 @@ impl Service {
             let job = tokio::task::spawn_blocking(move || {
                 let r = f(&engine, &job_cancel);
                 drop(permit);
+                drop(lane);
                 load.served.fetch_add(1, Ordering::Relaxed);
                 r
             });
@@ -191,6 +285,7 @@ impl terrain_server::Terrain for Service {
         &self,
         r: Request<tonic::Streaming<pb::ViewCut>>,
     ) -> Result<Response<Self::ViewSessionStream>, Status> {
+        let slot = self.streams.open(r.remote_addr())?;
         let mut cameras = r.into_inner();
         let ms = self.engine.config().limits.deadline_ms;
         // Two messages ahead at most: a client that stops reading holds those, and only until
@@ -198,12 +293,14 @@ impl terrain_server::Terrain for Service {
         let (tx, rx) = tokio::sync::mpsc::channel(2);
         let svc = self.clone();
         tokio::spawn(async move {
+            // The session counts against the limits until this task ends.
+            let _slot = slot;
             let session = Arc::new(std::sync::Mutex::new(api::ViewSession::default()));
             while let Ok(Some(camera)) = cameras.message().await {
                 let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
                 let s = session.clone();
                 let step = svc
-                    .run(move |e, _| {
+                    .run_in(Some(svc.session_turns.clone()), move |e, _| {
                         let mut s = s.lock().unwrap_or_else(|p| p.into_inner());
                         s.step(e, &camera)
                     })
@@ -311,9 +408,14 @@ impl terrain_server::Terrain for Service {
         r: Request<pb::SubscribeRequest>,
     ) -> Result<Response<Self::SubscribeStream>, Status> {
         self.admin.admit(&r)?;
+        let slot = self.streams.open(r.remote_addr())?;
         let rx = self.engine.subscribe();
-        let s = tokio_stream::wrappers::BroadcastStream::new(rx)
-            .filter_map(|e| e.ok().map(|e| Ok(convert::event(&e))));
+        // A subscriber that does not read loses the events past the channel's bound, never
+        // holds more; the slot goes when the client does.
+        let s = tokio_stream::wrappers::BroadcastStream::new(rx).filter_map(move |e| {
+            let _slot = &slot;
+            e.ok().map(|e| Ok(convert::event(&e)))
+        });
         Ok(Response::new(Box::pin(s)))
     }
 }
@@ -428,7 +530,16 @@ pub async fn serve(
     });
     // Flow control sized by measuring the connection (BDP) rather than HTTP/2's 64 KiB
     // default window, which a multi-megabyte tile would otherwise wait on, window by window.
-    let mut server = tonic::transport::Server::builder().http2_adaptive_window(Some(true));
+    //
+    // A connection may open the streams its sessions may hold and 64 requests more at once;
+    // a client past that waits for a stream rather than being refused. Keepalive pings find
+    // connections whose client is gone, so that their sessions end and give their slots back.
+    let per_connection = cfg.limits.max_streams_per_connection.min(u32::MAX as u64 - 64) as u32;
+    let mut server = tonic::transport::Server::builder()
+        .http2_adaptive_window(Some(true))
+        .max_concurrent_streams(Some(per_connection + 64))
+        .http2_keepalive_interval(Some(Duration::from_secs(30)))
+        .http2_keepalive_timeout(Some(Duration::from_secs(10)));
     if let (Some(cert), Some(key)) = (&cfg.tls_cert, &cfg.tls_key) {
         let identity = super::tls::load(cert, key)?;
         server = server
