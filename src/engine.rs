@@ -846,7 +846,7 @@ impl Engine {
             .write_and(
                 |store, current| {
                     self.set_phase(source, Phase::Indexing);
-                    let previous = store_active_from(store, source)?;
+                    let previous = store_active_from(&self.catalog(), source);
                     if current.survey(survey.id).is_some() {
                         // The content is already served (from this path or a copy elsewhere);
                         // what this path held before, if anything else, is gone.
@@ -983,7 +983,7 @@ impl Engine {
         let n = self.write_and(
             |store, current| {
                 // Another writer may have retired it since the catalog was read.
-                if store_active_from(store, &rec.source)?.is_none_or(|r| r.id != rec.id) {
+                if store_active_from(&self.catalog(), &rec.source).is_none_or(|r| r.id != rec.id) {
                     return Err(StoreError::NotActive(rec.id));
                 }
                 let n = current
@@ -1595,12 +1595,16 @@ enum Refusal {
     Store(EngineError),
 }
 
-/// The active survey `source` holds, as the store has it.
-fn store_active_from(store: &Store, source: &str) -> Result<Option<SurveyRecord>, StoreError> {
-    Ok(store
-        .surveys()?
-        .into_iter()
-        .find(|r| r.status == crate::store::Status::Active && r.source == source))
+/// The active survey `source` holds, as the store has it: a damaged one included, which a new
+/// ingest of the file replaces. Read from the catalog, which the writer publishes after every
+/// commit and so is the store's own while the writer is held, rather than by decoding every
+/// record again.
+fn store_active_from(catalog: &Catalog, source: &str) -> Option<SurveyRecord> {
+    catalog
+        .records
+        .iter()
+        .find(|r| r.status == crate::store::Status::Active && r.source == source)
+        .cloned()
 }
 
 /// Commits the retirement of `rec` from `current` and returns the terrain without it.

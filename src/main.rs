@@ -698,6 +698,16 @@ async fn run(cli: Cli) -> Result<(), Fail> {
             let mut failed = 0;
             for (f, size) in files.into_iter().zip(sizes) {
                 let path = patchwork::engine::source_name(&f);
+                if f.to_str().is_none() {
+                    // The wire carries text: the name cannot be sent as it is.
+                    failed += 1;
+                    say(format!(
+                        "failed    {}: the file name is not valid UTF-8: rename the file to ingest it",
+                        printable(&path)
+                    ));
+                    done.fetch_add(size, std::sync::atomic::Ordering::Relaxed);
+                    continue;
+                }
                 let req = pb::IngestRequest {
                     paths: vec![path],
                     accuracy_m: accuracy,

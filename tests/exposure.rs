@@ -247,6 +247,46 @@ fn sigterm_stops_the_daemon_within_five_seconds_even_mid_ingest() {
 }
 
 #[test]
+fn sigterm_under_load_cancels_the_running_work_and_exits_with_margin() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "a.tif");
+    d.wait("the survey", |s| count(s, "active") == 1);
+    // Sixteen clients asking for large tiles: twice the turns, each tile seconds of work.
+    let clients: Vec<_> = (0..16)
+        .map(|k| {
+            let out = d.root.join(format!("t{k}.npy"));
+            Command::new(BIN)
+                .args([
+                    "tile",
+                    "--roi=-119.0,34.46,-118.92,34.54",
+                    "--size=3000x3000",
+                    "--backend=cpu",
+                    "--out",
+                    out.to_str().unwrap(),
+                ])
+                .arg(format!("--server={}", d.url))
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(1500));
+    let took = d.stop_timed();
+    eprintln!("SIGTERM under 16 large tiles: the daemon exited in {took:.2?}");
+    assert!(took < Duration::from_secs(5), "SIGTERM took {took:?}");
+    for mut c in clients {
+        let _ = c.wait();
+    }
+    assert!(
+        !d.log().contains("stopping without them"),
+        "the work was cancelled, not waited out: {}",
+        d.log()
+    );
+}
+
+#[test]
 fn a_daemon_on_a_full_disk_starts_read_only_and_says_so() {
     let tmp = tempfile::tempdir().unwrap();
     let mut d = Daemon::start(tmp.path());

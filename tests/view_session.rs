@@ -175,10 +175,17 @@ fn unread_sessions_past_the_limits_are_refused_and_never_stall_a_tile() {
     // The defaults but the deadline: a tile that waited behind the sessions' steps would miss
     // it and fail.
     cfg.limits.deadline_ms = 2000;
-    let (most, per_connection) = (cfg.limits.max_streams, cfg.limits.max_streams_per_connection);
+    let (most, per_connection) = (
+        cfg.limits.max_streams,
+        cfg.limits.max_streams_per_connection,
+    );
     let engine = Arc::new(Engine::open(cfg).unwrap());
     let done = engine
-        .ingest(&data.join("copernicus_n34w119_crop.tif"), None, Origin::Request)
+        .ingest(
+            &data.join("copernicus_n34w119_crop.tif"),
+            None,
+            Origin::Request,
+        )
         .unwrap();
     assert!(done.error.is_empty(), "{}", done.error);
     let rt = tokio::runtime::Runtime::new().unwrap();

@@ -28,6 +28,12 @@ pub struct Service {
     streams: Arc<Streams>,
     /// Subscribe is on the Terrain service but tells what the Admin listing tells.
     admin: Gate,
+    /// True once the daemon is told to stop.
+    stopping: tokio::sync::watch::Receiver<bool>,
+}
+
+fn stopping_status() -> Status {
+    Status::unavailable("the daemon is stopping: try again once it is back")
 }
 
 /// The long-lived streams (view sessions and subscriptions) open now, in all and by
@@ -114,7 +120,7 @@ impl Drop for Waiting<'_> {
 }
 
 impl Service {
-    pub fn new(engine: Arc<Engine>) -> Self {
+    pub fn new(engine: Arc<Engine>, stopping: tokio::sync::watch::Receiver<bool>) -> Self {
         let limits = &engine.config().limits;
         let n = limits.max_running_requests as usize;
         let streams = Arc::new(Streams {
@@ -129,6 +135,7 @@ impl Service {
             streams,
             engine,
             load: Arc::default(),
+            stopping,
         }
     }
 
@@ -197,12 +204,22 @@ impl Service {
                 Err(e) => Err(Status::internal(format!("the request failed: {e}"))),
             }
         };
-        tokio::time::timeout(Duration::from_millis(ms), work)
-            .await
-            .unwrap_or_else(|_| {
+        // Once the daemon is told to stop, no new work starts and the work running is
+        // cancelled, so that it ends well inside the shutdown's grace.
+        let mut stopping = self.stopping.clone();
+        if *stopping.borrow() {
+            return Err(stopping_status());
+        }
+        tokio::select! {
+            r = tokio::time::timeout(Duration::from_millis(ms), work) => r.unwrap_or_else(|_| {
                 cancel.cancel();
                 Err(status::deadline(ms))
-            })
+            }),
+            _ = stopping.wait_for(|s| *s) => {
+                cancel.cancel();
+                Err(stopping_status())
+            }
+        }
     }
 
     /// Runs `f` off the async threads with no deadline: ingestion, verification and
@@ -501,7 +518,15 @@ pub async fn serve(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let cfg = engine.config().clone();
-    let svc = Service::new(engine);
+    // The sender is kept until the server is done: a dropped one reads as a stop too.
+    let (stop, stopping) = tokio::sync::watch::channel(false);
+    let stop = Arc::new(stop);
+    let signal = stop.clone();
+    let shutdown = async move {
+        shutdown.await;
+        let _ = signal.send(true);
+    };
+    let svc = Service::new(engine, stopping);
     let (health, health_svc) = tonic_health::server::health_reporter();
     health
         .set_serving::<terrain_server::TerrainServer<Service>>()
@@ -534,7 +559,10 @@ pub async fn serve(
     // A connection may open the streams its sessions may hold and 64 requests more at once;
     // a client past that waits for a stream rather than being refused. Keepalive pings find
     // connections whose client is gone, so that their sessions end and give their slots back.
-    let per_connection = cfg.limits.max_streams_per_connection.min(u32::MAX as u64 - 64) as u32;
+    let per_connection = cfg
+        .limits
+        .max_streams_per_connection
+        .min(u32::MAX as u64 - 64) as u32;
     let mut server = tonic::transport::Server::builder()
         .http2_adaptive_window(Some(true))
         .max_concurrent_streams(Some(per_connection + 64))
@@ -562,5 +590,6 @@ pub async fn serve(
         ))
         .serve_with_incoming_shutdown(incoming, shutdown)
         .await?;
+    drop(stop);
     Ok(())
 }

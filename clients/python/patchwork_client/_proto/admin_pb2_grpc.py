@@ -65,6 +65,11 @@ class AdminStub:
                 request_serializer=patchwork_dot_v1_dot_admin__pb2.VerifyRequest.SerializeToString,
                 response_deserializer=patchwork_dot_v1_dot_admin__pb2.VerifyReply.FromString,
                 _registered_method=True)
+        self.Repair = channel.unary_unary(
+                '/patchwork.v1.Admin/Repair',
+                request_serializer=patchwork_dot_v1_dot_admin__pb2.RepairRequest.SerializeToString,
+                response_deserializer=patchwork_dot_v1_dot_admin__pb2.RepairReply.FromString,
+                _registered_method=True)
         self.Compact = channel.unary_unary(
                 '/patchwork.v1.Admin/Compact',
                 request_serializer=patchwork_dot_v1_dot_admin__pb2.CompactRequest.SerializeToString,
@@ -112,6 +117,15 @@ class AdminServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Repair(self, request, context):
+        """Drops every damaged survey for good (records, patches, chunk locations; the pack's bytes
+        go at the next Compact), so that its file can be ingested again. The terrain already
+        leaves them out.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Compact(self, request, context):
         """Missing associated documentation comment in .proto file."""
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
@@ -150,6 +164,11 @@ def add_AdminServicer_to_server(servicer, server):
                     servicer.Verify,
                     request_deserializer=patchwork_dot_v1_dot_admin__pb2.VerifyRequest.FromString,
                     response_serializer=patchwork_dot_v1_dot_admin__pb2.VerifyReply.SerializeToString,
+            ),
+            'Repair': grpc.unary_unary_rpc_method_handler(
+                    servicer.Repair,
+                    request_deserializer=patchwork_dot_v1_dot_admin__pb2.RepairRequest.FromString,
+                    response_serializer=patchwork_dot_v1_dot_admin__pb2.RepairReply.SerializeToString,
             ),
             'Compact': grpc.unary_unary_rpc_method_handler(
                     servicer.Compact,
@@ -319,6 +338,33 @@ class Admin:
             '/patchwork.v1.Admin/Verify',
             patchwork_dot_v1_dot_admin__pb2.VerifyRequest.SerializeToString,
             patchwork_dot_v1_dot_admin__pb2.VerifyReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Repair(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/patchwork.v1.Admin/Repair',
+            patchwork_dot_v1_dot_admin__pb2.RepairRequest.SerializeToString,
+            patchwork_dot_v1_dot_admin__pb2.RepairReply.FromString,
             options,
             channel_credentials,
             insecure,
