@@ -156,7 +156,7 @@ fn committed_surveys_come_back_as_the_same_terrain() {
         let Opened { store, terrain, .. } = open(&dir);
         assert_eq!(
             store.migrations_run(),
-            &[(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)]
+            &[(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 6)]
         );
         assert_eq!(terrain.index().len(), 0);
         ingest(&store, &mut t, &a, "/data/a.tif");
@@ -1116,7 +1116,10 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(1, 2), (2, 3), (3, 4), (4, 5)]);
+    assert_eq!(
+        store.migrations_run(),
+        &[(1, 2), (2, 3), (3, 4), (4, 5), (5, 6)]
+    );
     let roi = bounds_of(&[a.clone(), b.clone()]);
     assert_same(&terrain, &t, &roi);
     assert_eq!(terrain.index().state(), t.index().state());
