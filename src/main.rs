@@ -770,6 +770,13 @@ async fn run(cli: Cli) -> Result<(), Fail> {
                             printable(&s.source),
                             printable(&s.error)
                         ),
+                        // Out of the terrain: what is wrong matters, not its claims.
+                        "damaged" => println!(
+                            "{:<16}  damaged  {}  {}; ingest the file again or run `patchwork repair`",
+                            s.id,
+                            printable(&s.source),
+                            printable(&s.error)
+                        ),
                         st => {
                             // What most of it achieves beside what all of it does.
                             let claimed = if s.claimed_accuracy_m < s.accuracy_m {
@@ -1256,7 +1263,7 @@ fn conflict_line(c: &pb::Conflict) -> String {
 
 impl<'a> SurveyJson<'a> {
     fn of(s: &'a pb::SurveyInfo) -> Self {
-        let failed = s.status == "failed";
+        let failed = s.status == "failed" || s.status == "damaged";
         SurveyJson {
             id: &s.id,
             source: &s.source,

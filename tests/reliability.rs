@@ -510,3 +510,62 @@ fn a_name_that_is_not_utf8_is_recorded_as_failed_under_an_escaped_name() {
     rec.pass();
     assert_eq!(active(&e).len(), 1);
 }
+
+#[test]
+fn a_damaged_survey_is_left_out_and_its_inbox_file_ingested_again_at_start() {
+    let s = Setup::new();
+    s.put(COP, "inbox/a.tif");
+    s.put(SRTM, "inbox/b.tif");
+    let e = s.engine();
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert_eq!(active(&e).len(), 2);
+    let cop = Aabb::new(-119.0, 34.46, -118.92, 34.54);
+    let srtm = {
+        let r = e
+            .catalog()
+            .active()
+            .find(|r| r.source.ends_with("b.tif"))
+            .unwrap()
+            .clone();
+        let g = r.georef;
+        let (w, h) = (r.cols as f64, r.rows as f64);
+        let (x0, y0) = (g.origin[0], g.origin[1]);
+        let (x1, y1) = (x0 + g.step[0] * w * 0.8, y0 + g.step[1] * h * 0.8);
+        Aabb::new(x0.min(x1), y0.min(y1), x0.max(x1), y0.max(y1))
+    };
+    let before = (tile(&e, cop), tile(&e, srtm));
+    drop(rec);
+    drop(e);
+    // One byte of the last survey committed, in its chunks at the end of the pack.
+    let pack = s.cfg.data_dir.join(patchwork::store::pack::PACK_FILE);
+    let mut bytes = std::fs::read(&pack).unwrap();
+    let at = bytes.len() - 100;
+    bytes[at] ^= 0x5a;
+    std::fs::write(&pack, bytes).unwrap();
+    let e = s.engine();
+    let damaged = e.catalog().damaged.clone();
+    assert_eq!(damaged.len(), 1, "{damaged:?}");
+    assert_eq!(active(&e).len(), 1, "the other survey is served");
+    let listing = patchwork::serve::api::list_surveys(&e).unwrap();
+    let d = listing
+        .surveys
+        .iter()
+        .find(|i| i.status == "damaged")
+        .expect("listed as damaged");
+    assert!(d.error.contains("checksum"), "{}", d.error);
+    let intact_is_cop = damaged.values().next().unwrap().source.ends_with("b.tif");
+    if intact_is_cop {
+        assert_eq!(tile(&e, cop), before.0);
+    } else {
+        assert_eq!(tile(&e, srtm), before.1);
+    }
+    assert_eq!(e.stats().damaged, 1);
+    // The inbox sees that its file is not served, and ingests it again at start.
+    let mut rec = reconciler(&e, &s);
+    rec.pass();
+    assert!(e.catalog().damaged.is_empty());
+    assert_eq!(active(&e).len(), 2);
+    assert_eq!((tile(&e, cop), tile(&e, srtm)), before);
+    assert!(e.verify().unwrap().problems.is_empty());
+}
