@@ -30,6 +30,18 @@ fn camera(k: usize, frames: usize) -> pb::ViewCut {
     }
 }
 
+/// Serves `engine` on a loopback port for as long as the runtime runs; its URL.
+async fn serve(engine: &Arc<Engine>) -> String {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    tokio::spawn(patchwork::serve::grpc::serve(
+        engine.clone(),
+        listener,
+        std::future::pending(),
+    ));
+    url
+}
+
 /// The whole cut for a camera, by id, as QueryPatches sends it.
 async fn full_cut(
     t: &mut TerrainClient<tonic::transport::Channel>,
@@ -101,13 +113,7 @@ fn a_client_applying_the_deltas_holds_every_view_cut_along_a_flight() {
     ingest("copernicus_n34w119_crop.tif");
     let rt = tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let url = format!("http://{}", listener.local_addr().unwrap());
-        tokio::spawn(patchwork::serve::grpc::serve(
-            engine.clone(),
-            listener,
-            std::future::pending(),
-        ));
+        let url = serve(&engine).await;
         let mut t = TerrainClient::connect(url).await.unwrap();
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         let mut deltas = t
@@ -190,13 +196,7 @@ fn unread_sessions_past_the_limits_are_refused_and_never_stall_a_tile() {
     assert!(done.error.is_empty(), "{}", done.error);
     let rt = tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let url = format!("http://{}", listener.local_addr().unwrap());
-        tokio::spawn(patchwork::serve::grpc::serve(
-            engine.clone(),
-            listener,
-            std::future::pending(),
-        ));
+        let url = serve(&engine).await;
         // 500 sessions over 10 connections, each sent a camera and never read.
         const CONNECTIONS: usize = 10;
         const SESSIONS: usize = 500;

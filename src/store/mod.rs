@@ -354,6 +354,23 @@ pub struct Damaged {
     pub reason: String,
 }
 
+/// What an operator is told of it, at open and by `verify`.
+impl std::fmt::Display for Damaged {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let source = if self.source.is_empty() {
+            "its record is unreadable"
+        } else {
+            &self.source
+        };
+        write!(
+            f,
+            "survey {} ({source}) is damaged and out of the terrain: {}; ingest its file again \
+             or run `patchwork repair` to drop it",
+            self.id, self.reason
+        )
+    }
+}
+
 /// Everything the store holds besides samples and patches: what listings, stats and the inbox
 /// read. The engine keeps it beside the terrain, so that they never wait on the disk.
 #[derive(Clone, Debug, Default)]
@@ -896,19 +913,7 @@ impl Store {
             ));
         }
         let contents = store.load()?;
-        for d in contents.damaged.iter() {
-            warnings.push(format!(
-                "survey {} ({}) is damaged and left out: {}; ingest its file again or run \
-                 `patchwork repair`",
-                d.id,
-                if d.source.is_empty() {
-                    "its record is unreadable"
-                } else {
-                    &d.source
-                },
-                d.reason
-            ));
-        }
+        warnings.extend(contents.damaged.iter().map(Damaged::to_string));
         if let Err(e) = store.guard.restore(&store.dir) {
             warnings.push(format!("could not make the reserve file: {e}"));
         }
@@ -970,12 +975,9 @@ impl Store {
     /// against their checksums: a damaged one is left out (see [`Damaged`]), and the index is
     /// derived again without it unless the stored one already leaves out just these.
     fn load(&self) -> Result<Contents, StoreError> {
-        let mut damaged: BTreeMap<SurveyId, Damaged> = self
-            .unreadable_records()?
-            .into_iter()
-            .map(|d| (d.id, d))
-            .collect();
-        let active = self.records_as_stored()?;
+        let (active, unreadable) = self.records()?;
+        let mut damaged: BTreeMap<SurveyId, Damaged> =
+            unreadable.into_iter().map(|d| (d.id, d)).collect();
         let checked: Vec<(&SurveyRecord, Result<SurveyMeta, String>)> = active
             .par_iter()
             .filter(|r| r.status == Status::Active)
@@ -1722,44 +1724,34 @@ impl Store {
     /// Every survey record, active and retired, in id order; a record that does not decode is
     /// left out (it is among [`Store::damaged`]).
     pub fn surveys(&self) -> Result<Vec<SurveyRecord>, StoreError> {
-        self.records_as_stored()
+        Ok(self.records()?.0)
     }
 
-    fn records_as_stored(&self) -> Result<Vec<SurveyRecord>, StoreError> {
-        let mut out = Vec::new();
+    /// Every record that decodes under its own key, and, by the id in their key, the surveys
+    /// whose records do not: one scan, each record decoded once.
+    fn records(&self) -> Result<(Vec<SurveyRecord>, Vec<Damaged>), StoreError> {
+        let (mut good, mut bad) = (Vec::new(), Vec::new());
         for kv in self.db.scan_prefix(keys::SURVEY_PREFIX) {
             let (k, v) = kv?;
             let what = format!("record {}", String::from_utf8_lossy(&k));
+            let Some(id) = keys::parse_survey(&k) else {
+                continue;
+            };
             match decode::<SurveyRecord>(&v, &what) {
-                Ok(r) if keys::parse_survey(&k) == Some(r.id) => out.push(r),
-                _ => {}
-            }
-        }
-        Ok(out)
-    }
-
-    /// The surveys whose records do not decode, by the id in their key.
-    fn unreadable_records(&self) -> Result<Vec<Damaged>, StoreError> {
-        let mut out = Vec::new();
-        for kv in self.db.scan_prefix(keys::SURVEY_PREFIX) {
-            let (k, v) = kv?;
-            let what = format!("record {}", String::from_utf8_lossy(&k));
-            let decoded = decode::<SurveyRecord>(&v, &what);
-            match (keys::parse_survey(&k), decoded) {
-                (Some(id), Err(e)) => out.push(Damaged {
+                Ok(r) if r.id == id => good.push(r),
+                Ok(r) => bad.push(Damaged {
+                    id,
+                    reason: format!("{what} holds the record of {}", r.id),
+                    source: r.source,
+                }),
+                Err(e) => bad.push(Damaged {
                     id,
                     source: String::new(),
                     reason: e.to_string(),
                 }),
-                (Some(id), Ok(r)) if r.id != id => out.push(Damaged {
-                    id,
-                    source: r.source,
-                    reason: format!("{what} holds the record of {}", r.id),
-                }),
-                _ => {}
             }
         }
-        Ok(out)
+        Ok((good, bad))
     }
 
     /// The evidence of every pair `id` is in, by the other's id.

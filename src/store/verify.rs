@@ -288,20 +288,7 @@ impl Store {
         let damaged = self.damaged();
         rep.damaged = damaged.len();
         for d in damaged.values() {
-            pr.add(
-                "damaged",
-                format!(
-                    "survey {} ({}) is damaged and out of the terrain: {}; ingest its file again \
-                     or run `patchwork repair` to drop it",
-                    d.id,
-                    if d.source.is_empty() {
-                        "its record is unreadable"
-                    } else {
-                        &d.source
-                    },
-                    d.reason
-                ),
-            );
+            pr.add("damaged", d.to_string());
         }
         let left_out = self.quarantined()?;
         let unreadable = damaged
