@@ -8,8 +8,8 @@
 
 use super::super::Ctx;
 use super::v3::{GeorefV3, LevelV3, RecordV3};
-use crate::model::accuracy::AccuracySource;
 use crate::store::{decode, encode, keys, IngestTimings, Status};
+use patchwork_core::model::accuracy::AccuracySource;
 use serde::Deserialize;
 
 #[derive(Deserialize)]
@@ -42,7 +42,7 @@ struct TimingsV1 {
 
 #[derive(Deserialize)]
 struct RecordV1 {
-    id: crate::model::ids::SurveyId,
+    id: patchwork_core::model::ids::SurveyId,
     source: String,
     content_id: String,
     accuracy: f64,

@@ -11,18 +11,18 @@
 
 use super::super::Ctx;
 use super::v3::RecordV3;
-use crate::model::edge;
-use crate::model::grid::Grid;
-use crate::model::lattice::Lattice;
-use crate::model::patch::Patch;
 use crate::store::{chunks, decode, encode, keys, StoredPatches};
+use patchwork_core::model::edge;
+use patchwork_core::model::grid::Grid;
+use patchwork_core::model::lattice::Lattice;
+use patchwork_core::model::patch::Patch;
 
 /// Version 2's rows per band.
 const BAND_ROWS: usize = 64;
 
 pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
     let mut batch = sled::Batch::default();
-    let layout: crate::model::patch::PatchLayout = match tree.get(keys::LAYOUT) {
+    let layout: patchwork_core::model::patch::PatchLayout = match tree.get(keys::LAYOUT) {
         Ok(Some(v)) => decode(&v, "meta/layout").map_err(|e| e.to_string())?,
         Ok(None) => ctx.layout,
         Err(e) => return Err(e.to_string()),

@@ -1,10 +1,10 @@
 //! The survey record as versions 2 and 3 wrote it: a frozen copy, so that the steps that
 //! write it (1 → 2) and read it (2 → 3, 3 → 4) keep doing so whatever the record becomes.
 
-use crate::model::accuracy::AccuracySource;
-use crate::model::grid::Georef;
-use crate::model::ids::SurveyId;
 use crate::store::{IngestTimings, Status};
+use patchwork_core::model::accuracy::AccuracySource;
+use patchwork_core::model::grid::Georef;
+use patchwork_core::model::ids::SurveyId;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Copy, Debug, Serialize, Deserialize)]

@@ -8,8 +8,8 @@
 
 use super::super::Ctx;
 use super::v3::RecordV3;
-use crate::crs::Crs;
 use crate::store::{decode, encode, keys, LevelHeader, SurveyRecord};
+use patchwork_core::crs::Crs;
 
 pub(super) fn run(tree: &sled::Tree, _: &Ctx) -> Result<sled::Batch, String> {
     let mut b = sled::Batch::default();

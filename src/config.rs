@@ -1,13 +1,13 @@
 //! Configuration: compiled-in defaults, then an optional TOML file, then environment overrides
 //! for the top-level keys (`PATCHWORK_<KEY>`). `config/patchwork.toml` documents every key.
 
-use crate::crs::vertical::VerticalCrs;
-use crate::crs::Crs;
-use crate::index::lod::IndexConfig;
-use crate::model::evidence::Contradicted;
-use crate::model::mipmap::Filter;
-use crate::model::patch::{PatchKind, PatchLayout};
-use crate::model::survey::Recipe;
+use patchwork_core::crs::vertical::VerticalCrs;
+use patchwork_core::crs::Crs;
+use patchwork_core::index::lod::IndexConfig;
+use patchwork_core::model::evidence::Contradicted;
+use patchwork_core::model::mipmap::Filter;
+use patchwork_core::model::patch::{PatchKind, PatchLayout};
+use patchwork_core::model::survey::Recipe;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;

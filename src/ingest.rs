@@ -1,14 +1,17 @@
 //! From a file to a survey: read, apply the sidecar, check the CRS, build the model.
 
 use crate::config::DefaultAccuracy;
-use crate::crs::vertical::VerticalCrs;
-use crate::crs::Crs;
-use crate::model::accuracy::{AccuracySource, AccuracySpec};
-use crate::model::geoid::{self, Geoid};
-use crate::model::grid::Grid;
-use crate::model::patch::PatchLayout;
-use crate::model::survey::{Recipe, Survey, SurveyError};
-use crate::read::{open_untrusted, read_raster, OpenError, ReadError, ReadLimits, REFUSED_PATH};
+use crate::sync::lock;
+use patchwork_core::crs::vertical::VerticalCrs;
+use patchwork_core::crs::Crs;
+use patchwork_core::model::accuracy::{AccuracySource, AccuracySpec};
+use patchwork_core::model::geoid::{self, Geoid};
+use patchwork_core::model::grid::Grid;
+use patchwork_core::model::patch::PatchLayout;
+use patchwork_core::model::survey::{Recipe, Survey, SurveyError};
+use patchwork_read::{
+    open_untrusted, read_raster, read_raster_hashed, OpenError, ReadError, ReadLimits, REFUSED_PATH,
+};
 use serde::Deserialize;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -65,7 +68,7 @@ pub enum IngestError {
         message: String,
     },
     #[error("converting the heights between vertical CRSs: {0}")]
-    Convert(#[from] crate::model::geoid::GeoidError),
+    Convert(#[from] patchwork_core::model::geoid::GeoidError),
     #[error(
         "accuracy {value} m ({given_by}) is refused: it must be a number of metres in \
          [0, {max}), the top of LOD space (index.max_error); a survey that inaccurate would \
@@ -77,7 +80,7 @@ pub enum IngestError {
         max: f64,
     },
     #[error("georeference: {0}")]
-    Grid(#[from] crate::model::grid::GridError),
+    Grid(#[from] patchwork_core::model::grid::GridError),
     #[error("{0}")]
     Survey(#[from] SurveyError),
     #[error(
@@ -238,6 +241,8 @@ pub struct IngestSettings {
 #[derive(Clone, Debug)]
 pub struct Prepared {
     pub survey: Survey,
+    /// Hex BLAKE3 of the file's bytes as they were read to build the survey.
+    pub content_id: String,
     pub source: AccuracySource,
     pub timings: Timings,
     /// The vertical CRS the file or its sidecar named.
@@ -300,11 +305,12 @@ pub fn prepare_with(
     let side = read_sidecar(path, roots)?;
     let (spec, source) = accuracy(&side, s)?;
     let t0 = Instant::now();
-    let raster = read_raster(path, &s.read_limits)?;
+    // Opened and read once: the content id recorded is that of the bytes parsed.
+    let (raster, content_id) = read_raster_hashed(path, &s.read_limits)?;
     let read_ms = t0.elapsed().as_millis() as u64;
     check_heights(&raster.samples, s.heights)?;
     // Not the CRS's own error: it quotes the text, and a sidecar could be any file.
-    let side_bad = |what: &str, _: crate::crs::CrsError| IngestError::Sidecar {
+    let side_bad = |what: &str, _: patchwork_core::crs::CrsError| IngestError::Sidecar {
         path: sidecar_path(path),
         message: format!(
             "{what} is not a CRS this build can read: give an EPSG code (\"EPSG:4326\"), a WKT \
@@ -404,6 +410,7 @@ pub fn prepare_with(
     }
     Ok(Prepared {
         survey,
+        content_id,
         source,
         timings: Timings {
             read_ms,
@@ -434,7 +441,7 @@ fn correct(grid: &mut Grid, crs: &Crs, side: &Sidecar) -> Result<f64, String> {
         let mid = grid
             .georef
             .to_world(grid.cols as f64 / 2.0, grid.rows as f64 / 2.0);
-        crate::crs::metres_per_degree(mid[1])
+        patchwork_core::crs::metres_per_degree(mid[1])
     } else {
         [crs.unit_m().unwrap_or(1.0); 2]
     };
@@ -483,7 +490,7 @@ impl Geoids {
             return Ok(None);
         }
         let key = v.key().to_string();
-        if let Some(g) = self.loaded.lock().expect("geoids").get(&key) {
+        if let Some(g) = lock(&self.loaded).get(&key) {
             return Ok(Some(g.clone()));
         }
         let Some(path) = self.paths.get(&key) else {
@@ -506,7 +513,7 @@ impl Geoids {
             Geoid::new(v.clone(), grid, crs, path.display().to_string())
                 .map_err(|e| bad(e.to_string()))?,
         );
-        self.loaded.lock().expect("geoids").insert(key, g.clone());
+        lock(&self.loaded).insert(key, g.clone());
         Ok(Some(g))
     }
 }

@@ -1,39 +1,45 @@
 //! Patchwork: a terrain database after *Patchwork Terrains* (Rocca, Panozzo, Puppo).
 //!
-//! Data flows read → model → index → store → serve, and so do the modules: [`read`] decodes
-//! DEM files, [`model`] turns grids into mipmaps and patches, [`index`] keeps the
-//! order-independent LOD space and answers cuts through it, [`resample`] blends extracted
-//! patches into heights, [`mesh`] triangulates them for renderers, [`terrain`] ties them
-//! together in memory, [`store`] keeps them on disk, and [`engine`], [`watch`] and [`serve`]
-//! make the daemon.
+//! This crate is the daemon and its command line; the pure layers under it are
+//! [`patchwork_core`] (geometry, CRSs, the model, the index, resampling, meshes, the
+//! in-memory terrain) and [`patchwork_read`] (DEM files). Data flows one way, and so do the
+//! modules here, each importing only those listed before it (docs/ARCHITECTURE.md):
+//!
+//! - [`config`]: settings, compiled-in defaults, file and environment;
+//! - [`store`]: surveys, patches and the index on disk (sled and the chunk pack);
+//! - [`restore`]: a terrain built from what the store holds, verification and compaction;
+//! - [`gpu`]: resampling on the GPU (the `gpu` feature);
+//! - [`ingest`]: a file read and modelled into a survey, nothing written;
+//! - [`engine`]: one store, one published state, one writer, and every request;
+//! - [`watch`]: the inbox folders;
+//! - [`serve`]: the gRPC services and their wire types.
 
-pub mod bench;
 pub mod config;
-pub mod crs;
 pub mod engine;
-pub mod index;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod ingest;
-pub mod mesh;
-pub mod model;
-pub mod read;
-pub mod resample;
+pub mod paths;
 pub mod restore;
 pub mod serve;
 pub mod store;
-pub mod terrain;
+pub mod sync;
 pub mod watch;
 
-/// Reproducible pseudo-random numbers, for the bench's scenes and the unit tests.
-pub(crate) mod rng {
-    /// Uniform numbers in [0, 1) from a 64-bit LCG: reproducible, and enough for spreading
-    /// test points.
-    pub fn uniform(seed: u64) -> impl FnMut() -> f64 {
-        let mut state = seed;
-        move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        }
+/// Lets the allocator reuse freed buffers of up to 512 MiB instead of handing each back to the
+/// system at once. An ingest allocates a few raster-sized buffers (52 MB for a 3600² tile) and
+/// frees them within a second; by default glibc maps each afresh, and the kernel's faulting
+/// and zeroing of those pages cost about a tenth of the CPU time of a batch of ingests (the
+/// scale bench, docs/BENCHMARKS.md). Freed pages still go back after each batch (the engine
+/// trims the heap once no ingest is left running); one ingest peaks some 12% higher.
+///
+/// Process-wide, so it is the program's to set: `main` calls it first thing, before any
+/// thread starts.
+pub fn tune_allocator() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets a parameter of the allocator, which serialises it with
+    // allocations; called from main before any other thread exists.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 512 << 20);
     }
 }

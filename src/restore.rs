@@ -3,14 +3,14 @@
 //! this is where its contents become a terrain again, and where the index is derived anew when
 //! the stored one cannot be trusted.
 
-use crate::index::lod::{BoxState, IndexConfig};
-use crate::model::ids::PatchId;
-use crate::model::patch::PatchLayout;
-use crate::model::source::SampleSource;
 use crate::store::{
     encode, CompactReport, Contents, Loaded, Store, StoreError, StoreOptions, VerifyReport,
 };
-use crate::terrain::{Terrain, TerrainError};
+use patchwork_core::index::lod::{BoxState, IndexConfig};
+use patchwork_core::model::ids::PatchId;
+use patchwork_core::model::patch::PatchLayout;
+use patchwork_core::model::source::SampleSource;
+use patchwork_core::terrain::{Terrain, TerrainError};
 use std::collections::HashSet;
 use std::path::Path;
 use std::sync::Arc;
@@ -50,7 +50,7 @@ pub fn open(
 /// has no stored top.
 pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
     let Loaded {
-        store,
+        mut store,
         contents,
         mut warnings,
         released_reserve,
@@ -64,7 +64,7 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
         damaged: _,
     } = contents;
     let terrain = if rebuild {
-        derive(&store, &mut warnings)?
+        derive(&mut store, &mut warnings)?
     } else {
         let source: Arc<dyn SampleSource> = store.reader();
         let (terrain, missing) = Terrain::restore(
@@ -85,7 +85,7 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
                  the surveys",
                 missing.len()
             ));
-            derive(&store, &mut warnings)?
+            derive(&mut store, &mut warnings)?
         } else {
             for id in terrain.index().state().keys() {
                 tops.remove(id);
@@ -111,7 +111,7 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
 /// and every box state, edge patch and pair written in one batch. The result does not depend on the order, which only fixes
 /// the work done. On a disk too full to take the writes, the terrain is still served and the
 /// next open tries again.
-fn derive(store: &Store, warnings: &mut Vec<String>) -> Result<Terrain, StoreError> {
+fn derive(store: &mut Store, warnings: &mut Vec<String>) -> Result<Terrain, StoreError> {
     let mut surveys = store.whole_surveys()?;
     surveys.sort_by_key(|s| s.id);
     let mut t = Terrain::with_crs(store.index_config(), store.crs().as_ref(), None);

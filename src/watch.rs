@@ -18,12 +18,14 @@
 //! watcher warns, keeps the surveys, and watches the folder again once it is back.
 
 use crate::config::OnDelete;
-use crate::engine::{escaped, source_name, Engine, EngineError, Ingested, Origin};
+use crate::engine::{Engine, EngineError, Ingested, Origin};
 use crate::ingest::is_temporary;
-use crate::read::file_content_id;
+use crate::paths::{escaped, source_name};
 use crate::store::Catalog;
+use crate::sync::lock;
 use notify::event::{AccessKind, AccessMode, EventKind, ModifyKind, RenameMode};
 use notify_debouncer_full::{new_debouncer, DebounceEventResult};
+use patchwork_read::file_content_id;
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -375,7 +377,7 @@ impl<S: Sink> Reconciler<S> {
                         return;
                     };
                     let r = self.sink.ingest(p);
-                    *results[i].lock().unwrap_or_else(|e| e.into_inner()) = Some(r);
+                    *lock(&results[i]) = Some(r);
                 });
             }
         });

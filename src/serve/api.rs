@@ -4,10 +4,10 @@
 use super::convert;
 use super::proto as pb;
 use crate::engine::{Backend, Cut, Engine, EngineError, MeshSpec, Origin};
-use crate::index::query::Extracted;
-use crate::resample::{Cancel, BLOCK};
 use crate::store::StoreError;
-use crate::terrain::Terrain;
+use patchwork_core::index::query::Extracted;
+use patchwork_core::resample::{Cancel, BLOCK};
+use patchwork_core::terrain::Terrain;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -57,7 +57,7 @@ pub const BATCH: usize = 256;
 /// can change while its id stays. At most one cut's worth, so `limits.max_patches` bounds it.
 #[derive(Debug, Default)]
 pub struct ViewSession {
-    held: std::collections::HashMap<crate::model::ids::PatchId, Held>,
+    held: std::collections::HashMap<patchwork_core::model::ids::PatchId, Held>,
     frame: u64,
 }
 
@@ -190,7 +190,7 @@ pub fn tile_bands(
 }
 
 /// The CRS a cut's tile is in: the request's, else the store's.
-fn tile_crs(engine: &Engine, cut: &Cut) -> Option<crate::crs::Crs> {
+fn tile_crs(engine: &Engine, cut: &Cut) -> Option<patchwork_core::crs::Crs> {
     cut.crs().cloned().or_else(|| engine.crs())
 }
 
@@ -308,7 +308,7 @@ pub fn forget(engine: &Engine, r: &pb::ForgetRequest) -> Result<pb::ForgetReply,
     if !engine.forget(&r.source)? {
         return Err(EngineError::NotFound(format!(
             "no failure is recorded for {}; `patchwork surveys` lists them",
-            crate::engine::quote_short(&r.source)
+            crate::paths::quote_short(&r.source)
         )));
     }
     Ok(pb::ForgetReply {})

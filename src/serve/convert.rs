@@ -2,19 +2,20 @@
 //! print the same thing.
 
 use super::proto as pb;
-use crate::crs::Crs;
 use crate::engine::{
-    Backend, Conflict, Cut, Distrusted, Engine, EngineError, Event, Ingested, MeshTile, Stats,
-    SurveyListing, TileHead,
+    Backend, Conflict, Cut, Distrusted, Engine, EngineError, Event, Ingested, MeshTile, Outcome,
+    Phase, Stats, SurveyListing, TileHead, Used,
 };
-use crate::index::geom::Aabb;
-use crate::index::query::{Extracted, Shortfall};
-use crate::mesh::Mesh;
-use crate::model::grid::{Georef, SampleRect};
-use crate::model::patch::{CellRect, PatchKind};
-use crate::model::source::SampleError;
 use crate::store::Status;
-use crate::terrain::{PatchRef, Terrain, Tile};
+use patchwork_core::crs::Crs;
+use patchwork_core::geom::Aabb;
+use patchwork_core::index::query::{Extracted, Shortfall};
+use patchwork_core::mesh::Mesh;
+use patchwork_core::model::accuracy::AccuracySource;
+use patchwork_core::model::grid::{Georef, SampleRect};
+use patchwork_core::model::patch::{CellRect, PatchKind};
+use patchwork_core::model::source::SampleError;
+use patchwork_core::terrain::{PatchRef, Terrain, Tile};
 
 pub fn rect(b: &Aabb) -> pb::Rect {
     pb::Rect {
@@ -59,20 +60,20 @@ pub fn view_cut(engine: &Engine, v: &pb::ViewCut) -> Result<Cut, EngineError> {
     )?))
 }
 
-pub fn mesh_border(b: i32) -> Result<crate::mesh::Border, EngineError> {
+pub fn mesh_border(b: i32) -> Result<patchwork_core::mesh::Border, EngineError> {
     match pb::MeshBorder::try_from(b) {
-        Ok(pb::MeshBorder::Shared) => Ok(crate::mesh::Border::Shared),
-        Ok(pb::MeshBorder::Adaptive) => Ok(crate::mesh::Border::Adaptive),
+        Ok(pb::MeshBorder::Shared) => Ok(patchwork_core::mesh::Border::Shared),
+        Ok(pb::MeshBorder::Adaptive) => Ok(patchwork_core::mesh::Border::Adaptive),
         Err(_) => Err(EngineError::Invalid(format!(
             "unknown mesh border {b}: use shared or adaptive"
         ))),
     }
 }
 
-pub fn mesh_method(m: i32) -> Result<crate::mesh::Method, EngineError> {
+pub fn mesh_method(m: i32) -> Result<patchwork_core::mesh::Method, EngineError> {
     match pb::MeshMethod::try_from(m) {
-        Ok(pb::MeshMethod::Rtin) => Ok(crate::mesh::Method::Rtin),
-        Ok(pb::MeshMethod::Quadtree) => Ok(crate::mesh::Method::Quadtree),
+        Ok(pb::MeshMethod::Rtin) => Ok(patchwork_core::mesh::Method::Rtin),
+        Ok(pb::MeshMethod::Quadtree) => Ok(patchwork_core::mesh::Method::Quadtree),
         Err(_) => Err(EngineError::Invalid(format!(
             "unknown mesh method {m}: use rtin or quadtree"
         ))),
@@ -288,7 +289,7 @@ impl Packed {
     }
 }
 
-pub fn tile(t: &Tile, backend: &str, crs: Option<&Crs>) -> pb::Tile {
+pub fn tile(t: &Tile, backend: Used, crs: Option<&Crs>) -> pb::Tile {
     let (code, key) = crs_fields(crs);
     pb::Tile {
         width: t.width as u32,
@@ -296,7 +297,7 @@ pub fn tile(t: &Tile, backend: &str, crs: Option<&Crs>) -> pb::Tile {
         valid: t.heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
         heights: t.heights.clone(),
         patches: t.patches.len() as u32,
-        backend: backend.into(),
+        backend: backend.as_str().into(),
         crs: code,
         crs_key: key,
         max_error: max_error(&t.patches),
@@ -329,7 +330,7 @@ pub fn mesh(m: &MeshTile, crs: Option<&Crs>) -> pb::Mesh {
         max_hole_reach_m: mesh.max_reach,
         patches: m.patches.len() as u32,
         max_error: max_error(&m.patches),
-        backend: m.backend.into(),
+        backend: m.backend.as_str().into(),
         crs: code,
         crs_key: key,
         shortfall: m.shortfall.map(shortfall),
@@ -419,7 +420,7 @@ pub fn tile_bands(
                 heights: le_bytes(band),
                 patches: if first { head.patches.len() as u32 } else { 0 },
                 backend: if first {
-                    head.backend.into()
+                    head.backend.as_str().into()
                 } else {
                     String::new()
                 },
@@ -465,7 +466,7 @@ pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
 pub fn ingested(i: &Ingested) -> pb::IngestResult {
     pb::IngestResult {
         source: i.source.clone(),
-        outcome: i.outcome.as_str().into(),
+        outcome: outcome(i.outcome) as i32,
         survey: i.survey.map(|s| s.0).unwrap_or(0),
         error: i.error.clone(),
         samples: i.samples,
@@ -493,10 +494,10 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
                 id: r.id.to_string(),
                 source: r.source.clone(),
                 status: match (r.status, l.damaged.get(&r.id)) {
-                    (Status::Active, Some(_)) => "damaged".into(),
-                    (Status::Active, None) => "active".into(),
-                    (Status::Retired, _) => "retired".into(),
-                },
+                    (Status::Active, Some(_)) => pb::SurveyStatus::Damaged,
+                    (Status::Active, None) => pb::SurveyStatus::Active,
+                    (Status::Retired, _) => pb::SurveyStatus::Retired,
+                } as i32,
                 error: l
                     .damaged
                     .get(&r.id)
@@ -505,7 +506,7 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
                 accuracy_median_m: median,
                 accuracy_p90_m: p90,
                 claimed_accuracy_m: r.accuracy,
-                accuracy_source: r.accuracy_source.as_str().into(),
+                accuracy_source: accuracy_source(r.accuracy_source) as i32,
                 samples: r.samples,
                 crs: crs_fields(r.crs.as_ref()).0,
                 crs_key: crs_fields(r.crs.as_ref()).1,
@@ -531,7 +532,7 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
             .map(|d| pb::SurveyInfo {
                 id: d.id.to_string(),
                 source: d.source.clone(),
-                status: "damaged".into(),
+                status: pb::SurveyStatus::Damaged as i32,
                 error: d.reason.clone(),
                 ..Default::default()
             }),
@@ -539,7 +540,7 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
     out.extend(l.failures.iter().map(|f| pb::SurveyInfo {
         id: String::new(),
         source: f.source.clone(),
-        status: "failed".into(),
+        status: pb::SurveyStatus::Failed as i32,
         error: f.error.clone(),
         ..Default::default()
     }));
@@ -580,8 +581,8 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         ingesting_phase: s
             .ingesting
             .as_ref()
-            .map(|p| p.phase.as_str().to_string())
-            .unwrap_or_default(),
+            .map_or(pb::IngestPhase::Unspecified, |p| phase(p.phase))
+            as i32,
         ingesting_seconds: s
             .ingesting
             .as_ref()
@@ -593,12 +594,44 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
 
 pub fn event(e: &Event) -> pb::ChangeEvent {
     pb::ChangeEvent {
-        kind: e.kind.as_str().into(),
+        outcome: outcome(e.kind) as i32,
         survey: e.survey.map(|s| s.0).unwrap_or(0),
         source: e.source.clone(),
         error: e.error.clone(),
         at_unix: e.at_unix,
         conflicts: conflicts(&e.conflicts),
+    }
+}
+
+/// An outcome on the wire.
+pub fn outcome(o: Outcome) -> pb::Outcome {
+    match o {
+        Outcome::Inserted => pb::Outcome::Inserted,
+        Outcome::Replaced => pb::Outcome::Replaced,
+        Outcome::Unchanged => pb::Outcome::Unchanged,
+        Outcome::Retired => pb::Outcome::Retired,
+        Outcome::Failed => pb::Outcome::Failed,
+    }
+}
+
+/// Where an accuracy claim came from, on the wire.
+pub fn accuracy_source(a: AccuracySource) -> pb::AccuracySource {
+    match a {
+        AccuracySource::Sidecar => pb::AccuracySource::Sidecar,
+        AccuracySource::Flag => pb::AccuracySource::Flag,
+        AccuracySource::Config => pb::AccuracySource::Config,
+        AccuracySource::Estimated => pb::AccuracySource::Estimated,
+        AccuracySource::Unknown => pb::AccuracySource::Unknown,
+    }
+}
+
+/// An ingest's phase on the wire.
+pub fn phase(p: Phase) -> pb::IngestPhase {
+    match p {
+        Phase::Reading => pb::IngestPhase::Reading,
+        Phase::Modelling => pb::IngestPhase::Modelling,
+        Phase::Indexing => pb::IngestPhase::Indexing,
+        Phase::Committing => pb::IngestPhase::Committing,
     }
 }
 

@@ -5,7 +5,8 @@ use super::auth::Gate;
 use super::proto::{self as pb, admin_server, terrain_server};
 use super::{api, convert, status};
 use crate::engine::{Engine, EngineError};
-use crate::resample::Cancel;
+use crate::sync::lock;
+use patchwork_core::resample::Cancel;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -53,7 +54,7 @@ struct StreamSlot {
 impl Streams {
     /// A slot for a stream from `peer`, or RESOURCE_EXHAUSTED naming the limit it is past.
     fn open(self: &Arc<Self>, peer: Option<std::net::SocketAddr>) -> Result<StreamSlot, Status> {
-        let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        let mut open = lock(&self.open);
         let (total, by_peer) = &mut *open;
         if *total >= self.most {
             return Err(Status::resource_exhausted(format!(
@@ -81,7 +82,7 @@ impl Streams {
 
 impl Drop for StreamSlot {
     fn drop(&mut self) {
-        let mut open = self.streams.open.lock().unwrap_or_else(|e| e.into_inner());
+        let mut open = lock(&self.streams.open);
         let (total, by_peer) = &mut *open;
         *total -= 1;
         if let Some(p) = self.peer {
@@ -116,6 +117,17 @@ impl<'a> Waiting<'a> {
 impl Drop for Waiting<'_> {
     fn drop(&mut self) {
         self.0.waiting.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
+/// Sets a [`Cancel`] when dropped: held by a request's future, it stops the request's work
+/// on a blocking thread once the future is gone, whether it finished, timed out, or its
+/// caller hung up and tonic dropped it. Setting it after the work is done changes nothing.
+struct CancelOnDrop(Cancel);
+
+impl Drop for CancelOnDrop {
+    fn drop(&mut self) {
+        self.0.cancel();
     }
 }
 
@@ -174,6 +186,9 @@ impl Service {
         let ms = engine.config().limits.deadline_ms;
         let cancel = Cancel::default();
         let job_cancel = cancel.clone();
+        // A caller that hangs up drops this future wherever it is: the work it started stops
+        // then too, rather than holding its permit and a core to the end.
+        let _cancel_on_drop = CancelOnDrop(cancel.clone());
         let load = self.load.clone();
         let work = async {
             let waiting = Waiting::new(&self.load);
@@ -318,7 +333,7 @@ impl terrain_server::Terrain for Service {
                 let s = session.clone();
                 let step = svc
                     .run_in(Some(svc.session_turns.clone()), move |e, _| {
-                        let mut s = s.lock().unwrap_or_else(|p| p.into_inner());
+                        let mut s = lock(&s);
                         s.step(e, &camera)
                     })
                     .await;
@@ -592,4 +607,59 @@ pub async fn serve(
         .await?;
     drop(stop);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Config;
+    use std::time::Instant;
+
+    /// A request whose caller hangs up stops its work at once, not at its deadline: tonic
+    /// drops the handler's future, and the work on the blocking thread must see that.
+    #[test]
+    fn work_whose_caller_is_gone_is_cancelled() {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut cfg = Config {
+            data_dir: tmp.path().join("data"),
+            inbox: Vec::new(),
+            ..Config::default()
+        };
+        // Far past the test's wait: only the hang-up can stop the work in time.
+        cfg.limits.deadline_ms = 600_000;
+        let engine = Arc::new(Engine::open(cfg).unwrap());
+        let (_stop, stopping) = tokio::sync::watch::channel(false);
+        let svc = Service::new(engine, stopping);
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        let (started_tx, started) = std::sync::mpsc::channel();
+        let (ended_tx, ended) = std::sync::mpsc::channel();
+        rt.block_on(async move {
+            let work = async move {
+                svc.run(move |_, cancel| {
+                    started_tx.send(()).unwrap();
+                    let t0 = Instant::now();
+                    // The work of a long mesh: it checks its cancel as it goes.
+                    while !cancel.is_cancelled() && t0.elapsed() < Duration::from_secs(60) {
+                        std::thread::sleep(Duration::from_millis(5));
+                    }
+                    ended_tx.send(cancel.is_cancelled()).unwrap();
+                    Ok(())
+                })
+                .await
+            };
+            // The caller goes away while the work runs.
+            let caller = tokio::spawn(work);
+            tokio::task::spawn_blocking(move || started.recv().unwrap())
+                .await
+                .unwrap();
+            caller.abort();
+        });
+        let cancelled = ended
+            .recv_timeout(Duration::from_secs(20))
+            .expect("the work of a request whose caller hung up was still running 20 s later");
+        assert!(cancelled);
+    }
 }

@@ -16,9 +16,10 @@
 //! its payload, checked on every read: a damaged chunk is an error, never wrong heights.
 
 use super::pack::{ChunkStore, Loc};
-use crate::model::grid::{Grid, SampleRect, Shape, Window};
-use crate::model::ids::SurveyId;
-use crate::model::source::{check_rect, SampleError, SampleSource};
+use crate::sync::{read, write};
+use patchwork_core::model::grid::{Grid, SampleRect, Shape, Window};
+use patchwork_core::model::ids::SurveyId;
+use patchwork_core::model::source::{check_rect, SampleError, SampleSource};
 use rayon::prelude::*;
 use std::sync::Arc;
 
@@ -315,7 +316,7 @@ impl ChunkReader {
 
     /// Lets go of the database: later reads of chunks not in the cache fail.
     pub fn close(&self) {
-        *self.open.write().unwrap_or_else(|e| e.into_inner()) = None;
+        *write(&self.open) = None;
     }
 
     pub fn stats(&self) -> CacheStats {
@@ -339,7 +340,7 @@ impl ChunkReader {
         self.cache.get_or_insert_with(&key, || {
             let fail = |reason: String| SampleError { survey, reason };
             let r = chunk_rect(shape, k);
-            let open = self.open.read().unwrap_or_else(|e| e.into_inner());
+            let open = read(&self.open);
             let (tree, pack) = open
                 .as_ref()
                 .ok_or_else(|| fail("the store is closed".into()))?;
@@ -391,7 +392,7 @@ fn placed(shape: &Shape, rect: &SampleRect, samples: Vec<f32>) -> Grid {
         cols: rect.cols(),
         rows: rect.rows(),
         samples,
-        georef: crate::model::grid::Georef {
+        georef: patchwork_core::model::grid::Georef {
             origin: shape.georef.to_world(rect.c0 as f64, rect.r0 as f64),
             ..shape.georef
         },
@@ -514,8 +515,8 @@ mod tests {
 
     #[test]
     fn reads_assemble_windows_across_chunks_and_the_cache_stays_within_its_bound() {
-        use crate::model::grid::Georef;
         use crate::store::pack::PackFile;
+        use patchwork_core::model::grid::Georef;
         let tmp = tempfile::tempdir().unwrap();
         let db = sled::Config::new()
             .path(tmp.path().join("db"))

@@ -13,8 +13,8 @@
 
 use super::chunks::read_packed;
 use super::pack::{ChunkStore, PackFile};
-use super::{dir_bytes, keys, sibling, Loaded, Status, Store, StoreError};
-use crate::model::ids::{PatchId, SurveyId};
+use super::{dir_bytes, keys, open_sled, sibling, Loaded, Status, Store, StoreError};
+use patchwork_core::model::ids::{PatchId, SurveyId};
 use std::collections::HashSet;
 use std::path::Path;
 
@@ -198,7 +198,9 @@ impl Store {
         // a 0.7 MB store): with nothing removed, the copy replaces the store only when it saves
         // clearly more than that, and is otherwise thrown away, the store staying as it was.
         let gain = removed > 0 || {
-            drop(sled::Config::new().path(&tmp).open()?);
+            // Opened as the store opens (waiting for sled to let go of the copy it just
+            // closed), so that the size is what the store's files would be.
+            drop(open_sled(&tmp, self.opts.sled_cache_bytes())?);
             dir_bytes(&tmp) + (bytes_before / 100).max(64 << 10) <= bytes_before
         };
         if !gain {

@@ -2,7 +2,7 @@
 //! prefix scan finds one kind of record and keys of one survey sort together, level by level
 //! and band by band.
 
-use crate::model::ids::{PatchId, SurveyId};
+use patchwork_core::model::ids::{PatchId, SurveyId};
 
 pub const SCHEMA: &[u8] = b"meta/schema";
 pub const CRS: &[u8] = b"meta/crs";

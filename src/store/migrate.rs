@@ -3,8 +3,8 @@
 
 use super::keys;
 use super::StoreError;
-use crate::index::lod::IndexConfig;
-use crate::model::patch::PatchLayout;
+use patchwork_core::index::lod::IndexConfig;
+use patchwork_core::model::patch::PatchLayout;
 
 #[path = "../../migrations/mod.rs"]
 mod steps;

@@ -54,6 +54,7 @@ pub mod pack;
 pub mod space;
 mod verify;
 
+use crate::sync::{read, write};
 pub use chunks::{CacheStats, ChunkReader};
 pub use compact::CompactReport;
 pub use migrate::CURRENT as SCHEMA_VERSION;
@@ -61,27 +62,27 @@ use pack::{ChunkStore, PackFile};
 pub use space::{DiskSpace, SpaceGuard, SystemDisk};
 pub use verify::{Checked, VerifyReport};
 
-use crate::crs::vertical::VerticalCrs;
-use crate::crs::Crs;
-use crate::index::lod::{BoxState, ChangeStats, IndexConfig};
-use crate::model::accuracy::{AccuracySource, AccuracySpec, KernelAccuracy};
-use crate::model::edge::EdgePatch;
-use crate::model::evidence::{Contradicted, PairEvidence};
-use crate::model::grid::{Georef, Grid, Shape};
-use crate::model::ids::{PatchId, SurveyId};
-use crate::model::mipmap::Filter;
-use crate::model::patch::{Patch, PatchKind, PatchLayout, Tiling};
-use crate::model::source::SampleSource;
-use crate::model::survey::Recipe;
-use crate::model::survey::{Survey, SurveyMeta};
 use fs2::FileExt;
+use patchwork_core::crs::vertical::VerticalCrs;
+use patchwork_core::crs::Crs;
+use patchwork_core::index::lod::{BoxState, ChangeStats, IndexConfig};
+use patchwork_core::model::accuracy::{AccuracySource, AccuracySpec, KernelAccuracy};
+use patchwork_core::model::edge::EdgePatch;
+use patchwork_core::model::evidence::{Contradicted, PairEvidence};
+use patchwork_core::model::grid::{Georef, Grid, Shape};
+use patchwork_core::model::ids::{PatchId, SurveyId};
+use patchwork_core::model::mipmap::Filter;
+use patchwork_core::model::patch::{Patch, PatchKind, PatchLayout, Tiling};
+use patchwork_core::model::source::SampleSource;
+use patchwork_core::model::survey::Recipe;
+use patchwork_core::model::survey::{Survey, SurveyMeta};
 use rayon::prelude::*;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, RwLock};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use thiserror::Error;
 
@@ -195,9 +196,9 @@ pub enum StoreError {
     Decode(String),
     /// Samples a read or an index change needed could not be read back.
     #[error(transparent)]
-    Samples(#[from] crate::model::source::SampleError),
+    Samples(#[from] patchwork_core::model::source::SampleError),
     #[error("{0}")]
-    Place(#[from] crate::model::place::PlaceError),
+    Place(#[from] patchwork_core::model::place::PlaceError),
 }
 
 impl From<sled::Error> for StoreError {
@@ -568,7 +569,7 @@ pub(crate) fn decode_state(b: &[u8], what: &str) -> Result<BoxState, StoreError>
 fn decode_crs<T>(
     b: &[u8],
     what: &str,
-    parse: impl Fn(&str) -> Result<T, crate::crs::CrsError>,
+    parse: impl Fn(&str) -> Result<T, patchwork_core::crs::CrsError>,
 ) -> Result<T, StoreError> {
     let text = std::str::from_utf8(b)
         .map_err(|_| StoreError::Decode(format!("{what}: not UTF-8 text")))?;
@@ -670,7 +671,7 @@ fn open_sled(dir: &Path, cache_bytes: u64) -> Result<sled::Db, StoreError> {
 }
 
 /// Takes the exclusive lock that keeps other processes (and other handles in this one) out.
-fn lock(dir: &Path) -> Result<File, StoreError> {
+fn lock_dir(dir: &Path) -> Result<File, StoreError> {
     let path = sibling(dir, ".lock")?;
     if let Some(parent) = path.parent() {
         std::fs::create_dir_all(parent)?;
@@ -694,6 +695,44 @@ fn lock(dir: &Path) -> Result<File, StoreError> {
 struct Writes {
     batch: sled::Batch,
     bytes: u64,
+}
+
+/// One change of the terrain, as [`Store::commit`] writes it in one batch.
+#[derive(Default)]
+pub struct Change<'a> {
+    /// The survey going out, if any.
+    pub retire: Option<Retirement<'a>>,
+    /// The survey coming in, if any: with `retire`, it replaces that one.
+    pub insert: Option<Insertion<'a>>,
+    /// The edge patches the new terrain holds among the boxes the change moved.
+    pub edges: &'a [Arc<EdgePatch>],
+}
+
+/// A survey going out of the terrain. Its samples stay until [`Store::compact`].
+pub struct Retirement<'a> {
+    /// The survey.
+    pub id: SurveyId,
+    /// Its patches, whose tops go.
+    pub patches: &'a [PatchId],
+    /// What retiring it from the terrain changed.
+    pub change: &'a ChangeStats,
+    /// Whether its file, should it stay where it is, is kept from bringing it back (see
+    /// [`Store::pins`]).
+    pub pin: bool,
+}
+
+/// A survey coming into the terrain.
+pub struct Insertion<'a> {
+    /// The survey, as built and placed in the store's CRS.
+    pub survey: &'a Survey,
+    /// Its record.
+    pub record: &'a SurveyRecord,
+    /// What inserting it into the terrain changed (other surveys' tops among it).
+    pub change: &'a ChangeStats,
+    /// The evidence of its overlaps with the surveys already there.
+    pub pairs: &'a [Arc<PairEvidence>],
+    /// Its chunks, already in the pack.
+    pub packed: Packed,
 }
 
 /// A survey's chunks and patch list, appended to the pack and synced but not yet committed:
@@ -740,9 +779,6 @@ pub struct Store {
     contradicted: Contradicted,
     /// The horizontal and vertical CRSs, once set.
     crs: RwLock<(Option<Crs>, Option<VerticalCrs>)>,
-    /// Commits read the store (CRS, records) before writing it; one at a time keeps the read
-    /// and the batch consistent.
-    writer: Mutex<()>,
     migrated: Vec<(u32, u32)>,
     /// The damaged surveys the last open found, less those healed or dropped since.
     damaged: RwLock<BTreeMap<SurveyId, Damaged>>,
@@ -803,7 +839,7 @@ impl Store {
         opts: impl Into<StoreOptions>,
     ) -> Result<Loaded, StoreError> {
         let dir = std::path::absolute(dir)?;
-        let lock = lock(&dir)?;
+        let lock = lock_dir(&dir)?;
         let opts = opts.into();
         // sled panics on some damage to its own files (a database file cut short) where it
         // returns an error on other damage: both end here, as one message that says what to do.
@@ -898,7 +934,6 @@ impl Store {
             recipe,
             contradicted,
             crs: RwLock::new(crs),
-            writer: Mutex::new(()),
             migrated,
             damaged: RwLock::new(BTreeMap::new()),
             _lock: lock,
@@ -940,7 +975,7 @@ impl Store {
     }
 
     /// What the store does with claims other surveys contradict (see
-    /// [`crate::model::evidence`]).
+    /// [`patchwork_core::model::evidence`]).
     pub fn contradicted(&self) -> Contradicted {
         self.contradicted
     }
@@ -957,12 +992,12 @@ impl Store {
 
     /// The store's horizontal CRS, once it has one.
     pub fn crs(&self) -> Option<Crs> {
-        self.crs.read().unwrap_or_else(|e| e.into_inner()).0.clone()
+        read(&self.crs).0.clone()
     }
 
     /// The store's vertical CRS, once it has one.
     pub fn vertical_crs(&self) -> Option<VerticalCrs> {
-        self.crs.read().unwrap_or_else(|e| e.into_inner()).1.clone()
+        read(&self.crs).1.clone()
     }
 
     /// The reader the terrain gets its samples through.
@@ -1003,7 +1038,7 @@ impl Store {
         let rebuild = self.db.get(keys::REBUILD)?.is_some()
             || !damaged.keys().copied().eq(left_out.iter().copied());
         let found: Vec<Damaged> = damaged.values().cloned().collect();
-        *self.damaged.write().unwrap_or_else(|e| e.into_inner()) = damaged;
+        *write(&self.damaged) = damaged;
         // A store to be rebuilt may hold tops of an older format, or tops of an index with a
         // survey now damaged: they are replaced, never read.
         if rebuild {
@@ -1088,23 +1123,17 @@ impl Store {
 
     /// The damaged surveys, as the last open found them less those healed or dropped since.
     pub fn damaged(&self) -> BTreeMap<SurveyId, Damaged> {
-        self.damaged
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .clone()
+        read(&self.damaged).clone()
     }
 
     fn is_damaged(&self, id: SurveyId) -> bool {
-        self.damaged
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .contains_key(&id)
+        read(&self.damaged).contains_key(&id)
     }
 
     /// Writes `meta/quarantined` as it stands once `healed` are no longer damaged; nothing
     /// when none of them was. Call [`Store::healed`] once the batch is applied.
     fn stage_healed(&self, batch: &mut Writes, healed: &[SurveyId]) -> Result<(), StoreError> {
-        let damaged = self.damaged.read().unwrap_or_else(|e| e.into_inner());
+        let damaged = read(&self.damaged);
         if !healed.iter().any(|id| damaged.contains_key(id)) {
             return Ok(());
         }
@@ -1122,7 +1151,7 @@ impl Store {
     }
 
     fn healed(&self, ids: &[SurveyId]) {
-        let mut damaged = self.damaged.write().unwrap_or_else(|e| e.into_inner());
+        let mut damaged = write(&self.damaged);
         for id in ids {
             damaged.remove(id);
         }
@@ -1132,8 +1161,7 @@ impl Store {
     /// chunk locations and pairs (its bytes in the pack go at the next compaction). The index
     /// already leaves them out. Its file, if still in the inbox, is then ingested afresh.
     /// Returns what was dropped.
-    pub fn repair(&self) -> Result<Vec<Damaged>, StoreError> {
-        let _w = self.lock_writer();
+    pub fn repair(&mut self) -> Result<Vec<Damaged>, StoreError> {
         let damaged: Vec<Damaged> = self.damaged().into_values().collect();
         if damaged.is_empty() {
             return Ok(damaged);
@@ -1177,12 +1205,11 @@ impl Store {
     /// Replaces every box state, edge patch and pair, in one batch: an index derived again
     /// from the surveys. Clears the mark that asked for it.
     pub fn write_derived(
-        &self,
+        &mut self,
         tops: &[(PatchId, BoxState)],
         edges: &[Arc<EdgePatch>],
         pairs: &[Arc<PairEvidence>],
     ) -> Result<(), StoreError> {
-        let _w = self.lock_writer();
         let mut batch = Writes::default();
         for prefix in [keys::TOP_PREFIX, keys::EDGE_PREFIX, keys::OVERLAP_PREFIX] {
             for kv in self.db.scan_prefix(prefix) {
@@ -1347,13 +1374,16 @@ impl Store {
     fn stage_survey(
         &self,
         batch: &mut Writes,
-        s: &Survey,
-        rec: &SurveyRecord,
-        change: &ChangeStats,
-        pairs: &[Arc<PairEvidence>],
+        insertion: &Insertion<'_>,
         replacing: Option<SurveyId>,
-        packed: Packed,
     ) -> Result<Staged, StoreError> {
+        let (s, rec, change, pairs, packed) = (
+            insertion.survey,
+            insertion.record,
+            insertion.change,
+            insertion.pairs,
+            &insertion.packed,
+        );
         if rec.id != s.id {
             return Err(StoreError::Invalid(format!(
                 "the record is of survey {}, the survey is {}",
@@ -1423,8 +1453,8 @@ impl Store {
                 packed.survey, s.id
             )));
         }
-        for (k, loc) in packed.entries {
-            batch.insert(k, &loc.to_bytes()[..]);
+        for (k, loc) in &packed.entries {
+            batch.insert(k.clone(), &loc.to_bytes()[..]);
         }
         batch.insert(keys::PACK_LEN, &self.pack.len().to_le_bytes()[..]);
         if s.spec == AccuracySpec::Auto {
@@ -1475,15 +1505,11 @@ impl Store {
     /// Records how long the commit took. The batch is already durable; should this small
     /// write be lost, the record keeps the caller's figure.
     fn finish(&self, staged: Staged, t0: Instant) -> Result<(), StoreError> {
-        *self.crs.write().unwrap_or_else(|e| e.into_inner()) = staged.crs;
+        *write(&self.crs) = staged.crs;
         let mut rec = staged.rec;
         rec.ingest.commit_ms = t0.elapsed().as_secs_f64() * 1e3;
         self.db.insert(staged.key, encode(&rec)?)?;
         Ok(())
-    }
-
-    fn lock_writer(&self) -> std::sync::MutexGuard<'_, ()> {
-        self.writer.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Encodes a survey's levels and its patch list and appends them to the pack, synced,
@@ -1512,112 +1538,46 @@ impl Store {
         })
     }
 
-    /// Commits an already-built survey: record, patches, chunks, and every top the insertion
-    /// moved (`change` from inserting it into the terrain, which may include patches of other
-    /// surveys) in one batch, then flushes. `edges` are the edge patches the terrain holds
-    /// among the boxes the change moved. A failure leaves the store as it was, so the caller
-    /// swaps in the terrain it computed `change` with only on success.
-    pub fn commit_survey(
-        &self,
-        s: &Survey,
-        rec: &SurveyRecord,
-        change: &ChangeStats,
-        edges: &[Arc<EdgePatch>],
-        pairs: &[Arc<PairEvidence>],
-    ) -> Result<(), StoreError> {
-        let packed = self.pack_survey(s)?;
-        self.commit_packed(s, rec, change, edges, pairs, packed)
-    }
-
-    /// [`Store::commit_survey`] with the survey's chunks already packed.
-    pub fn commit_packed(
-        &self,
-        s: &Survey,
-        rec: &SurveyRecord,
-        change: &ChangeStats,
-        edges: &[Arc<EdgePatch>],
-        pairs: &[Arc<PairEvidence>],
-        packed: Packed,
-    ) -> Result<(), StoreError> {
-        let _w = self.lock_writer();
+    /// Commits one change of the terrain in one batch, then flushes: a survey retired, one
+    /// inserted (its chunks already packed: [`Store::pack_survey`]), or one replaced by the
+    /// other, a file that changed. Every top the change moved is written, other surveys'
+    /// among them; where a retirement and an insertion moved one box, the insertion's top wins,
+    /// as it does in the terrain (a sled batch keeps the last write of a key). A failure
+    /// leaves the store as it was, so the caller swaps in the terrain it computed the change
+    /// with only on success.
+    pub fn commit(&mut self, change: Change<'_>) -> Result<(), StoreError> {
         let t0 = Instant::now();
         let mut batch = Writes::default();
-        let staged = self.stage_survey(&mut batch, s, rec, change, pairs, None, packed)?;
-        stage_edges(&mut batch, edges)?;
-        self.stage_healed(&mut batch, &[s.id])?;
-        self.apply(batch)?;
-        self.healed(&[s.id]);
-        self.finish(staged, t0)
-    }
-
-    /// Marks a survey retired, drops its tops and writes the tops and edge patches its
-    /// retirement moved, in one batch. Its samples stay until [`Store::compact`]. `pin` keeps
-    /// the survey's file, should it stay where it is, from bringing the survey back (see
-    /// [`Store::pins`]).
-    pub fn commit_retire(
-        &self,
-        id: SurveyId,
-        patch_ids: &[PatchId],
-        change: &ChangeStats,
-        edges: &[Arc<EdgePatch>],
-        pin: bool,
-    ) -> Result<(), StoreError> {
-        let _w = self.lock_writer();
-        let mut batch = Writes::default();
-        let rec = self.stage_retire(&mut batch, id, patch_ids, change)?;
-        stage_edges(&mut batch, edges)?;
-        if pin && !rec.content_id.is_empty() {
-            batch.insert(keys::pin(&rec.source), rec.content_id.as_bytes());
+        let mut touched = Vec::with_capacity(2);
+        if let Some(r) = &change.retire {
+            let rec = self.stage_retire(&mut batch, r.id, r.patches, r.change)?;
+            if r.pin && !rec.content_id.is_empty() {
+                batch.insert(keys::pin(&rec.source), rec.content_id.as_bytes());
+            }
+            touched.push(r.id);
         }
-        self.stage_healed(&mut batch, &[id])?;
+        let replacing = change.retire.as_ref().map(|r| r.id);
+        let staged = match change.insert {
+            Some(i) => {
+                touched.push(i.survey.id);
+                Some(self.stage_survey(&mut batch, &i, replacing)?)
+            }
+            None => None,
+        };
+        stage_edges(&mut batch, change.edges)?;
+        self.stage_healed(&mut batch, &touched)?;
         self.apply(batch)?;
-        self.healed(&[id]);
-        Ok(())
-    }
-
-    /// Replaces one survey with another (a file that changed) in one batch: `retire_change`
-    /// from retiring `old`, then `insert_change` from inserting `new` after it; `edges` are the
-    /// edge patches the final terrain holds among the boxes either moved.
-    #[allow(clippy::too_many_arguments)]
-    pub fn commit_replace(
-        &self,
-        old: SurveyId,
-        old_patches: &[PatchId],
-        retire_change: &ChangeStats,
-        new: &Survey,
-        rec: &SurveyRecord,
-        insert_change: &ChangeStats,
-        edges: &[Arc<EdgePatch>],
-        pairs: &[Arc<PairEvidence>],
-        packed: Packed,
-    ) -> Result<(), StoreError> {
-        let _w = self.lock_writer();
-        let t0 = Instant::now();
-        // sled batches keep the last write of a key, so the insertion's tops win over the
-        // retirement's, as they do in the terrain.
-        let mut batch = Writes::default();
-        self.stage_retire(&mut batch, old, old_patches, retire_change)?;
-        let staged = self.stage_survey(
-            &mut batch,
-            new,
-            rec,
-            insert_change,
-            pairs,
-            Some(old),
-            packed,
-        )?;
-        stage_edges(&mut batch, edges)?;
-        self.stage_healed(&mut batch, &[old, new.id])?;
-        self.apply(batch)?;
-        self.healed(&[old, new.id]);
-        self.finish(staged, t0)
+        self.healed(&touched);
+        match staged {
+            Some(staged) => self.finish(staged, t0),
+            None => Ok(()),
+        }
     }
 
     /// Records a file that could not be ingested, replacing any earlier record of the same
     /// path. When `keep` records are already there, the oldest go in the same batch: a client
     /// that sends thousands of bad paths cannot grow the store without bound.
-    pub fn record_failure(&self, f: &FailedRecord, keep: usize) -> Result<(), StoreError> {
-        let _w = self.lock_writer();
+    pub fn record_failure(&mut self, f: &FailedRecord, keep: usize) -> Result<(), StoreError> {
         let key = keys::failure(&f.source);
         let mut others: Vec<(u64, sled::IVec)> = Vec::new();
         for kv in self.db.scan_prefix(keys::FAILURE_PREFIX) {
@@ -1639,8 +1599,7 @@ impl Store {
     }
 
     /// Removes the failure recorded for `source`; whether there was one.
-    pub fn forget_failure(&self, source: &str) -> Result<bool, StoreError> {
-        let _w = self.lock_writer();
+    pub fn forget_failure(&mut self, source: &str) -> Result<bool, StoreError> {
         let key = keys::failure(source);
         if self.db.get(&key)?.is_none() {
             return Ok(false);
@@ -1651,7 +1610,7 @@ impl Store {
         Ok(true)
     }
 
-    pub fn clear_failure(&self, source: &str) -> Result<(), StoreError> {
+    pub fn clear_failure(&mut self, source: &str) -> Result<(), StoreError> {
         if self.db.get(keys::failure(source))?.is_some() {
             self.forget_failure(source)?;
         }
@@ -1674,8 +1633,7 @@ impl Store {
     }
 
     /// Drops the pin of `source`, whose file is gone.
-    pub fn unpin(&self, source: &str) -> Result<(), StoreError> {
-        let _w = self.lock_writer();
+    pub fn unpin(&mut self, source: &str) -> Result<(), StoreError> {
         let mut batch = Writes::default();
         batch.remove(keys::pin(source));
         self.apply(batch)

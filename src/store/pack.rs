@@ -11,6 +11,7 @@
 //! disk, and compacting it grows it further (docs/BENCHMARKS.md, "Store size"); a pack holds
 //! each chunk once.
 
+use crate::sync::lock;
 use std::fs::{File, OpenOptions};
 use std::io;
 use std::os::unix::fs::FileExt;
@@ -120,7 +121,7 @@ impl ChunkStore for PackFile {
     }
 
     fn append(&self, chunks: &[Vec<u8>]) -> io::Result<Vec<Loc>> {
-        let mut end = self.end.lock().unwrap_or_else(|e| e.into_inner());
+        let mut end = lock(&self.end);
         let mut at = *end;
         let mut locs = Vec::with_capacity(chunks.len());
         let mut buf = Vec::with_capacity(chunks.iter().map(Vec::len).sum());
@@ -146,7 +147,7 @@ impl ChunkStore for PackFile {
     }
 
     fn len(&self) -> u64 {
-        *self.end.lock().unwrap_or_else(|e| e.into_inner())
+        *lock(&self.end)
     }
 }
 

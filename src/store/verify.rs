@@ -9,13 +9,13 @@ use super::{
     decode, decode_crs, decode_state, decode_u32, keys, migrate, setting_problem, FailedRecord,
     Status, Store, StoreError, StoredPatches, SurveyRecord,
 };
-use crate::index::lod::{BoxState, IndexConfig};
-use crate::model::edge::{self, EdgePatch};
-use crate::model::evidence::PairEvidence;
-use crate::model::grid::Grid;
-use crate::model::ids::{PatchId, SurveyId};
-use crate::model::patch::PatchLayout;
-use crate::model::survey::Survey;
+use patchwork_core::index::lod::{BoxState, IndexConfig};
+use patchwork_core::model::edge::{self, EdgePatch};
+use patchwork_core::model::evidence::PairEvidence;
+use patchwork_core::model::grid::Grid;
+use patchwork_core::model::ids::{PatchId, SurveyId};
+use patchwork_core::model::patch::PatchLayout;
+use patchwork_core::model::survey::Survey;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
@@ -320,9 +320,10 @@ impl Store {
                     )
                 })
             }),
-            keys::CRS => decode_crs(v, &what, crate::crs::Crs::parse).map(|_| None),
+            keys::CRS => decode_crs(v, &what, patchwork_core::crs::Crs::parse).map(|_| None),
             keys::VERTICAL_CRS => {
-                decode_crs(v, &what, crate::crs::vertical::VerticalCrs::parse).map(|_| None)
+                decode_crs(v, &what, patchwork_core::crs::vertical::VerticalCrs::parse)
+                    .map(|_| None)
             }
             keys::LAYOUT => decode::<PatchLayout>(v, &what).map(|l| {
                 (l != self.layout).then(|| format!("layout {l:?} differs from the open store's"))

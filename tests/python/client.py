@@ -121,7 +121,7 @@ def run_crs(address):
     with pc.Client(address) as c:
         stats = c.stats()
         require(stats.crs_key == "EPSG:4326", f"the store's CRS is {stats.crs_key!r}")
-        crss = sorted(s.crs_key for s in c.surveys() if s.status == "active")
+        crss = sorted(s.crs_key for s in c.surveys() if s.status == pc.SurveyStatus.ACTIVE)
         require(crss == ["EPSG:32631", "EPSG:4326"], f"the surveys' CRSs are {crss}")
         worst, others = 0.0, 0
         # The pair's overlap, the UTM survey's part alone (its east), and a tile across both.

@@ -10,13 +10,17 @@ into a tile on the client, as the daemon's ResampleTile does.
 """
 
 from .client import (
+    AccuracySource,
     Camera,
     ChangeEvent,
     Client,
     Conflict,
+    IngestPhase,
     IngestResult,
     Mesh,
+    Outcome,
     Survey,
+    SurveyStatus,
     TileInfo,
     ViewSession,
     ViewStep,
@@ -24,14 +28,18 @@ from .client import (
 from .patches import Patch, resample
 
 __all__ = [
+    "AccuracySource",
     "Camera",
     "ChangeEvent",
     "Client",
     "Conflict",
+    "IngestPhase",
     "IngestResult",
     "Mesh",
+    "Outcome",
     "Patch",
     "Survey",
+    "SurveyStatus",
     "TileInfo",
     "ViewSession",
     "ViewStep",

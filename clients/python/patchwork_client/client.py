@@ -1,7 +1,8 @@
 """The gRPC client: a method per RPC of the Terrain and Admin services, numpy arrays out."""
 
 import queue
-from dataclasses import dataclass, fields, make_dataclass
+from dataclasses import dataclass, fields, make_dataclass, replace
+from enum import Enum
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
 import grpc
@@ -15,6 +16,62 @@ BACKENDS = {
     "cpu": terrain_pb2.BACKEND_CPU,
     "gpu": terrain_pb2.BACKEND_GPU,
 }
+
+
+class SurveyStatus(str, Enum):
+    """Where a survey, or a file that failed, stands. A ``str``: ``SurveyStatus.ACTIVE ==
+    "active"``."""
+
+    ACTIVE = "active"
+    RETIRED = "retired"
+    FAILED = "failed"
+    #: An active survey whose records or chunks do not read back as written, out of the
+    #: terrain until its file is ingested again or ``repair`` drops it.
+    DAMAGED = "damaged"
+
+
+class Outcome(str, Enum):
+    """What happened to a file or a survey."""
+
+    INSERTED = "inserted"
+    REPLACED = "replaced"
+    UNCHANGED = "unchanged"
+    RETIRED = "retired"
+    FAILED = "failed"
+
+
+class AccuracySource(str, Enum):
+    """Where a survey's accuracy claim came from."""
+
+    SIDECAR = "sidecar"
+    FLAG = "flag"
+    CONFIG = "config"
+    ESTIMATED = "estimated"
+    #: Stored before the store recorded it.
+    UNKNOWN = "unknown"
+
+
+class IngestPhase(str, Enum):
+    """What an ingest under way is doing."""
+
+    READING = "reading"
+    MODELLING = "modelling"
+    INDEXING = "indexing"
+    COMMITTING = "committing"
+
+
+def _wire_enum(cls, message_enum, prefix: str) -> Dict[int, Enum]:
+    """The map from a wire enum's numbers to the client's enum, by the names the proto gives
+    them (``SURVEY_STATUS_ACTIVE`` is ``SurveyStatus.ACTIVE``); the unspecified value is left
+    out, and reads as None."""
+    return {v.number: cls[v.name[len(prefix):]] for v in message_enum.DESCRIPTOR.values
+            if not v.name.endswith("_UNSPECIFIED")}
+
+
+_STATUS = _wire_enum(SurveyStatus, admin_pb2.SurveyStatus, "SURVEY_STATUS_")
+_OUTCOME = _wire_enum(Outcome, admin_pb2.Outcome, "OUTCOME_")
+_ACCURACY_SOURCE = _wire_enum(AccuracySource, admin_pb2.AccuracySource, "ACCURACY_SOURCE_")
+_PHASE = _wire_enum(IngestPhase, admin_pb2.IngestPhase, "INGEST_PHASE_")
 
 
 @dataclass(frozen=True)
@@ -97,13 +154,13 @@ class Conflict:
 class Survey:
     id: str
     source: str
-    #: "active", "retired" or "failed".
-    status: str
+    status: SurveyStatus
     error: str
     #: The largest ε of the survey's kernels as served: its own claims, raised where an
     #: overlapping survey contradicts them.
     accuracy_m: float
-    accuracy_source: str
+    #: None for a file that failed.
+    accuracy_source: Optional[AccuracySource]
     samples: int
     patches: int
     crs: int
@@ -123,8 +180,8 @@ class Survey:
 @dataclass(frozen=True)
 class IngestResult:
     source: str
-    #: "inserted", "replaced", "unchanged" or "failed".
-    outcome: str
+    #: Inserted, replaced, unchanged or failed.
+    outcome: Outcome
     survey: str
     error: str
     samples: int
@@ -134,8 +191,8 @@ class IngestResult:
 
 @dataclass(frozen=True)
 class ChangeEvent:
-    #: "inserted", "retired", "replaced" or "failed".
-    kind: str
+    #: Inserted, replaced, retired or failed.
+    kind: Outcome
     survey: str
     source: str
     error: str
@@ -334,7 +391,7 @@ class Client:
         """Change events as they happen (needs the admin token where the daemon has one).
         Runs without a deadline: cancel by closing the client."""
         for e in self.terrain.Subscribe(terrain_pb2.SubscribeRequest(), metadata=self._metadata):
-            yield ChangeEvent(kind=e.kind, survey=f"{e.survey:016x}", source=e.source, error=e.error,
+            yield ChangeEvent(kind=_OUTCOME[e.outcome], survey=f"{e.survey:016x}", source=e.source, error=e.error,
                               at_unix=e.at_unix, conflicts=_conflicts(e.conflicts))
 
     # --- Admin -------------------------------------------------------------------------
@@ -345,14 +402,14 @@ class Client:
             req.accuracy_m = accuracy_m
         # Ingest takes as long as the files need.
         r = self.admin.Ingest(req, metadata=self._metadata)
-        return [IngestResult(source=i.source, outcome=i.outcome, survey=f"{i.survey:016x}", error=i.error,
+        return [IngestResult(source=i.source, outcome=_OUTCOME[i.outcome], survey=f"{i.survey:016x}", error=i.error,
                              samples=i.samples, seconds=i.seconds, conflicts=_conflicts(i.conflicts))
                 for i in r.results]
 
     def surveys(self) -> List[Survey]:
         r = self._call(self.admin.ListSurveys, admin_pb2.ListSurveysRequest())
-        return [Survey(id=s.id, source=s.source, status=s.status, error=s.error, accuracy_m=s.accuracy_m,
-                       accuracy_source=s.accuracy_source, samples=s.samples, patches=s.patches, crs=s.crs,
+        return [Survey(id=s.id, source=s.source, status=_STATUS[s.status], error=s.error, accuracy_m=s.accuracy_m,
+                       accuracy_source=_ACCURACY_SOURCE.get(s.accuracy_source), samples=s.samples, patches=s.patches, crs=s.crs,
                        conflicts=_conflicts(s.conflicts), crs_key=s.crs_key, vertical_crs=s.vertical_crs,
                        vertical_error_m=s.vertical_error_m, accuracy_median_m=s.accuracy_median_m,
                        accuracy_p90_m=s.accuracy_p90_m, claimed_accuracy_m=s.claimed_accuracy_m)
@@ -366,7 +423,10 @@ class Client:
         self._call(self.admin.Forget, admin_pb2.ForgetRequest(source=source))
 
     def stats(self):
-        return _from_message(Stats, self._call(self.admin.Stats, admin_pb2.StatsRequest()))
+        """The store's figures; ``ingesting_phase`` is an :class:`IngestPhase`, None when no
+        ingest is under way."""
+        s = _from_message(Stats, self._call(self.admin.Stats, admin_pb2.StatsRequest()))
+        return replace(s, ingesting_phase=_PHASE.get(s.ingesting_phase))
 
     def verify(self):
         return _from_message(VerifyResult, self.admin.Verify(admin_pb2.VerifyRequest(), metadata=self._metadata))

@@ -25,15 +25,23 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18patchwork/v1/admin.proto\x12\x0cpatchwork.v1\"F\n\rIngestRequest\x12\r\n\x05paths\x18\x01 \x03(\t\x12\x17\n\naccuracy_m\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\r\n\x0b_accuracy_m\"\x99\x01\n\x08\x43onflict\x12\x0e\n\x06survey\x18\x01 \x01(\t\x12\r\n\x05max_m\x18\x02 \x01(\x01\x12\r\n\x05rms_m\x18\x03 \x01(\x01\x12\'\n\x05shift\x18\x04 \x01(\x0b\x32\x13.patchwork.v1.ShiftH\x00\x88\x01\x01\x12,\n\ndistrusted\x18\x05 \x01(\x0e\x32\x18.patchwork.v1.DistrustedB\x08\n\x06_shift\"K\n\x05Shift\x12\x0e\n\x06\x65\x61st_m\x18\x01 \x01(\x01\x12\x0f\n\x07north_m\x18\x02 \x01(\x01\x12\x0c\n\x04up_m\x18\x03 \x01(\x01\x12\x13\n\x0brms_after_m\x18\x04 \x01(\x01\"\x9b\x01\n\x0cIngestResult\x12\x0e\n\x06source\x18\x01 \x01(\t\x12\x0f\n\x07outcome\x18\x02 \x01(\t\x12\x0e\n\x06survey\x18\x03 \x01(\x06\x12\r\n\x05\x65rror\x18\x04 \x01(\t\x12\x0f\n\x07samples\x18\x05 \x01(\x04\x12\x0f\n\x07seconds\x18\x06 \x01(\x01\x12)\n\tconflicts\x18\x07 \x03(\x0b\x32\x16.patchwork.v1.Conflict\":\n\x0bIngestReply\x12+\n\x07results\x18\x01 \x03(\x0b\x32\x1a.patchwork.v1.IngestResult\"\x14\n\x12ListSurveysRequest\"\xde\x02\n\nSurveyInfo\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12\x0e\n\x06status\x18\x03 \x01(\t\x12\r\n\x05\x65rror\x18\x04 \x01(\t\x12\x12\n\naccuracy_m\x18\x05 \x01(\x01\x12\x19\n\x11\x61\x63\x63uracy_median_m\x18\x0e \x01(\x01\x12\x16\n\x0e\x61\x63\x63uracy_p90_m\x18\x0f \x01(\x01\x12\x1a\n\x12\x63laimed_accuracy_m\x18\x10 \x01(\x01\x12\x0f\n\x07samples\x18\x06 \x01(\x04\x12\x0b\n\x03\x63rs\x18\x07 \x01(\r\x12\x0f\n\x07\x63rs_key\x18\x0b \x01(\t\x12\x0f\n\x07patches\x18\x08 \x01(\r\x12\x17\n\x0f\x61\x63\x63uracy_source\x18\t \x01(\t\x12)\n\tconflicts\x18\n \x03(\x0b\x32\x16.patchwork.v1.Conflict\x12\x14\n\x0cvertical_crs\x18\x0c \x01(\t\x12\x18\n\x10vertical_error_m\x18\r \x01(\x01\"7\n\nSurveyList\x12)\n\x07surveys\x18\x01 \x03(\x0b\x32\x18.patchwork.v1.SurveyInfo\"%\n\rRetireRequest\x12\x14\n\x0cid_or_source\x18\x01 \x01(\t\"*\n\x0bRetireReply\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0f\n\x07patches\x18\x02 \x01(\r\"\x1f\n\rForgetRequest\x12\x0e\n\x06source\x18\x01 \x01(\t\"\r\n\x0b\x46orgetReply\"\x0e\n\x0cStatsRequest\"\xb4\x04\n\nStatsReply\x12\x0f\n\x07surveys\x18\x01 \x01(\r\x12\x0f\n\x07retired\x18\x02 \x01(\r\x12\x0e\n\x06\x66\x61iled\x18\x03 \x01(\r\x12\x0f\n\x07patches\x18\x04 \x01(\x04\x12\x14\n\x0c\x61\x63tive_boxes\x18\x05 \x01(\x04\x12\x0f\n\x07samples\x18\x06 \x01(\x04\x12\x12\n\ndisk_bytes\x18\x07 \x01(\x04\x12\x0b\n\x03\x63rs\x18\x08 \x01(\r\x12\x0f\n\x07\x63rs_key\x18\x18 \x01(\t\x12\x14\n\x0cvertical_crs\x18\x19 \x01(\t\x12\x0f\n\x07\x62\x61\x63kend\x18\t \x01(\t\x12\x16\n\x0equadtree_nodes\x18\n \x01(\r\x12\x11\n\tread_only\x18\x0b \x01(\t\x12\x13\n\x0b\x63\x61\x63he_bytes\x18\x0c \x01(\x04\x12\x1c\n\x14\x63\x61\x63he_capacity_bytes\x18\r \x01(\x04\x12\x12\n\ncache_hits\x18\x0e \x01(\x04\x12\x14\n\x0c\x63\x61\x63he_misses\x18\x0f \x01(\x04\x12\x18\n\x10ingesting_source\x18\x10 \x01(\t\x12\x17\n\x0fingesting_bytes\x18\x11 \x01(\x04\x12\x17\n\x0fingesting_phase\x18\x12 \x01(\t\x12\x19\n\x11ingesting_seconds\x18\x13 \x01(\x01\x12\x18\n\x10requests_running\x18\x14 \x01(\r\x12\x18\n\x10requests_waiting\x18\x15 \x01(\r\x12\x17\n\x0frequests_served\x18\x16 \x01(\x04\x12\x16\n\x0erequests_limit\x18\x17 \x01(\r\x12\x0f\n\x07\x64\x61maged\x18\x1a \x01(\r\"\x0f\n\rVerifyRequest\"M\n\x0bVerifyReply\x12\n\n\x02ok\x18\x01 \x01(\x08\x12\x10\n\x08problems\x18\x02 \x03(\t\x12\x0f\n\x07surveys\x18\x03 \x01(\r\x12\x0f\n\x07patches\x18\x04 \x01(\x04\"\x0f\n\rRepairRequest\";\n\x0bRepairReply\x12,\n\x07\x64ropped\x18\x01 \x03(\x0b\x32\x1b.patchwork.v1.DroppedSurvey\";\n\rDroppedSurvey\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12\x0e\n\x06reason\x18\x03 \x01(\t\"\x10\n\x0e\x43ompactRequest\"R\n\x0c\x43ompactReply\x12\x14\n\x0c\x62ytes_before\x18\x01 \x01(\x04\x12\x13\n\x0b\x62ytes_after\x18\x02 \x01(\x04\x12\x17\n\x0fsurveys_removed\x18\x03 \x01(\r*h\n\nDistrusted\x12\x1a\n\x16\x44ISTRUSTED_UNSPECIFIED\x10\x00\x12\x13\n\x0f\x44ISTRUSTED_THIS\x10\x01\x12\x14\n\x10\x44ISTRUSTED_OTHER\x10\x02\x12\x13\n\x0f\x44ISTRUSTED_BOTH\x10\x03\x32\xa0\x04\n\x05\x41\x64min\x12@\n\x06Ingest\x12\x1b.patchwork.v1.IngestRequest\x1a\x19.patchwork.v1.IngestReply\x12I\n\x0bListSurveys\x12 .patchwork.v1.ListSurveysRequest\x1a\x18.patchwork.v1.SurveyList\x12@\n\x06Retire\x12\x1b.patchwork.v1.RetireRequest\x1a\x19.patchwork.v1.RetireReply\x12@\n\x06\x46orget\x12\x1b.patchwork.v1.ForgetRequest\x1a\x19.patchwork.v1.ForgetReply\x12=\n\x05Stats\x12\x1a.patchwork.v1.StatsRequest\x1a\x18.patchwork.v1.StatsReply\x12@\n\x06Verify\x12\x1b.patchwork.v1.VerifyRequest\x1a\x19.patchwork.v1.VerifyReply\x12@\n\x06Repair\x12\x1b.patchwork.v1.RepairRequest\x1a\x19.patchwork.v1.RepairReply\x12\x43\n\x07\x43ompact\x12\x1c.patchwork.v1.CompactRequest\x1a\x1a.patchwork.v1.CompactReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18patchwork/v1/admin.proto\x12\x0cpatchwork.v1\"F\n\rIngestRequest\x12\r\n\x05paths\x18\x01 \x03(\t\x12\x17\n\naccuracy_m\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\r\n\x0b_accuracy_m\"\x99\x01\n\x08\x43onflict\x12\x0e\n\x06survey\x18\x01 \x01(\t\x12\r\n\x05max_m\x18\x02 \x01(\x01\x12\r\n\x05rms_m\x18\x03 \x01(\x01\x12\'\n\x05shift\x18\x04 \x01(\x0b\x32\x13.patchwork.v1.ShiftH\x00\x88\x01\x01\x12,\n\ndistrusted\x18\x05 \x01(\x0e\x32\x18.patchwork.v1.DistrustedB\x08\n\x06_shift\"K\n\x05Shift\x12\x0e\n\x06\x65\x61st_m\x18\x01 \x01(\x01\x12\x0f\n\x07north_m\x18\x02 \x01(\x01\x12\x0c\n\x04up_m\x18\x03 \x01(\x01\x12\x13\n\x0brms_after_m\x18\x04 \x01(\x01\"\xb8\x01\n\x0cIngestResult\x12\x0e\n\x06source\x18\x01 \x01(\t\x12&\n\x07outcome\x18\x08 \x01(\x0e\x32\x15.patchwork.v1.Outcome\x12\x0e\n\x06survey\x18\x03 \x01(\x06\x12\r\n\x05\x65rror\x18\x04 \x01(\t\x12\x0f\n\x07samples\x18\x05 \x01(\x04\x12\x0f\n\x07seconds\x18\x06 \x01(\x01\x12)\n\tconflicts\x18\x07 \x03(\x0b\x32\x16.patchwork.v1.ConflictJ\x04\x08\x02\x10\x03\":\n\x0bIngestReply\x12+\n\x07results\x18\x01 \x03(\x0b\x32\x1a.patchwork.v1.IngestResult\"\x14\n\x12ListSurveysRequest\"\xa4\x03\n\nSurveyInfo\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12*\n\x06status\x18\x11 \x01(\x0e\x32\x1a.patchwork.v1.SurveyStatus\x12\r\n\x05\x65rror\x18\x04 \x01(\t\x12\x12\n\naccuracy_m\x18\x05 \x01(\x01\x12\x19\n\x11\x61\x63\x63uracy_median_m\x18\x0e \x01(\x01\x12\x16\n\x0e\x61\x63\x63uracy_p90_m\x18\x0f \x01(\x01\x12\x1a\n\x12\x63laimed_accuracy_m\x18\x10 \x01(\x01\x12\x0f\n\x07samples\x18\x06 \x01(\x04\x12\x0b\n\x03\x63rs\x18\x07 \x01(\r\x12\x0f\n\x07\x63rs_key\x18\x0b \x01(\t\x12\x0f\n\x07patches\x18\x08 \x01(\r\x12\x35\n\x0f\x61\x63\x63uracy_source\x18\x12 \x01(\x0e\x32\x1c.patchwork.v1.AccuracySource\x12)\n\tconflicts\x18\n \x03(\x0b\x32\x16.patchwork.v1.Conflict\x12\x14\n\x0cvertical_crs\x18\x0c \x01(\t\x12\x18\n\x10vertical_error_m\x18\r \x01(\x01J\x04\x08\x03\x10\x04J\x04\x08\t\x10\n\"7\n\nSurveyList\x12)\n\x07surveys\x18\x01 \x03(\x0b\x32\x18.patchwork.v1.SurveyInfo\"%\n\rRetireRequest\x12\x14\n\x0cid_or_source\x18\x01 \x01(\t\"*\n\x0bRetireReply\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0f\n\x07patches\x18\x02 \x01(\r\"\x1f\n\rForgetRequest\x12\x0e\n\x06source\x18\x01 \x01(\t\"\r\n\x0b\x46orgetReply\"\x0e\n\x0cStatsRequest\"\xd5\x04\n\nStatsReply\x12\x0f\n\x07surveys\x18\x01 \x01(\r\x12\x0f\n\x07retired\x18\x02 \x01(\r\x12\x0e\n\x06\x66\x61iled\x18\x03 \x01(\r\x12\x0f\n\x07patches\x18\x04 \x01(\x04\x12\x14\n\x0c\x61\x63tive_boxes\x18\x05 \x01(\x04\x12\x0f\n\x07samples\x18\x06 \x01(\x04\x12\x12\n\ndisk_bytes\x18\x07 \x01(\x04\x12\x0b\n\x03\x63rs\x18\x08 \x01(\r\x12\x0f\n\x07\x63rs_key\x18\x18 \x01(\t\x12\x14\n\x0cvertical_crs\x18\x19 \x01(\t\x12\x0f\n\x07\x62\x61\x63kend\x18\t \x01(\t\x12\x16\n\x0equadtree_nodes\x18\n \x01(\r\x12\x11\n\tread_only\x18\x0b \x01(\t\x12\x13\n\x0b\x63\x61\x63he_bytes\x18\x0c \x01(\x04\x12\x1c\n\x14\x63\x61\x63he_capacity_bytes\x18\r \x01(\x04\x12\x12\n\ncache_hits\x18\x0e \x01(\x04\x12\x14\n\x0c\x63\x61\x63he_misses\x18\x0f \x01(\x04\x12\x18\n\x10ingesting_source\x18\x10 \x01(\t\x12\x17\n\x0fingesting_bytes\x18\x11 \x01(\x04\x12\x32\n\x0fingesting_phase\x18\x1b \x01(\x0e\x32\x19.patchwork.v1.IngestPhase\x12\x19\n\x11ingesting_seconds\x18\x13 \x01(\x01\x12\x18\n\x10requests_running\x18\x14 \x01(\r\x12\x18\n\x10requests_waiting\x18\x15 \x01(\r\x12\x17\n\x0frequests_served\x18\x16 \x01(\x04\x12\x16\n\x0erequests_limit\x18\x17 \x01(\r\x12\x0f\n\x07\x64\x61maged\x18\x1a \x01(\rJ\x04\x08\x12\x10\x13\"\x0f\n\rVerifyRequest\"M\n\x0bVerifyReply\x12\n\n\x02ok\x18\x01 \x01(\x08\x12\x10\n\x08problems\x18\x02 \x03(\t\x12\x0f\n\x07surveys\x18\x03 \x01(\r\x12\x0f\n\x07patches\x18\x04 \x01(\x04\"\x0f\n\rRepairRequest\";\n\x0bRepairReply\x12,\n\x07\x64ropped\x18\x01 \x03(\x0b\x32\x1b.patchwork.v1.DroppedSurvey\";\n\rDroppedSurvey\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12\x0e\n\x06reason\x18\x03 \x01(\t\"\x10\n\x0e\x43ompactRequest\"R\n\x0c\x43ompactReply\x12\x14\n\x0c\x62ytes_before\x18\x01 \x01(\x04\x12\x13\n\x0b\x62ytes_after\x18\x02 \x01(\x04\x12\x17\n\x0fsurveys_removed\x18\x03 \x01(\r*h\n\nDistrusted\x12\x1a\n\x16\x44ISTRUSTED_UNSPECIFIED\x10\x00\x12\x13\n\x0f\x44ISTRUSTED_THIS\x10\x01\x12\x14\n\x10\x44ISTRUSTED_OTHER\x10\x02\x12\x13\n\x0f\x44ISTRUSTED_BOTH\x10\x03*\x8e\x01\n\x07Outcome\x12\x17\n\x13OUTCOME_UNSPECIFIED\x10\x00\x12\x14\n\x10OUTCOME_INSERTED\x10\x01\x12\x14\n\x10OUTCOME_REPLACED\x10\x02\x12\x15\n\x11OUTCOME_UNCHANGED\x10\x03\x12\x13\n\x0fOUTCOME_RETIRED\x10\x04\x12\x12\n\x0eOUTCOME_FAILED\x10\x05*\x97\x01\n\x0cSurveyStatus\x12\x1d\n\x19SURVEY_STATUS_UNSPECIFIED\x10\x00\x12\x18\n\x14SURVEY_STATUS_ACTIVE\x10\x01\x12\x19\n\x15SURVEY_STATUS_RETIRED\x10\x02\x12\x18\n\x14SURVEY_STATUS_FAILED\x10\x03\x12\x19\n\x15SURVEY_STATUS_DAMAGED\x10\x04*\xc0\x01\n\x0e\x41\x63\x63uracySource\x12\x1f\n\x1b\x41\x43\x43URACY_SOURCE_UNSPECIFIED\x10\x00\x12\x1b\n\x17\x41\x43\x43URACY_SOURCE_SIDECAR\x10\x01\x12\x18\n\x14\x41\x43\x43URACY_SOURCE_FLAG\x10\x02\x12\x1a\n\x16\x41\x43\x43URACY_SOURCE_CONFIG\x10\x03\x12\x1d\n\x19\x41\x43\x43URACY_SOURCE_ESTIMATED\x10\x04\x12\x1b\n\x17\x41\x43\x43URACY_SOURCE_UNKNOWN\x10\x05*\x99\x01\n\x0bIngestPhase\x12\x1c\n\x18INGEST_PHASE_UNSPECIFIED\x10\x00\x12\x18\n\x14INGEST_PHASE_READING\x10\x01\x12\x1a\n\x16INGEST_PHASE_MODELLING\x10\x02\x12\x19\n\x15INGEST_PHASE_INDEXING\x10\x03\x12\x1b\n\x17INGEST_PHASE_COMMITTING\x10\x04\x32\xa0\x04\n\x05\x41\x64min\x12@\n\x06Ingest\x12\x1b.patchwork.v1.IngestRequest\x1a\x19.patchwork.v1.IngestReply\x12I\n\x0bListSurveys\x12 .patchwork.v1.ListSurveysRequest\x1a\x18.patchwork.v1.SurveyList\x12@\n\x06Retire\x12\x1b.patchwork.v1.RetireRequest\x1a\x19.patchwork.v1.RetireReply\x12@\n\x06\x46orget\x12\x1b.patchwork.v1.ForgetRequest\x1a\x19.patchwork.v1.ForgetReply\x12=\n\x05Stats\x12\x1a.patchwork.v1.StatsRequest\x1a\x18.patchwork.v1.StatsReply\x12@\n\x06Verify\x12\x1b.patchwork.v1.VerifyRequest\x1a\x19.patchwork.v1.VerifyReply\x12@\n\x06Repair\x12\x1b.patchwork.v1.RepairRequest\x1a\x19.patchwork.v1.RepairReply\x12\x43\n\x07\x43ompact\x12\x1c.patchwork.v1.CompactRequest\x1a\x1a.patchwork.v1.CompactReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'patchwork.v1.admin_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_DISTRUSTED']._serialized_start=2048
-  _globals['_DISTRUSTED']._serialized_end=2152
+  _globals['_DISTRUSTED']._serialized_start=2180
+  _globals['_DISTRUSTED']._serialized_end=2284
+  _globals['_OUTCOME']._serialized_start=2287
+  _globals['_OUTCOME']._serialized_end=2429
+  _globals['_SURVEYSTATUS']._serialized_start=2432
+  _globals['_SURVEYSTATUS']._serialized_end=2583
+  _globals['_ACCURACYSOURCE']._serialized_start=2586
+  _globals['_ACCURACYSOURCE']._serialized_end=2778
+  _globals['_INGESTPHASE']._serialized_start=2781
+  _globals['_INGESTPHASE']._serialized_end=2934
   _globals['_INGESTREQUEST']._serialized_start=42
   _globals['_INGESTREQUEST']._serialized_end=112
   _globals['_CONFLICT']._serialized_start=115
@@ -41,41 +49,41 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_SHIFT']._serialized_start=270
   _globals['_SHIFT']._serialized_end=345
   _globals['_INGESTRESULT']._serialized_start=348
-  _globals['_INGESTRESULT']._serialized_end=503
-  _globals['_INGESTREPLY']._serialized_start=505
-  _globals['_INGESTREPLY']._serialized_end=563
-  _globals['_LISTSURVEYSREQUEST']._serialized_start=565
-  _globals['_LISTSURVEYSREQUEST']._serialized_end=585
-  _globals['_SURVEYINFO']._serialized_start=588
-  _globals['_SURVEYINFO']._serialized_end=938
-  _globals['_SURVEYLIST']._serialized_start=940
-  _globals['_SURVEYLIST']._serialized_end=995
-  _globals['_RETIREREQUEST']._serialized_start=997
-  _globals['_RETIREREQUEST']._serialized_end=1034
-  _globals['_RETIREREPLY']._serialized_start=1036
-  _globals['_RETIREREPLY']._serialized_end=1078
-  _globals['_FORGETREQUEST']._serialized_start=1080
-  _globals['_FORGETREQUEST']._serialized_end=1111
-  _globals['_FORGETREPLY']._serialized_start=1113
-  _globals['_FORGETREPLY']._serialized_end=1126
-  _globals['_STATSREQUEST']._serialized_start=1128
-  _globals['_STATSREQUEST']._serialized_end=1142
-  _globals['_STATSREPLY']._serialized_start=1145
-  _globals['_STATSREPLY']._serialized_end=1709
-  _globals['_VERIFYREQUEST']._serialized_start=1711
-  _globals['_VERIFYREQUEST']._serialized_end=1726
-  _globals['_VERIFYREPLY']._serialized_start=1728
-  _globals['_VERIFYREPLY']._serialized_end=1805
-  _globals['_REPAIRREQUEST']._serialized_start=1807
-  _globals['_REPAIRREQUEST']._serialized_end=1822
-  _globals['_REPAIRREPLY']._serialized_start=1824
-  _globals['_REPAIRREPLY']._serialized_end=1883
-  _globals['_DROPPEDSURVEY']._serialized_start=1885
-  _globals['_DROPPEDSURVEY']._serialized_end=1944
-  _globals['_COMPACTREQUEST']._serialized_start=1946
-  _globals['_COMPACTREQUEST']._serialized_end=1962
-  _globals['_COMPACTREPLY']._serialized_start=1964
-  _globals['_COMPACTREPLY']._serialized_end=2046
-  _globals['_ADMIN']._serialized_start=2155
-  _globals['_ADMIN']._serialized_end=2699
+  _globals['_INGESTRESULT']._serialized_end=532
+  _globals['_INGESTREPLY']._serialized_start=534
+  _globals['_INGESTREPLY']._serialized_end=592
+  _globals['_LISTSURVEYSREQUEST']._serialized_start=594
+  _globals['_LISTSURVEYSREQUEST']._serialized_end=614
+  _globals['_SURVEYINFO']._serialized_start=617
+  _globals['_SURVEYINFO']._serialized_end=1037
+  _globals['_SURVEYLIST']._serialized_start=1039
+  _globals['_SURVEYLIST']._serialized_end=1094
+  _globals['_RETIREREQUEST']._serialized_start=1096
+  _globals['_RETIREREQUEST']._serialized_end=1133
+  _globals['_RETIREREPLY']._serialized_start=1135
+  _globals['_RETIREREPLY']._serialized_end=1177
+  _globals['_FORGETREQUEST']._serialized_start=1179
+  _globals['_FORGETREQUEST']._serialized_end=1210
+  _globals['_FORGETREPLY']._serialized_start=1212
+  _globals['_FORGETREPLY']._serialized_end=1225
+  _globals['_STATSREQUEST']._serialized_start=1227
+  _globals['_STATSREQUEST']._serialized_end=1241
+  _globals['_STATSREPLY']._serialized_start=1244
+  _globals['_STATSREPLY']._serialized_end=1841
+  _globals['_VERIFYREQUEST']._serialized_start=1843
+  _globals['_VERIFYREQUEST']._serialized_end=1858
+  _globals['_VERIFYREPLY']._serialized_start=1860
+  _globals['_VERIFYREPLY']._serialized_end=1937
+  _globals['_REPAIRREQUEST']._serialized_start=1939
+  _globals['_REPAIRREQUEST']._serialized_end=1954
+  _globals['_REPAIRREPLY']._serialized_start=1956
+  _globals['_REPAIRREPLY']._serialized_end=2015
+  _globals['_DROPPEDSURVEY']._serialized_start=2017
+  _globals['_DROPPEDSURVEY']._serialized_end=2076
+  _globals['_COMPACTREQUEST']._serialized_start=2078
+  _globals['_COMPACTREQUEST']._serialized_end=2094
+  _globals['_COMPACTREPLY']._serialized_start=2096
+  _globals['_COMPACTREPLY']._serialized_end=2178
+  _globals['_ADMIN']._serialized_start=2937
+  _globals['_ADMIN']._serialized_end=3481
 # @@protoc_insertion_point(module_scope)

@@ -1,0 +1,145 @@
+//! GPU against CPU resampling over the full Copernicus N34W119 tile: samples per second for
+//! 256² to 2048² uniform tiles at a few cut errors (so a few patch counts), with the GPU's
+//! time split into preparation (binning, packing), upload, compute and readback.
+//!
+//! cargo bench -p patchwork-bench --bench gpu   (PATCHWORK_SHARED_DATA points at the data folder)
+//!
+//! "cold" is the first request, which uploads every patch's samples; "warm" finds them on the
+//! device and uploads only the points, patch table and bins.
+
+use patchwork::gpu::{Emulated, GpuResampler, GpuTimings};
+use patchwork_core::geom::Aabb;
+use patchwork_core::index::lod::IndexConfig;
+use patchwork_core::model::patch::PatchLayout;
+use patchwork_core::model::survey::Survey;
+use patchwork_core::resample::{cpu, SampleGrid};
+use patchwork_core::terrain::Terrain;
+use patchwork_read::{read_raster, ReadLimits};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+fn data(name: &str) -> PathBuf {
+    std::env::var_os("PATCHWORK_SHARED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data"))
+        .join(name)
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+fn main() {
+    // `cargo test --benches` runs this with --bench absent; only time when asked to.
+    if !std::env::args().any(|a| a == "--bench") {
+        return;
+    }
+    let mut gpu = match GpuResampler::new(Emulated::Allow) {
+        Ok(g) => g,
+        Err(e) => {
+            println!("no GPU adapter ({e}); nothing to compare");
+            return;
+        }
+    };
+    println!("adapter: {}", gpu.adapter());
+    let name = "Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif";
+    let t0 = Instant::now();
+    let grid = read_raster(&data(name), &ReadLimits::default())
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+        .into_grid()
+        .unwrap();
+    let s = Arc::new(
+        Survey::build(
+            grid,
+            0.0,
+            Some(patchwork_core::crs::Crs::epsg(4326).unwrap()),
+            PatchLayout::default(),
+        )
+        .unwrap(),
+    );
+    let mut t = Terrain::new(IndexConfig::default());
+    t.insert(s.clone());
+    println!(
+        "{name}: {} patches, built in {:.1} s",
+        s.patches.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    let full = s.levels[0].world_bounds();
+    // A quarter of the tile (900 × 900 samples) and the whole tile (3600 × 3600).
+    let quarter = Aabb {
+        min: full.min,
+        max: [
+            full.min[0] + 0.25 * full.width(),
+            full.min[1] + 0.25 * full.height(),
+        ],
+    };
+    println!(
+        "{:>9} {:>5} {:>6} {:>8} | {:>10} | {:>10} {:>10} | {:>8} {:>8} {:>8} {:>8} | {:>9} {:>9}",
+        "roi",
+        "e",
+        "size",
+        "patches",
+        "cpu Ms/s",
+        "gpu Ms/s",
+        "gpu+x Ms/s",
+        "prep ms",
+        "up ms",
+        "comp ms",
+        "read ms",
+        "cold up",
+        "max |Δ|"
+    );
+    for (label, roi) in [("quarter", quarter), ("full", full)] {
+        for e in [0.0, 20.0] {
+            let ps = t.uniform(&roi, e);
+            let set = t.resolve(&ps);
+            for n in [256usize, 512, 1024, 2048] {
+                let grid = SampleGrid::uniform(&roi, n, n);
+                let samples = (n * n) as f64;
+                let t1 = Instant::now();
+                let want = cpu::resample(&set, &grid);
+                let cpu_s = t1.elapsed().as_secs_f64();
+
+                // A fresh cache, so the first request is cold.
+                gpu = GpuResampler::new(Emulated::Allow).unwrap();
+                let (_, cold) = gpu.resample_timed(&set, &grid).unwrap();
+                let mut best: Option<GpuTimings> = None;
+                let mut got = Vec::new();
+                for _ in 0..2 {
+                    let (h, tm) = gpu.resample_timed(&set, &grid).unwrap();
+                    got = h;
+                    if best.as_ref().is_none_or(|b| tm.compute < b.compute) {
+                        best = Some(tm);
+                    }
+                }
+                let tm = best.unwrap();
+                let worst = got
+                    .iter()
+                    .zip(&want)
+                    .filter(|(a, b)| !a.is_nan() && !b.is_nan())
+                    .map(|(a, b)| (*a as f64 - *b as f64).abs())
+                    .fold(0.0, f64::max);
+                let total = tm.prepare + tm.upload + tm.compute + tm.readback;
+                println!(
+                    "{label:>9} {e:>5} {n:>6} {:>8} | {:>10.2} | {:>10.2} {:>10.2} | {:>8.1} {:>8.1} {:>8.1} {:>8.1} | {:>6.1} ms {:>9.1e}",
+                    set.patches.len(),
+                    samples / cpu_s / 1e6,
+                    samples / tm.compute.as_secs_f64() / 1e6,
+                    samples / total.as_secs_f64() / 1e6,
+                    ms(tm.prepare),
+                    ms(tm.upload),
+                    ms(tm.compute),
+                    ms(tm.readback),
+                    ms(cold.upload),
+                    worst
+                );
+            }
+        }
+    }
+    println!(
+        "cpu: {} rayon threads; gpu Ms/s counts the dispatch alone, gpu+x adds preparation, \
+         upload and readback of a warm request; cold up is the first request's upload",
+        rayon::current_num_threads()
+    );
+}

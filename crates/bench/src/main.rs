@@ -1,0 +1,142 @@
+//! `patchwork-bench`: speed beside measured accuracy on real surveys, with GDAL, martini and
+//! delatin on the same data (docs/BENCHMARKS.md). A crate of its own, outside the workspace's
+//! default members, so that the daemon carries none of the bench, its charts or their font.
+
+use clap::Parser;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+/// Measure speed against accuracy on real surveys, with GDAL on the same tiles.
+#[derive(Parser)]
+#[command(name = "patchwork-bench", version)]
+struct Cli {
+    /// Surveys to ingest; by default the Copernicus + NASADEM N34W119 pair and N44E005.hgt
+    /// from the shared data folder (the committed crops with --smoke).
+    files: Vec<PathBuf>,
+    /// Where the CSV, charts and tiles go.
+    #[arg(long, default_value = "docs/bench")]
+    out: PathBuf,
+    /// A run of a few seconds that proves the bench still works.
+    #[arg(long)]
+    smoke: bool,
+    /// Skip the comparisons in Python: GDAL on the same tiles, martini and delatin on the
+    /// same surveys (python3 -m pip install -r bench/requirements.txt).
+    #[arg(long)]
+    no_gdal: bool,
+    /// Only the mesh triangulations, and their comparison with martini and delatin: a few
+    /// minutes where the whole bench takes half an hour.
+    #[arg(long)]
+    meshes_only: bool,
+    /// Only the surveys of two CRSs in one store, and their tiles beside GDAL's warps.
+    #[arg(long, conflicts_with = "meshes_only")]
+    crs_only: bool,
+    /// Only the copies of the surveys (blurred, shifted, offset, coarser) beside their
+    /// originals: what the store makes of each, before and after it distrusts them.
+    #[arg(long, conflicts_with_all = ["meshes_only", "crs_only"])]
+    copies_only: bool,
+}
+
+fn main() -> ExitCode {
+    // As the daemon does: the ingest figures are the daemon's.
+    patchwork::tune_allocator();
+    match run(Cli::parse()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("patchwork-bench: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
+    let Cli {
+        files,
+        out,
+        smoke,
+        no_gdal,
+        meshes_only,
+        crs_only,
+        copies_only,
+    } = cli;
+    let files = if !files.is_empty() {
+        files
+    } else if smoke {
+        [
+            "copernicus_n34w119_crop.tif",
+            "nasadem_n34w119_crop.tif",
+            "srtm_n44e005_voids_crop.tif",
+        ]
+        .iter()
+        .map(|f| Path::new("tests/data").join(f))
+        .collect()
+    } else {
+        let shared = std::env::var_os("PATCHWORK_SHARED_DATA")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("../shared/data"));
+        [
+            "Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif",
+            "NASADEM_HGT_n34w119.tif",
+            "N44E005.hgt",
+        ]
+        .iter()
+        .map(|f| shared.join(f))
+        .collect()
+    };
+    let opts = patchwork_bench::Options {
+        files,
+        out: out.clone(),
+        smoke,
+    };
+    if copies_only {
+        patchwork_bench::run_copies(&opts)?;
+        println!("wrote {}", out.display());
+        return Ok(());
+    }
+    if meshes_only {
+        patchwork_bench::run_meshes(&opts)?;
+    } else if crs_only {
+        patchwork_bench::run_crs(&opts)?;
+    } else {
+        patchwork_bench::run(&opts)?;
+    }
+    if !no_gdal && !meshes_only {
+        // The main tiles, then those of surveys in two CRSs.
+        let runs: &[(&str, &str)] = if crs_only {
+            &[("crs_manifest.json", "crs_gdal.csv")]
+        } else {
+            &[
+                ("manifest.json", "gdal.csv"),
+                ("crs_manifest.json", "crs_gdal.csv"),
+            ]
+        };
+        for (manifest, csv) in runs {
+            let status = std::process::Command::new("python3")
+                .arg("bench/gdal_compare.py")
+                .arg(out.join("tiles").join(manifest))
+                .arg(out.join(csv))
+                .status()
+                .map_err(|e| {
+                    format!(
+                        "cannot run python3 for the GDAL comparison: {e}; use --no-gdal to skip it"
+                    )
+                })?;
+            if !status.success() {
+                return Err("the GDAL comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
+            }
+        }
+    }
+    if !no_gdal && !crs_only {
+        let status = std::process::Command::new("python3")
+            .arg("bench/mesh_compare.py")
+            .arg(&out)
+            .args(meshes_only.then_some("--meshes-only"))
+            .args(if meshes_only { &opts.files[..] } else { &[] })
+            .status()
+            .map_err(|e| format!("cannot run python3 for the mesh comparison: {e}"))?;
+        if !status.success() {
+            return Err("the mesh comparison failed (python3 -m pip install -r bench/requirements.txt); use --no-gdal to skip it".into());
+        }
+    }
+    println!("wrote {}", out.display());
+    Ok(())
+}

@@ -1,0 +1,1365 @@
+//! The in-memory engine: surveys, the edge patches their lattices call for, their LOD index,
+//! and the queries and tiles built on them. It does no I/O: the samples of stored surveys come
+//! through a [`SampleSource`], and the store persists what it holds.
+
+use patchwork_crs::Crs;
+use patchwork_geom::Aabb;
+use patchwork_index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, PatchBox};
+use patchwork_index::query::{shortfall, Extracted, Shortfall, ViewQuery};
+use patchwork_model::coreg::Degraded;
+use patchwork_model::edge::{self, EdgePatch, Member};
+use patchwork_model::evidence::{self, Blame, Contradicted, PairEvidence};
+use patchwork_model::grid::{Grid, SampleRect, Window};
+use patchwork_model::ids::{PatchId, SurveyId};
+use patchwork_model::lattice::{tile_of, Lattice};
+use patchwork_model::patch::Patch;
+use patchwork_model::place::{
+    self, Frame, PlaceError, Plane, PlaneId, Planes, Residuals, STORE_PLANE,
+};
+use patchwork_model::source::{SampleError, SampleSource};
+use patchwork_model::survey::{Survey, SurveyMeta};
+use patchwork_resample::{cpu, Cancel, PatchSet, ResolvedPatch, SampleGrid};
+use rayon::prelude::*;
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::sync::Arc;
+
+/// Why a survey could not be inserted or retired.
+#[derive(Clone, Debug, thiserror::Error, PartialEq)]
+pub enum TerrainError {
+    /// The samples of the survey or of a neighbour could not be read.
+    #[error(transparent)]
+    Samples(#[from] SampleError),
+    /// The survey could not be placed in the terrain's CRS.
+    #[error(transparent)]
+    Place(#[from] PlaceError),
+}
+
+/// The bounds, in a plane, of a rectangle of the store's plane: its border carried there
+/// (the store's plane itself for None), a thousandth of its extent wider.
+fn native_bounds(plane: Option<&Plane>, b: &Aabb) -> Option<Aabb> {
+    let Some(plane) = plane else {
+        return Some(*b);
+    };
+    let n = 32;
+    let mut pts = Vec::with_capacity(4 * n);
+    for k in 0..n {
+        let t = k as f64 / n as f64;
+        let (x, y) = (b.min[0] + t * b.width(), b.min[1] + t * b.height());
+        for p in [
+            [x, b.min[1]],
+            [b.max[0], y],
+            [b.max[0] - t * b.width(), b.max[1]],
+            [b.min[0], b.max[1] - t * b.height()],
+        ] {
+            pts.push(plane.to_native.at(p)?);
+        }
+    }
+    let a = Aabb::of_points(&pts);
+    let m = 1e-3 * a.width().max(a.height());
+    Some(Aabb::new(
+        a.min[0] - m,
+        a.min[1] - m,
+        a.max[0] + m,
+        a.max[1] + m,
+    ))
+}
+
+/// What the reprojection can cost an edge patch's heights: as for a survey's patch (see
+/// [`place::reprojection_error`]), with the largest slope of its own cells.
+fn edge_reprojection_error(e: &EdgePatch, rho: f64) -> f64 {
+    let g = &e.grid;
+    let mut slope = 0.0f64;
+    for r in 0..g.rows {
+        for c in 0..g.cols {
+            let z = g.heights[r * g.cols + c] as f64;
+            if z.is_nan() {
+                continue;
+            }
+            for (dc, dr) in [(1, 0), (0, 1)] {
+                let (cc, rr) = (c + dc, r + dr);
+                if cc < g.cols && rr < g.rows {
+                    let w = g.heights[rr * g.cols + cc] as f64;
+                    if !w.is_nan() {
+                        slope = slope.max((w - z).abs());
+                    }
+                }
+            }
+        }
+    }
+    std::f64::consts::SQRT_2 * rho * g.georef.cells_per_unit() * slope
+}
+
+/// The key of a pair: its surveys' ids, smaller first.
+fn pair_key(a: SurveyId, b: SurveyId) -> (SurveyId, SurveyId) {
+    if a < b {
+        (a, b)
+    } else {
+        (b, a)
+    }
+}
+
+/// What a survey's claims are raised to where others contradict them: (row-major kernel
+/// index, least ε), ascending, as [`SurveyMeta::with_raised_claims`] takes it.
+type Raise = Arc<[(u32, f32)]>;
+
+/// A survey as the index takes it: its claims raised by `raise` (the survey itself when none
+/// are).
+fn effective(base: &Arc<SurveyMeta>, raise: &[(u32, f32)]) -> Arc<SurveyMeta> {
+    if raise.is_empty() {
+        base.clone()
+    } else {
+        Arc::new(base.with_raised_claims(raise))
+    }
+}
+
+/// Heights resampled from a set of patches. NaN marks nodata.
+#[derive(Clone, Debug)]
+pub struct Tile {
+    /// Samples per row.
+    pub width: usize,
+    /// Rows of samples.
+    pub height: usize,
+    /// `width × height` heights, row-major, in the order of the grid's points.
+    pub heights: Vec<f32>,
+    /// The patches the heights were blended from, in id order.
+    pub patches: Vec<Extracted>,
+    /// Where no data is as accurate as the cut asked (see [`tile_shortfall`]).
+    pub shortfall: Option<Shortfall>,
+}
+
+/// The sample grid of a view: a screen of `width × height` pixels projected onto the plane
+/// of the point looked at (§5, persistent grid mapping).
+pub fn view_grid(v: &ViewQuery, width: usize, height: usize) -> SampleGrid {
+    SampleGrid::of_points(width, height, v.ground_points(width, height, v.look[2]))
+}
+
+/// The [`Shortfall`] of a tile's patches over its grid, measured at no more than 64 × 64 of
+/// its points: a share to the percent, at a cost that does not grow with the tile.
+pub fn tile_shortfall(patches: &[Extracted], grid: &SampleGrid) -> Option<Shortfall> {
+    let (si, sj) = (
+        grid.width.div_ceil(64).max(1),
+        grid.height.div_ceil(64).max(1),
+    );
+    let points = (0..grid.height)
+        .step_by(sj)
+        .flat_map(|j| (0..grid.width).step_by(si).map(move |i| j * grid.width + i))
+        .map(|k| grid.point(k))
+        .filter(|p| !p[0].is_nan());
+    shortfall(patches, points)
+}
+
+/// A patch of the terrain: a survey's, or an edge patch.
+#[derive(Clone, Copy, Debug)]
+pub enum PatchRef<'a> {
+    /// A patch of a survey, with the survey (as the index takes it).
+    Survey(&'a Arc<SurveyMeta>, &'a Patch),
+    /// An edge patch.
+    Edge(&'a Arc<EdgePatch>),
+}
+
+#[derive(Clone, Copy, Debug)]
+/// Where a patch's description is kept: the patch list of its survey, at an index, or the
+/// edge patches, under their owner.
+enum PatchHome {
+    Survey(SurveyId, u32),
+    Edge(SurveyId),
+}
+
+/// A survey on a lattice, with the tiles whose edge patches it can affect.
+#[derive(Clone, Debug)]
+struct GroupMember {
+    survey: Arc<SurveyMeta>,
+    index: [i64; 2],
+}
+
+impl GroupMember {
+    fn new(survey: Arc<SurveyMeta>, lattice: &Lattice) -> Self {
+        let index = lattice.index_of(&survey.shapes[0].georef);
+        GroupMember { survey, index }
+    }
+
+    fn edge_tiles(&self) -> &[[i64; 2]] {
+        &self.survey.edge_tiles
+    }
+
+    /// The tiles whose edge patches can read this survey's samples, as inclusive ranges.
+    fn tile_range(&self) -> [[i64; 2]; 2] {
+        let l = &self.survey.layout;
+        let side = edge::tile_side(l);
+        let reach = l.margin as i64 + 1;
+        let g = &self.survey.shapes[0];
+        let span = |a: usize, n: usize| {
+            [
+                tile_of(self.index[a] - reach, side) - 1,
+                tile_of(self.index[a] + n as i64 - 1 + reach, side),
+            ]
+        };
+        [span(0, g.cols), span(1, g.rows)]
+    }
+
+    /// The level-0 samples of the member that a tile's edge patch reads, if any.
+    fn reads(&self, tile: [i64; 2]) -> Option<SampleRect> {
+        let [[i0, j0], [i1, j1]] = edge::tile_reads(tile, &self.survey.layout);
+        let g = &self.survey.shapes[0];
+        let c0 = (i0 - self.index[0]).max(0);
+        let r0 = (j0 - self.index[1]).max(0);
+        let c1 = (i1 - self.index[0] + 1).min(g.cols as i64);
+        let r1 = (j1 - self.index[1] + 1).min(g.rows as i64);
+        (c0 < c1 && r0 < r1).then_some(SampleRect {
+            c0: c0 as usize,
+            r0: r0 as usize,
+            c1: c1 as usize,
+            r1: r1 as usize,
+        })
+    }
+}
+
+/// The surveys that share one lattice of one plane, and the edge patch of each of its tiles
+/// that has one.
+#[derive(Clone, Debug)]
+struct LatticeGroup {
+    plane: PlaneId,
+    lattice: Lattice,
+    members: Vec<GroupMember>,
+    tiles: HashMap<[i64; 2], SurveyId>,
+}
+
+impl LatticeGroup {
+    /// The tiles a change to `m` (inserting or retiring it) can alter: its own edge tiles and
+    /// the edge tiles of the other members within its reach.
+    fn affected_by(&self, m: &GroupMember) -> Vec<[i64; 2]> {
+        let [[x0, x1], [y0, y1]] = m.tile_range();
+        let mut set: BTreeSet<[i64; 2]> = m.edge_tiles().iter().copied().collect();
+        for o in &self.members {
+            if o.survey.id == m.survey.id {
+                continue;
+            }
+            let [[a0, a1], [b0, b1]] = o.tile_range();
+            if a0 > x1 || x0 > a1 || b0 > y1 || y0 > b1 {
+                continue;
+            }
+            set.extend(
+                o.edge_tiles()
+                    .iter()
+                    .filter(|t| (x0..=x1).contains(&t[0]) && (y0..=y1).contains(&t[1])),
+            );
+        }
+        set.into_iter().collect()
+    }
+}
+
+/// The in-memory terrain: its surveys, the edge patches their lattices call for, the evidence
+/// of their overlaps and the LOD index over all their patches, which queries cut and tiles
+/// resample.
+#[derive(Clone, Debug)]
+pub struct Terrain {
+    /// The store's CRS and the planes of surveys in others, once the terrain has a CRS.
+    planes: Option<Arc<Planes>>,
+    index: LodIndex,
+    surveys: HashMap<SurveyId, Arc<SurveyMeta>>,
+    edges: HashMap<SurveyId, Arc<EdgePatch>>,
+    lattices: Vec<LatticeGroup>,
+    patches: HashMap<PatchId, PatchHome>,
+    /// Samples held in memory: surveys inserted with them and not yet handed to a store.
+    resident: HashMap<SurveyId, Arc<[Arc<Grid>]>>,
+    /// Where the samples of every other survey are read.
+    source: Option<Arc<dyn SampleSource>>,
+    /// The surveys as built, with their own claims; `surveys` holds them as the index takes
+    /// them, their claims raised where other surveys' evidence finds them false.
+    bases: HashMap<SurveyId, Arc<SurveyMeta>>,
+    /// What each overlapping pair of surveys says of the other, by (smaller id, larger id).
+    pairs: HashMap<(SurveyId, SurveyId), Arc<PairEvidence>>,
+    /// The surveys each survey has a pair with.
+    neighbours: HashMap<SurveyId, BTreeSet<SurveyId>>,
+    /// The raise of each survey's claims now in force (kernel, least ε); absent for none.
+    raises: HashMap<SurveyId, Raise>,
+    contradicted: Contradicted,
+}
+
+/// Edge patches to take out of the index and to put in.
+type EdgeDiff = (Vec<SurveyId>, Vec<Arc<EdgePatch>>);
+
+impl Terrain {
+    /// An empty terrain without a CRS: it takes its store's, or its first survey's.
+    pub fn new(cfg: IndexConfig) -> Self {
+        Terrain {
+            planes: None,
+            index: LodIndex::new(cfg),
+            surveys: HashMap::new(),
+            edges: HashMap::new(),
+            lattices: Vec::new(),
+            patches: HashMap::new(),
+            resident: HashMap::new(),
+            source: None,
+            bases: HashMap::new(),
+            pairs: HashMap::new(),
+            neighbours: HashMap::new(),
+            raises: HashMap::new(),
+            contradicted: Contradicted::default(),
+        }
+    }
+
+    /// A terrain in the plane of `crs`, with the planes of surveys in other CRSs shared with
+    /// `planes` where given (their lattices keep caches worth keeping).
+    pub fn with_crs(cfg: IndexConfig, crs: Option<&Crs>, planes: Option<Arc<Planes>>) -> Self {
+        let mut t = Terrain::new(cfg);
+        t.planes = match (planes, crs) {
+            (Some(p), Some(c)) if p.store_crs() == c => Some(p),
+            (_, Some(c)) => Some(Arc::new(Planes::new(c.clone()))),
+            (_, None) => None,
+        };
+        t
+    }
+
+    /// Gives a terrain without a CRS yet its store's.
+    ///
+    /// # Panics
+    /// For a terrain that has one already: a store's CRS never changes.
+    pub fn set_crs(&mut self, crs: Crs) {
+        assert!(self.planes.is_none(), "a terrain's CRS is set once");
+        self.planes = Some(Arc::new(Planes::new(crs)));
+    }
+
+    /// The terrain's CRS: its store's, once it has one.
+    pub fn crs(&self) -> Option<&Crs> {
+        self.planes.as_ref().map(|p| p.store_crs())
+    }
+
+    /// The planes of the terrain's CRS, for surveys in others.
+    pub fn planes(&self) -> Option<&Arc<Planes>> {
+        self.planes.as_ref()
+    }
+
+    /// A survey as this terrain holds it: placed in its CRS (see [`Survey::placed`]). A
+    /// terrain without a CRS yet takes the survey's.
+    pub fn place(&mut self, s: &Survey) -> Result<Survey, PlaceError> {
+        if self.planes.is_none() {
+            if let Some(c) = s.placed_for() {
+                self.planes = Some(Arc::new(Planes::new(c)));
+            }
+        }
+        match &self.planes {
+            Some(p) => s.placed(p),
+            None => Ok(s.clone()),
+        }
+    }
+
+    /// The CRS of a plane of the terrain's; None for the store's own.
+    pub fn plane_crs(&self, id: PlaneId) -> Option<Crs> {
+        if id == STORE_PLANE {
+            return None;
+        }
+        self.planes.as_ref()?.by_id(id).map(|p| p.crs.clone())
+    }
+
+    /// Reads the samples of surveys not in memory from `source`.
+    pub fn set_source(&mut self, source: Arc<dyn SampleSource>) {
+        self.source = Some(source);
+    }
+
+    /// Drops a survey's samples from memory once its store can serve them; a terrain without
+    /// a source keeps them.
+    pub fn page_out(&mut self, id: SurveyId) {
+        if self.source.is_some() {
+            self.resident.remove(&id);
+        }
+    }
+
+    /// Samples `rect` of a level of a survey of the terrain, exactly, as a grid georeferenced
+    /// where they lie.
+    pub fn samples(
+        &self,
+        s: &SurveyMeta,
+        level: usize,
+        rect: SampleRect,
+    ) -> Result<Grid, SampleError> {
+        let w = self.window(s, level, rect)?;
+        if (w.c0, w.r0, w.grid.cols, w.grid.rows) == (rect.c0, rect.r0, rect.cols(), rect.rows()) {
+            // Read for this call alone: no copy.
+            return Ok(Arc::unwrap_or_clone(w.grid));
+        }
+        Ok(w.grid
+            .window(rect.c0 - w.c0, rect.r0 - w.r0, rect.cols(), rect.rows()))
+    }
+
+    /// Samples `rect` of a level of a survey of the terrain, through a window in the level's
+    /// coordinates. A survey held in memory answers with its whole level.
+    pub fn window(
+        &self,
+        s: &SurveyMeta,
+        level: usize,
+        rect: SampleRect,
+    ) -> Result<Window, SampleError> {
+        if let Some(levels) = self.resident.get(&s.id) {
+            return Ok(Window::whole(levels[level].clone()));
+        }
+        let source = self.source.as_ref().ok_or_else(|| SampleError {
+            survey: s.id,
+            reason: "the terrain holds neither its samples nor a store to read them from".into(),
+        })?;
+        source.window(s.id, level, &s.shapes[level], rect)
+    }
+
+    /// Rebuilds a terrain from what a store keeps: the surveys without their samples, the
+    /// edge patches and the box states, without running the cutter or reading a sample.
+    /// Returns the patches that had no stored state, restored as empty.
+    ///
+    /// Surveys of another CRS than `crs` get their patches' frames in its plane; their errors
+    /// are as stored, raised where the stored `pairs` find their claims false under
+    /// `contradicted`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn restore(
+        cfg: IndexConfig,
+        crs: Option<&Crs>,
+        contradicted: Contradicted,
+        surveys: Vec<Arc<SurveyMeta>>,
+        pairs: Vec<Arc<PairEvidence>>,
+        edges: Vec<Arc<EdgePatch>>,
+        states: &HashMap<PatchId, BoxState>,
+        source: Arc<dyn SampleSource>,
+    ) -> (Self, Vec<PatchId>) {
+        let mut t = Terrain::with_crs(cfg, crs, None);
+        t.contradicted = contradicted;
+        t.source = Some(source);
+        let surveys: Vec<Arc<SurveyMeta>> = surveys
+            .into_par_iter()
+            .map(|s| match (&t.planes, s.placement.is_none()) {
+                (Some(planes), true) => match s.placement_in(planes) {
+                    Ok(Some(p)) => {
+                        let mut m = (*s).clone();
+                        m.placement = Some(p);
+                        Arc::new(m)
+                    }
+                    _ => s,
+                },
+                _ => s,
+            })
+            .collect();
+        for s in &surveys {
+            t.bases.insert(s.id, s.clone());
+        }
+        for p in pairs {
+            // A pair whose surveys are not both here would be stale.
+            if t.bases.contains_key(&p.finer) && t.bases.contains_key(&p.coarser) {
+                t.add_pair(p);
+            }
+        }
+        let mut group_of_survey = HashMap::new();
+        for base in surveys {
+            let r = t.raise_of(&base);
+            let s = effective(&base, &r);
+            t.set_raise(base.id, r);
+            let gi = t.group_of(&s);
+            let m = GroupMember::new(s.clone(), &t.lattices[gi].lattice);
+            t.lattices[gi].members.push(m);
+            group_of_survey.insert(s.id, gi);
+            t.register(s);
+        }
+        for e in edges {
+            // An edge patch whose surveys are gone would be stale; the index derivation that
+            // a missing state triggers puts the right ones back.
+            let Some(&gi) = e.members.first().and_then(|m| group_of_survey.get(m)) else {
+                continue;
+            };
+            t.register_edge(gi, e);
+        }
+        let mut missing = Vec::new();
+        let mut state = |id: PatchId| {
+            states.get(&id).copied().unwrap_or_else(|| {
+                missing.push(id);
+                BoxState::EMPTY
+            })
+        };
+        let mut units: Vec<(SurveyId, Vec<(PatchBox, BoxState)>)> = Vec::new();
+        for s in t.surveys.values() {
+            let boxes = PatchBox::of_survey(s).into_iter().map(|b| {
+                let st = state(b.id);
+                (b, st)
+            });
+            units.push((s.id, boxes.collect()));
+        }
+        let boxes: Vec<(SurveyId, PatchBox)> =
+            t.edges.values().map(|e| (e.owner, t.edge_box(e))).collect();
+        for (owner, b) in boxes {
+            let st = state(b.id);
+            units.push((owner, vec![(b, st)]));
+        }
+        missing.sort_unstable();
+        t.index = LodIndex::restore(cfg, units);
+        (t, missing)
+    }
+
+    fn register(&mut self, s: Arc<SurveyMeta>) {
+        for (k, p) in s.patches.iter().enumerate() {
+            self.patches.insert(p.id, PatchHome::Survey(s.id, k as u32));
+        }
+        self.surveys.insert(s.id, s);
+    }
+
+    fn register_edge(&mut self, gi: usize, e: Arc<EdgePatch>) {
+        self.patches.insert(e.id, PatchHome::Edge(e.owner));
+        self.lattices[gi].tiles.insert(e.tile, e.owner);
+        self.edges.insert(e.owner, e);
+    }
+
+    fn unregister_edge(&mut self, gi: usize, owner: SurveyId) {
+        if let Some(e) = self.edges.remove(&owner) {
+            self.patches.remove(&e.id);
+            if self.lattices[gi].tiles.get(&e.tile) == Some(&owner) {
+                self.lattices[gi].tiles.remove(&e.tile);
+            }
+        }
+    }
+
+    /// The lattice group a survey belongs to, made if it is the first on its lattice: one
+    /// lattice of one plane (the same numbers in two CRSs are two lattices).
+    fn group_of(&mut self, s: &SurveyMeta) -> usize {
+        let l = Lattice::of(&s.shapes[0].georef);
+        let plane = s.plane_id();
+        match self
+            .lattices
+            .iter()
+            .position(|g| g.plane == plane && g.lattice.same(&l))
+        {
+            Some(i) => i,
+            None => {
+                self.lattices.push(LatticeGroup {
+                    plane,
+                    lattice: l,
+                    members: Vec::new(),
+                    tiles: HashMap::new(),
+                });
+                self.lattices.len() - 1
+            }
+        }
+    }
+
+    /// The plane, and its residuals over the members an edge patch reads, of a group of
+    /// another plane; None for the store's.
+    fn edge_plane(&self, members: &[SurveyId]) -> Option<(Arc<Plane>, Residuals)> {
+        let mut out: Option<(Arc<Plane>, Residuals)> = None;
+        // The groups' members, not the registered surveys: an insertion builds its edge
+        // patches before it registers the survey.
+        let all = self.lattices.iter().flat_map(|g| &g.members);
+        for m in all.filter(|g| members.contains(&g.survey.id)) {
+            let Some(p) = m.survey.placement.clone() else {
+                continue;
+            };
+            let r = out.get_or_insert_with(|| (p.plane.clone(), Residuals::default()));
+            r.1.to_native = r.1.to_native.max(p.residuals.to_native);
+            r.1.to_store = r.1.to_store.max(p.residuals.to_store);
+        }
+        out
+    }
+
+    /// An edge patch as LOD space sees it: in its lattice's plane, framed in the store's
+    /// for a lattice of another CRS.
+    fn edge_box(&self, e: &EdgePatch) -> PatchBox {
+        let framed = self.edge_frame(e);
+        PatchBox::edge(e, framed.as_ref().map(|(id, f)| (*id, f)))
+    }
+
+    fn edge_frame(&self, e: &EdgePatch) -> Option<(PlaneId, Frame)> {
+        let (plane, rho) = self.edge_plane(&e.members)?;
+        let frame = plane
+            .frame(&e.grid.georef, &e.window, &rho)
+            .unwrap_or(Frame {
+                // Every edge patch lies within its surveys' samples, which all have images;
+                // should the fit still fail, a frame that reaches everywhere keeps coverage
+                // conservative.
+                map: patchwork_geom::Affine {
+                    origin: [0.0; 2],
+                    m: [[1.0, 0.0], [0.0, 1.0]],
+                },
+                rho: f64::INFINITY,
+            });
+        Some((plane.id, frame))
+    }
+
+    /// The edge patches of `tiles` as the group's members now call for, against those there:
+    /// the owners that go and the patches that come.
+    fn rebuild(&self, gi: usize, tiles: Vec<[i64; 2]>) -> Result<EdgeDiff, SampleError> {
+        let g = &self.lattices[gi];
+        let Some(layout) = g.members.first().map(|m| m.survey.layout) else {
+            return Ok((g.tiles.values().copied().collect(), Vec::new()));
+        };
+        let built: Vec<([i64; 2], Option<EdgePatch>)> = tiles
+            .par_iter()
+            .map(|&t| {
+                // Each tile reads only the members' samples around it.
+                let mut windows = Vec::new();
+                for m in &g.members {
+                    if let Some(rect) = m.reads(t) {
+                        windows.push((m, self.window(&m.survey, 0, rect)?));
+                    }
+                }
+                let members: Vec<Member> = windows
+                    .iter()
+                    .map(|(m, w)| Member {
+                        survey: &m.survey,
+                        index: m.index,
+                        samples: w,
+                    })
+                    .collect();
+                Ok((t, edge::build(t, &members, &layout)))
+            })
+            .collect::<Result<_, SampleError>>()?;
+        let mut gone = Vec::new();
+        let mut come = Vec::new();
+        for (t, mut e) in built {
+            // An edge patch of another plane, like its surveys' patches, answers for where the
+            // reprojection moves its points: its error grows as theirs do.
+            if let Some(e) = e.as_mut() {
+                if let Some((_, rho)) = self.edge_plane(&e.members) {
+                    e.error += edge_reprojection_error(e, rho.to_native);
+                }
+            }
+            let old = g.tiles.get(&t).copied();
+            let new = e.as_ref().map(|e| e.owner);
+            if old == new {
+                continue;
+            }
+            gone.extend(old);
+            come.extend(e.map(Arc::new));
+        }
+        Ok((gone, come))
+    }
+
+    /// The LOD index over every patch, survey and edge.
+    pub fn index(&self) -> &LodIndex {
+        &self.index
+    }
+
+    /// A survey as the index takes it: its claims raised where others find them false (see
+    /// [`Terrain::base`] for the survey as built).
+    pub fn survey(&self, id: SurveyId) -> Option<&Arc<SurveyMeta>> {
+        self.surveys.get(&id)
+    }
+
+    /// Every survey as the index takes it (see [`Terrain::survey`]), in no particular order.
+    pub fn surveys(&self) -> impl Iterator<Item = &Arc<SurveyMeta>> {
+        self.surveys.values()
+    }
+
+    /// The edge patches, in no particular order.
+    pub fn edges(&self) -> impl Iterator<Item = &Arc<EdgePatch>> {
+        self.edges.values()
+    }
+
+    /// The edge patches this terrain holds among the boxes the changes moved: what a store
+    /// writes of them besides their tops.
+    pub fn edges_of(&self, changes: &[&ChangeStats]) -> Vec<Arc<EdgePatch>> {
+        let mut out: Vec<Arc<EdgePatch>> = changes
+            .iter()
+            .flat_map(|c| c.moved.iter())
+            .filter_map(|(id, _)| match self.patch(*id)? {
+                PatchRef::Edge(e) => Some(e.clone()),
+                PatchRef::Survey(..) => None,
+            })
+            .collect();
+        out.sort_by_key(|e| e.id);
+        out.dedup_by_key(|e| e.id);
+        out
+    }
+
+    /// A patch of the terrain.
+    pub fn patch(&self, id: PatchId) -> Option<PatchRef<'_>> {
+        match self.patches.get(&id)? {
+            PatchHome::Survey(sid, k) => {
+                let s = self.surveys.get(sid)?;
+                Some(PatchRef::Survey(s, &s.patches[*k as usize]))
+            }
+            PatchHome::Edge(owner) => self.edges.get(owner).map(PatchRef::Edge),
+        }
+    }
+
+    /// Adds a survey, with the edge patches it changes; adding one already present changes
+    /// nothing. The survey's samples stay in memory until [`Terrain::page_out`].
+    ///
+    /// # Panics
+    /// When a neighbour's samples cannot be read, which only a terrain with a source can
+    /// meet: such a terrain calls [`Terrain::try_insert`].
+    pub fn insert(&mut self, s: Arc<Survey>) -> ChangeStats {
+        self.try_insert(&s)
+            .expect("samples held in memory, and a survey that can be placed")
+    }
+
+    /// Adds a survey, reading its neighbours' samples where edge patches need them. On an
+    /// error the terrain is as it was.
+    ///
+    /// A survey not yet placed in the terrain's CRS is placed first (see [`Terrain::place`]);
+    /// a caller that commits the survey elsewhere too places it itself, and inserts that.
+    pub fn try_insert(&mut self, s: &Survey) -> Result<ChangeStats, TerrainError> {
+        if self.surveys.contains_key(&s.id) {
+            return Ok(ChangeStats::default());
+        }
+        let placed_here = s.placed_in.is_some()
+            && s.placed_in.as_ref() == self.crs()
+            && (s.placement.is_some() || s.crs.as_ref() == self.crs());
+        let placed;
+        let s = if placed_here {
+            s
+        } else {
+            placed = self.place(s)?;
+            &placed
+        };
+        let base = s.meta();
+        self.resident.insert(s.id, s.levels.clone().into());
+        // What it and every survey it overlaps say of each other's claims.
+        let pairs = match self.compare_with_all(&base) {
+            Ok(p) => p,
+            Err(e) => {
+                self.resident.remove(&s.id);
+                return Err(e.into());
+            }
+        };
+        for p in pairs {
+            self.add_pair(Arc::new(p));
+        }
+        // Its own claims are evidence in its neighbours' pairs.
+        self.bases.insert(s.id, base.clone());
+        let around = self.within_reach(s.id, self.neighbours.get(&s.id).cloned());
+        let result = self.change(Some(base.clone()), None, around);
+        if result.is_err() {
+            self.resident.remove(&s.id);
+            self.bases.remove(&s.id);
+            self.drop_pairs(s.id);
+        }
+        result.map_err(TerrainError::from)
+    }
+
+    /// Removes a survey and the edge patches it changes; the terrain becomes the one that
+    /// never had it.
+    ///
+    /// # Panics
+    /// As [`Terrain::insert`]; a terrain with a source calls [`Terrain::try_retire`].
+    pub fn retire(&mut self, id: SurveyId) -> Option<ChangeStats> {
+        self.try_retire(id).expect("samples held in memory")
+    }
+
+    /// Removes a survey, reading its neighbours' samples where edge patches need them; None
+    /// when it is not there. On an error the terrain is as it was.
+    pub fn try_retire(&mut self, id: SurveyId) -> Result<Option<ChangeStats>, SampleError> {
+        if !self.surveys.contains_key(&id) {
+            return Ok(None);
+        }
+        let (dropped, around) = self.drop_pairs(id);
+        let around = self.within_reach(id, Some(around));
+        match self.change(None, Some(id), around) {
+            Ok(stats) => Ok(Some(stats)),
+            Err(e) => {
+                for p in dropped {
+                    self.add_pair(p);
+                }
+                Err(e)
+            }
+        }
+    }
+
+    /// Inserts `add` or retires `remove`, with everything that follows: the claims of the
+    /// surveys `around` it (those it overlaps, whose pairs with it, and with each other through
+    /// it as a third, came or went), the edge patches of every lattice tile any of them
+    /// touches, and the index, in one change. The pairs are already as they will be. On an
+    /// error the terrain is as it was, but for the pairs.
+    fn change(
+        &mut self,
+        add: Option<Arc<SurveyMeta>>,
+        remove: Option<SurveyId>,
+        around: BTreeSet<SurveyId>,
+    ) -> Result<ChangeStats, SampleError> {
+        let reclaimed: Vec<(SurveyId, Raise)> = around
+            .into_iter()
+            .filter_map(|o| {
+                let r = self.raise_of(&self.bases[&o]);
+                let now = self.raises.get(&o).map_or(&[][..], |r| &r[..]);
+                (r[..] != *now).then_some((o, r))
+            })
+            .collect();
+        let added = add.map(|base| {
+            let r = self.raise_of(&base);
+            let eff = effective(&base, &r);
+            (base, r, eff)
+        });
+        // The lattice groups as they will be, with the tiles to build again; the groups as
+        // they were, to put back on an error.
+        let mut saved: HashMap<usize, LatticeGroup> = HashMap::new();
+        let mut tiles: HashMap<usize, BTreeSet<[i64; 2]>> = HashMap::new();
+        let mut new_metas: Vec<(SurveyId, Arc<SurveyMeta>)> = Vec::new();
+        for (o, r) in &reclaimed {
+            let eff = effective(&self.bases[o], r);
+            let gi = self.group_index(*o).expect("a survey is a member");
+            saved.entry(gi).or_insert_with(|| self.lattices[gi].clone());
+            let g = &mut self.lattices[gi];
+            let m = g
+                .members
+                .iter_mut()
+                .find(|m| m.survey.id == *o)
+                .expect("member");
+            m.survey = eff.clone();
+            let m = m.clone();
+            tiles.entry(gi).or_default().extend(g.affected_by(&m));
+            new_metas.push((*o, eff));
+        }
+        let mut new_group = None;
+        if let Some((_, _, eff)) = &added {
+            let gi = self.group_of(eff);
+            if gi == self.lattices.len() - 1 && self.lattices[gi].members.is_empty() {
+                new_group = Some(gi);
+            }
+            saved.entry(gi).or_insert_with(|| self.lattices[gi].clone());
+            let m = GroupMember::new(eff.clone(), &self.lattices[gi].lattice);
+            let g = &mut self.lattices[gi];
+            tiles.entry(gi).or_default().extend(g.affected_by(&m));
+            g.members.push(m);
+        }
+        if let Some(id) = remove {
+            let gi = self.group_index(id).expect("a survey is a member");
+            saved.entry(gi).or_insert_with(|| self.lattices[gi].clone());
+            let g = &mut self.lattices[gi];
+            let pos = g
+                .members
+                .iter()
+                .position(|m| m.survey.id == id)
+                .expect("member");
+            tiles
+                .entry(gi)
+                .or_default()
+                .extend(g.affected_by(&g.members[pos]));
+            g.members.remove(pos);
+        }
+        // Every touched group's edge patches, built again.
+        let mut diffs: Vec<(usize, EdgeDiff)> = Vec::new();
+        let mut order: Vec<usize> = tiles.keys().copied().collect();
+        order.sort_unstable();
+        for gi in order {
+            let t: Vec<[i64; 2]> = tiles[&gi].iter().copied().collect();
+            match self.rebuild(gi, t) {
+                Ok(d) => diffs.push((gi, d)),
+                Err(e) => {
+                    for (gi, g) in saved {
+                        self.lattices[gi] = g;
+                    }
+                    if let Some(gi) = new_group {
+                        self.lattices.remove(gi);
+                    }
+                    return Err(e);
+                }
+            }
+        }
+        // One change of the index: the survey in or out, the surveys whose claims moved out
+        // and in again, and the edge patches.
+        let mut gone: Vec<SurveyId> = remove.into_iter().collect();
+        let mut insert: Vec<(SurveyId, Vec<PatchBox>)> = Vec::new();
+        if let Some((_, _, eff)) = &added {
+            insert.push((eff.id, PatchBox::of_survey(eff)));
+        }
+        for (o, eff) in &new_metas {
+            gone.push(*o);
+            insert.push((*o, PatchBox::of_survey(eff)));
+        }
+        for (_, (g, c)) in &diffs {
+            gone.extend(g.iter().copied());
+            insert.extend(c.iter().map(|e| (e.owner, vec![self.edge_box(e)])));
+        }
+        let stats = self.index.apply(&gone, insert);
+        // The terrain's own records.
+        if let Some(id) = remove {
+            let s = self.surveys.remove(&id).expect("a survey");
+            for p in &s.patches {
+                self.patches.remove(&p.id);
+            }
+            self.bases.remove(&id);
+            self.raises.remove(&id);
+            self.resident.remove(&id);
+        }
+        if let Some((base, r, eff)) = added {
+            self.set_raise(base.id, r);
+            self.bases.insert(base.id, base);
+            self.register(eff);
+        }
+        for ((o, r), (_, eff)) in reclaimed.into_iter().zip(new_metas) {
+            self.set_raise(o, r);
+            self.register(eff);
+        }
+        for (gi, (g, c)) in diffs {
+            for o in g {
+                self.unregister_edge(gi, o);
+            }
+            for e in c {
+                self.register_edge(gi, e);
+            }
+        }
+        // A group left without members goes (after its edge patches, which index it).
+        self.lattices.retain(|g| !g.members.is_empty());
+        Ok(stats)
+    }
+
+    fn set_raise(&mut self, id: SurveyId, r: Raise) {
+        if r.is_empty() {
+            self.raises.remove(&id);
+        } else {
+            self.raises.insert(id, r);
+        }
+    }
+
+    /// The group a survey is a member of.
+    fn group_index(&self, id: SurveyId) -> Option<usize> {
+        self.lattices
+            .iter()
+            .position(|g| g.members.iter().any(|m| m.survey.id == id))
+    }
+
+    fn add_pair(&mut self, p: Arc<PairEvidence>) {
+        let (a, b) = (p.finer, p.coarser);
+        self.neighbours.entry(a).or_default().insert(b);
+        self.neighbours.entry(b).or_default().insert(a);
+        self.pairs.insert(pair_key(a, b), p);
+    }
+
+    /// Takes a survey's pairs out: them, and the surveys it had them with.
+    fn drop_pairs(&mut self, id: SurveyId) -> (Vec<Arc<PairEvidence>>, BTreeSet<SurveyId>) {
+        let Some(ns) = self.neighbours.remove(&id) else {
+            return (Vec::new(), BTreeSet::new());
+        };
+        let mut out = Vec::new();
+        for n in &ns {
+            if let Some(set) = self.neighbours.get_mut(n) {
+                set.remove(&id);
+                if set.is_empty() {
+                    self.neighbours.remove(n);
+                }
+            }
+            out.extend(self.pairs.remove(&pair_key(id, *n)));
+        }
+        (out, ns)
+    }
+
+    /// Every overlapping pair's evidence, in key order.
+    pub fn pairs(&self) -> Vec<Arc<PairEvidence>> {
+        let mut v: Vec<(&(SurveyId, SurveyId), &Arc<PairEvidence>)> = self.pairs.iter().collect();
+        v.sort_by_key(|(k, _)| **k);
+        v.into_iter().map(|(_, p)| p.clone()).collect()
+    }
+
+    /// The evidence of every pair a survey is in, by the other survey's id.
+    pub fn pairs_of(&self, id: SurveyId) -> Vec<Arc<PairEvidence>> {
+        self.neighbours
+            .get(&id)
+            .into_iter()
+            .flatten()
+            .filter_map(|n| self.pairs.get(&pair_key(id, *n)).cloned())
+            .collect()
+    }
+
+    /// Which claim of the pair of `a` and `b` is false, where they contradict each other.
+    pub fn blame(&self, a: SurveyId, b: SurveyId) -> Option<Blame> {
+        let p = self.pairs.get(&pair_key(a, b))?;
+        self.blame_pair(p)
+    }
+
+    fn blame_pair(&self, p: &PairEvidence) -> Option<Blame> {
+        let (f, c) = (p.finer, p.coarser);
+        let empty = BTreeSet::new();
+        let nf = self.neighbours.get(&f).unwrap_or(&empty);
+        let nc = self.neighbours.get(&c).unwrap_or(&empty);
+        // A degraded copy of another survey lies where that one lies, and does not vote.
+        let thirds = nf
+            .intersection(nc)
+            .filter(|t| !self.a_copy(**t))
+            .filter_map(|t| {
+                Some((
+                    &**self.pairs.get(&pair_key(f, *t))?,
+                    &**self.pairs.get(&pair_key(c, *t))?,
+                ))
+            });
+        evidence::blame(p, thirds)
+    }
+
+    /// The surveys whose claims a change at `id` can move, given those it has (or had) pairs
+    /// with, `near`. A survey's claims follow from its pairs' verdicts (which the pairs of the
+    /// thirds that overlap both enter), from whether its partners are discredited (their
+    /// verdicts), and, for one derived from a partner, from the partner's contested claims
+    /// (whose partners' discredit enters, and so their verdicts): four overlaps away at most.
+    fn within_reach(&self, id: SurveyId, near: Option<BTreeSet<SurveyId>>) -> BTreeSet<SurveyId> {
+        let mut out = near.unwrap_or_default();
+        let mut ring = out.clone();
+        for _ in 0..3 {
+            let next: BTreeSet<SurveyId> = ring
+                .iter()
+                .flat_map(|n| self.neighbours.get(n).into_iter().flatten().copied())
+                .filter(|n| !out.contains(n))
+                .collect();
+            out.extend(next.iter().copied());
+            ring = next;
+        }
+        out.remove(&id);
+        out
+    }
+
+    /// Whether some pair of the survey finds it alone the false one: a degraded or misplaced
+    /// version of another survey carries nothing of its own, so where it disagrees with a third
+    /// its claim is no evidence against that third's.
+    fn discredited(&self, id: SurveyId) -> bool {
+        self.pairs_of(id).iter().any(|p| self.alone(p, id))
+    }
+
+    /// Whether some pair of the survey finds it, by itself, a degraded version of the other.
+    fn a_copy(&self, id: SurveyId) -> bool {
+        self.pairs_of(id).iter().any(|p| {
+            matches!(
+                (p.degraded(), p.finer == id),
+                (Degraded::Reference, true) | (Degraded::Other, false)
+            )
+        })
+    }
+
+    /// Whether the pair finds `id` alone the false one.
+    fn alone(&self, p: &PairEvidence, id: SurveyId) -> bool {
+        matches!(
+            (self.blame_pair(p), p.finer == id),
+            (Some(Blame::Finer), true) | (Some(Blame::Coarser), false)
+        )
+    }
+
+    /// What the pairs that cannot tell which claim is false raise a survey's claims to, each
+    /// kernel to the largest the other survey's claim allows there, by kernel. A survey
+    /// discredited elsewhere is no evidence against this one.
+    fn contested(&self, id: SurveyId) -> BTreeMap<u32, f32> {
+        let mut raise = BTreeMap::new();
+        for p in self.pairs_of(id) {
+            if self.blame_pair(&p) == Some(Blame::Both) && !self.discredited(p.other(id)) {
+                for &(k, v) in p.against(id) {
+                    let e = raise.entry(k).or_insert(0.0f32);
+                    *e = e.max(v);
+                }
+            }
+        }
+        raise
+    }
+
+    /// The raise of a survey's claims that its pairs call for: the contested claims' (see
+    /// [`Terrain::contested`]), and where a pair finds it alone the false one (a degraded or
+    /// misplaced version of the other), over the whole overlap the other's claim there, as
+    /// contested, plus how far it departs from the other. None under a `keep` policy.
+    fn raise_of(&self, base: &SurveyMeta) -> Raise {
+        if self.contradicted == Contradicted::Keep {
+            return Arc::from([]);
+        }
+        let id = base.id;
+        let mut raise = self.contested(id);
+        let own = &base.kernel_accuracy;
+        for p in self.pairs_of(id) {
+            if !self.alone(&p, id) {
+                continue;
+            }
+            let other = p.other(id);
+            let theirs = &self.bases[&other].kernel_accuracy;
+            let contested = self.contested(other);
+            for &(k, ko, d) in p.departs(id) {
+                let claim =
+                    theirs.values[ko as usize].max(contested.get(&ko).map_or(0.0, |&v| v as f64));
+                let need = d as f64 + claim;
+                if need > own.values[k as usize] * (1.0 + 1e-9) + 1e-9 {
+                    let e = raise.entry(k).or_insert(0.0);
+                    *e = e.max(need as f32);
+                }
+            }
+        }
+        raise.into_iter().collect()
+    }
+
+    /// The survey as built, with the claims it makes itself.
+    pub fn base(&self, id: SurveyId) -> Option<&Arc<SurveyMeta>> {
+        self.bases.get(&id)
+    }
+
+    /// How a terrain treats claims that other surveys contradict.
+    pub fn set_contradicted(&mut self, c: Contradicted) {
+        assert!(
+            self.surveys.is_empty(),
+            "a terrain's policy is set before its surveys"
+        );
+        self.contradicted = c;
+    }
+
+    /// How the terrain treats claims that other surveys contradict.
+    pub fn contradicted(&self) -> Contradicted {
+        self.contradicted
+    }
+
+    /// What `s` and every survey of the terrain it overlaps say of each other (see
+    /// [`evidence::compare`]), measured at the samples of the finer of the two against the
+    /// other's surface (see [`SurveyMeta::finer_than`]), each read over the other's bounds, so
+    /// that the figures do not depend on the order of insertion. Its samples are read as any
+    /// survey's are: a survey being inserted holds them in memory.
+    ///
+    /// Surveys of two planes are compared through the store's: each sample of the finer is
+    /// carried into the other's CRS by the maps that place them (exactly as a tile would
+    /// evaluate the other there); surveys of one plane, in that plane.
+    fn compare_with_all(&self, s: &Arc<SurveyMeta>) -> Result<Vec<PairEvidence>, SampleError> {
+        let mut others: Vec<&Arc<SurveyMeta>> = self
+            .bases
+            .values()
+            .filter(|o| o.id != s.id && s.footprint().intersects(&o.footprint()))
+            .collect();
+        others.sort_by_key(|o| o.id);
+        let mut out = Vec::new();
+        for o in others {
+            let (fine, coarse) = if s.finer_than(o) { (s, o) } else { (o, s) };
+            if let Some(p) = self.compare_pair(fine, coarse)? {
+                out.push(p);
+            }
+        }
+        Ok(out)
+    }
+
+    /// [`evidence::compare`] of two surveys of the terrain, `fine` the finer.
+    fn compare_pair(
+        &self,
+        fine: &SurveyMeta,
+        coarse: &SurveyMeta,
+    ) -> Result<Option<PairEvidence>, SampleError> {
+        let (pf, pc) = (self.placement_of(fine), self.placement_of(coarse));
+        let (ff, fc) = (
+            pf.as_ref()
+                .map_or(fine.shapes[0].world_bounds(), |p| p.footprint),
+            pc.as_ref()
+                .map_or(coarse.shapes[0].world_bounds(), |p| p.footprint),
+        );
+        if !ff.intersects(&fc) {
+            return Ok(None);
+        }
+        let (plf, plc) = (
+            pf.as_ref().map(|p| p.plane.clone()),
+            pc.as_ref().map(|p| p.plane.clone()),
+        );
+        let same = plf.as_ref().map(|p| p.id) == plc.as_ref().map(|p| p.id);
+        // Each one's bounds in the other's plane.
+        let (coarse_in_fine, fine_in_coarse) = if same {
+            (
+                coarse.shapes[0].world_bounds(),
+                fine.shapes[0].world_bounds(),
+            )
+        } else {
+            let (Some(a), Some(b)) = (
+                native_bounds(plf.as_deref(), &fc),
+                native_bounds(plc.as_deref(), &ff),
+            ) else {
+                return Ok(None);
+            };
+            (a, b)
+        };
+        let (Some(rf), Some(rc)) = (
+            fine.shapes[0].rect_over(&coarse_in_fine),
+            coarse.shapes[0].rect_over(&fine_in_coarse),
+        ) else {
+            return Ok(None);
+        };
+        let a = self.samples(fine, 0, rf)?;
+        let b = self.samples(coarse, 0, rc)?;
+        let through = |from: &Option<Arc<Plane>>, to: &Option<Arc<Plane>>, p: [f64; 2]| {
+            let q = match from {
+                Some(f) => f.to_store.at(p)?,
+                None => p,
+            };
+            match to {
+                Some(t) => t.to_native.at(q),
+                None => Some(q),
+            }
+        };
+        let to_coarse = |p: [f64; 2]| -> Option<[f64; 2]> {
+            if same {
+                Some(p)
+            } else {
+                through(&plf, &plc, p)
+            }
+        };
+        let to_fine = |p: [f64; 2]| -> Option<[f64; 2]> {
+            if same {
+                Some(p)
+            } else {
+                through(&plc, &plf, p)
+            }
+        };
+        let base_f = self.bases.get(&fine.id).map_or(fine, |b| b);
+        let base_c = self.bases.get(&coarse.id).map_or(coarse, |b| b);
+        let sf = evidence::Side {
+            id: fine.id,
+            grid: &a,
+            offset: [rf.c0, rf.r0],
+            tiling: &base_f.tiling,
+            accuracy: &base_f.kernel_accuracy,
+        };
+        let sc = evidence::Side {
+            id: coarse.id,
+            grid: &b,
+            offset: [rc.c0, rc.r0],
+            tiling: &base_c.tiling,
+            accuracy: &base_c.kernel_accuracy,
+        };
+        Ok(evidence::compare(
+            &sf,
+            &sc,
+            &to_coarse,
+            &to_fine,
+            &coarse_in_fine,
+            fine.metres_per_unit(),
+        ))
+    }
+
+    /// A survey's placement in the terrain's plane: its own, or worked out for one read back
+    /// from a store (which keeps the errors but not the frames).
+    fn placement_of(&self, s: &SurveyMeta) -> Option<Arc<place::Placement>> {
+        if let Some(p) = &s.placement {
+            return Some(p.clone());
+        }
+        s.placement_in(self.planes.as_ref()?).ok().flatten()
+    }
+
+    /// The uniform cut at error `e` over `roi` (see [`LodIndex::uniform`]).
+    pub fn uniform(&self, roi: &Aabb, e: f64) -> Vec<Extracted> {
+        self.index.uniform(roi, e)
+    }
+
+    /// The view-dependent cut of `v` (see [`LodIndex::view`]).
+    pub fn view(&self, v: &ViewQuery) -> Vec<Extracted> {
+        self.index.view(v)
+    }
+
+    /// The samples and geometry of extracted patches, ready to blend.
+    ///
+    /// # Panics
+    /// As [`Terrain::insert`]; a terrain with a source calls [`Terrain::try_resolve`].
+    pub fn resolve(&self, ps: &[Extracted]) -> PatchSet {
+        self.try_resolve(ps).expect("samples held in memory")
+    }
+
+    /// The samples and geometry of extracted patches, read where they are not in memory.
+    ///
+    /// Patches of surveys in other CRSs read each sample's position in their own plane: the
+    /// set carries the maps there, one per plane, numbered in plane-id order.
+    pub fn try_resolve(&self, ps: &[Extracted]) -> Result<PatchSet, SampleError> {
+        let mut ids: Vec<PlaneId> = ps
+            .iter()
+            .map(|x| x.plane)
+            .filter(|&p| p != STORE_PLANE)
+            .collect();
+        ids.sort_unstable();
+        ids.dedup();
+        let planes: Vec<Arc<Plane>> = ids
+            .iter()
+            .filter_map(|&id| self.planes.as_ref()?.by_id(id))
+            .collect();
+        let index_of = |id: PlaneId| -> u16 {
+            match id {
+                STORE_PLANE => 0,
+                id => 1 + planes.iter().position(|p| p.id == id).unwrap_or(0) as u16,
+            }
+        };
+        let patches = ps
+            .par_iter()
+            .filter_map(|x| {
+                let r = match self.patch(x.id)? {
+                    PatchRef::Survey(s, p) => {
+                        let level = p.level as usize;
+                        let rect = ResolvedPatch::reads(p, &s.shapes[level]);
+                        self.window(s, level, rect)
+                            .map(|w| ResolvedPatch::new(w, p, s.kind, x.fallback))
+                    }
+                    PatchRef::Edge(e) => Ok(ResolvedPatch::edge(e, x.fallback)),
+                };
+                Some(r.map(|mut r| {
+                    if x.plane != STORE_PLANE {
+                        r.plane = index_of(x.plane);
+                        // Its reach in the store's plane, where samples are binned.
+                        r.window_aabb = x.window.aabb();
+                    }
+                    r
+                }))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(
+            PatchSet::new(patches)
+                .with_planes(planes.iter().map(|p| p.to_native.clone()).collect()),
+        )
+    }
+
+    /// Resamples patches at the points of a grid on the CPU.
+    pub fn resample(&self, patches: Vec<Extracted>, grid: &SampleGrid) -> Tile {
+        self.try_resample(patches, grid)
+            .expect("samples held in memory")
+    }
+
+    /// Resamples patches at the points of a grid on the CPU, reading samples as needed.
+    pub fn try_resample(
+        &self,
+        patches: Vec<Extracted>,
+        grid: &SampleGrid,
+    ) -> Result<Tile, SampleError> {
+        let set = self.try_resolve(&patches)?;
+        Ok(Tile {
+            width: grid.width,
+            height: grid.height,
+            heights: cpu::resample(&set, grid),
+            shortfall: tile_shortfall(&patches, grid),
+            patches,
+        })
+    }
+
+    /// A north-up `width × height` tile over `roi` at error `e`.
+    pub fn tile(&self, roi: &Aabb, width: usize, height: usize, e: f64) -> Tile {
+        let ps = self.uniform(roi, e);
+        self.resample(ps, &SampleGrid::uniform(roi, width, height))
+    }
+
+    /// Heights at points, at error `e`: what tiles holding the same points give there.
+    pub fn sample(&self, points: &[[f64; 2]], e: f64) -> Vec<f32> {
+        self.try_sample(points, e).expect("samples held in memory")
+    }
+
+    /// Heights at points, at error `e`, reading samples as needed.
+    pub fn try_sample(&self, points: &[[f64; 2]], e: f64) -> Result<Vec<f32>, SampleError> {
+        Ok(self
+            .try_sample_until(points, e, &Cancel::default())?
+            .expect("never cancelled"))
+    }
+
+    /// [`Terrain::try_sample`], given up (None) once `cancel` is set.
+    pub fn try_sample_until(
+        &self,
+        points: &[[f64; 2]],
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Option<Vec<f32>>, SampleError> {
+        // A point that is nowhere (outside where its CRS reaches the store's) has no height.
+        let finite: Vec<[f64; 2]> = points
+            .iter()
+            .copied()
+            .filter(|p| p[0].is_finite() && p[1].is_finite())
+            .collect();
+        if finite.is_empty() {
+            return Ok(Some(vec![f32::NAN; points.len()]));
+        }
+        let ps = self.uniform(&Aabb::of_points(&finite), e);
+        let set = self.try_resolve(&ps)?;
+        // Rows of points, so that they resample on every core and a cancel is seen between
+        // rows; each point's height depends on the point alone. The last row is padded with
+        // points that are nowhere.
+        const ROW: usize = 1024;
+        let width = points.len().min(ROW);
+        let height = points.len().div_ceil(width);
+        let mut padded = points.to_vec();
+        padded.resize(width * height, [f64::NAN, f64::NAN]);
+        let grid = SampleGrid::of_points(width, height, padded);
+        Ok(cpu::resample_until(&set, &grid, cancel).map(|mut h| {
+            h.truncate(points.len());
+            h
+        }))
+    }
+
+    /// A view-dependent sample grid of `width × height` screen pixels.
+    pub fn view_tile(&self, v: &ViewQuery, width: usize, height: usize) -> Tile {
+        let ps = self.view(v);
+        self.resample(ps, &view_grid(v, width, height))
+    }
+}

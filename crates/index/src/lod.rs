@@ -1,0 +1,746 @@
+//! LOD space: one box per patch, kept minimal and order-independent (paper §3.3).
+//!
+//! The top of a box is a pure function of the set of patches present: the lowest z at which
+//! patches greater than it in the global order, and no less accurate than z, cover its valid
+//! kernel. Algorithm 1 computes exactly that when it is given every greater patch, active or
+//! not: a patch cut to nothing is covered by greater patches at least as accurate as itself,
+//! so leaving it in the candidate set never changes the answer. Recomputing the top of every
+//! patch a change can touch therefore gives the same index for the same set of surveys,
+//! whatever the order of insertions and retirements, and retiring a survey restores every
+//! patch it had cut.
+//!
+//! Beside its top, each box carries whether it is *exposed*: whether some of its valid kernel
+//! is covered by no more accurate patch. Where a query asks for more accuracy than any survey
+//! has, it falls back to the most accurate data at each point, and the exposed boxes are
+//! exactly the patches that are that somewhere. Exposure is a pure function of the set of
+//! patches too, recomputed for the same neighbourhood of a change as the tops.
+
+use super::cover::covered_all;
+use super::quadtree::{Entry, MsQuadtree, TreeStats};
+use patchwork_geom::{Aabb, Affine, ORect};
+use patchwork_model::edge::EdgePatch;
+use patchwork_model::grid::Georef;
+use patchwork_model::ids::{PatchId, SurveyId};
+use patchwork_model::patch::Patch;
+use patchwork_model::place::{Frame, PlaneId, STORE_PLANE};
+use patchwork_model::survey::SurveyMeta;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::cmp::Ordering;
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::sync::Arc;
+
+/// The settings of LOD space and of its quadtree.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct IndexConfig {
+    /// The top of LOD space, in metres: boxes start this tall.
+    pub max_error: f64,
+    /// Boxes per quadtree node (t in §4.2).
+    pub node_capacity: usize,
+}
+
+impl Default for IndexConfig {
+    fn default() -> Self {
+        IndexConfig {
+            max_error: 10_000.0,
+            node_capacity: 64,
+        }
+    }
+}
+
+/// A patch as LOD space sees it: its kernel, its valid part, and its error.
+///
+/// Its shapes are in its own plane: the store's, or the CRS of a survey in another (see
+/// [`patchwork_model::place`]). Coverage between patches of one plane is decided there, exactly
+/// as ever; between planes, through the store's plane, on each patch's frame, with the shapes
+/// grown or shrunk by the frames' bounds so that the answer stays conservative.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PatchBox {
+    /// The patch the box stands for.
+    pub id: PatchId,
+    /// The unit the patch is inserted and retired with: its survey, or its edge patch's owner.
+    pub survey: SurveyId,
+    /// The patch's mipmap level; 0 for an edge patch.
+    pub level: u8,
+    /// Nominal kernel area in the store's plane, the first key of the global order.
+    pub area: f64,
+    /// Bottom of the box: the patch's error ε + δ.
+    pub min_z: f64,
+    /// The plane `kernel`, `valid` and `window` lie in.
+    pub plane: PlaneId,
+    /// The kernel, in the patch's plane.
+    pub kernel: ORect,
+    /// The kernel's valid parts, as disjoint shapes in the patch's plane: what greater patches must
+    /// cover to cut the box.
+    pub valid: Vec<ORect>,
+    /// Where the patch can contribute to a blend.
+    pub window: ORect,
+    /// For a patch of another plane, where it lies in the store's.
+    pub placed: Option<Box<Placed>>,
+    /// Store-plane bounds of the kernel.
+    pub aabb: Aabb,
+    /// Store-plane bounds of the window.
+    pub window_aabb: Aabb,
+}
+
+/// A patch of another plane in the store's: its shapes carried through its frame, each
+/// within `rho` of the true image of the patch's own.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Placed {
+    /// The map from the patch's plane into the store's.
+    pub frame: Affine,
+    /// The frame's inverse: from the store's plane into the patch's.
+    pub inverse: Affine,
+    /// How far the frame may be from the true image anywhere in the window, store units.
+    pub rho: f64,
+    /// The kernel, carried into the store's plane.
+    pub kernel: ORect,
+    /// The valid parts, carried likewise.
+    pub valid: Vec<ORect>,
+    /// The window, carried likewise.
+    pub window: ORect,
+}
+
+impl PatchBox {
+    /// A survey's patches as LOD-space boxes, placed in the store's plane as the survey is.
+    pub fn of_survey(s: &SurveyMeta) -> Vec<PatchBox> {
+        let frames = s.placement.as_ref().map(|pl| (pl.plane.id, &pl.frames));
+        s.patches
+            .iter()
+            .enumerate()
+            .map(|(k, p)| {
+                let g = &s.shapes[p.level as usize].georef;
+                let framed = frames.map(|(plane, f)| (plane, &f[k]));
+                PatchBox::new(p, g, s.layout.kernel, framed)
+            })
+            .collect()
+    }
+
+    /// The box of a survey's patch on a level georeferenced by `g`; `framed` places a patch
+    /// of another plane in the store's.
+    pub fn new(
+        p: &Patch,
+        g: &Georef,
+        kernel_cells: usize,
+        framed: Option<(PlaneId, &Frame)>,
+    ) -> Self {
+        let kernel = g.cells_rect(&p.kernel);
+        let window = g.cells_rect(&p.window);
+        let valid = p.valid.iter().map(|c| g.cells_rect(c)).collect();
+        Self::placed(
+            p.id,
+            p.survey,
+            p.level,
+            nominal_area(g, kernel_cells as f64),
+            p.error,
+            kernel,
+            valid,
+            window,
+            framed,
+        )
+    }
+
+    /// The box of an edge patch. Its nominal area is a level-0 kernel's, whatever its tile's
+    /// size: its samples are level 0's, so it is ordered with level-0 patches.
+    pub fn edge(e: &EdgePatch, framed: Option<(PlaneId, &Frame)>) -> Self {
+        let g = &e.grid.georef;
+        Self::placed(
+            e.id,
+            e.owner,
+            0,
+            nominal_area(g, e.kernel_cells as f64),
+            e.error,
+            g.cells_rect(&e.kernel),
+            e.valid.iter().map(|r| g.grid_rect(*r)).collect(),
+            g.cells_rect(&e.window),
+            framed,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn placed(
+        id: PatchId,
+        survey: SurveyId,
+        level: u8,
+        area: f64,
+        min_z: f64,
+        kernel: ORect,
+        valid: Vec<ORect>,
+        window: ORect,
+        framed: Option<(PlaneId, &Frame)>,
+    ) -> Self {
+        let Some((plane, f)) = framed else {
+            return PatchBox {
+                id,
+                survey,
+                level,
+                area,
+                min_z,
+                plane: STORE_PLANE,
+                aabb: kernel.aabb(),
+                window_aabb: window.aabb(),
+                kernel,
+                valid,
+                window,
+                placed: None,
+            };
+        };
+        let inverse = f
+            .map
+            .inverse()
+            .expect("a frame maps the plane onto the plane");
+        let placed = Placed {
+            frame: f.map,
+            inverse,
+            rho: f.rho,
+            kernel: kernel.mapped(&f.map),
+            valid: valid.iter().map(|v| v.mapped(&f.map)).collect(),
+            window: window.mapped(&f.map),
+        };
+        PatchBox {
+            id,
+            survey,
+            level,
+            // In the store's units, so that patches of every plane order together.
+            area: area * f.map.det().abs(),
+            min_z,
+            plane,
+            aabb: placed.kernel.inflated(f.rho).aabb(),
+            window_aabb: placed.window.inflated(f.rho).aabb(),
+            kernel,
+            valid,
+            window,
+            placed: Some(Box::new(placed)),
+        }
+    }
+
+    /// How far this box's store-plane shapes may be from the truth.
+    pub fn rho(&self) -> f64 {
+        self.placed.as_ref().map_or(0.0, |p| p.rho)
+    }
+
+    /// The kernel in the store's plane (through the frame, for a patch of another plane).
+    pub fn store_kernel(&self) -> ORect {
+        self.placed.as_ref().map_or(self.kernel, |p| p.kernel)
+    }
+
+    /// Everywhere in the store's plane the patch can contribute to a blend: its window, grown
+    /// by the frame's bound for a patch of another plane.
+    pub fn reach(&self) -> ORect {
+        match &self.placed {
+            Some(p) => p.window.inflated(p.rho),
+            None => self.window,
+        }
+    }
+
+    fn store_valid(&self) -> &[ORect] {
+        self.placed.as_ref().map_or(&self.valid, |p| &p.valid)
+    }
+
+    /// Whether two kernels may meet: exactly within one plane, through the store's plane
+    /// (with both frames' bounds) between two.
+    fn meets(&self, o: &PatchBox) -> bool {
+        if self.plane == o.plane {
+            return self.kernel.intersects(&o.kernel);
+        }
+        self.store_kernel()
+            .inflated(self.rho() + o.rho())
+            .intersects(&o.store_kernel())
+    }
+
+    /// This box's valid parts as seen from `t`'s plane, shrunk where they are known only to
+    /// within a frame's bound, so that whatever they cover there they truly cover.
+    fn seen_from(&self, t: &PatchBox, out: &mut Vec<ORect>) {
+        if self.plane == t.plane {
+            out.extend_from_slice(&self.valid);
+            return;
+        }
+        let shrink = self.rho() + t.rho();
+        for v in self.store_valid() {
+            let Some(v) = v.deflated(shrink) else {
+                continue;
+            };
+            out.push(match &t.placed {
+                Some(p) => v.mapped(&p.inverse),
+                None => v,
+            });
+        }
+    }
+
+    /// The global order: smaller area first; at equal area the less accurate first; at equal
+    /// area and error the id decides, so that identical-looking patches from two surveys do
+    /// not both survive.
+    pub fn order(&self, o: &PatchBox) -> Ordering {
+        self.area
+            .total_cmp(&o.area)
+            .then(o.min_z.total_cmp(&self.min_z))
+            .then(self.id.cmp(&o.id))
+    }
+
+    /// Whether this box is more accurate than `o`: a smaller error, or the same error and
+    /// greater in the global order. A total order, so that of two equal patches one serves.
+    pub fn more_accurate(&self, o: &PatchBox) -> bool {
+        match self.min_z.total_cmp(&o.min_z) {
+            Ordering::Less => true,
+            Ordering::Greater => false,
+            Ordering::Equal => self.order(o) == Ordering::Greater,
+        }
+    }
+}
+
+/// The area of a kernel of `side` × `side` cells of a grid: the first key of the global order.
+fn nominal_area(g: &Georef, side: f64) -> f64 {
+    let skew = if g.is_orthogonal() {
+        1.0
+    } else {
+        let [u, v] = g.axes();
+        (u[0] * v[1] - u[1] * v[0]).abs()
+    };
+    side * g.step[0] * side * g.step[1] * skew
+}
+
+/// A box's current z-span `[min_z, max_z)`; empty when the patch is cut to nothing.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Span {
+    /// Bottom: the patch's error ε + δ, in metres.
+    pub min_z: f64,
+    /// Top, exclusive: where greater patches cover the valid kernel, or the top of LOD space.
+    pub max_z: f64,
+}
+
+impl Span {
+    /// Whether the span is non-empty: the patch is not cut to nothing.
+    pub fn is_active(&self) -> bool {
+        self.max_z > self.min_z
+    }
+}
+
+/// What the index derives for a box from the set of patches, and what a store keeps of it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoxState {
+    /// The top of the box's z-span.
+    pub top: f64,
+    /// Whether part of its valid kernel is covered by no more accurate patch: there, it is
+    /// the most accurate data there is, which a cut below its error falls back to.
+    pub exposed: bool,
+}
+
+impl BoxState {
+    /// The state of a box the index has not computed yet: empty, and nowhere the best.
+    pub const EMPTY: BoxState = BoxState {
+        top: f64::NEG_INFINITY,
+        exposed: false,
+    };
+
+    fn same(&self, o: &BoxState) -> bool {
+        self.top.total_cmp(&o.top) == Ordering::Equal && self.exposed == o.exposed
+    }
+}
+
+#[derive(Clone, Debug)]
+/// A box in the index with its state: its top in LOD space, and whether it is exposed.
+struct IndexedBox {
+    bx: Arc<PatchBox>,
+    state: BoxState,
+}
+
+/// What an insertion or retirement did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ChangeStats {
+    /// Boxes added.
+    pub patches: usize,
+    /// Boxes whose state was recomputed.
+    pub recomputed: usize,
+    /// Boxes whose state changed, every added box among them, with their new state: what a
+    /// store must write to persist the index.
+    pub moved: Vec<(PatchId, BoxState)>,
+    /// Boxes removed.
+    pub removed: Vec<PatchId>,
+}
+
+#[derive(Clone, Debug)]
+struct SurveyEntry {
+    patches: Vec<PatchId>,
+}
+
+/// LOD space: every patch's box and its state, by the unit it came with, and the
+/// multiple-storage quadtree over their windows that cuts are answered from.
+#[derive(Clone, Debug)]
+pub struct LodIndex {
+    cfg: IndexConfig,
+    slots: HashMap<PatchId, IndexedBox>,
+    surveys: HashMap<SurveyId, SurveyEntry>,
+    tree: MsQuadtree,
+}
+
+impl LodIndex {
+    /// An empty index.
+    pub fn new(cfg: IndexConfig) -> Self {
+        LodIndex {
+            cfg,
+            slots: HashMap::new(),
+            surveys: HashMap::new(),
+            tree: MsQuadtree::new(cfg.node_capacity),
+        }
+    }
+
+    /// The settings the index was made with.
+    pub fn config(&self) -> &IndexConfig {
+        &self.cfg
+    }
+
+    /// Boxes in the index, active or not.
+    pub fn len(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Whether the index holds no box.
+    pub fn is_empty(&self) -> bool {
+        self.slots.is_empty()
+    }
+
+    /// Whether the unit `s` (a survey, or an edge patch's owner) is present.
+    pub fn contains_survey(&self, s: SurveyId) -> bool {
+        self.surveys.contains_key(&s)
+    }
+
+    /// The units present, in no particular order.
+    pub fn surveys(&self) -> impl Iterator<Item = SurveyId> + '_ {
+        self.surveys.keys().copied()
+    }
+
+    /// The ids of a unit's patches, in the order they were added; None when it is absent.
+    pub fn survey_patches(&self, s: SurveyId) -> Option<&[PatchId]> {
+        self.surveys.get(&s).map(|e| e.patches.as_slice())
+    }
+
+    /// A box and its current z-span; None when no such patch is present.
+    pub fn get(&self, id: PatchId) -> Option<(&Arc<PatchBox>, Span)> {
+        self.slots.get(&id).map(|s| {
+            (
+                &s.bx,
+                Span {
+                    min_z: s.bx.min_z,
+                    max_z: s.state.top,
+                },
+            )
+        })
+    }
+
+    /// A box's state, as a store keeps it; None when no such patch is present.
+    pub fn state_of(&self, id: PatchId) -> Option<BoxState> {
+        self.slots.get(&id).map(|s| s.state)
+    }
+
+    /// The quadtree's shape: nodes, stored entries, depth.
+    pub fn tree_stats(&self) -> TreeStats {
+        self.tree.stats()
+    }
+
+    /// The square of the quadtree's root, which holds every window's bounds; None before the
+    /// first box is added.
+    pub fn bounds(&self) -> Option<Aabb> {
+        self.tree.bounds()
+    }
+
+    pub(crate) fn tree(&self) -> &MsQuadtree {
+        &self.tree
+    }
+
+    /// Every box and its state, in id order: two indexes over the same surveys give equal maps.
+    pub fn state(&self) -> BTreeMap<PatchId, (Span, bool)> {
+        self.slots
+            .iter()
+            .map(|(id, s)| {
+                (
+                    *id,
+                    (
+                        Span {
+                            min_z: s.bx.min_z,
+                            max_z: s.state.top,
+                        },
+                        s.state.exposed,
+                    ),
+                )
+            })
+            .collect()
+    }
+
+    /// Boxes not cut to nothing: those whose span is non-empty.
+    pub fn active_count(&self) -> usize {
+        self.slots
+            .values()
+            .filter(|s| s.state.top > s.bx.min_z)
+            .count()
+    }
+
+    fn entry(slot: &IndexedBox) -> Entry {
+        Entry {
+            id: slot.bx.id,
+            ceiling: slot.state.top,
+            floor: slot.bx.min_z,
+            exposed: slot.state.exposed,
+            aabb: slot.bx.window_aabb,
+        }
+    }
+
+    /// Boxes whose window bounds meet `area`, each once, in id order.
+    pub(crate) fn boxes_in(&self, area: &Aabb) -> Vec<&Arc<PatchBox>> {
+        let mut ids = Vec::new();
+        self.tree.for_each_in(area, |e| ids.push(e.id));
+        ids.sort_unstable();
+        ids.dedup();
+        ids.iter().map(|id| &self.slots[id].bx).collect()
+    }
+
+    /// Boxes other than `p` whose kernels meet `p`'s and that `keep` accepts.
+    fn neighbours(&self, p: &PatchBox, keep: impl Fn(&PatchBox) -> bool) -> Vec<&Arc<PatchBox>> {
+        self.boxes_in(&p.aabb)
+            .into_iter()
+            .filter(|q| q.id != p.id && q.meets(p) && keep(q))
+            .collect()
+    }
+
+    /// Algorithm 1, over every greater patch present among `near` (the patches whose kernels
+    /// meet `p`'s). Candidates are taken in order of error (ties by id, so the answer never
+    /// depends on iteration order); coverage is monotone in the set, so a binary search over
+    /// the distinct errors finds the first that covers.
+    fn ceiling_of(&self, p: &PatchBox, near: &[&Arc<PatchBox>]) -> f64 {
+        let top = self.cfg.max_error;
+        let mut cands: Vec<&Arc<PatchBox>> = near
+            .iter()
+            .copied()
+            .filter(|q| q.order(p) == Ordering::Greater)
+            .collect();
+        if cands.is_empty() {
+            return top;
+        }
+        cands.sort_by(|a, b| a.min_z.total_cmp(&b.min_z).then(a.id.cmp(&b.id)));
+        let rects_upto = |n: usize| -> Vec<ORect> {
+            let mut out = Vec::new();
+            for q in &cands[..n] {
+                q.seen_from(p, &mut out);
+            }
+            out
+        };
+        if !covered_all(&p.valid, &rects_upto(cands.len())) {
+            return top;
+        }
+        // Ends of runs of equal error: the prefixes worth testing.
+        let ends: Vec<usize> = (1..=cands.len())
+            .filter(|&n| n == cands.len() || cands[n].min_z != cands[n - 1].min_z)
+            .collect();
+        let (mut lo, mut hi) = (0usize, ends.len() - 1);
+        while lo < hi {
+            let mid = (lo + hi) / 2;
+            if covered_all(&p.valid, &rects_upto(ends[mid])) {
+                hi = mid;
+            } else {
+                lo = mid + 1;
+            }
+        }
+        let z = cands[ends[lo] - 1].min_z;
+        // At or below the patch's own error the patch is redundant: its span is empty.
+        z.min(top)
+    }
+
+    /// Whether some of `p`'s valid kernel is covered by no more accurate patch among `near`.
+    /// Like the top, a pure function of the set of patches.
+    fn exposed(&self, p: &PatchBox, near: &[&Arc<PatchBox>]) -> bool {
+        let mut better: Vec<ORect> = Vec::new();
+        for q in near.iter().filter(|q| q.more_accurate(p)) {
+            q.seen_from(p, &mut better);
+        }
+        better.is_empty() || !covered_all(&p.valid, &better)
+    }
+
+    fn derive(&self, p: &PatchBox) -> BoxState {
+        let near = self.neighbours(p, |_| true);
+        let top = self.ceiling_of(p, &near);
+        // A box cut to nothing is covered by greater patches no less accurate than itself,
+        // which are more accurate in the total order: it is exposed nowhere.
+        let exposed = top > p.min_z && self.exposed(p, &near);
+        BoxState { top, exposed }
+    }
+
+    /// Recomputes the state of `ids` against the current set and moves changed boxes in the
+    /// tree. `fresh` boxes are reported whether or not their provisional state changed.
+    fn recompute(
+        &mut self,
+        ids: Vec<PatchId>,
+        fresh: &HashSet<PatchId>,
+    ) -> (usize, Vec<(PatchId, BoxState)>) {
+        let states: Vec<(PatchId, BoxState)> = ids
+            .par_iter()
+            .filter_map(|id| self.slots.get(id).map(|s| (*id, self.derive(&s.bx))))
+            .collect();
+        let mut moved = Vec::new();
+        for (id, state) in &states {
+            let slot = self.slots.get_mut(id).expect("present");
+            let changed = !slot.state.same(state);
+            if changed {
+                let old = Self::entry(slot);
+                slot.state = *state;
+                let new = Self::entry(slot);
+                self.tree.remove(old.id, &old.aabb);
+                self.tree.insert(new);
+            }
+            if changed || fresh.contains(id) {
+                moved.push((*id, *state));
+            }
+        }
+        (states.len(), moved)
+    }
+
+    /// Boxes already present whose state a change to `changed` can move: smaller ones that
+    /// meet them (their tops) and less accurate ones that meet them (their exposure).
+    fn touched_by(&self, changed: &[Arc<PatchBox>]) -> Vec<PatchId> {
+        let set: HashSet<PatchId> = changed
+            .par_iter()
+            .flat_map_iter(|b| {
+                self.neighbours(b, |q| q.order(b) == Ordering::Less || b.more_accurate(q))
+                    .into_iter()
+                    .map(|q| q.id)
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let mut v: Vec<PatchId> = set.into_iter().collect();
+        v.sort_unstable();
+        v
+    }
+
+    /// Removes the patches of the units in `remove`, adds those of `insert`, and recomputes
+    /// every box the change can touch, once (Algorithm 2 for all of them at once). Removing an
+    /// absent unit or adding a present one changes nothing.
+    pub fn apply(
+        &mut self,
+        remove: &[SurveyId],
+        insert: Vec<(SurveyId, Vec<PatchBox>)>,
+    ) -> ChangeStats {
+        let mut changed: Vec<Arc<PatchBox>> = Vec::new();
+        let mut removed = Vec::new();
+        for s in remove {
+            let Some(entry) = self.surveys.remove(s) else {
+                continue;
+            };
+            for id in entry.patches {
+                if let Some(slot) = self.slots.remove(&id) {
+                    self.tree.remove(id, &slot.bx.window_aabb);
+                    removed.push(id);
+                    changed.push(slot.bx);
+                }
+            }
+        }
+        let mut fresh = HashSet::new();
+        for (survey, boxes) in insert {
+            if self.surveys.contains_key(&survey) {
+                continue;
+            }
+            let mut ids = Vec::with_capacity(boxes.len());
+            for b in boxes {
+                if self.slots.contains_key(&b.id) {
+                    continue;
+                }
+                // Provisionally empty; the recomputation below gives the real state.
+                let slot = IndexedBox {
+                    bx: Arc::new(b),
+                    state: BoxState::EMPTY,
+                };
+                self.tree.insert(Self::entry(&slot));
+                ids.push(slot.bx.id);
+                fresh.insert(slot.bx.id);
+                changed.push(slot.bx.clone());
+                self.slots.insert(slot.bx.id, slot);
+            }
+            self.surveys.insert(survey, SurveyEntry { patches: ids });
+        }
+        // A box removed and added again in one change (same content) is simply recomputed.
+        removed.retain(|id| !fresh.contains(id));
+        let mut todo = self.touched_by(&changed);
+        todo.extend(fresh.iter().copied());
+        todo.sort_unstable();
+        todo.dedup();
+        let (recomputed, moved) = self.recompute(todo, &fresh);
+        ChangeStats {
+            patches: fresh.len(),
+            recomputed,
+            moved,
+            removed,
+        }
+    }
+
+    /// Adds a survey's patches. Adding a survey that is already present changes nothing.
+    pub fn insert_survey(&mut self, survey: SurveyId, boxes: Vec<PatchBox>) -> ChangeStats {
+        self.apply(&[], vec![(survey, boxes)])
+    }
+
+    /// Removes a survey's patches and restores every box they had cut. Returns None when the
+    /// survey is not present.
+    pub fn retire_survey(&mut self, survey: SurveyId) -> Option<ChangeStats> {
+        self.contains_survey(survey)
+            .then(|| self.apply(&[survey], Vec::new()))
+    }
+
+    /// Rebuilds an index from boxes whose states were computed before (by a store), without
+    /// running the cutter. `check` tells whether the states are still right.
+    pub fn restore(
+        cfg: IndexConfig,
+        surveys: impl IntoIterator<Item = (SurveyId, Vec<(PatchBox, BoxState)>)>,
+    ) -> Self {
+        let mut ix = LodIndex::new(cfg);
+        for (survey, boxes) in surveys {
+            let mut ids = Vec::with_capacity(boxes.len());
+            for (b, state) in boxes {
+                let slot = IndexedBox {
+                    bx: Arc::new(b),
+                    state,
+                };
+                ix.tree.insert(Self::entry(&slot));
+                ids.push(slot.bx.id);
+                ix.slots.insert(slot.bx.id, slot);
+            }
+            ix.surveys.insert(survey, SurveyEntry { patches: ids });
+        }
+        ix
+    }
+
+    /// Re-derives every box's state from scratch and checks the tree: what `verify` runs.
+    pub fn check(&self) -> Result<(), String> {
+        self.tree.check()?;
+        let bad: Vec<String> = self
+            .slots
+            .par_iter()
+            .filter_map(|(id, s)| {
+                let want = self.derive(&s.bx);
+                (!want.same(&s.state)).then(|| {
+                    format!(
+                        "patch {id}: top {} exposed {} should be {} {}",
+                        s.state.top, s.state.exposed, want.top, want.exposed
+                    )
+                })
+            })
+            .collect();
+        if let Some(first) = bad.first() {
+            return Err(format!(
+                "{} boxes have a wrong top or exposure; first: {first}",
+                bad.len()
+            ));
+        }
+        let mut seen = HashSet::new();
+        self.tree.for_each_in(
+            &self.tree.bounds().unwrap_or(Aabb::new(0.0, 0.0, 0.0, 0.0)),
+            |e| {
+                seen.insert(e.id);
+            },
+        );
+        if seen.len() != self.slots.len() {
+            return Err(format!(
+                "the quadtree holds {} boxes, the index {}",
+                seen.len(),
+                self.slots.len()
+            ));
+        }
+        Ok(())
+    }
+}

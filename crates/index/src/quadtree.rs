@@ -1,0 +1,427 @@
+//! The multiple-storage quadtree of §4.2.
+//!
+//! Every node keeps at most `capacity` entries, sorted by z-ceiling (highest first), and every
+//! entry stored below a node has a ceiling no higher than any entry stored at it. That is what
+//! lets a cut at z stop descending as soon as it meets a ceiling ≤ z. An entry may be stored in
+//! several nodes (one per branch it overlaps), never in a node and one of its descendants.
+//!
+//! Ties in ceiling are broken by patch id, so the content of every node is a function of the
+//! set of entries alone, whatever the order of insertions and removals.
+
+use patchwork_geom::Aabb;
+use patchwork_model::ids::PatchId;
+use std::cmp::Ordering;
+
+/// Below this depth nodes stop splitting and simply grow; it only matters when more than
+/// `capacity` boxes pile up on one spot.
+const MAX_DEPTH: u32 = 40;
+
+/// A box as the quadtree stores it: its z-span, whether it is exposed, and its window's bounds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Entry {
+    /// The patch the box stands for.
+    pub id: PatchId,
+    /// Top of the box's z-span (exclusive).
+    pub ceiling: f64,
+    /// Bottom of the box's z-span: the patch's error.
+    pub floor: f64,
+    /// Whether the box is the most accurate data somewhere (see `lod`).
+    pub exposed: bool,
+    /// Bounds of the box's window, where the patch reaches.
+    pub aabb: Aabb,
+}
+
+impl Entry {
+    /// Whether the box's z-span `[floor, ceiling)` is non-empty.
+    pub fn is_active(&self) -> bool {
+        self.ceiling > self.floor
+    }
+}
+
+/// Storage order: higher ceilings first, then lower ids.
+#[inline]
+fn order(a: &Entry, b: &Entry) -> Ordering {
+    b.ceiling.total_cmp(&a.ceiling).then(a.id.cmp(&b.id))
+}
+
+#[derive(Clone, Debug)]
+struct Node {
+    bounds: Aabb,
+    entries: Vec<Entry>,
+    children: Option<Box<[Node; 4]>>,
+}
+
+impl Node {
+    fn new(bounds: Aabb) -> Self {
+        Node {
+            bounds,
+            entries: Vec::new(),
+            children: None,
+        }
+    }
+
+    fn split(&mut self) -> &mut [Node; 4] {
+        let b = self.bounds;
+        self.children.get_or_insert_with(|| {
+            let mx = (b.min[0] + b.max[0]) / 2.0;
+            let my = (b.min[1] + b.max[1]) / 2.0;
+            Box::new([
+                Node::new(Aabb::new(b.min[0], b.min[1], mx, my)),
+                Node::new(Aabb::new(mx, b.min[1], b.max[0], my)),
+                Node::new(Aabb::new(b.min[0], my, mx, b.max[1])),
+                Node::new(Aabb::new(mx, my, b.max[0], b.max[1])),
+            ])
+        })
+    }
+
+    fn put_sorted(&mut self, e: Entry) {
+        let at = self
+            .entries
+            .binary_search_by(|x| order(x, &e))
+            .unwrap_or_else(|i| i);
+        self.entries.insert(at, e);
+    }
+
+    fn insert(&mut self, e: Entry, cap: usize, depth: u32) {
+        if !self.bounds.intersects(&e.aabb) {
+            return;
+        }
+        // A node that is not full has nothing below it (removal refills), so it takes the entry.
+        if self.entries.len() < cap || depth >= MAX_DEPTH {
+            self.put_sorted(e);
+            return;
+        }
+        let last = *self.entries.last().expect("node is full");
+        let down = if order(&e, &last) == Ordering::Less {
+            self.entries.pop();
+            self.put_sorted(e);
+            last
+        } else {
+            e
+        };
+        for c in self.split().iter_mut() {
+            c.insert(down, cap, depth + 1);
+        }
+    }
+
+    fn remove(&mut self, id: PatchId, aabb: &Aabb, cap: usize) -> bool {
+        if !self.bounds.intersects(aabb) {
+            return false;
+        }
+        if let Some(pos) = self.entries.iter().position(|x| x.id == id) {
+            self.entries.remove(pos);
+            self.refill(cap);
+            return true;
+        }
+        let mut found = false;
+        if let Some(ch) = self.children.as_mut() {
+            for c in ch.iter_mut() {
+                found |= c.remove(id, aabb, cap);
+            }
+        }
+        found
+    }
+
+    /// Pulls the best entries of the children up until the node is full again or its subtree
+    /// is empty, so that "not full" keeps meaning "nothing below".
+    fn refill(&mut self, cap: usize) {
+        while self.entries.len() < cap {
+            let Some(ch) = self.children.as_mut() else {
+                return;
+            };
+            let best = ch
+                .iter()
+                .filter_map(|c| c.entries.first())
+                .min_by(|a, b| order(a, b))
+                .copied();
+            let Some(best) = best else {
+                self.children = None;
+                return;
+            };
+            for c in ch.iter_mut() {
+                c.remove(best.id, &best.aabb, cap);
+            }
+            self.entries.push(best);
+        }
+    }
+
+    fn for_each_in<'a>(&'a self, area: &Aabb, f: &mut impl FnMut(&'a Entry)) {
+        if !self.bounds.intersects(area) {
+            return;
+        }
+        for e in &self.entries {
+            if e.aabb.intersects(area) {
+                f(e);
+            }
+        }
+        if let Some(ch) = &self.children {
+            for c in ch.iter() {
+                c.for_each_in(area, f);
+            }
+        }
+    }
+
+    fn cut<'a>(
+        &'a self,
+        area: &Aabb,
+        range: &impl Fn(&Aabb) -> (f64, f64),
+        f: &mut impl FnMut(&'a Entry),
+    ) {
+        let Some(part) = self.bounds.intersection(area) else {
+            return;
+        };
+        let (lo, hi) = range(&part);
+        for e in &self.entries {
+            if e.ceiling <= lo {
+                // Every later entry, and everything below this node, is finer than needed.
+                return;
+            }
+            if (e.floor <= hi || e.exposed) && e.aabb.intersects(area) {
+                f(e);
+            }
+        }
+        if let Some(ch) = &self.children {
+            for c in ch.iter() {
+                c.cut(area, range, f);
+            }
+        }
+    }
+
+    fn stats(&self, depth: u32, s: &mut TreeStats) {
+        s.nodes += 1;
+        s.stored += self.entries.len();
+        s.depth = s.depth.max(depth);
+        if let Some(ch) = &self.children {
+            for c in ch.iter() {
+                c.stats(depth + 1, s);
+            }
+        }
+    }
+}
+
+/// The shape of a quadtree, for reports and checks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TreeStats {
+    /// Nodes in the tree.
+    pub nodes: usize,
+    /// Stored entries, counting an entry once per node that holds it.
+    pub stored: usize,
+    /// Depth of the deepest node; the root's is 0.
+    pub depth: u32,
+}
+
+/// The multiple-storage quadtree over entries' bounds: no entry below a node has a higher
+/// ceiling than one at it, so that a cut stops descending at the first ceiling below it.
+#[derive(Clone, Debug)]
+pub struct MsQuadtree {
+    root: Option<Node>,
+    capacity: usize,
+}
+
+impl MsQuadtree {
+    /// An empty tree whose nodes keep at most `capacity` entries (at least 1) before they split.
+    pub fn new(capacity: usize) -> Self {
+        MsQuadtree {
+            root: None,
+            capacity: capacity.max(1),
+        }
+    }
+
+    /// The root's square, which holds every entry inserted so far; None before the first. It only
+    /// ever grows.
+    pub fn bounds(&self) -> Option<Aabb> {
+        self.root.as_ref().map(|r| r.bounds)
+    }
+
+    /// Grows the root by doubling it towards `b` until it holds `b`. The root's place (and so
+    /// the tree's shape) may depend on which data came first; what it stores never does.
+    fn ensure_root(&mut self, b: &Aabb) {
+        let root = self.root.get_or_insert_with(|| {
+            let side = b.width().max(b.height()).max(1e-9);
+            let side = 2f64.powi(side.log2().ceil() as i32);
+            Node::new(Aabb::new(
+                b.min[0],
+                b.min[1],
+                b.min[0] + side,
+                b.min[1] + side,
+            ))
+        });
+        while !root.bounds.contains(b) {
+            let old_bounds = root.bounds;
+            let old = std::mem::replace(root, Node::new(old_bounds));
+            let side = old_bounds.width();
+            let x = if b.min[0] < old_bounds.min[0] {
+                old_bounds.min[0] - side
+            } else {
+                old_bounds.min[0]
+            };
+            let y = if b.min[1] < old_bounds.min[1] {
+                old_bounds.min[1] - side
+            } else {
+                old_bounds.min[1]
+            };
+            *root = Node::new(Aabb::new(x, y, x + 2.0 * side, y + 2.0 * side));
+            let cap = self.capacity;
+            let ch = root.split();
+            // The old root keeps its exact bounds: recomputed midpoints may differ in the last bit.
+            let k = usize::from(old_bounds.min[0] > x) + 2 * usize::from(old_bounds.min[1] > y);
+            ch[k] = old;
+            root.refill(cap);
+        }
+    }
+
+    /// Stores an entry, first growing the root until it holds the entry's bounds.
+    pub fn insert(&mut self, e: Entry) {
+        self.ensure_root(&e.aabb);
+        let cap = self.capacity;
+        if let Some(r) = self.root.as_mut() {
+            r.insert(e, cap, 0);
+        }
+    }
+
+    /// Removes the entry of patch `id`; `aabb` must be the bounds it was stored with. False when no
+    /// such entry is stored.
+    pub fn remove(&mut self, id: PatchId, aabb: &Aabb) -> bool {
+        let cap = self.capacity;
+        self.root.as_mut().is_some_and(|r| r.remove(id, aabb, cap))
+    }
+
+    /// Every stored entry whose bounds meet `area`, possibly more than once.
+    pub fn for_each_in<'a>(&'a self, area: &Aabb, mut f: impl FnMut(&'a Entry)) {
+        if let Some(r) = &self.root {
+            r.for_each_in(area, &mut f);
+        }
+    }
+
+    /// Entries over `area` whose z-span meets the query surface, where `range` bounds the
+    /// surface's z over a region, and exposed entries above it (a query's fallback below the
+    /// data's accuracy). Possibly more than once; callers refine and deduplicate.
+    pub fn cut<'a>(
+        &'a self,
+        area: &Aabb,
+        range: impl Fn(&Aabb) -> (f64, f64),
+        mut f: impl FnMut(&'a Entry),
+    ) {
+        if let Some(r) = &self.root {
+            r.cut(area, &range, &mut f);
+        }
+    }
+
+    /// Counts the nodes, the stored entries and the depth.
+    pub fn stats(&self) -> TreeStats {
+        let mut s = TreeStats::default();
+        if let Some(r) = &self.root {
+            r.stats(0, &mut s);
+        }
+        s
+    }
+
+    /// Checks the storage invariant everywhere; used by verification and tests.
+    pub fn check(&self) -> Result<(), String> {
+        fn walk(n: &Node, cap: usize, above: Option<&Entry>, depth: u32) -> Result<(), String> {
+            if n.entries
+                .windows(2)
+                .any(|w| order(&w[0], &w[1]) != Ordering::Less)
+            {
+                return Err(format!("node {:?} is not sorted", n.bounds));
+            }
+            if depth < MAX_DEPTH && n.entries.len() > cap {
+                return Err(format!(
+                    "node {:?} holds {} > {cap}",
+                    n.bounds,
+                    n.entries.len()
+                ));
+            }
+            if let (Some(a), Some(first)) = (above, n.entries.first()) {
+                if order(first, a) == Ordering::Less {
+                    return Err(format!(
+                        "node {:?} holds {} above its parent's last",
+                        n.bounds, first.id
+                    ));
+                }
+            }
+            if let Some(e) = n.entries.iter().find(|e| !n.bounds.intersects(&e.aabb)) {
+                return Err(format!("node {:?} holds {} outside it", n.bounds, e.id));
+            }
+            if let Some(ch) = &n.children {
+                if n.entries.len() < cap && ch.iter().any(|c| !c.entries.is_empty()) {
+                    return Err(format!(
+                        "node {:?} is not full but has entries below",
+                        n.bounds
+                    ));
+                }
+                let last = n.entries.last().or(above);
+                for c in ch.iter() {
+                    walk(c, cap, last, depth + 1)?;
+                }
+            }
+            Ok(())
+        }
+        match &self.root {
+            Some(r) => walk(r, self.capacity, None, 0),
+            None => Ok(()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(id: u64, x: f64, y: f64, s: f64, ceiling: f64) -> Entry {
+        Entry {
+            id: PatchId(id),
+            ceiling,
+            floor: 0.0,
+            exposed: false,
+            aabb: Aabb::new(x, y, x + s, y + s),
+        }
+    }
+
+    #[test]
+    fn invariant_holds_through_inserts_removals_and_growth() {
+        let mut t = MsQuadtree::new(4);
+        let mut all = Vec::new();
+        let mut seed = 7u64;
+        let mut rnd = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for i in 0..400 {
+            let e = entry(
+                i,
+                rnd() * 100.0 - 20.0,
+                rnd() * 100.0,
+                0.5 + rnd() * 10.0,
+                (rnd() * 8.0).floor(),
+            );
+            t.insert(e);
+            all.push(e);
+            t.check().unwrap();
+        }
+        for e in all.iter().step_by(3) {
+            assert!(t.remove(e.id, &e.aabb));
+            t.check().unwrap();
+        }
+        let kept: Vec<_> = all
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| i % 3 != 0)
+            .map(|(_, e)| *e)
+            .collect();
+        for z in [0.5, 2.5, 7.5] {
+            let area = Aabb::new(10.0, 10.0, 40.0, 60.0);
+            let mut got: Vec<u64> = Vec::new();
+            t.cut(&area, |_| (z, z), |e| got.push(e.id.0));
+            got.sort();
+            got.dedup();
+            let mut want: Vec<u64> = kept
+                .iter()
+                .filter(|e| e.ceiling > z && e.floor <= z && e.aabb.intersects(&area))
+                .map(|e| e.id.0)
+                .collect();
+            want.sort();
+            assert_eq!(got, want, "z = {z}");
+        }
+    }
+}

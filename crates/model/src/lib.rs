@@ -1,0 +1,18 @@
+//! The model: grids, mipmaps and patches. Pure computation, no I/O.
+
+#![warn(missing_docs)]
+
+pub mod accuracy;
+pub mod coreg;
+pub mod edge;
+pub mod evidence;
+pub mod geoid;
+pub mod grid;
+pub mod ids;
+pub mod lattice;
+pub mod mipmap;
+pub mod patch;
+pub mod place;
+pub mod source;
+pub mod spline;
+pub mod survey;

@@ -1,0 +1,114 @@
+//! Where samples come from when they are not in memory. The model and the terrain read
+//! through this trait and do no I/O themselves; the store implements it over its chunks.
+
+use super::grid::{Grid, SampleRect, Shape, Window};
+use super::ids::SurveyId;
+use thiserror::Error;
+
+/// Samples that could not be read: the store failed, or holds something it cannot decode.
+#[derive(Clone, Debug, Error, PartialEq)]
+#[error("samples of survey {survey} could not be read: {reason}")]
+pub struct SampleError {
+    /// The survey whose samples were asked for.
+    pub survey: SurveyId,
+    /// What went wrong.
+    pub reason: String,
+}
+
+/// Refuses a rectangle that is empty or not inside a `cols × rows` level.
+pub fn check_rect(
+    survey: SurveyId,
+    rect: &SampleRect,
+    cols: usize,
+    rows: usize,
+) -> Result<(), SampleError> {
+    if rect.is_empty() || rect.c1 > cols || rect.r1 > rows {
+        return Err(SampleError {
+            survey,
+            reason: format!("{rect:?} is not inside a {cols}×{rows} level"),
+        });
+    }
+    Ok(())
+}
+
+/// Reads rectangles of the levels of stored surveys.
+pub trait SampleSource: Send + Sync + std::fmt::Debug {
+    /// Samples `rect` of level `level` of `survey`, whose shape is `shape`, as a grid
+    /// georeferenced where they lie.
+    fn read(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        shape: &Shape,
+        rect: SampleRect,
+    ) -> Result<Grid, SampleError>;
+
+    /// A window holding at least `rect`: what [`Self::read`] gives, or more where the source
+    /// holds it already and can share it rather than copy it.
+    fn window(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        shape: &Shape,
+        rect: SampleRect,
+    ) -> Result<Window, SampleError> {
+        let g = self.read(survey, level, shape, rect)?;
+        Ok(Window::of(std::sync::Arc::new(g), rect, *shape))
+    }
+}
+
+/// Samples held in memory, by survey: a source for terrains restored without a store.
+#[derive(Clone, Debug, Default)]
+pub struct MemorySource {
+    levels: std::collections::HashMap<SurveyId, Vec<std::sync::Arc<Grid>>>,
+}
+
+impl MemorySource {
+    /// A source holding the samples of every survey given.
+    pub fn of<'a>(surveys: impl IntoIterator<Item = &'a super::survey::Survey>) -> Self {
+        MemorySource {
+            levels: surveys
+                .into_iter()
+                .map(|s| (s.id, s.levels.clone()))
+                .collect(),
+        }
+    }
+}
+
+impl SampleSource for MemorySource {
+    fn read(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        _: &Shape,
+        rect: SampleRect,
+    ) -> Result<Grid, SampleError> {
+        let g = self.level(survey, level)?;
+        check_rect(survey, &rect, g.cols, g.rows)?;
+        Ok(g.window(rect.c0, rect.r0, rect.cols(), rect.rows()))
+    }
+
+    fn window(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        _: &Shape,
+        rect: SampleRect,
+    ) -> Result<Window, SampleError> {
+        let g = self.level(survey, level)?;
+        check_rect(survey, &rect, g.cols, g.rows)?;
+        Ok(Window::whole(g.clone()))
+    }
+}
+
+impl MemorySource {
+    fn level(&self, survey: SurveyId, level: usize) -> Result<&std::sync::Arc<Grid>, SampleError> {
+        self.levels
+            .get(&survey)
+            .and_then(|l| l.get(level))
+            .ok_or_else(|| SampleError {
+                survey,
+                reason: format!("no level {level} in memory"),
+            })
+    }
+}

@@ -1,0 +1,581 @@
+//! Resampling extracted patches into heights (§5): sample grids, resolved patches and their
+//! surfaces, and the CPU implementation of Formula 1 ([`cpu`]). The GPU's, which holds to
+//! this one, is the daemon's (it needs a device). Pure computation: it blends whatever
+//! patches it is given, and imports neither the index nor anything above.
+
+#![warn(missing_docs)]
+
+pub mod cpu;
+
+use patchwork_crs::Reprojection;
+use patchwork_geom::snap;
+use patchwork_geom::{Aabb, ORect};
+use patchwork_model::edge::{EdgeGrid, EdgePatch};
+use patchwork_model::grid::{Georef, SampleRect, Shape, Window};
+use patchwork_model::ids::PatchId;
+use patchwork_model::patch::{Bicubic, CellRect, Patch, PatchKind};
+use patchwork_model::spline::Spline;
+use std::sync::Arc;
+
+/// Where a tile is resampled: `Auto` takes the GPU when the daemon has one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// The GPU where the daemon has one that serves, else the CPU.
+    Auto,
+    /// The CPU only.
+    Cpu,
+    /// The GPU only: an error where the daemon has none or it fails.
+    Gpu,
+}
+
+/// Set when the caller of a long computation has given up (its deadline passed): the loops
+/// that resample check it as they go and stop, so that abandoned work frees its thread.
+#[derive(Clone, Debug, Default)]
+pub struct Cancel(Arc<std::sync::atomic::AtomicBool>);
+
+impl Cancel {
+    /// Asks the work to stop; every clone sees it.
+    pub fn cancel(&self) {
+        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether [`Self::cancel`] has been called on this or any clone.
+    #[inline]
+    pub fn is_cancelled(&self) -> bool {
+        self.0.load(std::sync::atomic::Ordering::Relaxed)
+    }
+}
+
+/// Output samples per block side when binning patches.
+pub const BLOCK: usize = 16;
+
+/// Where to sample: a `width × height` array of plane positions, row-major. A NaN position
+/// (a view ray above the horizon) yields nodata.
+#[derive(Clone, Debug)]
+pub struct SampleGrid {
+    /// Samples per row.
+    pub width: usize,
+    /// Rows of samples.
+    pub height: usize,
+    /// Every point, row-major; empty where `axes` gives them. Listing a 2048² tile's points
+    /// took longer than blending most of it.
+    list: Vec<[f64; 2]>,
+    /// For a north-up tile, the x of each column and the y of each row: point (i, j) is
+    /// (xs[i], ys[j]), which lets the CPU work out per column and per row what it would
+    /// otherwise work out per sample.
+    pub axes: Option<Axes>,
+}
+
+/// The coordinates of a north-up tile's columns and rows.
+#[derive(Clone, Debug)]
+pub struct Axes {
+    /// The x of each column.
+    pub xs: Vec<f64>,
+    /// The y of each row.
+    pub ys: Vec<f64>,
+}
+
+impl SampleGrid {
+    /// A north-up tile over `roi`, sample (i, j) at the centre of its pixel.
+    pub fn uniform(roi: &Aabb, width: usize, height: usize) -> Self {
+        let dx = roi.width() / width as f64;
+        let dy = roi.height() / height as f64;
+        let xs: Vec<f64> = (0..width)
+            .map(|i| roi.min[0] + (i as f64 + 0.5) * dx)
+            .collect();
+        let ys: Vec<f64> = (0..height)
+            .map(|j| roi.max[1] - (j as f64 + 0.5) * dy)
+            .collect();
+        SampleGrid {
+            width,
+            height,
+            list: Vec::new(),
+            axes: Some(Axes { xs, ys }),
+        }
+    }
+
+    /// A grid of any points, row-major, `width × height` of them.
+    pub fn of_points(width: usize, height: usize, points: Vec<[f64; 2]>) -> Self {
+        assert_eq!(points.len(), width * height, "a point for every sample");
+        SampleGrid {
+            width,
+            height,
+            list: points,
+            axes: None,
+        }
+    }
+
+    /// The same points without their axes: resampled one point at a time, as any grid is.
+    pub fn pointwise(self) -> Self {
+        let list = self.points().collect();
+        SampleGrid::of_points(self.width, self.height, list)
+    }
+
+    /// Sample k's position, row-major.
+    #[inline]
+    pub fn point(&self, k: usize) -> [f64; 2] {
+        match &self.axes {
+            Some(a) => [a.xs[k % self.width], a.ys[k / self.width]],
+            None => self.list[k],
+        }
+    }
+
+    /// Every sample's position, row-major.
+    pub fn points(&self) -> impl ExactSizeIterator<Item = [f64; 2]> + '_ {
+        (0..self.width * self.height).map(|k| self.point(k))
+    }
+
+    /// Bounds of each block's points, row-major over blocks; None for a block without any.
+    pub fn block_bounds(&self) -> Vec<Option<Aabb>> {
+        let bx = self.width.div_ceil(BLOCK);
+        let by = self.height.div_ceil(BLOCK);
+        if let Some(Axes { xs, ys }) = &self.axes {
+            let span = |v: &[f64]| {
+                let (a, b) = (v[0], v[v.len() - 1]);
+                (a.min(b), a.max(b))
+            };
+            return (0..bx * by)
+                .map(|b| {
+                    let (i0, j0) = ((b % bx) * BLOCK, (b / bx) * BLOCK);
+                    let (x0, x1) = span(&xs[i0..(i0 + BLOCK).min(self.width)]);
+                    let (y0, y1) = span(&ys[j0..(j0 + BLOCK).min(self.height)]);
+                    Some(Aabb::new(x0, y0, x1, y1))
+                })
+                .collect();
+        }
+        (0..bx * by)
+            .map(|b| {
+                let (i0, j0) = ((b % bx) * BLOCK, (b / bx) * BLOCK);
+                let mut acc: Option<Aabb> = None;
+                for j in j0..(j0 + BLOCK).min(self.height) {
+                    for i in i0..(i0 + BLOCK).min(self.width) {
+                        let p = self.list[j * self.width + i];
+                        if p[0].is_nan() {
+                            continue;
+                        }
+                        let pb = Aabb { min: p, max: p };
+                        acc = Some(acc.map_or(pb, |a| a.union(&pb)));
+                    }
+                }
+                acc
+            })
+            .collect()
+    }
+}
+
+/// What a patch evaluates.
+#[derive(Clone, Debug)]
+pub enum Surface {
+    /// A mipmap level, bilinear on its valid cells, through a window that holds at least the
+    /// patch's samples and one more ring where the level has it (see [`ResolvedPatch::reads`]).
+    Bilinear(Window),
+    /// The same, evaluating the patch's spline (fitted to its window's samples) wherever the
+    /// bilinear surface is defined.
+    Bicubic(Window, Arc<Spline>),
+    /// An edge patch's filled samples (see [`patchwork_model::edge`]).
+    Edge(Arc<EdgeGrid>),
+}
+
+impl Surface {
+    /// The georeferencing of the level's (or the edge patch's) grid.
+    pub fn georef(&self) -> &Georef {
+        match self {
+            Surface::Bilinear(w) | Surface::Bicubic(w, _) => &w.level.georef,
+            Surface::Edge(e) => &e.georef,
+        }
+    }
+
+    /// Cells along each axis.
+    pub fn cells(&self) -> [usize; 2] {
+        match self {
+            Surface::Bilinear(w) | Surface::Bicubic(w, _) => w.level.cells(),
+            Surface::Edge(e) => [e.cols - 1, e.rows - 1],
+        }
+    }
+}
+
+/// A patch's answer at a point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    /// The height.
+    pub z: f64,
+    /// Scales the patch's blend weight (1 but for edge patches).
+    pub weight: f64,
+    /// Whether the point lies in the valid part of the patch's kernel.
+    pub covered: bool,
+}
+
+/// A patch ready to evaluate: its samples and everything per-sample work needs, computed
+/// once per request.
+#[derive(Clone, Debug)]
+pub struct ResolvedPatch {
+    /// Identifies the window's samples, so a device that already holds them need not upload
+    /// them again.
+    pub id: PatchId,
+    /// What the patch evaluates.
+    pub surface: Surface,
+    /// The patch's kernel, in grid units of its level: the points it covers.
+    pub kernel: CellRect,
+    /// The window clipped to the level's grid, in grid units: a survey patch reaches no point
+    /// outside it.
+    pub window: CellRect,
+    /// Centre of the unclipped window, in level grid units.
+    pub centre: [f64; 2],
+    /// 1 / the unclipped window's half-size: scales a grid offset from `centre` to the
+    /// weight's t ∈ (−1, 1).
+    pub inv_half: [f64; 2],
+    /// 1 / (dx·dy): the weight's unit volume, in world units.
+    pub norm: f64,
+    /// 0 for the paper's tent, w(t) = 1 − |t|. For edge patches, half / margin: the weight is
+    /// min(1, (1 − |t|)·flat), flat over the kernel and falling to 0 across the extension
+    /// zone, so that the large tiles of edge patches weigh their kernel fully (and an f32
+    /// evaluation of the weight keeps its precision there).
+    pub flat: f64,
+    /// The window's world bounds, clipped to the unclipped window's (beyond which the weight
+    /// is 0): what [`cpu::bin`] tests blocks against.
+    pub window_aabb: Aabb,
+    /// The patch's error, for the fallback's tiers.
+    pub error: f64,
+    /// See [`patchwork_index::query::Extracted::fallback`].
+    pub fallback: bool,
+    /// Among the fallback patches of its set, the rank of its error (equal errors share one):
+    /// at a point no cut patch covers, the fallback patches of the best rank covering it are
+    /// blended, with any of better rank that reach it.
+    pub rank: u32,
+    /// Which positions of a sample the patch reads: 0 for the grid's own (the store's
+    /// plane), k for those [`PatchSet::planes`]`[k − 1]` carries them to, in the CRS of a
+    /// survey of another plane.
+    pub plane: u16,
+    /// Where the level's sample (0, 0) lies, in the world (the GPU's shader places its
+    /// samples from these, as the CPU does).
+    pub origin: [f64; 2],
+    /// The level's column and row axes, unit vectors in the world.
+    pub axes: [[f64; 2]; 2],
+    /// What a world offset is dotted with for grid coordinates ([`Georef::duals`]): the axes
+    /// themselves but on a skewed grid; `u` gives columns, `v` rows.
+    pub u: [f64; 2],
+    /// See `u`.
+    pub v: [f64; 2],
+    /// Samples a world unit along the columns and along the rows.
+    pub inv_step: [f64; 2],
+}
+
+impl ResolvedPatch {
+    #[allow(clippy::too_many_arguments)]
+    fn make(
+        id: PatchId,
+        surface: Surface,
+        kernel: CellRect,
+        window: CellRect,
+        centre: [f64; 2],
+        half: [f64; 2],
+        error: f64,
+        fallback: bool,
+    ) -> Self {
+        let g = *surface.georef();
+        let [u, v] = g.axes();
+        let [du, dv] = g.duals();
+        let nominal = ORect {
+            origin: g.to_world(centre[0] - half[0], centre[1] - half[1]),
+            u,
+            v,
+            size: [2.0 * half[0] * g.step[0], 2.0 * half[1] * g.step[1]],
+        };
+        let w = g.cells_rect(&window);
+        ResolvedPatch {
+            id,
+            kernel,
+            window,
+            centre,
+            inv_half: [1.0 / half[0], 1.0 / half[1]],
+            norm: 1.0 / (half[0] * g.step[0] * half[1] * g.step[1]),
+            flat: 0.0,
+            window_aabb: w.aabb().intersection(&nominal.aabb()).unwrap_or(w.aabb()),
+            error,
+            fallback,
+            rank: 0,
+            plane: 0,
+            origin: g.origin,
+            axes: [u, v],
+            u: du,
+            v: dv,
+            inv_step: [1.0 / g.step[0], 1.0 / g.step[1]],
+            surface,
+        }
+    }
+
+    /// The samples of its level a survey patch reads: its window and one more cell on every
+    /// side the level has (the rule for points on a cell edge may look at the cell beyond).
+    pub fn reads(p: &Patch, level: &Shape) -> SampleRect {
+        let w = p.window;
+        let [cw, ch] = level.cells();
+        SampleRect {
+            c0: w.c0.saturating_sub(1) as usize,
+            r0: w.r0.saturating_sub(1) as usize,
+            c1: (w.c1 as usize + 1).min(cw) + 1,
+            r1: (w.r1 as usize + 1).min(ch) + 1,
+        }
+    }
+
+    /// A survey's patch of `kind` on its level, read through a window holding
+    /// [`Self::reads`].
+    pub fn new(level: Window, p: &Patch, kind: PatchKind, fallback: bool) -> Self {
+        let surface = match kind {
+            PatchKind::Bilinear => Surface::Bilinear(level),
+            PatchKind::Bicubic => {
+                let spline = Bicubic::spline_of(&p.window, |c, r| level.at(c, r));
+                Surface::Bicubic(level, Arc::new(spline))
+            }
+        };
+        Self::make(
+            p.id, surface, p.kernel, p.window, p.centre, p.half, p.error, fallback,
+        )
+    }
+
+    /// An edge patch, evaluating its filled samples with its flattened weight.
+    pub fn edge(e: &EdgePatch, fallback: bool) -> Self {
+        let mut p = Self::make(
+            e.id,
+            Surface::Edge(e.grid.clone()),
+            e.kernel,
+            e.window,
+            e.centre,
+            e.half,
+            e.error,
+            fallback,
+        );
+        p.flat = e.flat;
+        p
+    }
+
+    /// The 1-D blend weight at t ∈ (−1, 1).
+    #[inline]
+    fn weight(&self, t: f64) -> f64 {
+        if let Surface::Bicubic(..) = self.surface {
+            return PatchKind::Bicubic.weight(t);
+        }
+        let w = 1.0 - t.abs();
+        if self.flat > 0.0 {
+            (w * self.flat).min(1.0)
+        } else {
+            w
+        }
+    }
+
+    /// Grid coordinates of a world point. Coordinates within [`SNAP`](patchwork_geom::SNAP) of a grid line are
+    /// put on it: a sample grid aligned with a level puts points on its lines, where validity
+    /// changes, and rounding noise must not decide which side they fall on (nor may it differ
+    /// between the CPU and the GPU).
+    #[inline]
+    pub fn to_grid(&self, p: [f64; 2]) -> [f64; 2] {
+        let d = [p[0] - self.origin[0], p[1] - self.origin[1]];
+        [
+            snap((d[0] * self.u[0] + d[1] * self.u[1]) * self.inv_step[0]),
+            snap((d[0] * self.v[0] + d[1] * self.v[1]) * self.inv_step[1]),
+        ]
+    }
+
+    /// Whether the patch's grid coordinate along x depends on x alone and along y on y alone
+    /// (a north-up level of the store's plane), and it is a bilinear patch: what
+    /// [`Self::along`] needs. A patch of another plane reads positions carried into it, which
+    /// no tile's axes give.
+    pub fn separable(&self) -> bool {
+        self.plane == 0
+            && matches!(self.surface, Surface::Bilinear(_))
+            && self.u[1] == 0.0
+            && self.v[0] == 0.0
+    }
+
+    /// For a [`Self::separable`] patch, everything [`Self::at`] works out from one coordinate:
+    /// `axis` 0 for an x, 1 for a y. Computed as `at` computes it, term for term.
+    #[inline]
+    pub fn along(&self, axis: usize, x: f64) -> AxisHit {
+        let Surface::Bilinear(level) = &self.surface else {
+            unreachable!("only bilinear patches are separable")
+        };
+        let (w, k) = (&self.window, &self.kernel);
+        let (dir, offset, cells, lo, hi, klo, khi) = if axis == 0 {
+            (
+                self.u[0],
+                level.c0,
+                level.grid.cols - 1,
+                w.c0,
+                w.c1,
+                k.c0,
+                k.c1,
+            )
+        } else {
+            (
+                self.v[1],
+                level.r0,
+                level.grid.rows - 1,
+                w.r0,
+                w.r1,
+                k.r0,
+                k.r1,
+            )
+        };
+        let g = snap(((x - self.origin[axis]) * dir) * self.inv_step[axis]);
+        let t = (g - self.centre[axis]) * self.inv_half[axis];
+        // Window::bilinear_grid works in the window's own coordinates; Grid::locate then
+        // finds the cell.
+        let local = g - offset as f64;
+        let located = local >= 0.0 && local <= cells as f64;
+        let cell = if located {
+            (local.floor() as usize).min(cells.max(1) - 1)
+        } else {
+            0
+        };
+        AxisHit {
+            reaches: t.abs() < 1.0 && g >= lo as f64 && g <= hi as f64 && located,
+            weight: self.weight(t),
+            covered: g >= klo as f64 && g <= khi as f64,
+            local,
+            cell: cell as u32,
+            frac: local - cell as f64,
+        }
+    }
+
+    /// [`Self::at`] from the two halves [`Self::along`] gave for the point's x and y.
+    #[inline(always)]
+    pub fn at_axes(&self, x: &AxisHit, y: &AxisHit) -> Option<(f64, Hit)> {
+        if !(x.reaches && y.reaches) {
+            return None;
+        }
+        let Surface::Bilinear(level) = &self.surface else {
+            unreachable!("only bilinear patches are separable")
+        };
+        let grid = &level.grid;
+        let z = grid
+            .bilinear_in_cell(x.cell as usize, y.cell as usize, [x.frac, y.frac])
+            .or_else(|| grid.bilinear_grid([x.local, y.local]))?;
+        let hit = Hit {
+            z,
+            weight: 1.0,
+            covered: x.covered && y.covered,
+        };
+        Some((x.weight * y.weight * self.norm * hit.weight, hit))
+    }
+
+    /// The patch's blend weight and answer at a world point; None where it does not reach.
+    #[inline]
+    pub fn at(&self, p: [f64; 2]) -> Option<(f64, Hit)> {
+        let g = self.to_grid(p);
+        let tx = (g[0] - self.centre[0]) * self.inv_half[0];
+        let ty = (g[1] - self.centre[1]) * self.inv_half[1];
+        // A point with no position in the patch's plane (NaN) reaches nothing.
+        if !(tx.abs() < 1.0 && ty.abs() < 1.0) {
+            return None;
+        }
+        let hit = match &self.surface {
+            Surface::Bilinear(level) => {
+                if !self.window.contains_grid(g) {
+                    return None;
+                }
+                Hit {
+                    z: level.bilinear_grid(g)?,
+                    weight: 1.0,
+                    covered: self.kernel.contains_grid(g),
+                }
+            }
+            Surface::Bicubic(level, spline) => {
+                if !self.window.contains_grid(g) {
+                    return None;
+                }
+                level.bilinear_grid(g)?;
+                let w = &self.window;
+                Hit {
+                    z: spline.eval([g[0] - w.c0 as f64, g[1] - w.r0 as f64]),
+                    weight: 1.0,
+                    covered: self.kernel.contains_grid(g),
+                }
+            }
+            Surface::Edge(e) => {
+                let s = e.eval(g)?;
+                Hit {
+                    z: s.z,
+                    weight: s.weight,
+                    covered: self.kernel.contains_grid(g),
+                }
+            }
+        };
+        let w = self.weight(tx) * self.weight(ty) * self.norm * hit.weight;
+        Some((w, hit))
+    }
+}
+
+/// What a separable patch makes of one coordinate of a point (see [`ResolvedPatch::along`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct AxisHit {
+    /// Inside the open weight support, the window and the level along this axis.
+    pub reaches: bool,
+    /// The 1-D blend weight at this coordinate.
+    pub weight: f64,
+    /// Inside the kernel along this axis.
+    pub covered: bool,
+    /// The coordinate in the window's grid, its cell and the fraction across it.
+    pub local: f64,
+    /// See `local`.
+    pub cell: u32,
+    /// See `local`.
+    pub frac: f64,
+}
+
+/// The patches of one request, in a fixed order so that sums are reproducible.
+#[derive(Clone, Default)]
+pub struct PatchSet {
+    /// The patches; indices into this are what [`cpu::bin`] lists.
+    pub patches: Vec<ResolvedPatch>,
+    /// Whether any patch is a fallback, so that blending must mind tiers.
+    pub has_fallback: bool,
+    /// The maps from the store's plane to the planes of the set's surveys of other CRSs: a
+    /// patch of plane k reads a sample's position carried by `planes[k − 1]`.
+    pub planes: Vec<Arc<Reprojection>>,
+}
+
+impl std::fmt::Debug for PatchSet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PatchSet")
+            .field("patches", &self.patches.len())
+            .field("has_fallback", &self.has_fallback)
+            .field("planes", &self.planes.len())
+            .finish()
+    }
+}
+
+impl PatchSet {
+    /// The set, with the fallback patches ranked by error.
+    pub fn new(mut patches: Vec<ResolvedPatch>) -> Self {
+        let mut errors: Vec<f64> = patches
+            .iter()
+            .filter(|p| p.fallback)
+            .map(|p| p.error)
+            .collect();
+        errors.sort_by(f64::total_cmp);
+        errors.dedup();
+        for p in patches.iter_mut().filter(|p| p.fallback) {
+            p.rank = errors.partition_point(|&e| e < p.error) as u32;
+        }
+        PatchSet {
+            has_fallback: !errors.is_empty(),
+            patches,
+            planes: Vec::new(),
+        }
+    }
+
+    /// The set with patches of other planes: `planes[k − 1]` carries a sample to plane k.
+    pub fn with_planes(mut self, planes: Vec<Arc<Reprojection>>) -> Self {
+        self.planes = planes;
+        self
+    }
+
+    /// Every sample's position in every other plane of the set, row-major, NaN where it has
+    /// none: the lattice's answer for each point alone, so the same from any grid.
+    pub fn positions(&self, grid: &SampleGrid) -> Vec<Vec<[f64; 2]>> {
+        if self.planes.is_empty() {
+            return Vec::new();
+        }
+        let points: Vec<[f64; 2]> = grid.points().collect();
+        self.planes.iter().map(|r| r.map(&points)).collect()
+    }
+}

@@ -1,0 +1,354 @@
+//! The Admin service's commands: ingest, list, retire, forget, stats, verify, repair and
+//! compact.
+
+use super::client::{call, Client};
+use super::json::{distrusted, StatsJson, SurveyJson, Word};
+use super::terrain::tile_crs;
+use super::{
+    printable, CompactArgs, Fail, ForgetArgs, IngestArgs, RepairArgs, RetireArgs, StatsArgs,
+    SurveysArgs, VerifyArgs,
+};
+use patchwork::engine::Engine;
+use patchwork::paths::source_name;
+use patchwork::serve::api;
+use patchwork::serve::proto as pb;
+use std::path::Path;
+use std::sync::Arc;
+
+pub async fn ingest(args: IngestArgs) -> Result<(), Fail> {
+    let IngestArgs {
+        files,
+        accuracy,
+        target,
+    } = args;
+    let mut c = Client::connect(&target).await?;
+    // The bar counts bytes of files: a large file moves it through its phases while
+    // the daemon reads, models, indexes and commits it.
+    let sizes: Vec<u64> = files
+        .iter()
+        .map(|f| std::fs::metadata(f).map_or(1, |m| m.len().max(1)))
+        .collect();
+    let bar = indicatif::ProgressBar::new(sizes.iter().sum());
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {bytes}/{total_bytes} {elapsed} {msg}")
+            .expect("template"),
+    );
+    let done = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let watcher = watch_ingest(&c, bar.clone(), done.clone());
+    // A hidden bar (no terminal) swallows its own println: print plainly then.
+    let say = |line: String| {
+        if bar.is_hidden() {
+            println!("{line}");
+        } else {
+            bar.println(line);
+        }
+    };
+    let mut failed = 0;
+    for (f, size) in files.into_iter().zip(sizes) {
+        let path = source_name(&f);
+        if f.to_str().is_none() {
+            // The wire carries text: the name cannot be sent as it is.
+            failed += 1;
+            say(format!(
+                "failed    {}: the file name is not valid UTF-8: rename the file to ingest it",
+                printable(&path)
+            ));
+            done.fetch_add(size, std::sync::atomic::Ordering::Relaxed);
+            continue;
+        }
+        let req = pb::IngestRequest {
+            paths: vec![path],
+            accuracy_m: accuracy,
+        };
+        let r = req.clone();
+        let reply = call!(&mut c, admin.ingest(req), move |e: &Engine| api::ingest(
+            e, &r
+        ))?;
+        for r in reply.results {
+            if r.outcome() == pb::Outcome::Failed {
+                failed += 1;
+                say(format!(
+                    "failed    {}: {}",
+                    printable(&r.source),
+                    printable(&r.error)
+                ));
+            } else {
+                say(format!(
+                    "{:<9} {} {:016x} ({} samples, {:.2} s)",
+                    r.outcome().word(),
+                    printable(&r.source),
+                    r.survey,
+                    r.samples,
+                    r.seconds
+                ));
+                for c in &r.conflicts {
+                    say(format!(
+                        "          conflicts with {}: up to {:.2} m apart, {:.2} m RMS",
+                        c.survey, c.max_m, c.rms_m
+                    ));
+                }
+            }
+        }
+        done.fetch_add(size, std::sync::atomic::Ordering::Relaxed);
+        bar.set_position(done.load(std::sync::atomic::Ordering::Relaxed));
+    }
+    watcher.abort();
+    bar.finish_and_clear();
+    if failed > 0 {
+        return Err(format!("{failed} file(s) failed").into());
+    }
+    Ok(())
+}
+
+pub async fn surveys(args: SurveysArgs) -> Result<(), Fail> {
+    let SurveysArgs { json, target } = args;
+    let mut c = Client::connect(&target).await?;
+    let list = call!(
+        &mut c,
+        admin.list_surveys(pb::ListSurveysRequest {}),
+        api::list_surveys
+    )?;
+    if json {
+        let v: Vec<SurveyJson> = list.surveys.iter().map(SurveyJson::of).collect();
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        for s in &list.surveys {
+            match s.status() {
+                pb::SurveyStatus::Failed => println!(
+                    "{:<16}  failed   {}  {}",
+                    "-",
+                    printable(&s.source),
+                    printable(&s.error)
+                ),
+                // Out of the terrain: what is wrong matters, not its claims.
+                pb::SurveyStatus::Damaged => println!(
+                    "{:<16}  damaged  {}  {}; ingest the file again or run `patchwork repair`",
+                    s.id,
+                    printable(&s.source),
+                    printable(&s.error)
+                ),
+                st => {
+                    // What most of it achieves beside what all of it does.
+                    let claimed = if s.claimed_accuracy_m < s.accuracy_m {
+                        format!(", claimed {:.3} m", s.claimed_accuracy_m)
+                    } else {
+                        String::new()
+                    };
+                    println!(
+                            "{:<16}  {:<7}  {}  ε median {:.3} m, 90% {:.3} m, largest {:.3} m ({}{claimed})  {} samples  {} patches",
+                            s.id,
+                            st.word(),
+                            printable(&s.source),
+                            s.accuracy_median_m,
+                            s.accuracy_p90_m,
+                            s.accuracy_m,
+                            s.accuracy_source().word(),
+                            s.samples,
+                            s.patches
+                        );
+                    for c in &s.conflicts {
+                        println!("{:<16}  {}", "", conflict_line(c));
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+pub async fn retire(args: RetireArgs) -> Result<(), Fail> {
+    let RetireArgs {
+        id_or_source,
+        target,
+    } = args;
+    let mut c = Client::connect(&target).await?;
+    let source = if Path::new(&id_or_source).exists() {
+        source_name(Path::new(&id_or_source))
+    } else {
+        id_or_source
+    };
+    let req = pb::RetireRequest {
+        id_or_source: source,
+    };
+    let r = req.clone();
+    let reply = call!(&mut c, admin.retire(req), move |e: &Engine| api::retire(
+        e, &r
+    ))?;
+    println!("retired {} ({} patches)", reply.id, reply.patches);
+    Ok(())
+}
+
+pub async fn forget(args: ForgetArgs) -> Result<(), Fail> {
+    let ForgetArgs { path, target } = args;
+    let mut c = Client::connect(&target).await?;
+    let source = source_name(&path);
+    let req = pb::ForgetRequest {
+        source: source.clone(),
+    };
+    let r = req.clone();
+    call!(&mut c, admin.forget(req), move |e: &Engine| api::forget(
+        e, &r
+    ))?;
+    println!("forgot the failure of {}", printable(&source));
+    Ok(())
+}
+
+pub async fn stats(args: StatsArgs) -> Result<(), Fail> {
+    let StatsArgs { json, target } = args;
+    let mut c = Client::connect(&target).await?;
+    let s = call!(&mut c, admin.stats(pb::StatsRequest {}), api::stats)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&StatsJson::of(&s))?);
+    } else {
+        let crs = match tile_crs(&s.crs_key)? {
+            Some(c) => c.label(),
+            None => "none yet".into(),
+        };
+        let vertical = if s.vertical_crs.is_empty() {
+            "none yet".to_string()
+        } else {
+            s.vertical_crs.clone()
+        };
+        if s.damaged > 0 {
+            println!(
+                    "damaged {} surveys, out of the terrain: `patchwork surveys` says why, `patchwork repair` drops them",
+                    s.damaged
+                );
+        }
+        println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {crs}\nvertical crs {vertical}\nbackend {}",
+                s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes, s.backend);
+        println!(
+            "cache {} of {} bytes, {} hits, {} misses",
+            s.cache_bytes, s.cache_capacity_bytes, s.cache_hits, s.cache_misses
+        );
+        if s.requests_limit > 0 {
+            println!(
+                "requests {} at work of at most {}, {} waiting, {} served",
+                s.requests_running, s.requests_limit, s.requests_waiting, s.requests_served
+            );
+        }
+        if !s.read_only.is_empty() {
+            println!("read-only: {}", s.read_only);
+        }
+    }
+    Ok(())
+}
+
+pub async fn verify(args: VerifyArgs) -> Result<(), Fail> {
+    let VerifyArgs { target } = args;
+    let mut c = Client::connect(&target).await?;
+    let v = call!(&mut c, admin.verify(pb::VerifyRequest {}), api::verify)?;
+    for p in &v.problems {
+        println!("problem: {p}");
+    }
+    if v.ok {
+        println!("ok: {} surveys, {} patches", v.surveys, v.patches);
+        Ok(())
+    } else {
+        Err(format!("{} problem(s) found", v.problems.len()).into())
+    }
+}
+
+pub async fn repair(args: RepairArgs) -> Result<(), Fail> {
+    let RepairArgs { target } = args;
+    let mut c = Client::connect(&target).await?;
+    let r = call!(&mut c, admin.repair(pb::RepairRequest {}), api::repair)?;
+    for d in &r.dropped {
+        let source = if d.source.is_empty() {
+            "unreadable record".to_string()
+        } else {
+            printable(&d.source).to_string()
+        };
+        println!("dropped {} ({source}): {}", d.id, d.reason);
+    }
+    println!("{} damaged surveys dropped", r.dropped.len());
+    Ok(())
+}
+
+pub async fn compact(args: CompactArgs) -> Result<(), Fail> {
+    let CompactArgs { target } = args;
+    let mut c = Client::connect(&target).await?;
+    let spinner = indicatif::ProgressBar::new_spinner();
+    spinner.set_message("compacting");
+    spinner.enable_steady_tick(std::time::Duration::from_millis(120));
+    let r = call!(&mut c, admin.compact(pb::CompactRequest {}), api::compact)?;
+    spinner.finish_and_clear();
+    println!(
+        "compacted: {} → {} bytes, {} retired surveys removed",
+        r.bytes_before, r.bytes_after, r.surveys_removed
+    );
+    Ok(())
+}
+
+/// Runs one request either way: over gRPC, or through the same dispatcher the daemon uses.
+/// Shows the daemon's ingest under way on `bar` until aborted: its phase, and a position
+/// within the file by phase (reading and modelling take most of an ingest, committing the
+/// rest), on top of `done`, the bytes of files finished. Polls `stats` every 200 ms.
+fn watch_ingest(
+    c: &Client,
+    bar: indicatif::ProgressBar,
+    done: Arc<std::sync::atomic::AtomicU64>,
+) -> tokio::task::JoinHandle<()> {
+    let mut remote = match c {
+        Client::Remote { admin, .. } => Some(admin.as_ref().clone()),
+        Client::Local(_) => None,
+    };
+    let local = match c {
+        Client::Local(e) => Some(e.clone()),
+        Client::Remote { .. } => None,
+    };
+    tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            let s = match (&mut remote, &local) {
+                (Some(a), _) => match a.stats(pb::StatsRequest {}).await {
+                    Ok(r) => r.into_inner(),
+                    Err(_) => continue,
+                },
+                (None, Some(e)) => patchwork::serve::convert::stats(&e.stats()),
+                (None, None) => return,
+            };
+            if s.ingesting_source.is_empty() {
+                continue;
+            }
+            let share = match s.ingesting_phase() {
+                pb::IngestPhase::Reading | pb::IngestPhase::Unspecified => 0.0,
+                pb::IngestPhase::Modelling => 0.25,
+                pb::IngestPhase::Indexing => 0.6,
+                pb::IngestPhase::Committing => 0.8,
+            };
+            let base = done.load(std::sync::atomic::Ordering::Relaxed);
+            bar.set_position(base + (share * s.ingesting_bytes as f64) as u64);
+            let name = std::path::Path::new(&s.ingesting_source)
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            bar.set_message(format!(
+                "{} {} ({:.1} s)",
+                s.ingesting_phase().word(),
+                printable(&name),
+                s.ingesting_seconds
+            ));
+        }
+    })
+}
+
+/// A conflict as `patchwork surveys` says it.
+fn conflict_line(c: &pb::Conflict) -> String {
+    let whose = match distrusted(c) {
+        pb::Distrusted::This => "this survey's claim is the false one",
+        pb::Distrusted::Other => "the other's claim is the false one",
+        _ => "either claim may be the false one",
+    };
+    let shift = match &c.shift {
+        Some(s) => format!(
+            "; it lies {:.1} m east, {:.1} m north and {:.2} m up of this one, {:.2} m RMS once moved back",
+            s.east_m, s.north_m, s.up_m, s.rms_after_m
+        ),
+        None => String::new(),
+    };
+    format!(
+        "conflicts with {}: up to {:.2} m apart, {:.2} m RMS{shift}; {whose}",
+        c.survey, c.max_m, c.rms_m
+    )
+}

@@ -1,0 +1,275 @@
+//! The JSON the commands print with `--json`: stable, and documented field by field in the
+//! README.
+
+use patchwork::serve::proto as pb;
+use serde::{Serialize, Serializer};
+
+/// The lower-case word for a value of a wire enum, as the CLI prints it and its JSON carries
+/// it: the proto name without the enum's prefix (`SURVEY_STATUS_ACTIVE` is "active").
+pub trait Word {
+    /// The word.
+    fn word(&self) -> String;
+}
+
+macro_rules! words {
+    ($($t:ty => $prefix:literal),* $(,)?) => {
+        $(impl Word for $t {
+            fn word(&self) -> String {
+                self.as_str_name().trim_start_matches($prefix).to_ascii_lowercase()
+            }
+        })*
+    };
+}
+
+words!(
+    pb::Outcome => "OUTCOME_",
+    pb::SurveyStatus => "SURVEY_STATUS_",
+    pb::AccuracySource => "ACCURACY_SOURCE_",
+    pb::IngestPhase => "INGEST_PHASE_",
+    pb::Distrusted => "DISTRUSTED_",
+    pb::PatchKind => "PATCH_KIND_",
+);
+
+fn word<S: Serializer, E: Word>(e: &E, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(&e.word())
+}
+
+fn maybe_word<S: Serializer, E: Word>(e: &Option<E>, s: S) -> Result<S::Ok, S::Error> {
+    match e {
+        Some(e) => s.serialize_str(&e.word()),
+        None => s.serialize_none(),
+    }
+}
+
+/// `surveys --json`: one object per survey or failed file. The README documents each field.
+#[derive(Serialize)]
+pub struct SurveyJson<'a> {
+    id: &'a str,
+    source: &'a str,
+    #[serde(serialize_with = "word")]
+    status: pb::SurveyStatus,
+    error: Option<&'a str>,
+    accuracy_m: f64,
+    accuracy_median_m: f64,
+    accuracy_p90_m: f64,
+    claimed_accuracy_m: f64,
+    #[serde(serialize_with = "maybe_word")]
+    accuracy_source: Option<pb::AccuracySource>,
+    /// The survey's own CRS ("EPSG:n" or a WKT 2 definition), and the vertical CRS its file
+    /// named ("unknown" where none); null for failures.
+    crs: Option<&'a str>,
+    vertical_crs: Option<&'a str>,
+    /// What converting its heights into the store's vertical CRS added to ε.
+    vertical_error_m: f64,
+    samples: u64,
+    patches: u32,
+    conflicts: Vec<ConflictJson<'a>>,
+}
+
+#[derive(Serialize)]
+pub struct ConflictJson<'a> {
+    survey: &'a str,
+    max_m: f64,
+    rms_m: f64,
+    /// Where the other lies against this one, [east, north, up] metres, and the RMS once it
+    /// is moved back; null where they could not be coregistered.
+    shift_m: Option<[f64; 3]>,
+    rms_after_m: Option<f64>,
+    /// Whose claim the evidence finds false: "this", "other" or "both".
+    #[serde(serialize_with = "word")]
+    distrusted: pb::Distrusted,
+}
+
+/// Whose claim a conflict distrusts; either, for a value this client does not know.
+pub fn distrusted(c: &pb::Conflict) -> pb::Distrusted {
+    match c.distrusted() {
+        pb::Distrusted::Unspecified => pb::Distrusted::Both,
+        d => d,
+    }
+}
+
+impl<'a> SurveyJson<'a> {
+    pub fn of(s: &'a pb::SurveyInfo) -> Self {
+        let failed = matches!(
+            s.status(),
+            pb::SurveyStatus::Failed | pb::SurveyStatus::Damaged
+        );
+        SurveyJson {
+            id: &s.id,
+            source: &s.source,
+            status: s.status(),
+            error: failed.then_some(s.error.as_str()),
+            accuracy_m: s.accuracy_m,
+            accuracy_median_m: s.accuracy_median_m,
+            accuracy_p90_m: s.accuracy_p90_m,
+            claimed_accuracy_m: s.claimed_accuracy_m,
+            accuracy_source: (!failed).then_some(s.accuracy_source()),
+            crs: (!failed).then_some(s.crs_key.as_str()),
+            vertical_crs: (!failed).then_some(s.vertical_crs.as_str()),
+            vertical_error_m: s.vertical_error_m,
+            samples: s.samples,
+            patches: s.patches,
+            conflicts: s
+                .conflicts
+                .iter()
+                .map(|c| ConflictJson {
+                    survey: &c.survey,
+                    max_m: c.max_m,
+                    rms_m: c.rms_m,
+                    shift_m: c.shift.as_ref().map(|s| [s.east_m, s.north_m, s.up_m]),
+                    rms_after_m: c.shift.as_ref().map(|s| s.rms_after_m),
+                    distrusted: distrusted(c),
+                })
+                .collect(),
+        }
+    }
+}
+
+/// `sample --json`: a point and its height, null where there is no data.
+#[derive(Serialize)]
+pub struct SampleJson {
+    pub x: f64,
+    pub y: f64,
+    pub height: Option<f32>,
+}
+
+/// `stats --json`.
+#[derive(Serialize)]
+pub struct StatsJson<'a> {
+    surveys: u32,
+    retired: u32,
+    failed: u32,
+    damaged: u32,
+    patches: u64,
+    active_boxes: u64,
+    samples: u64,
+    disk_bytes: u64,
+    /// "EPSG:n", or a WKT 2 definition; null until the store has one.
+    crs: Option<&'a str>,
+    vertical_crs: Option<&'a str>,
+    backend: &'a str,
+    quadtree_nodes: u32,
+    /// Why writes are refused now; null when they are not.
+    read_only: Option<&'a str>,
+    cache_bytes: u64,
+    cache_capacity_bytes: u64,
+    cache_hits: u64,
+    cache_misses: u64,
+    /// Requests at work, of at most `requests_limit`; waiting for a turn; finished.
+    requests_running: u32,
+    requests_waiting: u32,
+    requests_served: u64,
+    requests_limit: u32,
+}
+
+impl<'a> StatsJson<'a> {
+    pub fn of(s: &'a pb::StatsReply) -> Self {
+        StatsJson {
+            surveys: s.surveys,
+            retired: s.retired,
+            failed: s.failed,
+            damaged: s.damaged,
+            patches: s.patches,
+            active_boxes: s.active_boxes,
+            samples: s.samples,
+            disk_bytes: s.disk_bytes,
+            crs: (!s.crs_key.is_empty()).then_some(s.crs_key.as_str()),
+            vertical_crs: (!s.vertical_crs.is_empty()).then_some(s.vertical_crs.as_str()),
+            backend: &s.backend,
+            quadtree_nodes: s.quadtree_nodes,
+            read_only: (!s.read_only.is_empty()).then_some(s.read_only.as_str()),
+            cache_bytes: s.cache_bytes,
+            cache_capacity_bytes: s.cache_capacity_bytes,
+            cache_hits: s.cache_hits,
+            cache_misses: s.cache_misses,
+            requests_running: s.requests_running,
+            requests_waiting: s.requests_waiting,
+            requests_served: s.requests_served,
+            requests_limit: s.requests_limit,
+        }
+    }
+}
+
+/// `query --json`.
+#[derive(Serialize)]
+pub struct QueryJson {
+    pub patches: Vec<PatchJson>,
+}
+
+#[derive(Serialize)]
+pub struct PatchJson {
+    id: String,
+    survey: String,
+    level: u32,
+    #[serde(serialize_with = "word")]
+    kind: pb::PatchKind,
+    error: f64,
+    max_error: f64,
+    fallback: bool,
+    bounds: [f64; 4],
+}
+
+impl PatchJson {
+    pub fn of(p: &pb::Patch) -> Self {
+        let b = p.bounds.unwrap_or_default();
+        PatchJson {
+            id: format!("{:016x}", p.id),
+            survey: format!("{:016x}", p.survey),
+            level: p.level,
+            kind: p.kind(),
+            error: p.error,
+            max_error: p.max_error,
+            fallback: p.fallback,
+            bounds: [b.xmin, b.ymin, b.xmax, b.ymax],
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each kind of patch is named as the proto names it: a bicubic patch is not "bilinear".
+    #[test]
+    fn query_json_names_every_kind_of_patch() {
+        for (kind, word) in [
+            (pb::PatchKind::Bilinear, "bilinear"),
+            (pb::PatchKind::Edge, "edge"),
+            (pb::PatchKind::Bicubic, "bicubic"),
+        ] {
+            let p = pb::Patch {
+                kind: kind as i32,
+                ..Default::default()
+            };
+            let json = serde_json::to_value(PatchJson::of(&p)).unwrap();
+            assert_eq!(json["kind"], word);
+        }
+    }
+
+    /// The words of the JSON are the README's, spelled from the wire enums.
+    #[test]
+    fn survey_json_keeps_its_words() {
+        let s = pb::SurveyInfo {
+            status: pb::SurveyStatus::Active as i32,
+            accuracy_source: pb::AccuracySource::Estimated as i32,
+            conflicts: vec![pb::Conflict {
+                distrusted: pb::Distrusted::Other as i32,
+                ..Default::default()
+            }],
+            ..Default::default()
+        };
+        let json = serde_json::to_value(SurveyJson::of(&s)).unwrap();
+        assert_eq!(json["status"], "active");
+        assert_eq!(json["accuracy_source"], "estimated");
+        assert_eq!(json["conflicts"][0]["distrusted"], "other");
+        let failed = pb::SurveyInfo {
+            status: pb::SurveyStatus::Failed as i32,
+            ..Default::default()
+        };
+        let json = serde_json::to_value(SurveyJson::of(&failed)).unwrap();
+        assert_eq!(json["status"], "failed");
+        assert!(json["accuracy_source"].is_null());
+        assert_eq!(pb::IngestPhase::Committing.word(), "committing");
+        assert_eq!(pb::Outcome::Unchanged.word(), "unchanged");
+    }
+}

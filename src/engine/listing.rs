@@ -1,0 +1,122 @@
+//! What the engine reports of the store: its surveys with their conflicts, and its figures.
+
+use super::Phase;
+use crate::store::{CacheStats, Damaged, FailedRecord, SurveyRecord};
+use patchwork_core::crs::vertical::VerticalCrs;
+use patchwork_core::crs::Crs;
+use patchwork_core::model::evidence::Blame;
+use patchwork_core::model::ids::SurveyId;
+use patchwork_core::terrain::Terrain;
+use std::collections::{BTreeMap, HashMap};
+use std::time::Instant;
+
+/// Two surveys that disagree by more than their accuracies allow where they overlap.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Conflict {
+    /// The other survey.
+    pub survey: SurveyId,
+    /// How far they differ where they overlap, measured at the finer one's samples.
+    pub max_m: f64,
+    pub rms_m: f64,
+    /// Where the other lies against this one, metres east, north and up, and how far they
+    /// differ once it is moved back; None where they could not be coregistered.
+    pub shift_m: Option<[f64; 3]>,
+    pub rms_after_m: Option<f64>,
+    /// Whose claim the evidence finds false.
+    pub distrusted: Distrusted,
+}
+
+/// Which claim of a conflicting pair is false, from one of the two's side.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Distrusted {
+    /// This survey's: a degraded copy of the other, or the one shifted from where a third
+    /// survey lies.
+    This,
+    Other,
+    /// Either could be: nothing tells them apart.
+    Both,
+}
+
+impl Distrusted {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Distrusted::This => "this",
+            Distrusted::Other => "other",
+            Distrusted::Both => "both",
+        }
+    }
+}
+
+/// The conflicts of a survey of `t`: its pairs whose evidence finds a claim false (where their
+/// claims contradict each other, or one is a degraded copy of the other), by the other's id.
+pub fn conflicts_of(t: &Terrain, id: SurveyId) -> Vec<Conflict> {
+    let mut out: Vec<Conflict> = t
+        .pairs_of(id)
+        .iter()
+        .filter_map(|p| {
+            let other = p.other(id);
+            let finer = p.finer == id;
+            let distrusted = match t.blame(id, other)? {
+                Blame::Finer if finer => Distrusted::This,
+                Blame::Coarser if !finer => Distrusted::This,
+                Blame::Finer | Blame::Coarser => Distrusted::Other,
+                Blame::Both => Distrusted::Both,
+            };
+            Some(Conflict {
+                survey: other,
+                max_m: p.deviation.max_m,
+                rms_m: p.deviation.rms_m,
+                // The pair measures the coarser against the finer.
+                shift_m: p.shift_m().map(|s| if finer { s } else { s.map(|v| -v) }),
+                rms_after_m: p.coreg.as_ref().map(|c| c.rms_after),
+                distrusted,
+            })
+        })
+        .collect();
+    out.sort_by_key(|c| c.survey);
+    out
+}
+
+/// The store's surveys with their failures and conflicts.
+#[derive(Clone, Debug, Default)]
+pub struct SurveyListing {
+    pub records: Vec<SurveyRecord>,
+    pub failures: Vec<FailedRecord>,
+    /// Active surveys out of the terrain because they are damaged.
+    pub damaged: BTreeMap<SurveyId, Damaged>,
+    /// Conflicts of each active survey, in the other survey's id order.
+    pub conflicts: HashMap<SurveyId, Vec<Conflict>>,
+}
+
+/// A store and the figures `stats` reports.
+#[derive(Clone, Debug, Default)]
+pub struct Stats {
+    pub surveys: u32,
+    pub retired: u32,
+    pub failed: u32,
+    /// Active surveys out of the terrain because they are damaged.
+    pub damaged: u32,
+    pub patches: u64,
+    pub active_boxes: u64,
+    pub samples: u64,
+    pub disk_bytes: u64,
+    pub crs: Option<Crs>,
+    pub vertical_crs: Option<VerticalCrs>,
+    /// "cpu", or "gpu (adapter)".
+    pub backend: String,
+    pub quadtree_nodes: u32,
+    /// Why writes are refused now (a full disk, a failed store); None when they are not.
+    pub read_only: Option<String>,
+    pub cache: CacheStats,
+    /// The ingest under way, if any.
+    pub ingesting: Option<Progress>,
+}
+
+/// The ingest under way: which file, how big, where it is and since when.
+#[derive(Clone, Debug)]
+pub struct Progress {
+    pub source: String,
+    pub bytes: u64,
+    pub phase: Phase,
+    pub started: Instant,
+}

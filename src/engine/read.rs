@@ -1,0 +1,506 @@
+//! The read path: cuts, tiles, meshes and points, from the published terrain and never the
+//! writer. Requests are checked here (regions, errors, sizes against the limits) before any
+//! work starts, and long work stops once its [`Cancel`] is set.
+
+use super::gpu::Used;
+use super::{Engine, EngineError};
+use crate::store::StoreError;
+use crate::sync::lock;
+use patchwork_core::crs::{Crs, Reprojection};
+use patchwork_core::geom::Aabb;
+use patchwork_core::index::query::{Extracted, Metric, Shortfall, ViewQuery};
+use patchwork_core::mesh;
+use patchwork_core::resample::{cpu, Backend, Cancel, SampleGrid};
+use patchwork_core::terrain::{tile_shortfall, view_grid, Terrain, Tile};
+use std::sync::Arc;
+
+/// A query's cut through LOD space.
+#[derive(Clone, Debug)]
+pub enum Cut {
+    /// Over a rectangle of the store's CRS.
+    Uniform {
+        roi: Aabb,
+        error: f64,
+    },
+    /// Over a rectangle of another CRS: a tile of it is resampled at its own sample
+    /// positions, carried into the store's.
+    UniformIn {
+        crs: Crs,
+        roi: Aabb,
+        error: f64,
+    },
+    View(ViewQuery),
+}
+
+impl Cut {
+    /// The CRS the cut's region and a tile's positions are in; None for the store's.
+    pub fn crs(&self) -> Option<&Crs> {
+        match self {
+            Cut::UniformIn { crs, .. } => Some(crs),
+            _ => None,
+        }
+    }
+}
+
+/// Most vertices a row or column of a mesh: a 2049² grid resamples 4.2 M heights.
+pub const MAX_MESH_SIZE: usize = 2049;
+
+/// A mesh asked of a uniform cut.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MeshSpec {
+    /// The tile the grid spans, and the cut's error in metres.
+    pub roi: Aabb,
+    pub error: f64,
+    /// Grid vertices a row, and rows: 2 to [`MAX_MESH_SIZE`] each.
+    pub cols: usize,
+    pub rows: usize,
+    /// How far the triangles may depart from the resampled heights at the grid's vertices.
+    pub mesh_error: f64,
+    /// Depth of the skirts under the border; 0 leaves them out.
+    pub skirt_m: f64,
+    pub border: mesh::Border,
+    pub method: mesh::Method,
+    /// How far the surface may be drawn over a void from the nearest measured vertex,
+    /// metres (seed 004's horizontal error); 0 keeps holes exact.
+    pub hole_reach_m: f64,
+    /// The CRS of the ROI and of the vertices; None for the store's.
+    pub crs: Option<Crs>,
+}
+
+/// A mesh of a uniform cut and what it was made from.
+#[derive(Clone, Debug)]
+pub struct MeshTile {
+    pub mesh: mesh::Mesh,
+    /// The tile its grid spans.
+    pub roi: Aabb,
+    /// The patches blended, in id order.
+    pub patches: Vec<Extracted>,
+    pub backend: Used,
+    /// Where no data is as accurate as the cut asked.
+    pub shortfall: Option<Shortfall>,
+}
+
+/// What a tile is, told with each of its bands.
+#[derive(Clone, Copy, Debug)]
+pub struct TileHead<'a> {
+    pub width: usize,
+    pub height: usize,
+    /// The patches the heights are blended from, in id order.
+    pub patches: &'a [Extracted],
+    /// The backend that resampled.
+    pub backend: Used,
+    /// Where no data is as accurate as the cut asked.
+    pub shortfall: Option<Shortfall>,
+}
+
+impl Engine {
+    fn metric_at(&self, lat: f64) -> Metric {
+        match self.crs() {
+            Some(c) if c.is_geographic() => Metric::geographic(lat),
+            _ => Metric::PROJECTED,
+        }
+    }
+
+    /// A view query as a client describes it, with the store's metric.
+    pub fn view_query(
+        &self,
+        eye: [f64; 3],
+        look: [f64; 3],
+        fov_deg: f64,
+        viewport_px: u32,
+        pixel_error: f64,
+    ) -> Result<ViewQuery, EngineError> {
+        let v = ViewQuery {
+            eye,
+            look,
+            fov_deg,
+            viewport_px,
+            pixel_error,
+            metric: self.metric_at(eye[1]),
+        };
+        v.validate().map_err(EngineError::Invalid)?;
+        Ok(v)
+    }
+
+    /// The map from a CRS to the store's, None for the store's own: one per CRS, kept, so
+    /// that its lattice's nodes are worked out once for every request in it.
+    pub fn to_store(&self, crs: &Crs) -> Result<Option<Arc<Reprojection>>, EngineError> {
+        let Some(store) = self.crs() else {
+            return Err(EngineError::Unavailable(
+                "the store has no CRS yet (no survey and none in the config): ask in its own \
+                 coordinates once it has one"
+                    .into(),
+            ));
+        };
+        if *crs == store {
+            return Ok(None);
+        }
+        let mut cache = lock(&self.request_crs);
+        if let Some(r) = cache.get(crs).filter(|r| *r.to() == store) {
+            return Ok(Some(r.clone()));
+        }
+        let r = Arc::new(
+            Reprojection::new(crs, &store).map_err(|e| EngineError::Invalid(e.to_string()))?,
+        );
+        // Clients name few CRSs; a bound keeps a client naming many from holding memory.
+        if cache.len() >= 64 {
+            cache.clear();
+        }
+        cache.insert(crs.clone(), r.clone());
+        Ok(Some(r))
+    }
+
+    /// A CRS a request names: None for the store's own (or no CRS named).
+    pub fn request_crs(&self, text: &str) -> Result<Option<Crs>, EngineError> {
+        if text.trim().is_empty() {
+            return Ok(None);
+        }
+        let c = Crs::parse(text).map_err(|e| EngineError::Invalid(format!("crs: {e}")))?;
+        Ok((Some(&c) != self.crs().as_ref()).then_some(c))
+    }
+
+    /// The store-plane bounds of a rectangle of another CRS: its border carried over.
+    fn store_roi(&self, crs: &Crs, roi: &Aabb) -> Result<Aabb, EngineError> {
+        let Some(r) = self.to_store(crs)? else {
+            return Ok(*roi);
+        };
+        let n = 32;
+        let mut pts = Vec::with_capacity(4 * n + 1);
+        for k in 0..=n {
+            let t = k as f64 / n as f64;
+            let x = roi.min[0] + t * roi.width();
+            let y = roi.min[1] + t * roi.height();
+            pts.extend([
+                [x, roi.min[1]],
+                [x, roi.max[1]],
+                [roi.min[0], y],
+                [roi.max[0], y],
+            ]);
+        }
+        let mapped: Option<Vec<[f64; 2]>> = pts.iter().map(|&p| r.at(p)).collect();
+        let mapped = mapped.ok_or_else(|| {
+            EngineError::Invalid(format!(
+                "part of the region lies where {} cannot be carried into the store's {}",
+                crs.label(),
+                r.to().label()
+            ))
+        })?;
+        // A side bows between the points by far less than a thousandth of the extent.
+        let b = Aabb::of_points(&mapped);
+        let m = 1e-3 * b.width().max(b.height());
+        Ok(Aabb::new(
+            b.min[0] - m,
+            b.min[1] - m,
+            b.max[0] + m,
+            b.max[1] + m,
+        ))
+    }
+
+    /// The patches of a cut, with the snapshot they came from.
+    pub fn query(&self, cut: &Cut) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
+        let t = self.snapshot();
+        let ps = match cut {
+            Cut::Uniform { roi, error } => {
+                check_roi(roi)?;
+                check_error(*error)?;
+                t.uniform(roi, *error)
+            }
+            Cut::UniformIn { crs, roi, error } => {
+                check_roi(roi)?;
+                check_error(*error)?;
+                t.uniform(&self.store_roi(crs, roi)?, *error)
+            }
+            Cut::View(v) => {
+                v.validate().map_err(EngineError::Invalid)?;
+                t.view(v)
+            }
+        };
+        let max = self.cfg.limits.max_patches;
+        if ps.len() as u64 > max {
+            return Err(EngineError::TooLarge(format!(
+                "the query needs {} patches, more than the limit of {max}: ask for a smaller region or a larger error",
+                ps.len()
+            )));
+        }
+        Ok((t, ps))
+    }
+
+    /// A resampled tile.
+    pub fn tile(
+        &self,
+        cut: &Cut,
+        width: u32,
+        height: u32,
+        backend: Backend,
+    ) -> Result<(Tile, Used), EngineError> {
+        self.tile_until(cut, width, height, backend, &Cancel::default())
+    }
+
+    /// A mesh of a uniform cut: the resampled heights at the corners of a `cols × rows` grid
+    /// of vertices over the ROI (a tile over the ROI grown by half a cell, whose pixel
+    /// centres fall on them), triangulated as `spec` says.
+    pub fn mesh_until(
+        &self,
+        spec: &MeshSpec,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<MeshTile, EngineError> {
+        let (roi, cols, rows) = (spec.roi, spec.cols, spec.rows);
+        for (name, n) in [("columns", cols), ("rows", rows)] {
+            if !(2..=MAX_MESH_SIZE).contains(&n) {
+                return Err(EngineError::Invalid(format!(
+                    "a mesh has 2 to {MAX_MESH_SIZE} {name}: got {n}"
+                )));
+            }
+        }
+        for (name, v) in [
+            ("mesh_error", spec.mesh_error),
+            ("skirt_m", spec.skirt_m),
+            ("hole_reach_m", spec.hole_reach_m),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(EngineError::Invalid(format!(
+                    "{name} must be a finite number of metres ≥ 0, got {v}"
+                )));
+            }
+        }
+        let pixels = mesh::pixel_roi(&roi, cols, rows);
+        let cut = match &spec.crs {
+            Some(crs) => Cut::UniformIn {
+                crs: crs.clone(),
+                roi: pixels,
+                error: spec.error,
+            },
+            None => Cut::Uniform {
+                roi: pixels,
+                error: spec.error,
+            },
+        };
+        let (tile, used) = self.tile_until(&cut, cols as u32, rows as u32, backend, cancel)?;
+        let holes = if spec.hole_reach_m > 0.0 {
+            let mid = (roi.min[1] + roi.max[1]) / 2.0;
+            let scale = match &spec.crs {
+                Some(c) => match c.unit_m() {
+                    Some(m) => [m, m],
+                    None => Metric::geographic(mid).scale,
+                },
+                None => self.metric_at(mid).scale,
+            };
+            mesh::Holes::Reach {
+                reach: spec.hole_reach_m,
+                cell: [
+                    roi.width() / (cols - 1) as f64 * scale[0],
+                    roi.height() / (rows - 1) as f64 * scale[1],
+                ],
+            }
+        } else {
+            mesh::Holes::Exact
+        };
+        let options = mesh::Options {
+            max_error: spec.mesh_error,
+            border: spec.border,
+            method: spec.method,
+            holes,
+        };
+        let mut mesh = mesh::triangulate_until(&tile.heights, cols, rows, &options, &|| {
+            cancel.is_cancelled()
+        })
+        .ok_or(EngineError::Cancelled)?;
+        if spec.skirt_m > 0.0 {
+            mesh::add_skirts(&mut mesh, spec.skirt_m as f32);
+        }
+        Ok(MeshTile {
+            mesh,
+            roi,
+            patches: tile.patches,
+            backend: used,
+            shortfall: tile.shortfall,
+        })
+    }
+
+    /// A resampled tile, given up once `cancel` is set.
+    pub fn tile_until(
+        &self,
+        cut: &Cut,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<(Tile, Used), EngineError> {
+        let (mut heights, mut shortfall) = (Vec::new(), None);
+        let (patches, used) = self.tile_bands_until(
+            cut,
+            width,
+            height,
+            backend,
+            height as usize,
+            cancel,
+            &mut |head, _, band| {
+                heights = band;
+                shortfall = head.shortfall;
+                true
+            },
+        )?;
+        let tile = Tile {
+            width: width as usize,
+            height: height as usize,
+            heights,
+            patches,
+            shortfall,
+        };
+        Ok((tile, used))
+    }
+
+    /// A resampled tile in bands of about `rows` rows, top first: `sink` gets what the tile
+    /// is, each band's first row and its heights, and says whether to go on. On the CPU a band
+    /// goes to `sink` as soon as it is done, so that it can be sent while the next is worked
+    /// out. Returns the patches blended and the backend that ran.
+    #[allow(clippy::too_many_arguments)]
+    pub fn tile_bands_until(
+        &self,
+        cut: &Cut,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        rows: usize,
+        cancel: &Cancel,
+        sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
+    ) -> Result<(Vec<Extracted>, Used), EngineError> {
+        let n = width as u64 * height as u64;
+        if width == 0 || height == 0 {
+            return Err(EngineError::Invalid(
+                "tile width and height must be at least 1".into(),
+            ));
+        }
+        let max = self.cfg.limits.max_tile_samples;
+        if n > max {
+            return Err(EngineError::TooLarge(format!(
+                "a {width}×{height} tile has {n} samples, more than the limit of {max}: ask for a smaller tile"
+            )));
+        }
+        let (t, ps) = self.query(cut)?;
+        let grid = match cut {
+            Cut::Uniform { roi, .. } => SampleGrid::uniform(roi, width as usize, height as usize),
+            Cut::UniformIn { crs, roi, .. } => {
+                // The tile's own positions, carried into the store's plane.
+                let own = SampleGrid::uniform(roi, width as usize, height as usize);
+                match self.to_store(crs)? {
+                    Some(r) => {
+                        let pts: Vec<[f64; 2]> = own.points().collect();
+                        SampleGrid::of_points(own.width, own.height, r.map(&pts))
+                    }
+                    None => own,
+                }
+            }
+            Cut::View(v) => view_grid(v, width as usize, height as usize),
+        };
+        let shortfall = tile_shortfall(&ps, &grid);
+        let head = |backend| TileHead {
+            width: grid.width,
+            height: grid.height,
+            patches: &ps,
+            backend,
+            shortfall,
+        };
+        // The samples are read (from the pack, or the chunk cache) before the GPU is asked
+        // for, so that the device's lock is never held across disk I/O.
+        let set = t.try_resolve(&ps).map_err(StoreError::from)?;
+        if cancel.is_cancelled() {
+            return Err(EngineError::Cancelled);
+        }
+        if let Some(heights) = self.gpu_heights(&set, &grid, backend)? {
+            let head = head(Used::Gpu);
+            let rows = rows.max(1);
+            if rows >= grid.height {
+                if !sink(&head, 0, heights) {
+                    return Err(EngineError::Cancelled);
+                }
+            } else {
+                for (k, band) in heights.chunks(rows * grid.width).enumerate() {
+                    if !sink(&head, k * rows, band.to_vec()) {
+                        return Err(EngineError::Cancelled);
+                    }
+                }
+            }
+            return Ok((ps, Used::Gpu));
+        }
+        let head = head(Used::Cpu);
+        cpu::resample_bands(&set, &grid, rows, cancel, &mut |j0, band| {
+            sink(&head, j0, band)
+        })
+        .ok_or(EngineError::Cancelled)?;
+        Ok((ps, Used::Cpu))
+    }
+
+    /// Heights at points, at error `e`: what any tile holding the same points gives there.
+    pub fn sample(&self, points: &[[f64; 2]], e: f64) -> Result<Vec<f32>, EngineError> {
+        self.sample_until(points, e, &Cancel::default())
+    }
+
+    /// Heights at points, given up once `cancel` is set.
+    pub fn sample_until(
+        &self,
+        points: &[[f64; 2]],
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Vec<f32>, EngineError> {
+        self.sample_in(points, None, e, cancel)
+    }
+
+    /// Heights at points of `crs` (None for the store's), given up once `cancel` is set: the
+    /// points are carried into the store's plane as a tile's positions are, so a point has
+    /// the height any tile of that CRS holding it gives.
+    pub fn sample_in(
+        &self,
+        points: &[[f64; 2]],
+        crs: Option<&Crs>,
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Vec<f32>, EngineError> {
+        if points.len() as u64 > self.cfg.limits.max_points {
+            return Err(EngineError::TooLarge(format!(
+                "{} points, more than the limit of {}: send them in smaller requests",
+                points.len(),
+                self.cfg.limits.max_points
+            )));
+        }
+        if points
+            .iter()
+            .any(|p| !(p[0].is_finite() && p[1].is_finite()))
+        {
+            return Err(EngineError::Invalid("points must be finite".into()));
+        }
+        check_error(e)?;
+        let carried;
+        let points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
+            Some(r) => {
+                carried = r.map(points);
+                &carried
+            }
+            None => points,
+        };
+        self.snapshot()
+            .try_sample_until(points, e, cancel)
+            .map_err(StoreError::from)?
+            .ok_or(EngineError::Cancelled)
+    }
+}
+
+fn check_error(e: f64) -> Result<(), EngineError> {
+    if !(e.is_finite() && e >= 0.0) {
+        return Err(EngineError::Invalid(format!(
+            "error must be a number of metres ≥ 0, got {e}"
+        )));
+    }
+    Ok(())
+}
+
+fn check_roi(roi: &Aabb) -> Result<(), EngineError> {
+    if !roi.is_valid() || roi.width() <= 0.0 || roi.height() <= 0.0 {
+        return Err(EngineError::Invalid(format!(
+            "the region must have xmin < xmax and ymin < ymax, got [{}, {}, {}, {}]",
+            roi.min[0], roi.min[1], roi.max[0], roi.max[1]
+        )));
+    }
+    Ok(())
+}

@@ -1,0 +1,434 @@
+// Formula 1 on the GPU: the same sums as `cpu::blend`, one invocation per output sample, one
+// workgroup per BLOCK × BLOCK block of samples, visiting only the patches in that block's bin.
+// Where a set holds fallback patches, a first pass over the bin finds the tier that serves the
+// sample (see `cpu.rs`) and the second blends that tier.
+//
+// Positions arrive as (hi, lo) f32 pairs relative to a tile origin (one origin per plane: a
+// sample's positions in the CRSs of surveys of other CRSs follow the store plane's), and grid
+// coordinates are formed as (hi, lo) pairs with error-free sums and products: they carry about
+// 48 bits, so that the cell, the position inside it and the side of every edge test come out
+// as with f64.
+// Heights arrive relative to a per-patch base, and the result is returned relative to the base
+// of the first patch that contributed: f32 then only ever holds height differences.
+
+// Samples at or above this are void, as are sample points whose x is.
+const VOID: f32 = 3.0e38;
+
+const KIND_BILINEAR: u32 = 0u;
+const KIND_EDGE: u32 = 1u;
+const KIND_BICUBIC: u32 = 2u;
+
+// Edge patches store a flag word per sample after their heights, as a small whole number.
+const FLAG_VALID: u32 = 1u;
+const FLAG_EDGE_CELL: u32 = 2u;
+
+// Patch flags.
+const PATCH_FALLBACK: u32 = 1u;
+
+// `edge::MIN_WEIGHT`.
+const MIN_WEIGHT: f32 = 1e-6;
+
+// Grid coordinates this close to a line are put on it, as `ResolvedPatch::to_grid` does.
+const SNAP: f32 = 1e-9;
+
+struct Params {
+    width: u32,
+    height: u32,
+    blocks_x: u32,
+    has_fallback: u32,
+}
+
+// Grid coordinates below are local to the patch's uploaded samples: the window grown by one
+// cell where the level has one, because the edge rule may look at the cell beyond the window.
+struct Patch {
+    // World position of the first uploaded sample minus the tile origin, as hi + lo.
+    origin_hi: vec2<f32>,
+    origin_lo: vec2<f32>,
+    // The column and row axes divided by the spacing: grid coordinate = dot(axis, d).
+    col_hi: vec2<f32>,
+    col_lo: vec2<f32>,
+    row_hi: vec2<f32>,
+    row_lo: vec2<f32>,
+    centre: vec2<f32>,
+    inv_half: vec2<f32>,
+    norm: f32,
+    base: f32,
+    // Rank among the fallback patches, and PATCH_* flags.
+    rank: u32,
+    flags: u32,
+    // (c0, r0, c1, r1), closed, in local grid coordinates.
+    window: vec4<f32>,
+    kernel: vec4<f32>,
+    offset: u32,
+    cols: u32,
+    rows: u32,
+    kind: u32,
+    // `ResolvedPatch::flat`: 0 for the tent, else the slope of a weight flat on the kernel.
+    flat: f32,
+    // Where the positions of the patch's plane start in `points`: 0 for the store's plane,
+    // k · width · height for the k-th plane of a survey in another CRS.
+    points: u32,
+    _pad1: f32,
+    _pad2: f32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read> patches: array<Patch>;
+@group(0) @binding(3) var<storage, read> samples: array<f32>;
+@group(0) @binding(4) var<storage, read> bin_offsets: array<u32>;
+@group(0) @binding(5) var<storage, read> bins: array<u32>;
+// (height relative to the reference base, the reference base).
+@group(0) @binding(6) var<storage, read_write> heights: array<vec2<f32>>;
+@group(0) @binding(7) var<storage, read_write> valid: array<u32>;
+
+// The 1-D blending weight on t in [-1, 1]: the tent, (1 - |t|)^3 (3|t| + 1) for bicubic
+// patches, or for edge patches one flat on the kernel (`ResolvedPatch::weight`).
+fn weight(q: Patch, t: f32) -> f32 {
+    let a = min(abs(t), 1.0);
+    let w = 1.0 - a;
+    if q.kind == KIND_BICUBIC {
+        return w * w * w * (3.0 * a + 1.0);
+    }
+    if q.flat > 0.0 {
+        return min(w * q.flat, 1.0);
+    }
+    return w;
+}
+
+fn at(q: Patch, c: u32, r: u32) -> f32 {
+    return samples[q.offset + r * q.cols + c];
+}
+
+// Bilinear height in one cell, as (z, 1) or (0, 0) when a corner is void.
+fn in_cell(q: Patch, c: u32, r: u32, f: vec2<f32>) -> vec2<f32> {
+    let z00 = at(q, c, r);
+    let z10 = at(q, c + 1u, r);
+    let z01 = at(q, c, r + 1u);
+    let z11 = at(q, c + 1u, r + 1u);
+    if max(max(z00, z10), max(z01, z11)) >= VOID {
+        return vec2<f32>(0.0, 0.0);
+    }
+    let top = z00 + (z10 - z00) * f.x;
+    let bottom = z01 + (z11 - z01) * f.x;
+    return vec2<f32>(top + (bottom - top) * f.y, 1.0);
+}
+
+// `Bilinear::eval`: `Grid::bilinear_grid` inside the closed window, at the grid coordinates
+// gh + gl.
+fn bilinear(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec2<f32> {
+    let w = q.window;
+    if any(((gh - w.xy) + gl) < vec2<f32>(0.0)) || any(((gh - w.zw) + gl) > vec2<f32>(0.0)) {
+        return vec2<f32>(0.0, 0.0);
+    }
+    // `Grid::locate`: a point on the last line belongs to the cell before it. The uploaded
+    // samples end at the level's last line or one cell past the window, so clamping to the
+    // last uploaded cell is the same rule.
+    let cells = vec2<f32>(f32(q.cols - 1u), f32(q.rows - 1u));
+    var cf = floor(gh);
+    cf = select(cf, cf - 1.0, ((gh - cf) + gl) < vec2<f32>(0.0));
+    cf = min(cf, cells - 1.0);
+    let c = u32(cf.x);
+    let r = u32(cf.y);
+    let f = (gh - cf) + gl;
+    var z = in_cell(q, c, r, f);
+    if z.y > 0.0 {
+        return z;
+    }
+    // A point on an edge shared with a valid cell uses that cell, in the CPU's order. The
+    // right and lower neighbours never apply: f reaches 1 only on the level's last line.
+    let left = f.x == 0.0 && c > 0u;
+    let up = f.y == 0.0 && r > 0u;
+    if up {
+        z = in_cell(q, c, r - 1u, vec2<f32>(f.x, 1.0));
+        if z.y > 0.0 {
+            return z;
+        }
+    }
+    if left {
+        z = in_cell(q, c - 1u, r, vec2<f32>(1.0, f.y));
+        if z.y > 0.0 {
+            return z;
+        }
+        if up {
+            z = in_cell(q, c - 1u, r - 1u, vec2<f32>(1.0, 1.0));
+            if z.y > 0.0 {
+                return z;
+            }
+        }
+    }
+    return vec2<f32>(0.0, 0.0);
+}
+
+// `Spline::eval`: the bicubic patch's spline at the grid coordinates gh + gl. Its
+// coefficients follow the samples, (window columns + 3) per row, from the knot one before the
+// window's first sample.
+fn bicubic(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> f32 {
+    let w = q.window;
+    let n = vec2<u32>(w.zw - w.xy) + 1u;
+    let x = (gh - w.xy) + gl;
+    let cell = min(vec2<u32>(max(floor(x), vec2<f32>(0.0))), n - 2u);
+    let t = x - vec2<f32>(cell);
+    let s = 1.0 - t;
+    let t2 = t * t;
+    let t3 = t2 * t;
+    let b0 = s * s * s / 6.0;
+    let b1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0;
+    let b2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0;
+    let b3 = t3 / 6.0;
+    let bx = vec4<f32>(b0.x, b1.x, b2.x, b3.x);
+    let by = vec4<f32>(b0.y, b1.y, b2.y, b3.y);
+    let stride = n.x + 2u;
+    let first = q.offset + q.cols * q.rows + cell.y * stride + cell.x;
+    // Summed relative to a coefficient of the cell, so that the f32 rounding scales with how
+    // the surface varies near the point rather than with the patch's whole relief.
+    let near = samples[first + stride + 1u];
+    var z = 0.0;
+    for (var b = 0u; b < 4u; b++) {
+        let k = first + b * stride;
+        let row = vec4<f32>(samples[k], samples[k + 1u], samples[k + 2u], samples[k + 3u]);
+        z += by[b] * dot(row - near, bx);
+    }
+    return near + z;
+}
+
+fn flag(q: Patch, c: u32, r: u32) -> u32 {
+    return u32(samples[q.offset + q.cols * q.rows + r * q.cols + c]);
+}
+
+// `edge::ramp`: twice the distance to the nearest void corner's pixel, at most 1. From the
+// offset d = f − 0.5, which carries the hi/lo precision: |f − s| − 0.5 is d for s = 0 and −d
+// for s = 1, so a ramp of 10⁻⁶ near a pixel edge keeps its relative precision.
+fn ramp(v: vec4<bool>, d: vec2<f32>) -> f32 {
+    var r = 1.0;
+    for (var k = 0u; k < 4u; k++) {
+        if v[k] {
+            continue;
+        }
+        let sign = vec2<f32>(select(1.0, -1.0, (k & 1u) != 0u), select(1.0, -1.0, (k >> 1u) != 0u));
+        let e = max(sign * d, vec2<f32>(0.0));
+        r = min(r, 2.0 * max(e.x, e.y));
+    }
+    return r;
+}
+
+// `EdgeGrid::in_cell`: the surface in one edge cell as (z, weight, 1, 1), or zeros outside the
+// pixels of valid corners. `d` is the point's offset from the cell's middle lines, in hi/lo
+// precision, for the pixel test.
+fn edge_cell(q: Patch, c: u32, r: u32, f: vec2<f32>, d: vec2<f32>) -> vec4<f32> {
+    let v = vec4<bool>(
+        (flag(q, c, r) & FLAG_VALID) != 0u,
+        (flag(q, c + 1u, r) & FLAG_VALID) != 0u,
+        (flag(q, c, r + 1u) & FLAG_VALID) != 0u,
+        (flag(q, c + 1u, r + 1u) & FLAG_VALID) != 0u,
+    );
+    let tie = abs(d) < vec2<f32>(SNAP);
+    let lo = tie | (d < vec2<f32>(0.0));
+    let hi = tie | (d > vec2<f32>(0.0));
+    let valid = (lo.x && lo.y && v[0]) || (hi.x && lo.y && v[1]) || (lo.x && hi.y && v[2])
+        || (hi.x && hi.y && v[3]);
+    if !valid {
+        return vec4<f32>(0.0);
+    }
+    let z00 = at(q, c, r);
+    let z10 = at(q, c + 1u, r);
+    let z01 = at(q, c, r + 1u);
+    let z11 = at(q, c + 1u, r + 1u);
+    let n = u32(v[0]) + u32(v[1]) + u32(v[2]) + u32(v[3]);
+    var z: f32;
+    if n == 4u {
+        let top = z00 + (z10 - z00) * f.x;
+        let bottom = z01 + (z11 - z01) * f.x;
+        z = top + (bottom - top) * f.y;
+    } else if (n == 3u && (!v[0] || !v[3])) || (n == 2u && v[1] && v[2]) {
+        if f.x + f.y <= 1.0 {
+            z = z00 + (z10 - z00) * f.x + (z01 - z00) * f.y;
+        } else {
+            z = z11 + (z01 - z11) * (1.0 - f.x) + (z10 - z11) * (1.0 - f.y);
+        }
+    } else if f.x >= f.y {
+        z = z00 + (z10 - z00) * f.x + (z11 - z10) * f.y;
+    } else {
+        z = z00 + (z11 - z01) * f.x + (z01 - z00) * f.y;
+    }
+    return vec4<f32>(z, max(ramp(v, d), MIN_WEIGHT), 1.0, 1.0);
+}
+
+fn is_edge(q: Patch, c: u32, r: u32) -> bool {
+    return (flag(q, c, r) & FLAG_EDGE_CELL) != 0u;
+}
+
+// `EdgeGrid::eval` at the grid coordinates gh + gl: (z, weight, 1, 1), or zeros outside every
+// edge cell and every valid pixel.
+fn edge(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
+    let cells = vec2<f32>(f32(q.cols - 1u), f32(q.rows - 1u));
+    if any((gh + gl) < vec2<f32>(0.0)) || any(((gh - cells) + gl) > vec2<f32>(0.0)) {
+        return vec4<f32>(0.0);
+    }
+    var cf = floor(gh);
+    cf = select(cf, cf - 1.0, ((gh - cf) + gl) < vec2<f32>(0.0));
+    cf = min(cf, cells - 1.0);
+    let c = u32(cf.x);
+    let r = u32(cf.y);
+    let f = (gh - cf) + gl;
+    let d = ((gh - cf) - 0.5) + gl;
+    if is_edge(q, c, r) {
+        return edge_cell(q, c, r, f, d);
+    }
+    let left = f.x == 0.0 && c > 0u;
+    let up = f.y == 0.0 && r > 0u;
+    if up && is_edge(q, c, r - 1u) {
+        return edge_cell(q, c, r - 1u, vec2<f32>(f.x, 1.0), vec2<f32>(d.x, 0.5));
+    }
+    if left {
+        if is_edge(q, c - 1u, r) {
+            return edge_cell(q, c - 1u, r, vec2<f32>(1.0, f.y), vec2<f32>(0.5, d.y));
+        }
+        if up && is_edge(q, c - 1u, r - 1u) {
+            return edge_cell(q, c - 1u, r - 1u, vec2<f32>(1.0, 1.0), vec2<f32>(0.5, 0.5));
+        }
+    }
+    return vec4<f32>(0.0);
+}
+
+fn in_kernel(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> bool {
+    let k = q.kernel;
+    return all(((gh - k.xy) + gl) >= vec2<f32>(0.0)) && all(((gh - k.zw) + gl) <= vec2<f32>(0.0));
+}
+
+// The patch at grid coordinates gh + gl: (height relative to its base, weight factor,
+// covered, 1), or zeros where it has none.
+fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
+    switch q.kind {
+        case KIND_EDGE: {
+            let e = edge(q, gh, gl);
+            return vec4<f32>(e.x, e.y, select(0.0, 1.0, in_kernel(q, gh, gl)), e.w);
+        }
+        case KIND_BICUBIC: {
+            let z = bilinear(q, gh, gl);
+            if z.y == 0.0 {
+                return vec4<f32>(0.0);
+            }
+            return vec4<f32>(bicubic(q, gh, gl), 1.0, select(0.0, 1.0, in_kernel(q, gh, gl)), 1.0);
+        }
+        case KIND_BILINEAR, default: {
+            let z = bilinear(q, gh, gl);
+            return vec4<f32>(z.x, 1.0, select(0.0, 1.0, in_kernel(q, gh, gl)), z.y);
+        }
+    }
+}
+
+// The patch's weight and answer at sample i: (weight, height, covered, reaches).
+fn sample_patch(q: Patch, i: u32) -> vec4<f32> {
+    let pt = points[q.points + i];
+    if pt.x >= VOID {
+        return vec4<f32>(0.0);
+    }
+    let sx = two_sum(pt.x, -q.origin_hi.x);
+    let sy = two_sum(pt.y, -q.origin_hi.y);
+    let dh = vec2<f32>(sx.x, sy.x);
+    let dl = vec2<f32>(sx.y, sy.y) + (pt.zw - q.origin_lo);
+    let cx = coord(dh, dl, q.col_hi, q.col_lo);
+    let cy = coord(dh, dl, q.row_hi, q.row_lo);
+    var gh = vec2<f32>(cx.x, cy.x);
+    var gl = vec2<f32>(cx.y, cy.y);
+    let n = round(gh);
+    let on_line = abs((gh - n) + gl) < vec2<f32>(SNAP);
+    gh = select(gh, n, on_line);
+    gl = select(gl, vec2<f32>(0.0), on_line);
+    let t = ((gh - q.centre) + gl) * q.inv_half;
+    if abs(t.x) >= 1.0 || abs(t.y) >= 1.0 {
+        return vec4<f32>(0.0);
+    }
+    let e = eval_patch(q, gh, gl);
+    if e.w == 0.0 {
+        return vec4<f32>(0.0);
+    }
+    let w = weight(q, t.x) * weight(q, t.y) * q.norm * e.y;
+    return vec4<f32>(w, e.x, e.z, 1.0);
+}
+
+// a + b exactly, as (sum, error).
+fn two_sum(a: f32, b: f32) -> vec2<f32> {
+    let s = a + b;
+    let bb = s - a;
+    return vec2<f32>(s, (a - (s - bb)) + (b - bb));
+}
+
+// a · b exactly, as (product, error).
+fn two_prod(a: f32, b: f32) -> vec2<f32> {
+    let p = a * b;
+    return vec2<f32>(p, fma(a, b, -p));
+}
+
+// dot(d, axis) for d = dh + dl and axis = ah + al, as (hi, lo).
+fn coord(dh: vec2<f32>, dl: vec2<f32>, ah: vec2<f32>, al: vec2<f32>) -> vec2<f32> {
+    let px = two_prod(dh.x, ah.x);
+    let py = two_prod(dh.y, ah.y);
+    let s = two_sum(px.x, py.x);
+    let lo = s.y + px.y + py.y + (dh.x * al.x + dh.y * al.y) + (dl.x * ah.x + dl.y * ah.y);
+    return two_sum(s.x, lo);
+}
+
+@compute @workgroup_size(16, 16, 1)
+fn main(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(workgroup_id) wid: vec3<u32>,
+) {
+    if gid.x >= params.width || gid.y >= params.height {
+        return;
+    }
+    let i = gid.y * params.width + gid.x;
+    heights[i] = vec2<f32>(0.0, 0.0);
+    valid[i] = 0u;
+    let pt = points[i];
+    if pt.x >= VOID {
+        return;
+    }
+    let block = wid.y * params.blocks_x + wid.x;
+    let first = bin_offsets[block];
+    let end = bin_offsets[block + 1u];
+    // The tier: whether a cut patch covers the sample, else the best fallback rank that does.
+    var cut_covers = false;
+    var best = 0xffffffffu;
+    if params.has_fallback != 0u {
+        for (var b = first; b < end; b++) {
+            let q = patches[bins[b]];
+            let s = sample_patch(q, i);
+            if s.w == 0.0 || s.z == 0.0 {
+                continue;
+            }
+            if (q.flags & PATCH_FALLBACK) == 0u {
+                cut_covers = true;
+            } else {
+                best = min(best, q.rank);
+            }
+        }
+    }
+    var sum = 0.0;
+    var wsum = 0.0;
+    var covered = false;
+    var have_ref = false;
+    var zref = 0.0;
+    for (var b = first; b < end; b++) {
+        let q = patches[bins[b]];
+        if (q.flags & PATCH_FALLBACK) != 0u && (cut_covers || q.rank > best) {
+            continue;
+        }
+        let s = sample_patch(q, i);
+        if s.w == 0.0 {
+            continue;
+        }
+        if !have_ref {
+            zref = q.base;
+            have_ref = true;
+        }
+        sum += s.x * (s.y + (q.base - zref));
+        wsum += s.x;
+        covered = covered || s.z != 0.0;
+    }
+    if covered && wsum > 0.0 {
+        heights[i] = vec2<f32>(sum / wsum, zref);
+        valid[i] = 1u;
+    }
+}

@@ -1,0 +1,12 @@
+//! The daemon as its users meet it, in a child process: the command line, gRPC, tokens and TLS,
+//! load and limits, view sessions, the Python client, and crashes and signals.
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod daemon;
+mod exposure;
+mod load;
+mod python_client;
+mod reliability;
+mod view_session;

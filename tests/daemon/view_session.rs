@@ -1,0 +1,262 @@
+//! View sessions (§6.4): along a flight, the patches a client holds after applying each step's
+//! delta are exactly the view cut for that camera, patch for patch, also when a survey
+//! arrives mid-flight; a camera that has not moved costs an empty step; a wrong camera ends
+//! the session with INVALID_ARGUMENT.
+
+use crate::common;
+
+use patchwork::config::Config;
+use patchwork::engine::{Engine, Origin};
+use patchwork::serve::proto::{self as pb, terrain_client::TerrainClient};
+use prost::Message;
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+
+fn camera(k: usize, frames: usize) -> pb::ViewCut {
+    // Low over the Copernicus crop, flying north-east and looking ahead.
+    let s = k as f64 / frames as f64;
+    let (x, y) = (-119.03 + 0.1 * s, 34.43 + 0.1 * s);
+    pb::ViewCut {
+        eye_x: x,
+        eye_y: y,
+        eye_z: 1500.0,
+        look_x: x + 0.05,
+        look_y: y + 0.06,
+        look_z: 400.0,
+        fov_deg: 60.0,
+        viewport_px: 800,
+        pixel_error: 2.0,
+    }
+}
+
+/// Serves `engine` on a loopback port for as long as the runtime runs; its URL.
+async fn serve(engine: &Arc<Engine>) -> String {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    tokio::spawn(patchwork::serve::grpc::serve(
+        engine.clone(),
+        listener,
+        std::future::pending(),
+    ));
+    url
+}
+
+/// The whole cut for a camera, by id, as QueryPatches sends it.
+async fn full_cut(
+    t: &mut TerrainClient<tonic::transport::Channel>,
+    v: &pb::ViewCut,
+) -> BTreeMap<u64, Vec<u8>> {
+    let mut s = t
+        .query_patches(pb::PatchQuery {
+            crs: String::new(),
+            cut: Some(pb::patch_query::Cut::View(*v)),
+            batch_size: 0,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut all = BTreeMap::new();
+    while let Some(b) = s.message().await.unwrap() {
+        for p in b.patches {
+            all.insert(p.id, p.encode_to_vec());
+        }
+    }
+    all
+}
+
+/// Applies one step's messages to what the client holds; returns the step's messages.
+async fn apply(
+    deltas: &mut tonic::Streaming<pb::ViewDelta>,
+    held: &mut BTreeMap<u64, Vec<u8>>,
+    frame: u64,
+) -> Vec<pb::ViewDelta> {
+    let mut step = Vec::new();
+    loop {
+        let d = deltas.message().await.unwrap().expect("a whole step");
+        assert_eq!(d.frame, frame);
+        assert!(d.added.len() <= 256);
+        if step.is_empty() {
+            for id in &d.removed {
+                assert!(held.remove(id).is_some(), "removed {id:016x}, never held");
+            }
+        } else {
+            assert!(d.removed.is_empty(), "removals come first");
+        }
+        for p in &d.added {
+            held.insert(p.id, p.encode_to_vec());
+        }
+        let last = d.last;
+        step.push(d);
+        if last {
+            return step;
+        }
+    }
+}
+
+#[test]
+fn a_client_applying_the_deltas_holds_every_view_cut_along_a_flight() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let cfg = Config {
+        data_dir: tmp.path().join("data"),
+        ingest_roots: vec![data.clone()],
+        ..Config::default()
+    };
+    let engine = Arc::new(Engine::open(cfg).unwrap());
+    let ingest = |name: &str| {
+        let done = engine
+            .ingest(&data.join(name), None, Origin::Request)
+            .unwrap();
+        assert!(done.error.is_empty(), "{}", done.error);
+    };
+    ingest("copernicus_n34w119_crop.tif");
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let url = serve(&engine).await;
+        let mut t = TerrainClient::connect(url).await.unwrap();
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        let mut deltas = t
+            .view_session(tokio_stream::wrappers::ReceiverStream::new(rx))
+            .await
+            .unwrap()
+            .into_inner();
+
+        const FRAMES: usize = 40;
+        let mut held = BTreeMap::new();
+        let (mut sent_delta, mut sent_full) = (0usize, 0usize);
+        for k in 0..FRAMES {
+            if k == FRAMES / 2 {
+                // New data mid-flight: the next step brings its patches and drops those it
+                // outranks.
+                ingest("nasadem_n34w119_crop.tif");
+            }
+            let v = camera(k, FRAMES);
+            tx.send(v).await.unwrap();
+            let step = apply(&mut deltas, &mut held, k as u64).await;
+            let full = full_cut(&mut t, &v).await;
+            assert_eq!(
+                held.keys().collect::<Vec<_>>(),
+                full.keys().collect::<Vec<_>>(),
+                "frame {k}"
+            );
+            assert!(
+                held == full,
+                "frame {k}: a patch held differs from the cut's"
+            );
+            assert_eq!(step.last().unwrap().patches as usize, full.len());
+            sent_delta += step.iter().map(|d| d.encoded_len()).sum::<usize>();
+            sent_full += full.values().map(|p| p.len()).sum::<usize>();
+        }
+        // Flying slowly, most of each cut is already held.
+        assert!(
+            sent_delta * 3 < sent_full,
+            "deltas {sent_delta} B against full cuts {sent_full} B"
+        );
+
+        // The same camera again: nothing to change.
+        tx.send(camera(FRAMES - 1, FRAMES)).await.unwrap();
+        let step = apply(&mut deltas, &mut held, FRAMES as u64).await;
+        assert_eq!(step.len(), 1);
+        assert!(step[0].added.is_empty() && step[0].removed.is_empty());
+
+        // A camera that cannot be: the session ends with what is wrong.
+        let mut bad = camera(0, FRAMES);
+        bad.fov_deg = 200.0;
+        tx.send(bad).await.unwrap();
+        let err = deltas.message().await.unwrap_err();
+        assert_eq!(err.code(), tonic::Code::InvalidArgument, "{err:?}");
+    });
+}
+
+#[test]
+fn unread_sessions_past_the_limits_are_refused_and_never_stall_a_tile() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let mut cfg = Config {
+        data_dir: tmp.path().join("data"),
+        ingest_roots: vec![data.clone()],
+        ..Config::default()
+    };
+    // The defaults but the deadline: a tile that waited behind the sessions' steps would miss
+    // it and fail.
+    cfg.limits.deadline_ms = 2000;
+    let (most, per_connection) = (
+        cfg.limits.max_streams,
+        cfg.limits.max_streams_per_connection,
+    );
+    let engine = Arc::new(Engine::open(cfg).unwrap());
+    let done = engine
+        .ingest(
+            &data.join("copernicus_n34w119_crop.tif"),
+            None,
+            Origin::Request,
+        )
+        .unwrap();
+    assert!(done.error.is_empty(), "{}", done.error);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let url = serve(&engine).await;
+        // 500 sessions over 10 connections, each sent a camera and never read.
+        const CONNECTIONS: usize = 10;
+        const SESSIONS: usize = 500;
+        let mut clients = Vec::new();
+        for _ in 0..CONNECTIONS {
+            clients.push(TerrainClient::connect(url.clone()).await.unwrap());
+        }
+        let (mut held, mut refused) = (Vec::new(), 0usize);
+        for k in 0..SESSIONS {
+            let mut t = clients[k % CONNECTIONS].clone();
+            let (tx, rx) = tokio::sync::mpsc::channel(4);
+            tx.send(camera(k % 40, 40)).await.unwrap();
+            match t
+                .view_session(tokio_stream::wrappers::ReceiverStream::new(rx))
+                .await
+            {
+                Ok(stream) => held.push((tx, stream.into_inner())),
+                Err(s) => {
+                    assert_eq!(s.code(), tonic::Code::ResourceExhausted, "{s:?}");
+                    refused += 1;
+                }
+            }
+        }
+        let expected = (most as usize).min(CONNECTIONS * per_connection as usize);
+        assert_eq!(held.len(), expected);
+        assert_eq!(refused, SESSIONS - expected);
+        // A tile on a connection of its own answers within the deadline.
+        let mut t = TerrainClient::connect(url.clone()).await.unwrap();
+        let t0 = std::time::Instant::now();
+        let tile = t.resample_tile(common::daemon::crop_tile(64, 64)).await;
+        assert!(tile.is_ok(), "{tile:?}");
+        eprintln!(
+            "a 64² tile beside {} unread sessions ({refused} refused): {:.1} ms",
+            held.len(),
+            t0.elapsed().as_secs_f64() * 1e3
+        );
+        // A session within the limits works: its step is there to be read, whole.
+        let mut ids = BTreeMap::new();
+        let step = apply(&mut held[0].1, &mut ids, 0).await;
+        assert!(!step.is_empty() && !ids.is_empty());
+        // Sessions whose clients go give their slots back.
+        drop(held);
+        let t0 = std::time::Instant::now();
+        let mut deltas = loop {
+            let (tx, rx) = tokio::sync::mpsc::channel(4);
+            tx.send(camera(0, 40)).await.unwrap();
+            match clients[0]
+                .view_session(tokio_stream::wrappers::ReceiverStream::new(rx))
+                .await
+            {
+                Ok(s) => break (tx, s.into_inner()),
+                Err(s) if t0.elapsed().as_secs() < 10 => {
+                    assert_eq!(s.code(), tonic::Code::ResourceExhausted);
+                    tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                }
+                Err(s) => panic!("the slots did not come back: {s:?}"),
+            }
+        };
+        let mut ids = BTreeMap::new();
+        let step = apply(&mut deltas.1, &mut ids, 0).await;
+        assert!(!step.is_empty() && !ids.is_empty());
+    });
+}

@@ -1,0 +1,16 @@
+//! The engine and the layers under it, in this process: the store and its faults, CRSs and
+//! vertical datums, the evidence of overlaps, readers fed hostile files, meshes, and the GPU
+//! against the CPU.
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod crs;
+mod evidence;
+mod fuzz;
+#[cfg(feature = "gpu")]
+mod gpu;
+mod layers;
+mod mesh;
+mod store;
+mod vertical;

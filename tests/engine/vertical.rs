@@ -1,0 +1,270 @@
+//! Vertical CRSs: heights measured from another geoid than the store's are converted with
+//! the geoid grids the config names, the grids' interpolation error counted in ε; without a
+//! grid the survey is refused, naming both CRSs and the config key. Geoid grids written here:
+//! undulations that vary across the ground, so that a conversion done with the wrong grid,
+//! or at the wrong place, shows.
+
+use patchwork::config::Config;
+use patchwork::engine::{Engine, Origin, Outcome};
+use patchwork_core::crs::{Crs, Transform};
+use patchwork_read::write_tiff::write_geotiff_f32;
+use patchwork_read::{read_raster, ReadLimits};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+fn crop(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/real")
+        .join(name)
+}
+
+/// A geoid grid over Mont Ventoux and around: `n(lon, lat)` at nodes every 0.05°.
+fn geoid(path: &Path, n: impl Fn(f64, f64) -> f64) {
+    let (lon0, lat1, step, size) = (4.5, 45.5, 0.05, 41usize);
+    let mut z = Vec::with_capacity(size * size);
+    for r in 0..size {
+        for c in 0..size {
+            z.push(n(lon0 + c as f64 * step, lat1 - r as f64 * step) as f32);
+        }
+    }
+    // Pixel-is-area: node (c, r) at the centre of pixel (c, r).
+    let gt = [lon0 - step / 2.0, step, 0.0, lat1 + step / 2.0, 0.0, -step];
+    write_geotiff_f32(path, size, size, &z, gt, Some(&Crs::wgs84()), None).unwrap();
+}
+
+/// EGM96 here: a plane. EGM2008: another, tilted the other way; both reproduced exactly by
+/// bilinear interpolation, so that a conversion through them is exact too.
+fn n96(lon: f64, lat: f64) -> f64 {
+    47.0 + 2.0 * (lon - 5.0) - 1.0 * (lat - 44.0)
+}
+
+fn n08(lon: f64, lat: f64) -> f64 {
+    12.0 - 3.0 * (lat - 44.0) + 1.5 * (lon - 5.0)
+}
+
+/// A copy of a crop with its heights as `f` makes them of each sample's height, longitude
+/// and latitude, and a sidecar naming its vertical CRS.
+fn copy(
+    dir: &Path,
+    name: &str,
+    vertical: Option<&str>,
+    f: impl Fn(f64, f64, f64) -> f64,
+) -> PathBuf {
+    let r = read_raster(&crop(name), &ReadLimits::default()).unwrap();
+    let crs = r.crs.crs.clone().unwrap();
+    let to_geo = Transform::new(&crs, &Crs::wgs84()).unwrap();
+    let gt = r.geotransform;
+    let mut z = r.samples.clone();
+    for row in 0..r.rows {
+        for col in 0..r.cols {
+            let k = row * r.cols + col;
+            if z[k].is_nan() {
+                continue;
+            }
+            let (x, y) = r.pixel_centre(col, row);
+            let [lon, lat] = to_geo.apply([x, y]).unwrap();
+            z[k] = f(z[k] as f64, lon, lat) as f32;
+        }
+    }
+    let out = dir.join(name.replace(".tif", "_copy.tif"));
+    write_geotiff_f32(&out, r.cols, r.rows, &z, gt, Some(&crs), Some(-9999.0)).unwrap();
+    if let Some(v) = vertical {
+        std::fs::write(
+            format!("{}.toml", out.display()),
+            format!("vertical_crs = \"{v}\"\n"),
+        )
+        .unwrap();
+    }
+    out
+}
+
+fn engine(dir: &Path, geoids: &[(&str, &Path)]) -> Arc<Engine> {
+    let cfg = Config {
+        data_dir: dir.join("data"),
+        ingest_roots: vec![dir.to_path_buf()],
+        crs: Some("EPSG:4326".into()),
+        vertical: patchwork::config::Vertical {
+            crs: Some("EPSG:5773".into()),
+            geoids: geoids
+                .iter()
+                .map(|(k, p)| (k.to_string(), p.to_path_buf()))
+                .collect::<BTreeMap<_, _>>(),
+        },
+        ..Config::default()
+    };
+    Arc::new(Engine::open(cfg).unwrap())
+}
+
+#[test]
+fn heights_of_another_geoid_are_converted_and_agree_and_unconverted_ones_conflict() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let (g96, g08) = (dir.join("egm96.tif"), dir.join("egm08.tif"));
+    geoid(&g96, n96);
+    geoid(&g08, n08);
+    // The geographic crop in EGM96 heights, and the UTM crop of the same ground carried to
+    // EGM2008: H08 = H96 + N96 − N08, some 35 m apart.
+    let a = copy(
+        dir,
+        "ventoux_geographic.tif",
+        Some("EPSG:5773"),
+        |z, _, _| z,
+    );
+    let b = copy(
+        dir,
+        "ventoux_utm31.tif",
+        Some("EPSG:3855"),
+        |z, lon, lat| z + n96(lon, lat) - n08(lon, lat),
+    );
+    let e = engine(dir, &[("EPSG:5773", &g96), ("EPSG:3855", &g08)]);
+    for f in [&a, &b] {
+        let done = e.ingest(f, None, Origin::Request).unwrap();
+        assert_eq!(done.outcome, Outcome::Inserted, "{}", done.error);
+        // Carried back exactly: the two agree as the originals do. The UTM crop is a
+        // resampling of the other's ground, which the overlap finds (it is the distrusted
+        // one), but not a height apart: once aligned, under half a metre.
+        for c in &done.conflicts {
+            assert_eq!(c.distrusted, patchwork::engine::Distrusted::This, "{c:?}");
+            assert!(c.shift_m.is_some_and(|s| s[2].abs() < 0.5), "{c:?}");
+        }
+    }
+    let (_, listing) = e.surveys();
+    let rb = listing
+        .records
+        .iter()
+        .find(|r| r.source.ends_with("utm31_copy.tif"))
+        .unwrap();
+    assert_eq!(
+        rb.vertical_source.as_ref().map(|v| v.key()),
+        Some("EPSG:3855")
+    );
+    assert_eq!(rb.vertical.as_ref().map(|v| v.key()), Some("EPSG:5773"));
+    // Both grids are planes: bilinear interpolation reproduces them, and adds nothing but
+    // the rounding of their f32 nodes.
+    assert!(rb.vertical_error_m < 1e-5, "{}", rb.vertical_error_m);
+    assert!(listing
+        .conflicts
+        .values()
+        .flatten()
+        .all(|c| c.shift_m.is_some_and(|s| s[2].abs() < 0.5)));
+    // The converted heights are the original's: a sample of the UTM crop comes back as
+    // it was before it went to EGM2008, to f32 rounding.
+    let orig = read_raster(&crop("ventoux_utm31.tif"), &ReadLimits::default()).unwrap();
+    let back = e.snapshot();
+    let s = back.survey(rb.id).unwrap();
+    let w = back.window(s, 0, s.shapes[0].all()).unwrap();
+    let worst = w
+        .grid
+        .samples
+        .iter()
+        .zip(&orig.samples)
+        .filter(|(_, o)| !o.is_nan())
+        .map(|(a, o)| (a - o).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 2e-4, "{worst} m from the original heights");
+
+    // The same file with no sidecar is taken to be in the store's heights: 35 m off, and
+    // listed as a conflict that says so.
+    let tmp2 = tempfile::tempdir().unwrap();
+    let dir2 = tmp2.path();
+    let a2 = copy(
+        dir2,
+        "ventoux_geographic.tif",
+        Some("EPSG:5773"),
+        |z, _, _| z,
+    );
+    let b2 = copy(dir2, "ventoux_utm31.tif", None, |z, lon, lat| {
+        z + n96(lon, lat) - n08(lon, lat)
+    });
+    let e2 = engine(dir2, &[]);
+    e2.ingest(&a2, None, Origin::Request).unwrap();
+    let done = e2.ingest(&b2, None, Origin::Request).unwrap();
+    assert_eq!(done.outcome, Outcome::Inserted, "{}", done.error);
+    let c = done.conflicts.first().expect("a conflict");
+    assert!(c.max_m > 30.0 && c.rms_m > 30.0, "{c:?}");
+    let (_, listing) = e2.surveys();
+    let rb = listing
+        .records
+        .iter()
+        .find(|r| r.source.ends_with("utm31_copy.tif"))
+        .unwrap();
+    assert!(rb.vertical_source.is_none());
+}
+
+#[test]
+fn without_the_geoid_grid_it_needs_a_survey_is_refused_naming_both_crss_and_the_key() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let g96 = dir.join("egm96.tif");
+    geoid(&g96, n96);
+    let b = copy(dir, "ventoux_utm31.tif", Some("EPSG:3855"), |z, _, _| z);
+    let e = engine(dir, &[("EPSG:5773", &g96)]);
+    let done = e.ingest(&b, None, Origin::Request).unwrap();
+    assert_eq!(done.outcome, Outcome::Failed);
+    for needle in [
+        "EPSG:3855",
+        "EPSG:5773",
+        "[vertical.geoids]",
+        "\"EPSG:3855\"",
+    ] {
+        assert!(
+            done.error.contains(needle),
+            "{needle:?} not in {:?}",
+            done.error
+        );
+    }
+    // Heights above the ellipsoid need only the store's geoid: h = H96 + N96.
+    let c = copy(
+        dir,
+        "ventoux_geographic.tif",
+        Some("ellipsoidal"),
+        |z, lon, lat| z + n96(lon, lat),
+    );
+    let done = e.ingest(&c, None, Origin::Request).unwrap();
+    assert_eq!(done.outcome, Outcome::Inserted, "{}", done.error);
+    let t = e.snapshot();
+    let id = done.survey.unwrap();
+    let s = t.survey(id).unwrap();
+    let w = t.window(s, 0, s.shapes[0].all()).unwrap();
+    let orig = read_raster(&crop("ventoux_geographic.tif"), &ReadLimits::default()).unwrap();
+    let worst = w
+        .grid
+        .samples
+        .iter()
+        .zip(&orig.samples)
+        .map(|(a, o)| (a - o).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 2e-4, "{worst} m from the EGM96 heights");
+}
+
+#[test]
+fn a_geoid_that_bends_between_its_nodes_adds_its_interpolation_error_to_the_accuracy() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let (g96, g08) = (dir.join("egm96.tif"), dir.join("egm08.tif"));
+    geoid(&g96, n96);
+    // Undulations a few metres high, a few nodes long.
+    let wavy = |lon: f64, lat: f64| n08(lon, lat) + 4.0 * (lon * 40.0).sin() * (lat * 30.0).cos();
+    geoid(&g08, wavy);
+    let b = copy(dir, "ventoux_utm31.tif", Some("EPSG:3855"), |z, _, _| z);
+    std::fs::write(
+        format!("{}.toml", b.display()),
+        "vertical_crs = \"EPSG:3855\"\naccuracy_m = 2.0\n",
+    )
+    .unwrap();
+    let e = engine(dir, &[("EPSG:5773", &g96), ("EPSG:3855", &g08)]);
+    let done = e.ingest(&b, None, Origin::Request).unwrap();
+    assert_eq!(done.outcome, Outcome::Inserted, "{}", done.error);
+    let (_, listing) = e.surveys();
+    let r = &listing.records[0];
+    // Each undulation's second difference over one node: up to 4·(2·0.05·40)²/8 ≈ 8 m
+    // between the crests, well above nothing.
+    assert!(r.vertical_error_m > 0.1, "{}", r.vertical_error_m);
+    assert!(
+        (r.accuracy - (2.0 + r.vertical_error_m)).abs() < 1e-9,
+        "ε {} for 2 m and {} m of geoid",
+        r.accuracy,
+        r.vertical_error_m
+    );
+}
