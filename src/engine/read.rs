@@ -404,10 +404,10 @@ impl Engine {
         };
         // The samples are read (from the pack, or the chunk cache) before the GPU is asked
         // for, so that the device's lock is never held across disk I/O.
-        let set = t.try_resolve(&ps).map_err(StoreError::from)?;
-        if cancel.is_cancelled() {
-            return Err(EngineError::Cancelled);
-        }
+        let set = t
+            .try_resolve_until(&ps, &|| cancel.is_cancelled())
+            .map_err(StoreError::from)?
+            .ok_or(EngineError::Cancelled)?;
         if let Some(heights) = self.gpu_heights(&set, &grid, backend)? {
             let head = head(Used::Gpu);
             let rows = rows.max(1);

@@ -1239,6 +1239,17 @@ impl Terrain {
     /// Patches of surveys in other CRSs read each sample's position in their own plane: the
     /// set carries the maps there, one per plane, numbered in plane-id order.
     pub fn try_resolve(&self, ps: &[Extracted]) -> Result<PatchSet, SampleError> {
+        Ok(self.try_resolve_until(ps, &|| false)?.unwrap_or_default())
+    }
+
+    /// [`Terrain::try_resolve`], given up (None) once `cancelled` says so: it is asked before
+    /// each patch's samples are read, which for a large cut is most of the time it takes.
+    pub fn try_resolve_until(
+        &self,
+        ps: &[Extracted],
+        cancelled: &(dyn Fn() -> bool + Sync),
+    ) -> Result<Option<PatchSet>, SampleError> {
+        let gave_up = std::sync::atomic::AtomicBool::new(false);
         let mut ids: Vec<PlaneId> = ps
             .iter()
             .map(|x| x.plane)
@@ -1259,6 +1270,10 @@ impl Terrain {
         let patches = ps
             .par_iter()
             .filter_map(|x| {
+                if gave_up.load(std::sync::atomic::Ordering::Relaxed) || cancelled() {
+                    gave_up.store(true, std::sync::atomic::Ordering::Relaxed);
+                    return None;
+                }
                 let r = match self.patch(x.id)? {
                     PatchRef::Survey(s, p) => {
                         let level = p.level as usize;
@@ -1278,10 +1293,12 @@ impl Terrain {
                 }))
             })
             .collect::<Result<Vec<_>, _>>()?;
-        Ok(
-            PatchSet::new(patches)
-                .with_planes(planes.iter().map(|p| p.to_native.clone()).collect()),
-        )
+        if gave_up.into_inner() {
+            return Ok(None);
+        }
+        Ok(Some(PatchSet::new(patches).with_planes(
+            planes.iter().map(|p| p.to_native.clone()).collect(),
+        )))
     }
 
     /// Resamples patches at the points of a grid on the CPU.

@@ -44,22 +44,37 @@ pub struct Shortfall {
 
 /// The [`Shortfall`] of a cut's patches over `points`; None where every point with data is
 /// met.
+///
+/// Each point is tested against the patches whose kernel's bounds reach the cell of a coarse
+/// grid it falls in, rather than against all of them: a cut of thousands of patches over a
+/// tile's few thousand probes would otherwise cost tens of millions of tests, more than the
+/// rest of a mesh's preparation.
 pub fn shortfall(ps: &[Extracted], points: impl Iterator<Item = [f64; 2]>) -> Option<Shortfall> {
-    let (met, short): (Vec<&Extracted>, Vec<&Extracted>) = ps.iter().partition(|x| !x.fallback);
-    if short.is_empty() {
+    if ps.iter().all(|x| !x.fallback) {
         return None;
     }
+    let points: Vec<[f64; 2]> = points.collect();
+    let bins = Bins::new(&points, ps);
     let (mut held, mut only) = (0usize, 0usize);
     let (mut least, mut most) = (f64::INFINITY, 0.0f64);
-    for p in points {
-        if met.iter().any(|x| x.kernel.contains_point(p)) {
+    for &p in &points {
+        let near = bins.near(p);
+        let inside = |x: &&Extracted| x.kernel.contains_point(p);
+        if near
+            .iter()
+            .map(|&k| &ps[k])
+            .filter(|x| !x.fallback)
+            .any(|x| inside(&x))
+        {
             held += 1;
             continue;
         }
         // The most accurate of the fallback patches there is what serves the point.
-        let best = short
+        let best = near
             .iter()
-            .filter(|x| x.kernel.contains_point(p))
+            .map(|&k| &ps[k])
+            .filter(|x| x.fallback)
+            .filter(inside)
             .map(|x| x.span.min_z)
             .fold(f64::INFINITY, f64::min);
         if best.is_finite() {
@@ -74,6 +89,75 @@ pub fn shortfall(ps: &[Extracted], points: impl Iterator<Item = [f64; 2]>) -> Op
         min_error: least,
         max_error: most,
     })
+}
+
+/// The patches of a cut binned by the cells of a grid over a set of points: every patch whose
+/// kernel's bounds reach a cell is listed in it, so a point's cell lists every patch whose
+/// kernel can hold the point (and maybe a few more).
+struct Bins {
+    origin: [f64; 2],
+    cell: [f64; 2],
+    n: [usize; 2],
+    cells: Vec<Vec<usize>>,
+}
+
+impl Bins {
+    fn new(points: &[[f64; 2]], ps: &[Extracted]) -> Bins {
+        let b = Aabb::of_points(points);
+        let side = (points.len() as f64).sqrt().ceil().clamp(1.0, 256.0) as usize;
+        let n = [side, side];
+        let cell = [
+            (b.width() / side as f64).max(f64::MIN_POSITIVE),
+            (b.height() / side as f64).max(f64::MIN_POSITIVE),
+        ];
+        let mut bins = Bins {
+            origin: b.min,
+            cell,
+            n,
+            cells: vec![Vec::new(); side * side],
+        };
+        if points.is_empty() {
+            return bins;
+        }
+        for (k, x) in ps.iter().enumerate() {
+            let a = x.kernel.aabb();
+            if !(a.max[0] >= b.min[0]
+                && a.min[0] <= b.max[0]
+                && a.max[1] >= b.min[1]
+                && a.min[1] <= b.max[1])
+            {
+                continue;
+            }
+            let [i0, j0] = bins.at(a.min);
+            let [i1, j1] = bins.at(a.max);
+            for j in j0..=j1 {
+                for i in i0..=i1 {
+                    bins.cells[j * n[0] + i].push(k);
+                }
+            }
+        }
+        bins
+    }
+
+    /// The cell of a point, clamped to the grid. Monotone in each coordinate, so a point
+    /// inside a box falls in a cell between those of the box's corners.
+    fn at(&self, p: [f64; 2]) -> [usize; 2] {
+        let idx = |a: usize| {
+            let t = ((p[a] - self.origin[a]) / self.cell[a]).floor();
+            if t.is_nan() {
+                0
+            } else {
+                (t.max(0.0) as usize).min(self.n[a] - 1)
+            }
+        };
+        [idx(0), idx(1)]
+    }
+
+    /// The patches listed in a point's cell.
+    fn near(&self, p: [f64; 2]) -> &[usize] {
+        let [i, j] = self.at(p);
+        &self.cells[j * self.n[0] + i]
+    }
 }
 
 impl Extracted {
