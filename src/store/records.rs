@@ -1,0 +1,321 @@
+//! What the store records of its surveys and files: a survey's record and its levels, the
+//! failures and pins, the catalog readers take, and reading them back.
+
+use super::*;
+
+/// A survey's patches and the edge tiles its samples reach, stored together under `p/`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoredPatches {
+    pub patches: Vec<Patch>,
+    pub edge_tiles: Vec<[i64; 2]>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Status {
+    Active,
+    /// Out of the index; its samples stay until the next compaction.
+    Retired,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LevelHeader {
+    pub cols: u64,
+    pub rows: u64,
+    pub georef: Georef,
+}
+
+impl LevelHeader {
+    pub(super) fn of(g: &Grid) -> Self {
+        LevelHeader {
+            cols: g.cols as u64,
+            rows: g.rows as u64,
+            georef: g.georef,
+        }
+    }
+
+    pub fn shape(&self) -> Shape {
+        Shape {
+            cols: self.cols as usize,
+            rows: self.rows as usize,
+            georef: self.georef,
+        }
+    }
+}
+
+/// Where the time of one ingestion went, in milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct IngestTimings {
+    pub read_ms: f64,
+    pub build_ms: f64,
+    pub index_ms: f64,
+    /// Filled in by the store: encoding, the atomic batch and its flush.
+    pub commit_ms: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurveyRecord {
+    pub id: SurveyId,
+    /// The file it was read from.
+    pub source: String,
+    /// Hex blake3 of the file's bytes; empty when unknown.
+    pub content_id: String,
+    /// ε in metres: the largest of the survey's kernels'.
+    pub accuracy: f64,
+    pub accuracy_source: AccuracySource,
+    /// Its horizontal CRS: the plane its grid is in, which may not be the store's.
+    pub crs: Option<Crs>,
+    /// The vertical CRS its file or sidecar named; None where nothing did.
+    pub vertical_source: Option<VerticalCrs>,
+    /// What its stored heights are measured from: the store's vertical CRS where they were
+    /// converted to it; None where nothing was named.
+    pub vertical: Option<VerticalCrs>,
+    /// What converting its heights between vertical CRSs added to ε, in metres.
+    pub vertical_error_m: f64,
+    pub status: Status,
+    pub cols: u64,
+    pub rows: u64,
+    pub georef: Georef,
+    /// Valid level-0 samples.
+    pub samples: u64,
+    /// Level 0 first, as stored in the chunks.
+    pub levels: Vec<LevelHeader>,
+    /// Where level 0's kernel boundaries fall (see [`Tiling`]).
+    pub tiling_offset: [i64; 2],
+    pub ingest: IngestTimings,
+    pub created_unix: u64,
+}
+
+impl SurveyRecord {
+    /// The record of an active survey read from `source`.
+    pub fn new(
+        s: &Survey,
+        source: impl Into<String>,
+        content_id: impl Into<String>,
+        accuracy_source: AccuracySource,
+        ingest: IngestTimings,
+    ) -> Self {
+        let l0 = &s.levels[0];
+        SurveyRecord {
+            id: s.id,
+            source: source.into(),
+            content_id: content_id.into(),
+            accuracy: s.accuracy,
+            accuracy_source: if s.spec == AccuracySpec::Auto {
+                AccuracySource::Estimated
+            } else {
+                accuracy_source
+            },
+            crs: s.crs.clone(),
+            vertical_source: s.vertical.clone(),
+            vertical: s.vertical.clone(),
+            vertical_error_m: 0.0,
+            status: Status::Active,
+            cols: l0.cols as u64,
+            rows: l0.rows as u64,
+            georef: l0.georef,
+            samples: l0.valid_count() as u64,
+            levels: s.levels.iter().map(|g| LevelHeader::of(g)).collect(),
+            tiling_offset: s.tiling.offset,
+            ingest,
+            created_unix: now_unix(),
+        }
+    }
+
+    /// How the survey's ε was decided, as its id hashes it.
+    pub fn spec(&self) -> AccuracySpec {
+        match self.accuracy_source {
+            AccuracySource::Estimated => AccuracySpec::Auto,
+            _ => AccuracySpec::Fixed(self.accuracy),
+        }
+    }
+}
+
+/// A survey whose records or chunks cannot be read back as they were written: out of the
+/// terrain until its file is ingested again or [`Store::repair`] drops it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Damaged {
+    pub id: SurveyId,
+    /// Its file; empty when its record itself is what is damaged.
+    pub source: String,
+    /// What was found wrong, first problem only.
+    pub reason: String,
+}
+
+/// What an operator is told of it, at open and by `verify`.
+impl std::fmt::Display for Damaged {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let source = if self.source.is_empty() {
+            "its record is unreadable"
+        } else {
+            &self.source
+        };
+        write!(
+            f,
+            "survey {} ({source}) is damaged and out of the terrain: {}; ingest its file again \
+             or run `patchwork repair` to drop it",
+            self.id, self.reason
+        )
+    }
+}
+
+/// Everything the store holds besides samples and patches: what listings, stats and the inbox
+/// read. The engine keeps it beside the terrain, so that they never wait on the disk.
+#[derive(Clone, Debug, Default)]
+pub struct Catalog {
+    /// Every survey record, active and retired, in id order.
+    pub records: Vec<SurveyRecord>,
+    /// Every recorded failure, in source order.
+    pub failures: Vec<FailedRecord>,
+    /// Sources retired by hand, with the content that stays retired (see [`Store::pins`]).
+    pub pins: HashMap<String, String>,
+    /// Active surveys left out of the terrain because they are damaged, by id.
+    pub damaged: BTreeMap<SurveyId, Damaged>,
+    pub crs: Option<Crs>,
+    pub vertical: Option<VerticalCrs>,
+    pub layout: PatchLayout,
+    pub recipe: Recipe,
+}
+
+impl Catalog {
+    /// The record of the active survey read from `source`, if any.
+    /// Not a damaged one: its file is to be ingested again.
+    pub fn active_from(&self, source: &str) -> Option<&SurveyRecord> {
+        self.active().find(|r| r.source == source)
+    }
+
+    /// The active surveys the terrain holds: damaged ones are not among them.
+    pub fn active(&self) -> impl Iterator<Item = &SurveyRecord> {
+        self.records
+            .iter()
+            .filter(|r| r.status == Status::Active && !self.damaged.contains_key(&r.id))
+    }
+}
+
+/// A file that could not be ingested. The inbox leaves it alone until its content changes;
+/// size and mtime are what it had, for listings.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FailedRecord {
+    pub source: String,
+    pub error: String,
+    pub size: u64,
+    pub mtime_unix: u64,
+    pub at_unix: u64,
+    /// Hex blake3 of the bytes that failed; empty when they could not be read (or the
+    /// failure was recorded before the store kept it), which matches no file.
+    pub content_id: String,
+}
+
+impl Store {
+    /// The files whose surveys were retired by hand, with the content that stays retired.
+    pub fn pins(&self) -> Result<HashMap<String, String>, StoreError> {
+        self.db
+            .scan_prefix(keys::PIN_PREFIX)
+            .map(|kv| {
+                let (k, v) = kv?;
+                let source = String::from_utf8_lossy(&k[keys::PIN_PREFIX.len()..]).into_owned();
+                let content = String::from_utf8(v.to_vec()).map_err(|_| {
+                    StoreError::Corrupt(format!("the pin of {source:?} is not text"))
+                })?;
+                Ok((source, content))
+            })
+            .collect()
+    }
+
+    /// Every pair's evidence, once each (under its smaller id's key).
+    pub fn all_pairs(&self) -> Result<Vec<Arc<PairEvidence>>, StoreError> {
+        let mut out = Vec::new();
+        for kv in self.db.scan_prefix(keys::OVERLAP_PREFIX) {
+            let (k, v) = kv?;
+            let (a, b) = keys::parse_overlap(&k).ok_or_else(|| {
+                StoreError::Corrupt(format!("bad overlap key {:?}", String::from_utf8_lossy(&k)))
+            })?;
+            if a < b {
+                let p = decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?;
+                out.push(Arc::new(p));
+            }
+        }
+        Ok(out)
+    }
+
+    /// The records, failures and pins as they stand.
+    pub fn catalog(&self) -> Result<Catalog, StoreError> {
+        Ok(Catalog {
+            records: self.surveys()?,
+            failures: self.failures()?,
+            pins: self.pins()?,
+            damaged: self.damaged(),
+            crs: self.crs(),
+            vertical: self.vertical_crs(),
+            layout: self.layout,
+            recipe: self.recipe,
+        })
+    }
+
+    /// Every survey record, active and retired, in id order; a record that does not decode is
+    /// left out (it is among [`Store::damaged`]).
+    pub fn surveys(&self) -> Result<Vec<SurveyRecord>, StoreError> {
+        Ok(self.records()?.0)
+    }
+
+    /// Every record that decodes under its own key, and, by the id in their key, the surveys
+    /// whose records do not: one scan, each record decoded once.
+    pub(super) fn records(&self) -> Result<(Vec<SurveyRecord>, Vec<Damaged>), StoreError> {
+        let (mut good, mut bad) = (Vec::new(), Vec::new());
+        for kv in self.db.scan_prefix(keys::SURVEY_PREFIX) {
+            let (k, v) = kv?;
+            let what = format!("record {}", String::from_utf8_lossy(&k));
+            let Some(id) = keys::parse_survey(&k) else {
+                continue;
+            };
+            match decode::<SurveyRecord>(&v, &what) {
+                Ok(r) if r.id == id => good.push(r),
+                Ok(r) => bad.push(Damaged {
+                    id,
+                    reason: format!("{what} holds the record of {}", r.id),
+                    source: r.source,
+                }),
+                Err(e) => bad.push(Damaged {
+                    id,
+                    source: String::new(),
+                    reason: e.to_string(),
+                }),
+            }
+        }
+        Ok((good, bad))
+    }
+
+    /// The evidence of every pair `id` is in, by the other's id.
+    pub fn pairs_of(&self, id: SurveyId) -> Result<Vec<PairEvidence>, StoreError> {
+        self.db
+            .scan_prefix(keys::overlaps_of(id))
+            .map(|kv| {
+                let (k, v) = kv?;
+                decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))
+            })
+            .collect()
+    }
+
+    /// Every recorded failure, in source order.
+    pub fn failures(&self) -> Result<Vec<FailedRecord>, StoreError> {
+        self.db
+            .scan_prefix(keys::FAILURE_PREFIX)
+            .map(|kv| {
+                let (k, v) = kv?;
+                decode(&v, &format!("failure {}", String::from_utf8_lossy(&k)))
+            })
+            .collect()
+    }
+
+    pub(super) fn active_records(&self) -> Result<Vec<SurveyRecord>, StoreError> {
+        let mut all = self.surveys()?;
+        all.retain(|r| r.status == Status::Active && !self.is_damaged(r.id));
+        Ok(all)
+    }
+
+    pub(super) fn record(&self, id: SurveyId) -> Result<Option<SurveyRecord>, StoreError> {
+        self.db
+            .get(keys::survey(id))?
+            .map(|v| decode(&v, &format!("record of survey {id}")))
+            .transpose()
+    }
+}
