@@ -108,8 +108,8 @@ pub fn read_ascii_grid(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadE
 
 /// [`read_ascii_grid`] of an open file.
 pub fn read_ascii_grid_from(file: &mut Source, limits: &ReadLimits) -> Result<Raster, ReadError> {
-    let path = file.path().to_path_buf();
-    let path = path.as_path();
+    // Owned: the file is read below while its path names it in messages.
+    let path = &file.path().to_path_buf();
     let file_len = file.len();
     let mut tokens = Tokens {
         reader: BufReader::new(file),

@@ -68,8 +68,8 @@ pub fn read_hgt(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
 
 /// [`read_hgt`] of an open file.
 pub fn read_hgt_from(file: &mut Source, limits: &ReadLimits) -> Result<Raster, ReadError> {
-    let path = file.path().to_path_buf();
-    let path = path.as_path();
+    // Owned: the file is read below while its path names it in messages.
+    let path = &file.path().to_path_buf();
     let (lat, lon) = parse_hgt_name(path)?;
     let len = file.len();
     let n: usize = match len {
