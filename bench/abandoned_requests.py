@@ -86,7 +86,7 @@ def main() -> None:
     port = free_port()
     inbox = os.path.join(tmp, "inbox")
     env = dict(os.environ, PATCHWORK_DATA_DIR=os.path.join(tmp, "data"), PATCHWORK_INBOX=inbox,
-               PATCHWORK_LISTEN=f"127.0.0.1:{port}")
+               PATCHWORK_LISTEN=f"127.0.0.1:{port}", PATCHWORK_HTTP_LISTEN="")
     os.makedirs(inbox)
     daemon = subprocess.Popen([a.daemon, "serve"], env=env, stderr=subprocess.DEVNULL)
     try:

@@ -133,7 +133,7 @@ def main(argv):
     subprocess.run([BIN, "ingest", "--data-dir", data] + SOURCES, check=True, stdout=subprocess.DEVNULL)
     port = free_port()
     env = dict(os.environ, PATCHWORK_DATA_DIR=data, PATCHWORK_INBOX=os.path.join(tmp, "inbox"),
-               PATCHWORK_LISTEN=f"127.0.0.1:{port}", PATCHWORK_LOG="warn",
+               PATCHWORK_LISTEN=f"127.0.0.1:{port}", PATCHWORK_HTTP_LISTEN="", PATCHWORK_LOG="warn",
                PATCHWORK_ALLOW_EMULATED_GPU="0")
     daemon = subprocess.Popen([BIN, "serve"], env=env, stdout=subprocess.DEVNULL)
     rows = []

@@ -166,6 +166,8 @@ pub struct Config {
     /// Folders besides the inbox that Ingest requests may name files in.
     pub ingest_roots: Vec<PathBuf>,
     pub listen: String,
+    /// Where the HTTP server for web map clients listens; empty serves no HTTP.
+    pub http_listen: String,
     /// Bearer token for the Admin service (and for reads too).
     pub admin_token: Option<Secret>,
     /// Bearer token for the Terrain service; unset leaves reads open.
@@ -196,6 +198,37 @@ pub struct Config {
     pub mipmap: Filter,
     pub vertical: Vertical,
     pub accuracy: Accuracy,
+    pub http: Http,
+}
+
+/// The `[http]` section: the web map clients' server (tiles, terrain, the viewer page).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Http {
+    /// Whether the read token may come as `?token=` on the URL, for browsers' tile
+    /// requests, which cannot set a header. URLs end up in logs and histories: turn it off
+    /// where that matters and put a proxy that adds the header in front.
+    pub query_token: bool,
+    /// The `Cache-Control` of tiles and their documents. Tiles carry an ETag that changes
+    /// exactly when the data under them does, so a short max-age costs only revalidations.
+    pub cache_control: String,
+    /// Memory for encoded tiles (PNG, GeoTIFF, quantized-mesh), MiB; 0 keeps none.
+    pub tile_cache_mb: u64,
+    /// A `node_modules` folder holding `maplibre-gl` and `cesium`, served under `/lib/` for
+    /// the viewer page (`npm install maplibre-gl cesium` makes one); unset, the page loads
+    /// them from a CDN.
+    pub assets_dir: Option<PathBuf>,
+}
+
+impl Default for Http {
+    fn default() -> Self {
+        Http {
+            query_token: true,
+            cache_control: "public, max-age=60".into(),
+            tile_cache_mb: 64,
+            assets_dir: None,
+        }
+    }
 }
 
 /// The `[accuracy]` section: what a new store does with accuracy claims that other surveys'
@@ -266,6 +299,7 @@ impl Default for Config {
             inbox: vec![PathBuf::from("./inbox")],
             ingest_roots: Vec::new(),
             listen: "127.0.0.1:50051".into(),
+            http_listen: "127.0.0.1:50052".into(),
             admin_token: None,
             read_token: None,
             tls_cert: None,
@@ -284,6 +318,7 @@ impl Default for Config {
             mipmap: Filter::default(),
             vertical: Vertical::default(),
             accuracy: Accuracy::default(),
+            http: Http::default(),
         }
     }
 }
@@ -366,6 +401,12 @@ impl Config {
         }
         if let Some(v) = get("PATCHWORK_LISTEN") {
             self.listen = v;
+        }
+        if let Some(v) = get("PATCHWORK_HTTP_LISTEN") {
+            self.http_listen = v;
+        }
+        if let Some(v) = get("PATCHWORK_HTTP_ASSETS") {
+            self.http.assets_dir = (!v.is_empty()).then(|| v.into());
         }
         // An empty value unsets a token, so that a config file's can be switched off.
         if let Some(v) = get("PATCHWORK_ADMIN_TOKEN") {

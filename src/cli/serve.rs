@@ -44,12 +44,29 @@ pub async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     let listener = tokio::net::TcpListener::bind(&listen)
         .await
         .map_err(|e| format!("cannot listen on {listen}: {e}"))?;
+    let http_listen = engine.config().http_listen.clone();
+    let http = if http_listen.trim().is_empty() {
+        None
+    } else {
+        Some(
+            tokio::net::TcpListener::bind(&http_listen)
+                .await
+                .map_err(|e| format!("cannot listen on {http_listen} (http_listen): {e}"))?,
+        )
+    };
     let c = engine.config();
     let tls = c.tls_cert.is_some();
     if !patchwork::serve::auth::is_loopback(&listen) && !tls {
         tracing::warn!("serving beyond this machine without TLS: tokens and data travel in clear; set tls_cert and tls_key");
     }
     tracing::info!(address = %listener.local_addr()?, tls, admin_token = c.admin_token.is_some(), read_token = c.read_token.is_some(), data = ?c.data_dir, inbox = ?c.inbox, "serving");
+    if let Some(h) = &http {
+        let address = h.local_addr()?;
+        tracing::info!(%address, "serving web map clients: the viewer at http://{address}/");
+        if !patchwork::serve::auth::is_loopback(&http_listen) {
+            tracing::warn!("serving HTTP beyond this machine: tokens and data travel in clear; put a TLS proxy in front");
+        }
+    }
     if let Some(why) = engine.read_only() {
         tracing::warn!(reason = %why, "read-only: queries are served, writes are refused until this is resolved");
     }
@@ -66,7 +83,17 @@ pub async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|s| *s).await;
     };
-    let server = grpc::serve(engine, listener, stopped(stop_rx.clone()));
+    // One service for both servers: the limits on running requests hold for them together.
+    let svc = grpc::Service::new(engine, stop_rx.clone());
+    if let Some(h) = http {
+        let web = patchwork::serve::web::serve(svc.clone(), h, stopped(stop_rx.clone()));
+        tokio::spawn(async move {
+            if let Err(e) = web.await {
+                tracing::error!(error = %e, "the HTTP server stopped");
+            }
+        });
+    }
+    let server = grpc::serve_service(svc, listener, stopped(stop_rx.clone()));
     tokio::select! {
         r = server => r.map_err(|e| -> Fail { e.to_string().into() })?,
         _ = async { stopped(stop_rx.clone()).await; tokio::time::sleep(GRACE).await } => {

@@ -239,7 +239,14 @@ pub async fn mesh(args: MeshArgs) -> Result<(), Fail> {
                     )
                     .into());
             }
-            encode::quantized_mesh(&mesh, &tile)
+            encode::quantized_mesh(
+                &mesh,
+                &tile,
+                &encode::Extensions {
+                    normals: true,
+                    ..Default::default()
+                },
+            )
         }
     };
     std::fs::write(&out, bytes)?;

@@ -3,7 +3,8 @@
 use super::Phase;
 use crate::store::{CacheStats, Damaged, FailedRecord, SurveyRecord};
 use patchwork_core::crs::vertical::VerticalCrs;
-use patchwork_core::crs::Crs;
+use patchwork_core::crs::{Crs, Transform};
+use patchwork_core::geom::Aabb;
 use patchwork_core::model::evidence::Blame;
 use patchwork_core::model::ids::SurveyId;
 use patchwork_core::terrain::Terrain;
@@ -119,4 +120,80 @@ pub struct Progress {
     pub bytes: u64,
     pub phase: Phase,
     pub started: Instant,
+}
+
+/// Where a survey lies, in longitude and latitude: what web maps draw and tile pyramids are
+/// made over.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Footprint {
+    pub id: SurveyId,
+    /// ε, metres: the largest over its kernels.
+    pub accuracy_m: f64,
+    /// Its footprint's outline (the store-plane bounds of its samples carried into longitude
+    /// and latitude, 16 points a side), closed.
+    pub ring: Vec<[f64; 2]>,
+    /// The outline's bounds, degrees.
+    pub bounds: Aabb,
+    /// Its level 0's cell, in degrees of latitude: how fine a tile pyramid over it goes.
+    pub cell_deg: f64,
+}
+
+impl super::Engine {
+    /// Every survey's footprint in longitude and latitude, in id order; empty until the store
+    /// has a CRS.
+    pub fn footprints(&self) -> Vec<Footprint> {
+        let t = self.snapshot();
+        let Some(to) = self.lonlat_transform() else {
+            return Vec::new();
+        };
+        let mut out: Vec<Footprint> = t
+            .surveys()
+            .filter_map(|s| {
+                let f = s.footprint();
+                let ring = outline(&to, &f)?;
+                let bounds = Aabb::of_points(&ring);
+                let rows = s.shapes[0].rows.max(2) - 1;
+                Some(Footprint {
+                    id: s.id,
+                    accuracy_m: s.accuracy,
+                    ring,
+                    cell_deg: bounds.height() / rows as f64,
+                    bounds,
+                })
+            })
+            .collect();
+        out.sort_by_key(|f| f.id);
+        out
+    }
+
+    /// A rectangle of the store's plane in longitude and latitude: the bounds of its outline
+    /// carried over. None where it cannot be (outside the projection's domain, or no CRS).
+    pub fn to_lonlat(&self, area: &Aabb) -> Option<Aabb> {
+        Some(Aabb::of_points(&outline(&self.lonlat_transform()?, area)?))
+    }
+
+    fn lonlat_transform(&self) -> Option<Transform> {
+        Transform::new(&self.crs()?, &Crs::wgs84()).ok()
+    }
+}
+
+/// A rectangle's outline carried by `to`, 16 points a side, closed.
+fn outline(to: &Transform, r: &Aabb) -> Option<Vec<[f64; 2]>> {
+    let n = 16;
+    let corners = [
+        [r.min[0], r.min[1]],
+        [r.max[0], r.min[1]],
+        [r.max[0], r.max[1]],
+        [r.min[0], r.max[1]],
+    ];
+    let mut ring = Vec::with_capacity(4 * n + 1);
+    for k in 0..4 {
+        let (a, b) = (corners[k], corners[(k + 1) % 4]);
+        for i in 0..n {
+            let t = i as f64 / n as f64;
+            ring.push(to.apply([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])])?);
+        }
+    }
+    ring.push(ring[0]);
+    Some(ring)
 }

@@ -20,10 +20,10 @@ mod write;
 pub use crate::ingest::Phase;
 pub use error::EngineError;
 pub use gpu::Used;
-pub use listing::{conflicts_of, Conflict, Distrusted, Progress, Stats, SurveyListing};
+pub use listing::{conflicts_of, Conflict, Distrusted, Footprint, Progress, Stats, SurveyListing};
 pub use patchwork_core::resample::Backend;
 pub use patchwork_read::REFUSED_PATH;
-pub use read::{Cut, MeshSpec, MeshTile, TileHead, MAX_MESH_SIZE};
+pub use read::{Cut, MeshSpec, MeshTile, TileHead, FILL_STEPS, MAX_MESH_SIZE};
 pub use write::{Event, Ingested, Origin, Outcome};
 
 use crate::config::Config;
@@ -206,6 +206,7 @@ impl Engine {
         source: &str,
         error: &str,
         conflicts: Vec<Conflict>,
+        area: Option<patchwork_core::geom::Aabb>,
     ) {
         // Nobody listening is fine.
         let _ = self.events.send(Event {
@@ -215,6 +216,7 @@ impl Engine {
             error: error.into(),
             at_unix: now_unix(),
             conflicts,
+            area,
         });
     }
 

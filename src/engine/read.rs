@@ -45,6 +45,10 @@ impl Cut {
 /// Most vertices a row or column of a mesh: a 2049² grid resamples 4.2 M heights.
 pub const MAX_MESH_SIZE: usize = 2049;
 
+/// The most coarser cuts [`Engine::fill_voids`] asks: 8⁵ times the error is past every
+/// survey's coarsest level.
+pub const FILL_STEPS: usize = 5;
+
 /// A mesh asked of a uniform cut.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MeshSpec {
@@ -65,6 +69,9 @@ pub struct MeshSpec {
     pub hole_reach_m: f64,
     /// The CRS of the ROI and of the vertices; None for the store's.
     pub crs: Option<Crs>,
+    /// Whether void vertices are given heights (see [`Engine::fill_voids`], and 0 m where
+    /// no survey is near) so that the mesh covers the whole tile, as a globe's terrain must.
+    pub fill_voids: bool,
 }
 
 /// A mesh of a uniform cut and what it was made from.
@@ -78,6 +85,9 @@ pub struct MeshTile {
     pub backend: Used,
     /// Where no data is as accurate as the cut asked.
     pub shortfall: Option<Shortfall>,
+    /// With [`MeshSpec::fill_voids`], which grid vertices (row by row) had no data at the
+    /// cut's error and were filled; empty when none were.
+    pub voids: Vec<bool>,
 }
 
 /// What a tile is, told with each of its bands.
@@ -276,7 +286,23 @@ impl Engine {
                 error: spec.error,
             },
         };
-        let (tile, used) = self.tile_until(&cut, cols as u32, rows as u32, backend, cancel)?;
+        let (mut tile, used) = self.tile_until(&cut, cols as u32, rows as u32, backend, cancel)?;
+        let mut voids = Vec::new();
+        if spec.fill_voids {
+            let grid = SampleGrid::uniform(&pixels, cols, rows);
+            voids = self.fill_voids(
+                &mut tile.heights,
+                &grid,
+                spec.crs.as_ref(),
+                spec.error,
+                cancel,
+            )?;
+            // Nothing near enough to fill from: no survey is there, and a globe shows its
+            // ellipsoid.
+            for h in tile.heights.iter_mut().filter(|h| h.is_nan()) {
+                *h = 0.0;
+            }
+        }
         let holes = if spec.hole_reach_m > 0.0 {
             let mid = (roi.min[1] + roi.max[1]) / 2.0;
             let scale = match &spec.crs {
@@ -315,7 +341,69 @@ impl Engine {
             patches: tile.patches,
             backend: used,
             shortfall: tile.shortfall,
+            voids,
         })
+    }
+
+    /// Fills the voids (NaN) of `heights`, a tile at `grid`'s positions (of `crs`, None for
+    /// the store's) cut at error `e`, from ever coarser cuts at the same points: at 8, 64, …
+    /// times `e` (1 m at least), up to [`FILL_STEPS`] of them, each void taking the first
+    /// height it is given. A coarser level of a survey averages the samples around a void,
+    /// so a hole no wider than its cells is bridged by the survey's own terrain. Each height
+    /// is that of a point at an error, as any request gives it: a void is filled alike in
+    /// every tile that holds it, so neighbouring tiles still meet. Voids that no coarser cut
+    /// reaches stay NaN. Returns which samples were void at `e` (empty when none were).
+    pub fn fill_voids(
+        &self,
+        heights: &mut [f32],
+        grid: &SampleGrid,
+        crs: Option<&Crs>,
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Vec<bool>, EngineError> {
+        let mut todo: Vec<usize> = (0..heights.len())
+            .filter(|&k| heights[k].is_nan())
+            .collect();
+        if todo.is_empty() {
+            return Ok(Vec::new());
+        }
+        let voids = heights.iter().map(|h| h.is_nan()).collect();
+        // A cut at the top of LOD space holds nothing: stop below it.
+        let top = self.cfg.index.max_error / 2.0;
+        let mut coarser = e.max(1.0);
+        for _ in 0..FILL_STEPS {
+            if todo.is_empty() || coarser >= top {
+                break;
+            }
+            coarser = (coarser * 8.0).min(top);
+            let points: Vec<[f64; 2]> = todo.iter().map(|&k| grid.point(k)).collect();
+            let found = self.sample_in(&points, crs, coarser, cancel)?;
+            let mut left = Vec::new();
+            for (&k, h) in todo.iter().zip(found) {
+                if h.is_nan() {
+                    left.push(k);
+                } else {
+                    heights[k] = h;
+                }
+            }
+            todo = left;
+        }
+        Ok(voids)
+    }
+
+    /// A resampled tile of a cut already made (by [`Engine::query`] of the same `cut`), given
+    /// up once `cancel` is set: for a caller that looks at the patches first, to see whether
+    /// it has the tile already.
+    pub fn tile_of(
+        &self,
+        cut: &Cut,
+        made: (Arc<Terrain>, Vec<Extracted>),
+        width: u32,
+        height: u32,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<(Tile, Used), EngineError> {
+        self.tile_from(cut, Some(made), width, height, backend, cancel)
     }
 
     /// A resampled tile, given up once `cancel` is set.
@@ -327,9 +415,22 @@ impl Engine {
         backend: Backend,
         cancel: &Cancel,
     ) -> Result<(Tile, Used), EngineError> {
+        self.tile_from(cut, None, width, height, backend, cancel)
+    }
+
+    fn tile_from(
+        &self,
+        cut: &Cut,
+        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<(Tile, Used), EngineError> {
         let (mut heights, mut shortfall) = (Vec::new(), None);
-        let (patches, used) = self.tile_bands_until(
+        let (patches, used) = self.bands(
             cut,
+            made,
             width,
             height,
             backend,
@@ -366,6 +467,22 @@ impl Engine {
         cancel: &Cancel,
         sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
     ) -> Result<(Vec<Extracted>, Used), EngineError> {
+        self.bands(cut, None, width, height, backend, rows, cancel, sink)
+    }
+
+    /// [`Engine::tile_bands_until`] of a cut made already, or made here when `made` is None.
+    #[allow(clippy::too_many_arguments)]
+    fn bands(
+        &self,
+        cut: &Cut,
+        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        rows: usize,
+        cancel: &Cancel,
+        sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
+    ) -> Result<(Vec<Extracted>, Used), EngineError> {
         let n = width as u64 * height as u64;
         if width == 0 || height == 0 {
             return Err(EngineError::Invalid(
@@ -378,7 +495,10 @@ impl Engine {
                 "a {width}×{height} tile has {n} samples, more than the limit of {max}: ask for a smaller tile"
             )));
         }
-        let (t, ps) = self.query(cut)?;
+        let (t, ps) = match made {
+            Some(m) => m,
+            None => self.query(cut)?,
+        };
         let grid = match cut {
             Cut::Uniform { roi, .. } => SampleGrid::uniform(roi, width as usize, height as usize),
             Cut::UniformIn { crs, roi, .. } => {

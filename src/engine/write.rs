@@ -12,10 +12,11 @@ use crate::store::{
     StoreError, SurveyRecord,
 };
 use crate::sync::{lock, write};
+use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::ChangeStats;
 use patchwork_core::model::ids::SurveyId;
 use patchwork_core::model::place::Planes;
-use patchwork_core::model::survey::Survey;
+use patchwork_core::model::survey::{Survey, SurveyMeta};
 use patchwork_core::terrain::Terrain;
 use patchwork_read::{content_id, file_content_id, ReadError, ReadLimits, REFUSED_PATH};
 use std::path::{Path, PathBuf};
@@ -65,6 +66,22 @@ pub struct Event {
     pub at_unix: u64,
     /// For an inserted or replacing survey, the surveys it conflicts with.
     pub conflicts: Vec<Conflict>,
+    /// Where in the store's plane the terrain may have changed: the footprints of the
+    /// surveys that came and went, grown by the cells that edge patches reach across. None
+    /// for a failure, which changes nothing served.
+    pub area: Option<Aabb>,
+}
+
+/// Where a survey's arrival or departure can change heights: its footprint (its samples'
+/// bounds) grown by two of its cells, the half pixel every survey reaches out to and the cell
+/// an edge patch interpolates across to a neighbour.
+pub(super) fn changed_area(s: &SurveyMeta) -> Aabb {
+    let f = s.footprint();
+    let g = &s.shapes[0];
+    let cell =
+        (f.width() / (g.cols.max(2) - 1) as f64).max(f.height() / (g.rows.max(2) - 1) as f64);
+    let m = 2.0 * cell;
+    Aabb::new(f.min[0] - m, f.min[1] - m, f.max[0] + m, f.max[1] + m)
 }
 
 /// The outcome of ingesting one file.
@@ -266,7 +283,7 @@ impl Engine {
     fn record_failure(&self, path: &Path, source: &str, error: &str, content: Option<&str>) {
         if path.symlink_metadata().is_err() {
             // Only names that exist are kept; the failure is still news.
-            self.emit(Outcome::Failed, None, source, error, Vec::new());
+            self.emit(Outcome::Failed, None, source, error, Vec::new(), None);
             return;
         }
         let (size, mtime_unix) = size_mtime(path).unwrap_or((0, 0));
@@ -281,11 +298,11 @@ impl Engine {
         let keep = self.cfg.limits.max_failures as usize;
         let recorded = self.write_and(
             |s, _| Ok((s.record_failure(&rec, keep)?, None)),
-            |_| self.emit(Outcome::Failed, None, source, error, Vec::new()),
+            |_| self.emit(Outcome::Failed, None, source, error, Vec::new(), None),
         );
         if let Err(e) = recorded {
             tracing::warn!(source = ?source, error = ?e.to_string(), "could not record the failure");
-            self.emit(Outcome::Failed, None, source, error, Vec::new());
+            self.emit(Outcome::Failed, None, source, error, Vec::new(), None);
         }
     }
 
@@ -398,11 +415,18 @@ impl Engine {
         let samples = survey.levels[0].valid_count() as u64;
         let t1 = Instant::now();
         let mut conflicts = Vec::new();
+        let area = std::cell::Cell::new(None);
         let outcome = self
             .write_and(
                 |store, current| {
                     self.set_phase(source, Phase::Indexing);
                     let previous = store_active_from(&self.catalog(), source);
+                    let before = previous
+                        .as_ref()
+                        .and_then(|o| current.survey(o.id))
+                        .map(|o| changed_area(o));
+                    let now = changed_area(&survey.meta);
+                    area.set(Some(before.map_or(now, |b| b.union(&now))));
                     if current.survey(survey.id).is_some() {
                         // The content is already served (from this path or a copy elsewhere);
                         // what this path held before, if anything else, is gone.
@@ -488,7 +512,7 @@ impl Engine {
                         tracing::debug!(source = ?source, read_ms = t.read_ms, build_ms = t.build_ms, index_ms = t.index_ms, commit_ms = t.commit_ms, "ingest timings");
                     }
                     conflicts = found.clone();
-                    self.emit(*outcome, Some(survey.id), source, "", conflicts.clone());
+                    self.emit(*outcome, Some(survey.id), source, "", conflicts.clone(), area.get());
                 },
             )
             .map_err(Refusal::Store)?
@@ -547,8 +571,10 @@ impl Engine {
     }
 
     fn retire_record(&self, rec: &SurveyRecord, pin: bool) -> Result<usize, EngineError> {
+        let area = std::cell::Cell::new(None);
         let n = self.write_and(
             |store, current| {
+                area.set(current.survey(rec.id).map(|s| changed_area(s)));
                 // Another writer may have retired it since the catalog was read.
                 if store_active_from(&self.catalog(), &rec.source).is_none_or(|r| r.id != rec.id) {
                     return Err(StoreError::NotActive(rec.id));
@@ -560,7 +586,16 @@ impl Engine {
                 let next = retire_in(store, current, rec, pin)?;
                 Ok((n, Some(next)))
             },
-            |_| self.emit(Outcome::Retired, Some(rec.id), &rec.source, "", Vec::new()),
+            |_| {
+                self.emit(
+                    Outcome::Retired,
+                    Some(rec.id),
+                    &rec.source,
+                    "",
+                    Vec::new(),
+                    area.get(),
+                )
+            },
         )?;
         tracing::info!(survey = %rec.id, source = ?rec.source, pinned = pin, "retired");
         Ok(n)

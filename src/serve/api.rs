@@ -228,6 +228,7 @@ pub fn mesh_tile(
         method: convert::mesh_method(r.method)?,
         hole_reach_m: r.hole_reach_m,
         crs: engine.request_crs(&r.crs)?,
+        fill_voids: false,
     };
     let m = engine.mesh_until(&spec, convert::backend(r.backend)?, cancel)?;
     let crs = spec.crs.clone().or_else(|| engine.crs());

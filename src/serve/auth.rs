@@ -56,7 +56,8 @@ impl Gate {
         self.accept.is_empty()
     }
 
-    fn check(&self, header: Option<&str>) -> Result<(), Status> {
+    /// Checks an `authorization` header's value against this gate.
+    pub fn check(&self, header: Option<&str>) -> Result<(), Status> {
         if self.is_open() {
             return Ok(());
         }

@@ -2,12 +2,14 @@
 //! print the same thing.
 
 use super::proto as pb;
+use super::web::pyramid::Changed;
 use crate::engine::{
     Backend, Conflict, Cut, Distrusted, Engine, EngineError, Event, Ingested, MeshTile, Outcome,
     Phase, Stats, SurveyListing, TileHead, Used,
 };
 use crate::store::Status;
 use patchwork_core::crs::Crs;
+use patchwork_core::geom::tiles::TileRange;
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Extracted, Shortfall};
 use patchwork_core::mesh::Mesh;
@@ -592,7 +594,19 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
     }
 }
 
-pub fn event(e: &Event) -> pb::ChangeEvent {
+/// A change on the wire, with where it changed the terrain and the web tiles it invalidated.
+pub fn event(e: &Event, changed: Option<&Changed>) -> pb::ChangeEvent {
+    let ranges = |rs: &[TileRange]| -> Vec<pb::TileRange> {
+        rs.iter()
+            .map(|r| pb::TileRange {
+                z: r.z,
+                x0: r.x0,
+                y0: r.y0,
+                x1: r.x1,
+                y1: r.y1,
+            })
+            .collect()
+    };
     pb::ChangeEvent {
         outcome: outcome(e.kind) as i32,
         survey: e.survey.map(|s| s.0).unwrap_or(0),
@@ -600,6 +614,14 @@ pub fn event(e: &Event) -> pb::ChangeEvent {
         error: e.error.clone(),
         at_unix: e.at_unix,
         conflicts: conflicts(&e.conflicts),
+        changed: changed.map(|c| pb::LonLatBounds {
+            west: c.lonlat.min[0],
+            south: c.lonlat.min[1],
+            east: c.lonlat.max[0],
+            north: c.lonlat.max[1],
+        }),
+        web_tiles: changed.map_or_else(Vec::new, |c| ranges(&c.web)),
+        terrain_tiles: changed.map_or_else(Vec::new, |c| ranges(&c.terrain)),
     }
 }
 

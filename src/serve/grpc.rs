@@ -151,6 +151,11 @@ impl Service {
         }
     }
 
+    /// The engine the service calls.
+    pub fn engine(&self) -> &Arc<Engine> {
+        &self.engine
+    }
+
     /// What `stats` says of the requests.
     fn load(&self, r: &mut pb::StatsReply) {
         let limit = self.engine.config().limits.max_running_requests as usize;
@@ -163,7 +168,7 @@ impl Service {
     /// Runs `f` off the async threads once a permit is free, within the configured deadline
     /// (the wait for the permit included). Past the deadline the caller gets
     /// DEADLINE_EXCEEDED and `f`'s [`Cancel`] is set, so that work which checks it stops.
-    async fn run<T, F>(&self, f: F) -> Result<T, Status>
+    pub(crate) async fn run<T, F>(&self, f: F) -> Result<T, Status>
     where
         T: Send + 'static,
         F: FnOnce(&Engine, &Cancel) -> Result<T, EngineError> + Send + 'static,
@@ -442,11 +447,15 @@ impl terrain_server::Terrain for Service {
         self.admin.admit(&r)?;
         let slot = self.streams.open(r.remote_addr())?;
         let rx = self.engine.subscribe();
+        let engine = self.engine.clone();
         // A subscriber that does not read loses the events past the channel's bound, never
         // holds more; the slot goes when the client does.
         let s = tokio_stream::wrappers::BroadcastStream::new(rx).filter_map(move |e| {
             let _slot = &slot;
-            e.ok().map(|e| Ok(convert::event(&e)))
+            e.ok().map(|e| {
+                let changed = super::web::pyramid::Changed::of(&engine, &e);
+                Ok(convert::event(&e, changed.as_ref()))
+            })
         });
         Ok(Response::new(Box::pin(s)))
     }
@@ -532,7 +541,6 @@ pub async fn serve(
     listener: tokio::net::TcpListener,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    let cfg = engine.config().clone();
     // The sender is kept until the server is done: a dropped one reads as a stop too.
     let (stop, stopping) = tokio::sync::watch::channel(false);
     let stop = Arc::new(stop);
@@ -541,7 +549,19 @@ pub async fn serve(
         shutdown.await;
         let _ = signal.send(true);
     };
-    let svc = Service::new(engine, stopping);
+    let r = serve_service(Service::new(engine, stopping), listener, shutdown).await;
+    drop(stop);
+    r
+}
+
+/// Serves `svc`, whose stop signal its maker holds, until `shutdown`: the daemon shares one
+/// service, and so one set of limits, between gRPC and HTTP.
+pub async fn serve_service(
+    svc: Service,
+    listener: tokio::net::TcpListener,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let cfg = svc.engine.config().clone();
     let (health, health_svc) = tonic_health::server::health_reporter();
     health
         .set_serving::<terrain_server::TerrainServer<Service>>()
@@ -605,7 +625,6 @@ pub async fn serve(
         ))
         .serve_with_incoming_shutdown(incoming, shutdown)
         .await?;
-    drop(stop);
     Ok(())
 }
 

@@ -8,3 +8,4 @@ pub mod grpc;
 pub mod proto;
 pub mod status;
 pub mod tls;
+pub mod web;

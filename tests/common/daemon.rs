@@ -15,12 +15,20 @@ pub fn crop(name: &str) -> PathBuf {
         .join(name)
 }
 
+/// A free loopback port whose next one is free too, for a daemon's gRPC and HTTP servers.
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    loop {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = l.local_addr().unwrap().port();
+        if port < u16::MAX && std::net::TcpListener::bind(("127.0.0.1", port + 1)).is_ok() {
+            return port;
+        }
+    }
+}
+
+/// The HTTP port of a daemon under test whose gRPC port is `port`.
+pub fn http_port(port: u16) -> u16 {
+    port + 1
 }
 
 pub struct Daemon {
@@ -30,6 +38,8 @@ pub struct Daemon {
     /// How the CLI reaches the daemon: environment (token, CA) and server URL.
     pub client_env: Vec<(String, String)>,
     pub url: String,
+    /// The base URL of its HTTP server for web map clients.
+    pub http: String,
 }
 
 /// How a daemon under test is set up beyond the defaults.
@@ -57,7 +67,9 @@ impl Daemon {
         Self::start_with(root, Setup::default())
     }
 
-    /// The command that starts a daemon under `root` on `port`, with `setup`'s environment.
+    /// The command that starts a daemon under `root` on `port`, with `setup`'s environment;
+    /// its HTTP server listens on the port after it (see [`http_port`]) unless `setup` says
+    /// otherwise.
     pub fn command(root: &Path, port: u16, setup: &Setup) -> Command {
         std::fs::create_dir_all(root.join("inbox")).unwrap();
         let log = std::fs::OpenOptions::new()
@@ -70,6 +82,10 @@ impl Daemon {
             .env("PATCHWORK_DATA_DIR", root.join("data"))
             .env("PATCHWORK_INBOX", root.join("inbox"))
             .env("PATCHWORK_LISTEN", format!("127.0.0.1:{port}"))
+            .env(
+                "PATCHWORK_HTTP_LISTEN",
+                format!("127.0.0.1:{}", http_port(port)),
+            )
             .env("PATCHWORK_SETTLE_MS", "400")
             .env("PATCHWORK_LOG", "info")
             .env_remove("PATCHWORK_ADMIN_TOKEN")
@@ -95,6 +111,7 @@ impl Daemon {
             port,
             client_env: Vec::new(),
             url: format!("http://127.0.0.1:{port}"),
+            http: format!("http://127.0.0.1:{}", http_port(port)),
         }
     }
 
@@ -120,6 +137,7 @@ impl Daemon {
             port,
             client_env,
             url: format!("{scheme}:{port}"),
+            http: format!("http://127.0.0.1:{}", http_port(port)),
         };
         let t0 = Instant::now();
         while !d.cli(&["stats"]).status.success() {

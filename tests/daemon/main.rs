@@ -10,3 +10,4 @@ mod load;
 mod python_client;
 mod reliability;
 mod view_session;
+mod web;

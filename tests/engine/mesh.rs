@@ -432,7 +432,14 @@ fn independent_decoders_read_the_encodings() {
     std::fs::create_dir_all(&out).unwrap();
     std::fs::write(
         out.join("tile.terrain"),
-        encode::quantized_mesh(&mesh, &roi),
+        encode::quantized_mesh(
+            &mesh,
+            &roi,
+            &encode::Extensions {
+                normals: true,
+                ..Default::default()
+            },
+        ),
     )
     .unwrap();
     // The store is geographic: glTF in metres about the tile's centre; and the same mesh as

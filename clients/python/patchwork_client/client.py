@@ -1,7 +1,7 @@
 """The gRPC client: a method per RPC of the Terrain and Admin services, numpy arrays out."""
 
 import queue
-from dataclasses import dataclass, fields, make_dataclass, replace
+from dataclasses import dataclass, field, fields, make_dataclass, replace
 from enum import Enum
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -198,6 +198,12 @@ class ChangeEvent:
     error: str
     at_unix: int
     conflicts: List[Conflict]
+    #: Where the terrain changed, (west, south, east, north) in degrees; None for a failure.
+    changed: Optional[Tuple[float, float, float, float]] = None
+    #: The HTTP server's tiles this invalidates, one (z, x0, y0, x1, y1) range per level from 0
+    #: to 24: Web Mercator XYZ raster tiles, and Cesium's geographic TMS terrain tiles.
+    web_tiles: List[Tuple[int, int, int, int, int]] = field(default_factory=list)
+    terrain_tiles: List[Tuple[int, int, int, int, int]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -391,8 +397,12 @@ class Client:
         """Change events as they happen (needs the admin token where the daemon has one).
         Runs without a deadline: cancel by closing the client."""
         for e in self.terrain.Subscribe(terrain_pb2.SubscribeRequest(), metadata=self._metadata):
+            ranges = lambda rs: [(r.z, r.x0, r.y0, r.x1, r.y1) for r in rs]  # noqa: E731
+            changed = ((e.changed.west, e.changed.south, e.changed.east, e.changed.north)
+                       if e.HasField("changed") else None)
             yield ChangeEvent(kind=_OUTCOME[e.outcome], survey=f"{e.survey:016x}", source=e.source, error=e.error,
-                              at_unix=e.at_unix, conflicts=_conflicts(e.conflicts))
+                              at_unix=e.at_unix, conflicts=_conflicts(e.conflicts), changed=changed,
+                              web_tiles=ranges(e.web_tiles), terrain_tiles=ranges(e.terrain_tiles))
 
     # --- Admin -------------------------------------------------------------------------
 

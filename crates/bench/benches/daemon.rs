@@ -31,6 +31,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         .env("PATCHWORK_DATA_DIR", tmp.path().join("data"))
         .env("PATCHWORK_INBOX", &inbox)
         .env("PATCHWORK_LISTEN", format!("127.0.0.1:{port}"))
+        .env("PATCHWORK_HTTP_LISTEN", "")
         .env("PATCHWORK_LOG", "warn")
         .stdout(Stdio::null())
         .spawn()?;

@@ -99,6 +99,7 @@ impl Daemon {
             .env("PATCHWORK_DATA_DIR", data)
             .env("PATCHWORK_INBOX", inbox)
             .env("PATCHWORK_LISTEN", format!("127.0.0.1:{port}"))
+            .env("PATCHWORK_HTTP_LISTEN", "")
             .env("PATCHWORK_CACHE_MB", cache_mb.to_string())
             .env(
                 "PATCHWORK_LOG",

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 
 pub mod rng;
 mod snap;
+pub mod tiles;
 
 pub use snap::{on_line, snap, SNAP};
 

@@ -1,6 +1,6 @@
 //! A tile's mesh in standard formats: Wavefront OBJ, binary glTF 2.0 (.glb) and Cesium's
-//! quantized-mesh-1.0 (.terrain) with its edge indices and the oct-encoded vertex normals
-//! extension.
+//! quantized-mesh-1.0 (.terrain) with its edge indices and the extensions Cesium asks for:
+//! oct-encoded vertex normals, the water mask and metadata.
 //!
 //! Positions are in the tile's CRS and heights in metres (glTF's in metres throughout). The tile spans `roi`: grid vertex
 //! (c, r) lies at x = xmin + c·(xmax − xmin)/(cols − 1), y = ymax − r·(ymax − ymin)/(rows − 1).
@@ -235,10 +235,24 @@ fn occlusion_point(centre: [f64; 3], points: &[[f64; 3]]) -> [f64; 3] {
     [dir[0] * worst, dir[1] * worst, dir[2] * worst]
 }
 
+/// The extensions of a quantized-mesh tile, each sent only to a client that asked for it
+/// (Cesium names them in its `Accept` header).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Extensions {
+    /// Oct-encoded vertex normals (extension 1), area-weighted over the tile's faces.
+    pub normals: bool,
+    /// The water mask (extension 2): one byte for a tile all land (0) or all water (255), or
+    /// 256 × 256 bytes, north row first and west to east.
+    pub watermask: Option<Vec<u8>>,
+    /// Metadata (extension 4): a JSON object, such as the availability of the tiles under
+    /// this one.
+    pub metadata: Option<String>,
+}
+
 /// Cesium's quantized-mesh-1.0 of the surface (skirts left out: a client adds its own from
-/// the edge indices), with the oct-encoded vertex normals extension. `roi` is in longitude and
-/// latitude, degrees.
-pub fn quantized_mesh(m: &Mesh, roi: &Aabb) -> Vec<u8> {
+/// the edge indices), with the extensions asked for. `roi` is in longitude and latitude,
+/// degrees.
+pub fn quantized_mesh(m: &Mesh, roi: &Aabb, ext: &Extensions) -> Vec<u8> {
     // Vertices in order of first use, as the high-water-mark index coding needs.
     let mut order = Vec::with_capacity(m.skirt_vertices);
     let mut new_id = vec![u32::MAX; m.skirt_vertices];
@@ -333,9 +347,34 @@ pub fn quantized_mesh(m: &Mesh, roi: &Aabb) -> Vec<u8> {
             index(&mut out, new_id[i as usize]);
         }
     }
-    // Vertex normals in the earth-fixed frame, area-weighted over the faces.
+    if ext.normals {
+        normals(&mut out, &triangles, &world);
+    }
+    if let Some(mask) = &ext.watermask {
+        extension(&mut out, 2, mask);
+    }
+    if let Some(json) = &ext.metadata {
+        let mut data = Vec::with_capacity(4 + json.len());
+        data.extend((json.len() as u32).to_le_bytes());
+        data.extend(json.as_bytes());
+        extension(&mut out, 4, &data);
+    }
+    out
+}
+
+/// One extension: its id, its length and its bytes.
+fn extension(out: &mut Vec<u8>, id: u8, data: &[u8]) {
+    out.push(id);
+    out.extend((data.len() as u32).to_le_bytes());
+    out.extend(data);
+}
+
+/// The normals extension: vertex normals in the earth-fixed frame, area-weighted over the
+/// faces.
+fn normals(out: &mut Vec<u8>, triangles: &[[u32; 3]], world: &[[f64; 3]]) {
+    let n = world.len();
     let mut normals = vec![[0.0f64; 3]; n];
-    for t in &triangles {
+    for t in triangles {
         let [a, b, c] = t.map(|i| world[i as usize]);
         let f = cross(sub(b, a), sub(c, a));
         for &i in t {
@@ -344,9 +383,8 @@ pub fn quantized_mesh(m: &Mesh, roi: &Aabb) -> Vec<u8> {
             }
         }
     }
-    out.push(1);
-    out.extend((2 * n as u32).to_le_bytes());
-    for (nv, p) in normals.iter().zip(&world) {
+    let mut data = Vec::with_capacity(2 * n);
+    for (nv, p) in normals.iter().zip(world) {
         let l = norm(*nv);
         let unit = if l > 0.0 {
             [nv[0] / l, nv[1] / l, nv[2] / l]
@@ -354,9 +392,9 @@ pub fn quantized_mesh(m: &Mesh, roi: &Aabb) -> Vec<u8> {
             let l = norm(*p);
             [p[0] / l, p[1] / l, p[2] / l]
         };
-        out.extend(oct(unit));
+        data.extend(oct(unit));
     }
-    out
+    extension(out, 1, &data);
 }
 
 #[cfg(test)]

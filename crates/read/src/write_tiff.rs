@@ -23,6 +23,36 @@ pub fn write_geotiff_f32(
     crs: Option<&Crs>,
     nodata: Option<f64>,
 ) -> Result<(), ReadError> {
+    let mut file = BufWriter::new(File::create(path)?);
+    geotiff_f32_to(&mut file, cols, rows, samples, geotransform, crs, nodata)?;
+    // BufWriter swallows errors on drop; a full disk must surface here.
+    file.flush()?;
+    Ok(())
+}
+
+/// [`write_geotiff_f32`] into memory: the file's bytes.
+pub fn geotiff_f32_bytes(
+    cols: usize,
+    rows: usize,
+    samples: &[f32],
+    geotransform: [f64; 6],
+    crs: Option<&Crs>,
+    nodata: Option<f64>,
+) -> Result<Vec<u8>, ReadError> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    geotiff_f32_to(&mut out, cols, rows, samples, geotransform, crs, nodata)?;
+    Ok(out.into_inner())
+}
+
+fn geotiff_f32_to<W: Write + Seek>(
+    out: W,
+    cols: usize,
+    rows: usize,
+    samples: &[f32],
+    geotransform: [f64; 6],
+    crs: Option<&Crs>,
+    nodata: Option<f64>,
+) -> Result<(), ReadError> {
     check_shape(cols, rows, samples.len())?;
     let data: Vec<f32> = match nodata {
         // GDAL readers only recognise the declared value, so NaN must become it.
@@ -44,8 +74,8 @@ pub fn write_geotiff_f32(
     };
     // The tiff encoder cannot write the floating-point predictor, and the horizontal one is
     // integer-only, so floats go through plain deflate.
-    write::<Gray32Float>(
-        path,
+    write::<Gray32Float, _>(
+        out,
         cols,
         rows,
         &data,
@@ -74,8 +104,9 @@ pub fn write_geotiff_i16(
             )));
         }
     }
-    write::<GrayI16>(
-        path,
+    let mut file = BufWriter::new(File::create(path)?);
+    write::<GrayI16, _>(
+        &mut file,
         cols,
         rows,
         samples,
@@ -83,7 +114,10 @@ pub fn write_geotiff_i16(
         crs,
         nodata,
         Predictor::Horizontal,
-    )
+    )?;
+    // BufWriter swallows errors on drop; a full disk must surface here.
+    file.flush()?;
+    Ok(())
 }
 
 fn check_shape(cols: usize, rows: usize, len: usize) -> Result<(), ReadError> {
@@ -101,8 +135,8 @@ fn check_shape(cols: usize, rows: usize, len: usize) -> Result<(), ReadError> {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn write<C: ColorType>(
-    path: &Path,
+fn write<C: ColorType, W: Write + Seek>(
+    out: W,
     cols: usize,
     rows: usize,
     samples: &[C::Inner],
@@ -126,13 +160,10 @@ where
     }
     let (geo_keys, ascii) = geo_key_directory(crs)?;
 
-    let file = BufWriter::new(File::create(path)?);
-    let mut file = encode::<C, _>(
-        file, cols, rows, samples, gt, &geo_keys, &ascii, nodata, predictor,
+    encode::<C, _>(
+        out, cols, rows, samples, gt, &geo_keys, &ascii, nodata, predictor,
     )
     .map_err(encode_error)?;
-    // BufWriter swallows errors on drop; a full disk must surface here.
-    file.flush()?;
     Ok(())
 }
 

@@ -1,0 +1,605 @@
+//! HTTP for web map clients: MapLibre's raster-DEM tiles and TileJSON, Cesium's
+//! quantized-mesh terrain and layer.json, float GeoTIFF tiles, heights at points, the
+//! survey footprints and a viewer page.
+//!
+//! It runs on a port of its own (`http_listen`) rather than beside tonic on the gRPC one:
+//! browsers speak HTTP/1.1 and gRPC needs HTTP/2, proxies and CDNs put in front of tile
+//! servers want a plain HTTP origin, and the two can be exposed, cached and firewalled apart.
+//! Handlers are thin: they read the request, run the work through the gRPC service's runner
+//! (so the limits on running requests and their deadline hold for both, counted together), and
+//! map its status to an HTTP code in one place ([`status_response`]).
+
+pub mod pyramid;
+mod raster;
+mod terrain;
+
+use super::auth::Gate;
+use super::grpc::Service;
+use crate::engine::{Engine, EngineError};
+use crate::sync::lock;
+use axum::extract::{Path, Query, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
+use patchwork_core::geom::tiles::{geographic, mercator};
+use patchwork_core::index::query::Extracted;
+use patchwork_core::terrain::Terrain;
+use pyramid::Pyramid;
+use serde::Deserialize;
+use std::sync::{Arc, Mutex, Weak};
+use tonic::{Code, Status};
+
+/// The viewer page: MapLibre hillshade and 3D terrain, and a Cesium globe, over the store.
+const VIEWER: &str = include_str!("viewer.html");
+
+/// Longest request URI taken: a tile's is under a hundred bytes, and a `/heights` request of
+/// a few hundred points fits.
+const MAX_URI: usize = 16 * 1024;
+
+/// What the handlers share.
+pub struct Web {
+    svc: Service,
+    gate: Gate,
+    /// EPSG:3857 and EPSG:4326, the CRSs of the two pyramids.
+    mercator: patchwork_core::crs::Crs,
+    geographic: patchwork_core::crs::Crs,
+    query_token: bool,
+    cache_control: HeaderValue,
+    /// Encoded tiles by ETag: the ETag is made from the cut each time, so a tile found here is
+    /// the one the data gives now.
+    tiles: Option<quick_cache::sync::Cache<[u8; 16], Arc<[u8]>, TileBytes>>,
+    /// The pyramids over the last terrain published, made again when another is.
+    pyramid: Mutex<(Weak<Terrain>, Arc<Pyramid>)>,
+}
+
+/// Weighs a cached tile by its bytes.
+#[derive(Clone)]
+struct TileBytes;
+
+impl quick_cache::Weighter<[u8; 16], Arc<[u8]>> for TileBytes {
+    fn weight(&self, _: &[u8; 16], v: &Arc<[u8]>) -> u64 {
+        v.len() as u64 + 64
+    }
+}
+
+/// A tile as it goes out: its ETag, and its bytes unless the client has them.
+pub struct Produced {
+    etag: [u8; 16],
+    body: Option<Arc<[u8]>>,
+    content_type: &'static str,
+}
+
+impl Web {
+    pub fn new(svc: Service) -> Web {
+        let cfg = svc.engine().config();
+        let mb = cfg.http.tile_cache_mb;
+        let tiles = (mb > 0).then(|| {
+            // About 20 kB a tile.
+            let items = ((mb << 20) / 20_000).max(16) as usize;
+            quick_cache::sync::Cache::with_weighter(items, mb << 20, TileBytes)
+        });
+        Web {
+            gate: Gate::terrain(cfg),
+            mercator: Web::mercator_crs(),
+            geographic: patchwork_core::crs::Crs::wgs84(),
+            query_token: cfg.http.query_token,
+            cache_control: HeaderValue::from_str(&cfg.http.cache_control)
+                .unwrap_or(HeaderValue::from_static("no-cache")),
+            tiles,
+            pyramid: Mutex::new((Weak::new(), Arc::new(Pyramid::empty()))),
+            svc,
+        }
+    }
+
+    fn engine(&self) -> &Arc<Engine> {
+        self.svc.engine()
+    }
+
+    /// `crs`, or None where it is the store's own: the CRS a cut names.
+    fn unless_store(
+        &self,
+        engine: &Engine,
+        crs: &patchwork_core::crs::Crs,
+    ) -> Option<patchwork_core::crs::Crs> {
+        (engine.crs().as_ref() != Some(crs)).then(|| crs.clone())
+    }
+
+    /// The pyramids over the terrain published now.
+    pub fn pyramid(&self, engine: &Engine) -> Arc<Pyramid> {
+        let now = engine.snapshot();
+        let mut p = lock(&self.pyramid);
+        if !p.0.upgrade().is_some_and(|t| Arc::ptr_eq(&t, &now)) {
+            *p = (Arc::downgrade(&now), Arc::new(Pyramid::of(engine)));
+        }
+        p.1.clone()
+    }
+
+    /// A tile's ETag: what was asked (`what`, which names the kind of tile, where it is and
+    /// every parameter that changes its bytes), the patches its cut blends, and the surveys
+    /// near it (`lonlat`), whose coarser levels fill its voids. Patch ids are derived from
+    /// their content, so the ETag changes exactly when the data under the tile does.
+    fn etag(&self, what: &str, patches: &[Extracted], near: &[u64]) -> [u8; 16] {
+        let mut h = blake3::Hasher::new();
+        h.update(what.as_bytes());
+        for p in patches {
+            h.update(&p.id.0.to_le_bytes());
+            h.update(&p.survey.0.to_le_bytes());
+            h.update(&[p.fallback as u8]);
+        }
+        h.update(b"near");
+        for s in near {
+            h.update(&s.to_le_bytes());
+        }
+        let mut out = [0u8; 16];
+        out.copy_from_slice(&h.finalize().as_bytes()[..16]);
+        out
+    }
+
+    /// The tile of `etag`: None when the client has it (`if_none_match`), the cached bytes,
+    /// or those `make` encodes, then kept.
+    fn produce(
+        &self,
+        etag: [u8; 16],
+        if_none_match: Option<&str>,
+        content_type: &'static str,
+        make: impl FnOnce() -> Result<Vec<u8>, EngineError>,
+    ) -> Result<Produced, EngineError> {
+        if if_none_match.is_some_and(|v| matches_etag(v, &etag)) {
+            return Ok(Produced {
+                etag,
+                body: None,
+                content_type,
+            });
+        }
+        let body = match self.tiles.as_ref().and_then(|c| c.get(&etag)) {
+            Some(b) => b,
+            None => {
+                let b: Arc<[u8]> = make()?.into();
+                if let Some(c) = &self.tiles {
+                    c.insert(etag, b.clone());
+                }
+                b
+            }
+        };
+        Ok(Produced {
+            etag,
+            body: Some(body),
+            content_type,
+        })
+    }
+
+    /// A tile's response: 200 with its bytes, or 304.
+    fn reply(&self, p: Produced) -> Response {
+        let etag = HeaderValue::from_str(&quote_etag(&p.etag)).expect("hex is a header value");
+        let mut r = match p.body {
+            Some(b) => (
+                [(
+                    header::CONTENT_TYPE,
+                    HeaderValue::from_static(p.content_type),
+                )],
+                b.to_vec(),
+            )
+                .into_response(),
+            None => StatusCode::NOT_MODIFIED.into_response(),
+        };
+        let h = r.headers_mut();
+        h.insert(header::ETAG, etag);
+        h.insert(header::CACHE_CONTROL, self.cache_control.clone());
+        r
+    }
+
+    /// Runs `f` through the service: within the limits on running requests and the deadline,
+    /// cancelled when the client hangs up.
+    async fn run<T, F>(&self, f: F) -> Result<T, Response>
+    where
+        T: Send + 'static,
+        F: FnOnce(&Engine, &patchwork_core::resample::Cancel) -> Result<T, EngineError>
+            + Send
+            + 'static,
+    {
+        self.svc.run(f).await.map_err(status_response)
+    }
+}
+
+fn quote_etag(e: &[u8; 16]) -> String {
+    let mut s = String::with_capacity(34);
+    s.push('"');
+    for b in e {
+        s.push_str(&format!("{b:02x}"));
+    }
+    s.push('"');
+    s
+}
+
+/// Whether an `If-None-Match` header names `etag` (or is `*`), weak or strong alike, as
+/// RFC 9110 §13.1.2 compares them.
+fn matches_etag(header: &str, etag: &[u8; 16]) -> bool {
+    let want = quote_etag(etag);
+    header
+        .split(',')
+        .map(str::trim)
+        .any(|t| t == "*" || t.strip_prefix("W/").unwrap_or(t) == want)
+}
+
+/// The one place where a request's outcome becomes an HTTP code (gRPC's codes come from
+/// [`super::status`], which maps the engine's errors).
+pub fn status_response(s: Status) -> Response {
+    let code = match s.code() {
+        Code::InvalidArgument | Code::OutOfRange => StatusCode::BAD_REQUEST,
+        Code::Unauthenticated => StatusCode::UNAUTHORIZED,
+        Code::PermissionDenied => StatusCode::FORBIDDEN,
+        Code::NotFound => StatusCode::NOT_FOUND,
+        // On the read path only a request that asks too much is refused so.
+        Code::ResourceExhausted => StatusCode::PAYLOAD_TOO_LARGE,
+        Code::FailedPrecondition => StatusCode::CONFLICT,
+        // Too busy to answer within the deadline, stopping, or a store that cannot be read
+        // now: trying again later can help.
+        Code::Unavailable | Code::DeadlineExceeded | Code::Cancelled => {
+            StatusCode::SERVICE_UNAVAILABLE
+        }
+        _ => StatusCode::INTERNAL_SERVER_ERROR,
+    };
+    let mut r = (code, s.message().to_string()).into_response();
+    if code == StatusCode::UNAUTHORIZED {
+        r.headers_mut()
+            .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+    }
+    r
+}
+
+fn bad_request(m: impl Into<String>) -> Response {
+    (StatusCode::BAD_REQUEST, m.into()).into_response()
+}
+
+/// The token a request carries: its `Authorization` header, else, where the config allows
+/// it, a `token` in its query.
+async fn admit(State(web): State<Arc<Web>>, req: Request, next: Next) -> Response {
+    let path = req.uri().path();
+    // The page and the libraries it loads hold no data.
+    let open = path == "/" || path.starts_with("/lib/") || req.method() == Method::OPTIONS;
+    if !open && !web.gate.is_open() {
+        let header = req
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string);
+        let from_query = || {
+            req.uri().query().and_then(|q| {
+                q.split('&')
+                    .find_map(|kv| kv.strip_prefix("token="))
+                    .map(|t| format!("Bearer {t}"))
+            })
+        };
+        let token = header.or_else(|| web.query_token.then(from_query).flatten());
+        if let Err(s) = web.gate.check(token.as_deref()) {
+            return status_response(s);
+        }
+    }
+    next.run(req).await
+}
+
+/// Refuses a URI past [`MAX_URI`] before anything reads it.
+async fn bounded(req: Request, next: Next) -> Response {
+    if req.uri().to_string().len() > MAX_URI {
+        return (
+            StatusCode::URI_TOO_LONG,
+            format!(
+                "the request's URI is longer than {MAX_URI} bytes: ask for fewer points at once"
+            ),
+        )
+            .into_response();
+    }
+    next.run(req).await
+}
+
+/// The router of the web server over `svc`.
+pub fn router(svc: Service) -> Router {
+    let assets = svc.engine().config().http.assets_dir.clone();
+    let web = Arc::new(Web::new(svc));
+    let mut app = Router::new()
+        .route("/", get(viewer))
+        .route("/tiles.json", get(tilejson))
+        .route("/tiles/{z}/{x}/{file}", get(raster_tile))
+        .route("/terrain/layer.json", get(layer_json))
+        .route("/terrain/{z}/{x}/{file}", get(terrain_tile))
+        .route("/surveys.geojson", get(geojson))
+        .route("/heights", get(heights));
+    if let Some(dir) = assets {
+        app = app.nest_service("/lib", tower_http::services::ServeDir::new(dir));
+    }
+    let cors = tower_http::cors::CorsLayer::new()
+        .allow_origin(tower_http::cors::Any)
+        .allow_methods([Method::GET, Method::HEAD, Method::OPTIONS])
+        .allow_headers([header::AUTHORIZATION, header::IF_NONE_MATCH, header::ACCEPT])
+        .expose_headers([header::ETAG]);
+    app.layer(middleware::from_fn_with_state(web.clone(), admit))
+        // Quantized-mesh tiles and the documents are gzipped once, here, for clients that
+        // accept it; PNG and GeoTIFF tiles are compressed already and go as they are.
+        .layer(tower_http::compression::CompressionLayer::new().gzip(true))
+        .layer(cors)
+        .layer(middleware::from_fn(bounded))
+        .with_state(web)
+}
+
+/// Serves the web clients on `listener` until `shutdown`.
+pub async fn serve(
+    svc: Service,
+    listener: tokio::net::TcpListener,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    axum::serve(listener, router(svc))
+        .with_graceful_shutdown(shutdown)
+        .await
+}
+
+async fn viewer() -> Response {
+    ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], VIEWER).into_response()
+}
+
+/// The raster-DEM encodings MapLibre decodes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Encoding {
+    /// height = R·256 + G + B/256 − 32768: steps of 1/256 m.
+    Terrarium,
+    /// height = −10000 + (R·65536 + G·256 + B)·0.1: steps of 0.1 m.
+    Mapbox,
+}
+
+impl Encoding {
+    fn name(self) -> &'static str {
+        match self {
+            Encoding::Terrarium => "terrarium",
+            Encoding::Mapbox => "mapbox",
+        }
+    }
+}
+
+#[derive(Debug, Deserialize)]
+struct TileParams {
+    encoding: Option<Encoding>,
+    size: Option<u32>,
+    error: Option<f64>,
+}
+
+impl TileParams {
+    fn size(&self) -> Result<u32, String> {
+        match self.size.unwrap_or(256) {
+            s @ (256 | 512) => Ok(s),
+            s => Err(format!("size must be 256 or 512, got {s}")),
+        }
+    }
+
+    fn error(&self) -> Result<Option<f64>, String> {
+        match self.error {
+            Some(e) if !(e.is_finite() && e >= 0.0) => {
+                Err(format!("error must be a number of metres ≥ 0, got {e}"))
+            }
+            e => Ok(e),
+        }
+    }
+}
+
+/// The URL of this server as the client reached it, for the documents' absolute URLs.
+fn base_url(headers: &HeaderMap) -> String {
+    let host = headers
+        .get(header::HOST)
+        .and_then(|h| h.to_str().ok())
+        .unwrap_or("127.0.0.1");
+    let scheme = headers
+        .get("x-forwarded-proto")
+        .and_then(|h| h.to_str().ok())
+        .filter(|p| *p == "https")
+        .unwrap_or("http");
+    format!("{scheme}://{host}")
+}
+
+/// The `token=` of a query, to pass on in the URLs a document hands out.
+fn token_param(query: Option<&str>) -> Option<&str> {
+    query?.split('&').find(|kv| kv.starts_with("token="))
+}
+
+async fn tilejson(
+    State(web): State<Arc<Web>>,
+    Query(p): Query<TileParams>,
+    headers: HeaderMap,
+    uri: axum::http::Uri,
+) -> Response {
+    let size = match p.size() {
+        Ok(s) => s,
+        Err(m) => return bad_request(m),
+    };
+    let encoding = p.encoding.unwrap_or(Encoding::Terrarium);
+    let mut query = format!("encoding={}&size={size}", encoding.name());
+    if let Some(e) = p.error {
+        query.push_str(&format!("&error={e}"));
+    }
+    if let Some(t) = token_param(uri.query()) {
+        query.push('&');
+        query.push_str(t);
+    }
+    let url = format!("{}/tiles/{{z}}/{{x}}/{{y}}.png?{query}", base_url(&headers));
+    let engine = web.engine().clone();
+    let doc = web.pyramid(&engine).tilejson(url, size, encoding.name());
+    document(&web, doc)
+}
+
+fn document(web: &Web, doc: serde_json::Value) -> Response {
+    let mut r = axum::Json(doc).into_response();
+    r.headers_mut()
+        .insert(header::CACHE_CONTROL, web.cache_control.clone());
+    r
+}
+
+/// Splits `{y}.{ext}`.
+fn tile_file(file: &str) -> Option<(u32, &str)> {
+    let (y, ext) = file.split_once('.')?;
+    Some((y.parse().ok()?, ext))
+}
+
+async fn raster_tile(
+    State(web): State<Arc<Web>>,
+    Path((z, x, file)): Path<(u32, u32, String)>,
+    Query(p): Query<TileParams>,
+    headers: HeaderMap,
+) -> Response {
+    let Some((y, ext)) = tile_file(&file) else {
+        return bad_request(format!(
+            "{file:?} is not a tile: ask for {{y}}.png or {{y}}.tif"
+        ));
+    };
+    if !mercator::valid(z, x, y) {
+        return bad_request(format!(
+            "tile {z}/{x}/{y} does not exist: z is 0 to 24, x and y 0 to 2^z − 1"
+        ));
+    }
+    let (size, error) = match (p.size(), p.error()) {
+        (Ok(s), Ok(e)) => (s, e),
+        (Err(m), _) | (_, Err(m)) => return bad_request(m),
+    };
+    let format = match ext {
+        "png" => raster::Format::Png(p.encoding.unwrap_or(Encoding::Terrarium)),
+        "tif" | "tiff" => raster::Format::Tiff,
+        other => {
+            return (
+                StatusCode::NOT_FOUND,
+                format!("tiles come as .png or .tif, not .{other}"),
+            )
+                .into_response()
+        }
+    };
+    let req = raster::Request {
+        z,
+        x,
+        y,
+        size,
+        format,
+        error: error.unwrap_or_else(|| mercator::error(z, size)),
+    };
+    let inm = if_none_match(&headers);
+    let w = web.clone();
+    match web
+        .run(move |e, cancel| raster::tile(e, &w, &req, inm.as_deref(), cancel))
+        .await
+    {
+        Ok(p) => web.reply(p),
+        Err(r) => r,
+    }
+}
+
+fn if_none_match(h: &HeaderMap) -> Option<String> {
+    h.get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_string)
+}
+
+async fn layer_json(State(web): State<Arc<Web>>, uri: axum::http::Uri) -> Response {
+    let engine = web.engine().clone();
+    let p = web.pyramid(&engine);
+    let doc = p.layer_json(&p.version(), token_param(uri.query()).unwrap_or(""));
+    document(&web, doc)
+}
+
+async fn terrain_tile(
+    State(web): State<Arc<Web>>,
+    Path((z, x, file)): Path<(u32, u32, String)>,
+    headers: HeaderMap,
+) -> Response {
+    let Some((y, "terrain")) = tile_file(&file) else {
+        return bad_request(format!(
+            "{file:?} is not a terrain tile: ask for {{y}}.terrain"
+        ));
+    };
+    if !geographic::valid(z, x, y) {
+        return bad_request(format!(
+            "terrain tile {z}/{x}/{y} does not exist: z is 0 to 24, x 0 to 2^(z+1) − 1 and y 0 \
+             to 2^z − 1"
+        ));
+    }
+    let asked = terrain::Asked::from_accept(
+        headers
+            .get(header::ACCEPT)
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or(""),
+    );
+    let inm = if_none_match(&headers);
+    let w = web.clone();
+    match web
+        .run(move |e, cancel| terrain::tile(e, &w, z, x, y, asked, inm.as_deref(), cancel))
+        .await
+    {
+        Ok(p) => web.reply(p),
+        Err(r) => r,
+    }
+}
+
+async fn geojson(State(web): State<Arc<Web>>) -> Response {
+    let engine = web.engine().clone();
+    let mut r = document(&web, web.pyramid(&engine).geojson());
+    r.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/geo+json"),
+    );
+    r
+}
+
+#[derive(Debug, Deserialize)]
+struct HeightParams {
+    points: String,
+    error: Option<f64>,
+    crs: Option<String>,
+}
+
+/// Heights at points: what SampleHeights answers, as JSON, null where there is no data.
+async fn heights(State(web): State<Arc<Web>>, Query(p): Query<HeightParams>) -> Response {
+    let coords: Result<Vec<f64>, _> = p.points.split(',').map(|v| v.trim().parse()).collect();
+    let coords = match coords {
+        Ok(c) if !c.is_empty() && c.len() % 2 == 0 => c,
+        _ => {
+            return bad_request(
+                "points must be x,y pairs of numbers separated by commas: points=x0,y0,x1,y1",
+            )
+        }
+    };
+    let points: Vec<[f64; 2]> = coords.chunks(2).map(|c| [c[0], c[1]]).collect();
+    let error = p.error.unwrap_or(0.0);
+    let crs = p.crs.unwrap_or_else(|| "EPSG:4326".into());
+    let r = web
+        .run(move |e, cancel| {
+            let crs = e.request_crs(&crs)?;
+            e.sample_in(&points, crs.as_ref(), error, cancel)
+        })
+        .await;
+    match r {
+        Ok(h) => {
+            let hs: Vec<Option<f32>> = h.iter().map(|v| (!v.is_nan()).then_some(*v)).collect();
+            axum::Json(serde_json::json!({"heights": hs, "error": error})).into_response()
+        }
+        Err(r) => r,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn if_none_match_takes_lists_weak_tags_and_stars() {
+        let e = [0xab; 16];
+        let q = quote_etag(&e);
+        assert!(matches_etag(&q, &e));
+        assert!(matches_etag(&format!("\"x\", W/{q}"), &e));
+        assert!(matches_etag("*", &e));
+        assert!(!matches_etag("\"abab\"", &e));
+    }
+
+    #[test]
+    fn tile_files_name_a_row_and_a_format() {
+        assert_eq!(tile_file("817.png"), Some((817, "png")));
+        assert_eq!(tile_file("3.terrain"), Some((3, "terrain")));
+        assert_eq!(tile_file("x.png"), None);
+        assert_eq!(tile_file("817"), None);
+    }
+}

@@ -1,0 +1,376 @@
+//! The HTTP server for web map clients as a client meets it on the wire: raster-DEM tiles
+//! whose pixels are the store's heights at their centres, ETags that change exactly when the
+//! data under a tile does, quantized-mesh tiles gzipped once, the documents' fields, tokens,
+//! bad requests, and the tile ranges a change event names. (MapLibre and Cesium themselves
+//! load the tiles in `web_browser.rs`; GDAL, numpy and the Python and JavaScript
+//! quantized-mesh decoders read them in `web_clients.rs`.)
+
+use crate::common;
+
+use common::daemon::*;
+use common::http::{get, rgba, terrarium};
+use patchwork_core::geom::tiles::{geographic, mercator};
+use std::io::Read;
+
+/// A point inside the Copernicus crop only (west of the NASADEM crop), and one inside both.
+const COPERNICUS_ONLY: [f64; 2] = [-118.985, 34.53];
+const BOTH: [f64; 2] = [-118.94, 34.49];
+
+fn tile_at(z: u32, p: [f64; 2]) -> (u32, u32) {
+    let r = mercator::over(z, &patchwork_core::geom::Aabb::new(p[0], p[1], p[0], p[1]));
+    (r.x0, r.y0)
+}
+
+fn etag(d: &Daemon, path: &str) -> String {
+    let r = get(&format!("{}{path}", d.http), &[]);
+    assert_eq!(r.status, 200, "{path}: {}", r.text());
+    r.header("etag").unwrap().to_string()
+}
+
+#[test]
+fn raster_tiles_are_the_stores_heights_and_change_exactly_with_its_data() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "cop.tif");
+    d.wait("the survey", |s| count(s, "active") == 1);
+
+    let tj = get(&format!("{}/tiles.json", d.http), &[]).json();
+    assert_eq!(tj["tileSize"], 256);
+    assert_eq!(tj["encoding"], "terrarium");
+    let b: Vec<f64> = serde_json::from_value(tj["bounds"].clone()).unwrap();
+    assert!(
+        b[0] <= -118.999 && b[2] >= -118.917 && b[1] <= 34.459 && b[3] >= 34.541,
+        "{b:?}"
+    );
+    // One-arc-second cells: 256-pixel tiles are as fine from level 13 on.
+    assert_eq!(tj["maxzoom"], 13);
+    let template = tj["tiles"][0].as_str().unwrap();
+    assert_eq!(
+        template,
+        format!(
+            "{}/tiles/{{z}}/{{x}}/{{y}}.png?encoding=terrarium&size=256",
+            d.http
+        )
+    );
+
+    // Each pixel is the height SampleHeights gives at its centre in EPSG:3857, at the
+    // zoom's error; alpha says where there is data.
+    let z = 13;
+    let (x, y) = tile_at(z, BOTH);
+    let path = format!("/tiles/{z}/{x}/{y}.png");
+    let r = get(&format!("{}{path}", d.http), &[]);
+    assert_eq!(r.status, 200, "{}", r.text());
+    assert_eq!(r.header("content-type"), Some("image/png"));
+    assert_eq!(r.header("cache-control"), Some("public, max-age=60"));
+    assert_eq!(r.header("access-control-allow-origin"), Some("*"));
+    let tag = r.header("etag").unwrap().to_string();
+    let (w, h, px) = rgba(&r.body);
+    assert_eq!((w, h), (256, 256));
+    let roi = mercator::bounds(z, x, y);
+    let picks: Vec<(usize, usize)> = (0..16).map(|k| (k * 16 + 3, (k * 37) % 256)).collect();
+    let pts: Vec<String> = picks
+        .iter()
+        .flat_map(|&(i, j)| {
+            let px = roi.min[0] + (i as f64 + 0.5) * roi.width() / 256.0;
+            let py = roi.max[1] - (j as f64 + 0.5) * roi.height() / 256.0;
+            [px.to_string(), py.to_string()]
+        })
+        .collect();
+    let e = mercator::error(z, 256);
+    let want = get(
+        &format!(
+            "{}/heights?crs=EPSG:3857&error={e}&points={}",
+            d.http,
+            pts.join(",")
+        ),
+        &[],
+    )
+    .json();
+    let mut valid = 0;
+    for (k, &(i, j)) in picks.iter().enumerate() {
+        let p = &px[4 * (j * 256 + i)..][..4];
+        match want["heights"][k].as_f64() {
+            Some(h) => {
+                valid += 1;
+                assert_eq!(p[3], 255, "pixel {i},{j} has data");
+                let got = terrarium(p);
+                assert!(
+                    (got - h).abs() <= 1.0 / 512.0 + 1e-4,
+                    "pixel {i},{j}: {got} against {h}"
+                );
+            }
+            None => assert_eq!(p[3], 0, "pixel {i},{j} has no data"),
+        }
+    }
+    assert!(valid >= 8, "{valid} of the pixels picked have data");
+
+    // The client's copy is still good: 304, no body.
+    let again = get(&format!("{}{path}", d.http), &[("If-None-Match", &tag)]);
+    assert_eq!(again.status, 304);
+    assert!(again.body.is_empty());
+    assert_eq!(again.header("etag"), Some(tag.as_str()));
+    // Another encoding, size or error is another tile.
+    for q in ["?encoding=mapbox", "?size=512", "?error=1"] {
+        assert_ne!(etag(&d, &format!("{path}{q}")), tag, "{q}");
+    }
+    let mapbox = get(&format!("{}{path}?encoding=mapbox", d.http), &[]);
+    let (_, _, mpx) = rgba(&mapbox.body);
+    for k in (0..256 * 256).step_by(997) {
+        let (t, m) = (&px[4 * k..][..4], &mpx[4 * k..][..4]);
+        assert_eq!(t[3], m[3]);
+        if t[3] == 255 {
+            let mh = -10000.0 + (m[0] as f64 * 65536.0 + m[1] as f64 * 256.0 + m[2] as f64) * 0.1;
+            assert!((mh - terrarium(t)).abs() <= 0.05 + 1.0 / 512.0 + 1e-6);
+        }
+    }
+    let tif = get(&format!("{}/tiles/{z}/{x}/{y}.tif", d.http), &[]);
+    assert_eq!(tif.header("content-type"), Some("image/tiff"));
+    assert_eq!(&tif.body[..4], b"II*\0");
+
+    // Far from the data: a transparent tile of the size asked.
+    let (fx, fy) = tile_at(z, [0.0, 0.0]);
+    for size in [256, 512] {
+        let far = get(
+            &format!("{}/tiles/{z}/{fx}/{fy}.png?size={size}", d.http),
+            &[],
+        );
+        assert_eq!(far.status, 200);
+        let (w, _, fp) = rgba(&far.body);
+        assert_eq!(w, size);
+        assert!(fp.chunks(4).all(|p| p[3] == 0));
+    }
+    let far_tag = etag(&d, &format!("/tiles/{z}/{fx}/{fy}.png"));
+    let (cx, cy) = tile_at(15, COPERNICUS_ONLY);
+    let alone = format!("/tiles/15/{cx}/{cy}.png");
+    let alone_tag = etag(&d, &alone);
+
+    // A change event names the tiles it invalidates; the tiles under the new survey change
+    // and the others keep their ETags.
+    use patchwork::serve::proto::{self as pb, terrain_client::TerrainClient};
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let url = d.url.clone();
+    let mut events = rt.block_on(async move {
+        let mut t = TerrainClient::connect(url).await.unwrap();
+        t.subscribe(pb::SubscribeRequest::default())
+            .await
+            .unwrap()
+            .into_inner()
+    });
+    drop_by_rename(&crop("nasadem_n34w119_crop.tif"), &d.inbox(), "nasa.tif");
+    let ev = rt.block_on(async {
+        loop {
+            let e = tokio::time::timeout(std::time::Duration::from_secs(60), events.message())
+                .await
+                .expect("an event within a minute")
+                .unwrap()
+                .unwrap();
+            if e.outcome == pb::Outcome::Inserted as i32 {
+                return e;
+            }
+        }
+    });
+    let c = ev.changed.expect("where the terrain changed");
+    assert!(
+        c.west <= -118.9666 && c.east >= -118.8837 && c.south <= 34.4364 && c.north >= 34.5194,
+        "{c:?}"
+    );
+    assert!(
+        c.west > -118.99,
+        "the area is the new survey's, not the whole store: {c:?}"
+    );
+    assert_eq!(ev.web_tiles.len(), 25);
+    assert_eq!(ev.terrain_tiles.len(), 25);
+    let r13 = &ev.web_tiles[13];
+    assert!(r13.z == 13 && (r13.x0..=r13.x1).contains(&x) && (r13.y0..=r13.y1).contains(&y));
+    assert!(!(r13.x0..=r13.x1).contains(&fx));
+    d.wait("both surveys", |s| count(s, "active") == 2);
+    assert_ne!(
+        etag(&d, &path),
+        tag,
+        "the tile under the new survey changed"
+    );
+    assert_eq!(etag(&d, &format!("/tiles/{z}/{fx}/{fy}.png")), far_tag);
+    let r15 = &ev.web_tiles[15];
+    if !(r15.x0..=r15.x1).contains(&cx) {
+        assert_eq!(
+            etag(&d, &alone),
+            alone_tag,
+            "a tile the event left out kept its ETag"
+        );
+    }
+
+    // Bad requests say what is wrong.
+    for (bad, code) in [
+        ("/tiles/3/8/0.png", 400),
+        ("/tiles/25/0/0.png", 400),
+        ("/tiles/3/0/x.png", 400),
+        ("/tiles/3/0/0.jpg", 404),
+        ("/tiles/3/0/0.png?size=300", 400),
+        ("/tiles/3/0/0.png?error=-1", 400),
+        ("/tiles/3/0/0.png?encoding=jpeg", 400),
+        ("/heights?points=1,2,3", 400),
+        ("/nothing", 404),
+    ] {
+        let r = get(&format!("{}{bad}", d.http), &[]);
+        assert_eq!(r.status, code, "{bad}: {}", r.text());
+    }
+    let long = format!("/heights?points={}", "1,".repeat(10_000));
+    assert_eq!(get(&format!("{}{long}", d.http), &[]).status, 414);
+}
+
+#[test]
+fn terrain_tiles_are_gzipped_once_and_layer_json_says_where_they_are() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "cop.tif");
+    d.wait("the survey", |s| count(s, "active") == 1);
+
+    let layer = get(&format!("{}/terrain/layer.json", d.http), &[]).json();
+    assert_eq!(layer["format"], "quantized-mesh-1.0");
+    assert_eq!(layer["scheme"], "tms");
+    assert_eq!(layer["projection"], "EPSG:4326");
+    assert!(layer["tiles"][0]
+        .as_str()
+        .unwrap()
+        .starts_with("{z}/{x}/{y}.terrain?v={version}"));
+    assert_eq!(layer["maxzoom"], 12);
+    let available = layer["available"].as_array().unwrap();
+    assert_eq!(available.len(), 13);
+    assert_eq!(
+        available[0][0],
+        serde_json::json!({"startX": 0, "startY": 0, "endX": 1, "endY": 0})
+    );
+    let r = geographic::over(
+        12,
+        &patchwork_core::geom::Aabb::new(BOTH[0], BOTH[1], BOTH[0], BOTH[1]),
+    );
+    let (x, y) = (r.x0, r.y0);
+    let l12 = &available[12];
+    assert!(l12.as_array().unwrap().iter().any(|a| {
+        a["startX"].as_u64().unwrap() <= x as u64
+            && x as u64 <= a["endX"].as_u64().unwrap()
+            && a["startY"].as_u64().unwrap() <= y as u64
+            && y as u64 <= a["endY"].as_u64().unwrap()
+    }));
+
+    let url = format!(
+        "{}/terrain/12/{x}/{y}.terrain?v={}",
+        d.http,
+        layer["version"].as_str().unwrap()
+    );
+    let all = "application/vnd.quantized-mesh;extensions=octvertexnormals-watermask-metadata";
+    let gz = get(&url, &[("Accept", all), ("Accept-Encoding", "gzip")]);
+    assert_eq!(gz.status, 200);
+    assert_eq!(
+        gz.header("content-type"),
+        Some("application/vnd.quantized-mesh")
+    );
+    assert_eq!(gz.header("content-encoding"), Some("gzip"));
+    let mut body = Vec::new();
+    flate2::read::GzDecoder::new(&gz.body[..])
+        .read_to_end(&mut body)
+        .unwrap();
+    assert_ne!(&body[..2], &[0x1f, 0x8b], "gzipped once, not twice");
+    let raw = get(&url, &[("Accept", all)]);
+    assert_eq!(raw.header("content-encoding"), None);
+    assert_eq!(raw.body, body, "the same tile, gzipped or not");
+    // The header: the heights of the crop (about 300 to 1,200 m), and the ellipsoid's 0 m
+    // south of it, where the tile reaches past the survey.
+    let f32_at = |o: usize| f32::from_le_bytes(body[o..o + 4].try_into().unwrap());
+    let (lo, hi) = (f32_at(24), f32_at(28));
+    assert!(lo == 0.0 && 500.0 < hi && hi < 2000.0, "{lo} {hi}");
+    // Extensions only when asked for.
+    let bare = get(&url, &[]);
+    assert!(bare.body.len() < body.len());
+    let tag = gz.header("etag").unwrap();
+    assert_ne!(bare.header("etag").unwrap(), tag);
+    assert_eq!(
+        get(&url, &[("Accept", all), ("If-None-Match", tag)]).status,
+        304
+    );
+
+    // Both roots exist, whatever the data; out of range is refused.
+    for root in ["/terrain/0/0/0.terrain", "/terrain/0/1/0.terrain"] {
+        assert_eq!(get(&format!("{}{root}", d.http), &[]).status, 200, "{root}");
+    }
+    for bad in [
+        "/terrain/0/2/0.terrain",
+        "/terrain/1/0/2.terrain",
+        "/terrain/1/0/0.png",
+    ] {
+        assert_eq!(get(&format!("{}{bad}", d.http), &[]).status, 400, "{bad}");
+    }
+    let fp = get(&format!("{}/surveys.geojson", d.http), &[]);
+    assert_eq!(fp.header("content-type"), Some("application/geo+json"));
+    assert_eq!(fp.json()["features"].as_array().unwrap().len(), 1);
+    let page = get(&format!("{}/", d.http), &[]);
+    assert!(page
+        .header("content-type")
+        .unwrap()
+        .starts_with("text/html"));
+}
+
+#[test]
+fn web_tiles_take_the_read_token_in_a_header_or_where_allowed_the_query() {
+    const ADMIN: &str = "admin-0123456789abcdef";
+    const READ: &str = "read-0123456789abcdef";
+    let tmp = tempfile::tempdir().unwrap();
+    let tokens = vec![
+        ("PATCHWORK_ADMIN_TOKEN".to_string(), ADMIN.to_string()),
+        ("PATCHWORK_READ_TOKEN".to_string(), READ.to_string()),
+    ];
+    let d = Daemon::start_with(
+        tmp.path(),
+        Setup {
+            env: tokens.clone(),
+            client_env: vec![("PATCHWORK_TOKEN".into(), ADMIN.into())],
+            ..Setup::default()
+        },
+    );
+    let tile = format!("{}/tiles/3/1/3.png", d.http);
+    let bearer = format!("Bearer {READ}");
+    let r = get(&tile, &[]);
+    assert_eq!(r.status, 401);
+    assert_eq!(r.header("www-authenticate"), Some("Bearer"));
+    assert_eq!(
+        get(&tile, &[("Authorization", "Bearer wrong-0123456789abcdef")]).status,
+        401
+    );
+    assert_eq!(get(&tile, &[("Authorization", &bearer)]).status, 200);
+    assert_eq!(get(&format!("{tile}?token={READ}"), &[]).status, 200);
+    assert_eq!(get(&format!("{tile}?token={ADMIN}"), &[]).status, 200);
+    // The page and its libraries hold no data; documents hand the token on.
+    assert_eq!(get(&format!("{}/", d.http), &[]).status, 200);
+    let tj = get(&format!("{}/tiles.json?token={READ}", d.http), &[]).json();
+    assert!(tj["tiles"][0]
+        .as_str()
+        .unwrap()
+        .ends_with(&format!("&token={READ}")));
+    let layer = get(&format!("{}/terrain/layer.json?token={READ}", d.http), &[]).json();
+    assert!(layer["tiles"][0]
+        .as_str()
+        .unwrap()
+        .ends_with(&format!("&token={READ}")));
+    drop(d);
+
+    // With query tokens turned off, only the header opens.
+    let cfg = tmp.path().join("no-query-token.toml");
+    std::fs::write(&cfg, "[http]\nquery_token = false\n").unwrap();
+    let tmp2 = tempfile::tempdir().unwrap();
+    let mut env = tokens;
+    env.push((
+        "PATCHWORK_CONFIG".into(),
+        cfg.to_string_lossy().into_owned(),
+    ));
+    let d = Daemon::start_with(
+        tmp2.path(),
+        Setup {
+            env,
+            client_env: vec![("PATCHWORK_TOKEN".into(), ADMIN.into())],
+            ..Setup::default()
+        },
+    );
+    let tile = format!("{}/tiles/3/1/3.png", d.http);
+    assert_eq!(get(&format!("{tile}?token={READ}"), &[]).status, 401);
+    assert_eq!(get(&tile, &[("Authorization", &bearer)]).status, 200);
+}
