@@ -62,9 +62,10 @@ pub async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
     tracing::info!(address = %listener.local_addr()?, tls, admin_token = c.admin_token.is_some(), read_token = c.read_token.is_some(), data = ?c.data_dir, inbox = ?c.inbox, "serving");
     if let Some(h) = &http {
         let address = h.local_addr()?;
-        tracing::info!(%address, "serving web map clients: the viewer at http://{address}/");
-        if !patchwork::serve::auth::is_loopback(&http_listen) {
-            tracing::warn!("serving HTTP beyond this machine: tokens and data travel in clear; put a TLS proxy in front");
+        let scheme = if tls { "https" } else { "http" };
+        tracing::info!(%address, tls, "serving web map clients: the viewer at {scheme}://{address}/");
+        if !patchwork::serve::auth::is_loopback(&http_listen) && !tls {
+            tracing::warn!("serving HTTP beyond this machine without TLS: tokens and data travel in clear; set tls_cert and tls_key");
         }
     }
     if let Some(why) = engine.read_only() {

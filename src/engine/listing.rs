@@ -129,7 +129,7 @@ pub struct Footprint {
     pub id: SurveyId,
     /// ε, metres: the largest over its kernels.
     pub accuracy_m: f64,
-    /// Its footprint's outline (the store-plane bounds of its samples carried into longitude
+    /// Its footprint's outline (the store-plane bounds of its pixels carried into longitude
     /// and latitude, 16 points a side), closed.
     pub ring: Vec<[f64; 2]>,
     /// The outline's bounds, degrees.
@@ -149,15 +149,27 @@ impl super::Engine {
         let mut out: Vec<Footprint> = t
             .surveys()
             .filter_map(|s| {
+                // Out to the edges of its pixels, as far as its data is served.
                 let f = s.footprint();
+                let g = &s.shapes[0];
+                let half = [
+                    f.width() / (g.cols.max(2) - 1) as f64 / 2.0,
+                    f.height() / (g.rows.max(2) - 1) as f64 / 2.0,
+                ];
+                let f = Aabb::new(
+                    f.min[0] - half[0],
+                    f.min[1] - half[1],
+                    f.max[0] + half[0],
+                    f.max[1] + half[1],
+                );
                 let ring = outline(&to, &f)?;
                 let bounds = Aabb::of_points(&ring);
-                let rows = s.shapes[0].rows.max(2) - 1;
+                let rows = g.rows.max(2) - 1;
                 Some(Footprint {
                     id: s.id,
                     accuracy_m: s.accuracy,
                     ring,
-                    cell_deg: bounds.height() / rows as f64,
+                    cell_deg: bounds.height() / (rows + 1) as f64,
                     bounds,
                 })
             })

@@ -24,6 +24,31 @@ pub fn load(cert: &Path, key: &Path) -> Result<tonic::transport::Identity, Strin
     Ok(tonic::transport::Identity::from_pem(cert_pem, key_pem))
 }
 
+/// The same identity as rustls takes it, for the HTTP server: HTTP/1.1 over TLS 1.2 or 1.3.
+pub fn server_config(
+    cert: &Path,
+    key: &Path,
+) -> Result<std::sync::Arc<rustls::ServerConfig>, String> {
+    load(cert, key)?;
+    let read = |p: &Path| std::fs::read(p).map_err(|e| format!("cannot read {}: {e}", p.display()));
+    let (cert_pem, key_pem) = (read(cert)?, read(key)?);
+    let certs: Vec<CertificateDer<'static>> = CertificateDer::pem_slice_iter(&cert_pem)
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("the TLS certificate {}: {e:?}", cert.display()))?;
+    let key = PrivateKeyDer::from_pem_slice(&key_pem)
+        .map_err(|e| format!("the TLS key {}: {e:?}", key.display()))?;
+    let mut c = rustls::ServerConfig::builder_with_provider(std::sync::Arc::new(
+        rustls::crypto::ring::default_provider(),
+    ))
+    .with_safe_default_protocol_versions()
+    .map_err(|e| format!("TLS: {e}"))?
+    .with_no_client_auth()
+    .with_single_cert(certs, key)
+    .map_err(|e| format!("TLS: {e}"))?;
+    c.alpn_protocols = vec![b"http/1.1".to_vec()];
+    Ok(std::sync::Arc::new(c))
+}
+
 fn now_unix() -> i64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)

@@ -11,3 +11,5 @@ mod python_client;
 mod reliability;
 mod view_session;
 mod web;
+mod web_browser;
+mod web_clients;

@@ -8,7 +8,7 @@
 use crate::common;
 
 use common::daemon::*;
-use common::http::{get, rgba, terrarium};
+use common::http::{get, get_tls, rgba, terrarium};
 use patchwork_core::geom::tiles::{geographic, mercator};
 use std::io::Read;
 
@@ -216,6 +216,23 @@ fn raster_tiles_are_the_stores_heights_and_change_exactly_with_its_data() {
     }
     let long = format!("/heights?points={}", "1,".repeat(10_000));
     assert_eq!(get(&format!("{}{long}", d.http), &[]).status, 414);
+
+    // Tiles run as gRPC requests do, under the same limit on requests at work, and are
+    // counted with them.
+    let served = || {
+        d.json(&["stats", "--json"])["requests_served"]
+            .as_u64()
+            .unwrap()
+    };
+    let before = served();
+    for k in 0..5 {
+        let r = get(
+            &format!("{}/tiles/12/{}/{}.png?error={k}", d.http, x / 2, y / 2),
+            &[],
+        );
+        assert_eq!(r.status, 200);
+    }
+    assert!(served() >= before + 5);
 }
 
 #[test]
@@ -373,4 +390,37 @@ fn web_tiles_take_the_read_token_in_a_header_or_where_allowed_the_query() {
     let tile = format!("{}/tiles/3/1/3.png", d.http);
     assert_eq!(get(&format!("{tile}?token={READ}"), &[]).status, 401);
     assert_eq!(get(&tile, &[("Authorization", &bearer)]).status, 200);
+}
+
+#[test]
+fn a_daemon_with_a_certificate_serves_web_clients_over_tls_only() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start_with(
+        tmp.path(),
+        Setup {
+            tls: true,
+            ..Setup::default()
+        },
+    );
+    let https = d.http.replace("http://127.0.0.1", "https://localhost");
+    let r = get_tls(
+        &format!("{https}/tiles/3/1/3.png"),
+        &tls_file("ca.pem"),
+        &[],
+    );
+    assert_eq!(r.status, 200);
+    assert_eq!(r.header("content-type"), Some("image/png"));
+    // Plain HTTP on the same port gets no answer.
+    let plain = std::net::TcpStream::connect(d.http.trim_start_matches("http://")).unwrap();
+    plain
+        .set_read_timeout(Some(std::time::Duration::from_secs(15)))
+        .unwrap();
+    let mut plain = plain;
+    use std::io::Write;
+    plain
+        .write_all(b"GET / HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        .unwrap();
+    let mut back = Vec::new();
+    let _ = plain.read_to_end(&mut back);
+    assert!(!back.starts_with(b"HTTP/1.1 200"), "plain HTTP was served");
 }

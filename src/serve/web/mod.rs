@@ -203,9 +203,11 @@ impl Web {
     }
 }
 
+/// An ETag as sent: weak, since the same tile goes out gzipped or not (RFC 9110 §8.8.3 keeps
+/// strong validators for one representation's bytes).
 fn quote_etag(e: &[u8; 16]) -> String {
-    let mut s = String::with_capacity(34);
-    s.push('"');
+    let mut s = String::with_capacity(36);
+    s.push_str("W/\"");
     for b in e {
         s.push_str(&format!("{b:02x}"));
     }
@@ -216,11 +218,12 @@ fn quote_etag(e: &[u8; 16]) -> String {
 /// Whether an `If-None-Match` header names `etag` (or is `*`), weak or strong alike, as
 /// RFC 9110 §13.1.2 compares them.
 fn matches_etag(header: &str, etag: &[u8; 16]) -> bool {
-    let want = quote_etag(etag);
+    let sent = quote_etag(etag);
+    let want = sent.trim_start_matches("W/");
     header
         .split(',')
         .map(str::trim)
-        .any(|t| t == "*" || t.strip_prefix("W/").unwrap_or(t) == want)
+        .any(|t| t == "*" || t.trim_start_matches("W/") == want)
 }
 
 /// The one place where a request's outcome becomes an HTTP code (gRPC's codes come from
@@ -323,15 +326,101 @@ pub fn router(svc: Service) -> Router {
         .with_state(web)
 }
 
-/// Serves the web clients on `listener` until `shutdown`.
+/// Serves the web clients on `listener` until `shutdown`: over TLS with the daemon's
+/// certificate when it has one (`tls_cert`, `tls_key`), as gRPC is, since tokens travel in
+/// the requests.
 pub async fn serve(
     svc: Service,
     listener: tokio::net::TcpListener,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
-) -> std::io::Result<()> {
-    axum::serve(listener, router(svc))
-        .with_graceful_shutdown(shutdown)
-        .await
+) -> Result<(), String> {
+    use axum::serve::ListenerExt;
+    let cfg = svc.engine().config().clone();
+    let app = router(svc);
+    match (&cfg.tls_cert, &cfg.tls_key) {
+        (Some(cert), Some(key)) => {
+            let tls = super::tls::server_config(cert, key)?;
+            axum::serve(TlsListener::new(listener, tls)?, app)
+                .with_graceful_shutdown(shutdown)
+                .await
+        }
+        // Replies of more than a segment would otherwise wait out the client's delayed ACK.
+        _ => {
+            axum::serve(
+                listener.tap_io(|tcp| {
+                    let _ = tcp.set_nodelay(true);
+                }),
+                app,
+            )
+            .with_graceful_shutdown(shutdown)
+            .await
+        }
+    }
+    .map_err(|e| e.to_string())
+}
+
+/// Connections whose TLS handshake is done. Handshakes run in tasks of their own, each
+/// within [`HANDSHAKE`], so that a client that connects and says nothing holds up no other.
+struct TlsListener {
+    ready: tokio::sync::mpsc::Receiver<(
+        tokio_rustls::server::TlsStream<tokio::net::TcpStream>,
+        std::net::SocketAddr,
+    )>,
+    local: std::net::SocketAddr,
+}
+
+/// Longest a TLS handshake may take.
+const HANDSHAKE: std::time::Duration = std::time::Duration::from_secs(10);
+
+impl TlsListener {
+    fn new(
+        listener: tokio::net::TcpListener,
+        tls: Arc<rustls::ServerConfig>,
+    ) -> Result<TlsListener, String> {
+        let local = listener.local_addr().map_err(|e| e.to_string())?;
+        let acceptor = tokio_rustls::TlsAcceptor::from(tls);
+        let (tx, ready) = tokio::sync::mpsc::channel(64);
+        tokio::spawn(async move {
+            loop {
+                let (tcp, peer) = match listener.accept().await {
+                    Ok(c) => c,
+                    // Out of file descriptors, say: wait for some to close.
+                    Err(_) => {
+                        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                        continue;
+                    }
+                };
+                let _ = tcp.set_nodelay(true);
+                let (acceptor, done) = (acceptor.clone(), tx.clone());
+                tokio::spawn(async move {
+                    if let Ok(Ok(s)) = tokio::time::timeout(HANDSHAKE, acceptor.accept(tcp)).await {
+                        let _ = done.send((s, peer)).await;
+                    }
+                });
+                if tx.is_closed() {
+                    return;
+                }
+            }
+        });
+        Ok(TlsListener { ready, local })
+    }
+}
+
+impl axum::serve::Listener for TlsListener {
+    type Io = tokio_rustls::server::TlsStream<tokio::net::TcpStream>;
+    type Addr = std::net::SocketAddr;
+
+    async fn accept(&mut self) -> (Self::Io, Self::Addr) {
+        match self.ready.recv().await {
+            Some(c) => c,
+            // The accepting task is gone only when the server is: wait for the shutdown.
+            None => std::future::pending().await,
+        }
+    }
+
+    fn local_addr(&self) -> std::io::Result<Self::Addr> {
+        Ok(self.local)
+    }
 }
 
 async fn viewer() -> Response {
@@ -589,8 +678,10 @@ mod tests {
     fn if_none_match_takes_lists_weak_tags_and_stars() {
         let e = [0xab; 16];
         let q = quote_etag(&e);
+        assert!(q.starts_with("W/\""));
         assert!(matches_etag(&q, &e));
-        assert!(matches_etag(&format!("\"x\", W/{q}"), &e));
+        assert!(matches_etag(q.trim_start_matches("W/"), &e));
+        assert!(matches_etag(&format!("\"x\", {q}"), &e));
         assert!(matches_etag("*", &e));
         assert!(!matches_etag("\"abab\"", &e));
     }

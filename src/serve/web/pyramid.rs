@@ -173,6 +173,10 @@ impl Pyramid {
             "bounds": [b.min[0], b.min[1], b.max[0], b.max[1]],
             "available": available,
             "extensions": ["octvertexnormals", "watermask", "metadata"],
+            // Tiles of levels 0, 10, 20 … tell in their metadata which tiles of the next ten
+            // levels exist (`available` above says the same for every level); Cesium asks for
+            // the metadata extension only where this is set.
+            "metadataAvailability": super::terrain::METADATA_LEVELS,
             "attribution": "",
         })
     }

@@ -40,8 +40,9 @@ impl Asked {
     }
 }
 
-/// Levels of availability a tile's metadata tells of below it.
-const METADATA_LEVELS: u32 = 10;
+/// Levels of availability a tile's metadata tells of below it (layer.json's
+/// `metadataAvailability`).
+pub(super) const METADATA_LEVELS: u32 = 10;
 
 /// How Cesium's geometric error for a level is spent: half on the cut, half on the mesh.
 /// Either half alone is a vertical error no larger than what Cesium allows the tile, and the
