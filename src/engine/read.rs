@@ -255,6 +255,45 @@ impl Engine {
         backend: Backend,
         cancel: &Cancel,
     ) -> Result<MeshTile, EngineError> {
+        self.mesh_from(spec, None, backend, cancel)
+    }
+
+    /// [`Engine::mesh_until`] of a cut already made: [`Engine::query`] of
+    /// [`Engine::mesh_cut`]`(spec)`.
+    pub fn mesh_of(
+        &self,
+        spec: &MeshSpec,
+        made: (Arc<Terrain>, Vec<Extracted>),
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<MeshTile, EngineError> {
+        self.mesh_from(spec, Some(made), backend, cancel)
+    }
+
+    /// The cut a mesh resamples: over the ROI grown by half a cell, whose pixel centres fall
+    /// on the grid's vertices.
+    pub fn mesh_cut(spec: &MeshSpec) -> Cut {
+        let pixels = mesh::pixel_roi(&spec.roi, spec.cols, spec.rows);
+        match &spec.crs {
+            Some(crs) => Cut::UniformIn {
+                crs: crs.clone(),
+                roi: pixels,
+                error: spec.error,
+            },
+            None => Cut::Uniform {
+                roi: pixels,
+                error: spec.error,
+            },
+        }
+    }
+
+    fn mesh_from(
+        &self,
+        spec: &MeshSpec,
+        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<MeshTile, EngineError> {
         let (roi, cols, rows) = (spec.roi, spec.cols, spec.rows);
         for (name, n) in [("columns", cols), ("rows", rows)] {
             if !(2..=MAX_MESH_SIZE).contains(&n) {
@@ -275,18 +314,9 @@ impl Engine {
             }
         }
         let pixels = mesh::pixel_roi(&roi, cols, rows);
-        let cut = match &spec.crs {
-            Some(crs) => Cut::UniformIn {
-                crs: crs.clone(),
-                roi: pixels,
-                error: spec.error,
-            },
-            None => Cut::Uniform {
-                roi: pixels,
-                error: spec.error,
-            },
-        };
-        let (mut tile, used) = self.tile_until(&cut, cols as u32, rows as u32, backend, cancel)?;
+        let cut = Self::mesh_cut(spec);
+        let (mut tile, used) =
+            self.tile_from(&cut, made, cols as u32, rows as u32, backend, cancel)?;
         let mut voids = Vec::new();
         if spec.fill_voids {
             let grid = SampleGrid::uniform(&pixels, cols, rows);
@@ -368,6 +398,29 @@ impl Engine {
             return Ok(Vec::new());
         }
         let voids = heights.iter().map(|h| h.is_nan()).collect();
+        // The voids' positions in the store's plane, carried once as a tile's are (so that
+        // each gets the height a request in `crs` gives there), and only those a survey can
+        // reach: most voids of a tile at the data's edge are far from every survey.
+        let own: Vec<[f64; 2]> = todo.iter().map(|&k| grid.point(k)).collect();
+        let mut points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
+            Some(r) => r.map(&own),
+            None => own,
+        };
+        let areas: Vec<Aabb> = self
+            .snapshot()
+            .surveys()
+            .map(|s| super::write::changed_area(s))
+            .collect();
+        let near = |p: &[f64; 2]| areas.iter().any(|a| a.contains_point(*p));
+        let mut kept = 0;
+        for i in 0..todo.len() {
+            if near(&points[i]) {
+                (todo[kept], points[kept]) = (todo[i], points[i]);
+                kept += 1;
+            }
+        }
+        todo.truncate(kept);
+        points.truncate(kept);
         // A cut at the top of LOD space holds nothing: stop below it.
         let top = self.cfg.index.max_error / 2.0;
         let mut coarser = e.max(1.0);
@@ -376,17 +429,17 @@ impl Engine {
                 break;
             }
             coarser = (coarser * 8.0).min(top);
-            let points: Vec<[f64; 2]> = todo.iter().map(|&k| grid.point(k)).collect();
-            let found = self.sample_in(&points, crs, coarser, cancel)?;
-            let mut left = Vec::new();
-            for (&k, h) in todo.iter().zip(found) {
+            let found = self.sample_in(&points, None, coarser, cancel)?;
+            let (mut left, mut at) = (Vec::new(), Vec::new());
+            for ((&k, p), h) in todo.iter().zip(&points).zip(found) {
                 if h.is_nan() {
                     left.push(k);
+                    at.push(*p);
                 } else {
                     heights[k] = h;
                 }
             }
-            todo = left;
+            (todo, points) = (left, at);
         }
         Ok(voids)
     }
@@ -505,10 +558,7 @@ impl Engine {
                 // The tile's own positions, carried into the store's plane.
                 let own = SampleGrid::uniform(roi, width as usize, height as usize);
                 match self.to_store(crs)? {
-                    Some(r) => {
-                        let pts: Vec<[f64; 2]> = own.points().collect();
-                        SampleGrid::of_points(own.width, own.height, r.map(&pts))
-                    }
+                    Some(r) => carried(&own, &r),
                     None => own,
                 }
             }
@@ -604,6 +654,37 @@ impl Engine {
             .map_err(StoreError::from)?
             .ok_or(EngineError::Cancelled)
     }
+}
+
+/// A north-up grid's points carried into the store's plane by `r`. Where the map takes the
+/// grid's columns to columns and its rows to rows (Web Mercator to longitude and latitude,
+/// say), the carried grid keeps axes, and the resampler its pass by rows and columns, which
+/// is several times faster than point by point: checked at the corners, the middle and
+/// between, each point must be where its column and its row put it, within 10⁻⁹ of the grid's
+/// extent (a micrometre on a kilometre's tile). Any other map is applied point by point.
+fn carried(own: &SampleGrid, r: &Reprojection) -> SampleGrid {
+    if let Some(a) = &own.axes {
+        let (w, h) = (a.xs.len(), a.ys.len());
+        let (xm, ym) = (a.xs[w / 2], a.ys[h / 2]);
+        let xs: Option<Vec<f64>> = a.xs.iter().map(|&x| r.at([x, ym]).map(|p| p[0])).collect();
+        let ys: Option<Vec<f64>> = a.ys.iter().map(|&y| r.at([xm, y]).map(|p| p[1])).collect();
+        if let (Some(xs), Some(ys)) = (xs, ys) {
+            let span = |v: &[f64]| (v[0] - v[v.len() - 1]).abs();
+            let tol = 1e-9 * span(&xs).max(span(&ys)).max(f64::MIN_POSITIVE);
+            let probes = [0, w / 4, w / 2, 3 * w / 4, w - 1]
+                .into_iter()
+                .flat_map(|i| [0, h / 3, h / 2, 2 * h / 3, h - 1].map(|j| (i, j)));
+            let separable = probes.into_iter().all(|(i, j)| {
+                r.at([a.xs[i], a.ys[j]])
+                    .is_some_and(|p| (p[0] - xs[i]).abs() <= tol && (p[1] - ys[j]).abs() <= tol)
+            });
+            if separable {
+                return SampleGrid::of_axes(xs, ys);
+            }
+        }
+    }
+    let pts: Vec<[f64; 2]> = own.points().collect();
+    SampleGrid::of_points(own.width, own.height, r.map(&pts))
 }
 
 fn check_error(e: f64) -> Result<(), EngineError> {

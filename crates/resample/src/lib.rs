@@ -94,6 +94,16 @@ impl SampleGrid {
         }
     }
 
+    /// A north-up grid of any columns and rows: point (i, j) is (xs[i], ys[j]).
+    pub fn of_axes(xs: Vec<f64>, ys: Vec<f64>) -> Self {
+        SampleGrid {
+            width: xs.len(),
+            height: ys.len(),
+            list: Vec::new(),
+            axes: Some(Axes { xs, ys }),
+        }
+    }
+
     /// A grid of any points, row-major, `width × height` of them.
     pub fn of_points(width: usize, height: usize, points: Vec<[f64; 2]>) -> Self {
         assert_eq!(points.len(), width * height, "a point for every sample");

@@ -5,7 +5,7 @@
 
 use super::pyramid::{Pyramid, TERRAIN_GRID};
 use super::{Produced, Web};
-use crate::engine::{Backend, Cut, Engine, EngineError, MeshSpec};
+use crate::engine::{Backend, Engine, EngineError, MeshSpec};
 use patchwork_core::geom::tiles::geographic;
 use patchwork_core::mesh::{self, encode, Border, Method};
 use patchwork_core::resample::Cancel;
@@ -67,22 +67,23 @@ pub fn tile(
     let (cut_error, mesh_error) = errors(z);
     let n = TERRAIN_GRID;
     let crs = web.unless_store(engine, &web.geographic);
-    let pixels = mesh::pixel_roi(&roi, n, n);
-    let cut = match &crs {
-        Some(c) => Cut::UniformIn {
-            crs: c.clone(),
-            roi: pixels,
-            error: cut_error,
-        },
-        None => Cut::Uniform {
-            roi: pixels,
-            error: cut_error,
-        },
+    let spec = MeshSpec {
+        roi,
+        error: cut_error,
+        cols: n,
+        rows: n,
+        mesh_error,
+        skirt_m: 0.0,
+        border: Border::Shared,
+        method: Method::Rtin,
+        hole_reach_m: 0.0,
+        crs,
+        fill_voids: true,
     };
-    let ps = match engine.crs() {
-        Some(_) => engine.query(&cut)?.1,
+    let (t, ps) = match engine.crs() {
+        Some(_) => engine.query(&Engine::mesh_cut(&spec))?,
         // A store with no survey yet has nothing anywhere.
-        None => Vec::new(),
+        None => (engine.snapshot(), Vec::new()),
     };
     let pyramid = web.pyramid(engine);
     let what = format!("terrain/{z}/{x}/{y}/{asked:?}");
@@ -105,20 +106,7 @@ pub fn tile(
                 );
                 (flat, vec![true; n * n])
             } else {
-                let spec = MeshSpec {
-                    roi,
-                    error: cut_error,
-                    cols: n,
-                    rows: n,
-                    mesh_error,
-                    skirt_m: 0.0,
-                    border: Border::Shared,
-                    method: Method::Rtin,
-                    hole_reach_m: 0.0,
-                    crs,
-                    fill_voids: true,
-                };
-                let m = engine.mesh_until(&spec, Backend::Auto, cancel)?;
+                let m = engine.mesh_of(&spec, (t, ps), Backend::Auto, cancel)?;
                 (m.mesh, m.voids)
             };
             let ext = encode::Extensions {
