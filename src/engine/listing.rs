@@ -136,6 +136,9 @@ pub struct Footprint {
     pub bounds: Aabb,
     /// Its level 0's cell, in degrees of latitude: how fine a tile pyramid over it goes.
     pub cell_deg: f64,
+    /// Where its arrival or departure can change heights, degrees: its footprint grown by
+    /// the cells that edge patches and the fill of voids reach across.
+    pub reach: Aabb,
 }
 
 impl super::Engine {
@@ -164,6 +167,7 @@ impl super::Engine {
                 );
                 let ring = outline(&to, &f)?;
                 let bounds = Aabb::of_points(&ring);
+                let reach = Aabb::of_points(&outline(&to, &super::write::changed_area(s))?);
                 let rows = g.rows.max(2) - 1;
                 Some(Footprint {
                     id: s.id,
@@ -171,6 +175,7 @@ impl super::Engine {
                     ring,
                     cell_deg: bounds.height() / (rows + 1) as f64,
                     bounds,
+                    reach,
                 })
             })
             .collect();

@@ -93,10 +93,18 @@ fn exchange(s: &mut impl ReadWrite, host: &str, path: &str, headers: &[(&str, &s
         .unwrap()
         .parse()
         .unwrap();
-    let headers: BTreeMap<String, String> = lines
-        .filter_map(|l| l.split_once(':'))
-        .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
-        .collect();
+    // A header sent more than once is the list of its values (RFC 9110 §5.3).
+    let mut headers: BTreeMap<String, String> = BTreeMap::new();
+    for (k, v) in lines.filter_map(|l| l.split_once(':')) {
+        let v = v.trim();
+        headers
+            .entry(k.trim().to_ascii_lowercase())
+            .and_modify(|all| {
+                all.push_str(", ");
+                all.push_str(v);
+            })
+            .or_insert_with(|| v.to_string());
+    }
     let mut body = raw[end + 4..].to_vec();
     if headers.get("transfer-encoding").map(String::as_str) == Some("chunked") {
         body = unchunk(&body);

@@ -278,6 +278,11 @@ fn terrain_tiles_are_gzipped_once_and_layer_json_says_where_they_are() {
     let all = "application/vnd.quantized-mesh;extensions=octvertexnormals-watermask-metadata";
     let gz = get(&url, &[("Accept", all), ("Accept-Encoding", "gzip")]);
     assert_eq!(gz.status, 200);
+    assert!(
+        gz.header("vary").is_some_and(|v| v.contains("accept")),
+        "{:?}",
+        gz.headers
+    );
     assert_eq!(
         gz.header("content-type"),
         Some("application/vnd.quantized-mesh")
@@ -353,7 +358,10 @@ fn web_tiles_take_the_read_token_in_a_header_or_where_allowed_the_query() {
         get(&tile, &[("Authorization", "Bearer wrong-0123456789abcdef")]).status,
         401
     );
-    assert_eq!(get(&tile, &[("Authorization", &bearer)]).status, 200);
+    let opened = get(&tile, &[("Authorization", &bearer)]);
+    assert_eq!(opened.status, 200);
+    // What a token opened is no shared cache's to keep.
+    assert_eq!(opened.header("cache-control"), Some("private, max-age=60"));
     assert_eq!(get(&format!("{tile}?token={READ}"), &[]).status, 200);
     assert_eq!(get(&format!("{tile}?token={ADMIN}"), &[]).status, 200);
     // The page and its libraries hold no data; documents hand the token on.
@@ -390,6 +398,13 @@ fn web_tiles_take_the_read_token_in_a_header_or_where_allowed_the_query() {
     let tile = format!("{}/tiles/3/1/3.png", d.http);
     assert_eq!(get(&format!("{tile}?token={READ}"), &[]).status, 401);
     assert_eq!(get(&tile, &[("Authorization", &bearer)]).status, 200);
+    // Nor do the documents put a token into the URLs they hand out.
+    let tj = get(
+        &format!("{}/tiles.json?token={READ}", d.http),
+        &[("Authorization", &bearer)],
+    )
+    .json();
+    assert!(!tj["tiles"][0].as_str().unwrap().contains("token"), "{tj}");
 }
 
 #[test]

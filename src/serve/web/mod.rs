@@ -52,6 +52,10 @@ pub struct Web {
     tiles: Option<quick_cache::sync::Cache<[u8; 16], Arc<[u8]>, TileBytes>>,
     /// The pyramids over the last terrain published, made again when another is.
     pyramid: Mutex<(Weak<Terrain>, Arc<Pyramid>)>,
+    /// What besides the data and the request changes a tile's bytes: this program's version
+    /// and the top of LOD space (where the fill of voids stops). Part of every ETag, so that
+    /// a client's copy made by another build or config is not taken for current.
+    fingerprint: String,
 }
 
 /// Weighs a cached tile by its bytes.
@@ -85,8 +89,8 @@ impl Web {
             mercator: Web::mercator_crs(),
             geographic: patchwork_core::crs::Crs::wgs84(),
             query_token: cfg.http.query_token,
-            cache_control: HeaderValue::from_str(&cfg.http.cache_control)
-                .unwrap_or(HeaderValue::from_static("no-cache")),
+            cache_control: cache_control(&cfg.http.cache_control, Gate::terrain(cfg).is_open()),
+            fingerprint: format!("{}/{}", env!("CARGO_PKG_VERSION"), cfg.index.max_error),
             tiles,
             pyramid: Mutex::new((Weak::new(), Arc::new(Pyramid::empty()))),
             svc,
@@ -109,11 +113,17 @@ impl Web {
     /// The pyramids over the terrain published now.
     pub fn pyramid(&self, engine: &Engine) -> Arc<Pyramid> {
         let now = engine.snapshot();
-        let mut p = lock(&self.pyramid);
-        if !p.0.upgrade().is_some_and(|t| Arc::ptr_eq(&t, &now)) {
-            *p = (Arc::downgrade(&now), Arc::new(Pyramid::of(engine)));
+        {
+            let p = lock(&self.pyramid);
+            if p.0.upgrade().is_some_and(|t| Arc::ptr_eq(&t, &now)) {
+                return p.1.clone();
+            }
         }
-        p.1.clone()
+        // Made without the lock: requests that find it stale meanwhile make their own, and
+        // the last one kept is as good as any.
+        let made = Arc::new(Pyramid::of(engine));
+        *lock(&self.pyramid) = (Arc::downgrade(&now), made.clone());
+        made
     }
 
     /// A tile's ETag: what was asked (`what`, which names the kind of tile, where it is and
@@ -122,6 +132,7 @@ impl Web {
     /// their content, so the ETag changes exactly when the data under the tile does.
     fn etag(&self, what: &str, patches: &[Extracted], near: &[u64]) -> [u8; 16] {
         let mut h = blake3::Hasher::new();
+        h.update(self.fingerprint.as_bytes());
         h.update(what.as_bytes());
         for p in patches {
             h.update(&p.id.0.to_le_bytes());
@@ -205,6 +216,17 @@ impl Web {
 
 /// An ETag as sent: weak, since the same tile goes out gzipped or not (RFC 9110 §8.8.3 keeps
 /// strong validators for one representation's bytes).
+/// The configured `Cache-Control`, made `private` where reads need a token: a shared cache
+/// may not keep what one client's token opened for the next (RFC 9111 §3.5).
+fn cache_control(configured: &str, open: bool) -> HeaderValue {
+    let v = if open {
+        configured.to_string()
+    } else {
+        configured.replace("public", "private")
+    };
+    HeaderValue::from_str(&v).unwrap_or(HeaderValue::from_static("no-cache"))
+}
+
 fn quote_etag(e: &[u8; 16]) -> String {
     let mut s = String::with_capacity(36);
     s.push_str("W/\"");
@@ -269,11 +291,10 @@ async fn admit(State(web): State<Arc<Web>>, req: Request, next: Next) -> Respons
             .and_then(|v| v.to_str().ok())
             .map(str::to_string);
         let from_query = || {
-            req.uri().query().and_then(|q| {
-                q.split('&')
-                    .find_map(|kv| kv.strip_prefix("token="))
-                    .map(|t| format!("Bearer {t}"))
-            })
+            req.uri()
+                .query()
+                .and_then(query_token)
+                .map(|t| format!("Bearer {t}"))
         };
         let token = header.or_else(|| web.query_token.then(from_query).flatten());
         if let Err(s) = web.gate.check(token.as_deref()) {
@@ -382,7 +403,12 @@ impl TlsListener {
         let (tx, ready) = tokio::sync::mpsc::channel(64);
         tokio::spawn(async move {
             loop {
-                let (tcp, peer) = match listener.accept().await {
+                // The server is gone once its end of the channel is: so is the port then.
+                let accepted = tokio::select! {
+                    a = listener.accept() => a,
+                    _ = tx.closed() => return,
+                };
+                let (tcp, peer) = match accepted {
                     Ok(c) => c,
                     // Out of file descriptors, say: wait for some to close.
                     Err(_) => {
@@ -397,9 +423,6 @@ impl TlsListener {
                         let _ = done.send((s, peer)).await;
                     }
                 });
-                if tx.is_closed() {
-                    return;
-                }
             }
         });
         Ok(TlsListener { ready, local })
@@ -485,8 +508,19 @@ fn base_url(headers: &HeaderMap) -> String {
     format!("{scheme}://{host}")
 }
 
-/// The `token=` of a query, to pass on in the URLs a document hands out.
-fn token_param(query: Option<&str>) -> Option<&str> {
+/// The `token` of a query, percent-decoded as a browser's `URLSearchParams` encodes it.
+fn query_token(query: &str) -> Option<String> {
+    form_urlencoded::parse(query.as_bytes())
+        .find(|(k, _)| k == "token")
+        .map(|(_, v)| v.into_owned())
+}
+
+/// The `token=…` of a query as it came, to pass on in the URLs a document hands out: only
+/// where tokens may travel in URLs at all.
+fn token_param<'a>(web: &Web, query: Option<&'a str>) -> Option<&'a str> {
+    if !web.query_token {
+        return None;
+    }
     query?.split('&').find(|kv| kv.starts_with("token="))
 }
 
@@ -496,7 +530,7 @@ async fn tilejson(
     headers: HeaderMap,
     uri: axum::http::Uri,
 ) -> Response {
-    let size = match p.size() {
+    let size = match p.size().and_then(|s| p.error().map(|_| s)) {
         Ok(s) => s,
         Err(m) => return bad_request(m),
     };
@@ -505,7 +539,7 @@ async fn tilejson(
     if let Some(e) = p.error {
         query.push_str(&format!("&error={e}"));
     }
-    if let Some(t) = token_param(uri.query()) {
+    if let Some(t) = token_param(&web, uri.query()) {
         query.push('&');
         query.push_str(t);
     }
@@ -587,7 +621,7 @@ fn if_none_match(h: &HeaderMap) -> Option<String> {
 async fn layer_json(State(web): State<Arc<Web>>, uri: axum::http::Uri) -> Response {
     let engine = web.engine().clone();
     let p = web.pyramid(&engine);
-    let doc = p.layer_json(&p.version(), token_param(uri.query()).unwrap_or(""));
+    let doc = p.layer_json(&p.version(), token_param(&web, uri.query()).unwrap_or(""));
     document(&web, doc)
 }
 
@@ -619,7 +653,13 @@ async fn terrain_tile(
         .run(move |e, cancel| terrain::tile(e, &w, z, x, y, asked, inm.as_deref(), cancel))
         .await
     {
-        Ok(p) => web.reply(p),
+        Ok(p) => {
+            // The extensions in the bytes are those the Accept header asked for.
+            let mut r = web.reply(p);
+            r.headers_mut()
+                .append(header::VARY, HeaderValue::from_static("accept"));
+            r
+        }
         Err(r) => r,
     }
 }
@@ -684,6 +724,23 @@ mod tests {
         assert!(matches_etag(&format!("\"x\", {q}"), &e));
         assert!(matches_etag("*", &e));
         assert!(!matches_etag("\"abab\"", &e));
+    }
+
+    #[test]
+    fn query_tokens_are_percent_decoded_and_public_becomes_private_behind_tokens() {
+        assert_eq!(
+            query_token("a=1&token=ab%2Bc%3D%3D&b=2").as_deref(),
+            Some("ab+c==")
+        );
+        assert_eq!(query_token("tokens=x"), None);
+        assert_eq!(
+            cache_control("public, max-age=60", true),
+            "public, max-age=60"
+        );
+        assert_eq!(
+            cache_control("public, max-age=60", false),
+            "private, max-age=60"
+        );
     }
 
     #[test]

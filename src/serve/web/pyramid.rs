@@ -33,16 +33,12 @@ impl Pyramid {
         }
     }
 
-    /// The ids of the surveys whose coarser levels can reach into `lonlat`: those whose
-    /// footprint, grown by two of their cells, meets it.
+    /// The ids of the surveys whose samples, edge patches or coarser levels can reach into
+    /// `lonlat`.
     pub fn near(&self, lonlat: &Aabb) -> Vec<u64> {
         self.footprints
             .iter()
-            .filter(|f| {
-                let m = 2.0 * f.cell_deg;
-                let b = &f.bounds;
-                Aabb::new(b.min[0] - m, b.min[1] - m, b.max[0] + m, b.max[1] + m).intersects(lonlat)
-            })
+            .filter(|f| f.reach.intersects(lonlat))
             .map(|f| f.id.0)
             .collect()
     }
@@ -108,15 +104,6 @@ impl Pyramid {
                 ranges
             })
             .collect()
-    }
-
-    /// Whether a quantized-mesh tile lies where `available` says there is data, or is a root.
-    pub fn terrain_has(&self, z: u32, x: u32, y: u32) -> bool {
-        z == 0
-            || self.footprints.iter().any(|f| {
-                let r = geographic::over(z, &f.bounds);
-                (r.x0..=r.x1).contains(&x) && (r.y0..=r.y1).contains(&y)
-            })
     }
 
     /// The TileJSON of the raster-DEM tiles, whose template is `tiles`.

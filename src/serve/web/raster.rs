@@ -72,7 +72,8 @@ pub fn tile(
     let etag = web.etag(&what, &ps, &near);
     web.produce(etag, if_none_match, content_type, || {
         let size = r.size as usize;
-        let empty = ps.is_empty();
+        // Nothing in the cut may still leave voids a survey just beyond the tile fills.
+        let empty = ps.is_empty() && near.is_empty();
         let mut heights = if empty {
             vec![f32::NAN; size * size]
         } else {

@@ -86,14 +86,22 @@ pub fn tile(
         None => (engine.snapshot(), Vec::new()),
     };
     let pyramid = web.pyramid(engine);
-    let what = format!("terrain/{z}/{x}/{y}/{asked:?}");
-    let etag = web.etag(&what, &ps, &pyramid.near(&roi));
+    // The metadata tells of levels as deep as the finest survey anywhere goes.
+    let depth = if asked.metadata {
+        pyramid.terrain_max
+    } else {
+        0
+    };
+    let what = format!("terrain/{z}/{x}/{y}/{asked:?}/{depth}");
+    let near = pyramid.near(&roi);
+    let etag = web.etag(&what, &ps, &near);
     web.produce(
         etag,
         if_none_match,
         "application/vnd.quantized-mesh",
         || {
-            let (mesh, voids) = if ps.is_empty() {
+            // Nothing in the cut may still leave voids a survey just beyond the tile fills.
+            let (mesh, voids) = if ps.is_empty() && near.is_empty() {
                 // No data under the tile: the ellipsoid, all water.
                 let flat = mesh::triangulate(
                     &vec![0.0; n * n],
