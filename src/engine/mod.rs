@@ -23,7 +23,7 @@ pub use gpu::Used;
 pub use listing::{conflicts_of, Conflict, Distrusted, Footprint, Progress, Stats, SurveyListing};
 pub use patchwork_core::resample::Backend;
 pub use patchwork_read::REFUSED_PATH;
-pub use read::{Cut, MeshSpec, MeshTile, TileHead, FILL_STEPS, MAX_MESH_SIZE};
+pub use read::{Cut, MeshSpec, MeshTile, TileHead, MAX_MESH_SIZE};
 pub use write::{Event, Ingested, Origin, Outcome};
 
 use crate::config::Config;

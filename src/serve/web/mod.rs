@@ -17,6 +17,7 @@ use super::auth::Gate;
 use super::grpc::Service;
 use crate::engine::{Engine, EngineError};
 use crate::sync::lock;
+use axum::body::Bytes;
 use axum::extract::{Path, Query, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
 use axum::middleware::{self, Next};
@@ -49,7 +50,7 @@ pub struct Web {
     cache_control: HeaderValue,
     /// Encoded tiles by ETag: the ETag is made from the cut each time, so a tile found here is
     /// the one the data gives now.
-    tiles: Option<quick_cache::sync::Cache<[u8; 16], Arc<[u8]>, TileBytes>>,
+    tiles: Option<quick_cache::sync::Cache<[u8; 16], Bytes, TileBytes>>,
     /// The pyramids over the last terrain published, made again when another is.
     pyramid: Mutex<(Weak<Terrain>, Arc<Pyramid>)>,
     /// What besides the data and the request changes a tile's bytes: this program's version
@@ -62,8 +63,8 @@ pub struct Web {
 #[derive(Clone)]
 struct TileBytes;
 
-impl quick_cache::Weighter<[u8; 16], Arc<[u8]>> for TileBytes {
-    fn weight(&self, _: &[u8; 16], v: &Arc<[u8]>) -> u64 {
+impl quick_cache::Weighter<[u8; 16], Bytes> for TileBytes {
+    fn weight(&self, _: &[u8; 16], v: &Bytes) -> u64 {
         v.len() as u64 + 64
     }
 }
@@ -71,7 +72,8 @@ impl quick_cache::Weighter<[u8; 16], Arc<[u8]>> for TileBytes {
 /// A tile as it goes out: its ETag, and its bytes unless the client has them.
 pub struct Produced {
     etag: [u8; 16],
-    body: Option<Arc<[u8]>>,
+    /// Shared with the cache: a response takes no copy.
+    body: Option<Bytes>,
     content_type: &'static str,
 }
 
@@ -84,12 +86,14 @@ impl Web {
             let items = ((mb << 20) / 20_000).max(16) as usize;
             quick_cache::sync::Cache::with_weighter(items, mb << 20, TileBytes)
         });
+        let gate = Gate::terrain(cfg);
         Web {
-            gate: Gate::terrain(cfg),
-            mercator: Web::mercator_crs(),
+            mercator: patchwork_core::crs::Crs::epsg(3857)
+                .expect("EPSG:3857 is in every CRS database"),
             geographic: patchwork_core::crs::Crs::wgs84(),
             query_token: cfg.http.query_token,
-            cache_control: cache_control(&cfg.http.cache_control, Gate::terrain(cfg).is_open()),
+            cache_control: cache_control(&cfg.http.cache_control, gate.is_open()),
+            gate,
             fingerprint: format!("{}/{}", env!("CARGO_PKG_VERSION"), cfg.index.max_error),
             tiles,
             pyramid: Mutex::new((Weak::new(), Arc::new(Pyramid::empty()))),
@@ -128,8 +132,9 @@ impl Web {
 
     /// A tile's ETag: what was asked (`what`, which names the kind of tile, where it is and
     /// every parameter that changes its bytes), the patches its cut blends, and the surveys
-    /// near it (`lonlat`), whose coarser levels fill its voids. Patch ids are derived from
-    /// their content, so the ETag changes exactly when the data under the tile does.
+    /// that can reach into it (`near`), whose coarser levels fill its voids. Patch ids are
+    /// derived from their content, so the ETag changes exactly when the data under the tile
+    /// does.
     fn etag(&self, what: &str, patches: &[Extracted], near: &[u64]) -> [u8; 16] {
         let mut h = blake3::Hasher::new();
         h.update(self.fingerprint.as_bytes());
@@ -167,7 +172,7 @@ impl Web {
         let body = match self.tiles.as_ref().and_then(|c| c.get(&etag)) {
             Some(b) => b,
             None => {
-                let b: Arc<[u8]> = make()?.into();
+                let b = Bytes::from(make()?);
                 if let Some(c) = &self.tiles {
                     c.insert(etag, b.clone());
                 }
@@ -190,7 +195,7 @@ impl Web {
                     header::CONTENT_TYPE,
                     HeaderValue::from_static(p.content_type),
                 )],
-                b.to_vec(),
+                b,
             )
                 .into_response(),
             None => StatusCode::NOT_MODIFIED.into_response(),

@@ -6,7 +6,6 @@
 
 use super::{Encoding, Produced, Web};
 use crate::engine::{Backend, Cut, Engine, EngineError};
-use patchwork_core::crs::Crs;
 use patchwork_core::geom::tiles::mercator;
 use patchwork_core::resample::{Cancel, SampleGrid};
 
@@ -154,13 +153,6 @@ pub fn png(heights: &[f32], voids: &[bool], size: u32, encoding: Encoding) -> Ve
         .expect("as many pixels as the header says, in memory");
     drop(w);
     out
-}
-
-impl Web {
-    /// EPSG:3857, made once.
-    pub(super) fn mercator_crs() -> Crs {
-        Crs::epsg(3857).expect("EPSG:3857 is in every CRS database")
-    }
 }
 
 #[cfg(test)]
