@@ -309,19 +309,29 @@ impl Survey {
         if grid.valid_count() == 0 {
             return Err(SurveyError::AllNodata);
         }
-        let id = Self::id_of(&grid, spec, crs.as_ref());
         let tiling = Self::tiling_of(&grid, &layout);
-        let kernel_accuracy = match spec {
-            AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
-            AccuracySpec::Auto => {
-                let mut k = accuracy::estimate(&grid, &tiling, layout.margin as u32).kernels;
-                if extra > 0.0 {
-                    k.values.iter_mut().for_each(|v| *v += extra);
-                }
-                k
-            }
-        };
-        let levels = mipmap::build_with(Arc::new(grid), layout.kernel, recipe.mipmap);
+        let grid = Arc::new(grid);
+        // The content hash and the accuracy estimate read level 0 as the mipmap does, and
+        // neither needs the other: side by side they fill the cores that the mipmap's
+        // coarsest levels leave idle.
+        let ((id, kernel_accuracy), levels) = rayon::join(
+            || {
+                let id = Self::id_of(&grid, spec, crs.as_ref());
+                let kernels = match spec {
+                    AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
+                    AccuracySpec::Auto => {
+                        let mut k =
+                            accuracy::estimate(&grid, &tiling, layout.margin as u32).kernels;
+                        if extra > 0.0 {
+                            k.values.iter_mut().for_each(|v| *v += extra);
+                        }
+                        k
+                    }
+                };
+                (id, kernels)
+            },
+            || mipmap::build_with(grid.clone(), layout.kernel, recipe.mipmap),
+        );
         let func = recipe.patches.function();
         let patches = make_patches(id, &kernel_accuracy, &levels, &tiling, &layout, func);
         Ok(Self::restore(
