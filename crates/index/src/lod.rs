@@ -632,32 +632,44 @@ impl LodIndex {
                 }
             }
         }
+        // What is new: each unit and box once, none already present.
+        let (mut units, mut ids) = (HashSet::new(), HashSet::new());
+        let adding: Vec<(SurveyId, Vec<Arc<PatchBox>>)> = insert
+            .into_iter()
+            .filter(|(survey, _)| !self.surveys.contains_key(survey) && units.insert(*survey))
+            .map(|(survey, boxes)| {
+                let boxes = boxes
+                    .into_iter()
+                    .filter(|b| !self.slots.contains_key(&b.id) && ids.insert(b.id))
+                    .map(Arc::new)
+                    .collect();
+                (survey, boxes)
+            })
+            .collect();
+        // The boxes already present that the new ones can move are found before the new ones
+        // go into the tree, so that the search meets only those: the new boxes are all
+        // recomputed anyway, and a survey alone in its area (the first of a store, or a tile
+        // of a mosaic) had every box search through its own survey's thousands for nothing.
+        changed.extend(adding.iter().flat_map(|(_, boxes)| boxes.iter().cloned()));
+        let mut todo = self.touched_by(&changed);
         let mut fresh = HashSet::new();
-        for (survey, boxes) in insert {
-            if self.surveys.contains_key(&survey) {
-                continue;
-            }
+        for (survey, boxes) in adding {
             let mut ids = Vec::with_capacity(boxes.len());
-            for b in boxes {
-                if self.slots.contains_key(&b.id) {
-                    continue;
-                }
+            for bx in boxes {
                 // Provisionally empty; the recomputation below gives the real state.
                 let slot = IndexedBox {
-                    bx: Arc::new(b),
+                    bx,
                     state: BoxState::EMPTY,
                 };
                 self.tree.insert(Self::entry(&slot));
                 ids.push(slot.bx.id);
                 fresh.insert(slot.bx.id);
-                changed.push(slot.bx.clone());
                 self.slots.insert(slot.bx.id, slot);
             }
             self.surveys.insert(survey, SurveyEntry { patches: ids });
         }
         // A box removed and added again in one change (same content) is simply recomputed.
         removed.retain(|id| !fresh.contains(id));
-        let mut todo = self.touched_by(&changed);
         todo.extend(fresh.iter().copied());
         todo.sort_unstable();
         todo.dedup();
