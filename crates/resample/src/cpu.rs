@@ -10,7 +10,7 @@
 //! only on the point and the patches that reach it, never on the ROI, and it is within the
 //! error of the most accurate data that covers it.
 
-use super::{AxisHit, Cancel, Hit, PatchSet, ResolvedPatch, SampleGrid, BLOCK};
+use super::{AxisHit, Cancel, Hit, PatchSet, ResolvedPatch, SampleGrid, Surface, BLOCK};
 use rayon::prelude::*;
 
 /// Patch indices per block of output samples, so each sample visits only patches near it:
@@ -133,12 +133,7 @@ pub fn resample_bands(
     // A north-up tile: what a patch makes of a column's x is worked out once for the tile,
     // and of a row's y once for the row, where a point at a time works both out for every
     // patch at every sample. The answer is the same, term for term (tested).
-    let columns: Option<Vec<Option<Columns>>> = grid.axes.as_ref().map(|axes| {
-        set.patches
-            .par_iter()
-            .map(|p| p.separable().then(|| Columns::new(p, &axes.xs)))
-            .collect()
-    });
+    let columns = columns_of(set, grid);
     for j0 in (0..grid.height).step_by(rows) {
         let mut out = vec![f32::NAN; grid.width * (grid.height - j0).min(rows)];
         match (&grid.axes, &columns) {
@@ -152,6 +147,16 @@ pub fn resample_bands(
         }
     }
     Some(())
+}
+
+/// For a north-up tile, what each separable patch makes of its columns.
+fn columns_of(set: &PatchSet, grid: &SampleGrid) -> Option<Vec<Option<Columns>>> {
+    grid.axes.as_ref().map(|axes| {
+        set.patches
+            .par_iter()
+            .map(|p| p.separable().then(|| Columns::new(p, &axes.xs)))
+            .collect()
+    })
 }
 
 /// The rows from `j0` (the first of a block) that `out` holds, one point at a time.
@@ -230,6 +235,13 @@ fn by_axes(
             }
             let mut rows = vec![AxisHit::default(); near.len()];
             let (mut live, mut ranks, mut sums) = (Vec::new(), Vec::new(), Vec::new());
+            // The blocks that one patch serves alone, their columns laid out once for all
+            // the band's rows.
+            let alone: Vec<Option<Alone>> = bins
+                .iter()
+                .enumerate()
+                .map(|(ib, bin)| Alone::of(set, columns, bin, ib * BLOCK, width))
+                .collect();
             for (dj, row) in band.chunks_mut(width).enumerate() {
                 if cancel.is_cancelled() {
                     return;
@@ -242,6 +254,11 @@ fn by_axes(
                     }
                 }
                 for (ib, (cells, bin)) in row.chunks_mut(BLOCK).zip(bins).enumerate() {
+                    if let Some(one) = &alone[ib] {
+                        if one.fill(&set.patches[one.k], &rows[slot[one.k] as usize], cells) {
+                            continue;
+                        }
+                    }
                     // The block's patches that can reach this row, in the bin's order: the
                     // others answer None at every sample of it.
                     live.clear();
@@ -313,6 +330,123 @@ fn by_axes(
                 }
             }
         });
+}
+
+/// A block that one patch serves alone, with what the patch makes of the block's columns
+/// laid out by column, so that a row of the block is one short loop over the level's samples.
+///
+/// Formula 1 at a point that patch k covers gives k's height alone when k is the only patch
+/// of the cut in the block, or when the block has no patch of the cut and k is its one
+/// fallback patch of the best rank: the other fallback patches are of worse rank, and a
+/// point covered by a better tier never adds a worse one. The sums are then w·z and w,
+/// divided as the blend divides them, so the height is the blend's to the bit.
+struct Alone {
+    /// The patch.
+    k: usize,
+    /// Per column: the cell, the fraction across it and the weight along x.
+    cell: [u32; BLOCK],
+    frac: [f64; BLOCK],
+    weight: [f64; BLOCK],
+    /// Columns in use: the block's, fewer at the tile's right edge.
+    n: usize,
+}
+
+impl Alone {
+    /// The block's one patch, if it has one as above that is separable and whose kernel and
+    /// window hold every column of the block.
+    fn of(
+        set: &PatchSet,
+        columns: &[Option<Columns>],
+        bin: &[u32],
+        i0: usize,
+        width: usize,
+    ) -> Option<Alone> {
+        let k = alone_in(set, bin)?;
+        let c = columns[k].as_ref()?;
+        let n = (i0 + BLOCK).min(width) - i0;
+        let mut one = Alone {
+            k,
+            cell: [0; BLOCK],
+            frac: [0.0; BLOCK],
+            weight: [0.0; BLOCK],
+            n,
+        };
+        for d in 0..n {
+            let h = c.at(i0 + d);
+            if !(h.reaches && h.covered) {
+                return None;
+            }
+            (one.cell[d], one.frac[d], one.weight[d]) = (h.cell, h.frac, h.weight);
+        }
+        Some(one)
+    }
+
+    /// One row of the block into `out`, `y` what the patch makes of the row's y: true when
+    /// the patch covers the whole row and every cell under it is whole. Otherwise (a void
+    /// under the row, a row past the kernel) false, and the row is the blend's to make.
+    #[inline]
+    fn fill(&self, p: &ResolvedPatch, y: &AxisHit, out: &mut [f32]) -> bool {
+        let Surface::Bilinear(level) = &p.surface else {
+            unreachable!("only bilinear patches are separable")
+        };
+        if !(y.reaches && y.covered) {
+            return false;
+        }
+        let g = &level.grid;
+        let r = y.cell as usize * g.cols;
+        let (top, bottom) = (
+            &g.samples[r..r + g.cols],
+            &g.samples[r + g.cols..r + 2 * g.cols],
+        );
+        let (fy, wy) = (y.frac, y.weight);
+        let mut whole = true;
+        for (d, o) in out[..self.n].iter_mut().enumerate() {
+            let c = self.cell[d] as usize;
+            let fx = self.frac[d];
+            let (z00, z10) = (top[c] as f64, top[c + 1] as f64);
+            let (z01, z11) = (bottom[c] as f64, bottom[c + 1] as f64);
+            let upper = z00 + (z10 - z00) * fx;
+            let lower = z01 + (z11 - z01) * fx;
+            let z = upper + (lower - upper) * fy;
+            // The weight as `ResolvedPatch::at_axes` makes it (its last factor is 1 for a
+            // bilinear patch), and the sums from zero as a tier takes them.
+            let w = self.weight[d] * wy * p.norm;
+            whole &= !z.is_nan() && w > 0.0;
+            *o = ((0.0 + w * z) / (0.0 + w)) as f32;
+        }
+        whole
+    }
+}
+
+/// The patch that serves a block alone wherever it covers it (see [`Alone`]): the bin's one
+/// patch of the cut, or with none, its one fallback patch of the best rank.
+fn alone_in(set: &PatchSet, bin: &[u32]) -> Option<usize> {
+    let mut cut = bin.iter().filter(|&&k| !set.patches[k as usize].fallback);
+    if let Some(&k) = cut.next() {
+        return cut.next().is_none().then_some(k as usize);
+    }
+    let best = bin.iter().map(|&k| set.patches[k as usize].rank).min()?;
+    let mut of_best = bin
+        .iter()
+        .filter(|&&k| set.patches[k as usize].rank == best);
+    let k = *of_best.next()?;
+    of_best.next().is_none().then_some(k as usize)
+}
+
+/// How many of a tile's blocks one patch serves alone (the resampler's short path, where the
+/// block's rows have no void under them), and how many blocks it has.
+pub fn blocks_alone(set: &PatchSet, grid: &SampleGrid) -> (usize, usize) {
+    let bins = bin(&set.patches, grid);
+    let Some(columns) = columns_of(set, grid) else {
+        return (0, bins.len());
+    };
+    let bx = grid.width.div_ceil(BLOCK);
+    let alone = bins
+        .iter()
+        .enumerate()
+        .filter(|(b, bin)| Alone::of(set, &columns, bin, (b % bx) * BLOCK, grid.width).is_some())
+        .count();
+    (alone, bins.len())
 }
 
 /// What one separable patch makes of the columns of a tile it may reach: the columns whose x

@@ -397,15 +397,10 @@ fn every_kind_of_patch() -> Vec<std::sync::Arc<patchwork_core::model::survey::Su
     ]
 }
 
-#[test]
-fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit() {
-    // Every kind of patch at once: a finer copy with voids (edge patches), a coarser one of
-    // estimated accuracy (fallback tiers below it), a rotated one (resampled a point at a
-    // time inside the same tile), each at several errors, over tiles of odd sizes that start
-    // anywhere.
-    let surveys = every_kind_of_patch();
-    let t = terrain_of(&surveys);
-    let b = bounds_of(&surveys);
+/// Resamples tiles of odd sizes that start anywhere over `t`, at several errors, by rows and
+/// columns and point by point, and fails on any height that differs by a bit. Returns the
+/// heights compared and the blocks that one patch served alone.
+fn by_rows_equals_by_points(t: &Terrain, b: Aabb, sizes: &[(usize, usize)]) -> (usize, usize) {
     let (w, h) = (b.width(), b.height());
     let rois = [
         b,
@@ -422,12 +417,14 @@ fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit
             b.min[1] + 0.71 * h,
         ),
     ];
-    let mut compared = 0;
+    let (mut compared, mut alone) = (0, 0);
     for roi in rois {
         for e in [0.0, 2.0, 10.0, 60.0] {
-            for (width, height) in [(97, 61), (256, 256), (33, 190)] {
+            for &(width, height) in sizes {
                 let grid = SampleGrid::uniform(&roi, width, height);
                 let ps = t.uniform(&roi, e);
+                // Blocks one patch serves alone take the resampler's short path.
+                alone += cpu::blocks_alone(&t.resolve(&ps), &grid).0;
                 let fast = t.resample(ps.clone(), &grid).heights;
                 let slow = t.resample(ps, &grid.clone().pointwise()).heights;
                 for (k, (a, b)) in fast.iter().zip(&slow).enumerate() {
@@ -440,7 +437,42 @@ fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit
             }
         }
     }
+    (compared, alone)
+}
+
+#[test]
+fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit() {
+    // Every kind of patch at once: a finer copy with voids (edge patches), a coarser one of
+    // estimated accuracy (fallback tiers below it), a rotated one (resampled a point at a
+    // time inside the same tile), each at several errors.
+    let surveys = every_kind_of_patch();
+    let t = terrain_of(&surveys);
+    let (compared, _) =
+        by_rows_equals_by_points(&t, bounds_of(&surveys), &[(97, 61), (256, 256), (33, 190)]);
     assert!(compared > 300_000, "only {compared} heights compared");
+}
+
+#[test]
+fn blocks_that_one_patch_serves_alone_get_the_blend_to_the_bit() {
+    // Two surveys of one ground side by side with an overlap, one with a hole: most blocks
+    // of a fine tile lie inside one kernel, and the short path must give what the blend of
+    // that one patch gives, at the voids, the kernels' edges and the margins too.
+    let g = cop();
+    let mut holed = window(&g, 140, 60, 160, 200);
+    for r in 80..95 {
+        for c in 40..70 {
+            holed.samples[r * holed.cols + c] = f32::NAN;
+        }
+    }
+    let surveys = vec![
+        survey_with(window(&g, 0, 0, 180, 240), 1.0),
+        survey_with(holed, 2.0),
+    ];
+    let t = terrain_of(&surveys);
+    let (compared, alone) =
+        by_rows_equals_by_points(&t, bounds_of(&surveys), &[(300, 401), (512, 512)]);
+    assert!(compared > 1_000_000, "only {compared} heights compared");
+    assert!(alone > 1_000, "only {alone} blocks served by one patch");
 }
 
 #[test]
