@@ -62,7 +62,7 @@ pub fn shortfall(ps: &[Extracted], points: impl Iterator<Item = [f64; 2]>) -> Op
         let inside = |x: &&Extracted| x.kernel.contains_point(p);
         if near
             .iter()
-            .map(|&k| &ps[k])
+            .map(|&k| &ps[k as usize])
             .filter(|x| !x.fallback)
             .any(|x| inside(&x))
         {
@@ -72,7 +72,7 @@ pub fn shortfall(ps: &[Extracted], points: impl Iterator<Item = [f64; 2]>) -> Op
         // The most accurate of the fallback patches there is what serves the point.
         let best = near
             .iter()
-            .map(|&k| &ps[k])
+            .map(|&k| &ps[k as usize])
             .filter(|x| x.fallback)
             .filter(inside)
             .map(|x| x.span.min_z)
@@ -94,11 +94,16 @@ pub fn shortfall(ps: &[Extracted], points: impl Iterator<Item = [f64; 2]>) -> Op
 /// The patches of a cut binned by the cells of a grid over a set of points: every patch whose
 /// kernel's bounds reach a cell is listed in it, so a point's cell lists every patch whose
 /// kernel can hold the point (and maybe a few more).
+///
+/// The lists lie end to end in one vector, cell after cell (`starts` says where each begins):
+/// a list of its own for each of a tile's 4,096 cells cost more in allocations than the
+/// probes themselves.
 struct Bins {
     origin: [f64; 2],
     cell: [f64; 2],
     n: [usize; 2],
-    cells: Vec<Vec<usize>>,
+    starts: Vec<u32>,
+    listed: Vec<u32>,
 }
 
 impl Bins {
@@ -114,25 +119,46 @@ impl Bins {
             origin: b.min,
             cell,
             n,
-            cells: vec![Vec::new(); side * side],
+            starts: vec![0; side * side + 1],
+            listed: Vec::new(),
         };
         if points.is_empty() {
             return bins;
         }
-        for (k, x) in ps.iter().enumerate() {
-            let a = x.kernel.aabb();
-            if !(a.max[0] >= b.min[0]
-                && a.min[0] <= b.max[0]
-                && a.max[1] >= b.min[1]
-                && a.min[1] <= b.max[1])
-            {
-                continue;
+        // The cells each patch's kernel reaches, as ranges of columns and rows.
+        let spans: Vec<Option<([usize; 2], [usize; 2])>> = ps
+            .iter()
+            .map(|x| {
+                let a = x.kernel.aabb();
+                let meets = a.max[0] >= b.min[0]
+                    && a.min[0] <= b.max[0]
+                    && a.max[1] >= b.min[1]
+                    && a.min[1] <= b.max[1];
+                meets.then(|| (bins.at(a.min), bins.at(a.max)))
+            })
+            .collect();
+        // Counted, then placed: each cell's patches in ascending order, as pushed one by one.
+        for ([i0, j0], [i1, j1]) in spans.iter().flatten() {
+            for j in *j0..=*j1 {
+                for i in *i0..=*i1 {
+                    bins.starts[j * n[0] + i + 1] += 1;
+                }
             }
-            let [i0, j0] = bins.at(a.min);
-            let [i1, j1] = bins.at(a.max);
-            for j in j0..=j1 {
-                for i in i0..=i1 {
-                    bins.cells[j * n[0] + i].push(k);
+        }
+        for c in 0..side * side {
+            bins.starts[c + 1] += bins.starts[c];
+        }
+        let mut next = bins.starts.clone();
+        bins.listed = vec![0; bins.starts[side * side] as usize];
+        for (k, span) in spans.iter().enumerate() {
+            let Some(([i0, j0], [i1, j1])) = span else {
+                continue;
+            };
+            for j in *j0..=*j1 {
+                for i in *i0..=*i1 {
+                    let at = &mut next[j * n[0] + i];
+                    bins.listed[*at as usize] = k as u32;
+                    *at += 1;
                 }
             }
         }
@@ -154,9 +180,10 @@ impl Bins {
     }
 
     /// The patches listed in a point's cell.
-    fn near(&self, p: [f64; 2]) -> &[usize] {
+    fn near(&self, p: [f64; 2]) -> &[u32] {
         let [i, j] = self.at(p);
-        &self.cells[j * self.n[0] + i]
+        let c = j * self.n[0] + i;
+        &self.listed[self.starts[c] as usize..self.starts[c + 1] as usize]
     }
 }
 
