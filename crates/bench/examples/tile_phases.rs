@@ -54,7 +54,9 @@ fn main() {
             .map(|w| w.parse().expect("a number"))
             .collect()
     });
-    println!("size extent e patches | cut resolve grid bin+blend total (ms, medians)");
+    println!(
+        "size extent e patches | cut resolve grid bin+blend total (ms, medians) | blend M samples/s, blocks one patch serves alone"
+    );
     for n in [64usize, 512, 2048] {
         for extent in [0.05, 0.2, 1.0] {
             for e in [0.0, 5.0] {
@@ -76,6 +78,7 @@ fn main() {
                 };
                 let (mut q, mut r, mut g, mut b, mut all, mut count) =
                     (vec![], vec![], vec![], vec![], vec![], 0);
+                let mut alone = (0, 0);
                 for _ in 0..reps {
                     let t0 = Instant::now();
                     let (t, ps) = engine.query(&cut).expect("cut");
@@ -86,6 +89,7 @@ fn main() {
                     let tg = Instant::now();
                     let hs = cpu::resample(&set, &grid);
                     let t3 = Instant::now();
+                    alone = cpu::blocks_alone(&set, &grid);
                     g.push((tg - t2).as_secs_f64() * 1e3);
                     std::hint::black_box(hs);
                     count = ps.len();
@@ -94,13 +98,15 @@ fn main() {
                     b.push((t3 - tg).as_secs_f64() * 1e3);
                     all.push((t3 - t0).as_secs_f64() * 1e3);
                 }
+                let blend = median(b);
                 println!(
-                    "{n:>4} {extent:>4} {e} {count:>6} | {:7.2} {:7.2} {:7.2} {:7.2} {:7.2}",
+                    "{n:>4} {extent:>4} {e} {count:>6} | {:7.2} {:7.2} {:7.2} {blend:7.2} {:7.2} | {:6.0} {:5.1}%",
                     median(q),
                     median(r),
                     median(g),
-                    median(b),
-                    median(all)
+                    median(all),
+                    (n * n) as f64 / blend / 1e3,
+                    100.0 * alone.0 as f64 / alone.1.max(1) as f64,
                 );
             }
         }

@@ -235,6 +235,7 @@ fn by_axes(
             }
             let mut rows = vec![AxisHit::default(); near.len()];
             let (mut live, mut ranks, mut sums) = (Vec::new(), Vec::new(), Vec::new());
+            let mut tiers = Vec::with_capacity(8);
             // The blocks that one patch serves alone, their columns laid out once for all
             // the band's rows.
             let alone: Vec<Option<Alone>> = bins
@@ -255,7 +256,25 @@ fn by_axes(
                 }
                 for (ib, (cells, bin)) in row.chunks_mut(BLOCK).zip(bins).enumerate() {
                     if let Some(one) = &alone[ib] {
-                        if one.fill(&set.patches[one.k], &rows[slot[one.k] as usize], cells) {
+                        let left =
+                            one.fill(&set.patches[one.k], &rows[slot[one.k] as usize], cells);
+                        if let Some(left) = left {
+                            // The samples the patch does not serve alone (off its kernel, or
+                            // over a void), each blended as a point is.
+                            let i0 = ib * BLOCK;
+                            for d in (0..cells.len()).filter(|d| left & (1 << d) != 0) {
+                                let i = i0 + d;
+                                cells[d] = blend_by(set, bin, &mut tiers, |k| {
+                                    let p = &set.patches[k];
+                                    match &columns[k] {
+                                        Some(c) => p.at_axes(&c.at(i), &rows[slot[k] as usize]),
+                                        None => {
+                                            let at = row_j * width + i;
+                                            p.at(in_plane(p, [axes.xs[i], y], planes, at))
+                                        }
+                                    }
+                                });
+                            }
                             continue;
                         }
                     }
@@ -347,13 +366,15 @@ struct Alone {
     cell: [u32; BLOCK],
     frac: [f64; BLOCK],
     weight: [f64; BLOCK],
+    /// The columns in the patch's kernel and window, a bit each.
+    inside: u16,
     /// Columns in use: the block's, fewer at the tile's right edge.
     n: usize,
 }
 
 impl Alone {
     /// The block's one patch, if it has one as above that is separable and whose kernel and
-    /// window hold every column of the block.
+    /// window hold all but [`LEFT_MOST`] columns of the block at most.
     fn of(
         set: &PatchSet,
         columns: &[Option<Columns>],
@@ -369,28 +390,37 @@ impl Alone {
             cell: [0; BLOCK],
             frac: [0.0; BLOCK],
             weight: [0.0; BLOCK],
+            inside: 0,
             n,
         };
         for d in 0..n {
             let h = c.at(i0 + d);
-            if !(h.reaches && h.covered) {
-                return None;
+            if h.reaches && h.covered {
+                (one.cell[d], one.frac[d], one.weight[d]) = (h.cell, h.frac, h.weight);
+                one.inside |= 1 << d;
             }
-            (one.cell[d], one.frac[d], one.weight[d]) = (h.cell, h.frac, h.weight);
         }
-        Some(one)
+        // A sample left to the blend costs it a point's lookups of every patch, several
+        // times what the block's own loop costs a sample: with more than a few left, the
+        // block's loop is the faster.
+        (one.inside.count_ones() as usize + LEFT_MOST >= n).then_some(one)
     }
 
-    /// One row of the block into `out`, `y` what the patch makes of the row's y: true when
-    /// the patch covers the whole row and every cell under it is whole. Otherwise (a void
-    /// under the row, a row past the kernel) false, and the row is the blend's to make.
+    /// Whether the patch serves every column of the block.
+    fn whole(&self) -> bool {
+        self.inside == ((1u32 << self.n) - 1) as u16
+    }
+
+    /// One row of the block into `out`, `y` what the patch makes of the row's y. None where
+    /// the row lies off the patch's kernel: the whole row is the blend's to make. Otherwise
+    /// the samples it left for the blend, a bit each: those off the kernel, or over a void.
     #[inline]
-    fn fill(&self, p: &ResolvedPatch, y: &AxisHit, out: &mut [f32]) -> bool {
+    fn fill(&self, p: &ResolvedPatch, y: &AxisHit, out: &mut [f32]) -> Option<u16> {
         let Surface::Bilinear(level) = &p.surface else {
             unreachable!("only bilinear patches are separable")
         };
         if !(y.reaches && y.covered) {
-            return false;
+            return None;
         }
         let g = &level.grid;
         let r = y.cell as usize * g.cols;
@@ -399,8 +429,11 @@ impl Alone {
             &g.samples[r + g.cols..r + 2 * g.cols],
         );
         let (fy, wy) = (y.frac, y.weight);
-        let mut whole = true;
+        let mut left = !self.inside & (((1u32 << self.n) - 1) as u16);
         for (d, o) in out[..self.n].iter_mut().enumerate() {
+            if self.inside & (1 << d) == 0 {
+                continue;
+            }
             let c = self.cell[d] as usize;
             let fx = self.frac[d];
             let (z00, z10) = (top[c] as f64, top[c + 1] as f64);
@@ -411,12 +444,17 @@ impl Alone {
             // The weight as `ResolvedPatch::at_axes` makes it (its last factor is 1 for a
             // bilinear patch), and the sums from zero as a tier takes them.
             let w = self.weight[d] * wy * p.norm;
-            whole &= !z.is_nan() && w > 0.0;
+            if z.is_nan() || w <= 0.0 || w.is_nan() {
+                left |= 1 << d;
+            }
             *o = ((0.0 + w * z) / (0.0 + w)) as f32;
         }
-        whole
+        Some(left)
     }
 }
+
+/// Most columns of a block that [`Alone`] leaves to the blend of each point.
+const LEFT_MOST: usize = 4;
 
 /// The patch that serves a block alone wherever it covers it (see [`Alone`]): the bin's one
 /// patch of the cut, or with none, its one fallback patch of the best rank.
@@ -444,7 +482,9 @@ pub fn blocks_alone(set: &PatchSet, grid: &SampleGrid) -> (usize, usize) {
     let alone = bins
         .iter()
         .enumerate()
-        .filter(|(b, bin)| Alone::of(set, &columns, bin, (b % bx) * BLOCK, grid.width).is_some())
+        .filter(|(b, bin)| {
+            Alone::of(set, &columns, bin, (b % bx) * BLOCK, grid.width).is_some_and(|a| a.whole())
+        })
         .count();
     (alone, bins.len())
 }
