@@ -134,8 +134,13 @@ pub fn fit_minimax(coarse: &mut Grid, fine: &Grid, level: usize) {
     // Enough coarse rows a task that its fine rows are some 64, each band working out
     // again only the one fine row it shares with the next.
     let band = (64 / f).max(1);
-    for _ in 0..FIT_ROUNDS {
-        let current = coarse.clone();
+    // The heights a round starts from, in one buffer for all rounds: a level-1 copy of a
+    // 3600² survey is 13 MB, and a fresh one each round was faulted in page by page.
+    let mut current = coarse.clone();
+    for round in 0..FIT_ROUNDS {
+        if round > 0 {
+            current.samples.copy_from_slice(&coarse.samples);
+        }
         coarse
             .samples
             .par_chunks_mut(current.cols * band)
