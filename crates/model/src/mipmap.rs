@@ -209,37 +209,20 @@ fn fit_band(current: &Grid, fine: &Grid, f: usize, j0: usize, rows: &mut [f32]) 
 /// where the cell or the sample is void, which [`extremes`] passes over.
 #[inline]
 fn deviations(line: &[f64], inv: f64, f: usize, z: &[f32], dev: &mut [f64]) {
-    // A fixed cell width lets the compiler unroll the cells of the finer levels, where a
-    // cell holds two or four samples and a loop per cell would cost more than its work.
+    // A width the compiler knows lets it unroll the cells of the finer levels, where a cell
+    // holds two or four samples and a loop per cell would cost more than its work: each arm
+    // inlines the one loop with its own constant.
     match f {
-        2 => deviations_of::<2>(line, inv, z, dev),
-        4 => deviations_of::<4>(line, inv, z, dev),
-        8 => deviations_of::<8>(line, inv, z, dev),
-        16 => deviations_of::<16>(line, inv, z, dev),
-        _ => deviations_by(line, inv, f, z, dev),
+        2 => deviations_in(line, inv, 2, z, dev),
+        4 => deviations_in(line, inv, 4, z, dev),
+        8 => deviations_in(line, inv, 8, z, dev),
+        16 => deviations_in(line, inv, 16, z, dev),
+        _ => deviations_in(line, inv, f, z, dev),
     }
 }
 
-#[inline]
-fn deviations_of<const F: usize>(line: &[f64], inv: f64, z: &[f32], dev: &mut [f64]) {
-    let offsets: [f64; F] = std::array::from_fn(|k| k as f64);
-    let cells = line.len() - 1;
-    for (c, (d, zs)) in dev
-        .chunks_exact_mut(F)
-        .zip(z.chunks_exact(F))
-        .take(cells)
-        .enumerate()
-    {
-        let a = line[c];
-        let s = (line[c + 1] - a) * inv;
-        for k in 0..F {
-            d[k] = a + s * offsets[k] - zs[k] as f64;
-        }
-    }
-    last_sample(line, inv, F, z, dev);
-}
-
-fn deviations_by(line: &[f64], inv: f64, f: usize, z: &[f32], dev: &mut [f64]) {
+#[inline(always)]
+fn deviations_in(line: &[f64], inv: f64, f: usize, z: &[f32], dev: &mut [f64]) {
     let cells = line.len() - 1;
     for (c, (d, zs)) in dev
         .chunks_exact_mut(f)
