@@ -633,14 +633,14 @@ impl LodIndex {
             }
         }
         // What is new: each unit and box once, none already present.
-        let (mut units, mut ids) = (HashSet::new(), HashSet::new());
+        let (mut seen_units, mut seen_boxes) = (HashSet::new(), HashSet::new());
         let adding: Vec<(SurveyId, Vec<Arc<PatchBox>>)> = insert
             .into_iter()
-            .filter(|(survey, _)| !self.surveys.contains_key(survey) && units.insert(*survey))
+            .filter(|(survey, _)| !self.surveys.contains_key(survey) && seen_units.insert(*survey))
             .map(|(survey, boxes)| {
                 let boxes = boxes
                     .into_iter()
-                    .filter(|b| !self.slots.contains_key(&b.id) && ids.insert(b.id))
+                    .filter(|b| !self.slots.contains_key(&b.id) && seen_boxes.insert(b.id))
                     .map(Arc::new)
                     .collect();
                 (survey, boxes)

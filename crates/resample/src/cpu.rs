@@ -471,8 +471,8 @@ fn alone_in(set: &PatchSet, bin: &[u32]) -> Option<usize> {
     of_best.next().is_none().then_some(k as usize)
 }
 
-/// How many of a tile's blocks one patch serves alone (the resampler's short path, where the
-/// block's rows have no void under them), and how many blocks it has.
+/// How many of a tile's blocks one patch serves whole (it covers every column of the block,
+/// so that the resampler's short path takes each row it covers), and how many blocks it has.
 pub fn blocks_alone(set: &PatchSet, grid: &SampleGrid) -> (usize, usize) {
     let bins = bin(&set.patches, grid);
     let Some(columns) = columns_of(set, grid) else {

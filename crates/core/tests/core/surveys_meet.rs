@@ -454,9 +454,10 @@ fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit
 
 #[test]
 fn blocks_that_one_patch_serves_alone_get_the_blend_to_the_bit() {
-    // Two surveys of one ground side by side with an overlap, one with a hole: most blocks
-    // of a fine tile lie inside one kernel, and the short path must give what the blend of
-    // that one patch gives, at the voids, the kernels' edges and the margins too.
+    // Two surveys of one ground side by side with an overlap, one with a hole, and a coarser
+    // copy of estimated accuracy under both (fallback tiers of another resolution): most
+    // blocks of a fine tile lie inside one kernel, and the short path must give what the
+    // blend gives, at the voids, the kernels' edges, the margins and where the tiers meet.
     let g = cop();
     let mut holed = window(&g, 140, 60, 160, 200);
     for r in 80..95 {
@@ -467,6 +468,7 @@ fn blocks_that_one_patch_serves_alone_get_the_blend_to_the_bit() {
     let surveys = vec![
         survey_with(window(&g, 0, 0, 180, 240), 1.0),
         survey_with(holed, 2.0),
+        survey_with(decimate(&window(&g, 0, 0, 300, 240), 2), Auto),
     ];
     let t = terrain_of(&surveys);
     let (compared, alone) =
