@@ -83,7 +83,7 @@ impl Secret {
     }
 }
 
-/// How the store uses its disk.
+/// How the store uses its disk, and where its chunk bytes go.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Storage {
@@ -91,6 +91,24 @@ pub struct Storage {
     pub min_free_mb: u64,
     /// Size of the reserve file beside the store, in MiB; 0 keeps none.
     pub reserve_mb: u64,
+    /// Where the chunk bytes go; the database stays in `data_dir` with every backend.
+    pub backend: BackendKind,
+    /// The S3 (or S3-compatible) bucket of `backend = "s3"`.
+    pub s3: S3,
+    /// The folder of `backend = "folder"`: an object store's layout on a local or mounted
+    /// disk.
+    pub folder: Option<PathBuf>,
+    /// Object-store backends: the longest one request may take, retries included, in ms.
+    pub timeout_ms: u64,
+    /// Object-store backends: how many times a failed request (a 503, a dropped connection)
+    /// is tried again, with exponential backoff, within `timeout_ms`.
+    pub retries: u64,
+    /// Object-store backends: how long the segments a compaction let go of are kept, in
+    /// seconds, for readers still holding the database from before it.
+    pub gc_grace_s: u64,
+    /// Object-store backends: how long the writer's lease lasts unless renewed, in seconds;
+    /// it is renewed every third of that.
+    pub lease_s: u64,
 }
 
 impl Default for Storage {
@@ -98,6 +116,68 @@ impl Default for Storage {
         Storage {
             min_free_mb: 64,
             reserve_mb: 64,
+            backend: BackendKind::Local,
+            s3: S3::default(),
+            folder: None,
+            timeout_ms: 10_000,
+            retries: 4,
+            gc_grace_s: 3600,
+            lease_s: 15,
+        }
+    }
+}
+
+/// Where a store's chunk bytes go.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendKind {
+    /// The pack file beside the database.
+    #[default]
+    Local,
+    /// An S3 bucket, or any server that speaks S3's protocol.
+    S3,
+    /// A folder, laid out as an object store is.
+    Folder,
+}
+
+impl std::str::FromStr for BackendKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim() {
+            "local" => Ok(BackendKind::Local),
+            "s3" => Ok(BackendKind::S3),
+            "folder" => Ok(BackendKind::Folder),
+            other => Err(format!(
+                "{other:?} is not a storage backend: \"local\", \"s3\" or \"folder\""
+            )),
+        }
+    }
+}
+
+/// The `[storage.s3]` section. Credentials are read from the environment as AWS's tools read
+/// them (`AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`, …), never from
+/// this file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct S3 {
+    /// The server's URL; empty for AWS itself.
+    pub endpoint: String,
+    pub bucket: String,
+    /// The folder inside the bucket that this store's objects go under.
+    pub prefix: String,
+    pub region: String,
+    /// Whether a plain `http://` endpoint is allowed.
+    pub allow_http: bool,
+}
+
+impl Default for S3 {
+    fn default() -> Self {
+        S3 {
+            endpoint: String::new(),
+            bucket: String::new(),
+            prefix: String::new(),
+            region: "us-east-1".into(),
+            allow_http: false,
         }
     }
 }
@@ -382,6 +462,27 @@ impl Config {
                 message: format!("{v:?} is not a number"),
             })
         }
+        if let Some(v) = get("PATCHWORK_STORAGE_BACKEND") {
+            self.storage.backend = v.parse().map_err(|message| ConfigError::Env {
+                var: "PATCHWORK_STORAGE_BACKEND".into(),
+                message,
+            })?;
+        }
+        for (var, field) in [
+            ("PATCHWORK_S3_ENDPOINT", &mut self.storage.s3.endpoint),
+            ("PATCHWORK_S3_BUCKET", &mut self.storage.s3.bucket),
+            ("PATCHWORK_S3_PREFIX", &mut self.storage.s3.prefix),
+        ] {
+            if let Some(v) = get(var) {
+                *field = v;
+            }
+        }
+        if let Some(v) = get("PATCHWORK_STORAGE_FOLDER") {
+            self.storage.folder = Some(v.into());
+        }
+        if let Some(v) = get("PATCHWORK_S3_ALLOW_HTTP") {
+            self.storage.s3.allow_http = matches!(v.trim(), "1" | "true" | "yes");
+        }
         if let Some(v) = get("PATCHWORK_DATA_DIR") {
             self.data_dir = v.into();
         }
@@ -554,6 +655,24 @@ impl Config {
                 )));
             }
         }
+        match self.storage.backend {
+            BackendKind::S3 if self.storage.s3.bucket.is_empty() => {
+                return Err(ConfigError::Invalid(
+                    "storage.backend = \"s3\" needs storage.s3.bucket".into(),
+                ))
+            }
+            BackendKind::Folder if self.storage.folder.is_none() => {
+                return Err(ConfigError::Invalid(
+                    "storage.backend = \"folder\" needs storage.folder".into(),
+                ))
+            }
+            _ => {}
+        }
+        if self.storage.timeout_ms == 0 || self.storage.lease_s == 0 {
+            return Err(ConfigError::Invalid(
+                "storage.timeout_ms and storage.lease_s must be at least 1".into(),
+            ));
+        }
         if self.tls_cert.is_some() != self.tls_key.is_some() {
             return Err(ConfigError::Invalid(
                 "TLS needs both tls_cert and tls_key (PEM files)".into(),
@@ -644,5 +763,27 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("PATCHWORK_SETTLE_MS"));
+    }
+
+    #[test]
+    fn the_storage_backend_comes_from_the_environment_and_needs_its_place() {
+        let mut c = Config::default();
+        let s3 = |k: &str| match k {
+            "PATCHWORK_STORAGE_BACKEND" => Some("s3".to_string()),
+            "PATCHWORK_S3_ENDPOINT" => Some("http://127.0.0.1:9000".to_string()),
+            "PATCHWORK_S3_PREFIX" => Some("store1".to_string()),
+            "PATCHWORK_S3_ALLOW_HTTP" => Some("true".to_string()),
+            _ => None,
+        };
+        c.apply_env(s3).unwrap();
+        assert_eq!(c.storage.backend, BackendKind::S3);
+        assert!(c.storage.s3.allow_http);
+        // No bucket: refused, saying what is missing.
+        assert!(c.validate().unwrap_err().to_string().contains("s3.bucket"));
+        c.apply_env(|k| (k == "PATCHWORK_S3_BUCKET").then(|| "terrain".to_string()))
+            .unwrap();
+        assert!(c.validate().is_ok());
+        let odd = |k: &str| (k == "PATCHWORK_STORAGE_BACKEND").then(|| "tape".to_string());
+        assert!(c.apply_env(odd).unwrap_err().to_string().contains("tape"));
     }
 }

@@ -8,6 +8,10 @@ use std::process::ExitCode;
 fn main() -> ExitCode {
     // Process-wide settings first, before any thread exists to see them change.
     patchwork::tune_allocator();
+    // Two TLS crypto providers are linked: ring, which the gRPC and HTTP servers and the CLI's
+    // client use, and aws-lc-rs, which the object store's HTTP client brings and uses by name.
+    // rustls then cannot pick the process default itself, and must be told.
+    let _ = rustls::crypto::ring::default_provider().install_default();
     quiet_vulkan_layers();
     let args = cli::Cli::parse();
     let rt = tokio::runtime::Builder::new_multi_thread()

@@ -26,9 +26,11 @@ pub use patchwork_read::REFUSED_PATH;
 pub use read::{Cut, MeshSpec, MeshTile, TileHead, MAX_MESH_SIZE};
 pub use write::{Event, Ingested, Origin, Outcome};
 
-use crate::config::Config;
+use crate::config::{BackendKind, Config, Storage};
 use crate::ingest::Geoids;
 use crate::restore;
+use crate::store::objects::Objects;
+use crate::store::ChunkBackend;
 use crate::store::{
     now_unix, Catalog, ChunkReader, DiskSpace, FailedRecord, SpaceGuard, Store, StoreOptions,
     SurveyRecord, SystemDisk,
@@ -94,7 +96,7 @@ impl Engine {
             &cfg.data_dir,
             cfg.patches.layout(),
             cfg.index,
-            store_options(&cfg, &guard),
+            store_options(&cfg, &guard)?,
         )?;
         for w in &opened.warnings {
             tracing::warn!(warning = %w, "store opened with a problem; `patchwork verify` tells more");
@@ -318,13 +320,73 @@ fn release_free_memory() {
 }
 
 /// How the engine's store is opened.
-fn store_options(cfg: &Config, guard: &SpaceGuard) -> StoreOptions {
-    StoreOptions {
+fn store_options(cfg: &Config, guard: &SpaceGuard) -> Result<StoreOptions, EngineError> {
+    Ok(StoreOptions {
         guard: guard.clone(),
         cache_bytes: cfg.cache_mb << 20,
         recipe: cfg.recipe(),
         contradicted: cfg.accuracy.contradicted,
-    }
+        backend: backend(&cfg.storage)?,
+    })
+}
+
+/// The object store `[storage]` names, as a client: nothing is sent until the store opens.
+fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
+    use object_store::{ClientOptions, RetryConfig};
+    let timeout = std::time::Duration::from_millis(st.timeout_ms);
+    // Each try gets the whole deadline; the retries, with backoff, share it.
+    let retry = RetryConfig {
+        max_retries: st.retries as usize,
+        retry_timeout: timeout,
+        ..RetryConfig::default()
+    };
+    let bad =
+        |what: &str, e: object_store::Error| EngineError::Invalid(format!("storage: {what}: {e}"));
+    let (store, prefix, url): (Arc<dyn object_store::ObjectStore>, _, _) = match st.backend {
+        BackendKind::Local => return Ok(ChunkBackend::Local),
+        BackendKind::S3 => {
+            let s3 = &st.s3;
+            let mut b = object_store::aws::AmazonS3Builder::from_env()
+                .with_bucket_name(&s3.bucket)
+                .with_region(&s3.region)
+                .with_allow_http(s3.allow_http)
+                .with_retry(retry)
+                .with_client_options(
+                    ClientOptions::new()
+                        .with_timeout(timeout)
+                        .with_connect_timeout(timeout.min(std::time::Duration::from_secs(5)))
+                        .with_allow_http(s3.allow_http),
+                );
+            if !s3.endpoint.is_empty() {
+                b = b.with_endpoint(&s3.endpoint);
+            }
+            let store = b.build().map_err(|e| bad("s3", e))?;
+            let prefix = s3.prefix.trim_matches('/').to_string();
+            let url = format!("s3://{}/{prefix}", s3.bucket);
+            (Arc::new(store), prefix, url)
+        }
+        BackendKind::Folder => {
+            let dir = st.folder.as_ref().expect("validated: folder is set");
+            std::fs::create_dir_all(dir).map_err(|e| {
+                EngineError::Invalid(format!("storage.folder {}: {e}", dir.display()))
+            })?;
+            let store = object_store::local::LocalFileSystem::new_with_prefix(dir)
+                .map_err(|e| bad("folder", e))?;
+            let dir = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.clone());
+            (
+                Arc::new(store),
+                String::new(),
+                format!("file://{}", dir.display()),
+            )
+        }
+    };
+    Ok(ChunkBackend::Objects(Objects {
+        store,
+        prefix: object_store::path::Path::from(prefix),
+        url: url.trim_end_matches('/').to_string(),
+        grace: std::time::Duration::from_secs(st.gc_grace_s),
+        lease: std::time::Duration::from_secs(st.lease_s),
+    }))
 }
 
 #[cfg(test)]

@@ -648,7 +648,7 @@ impl Engine {
                     &self.dir,
                     self.cfg.patches.layout(),
                     self.cfg.index,
-                    store_options(&self.cfg, &self.guard),
+                    store_options(&self.cfg, &self.guard)?,
                 )?;
                 (opened, Err(e.into()))
             }

@@ -39,6 +39,8 @@ pub fn to_status(e: EngineError) -> Status {
         EngineError::Store(StoreError::Sled(sled::Error::Io(_)) | StoreError::Io(_)) => {
             Status::unavailable(m)
         }
+        // An object store down or slow: the bytes are there, and a retry may find them.
+        EngineError::Store(StoreError::Samples(e)) if e.unavailable => Status::unavailable(m),
         EngineError::Store(StoreError::Samples(_)) => Status::data_loss(m),
         EngineError::Store(_) => Status::internal(m),
         EngineError::Cancelled => Status::deadline_exceeded(m),

@@ -338,14 +338,22 @@ impl ChunkReader {
     ) -> Result<Chunk, SampleError> {
         let key = (survey.0, level as u8, k as u32);
         self.cache.get_or_insert_with(&key, || {
-            let fail = |reason: String| SampleError { survey, reason };
+            let fail = |reason: String| SampleError {
+                survey,
+                reason,
+                unavailable: false,
+            };
             let r = chunk_rect(shape, k);
             let open = read(&self.open);
             let (tree, pack) = open
                 .as_ref()
                 .ok_or_else(|| fail("the store is closed".into()))?;
-            let bytes = read_chunk(tree, pack.as_ref(), survey, level, k)
-                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
+            let bytes = located(tree, pack.as_ref(), &super::keys::chunk(survey, level, k))
+                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?
+                .map_err(|e| SampleError {
+                    unavailable: super::objects::is_unreachable(&e),
+                    ..fail(format!("chunk {k} of level {level}: reading the pack: {e}"))
+                })?;
             let samples = decode(&bytes, r.len(), r.cols())
                 .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
             Ok(Arc::new(placed(shape, &r, samples)))
@@ -370,6 +378,16 @@ pub fn read_packed(
     pack: &dyn ChunkStore,
     key: &[u8],
 ) -> Result<Vec<u8>, String> {
+    located(tree, pack, key)?.map_err(|e| format!("reading the pack: {e}"))
+}
+
+/// The bytes at the location the database holds for `key`: Err when the location is missing
+/// or bad, Ok(Err) when the pack could not give its bytes.
+fn located(
+    tree: &sled::Tree,
+    pack: &dyn ChunkStore,
+    key: &[u8],
+) -> Result<std::io::Result<Vec<u8>>, String> {
     let v = tree
         .get(key)
         .map_err(|e| e.to_string())?
@@ -383,7 +401,7 @@ pub fn read_packed(
             pack.len()
         ));
     }
-    pack.read(loc).map_err(|e| format!("reading the pack: {e}"))
+    Ok(pack.read(loc))
 }
 
 /// `rect`'s samples of a level shaped `shape`, georeferenced where they lie in it.

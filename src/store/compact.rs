@@ -13,10 +13,12 @@
 
 use super::chunks::read_packed;
 use super::pack::{ChunkStore, PackFile};
-use super::{dir_bytes, keys, open_sled, sibling, Loaded, Status, Store, StoreError};
+use super::{dir_bytes, keys, open_sled, sibling, ChunkBackend, Loaded, Status, Store, StoreError};
 use patchwork_core::model::ids::{PatchId, SurveyId};
 use std::collections::HashSet;
 use std::path::Path;
+use std::sync::Arc;
+use std::time::{SystemTime, UNIX_EPOCH};
 
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct CompactReport {
@@ -144,8 +146,13 @@ impl Store {
         // disk stops it with the store untouched, and the partial copy is deleted.
         let copied = (|| -> Result<(), StoreError> {
             let fresh = sled::Config::new().path(&tmp).open()?;
-            // Live chunks alone go to the new pack, each synced before the batch naming it.
-            let pack = PackFile::open(&tmp, 0)?;
+            // Live chunks alone go to the new pack, each synced before the batch naming it. On
+            // an object store they go to new segments past the end instead, and the database
+            // records where the old ones end, to be deleted once no reader can want them.
+            let (pack, base): (Arc<dyn ChunkStore>, _) = match &self.opts.backend {
+                ChunkBackend::Local => (Arc::new(PackFile::open(&tmp, 0)?), None),
+                ChunkBackend::Objects(_) => (self.pack.clone(), Some(self.pack.len())),
+            };
             let mut batch = sled::Batch::default();
             let mut chunks: Vec<(sled::IVec, Vec<u8>)> = Vec::new();
             let mut bytes = 0usize;
@@ -177,13 +184,21 @@ impl Store {
                     })?;
                     bytes += k.len() + b.len();
                     chunks.push((k, b));
-                } else if k.as_ref() != keys::PACK_LEN {
+                } else if k.as_ref() != keys::PACK_LEN && k.as_ref() != keys::PACK_BASE {
                     bytes += k.len() + v.len();
                     batch.insert(k, v);
                 }
                 if bytes >= COPY_BATCH_BYTES {
                     flush(&mut batch, &mut chunks, &mut bytes)?;
                 }
+            }
+            if let Some(base) = base {
+                let now = SystemTime::now()
+                    .duration_since(UNIX_EPOCH)
+                    .map_or(0, |d| d.as_secs());
+                let mut v = base.to_le_bytes().to_vec();
+                v.extend_from_slice(&now.to_le_bytes());
+                batch.insert(keys::PACK_BASE, v);
             }
             flush(&mut batch, &mut chunks, &mut bytes)?;
             fresh.flush()?;
@@ -228,6 +243,8 @@ impl Store {
         self.db.flush()?;
         let Store {
             db,
+            pack,
+            reader,
             layout,
             index,
             opts,
@@ -237,6 +254,9 @@ impl Store {
         } = self;
         // Terrains published from this store must not keep its database open.
         drop(_close_reader);
+        // Nor its pack: on an object store, the pack holds the writer's lease, which the
+        // store reopened below must take.
+        drop((reader, pack));
         // Closing sled ends its use of the directory; the lock beside it stays held, so no
         // other process can open the store while the directories move.
         drop(db);

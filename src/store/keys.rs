@@ -18,6 +18,11 @@ pub const PATCHES: &[u8] = b"meta/patches";
 pub const CONTRADICTED: &[u8] = b"meta/contradicted";
 /// `u64` LE: how many bytes of the chunk pack are committed (see [`super::pack`]).
 pub const PACK_LEN: &[u8] = b"meta/pack_len";
+/// The URL of the object store that holds the chunks (UTF-8); absent for the local pack.
+pub const PACK_AT: &[u8] = b"meta/pack_at";
+/// On an object store, after a compaction: where the address space it left behind ends, and
+/// when (`u64` LE each: offset, Unix seconds). See [`super::objects`].
+pub const PACK_BASE: &[u8] = b"meta/pack_base";
 /// Present when the index must be derived again from the surveys on the next open (a
 /// migration that changed what the index keeps writes it).
 pub const REBUILD: &[u8] = b"meta/rebuild";

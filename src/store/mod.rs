@@ -18,6 +18,8 @@
 //! | `a/<survey>` | the [`KernelAccuracy`] of a survey whose ε was estimated (bincode) |
 //! | `c/<survey>/<level:02>/<k:08>` | where chunk `k` of a level is in the pack ([`pack::Loc`]): [`chunks::CHUNK`]² samples, compressed and checksummed (see [`chunks`]) |
 //! | `meta/pack_len` | `u64` LE: the committed length of the chunk pack |
+//! | `meta/pack_at` | the URL of the object store the chunks are in (UTF-8); absent for the local pack |
+//! | `meta/pack_base` | on an object store, after a compaction: `u64` LE where the address space it left behind ends, then `u64` LE the Unix time it did; the segments below it are deleted once the grace period has passed |
 //! | `e/<patch>` | an [`EdgePatch`] the active surveys call for (bincode) |
 //! | `t/<patch>` | the patch's [`BoxState`] in the LOD index: `f64` LE top, then a byte that is 1 when the box is exposed; for active surveys' patches and the edge patches they call for |
 //! | `o/<survey>/<other>` | [`PairEvidence`] (bincode): what two overlapping surveys say of each other's claims, under both orders |
@@ -50,7 +52,9 @@ pub mod chunks;
 mod commit;
 mod compact;
 pub(crate) mod keys;
+mod lease;
 mod migrate;
+pub mod objects;
 mod open;
 pub mod pack;
 mod records;
@@ -62,7 +66,7 @@ use crate::sync::{read, write};
 pub use chunks::{CacheStats, ChunkReader};
 pub use compact::CompactReport;
 pub use migrate::CURRENT as SCHEMA_VERSION;
-use pack::{ChunkStore, PackFile};
+use pack::ChunkStore;
 pub use space::{DiskSpace, SpaceGuard, SystemDisk};
 pub use verify::{Checked, VerifyReport};
 
@@ -115,6 +119,18 @@ pub struct StoreOptions {
     pub recipe: Recipe,
     /// What a new store does with contradicted claims; an existing one keeps its own.
     pub contradicted: Contradicted,
+    /// Where the chunk bytes go. A store keeps the backend it was made with.
+    pub backend: ChunkBackend,
+}
+
+/// Where a store's chunk bytes live; the database stays in the store's directory either way.
+#[derive(Clone, Debug, Default)]
+pub enum ChunkBackend {
+    /// The pack file beside the database.
+    #[default]
+    Local,
+    /// Segments of an object store (see [`objects`]).
+    Objects(objects::Objects),
 }
 
 impl StoreOptions {
@@ -133,6 +149,7 @@ impl Default for StoreOptions {
             cache_bytes: DEFAULT_CACHE_BYTES,
             recipe: Recipe::default(),
             contradicted: Contradicted::default(),
+            backend: ChunkBackend::Local,
         }
     }
 }
@@ -309,7 +326,7 @@ impl Drop for CloseReader {
 
 pub struct Store {
     db: sled::Db,
-    pack: Arc<PackFile>,
+    pack: Arc<dyn ChunkStore>,
     reader: Arc<ChunkReader>,
     _close_reader: CloseReader,
     opts: StoreOptions,

@@ -172,7 +172,7 @@ impl Store {
                 StoreError::Corrupt(format!("meta/pack_len holds {} bytes, not 8", v.len()))
             })?),
         };
-        let pack = Arc::new(PackFile::open(&dir, committed)?);
+        let pack = open_pack(&db, &dir, committed, &opts.backend)?;
         let migrated = migrate::migrate(
             &db,
             &migrate::Ctx {
@@ -181,6 +181,14 @@ impl Store {
                 pack: pack.as_ref(),
             },
         )?;
+        if let ChunkBackend::Objects(o) = &opts.backend {
+            // After the migration, which makes a fresh store from an empty tree: from now on
+            // the store names the place, and no other store may take it.
+            if db.get(keys::PACK_AT)?.is_none() {
+                db.insert(keys::PACK_AT, o.url.as_bytes())?;
+                db.flush()?;
+            }
+        }
         let get = |k: &[u8]| -> Result<sled::IVec, StoreError> {
             db.get(k)?.ok_or_else(|| {
                 StoreError::Corrupt(format!("{} is missing", String::from_utf8_lossy(k)))
@@ -225,7 +233,7 @@ impl Store {
             warnings.push(format!(
                 "{} holds {} bytes fewer than were committed: the surveys whose bytes are gone \
                  are damaged",
-                store.pack.path().display(),
+                store.pack.describe(),
                 store.pack.lost()
             ));
         }
@@ -333,6 +341,20 @@ impl Store {
                         v.len()
                     )));
                 };
+                if !self.pack.local() {
+                    // Over a network, reading every chunk back would fetch the whole store:
+                    // each read and `verify` check the checksums instead.
+                    if !self.pack.holds(loc) {
+                        return Ok(Err(format!(
+                            "{}: its bytes ({}..{}) are in no segment of {}",
+                            what(),
+                            loc.offset,
+                            loc.end(),
+                            self.pack.describe()
+                        )));
+                    }
+                    continue;
+                }
                 let bytes = match self.pack.read(loc) {
                     Ok(b) => b,
                     Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => {
@@ -510,4 +532,64 @@ impl Store {
         let meta = Arc::new(meta);
         Ok(Survey { meta, levels })
     }
+}
+
+/// The chunk pack of the backend the store was made with: refused when the options name
+/// another. On an object store, the segments compaction let go of go once their grace period
+/// has passed.
+fn open_pack(
+    db: &sled::Db,
+    dir: &Path,
+    committed: u64,
+    backend: &ChunkBackend,
+) -> Result<Arc<dyn ChunkStore>, StoreError> {
+    let at = db
+        .get(keys::PACK_AT)?
+        .map(|v| String::from_utf8_lossy(&v).into_owned());
+    let o = match (backend, at.as_deref()) {
+        (ChunkBackend::Local, None) => return Ok(Arc::new(pack::PackFile::open(dir, committed)?)),
+        (ChunkBackend::Local, Some(url)) => {
+            return Err(StoreError::Invalid(format!(
+                "the store's chunks are in {url}, but the storage backend is \"local\": \
+                 configure [storage] with the object store the store was made with"
+            )))
+        }
+        (ChunkBackend::Objects(o), Some(url)) if url != o.url => {
+            return Err(StoreError::Invalid(format!(
+                "the store's chunks are in {url}, but [storage] names {}",
+                o.url
+            )))
+        }
+        (ChunkBackend::Objects(o), None) if committed > 0 => {
+            return Err(StoreError::Invalid(format!(
+                "the store's chunks are in {}, but [storage] names {}: a store keeps the \
+                 backend it was made with",
+                dir.join(pack::PACK_FILE).display(),
+                o.url
+            )))
+        }
+        (ChunkBackend::Objects(o), _) => o,
+    };
+    let pack = objects::ObjectPack::open(o.clone(), committed, at.is_some())?;
+    if let Some(v) = db.get(keys::PACK_BASE)? {
+        let (base, since) = decode_base(&v)?;
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        if now >= since.saturating_add(o.grace.as_secs()) {
+            pack.collect_below(base)?;
+        }
+    }
+    Ok(Arc::new(pack))
+}
+
+/// `meta/pack_base`: where the address space compaction left behind ends, and when.
+pub(super) fn decode_base(v: &[u8]) -> Result<(u64, u64), StoreError> {
+    let b: [u8; 16] = v.try_into().map_err(|_| {
+        StoreError::Corrupt(format!("meta/pack_base holds {} bytes, not 16", v.len()))
+    })?;
+    Ok((
+        u64::from_le_bytes(b[..8].try_into().expect("8 bytes")),
+        u64::from_le_bytes(b[8..].try_into().expect("8 bytes")),
+    ))
 }

@@ -1,5 +1,5 @@
 //! Where chunk bytes live: an append-only pack file beside the database, behind a small trait
-//! so that another backend (an object store) can take its place (see docs/SCALE.md).
+//! so that another backend, an object store ([`super::objects`]), can take its place.
 //!
 //! sled keeps, for every chunk, where its bytes are ([`Loc`]), and how far the pack is
 //! committed (`meta/pack_len`). A commit appends its chunks and syncs them before the sled
@@ -61,6 +61,23 @@ pub trait ChunkStore: Send + Sync + std::fmt::Debug {
     fn is_empty(&self) -> bool {
         self.len() == 0
     }
+    /// Where the bytes are, for messages: a file's path, or an object store's URL.
+    fn describe(&self) -> String;
+    /// Committed bytes the backend found missing when it opened.
+    fn lost(&self) -> u64 {
+        0
+    }
+    /// Whether reading every chunk back is cheap, as from a local disk: an open then checks
+    /// every chunk's checksum. Over a network it checks that each location is held
+    /// ([`ChunkStore::holds`]), and leaves the checksums to each read and to `verify`.
+    fn local(&self) -> bool {
+        true
+    }
+    /// Whether the bytes at `loc` are there to read, as far as the backend knows without
+    /// reading them.
+    fn holds(&self, loc: Loc) -> bool {
+        loc.end() <= self.len()
+    }
 }
 
 /// Bytes of chunks an append writes at a time.
@@ -104,11 +121,6 @@ impl PackFile {
             end: Mutex::new(committed),
             lost: committed.saturating_sub(len),
         })
-    }
-
-    /// Bytes the database says were committed that the file no longer holds.
-    pub fn lost(&self) -> u64 {
-        self.lost
     }
 
     pub fn path(&self) -> &Path {
@@ -160,6 +172,15 @@ impl ChunkStore for PackFile {
 
     fn len(&self) -> u64 {
         *lock(&self.end)
+    }
+
+    fn describe(&self) -> String {
+        self.path.display().to_string()
+    }
+
+    /// Bytes the database says were committed that the file no longer holds.
+    fn lost(&self) -> u64 {
+        self.lost
     }
 }
 

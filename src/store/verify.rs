@@ -4,7 +4,6 @@
 //! a terrain and is `crate::restore::verify`'s.
 
 use super::chunks::{chunk_counts, chunk_rect, decode as decode_chunk, read_chunk};
-use super::pack::ChunkStore;
 use super::{
     decode, decode_crs, decode_state, decode_u32, keys, migrate, setting_problem, FailedRecord,
     Status, Store, StoreError, StoredPatches, SurveyRecord,
@@ -347,6 +346,16 @@ impl Store {
                     v.len()
                 ))),
             },
+            keys::PACK_AT => Ok(
+                (String::from_utf8_lossy(v) != self.pack.describe()).then(|| {
+                    format!(
+                        "meta/pack_at names {}, but the chunks are read from {}",
+                        String::from_utf8_lossy(v),
+                        self.pack.describe()
+                    )
+                }),
+            ),
+            keys::PACK_BASE => super::open::decode_base(v).map(|_| None),
             keys::INDEX => decode::<IndexConfig>(v, &what).map(|c| {
                 (c != self.index)
                     .then(|| format!("index config {c:?} differs from the open store's"))

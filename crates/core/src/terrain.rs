@@ -396,6 +396,7 @@ impl Terrain {
         let source = self.source.as_ref().ok_or_else(|| SampleError {
             survey: s.id,
             reason: "the terrain holds neither its samples nor a store to read them from".into(),
+            unavailable: false,
         })?;
         source.window(s.id, level, &s.shapes[level], rect)
     }

@@ -13,6 +13,9 @@ pub struct SampleError {
     pub survey: SurveyId,
     /// What went wrong.
     pub reason: String,
+    /// The samples' store could not be reached (an object store down or slow): asking again
+    /// later may succeed, and nothing is known to be lost.
+    pub unavailable: bool,
 }
 
 /// Refuses a rectangle that is empty or not inside a `cols × rows` level.
@@ -26,6 +29,7 @@ pub fn check_rect(
         return Err(SampleError {
             survey,
             reason: format!("{rect:?} is not inside a {cols}×{rows} level"),
+            unavailable: false,
         });
     }
     Ok(())
@@ -109,6 +113,7 @@ impl MemorySource {
             .ok_or_else(|| SampleError {
                 survey,
                 reason: format!("no level {level} in memory"),
+                unavailable: false,
             })
     }
 }
