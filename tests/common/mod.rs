@@ -5,5 +5,6 @@
 pub mod daemon;
 pub mod http;
 pub mod python;
+pub mod s3;
 
 pub use patchwork_testkit::fixtures::*;

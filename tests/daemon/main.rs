@@ -7,6 +7,7 @@ mod common;
 mod daemon;
 mod exposure;
 mod load;
+mod objects;
 mod python_client;
 mod reliability;
 mod view_session;

@@ -12,5 +12,6 @@ mod fuzz;
 mod gpu;
 mod layers;
 mod mesh;
+mod objects;
 mod store;
 mod vertical;
