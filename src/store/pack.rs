@@ -61,6 +61,11 @@ pub trait ChunkStore: Send + Sync + std::fmt::Debug {
     fn is_empty(&self) -> bool {
         self.len() == 0
     }
+    /// The bytes at each of `locs`, in order. An object store fetches the neighbouring ones
+    /// of a segment together.
+    fn read_many(&self, locs: &[Loc]) -> Vec<io::Result<Vec<u8>>> {
+        locs.iter().map(|&l| self.read(l)).collect()
+    }
     /// Where the bytes are, for messages: a file's path, or an object store's URL.
     fn describe(&self) -> String;
     /// Committed bytes the backend found missing when it opened.

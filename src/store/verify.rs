@@ -4,6 +4,7 @@
 //! a terrain and is `crate::restore::verify`'s.
 
 use super::chunks::{chunk_counts, chunk_rect, decode as decode_chunk, read_chunk};
+use super::pack::Loc;
 use super::{
     decode, decode_crs, decode_state, decode_u32, keys, migrate, setting_problem, FailedRecord,
     Status, Store, StoreError, StoredPatches, SurveyRecord,
@@ -393,6 +394,21 @@ impl Store {
                     georef: shape.georef,
                 });
             }
+            // From an object store the level's chunks are fetched together first; a chunk
+            // that is not among them is read (and explained) one by one as from a local pack.
+            let mut fetched: HashMap<usize, std::io::Result<Vec<u8>>> = HashMap::new();
+            if !self.pack.local() {
+                let at: Vec<(usize, Loc)> = (0..n)
+                    .filter_map(|k| Some((k, Loc::from_bytes(chunks.get(&(id, level, k))?)?)))
+                    .filter(|(_, l)| l.end() <= self.pack.len())
+                    .collect();
+                let locs: Vec<Loc> = at.iter().map(|(_, l)| *l).collect();
+                fetched = at
+                    .iter()
+                    .map(|(k, _)| *k)
+                    .zip(self.pack.read_many(&locs))
+                    .collect();
+            }
             for k in 0..n {
                 if !chunks.contains_key(&(id, level, k)) {
                     whole = false;
@@ -403,7 +419,10 @@ impl Store {
                     continue;
                 }
                 let rect = chunk_rect(&shape, k);
-                let read = read_chunk(&self.db, self.pack.as_ref(), id, level, k);
+                let read = match fetched.remove(&k) {
+                    Some(got) => got.map_err(|e| format!("reading the pack: {e}")),
+                    None => read_chunk(&self.db, self.pack.as_ref(), id, level, k),
+                };
                 match read.and_then(|b| decode_chunk(&b, rect.len(), rect.cols())) {
                     Err(e) => {
                         whole = false;
