@@ -36,12 +36,19 @@ impl S3Server {
             .enable_all()
             .build()
             .unwrap();
-        let listener = rt
-            .block_on(tokio::net::TcpListener::bind(SocketAddr::from((
-                [127, 0, 0, 1],
-                self.port,
-            ))))
-            .unwrap();
+        // The stopped server's threads let go of the port soon, not at once: tried again for
+        // a while on a busy machine.
+        let t0 = std::time::Instant::now();
+        let listener = loop {
+            let addr = SocketAddr::from(([127, 0, 0, 1], self.port));
+            match rt.block_on(tokio::net::TcpListener::bind(addr)) {
+                Ok(l) => break l,
+                Err(_) if t0.elapsed() < std::time::Duration::from_secs(10) => {
+                    std::thread::sleep(std::time::Duration::from_millis(100));
+                }
+                Err(e) => panic!("binding {addr}: {e}"),
+            }
+        };
         self.port = listener.local_addr().unwrap().port();
         let fs = s3s_fs::FileSystem::new(&self.root).unwrap();
         let mut b = s3s::service::S3ServiceBuilder::new(fs);
