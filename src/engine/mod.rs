@@ -349,7 +349,6 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
             let mut b = object_store::aws::AmazonS3Builder::from_env()
                 .with_bucket_name(&s3.bucket)
                 .with_region(&s3.region)
-                .with_allow_http(s3.allow_http)
                 .with_retry(retry)
                 .with_client_options(
                     ClientOptions::new()

@@ -18,7 +18,6 @@ use patchwork_core::model::ids::{PatchId, SurveyId};
 use std::collections::HashSet;
 use std::path::Path;
 use std::sync::Arc;
-use std::time::{SystemTime, UNIX_EPOCH};
 
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct CompactReport {
@@ -193,12 +192,7 @@ impl Store {
                 }
             }
             if let Some(base) = base {
-                let now = SystemTime::now()
-                    .duration_since(UNIX_EPOCH)
-                    .map_or(0, |d| d.as_secs());
-                let mut v = base.to_le_bytes().to_vec();
-                v.extend_from_slice(&now.to_le_bytes());
-                batch.insert(keys::PACK_BASE, v);
+                batch.insert(keys::PACK_BASE, super::open::encode_base(base));
             }
             flush(&mut batch, &mut chunks, &mut bytes)?;
             fresh.flush()?;

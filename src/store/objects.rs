@@ -155,9 +155,10 @@ impl ObjectPack {
             segments: RwLock::new(BTreeMap::new()),
             end: Mutex::new(committed),
         };
-        let listed = pack.list()?;
+        // Before the lease, so that a place that is another store's is named as such, rather
+        // than as held by its writer.
         if !claimed {
-            if let Some((start, _)) = listed.first() {
+            if let Some((start, _)) = pack.list()?.first() {
                 return Err(io::Error::new(
                     io::ErrorKind::AlreadyExists,
                     format!(
@@ -182,8 +183,8 @@ impl ObjectPack {
             ),
             e => io::Error::other(Unreachable(format!("{}: {e}", pack.objects.url))),
         })?);
-        // Listed again under the lease: what is deleted below must be what no writer can be
-        // adding to.
+        // Listed under the lease: what is deleted below must be what no writer can be adding
+        // to.
         let listed = pack.list()?;
         let mut segments = BTreeMap::new();
         let mut end = committed;

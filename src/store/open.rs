@@ -573,14 +573,18 @@ fn open_pack(
     let pack = objects::ObjectPack::open(o.clone(), committed, at.is_some())?;
     if let Some(v) = db.get(keys::PACK_BASE)? {
         let (base, since) = decode_base(&v)?;
-        let now = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs());
-        if now >= since.saturating_add(o.grace.as_secs()) {
+        if now_unix() >= since.saturating_add(o.grace.as_secs()) {
             pack.collect_below(base)?;
         }
     }
     Ok(Arc::new(pack))
+}
+
+/// `meta/pack_base` for an address space that ends at `base`, left behind now.
+pub(super) fn encode_base(base: u64) -> Vec<u8> {
+    let mut v = base.to_le_bytes().to_vec();
+    v.extend_from_slice(&now_unix().to_le_bytes());
+    v
 }
 
 /// `meta/pack_base`: where the address space compaction left behind ends, and when.
