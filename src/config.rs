@@ -109,6 +109,42 @@ pub struct Storage {
     /// Object-store backends: how long the writer's lease lasts unless renewed, in seconds;
     /// it is renewed every third of that.
     pub lease_s: u64,
+    /// Object-store backends: the writer publishes a snapshot of its database for replicas
+    /// every this many commits (each commit's log goes up anyway).
+    pub snapshot_every: u64,
+    /// Serve as a read replica of the store at this URL (`s3://bucket/prefix`, or
+    /// `file:///folder`) instead of as its writer; empty: the writer. Set by `serve --follow`.
+    pub follow: String,
+    /// A replica: how often it asks for the writer's new commits, in ms. The writer, too,
+    /// tries this often to publish a commit's log that could not go up at once.
+    pub poll_ms: u64,
+}
+
+impl Storage {
+    /// Makes this the config of a replica of the store at `url`: `s3://bucket/prefix` (the
+    /// endpoint, region and credentials stay as configured) or `file:///folder`.
+    pub fn set_follow(&mut self, url: &str) -> Result<(), ConfigError> {
+        let bad = |why: &str| ConfigError::Invalid(format!("--follow {url}: {why}"));
+        if let Some(rest) = url.strip_prefix("s3://") {
+            let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+            if bucket.is_empty() {
+                return Err(bad("names no bucket"));
+            }
+            self.backend = BackendKind::S3;
+            self.s3.bucket = bucket.to_string();
+            self.s3.prefix = prefix.trim_matches('/').to_string();
+        } else if let Some(path) = url.strip_prefix("file://") {
+            if !path.starts_with('/') {
+                return Err(bad("a folder is named by an absolute path, file:///…"));
+            }
+            self.backend = BackendKind::Folder;
+            self.folder = Some(path.into());
+        } else {
+            return Err(bad("expected s3://bucket/prefix or file:///folder"));
+        }
+        self.follow = url.to_string();
+        Ok(())
+    }
 }
 
 impl Default for Storage {
@@ -123,6 +159,9 @@ impl Default for Storage {
             retries: 4,
             gc_grace_s: 3600,
             lease_s: 15,
+            snapshot_every: 64,
+            follow: String::new(),
+            poll_ms: 1000,
         }
     }
 }
@@ -449,6 +488,10 @@ impl Config {
             }
             None => Config::default(),
         };
+        if !cfg.storage.follow.is_empty() {
+            let url = cfg.storage.follow.clone();
+            cfg.storage.set_follow(&url)?;
+        }
         cfg.apply_env(|k| std::env::var(k).ok())?;
         cfg.validate()?;
         Ok(cfg)
@@ -476,6 +519,9 @@ impl Config {
             if let Some(v) = get(var) {
                 *field = v;
             }
+        }
+        if let Some(v) = get("PATCHWORK_FOLLOW").filter(|v| !v.is_empty()) {
+            self.storage.set_follow(&v)?;
         }
         if let Some(v) = get("PATCHWORK_STORAGE_FOLDER") {
             self.storage.folder = Some(v.into());
@@ -668,9 +714,13 @@ impl Config {
             }
             _ => {}
         }
-        if self.storage.timeout_ms == 0 || self.storage.lease_s == 0 {
+        if self.storage.timeout_ms == 0
+            || self.storage.lease_s == 0
+            || self.storage.poll_ms == 0
+            || self.storage.snapshot_every == 0
+        {
             return Err(ConfigError::Invalid(
-                "storage.timeout_ms and storage.lease_s must be at least 1".into(),
+                "storage.timeout_ms, lease_s, poll_ms and snapshot_every must be at least 1".into(),
             ));
         }
         if self.tls_cert.is_some() != self.tls_key.is_some() {

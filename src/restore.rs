@@ -55,6 +55,31 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
         mut warnings,
         released_reserve,
     } = loaded;
+    let terrain = terrain_of(&mut store, contents, &mut warnings)?;
+    Ok(Opened {
+        store,
+        terrain,
+        warnings,
+        released_reserve,
+    })
+}
+
+/// The terrain of a replica that applied its writer's new commits, restored as an open
+/// restores it (see [`Store::catch_up`]); `None` when there were none.
+pub fn follow_up(store: &mut Store) -> Result<Option<(Terrain, Vec<String>)>, StoreError> {
+    let Some(contents) = store.catch_up()? else {
+        return Ok(None);
+    };
+    let mut warnings = Vec::new();
+    let terrain = terrain_of(store, contents, &mut warnings)?;
+    Ok(Some((terrain, warnings)))
+}
+
+fn terrain_of(
+    store: &mut Store,
+    contents: Contents,
+    warnings: &mut Vec<String>,
+) -> Result<Terrain, StoreError> {
     let Contents {
         surveys,
         pairs,
@@ -63,8 +88,8 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
         rebuild,
         damaged: _,
     } = contents;
-    let terrain = if rebuild {
-        derive(&mut store, &mut warnings)?
+    Ok(if rebuild {
+        derive(store, warnings)?
     } else {
         let source: Arc<dyn SampleSource> = store.reader();
         let (terrain, missing) = Terrain::restore(
@@ -85,7 +110,7 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
                  the surveys",
                 missing.len()
             ));
-            derive(&mut store, &mut warnings)?
+            derive(store, warnings)?
         } else {
             for id in terrain.index().state().keys() {
                 tops.remove(id);
@@ -98,12 +123,6 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
             }
             terrain
         }
-    };
-    Ok(Opened {
-        store,
-        terrain,
-        warnings,
-        released_reserve,
     })
 }
 
@@ -134,12 +153,16 @@ fn derive(store: &mut Store, warnings: &mut Vec<String>) -> Result<Terrain, Stor
         })
         .collect();
     let edges: Vec<_> = t.edges().cloned().collect();
-    match store.write_derived(&tops, &edges, &t.pairs()) {
-        Ok(()) => {}
-        Err(e @ StoreError::Full { .. }) => warnings.push(format!(
-            "the index was derived again but could not be stored: {e}"
-        )),
-        Err(e) => return Err(e),
+    // A replica writes nothing: the writer stores what it derives, and the replica receives
+    // it with the writer's commits.
+    if !store.is_replica() {
+        match store.write_derived(&tops, &edges, &t.pairs()) {
+            Ok(()) => {}
+            Err(e @ StoreError::Full { .. }) => warnings.push(format!(
+                "the index was derived again but could not be stored: {e}"
+            )),
+            Err(e) => return Err(e),
+        }
     }
     t.set_source(store.reader());
     for s in &surveys {

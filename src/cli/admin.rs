@@ -227,6 +227,14 @@ pub async fn stats(args: StatsArgs) -> Result<(), Fail> {
                 s.requests_running, s.requests_limit, s.requests_waiting, s.requests_served
             );
         }
+        if !s.follows.is_empty() {
+            println!(
+                "replica of {}: at commit {} of {} published, {:.1} s behind",
+                s.follows, s.commit, s.published_commit, s.lag_seconds
+            );
+        } else if s.commit > 0 {
+            println!("commit {}", s.commit);
+        }
         if !s.read_only.is_empty() {
             println!("read-only: {}", s.read_only);
         }

@@ -160,6 +160,13 @@ pub struct StatsJson<'a> {
     requests_waiting: u32,
     requests_served: u64,
     requests_limit: u32,
+    /// On an object store, the commit the store is at; 0 on the local pack.
+    commit: u64,
+    /// On a read replica: the store it follows, its writer's newest commit, and how far behind
+    /// it is; null on a writer.
+    follows: Option<&'a str>,
+    published_commit: u64,
+    lag_seconds: f64,
 }
 
 impl<'a> StatsJson<'a> {
@@ -186,6 +193,10 @@ impl<'a> StatsJson<'a> {
             requests_waiting: s.requests_waiting,
             requests_served: s.requests_served,
             requests_limit: s.requests_limit,
+            commit: s.commit,
+            follows: (!s.follows.is_empty()).then_some(s.follows.as_str()),
+            published_commit: s.published_commit,
+            lag_seconds: s.lag_seconds,
         }
     }
 }

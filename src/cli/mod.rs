@@ -65,6 +65,10 @@ pub enum Cmd {
 pub struct ServeArgs {
     #[arg(long, env = "PATCHWORK_CONFIG", value_name = "FILE")]
     pub config: Option<PathBuf>,
+    /// Serve as a read replica of the store at URL (s3://bucket/prefix, or file:///folder),
+    /// following its writer's commits; `data_dir` is the replica's own, empty at first.
+    #[arg(long, value_name = "URL")]
+    pub follow: Option<String>,
 }
 
 // The arguments of `patchwork ingest`.
@@ -356,7 +360,7 @@ pub fn achieved(e: f64, max_error: f64, short: Option<&pb::Shortfall>, what: &st
 /// Runs one command.
 pub async fn run(cli: Cli) -> Result<(), Fail> {
     match cli.cmd {
-        Cmd::Serve(a) => serve::serve(a.config).await,
+        Cmd::Serve(a) => serve::serve(a.config, a.follow).await,
         Cmd::ProbeGpu => serve::probe_gpu(),
         Cmd::Ingest(a) => admin::ingest(a).await,
         Cmd::Surveys(a) => admin::surveys(a).await,

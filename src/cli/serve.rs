@@ -12,8 +12,12 @@ use std::sync::Arc;
 /// is safe: a commit is one atomic batch, and the inbox picks the file up again.
 const GRACE: std::time::Duration = std::time::Duration::from_secs(3);
 
-pub async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
-    let cfg = Config::load(config.as_deref())?;
+pub async fn serve(config: Option<PathBuf>, follow: Option<String>) -> Result<(), Fail> {
+    let mut cfg = Config::load(config.as_deref())?;
+    if let Some(url) = follow {
+        cfg.storage.set_follow(&url)?;
+        cfg.validate()?;
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_new(&cfg.log).unwrap_or_else(|_| "info".into()),
@@ -72,7 +76,15 @@ pub async fn serve(config: Option<PathBuf>) -> Result<(), Fail> {
         tracing::warn!(reason = %why, "read-only: queries are served, writes are refused until this is resolved");
     }
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let watcher = tokio::spawn(patchwork::watch::run(engine.clone(), stop_rx.clone()));
+    // A replica watches no inbox: its terrain is the writer's, as published.
+    let watcher = match engine.follows() {
+        Some(url) => {
+            tracing::info!(%url, "a read replica: following the writer's commits");
+            tokio::spawn(async {})
+        }
+        None => tokio::spawn(patchwork::watch::run(engine.clone(), stop_rx.clone())),
+    };
+    tokio::spawn(patchwork::engine::rounds(engine.clone(), stop_rx.clone()));
     tokio::spawn(async move {
         let ctrl_c = tokio::signal::ctrl_c();
         let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())

@@ -111,6 +111,8 @@ pub struct Stats {
     pub cache: CacheStats,
     /// The ingest under way, if any.
     pub ingesting: Option<Progress>,
+    /// The commit the store is at and, on a replica, how far behind its writer it is.
+    pub replication: super::Replication,
 }
 
 /// The ingest under way: which file, how big, where it is and since when.

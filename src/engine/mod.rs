@@ -12,6 +12,7 @@
 //! writing, says why, and keeps serving reads from what it has published.
 
 mod error;
+mod follow;
 mod gpu;
 mod listing;
 mod read;
@@ -19,6 +20,7 @@ mod write;
 
 pub use crate::ingest::Phase;
 pub use error::EngineError;
+pub use follow::{rounds, Replication};
 pub use gpu::Used;
 pub use listing::{conflicts_of, Conflict, Distrusted, Footprint, Progress, Stats, SurveyListing};
 pub use patchwork_core::resample::Backend;
@@ -78,6 +80,8 @@ pub struct Engine {
     geoids: Arc<Geoids>,
     /// The maps from the CRSs requests have named to the store's.
     request_crs: Mutex<HashMap<Crs, Arc<Reprojection>>>,
+    /// Where the store stands in replication (see [`follow`]).
+    replication: RwLock<Replication>,
 }
 
 impl Engine {
@@ -131,6 +135,10 @@ impl Engine {
             tracing::warn!(reason = %e, "serving read-only: writes resume once the disk has room");
         }
         let catalog = opened.store.catalog()?;
+        let replication = Replication {
+            commit: opened.store.commit_seq(),
+            following: opened.store.following(),
+        };
         release_free_memory();
         let (events, _) = broadcast::channel(1024);
         Ok(Engine {
@@ -147,6 +155,7 @@ impl Engine {
             ingest_slots: (Mutex::new(0), std::sync::Condvar::new()),
             geoids: Arc::new(Geoids::new(&cfg.vertical.geoids)),
             request_crs: Mutex::new(HashMap::new()),
+            replication: RwLock::new(replication),
             cfg,
             events,
             gpu: gpu::Device::default(),
@@ -302,6 +311,7 @@ impl Engine {
             read_only: self.read_only(),
             cache: read(&self.reader).stats(),
             ingesting: self.progress(),
+            replication: self.replication(),
         }
     }
 }
@@ -327,6 +337,7 @@ fn store_options(cfg: &Config, guard: &SpaceGuard) -> Result<StoreOptions, Engin
         recipe: cfg.recipe(),
         contradicted: cfg.accuracy.contradicted,
         backend: backend(&cfg.storage)?,
+        snapshot_every: cfg.storage.snapshot_every,
     })
 }
 
@@ -379,13 +390,18 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
             )
         }
     };
-    Ok(ChunkBackend::Objects(Objects {
+    let objects = Objects {
         store,
         prefix: object_store::path::Path::from(prefix),
         url: url.trim_end_matches('/').to_string(),
         grace: std::time::Duration::from_secs(st.gc_grace_s),
         lease: std::time::Duration::from_secs(st.lease_s),
-    }))
+    };
+    Ok(if st.follow.is_empty() {
+        ChunkBackend::Objects(objects)
+    } else {
+        ChunkBackend::Follow(objects)
+    })
 }
 
 #[cfg(test)]

@@ -138,6 +138,7 @@ impl Engine {
         if let Some(why) = self.broken.get() {
             return Err(EngineError::StoreFailed(why.clone()));
         }
+        self.refuse_on_replica()?;
         let mut guard = lock(&self.writer);
         let store = guard.as_mut().ok_or_else(|| {
             EngineError::Unavailable(
@@ -145,7 +146,9 @@ impl Engine {
             )
         })?;
         let current = self.snapshot();
-        let (v, next) = f(store, &current).map_err(|e| self.failed(e))?;
+        let done = f(store, &current);
+        write(&self.replication).commit = store.commit_seq();
+        let (v, next) = done.map_err(|e| self.failed(e))?;
         // The change is committed: its terrain is published whatever happens next, or later
         // writes would build on a terrain the store no longer holds.
         let catalog = store.catalog();
@@ -219,6 +222,8 @@ impl Engine {
             seconds: t0.elapsed().as_secs_f64(),
             conflicts: Vec::new(),
         };
+        // Before the file is read: a replica would only model it to refuse the commit.
+        self.refuse_on_replica()?;
         let slot = self.ingest_slot();
         lock(&self.progress).push(Progress {
             source: source.clone(),
@@ -634,6 +639,7 @@ impl Engine {
         if let Some(why) = self.broken.get() {
             return Err(EngineError::StoreFailed(why.clone()));
         }
+        self.refuse_on_replica()?;
         let mut guard = lock(&self.writer);
         let store = guard
             .take()
@@ -655,6 +661,7 @@ impl Engine {
         };
         let catalog = opened.store.catalog()?;
         *write(&self.reader) = opened.store.reader();
+        write(&self.replication).commit = opened.store.commit_seq();
         self.publish(opened.terrain, catalog);
         *guard = Some(opened.store);
         report

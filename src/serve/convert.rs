@@ -551,6 +551,7 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
 }
 
 pub fn stats(s: &Stats) -> pb::StatsReply {
+    let f = s.replication.following.as_ref();
     pb::StatsReply {
         surveys: s.surveys,
         retired: s.retired,
@@ -574,6 +575,10 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         cache_capacity_bytes: s.cache.capacity,
         cache_hits: s.cache.hits,
         cache_misses: s.cache.misses,
+        commit: s.replication.commit.unwrap_or(0),
+        follows: f.map(|f| f.url.clone()).unwrap_or_default(),
+        published_commit: f.map_or(0, |f| f.published),
+        lag_seconds: f.map_or(0.0, |f| f.lag.as_secs_f64()),
         ingesting_source: s
             .ingesting
             .as_ref()

@@ -31,6 +31,8 @@ pub fn to_status(e: EngineError) -> Status {
         EngineError::StoreFailed(_) => Status::unavailable(m),
         EngineError::Store(StoreError::Full { .. }) => Status::resource_exhausted(m),
         EngineError::Store(StoreError::Locked { .. }) => Status::unavailable(m),
+        // Not this server's to do: the message names the writer.
+        EngineError::Store(StoreError::Replica { .. }) => Status::failed_precondition(m),
         EngineError::Store(StoreError::Sled(sled::Error::Io(io)))
             if io.kind() == std::io::ErrorKind::StorageFull =>
         {

@@ -9,6 +9,8 @@ use super::*;
 pub(super) struct Writes {
     batch: sled::Batch,
     bytes: u64,
+    /// The keys written or removed, for the commit's log (see [`super::journal`]).
+    touched: Vec<sled::IVec>,
 }
 
 /// One change of the terrain, as [`Store::commit`] writes it in one batch.
@@ -60,12 +62,14 @@ impl Writes {
     pub(super) fn insert(&mut self, k: impl Into<sled::IVec>, v: impl Into<sled::IVec>) {
         let (k, v) = (k.into(), v.into());
         self.bytes += (k.len() + v.len()) as u64;
+        self.touched.push(k.clone());
         self.batch.insert(k, v);
     }
 
     pub(super) fn remove(&mut self, k: impl Into<sled::IVec>) {
         let k = k.into();
         self.bytes += k.len() as u64;
+        self.touched.push(k.clone());
         self.batch.remove(k);
     }
 }
@@ -299,10 +303,41 @@ impl Store {
 
     /// Applies a batch and makes it durable before returning, once the disk has room for it.
     pub(super) fn apply(&self, batch: Writes) -> Result<(), StoreError> {
+        self.apply_unpublished(batch)?;
+        self.publish();
+        Ok(())
+    }
+
+    /// Applies a batch, durably, and leaves its log for [`Store::publish`]: a commit adds its
+    /// record's last write in between. On an object store the previous commit's log must be
+    /// up first; while it cannot be, writes are refused as the object store being down.
+    fn apply_unpublished(&self, mut batch: Writes) -> Result<(), StoreError> {
         self.guard.check(&self.dir, batch.bytes)?;
+        let seq = match &self.replication {
+            Replication::None => None,
+            Replication::Writer(j) => {
+                j.publish(&self.db)?;
+                Some(j.stage(&mut batch.batch, &batch.touched)?)
+            }
+            Replication::Follower(f) => return Err(f.refusal()),
+        };
         self.db.apply_batch(batch.batch)?;
         self.db.flush()?;
+        if let (Some(seq), Replication::Writer(j)) = (seq, &self.replication) {
+            j.applied(seq);
+        }
         Ok(())
+    }
+
+    /// Publishes the newest commit's log for replicas if it is not up yet. The commit is
+    /// durable whatever happens here: a failure is logged, the replicas wait, and the next
+    /// write (or the daemon's next round) tries again.
+    pub fn publish(&self) {
+        if let Replication::Writer(j) = &self.replication {
+            if let Err(e) = j.publish(&self.db) {
+                tracing::warn!(error = %e, "a commit's log could not be published yet; replicas wait for it");
+            }
+        }
     }
 
     /// Records how long the commit took. The batch is already durable; should this small
@@ -369,12 +404,14 @@ impl Store {
         };
         stage_edges(&mut batch, change.edges)?;
         self.stage_healed(&mut batch, &touched)?;
-        self.apply(batch)?;
+        self.apply_unpublished(batch)?;
         self.healed(&touched);
-        match staged {
+        let done = match staged {
             Some(staged) => self.finish(staged, t0),
             None => Ok(()),
-        }
+        };
+        self.publish();
+        done
     }
 
     /// Records a file that could not be ingested, replacing any earlier record of the same

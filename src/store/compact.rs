@@ -13,7 +13,10 @@
 
 use super::chunks::read_packed;
 use super::pack::{ChunkStore, PackFile};
-use super::{dir_bytes, keys, open_sled, sibling, ChunkBackend, Loaded, Status, Store, StoreError};
+use super::{
+    dir_bytes, keys, open_sled, sibling, ChunkBackend, Loaded, Replication, Status, Store,
+    StoreError,
+};
 use patchwork_core::model::ids::{PatchId, SurveyId};
 use std::collections::HashSet;
 use std::path::Path;
@@ -93,6 +96,13 @@ impl Store {
         if tmp.exists() {
             std::fs::remove_dir_all(&tmp)?;
         }
+        match &self.replication {
+            Replication::Follower(f) => return Err(f.refusal()),
+            // Its log must be up before the copy, whose own log replaces the batches with a
+            // snapshot.
+            Replication::Writer(j) => j.publish(&self.db)?,
+            Replication::None => {}
+        }
         if let Some(d) = self.damaged().into_values().next() {
             return Err(StoreError::Invalid(format!(
                 "survey {} is damaged ({}): ingest its file again or run `patchwork repair` \
@@ -150,7 +160,9 @@ impl Store {
             // records where the old ones end, to be deleted once no reader can want them.
             let (pack, base): (Arc<dyn ChunkStore>, _) = match &self.opts.backend {
                 ChunkBackend::Local => (Arc::new(PackFile::open(&tmp, 0)?), None),
-                ChunkBackend::Objects(_) => (self.pack.clone(), Some(self.pack.len())),
+                ChunkBackend::Objects(_) | ChunkBackend::Follow(_) => {
+                    (self.pack.clone(), Some(self.pack.len()))
+                }
             };
             let mut batch = sled::Batch::default();
             let mut chunks: Vec<(sled::IVec, Vec<u8>)> = Vec::new();
@@ -193,6 +205,11 @@ impl Store {
             }
             if let Some(base) = base {
                 batch.insert(keys::PACK_BASE, super::open::encode_base(base));
+            }
+            // The copy has no batch a replica could replay: its log says to start again from
+            // its snapshot, which the reopened store publishes.
+            if let Replication::Writer(j) = &self.replication {
+                super::journal::stage_rewrite(&mut batch, j.seq())?;
             }
             flush(&mut batch, &mut chunks, &mut bytes)?;
             fresh.flush()?;
@@ -242,6 +259,7 @@ impl Store {
             layout,
             index,
             opts,
+            replication,
             _lock: lock,
             _close_reader,
             ..
@@ -250,7 +268,7 @@ impl Store {
         drop(_close_reader);
         // Nor its pack: on an object store, the pack holds the writer's lease, which the
         // store reopened below must take.
-        drop((reader, pack));
+        drop((reader, pack, replication));
         // Closing sled ends its use of the directory; the lock beside it stays held, so no
         // other process can open the store while the directories move.
         drop(db);

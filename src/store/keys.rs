@@ -23,6 +23,13 @@ pub const PACK_AT: &[u8] = b"meta/pack_at";
 /// On an object store, after a compaction: where the address space it left behind ends, and
 /// when (`u64` LE each: offset, Unix seconds). See [`super::objects`].
 pub const PACK_BASE: &[u8] = b"meta/pack_base";
+/// `u64` LE: on an object store, the newest commit of the journal replicas follow (see
+/// [`super::journal`]): on the writer, the newest applied; on a replica, the newest it applied.
+pub const LOG_SEQ: &[u8] = b"meta/log_seq";
+/// On the writer: what the newest commit's log is made from (bincode).
+pub const LOG_PENDING: &[u8] = b"meta/log_pending";
+/// On a replica: the URL of the place it follows (UTF-8).
+pub const FOLLOWS: &[u8] = b"meta/follows";
 /// Present when the index must be derived again from the surveys on the next open (a
 /// migration that changed what the index keeps writes it).
 pub const REBUILD: &[u8] = b"meta/rebuild";

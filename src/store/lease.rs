@@ -106,6 +106,14 @@ fn margin(ttl: Duration) -> u64 {
     (ttl.as_millis() as u64 / 5).max(1)
 }
 
+/// Who holds the lease at `path` now, if anyone does and it has not run out: for a replica
+/// to name the writer it refuses writes for.
+pub async fn holder_of(store: Arc<dyn ObjectStore>, path: ObjectPath) -> Option<Held> {
+    let got = store.get(&path).await.ok()?;
+    let held: Held = serde_json::from_slice(&got.bytes().await.ok()?).ok()?;
+    (held.expires_ms > now_ms()).then_some(held)
+}
+
 /// Takes the lease at `path` for `holder`, and renews it every third of `ttl` on the current
 /// runtime.
 pub async fn take(

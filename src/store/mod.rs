@@ -20,6 +20,9 @@
 //! | `meta/pack_len` | `u64` LE: the committed length of the chunk pack |
 //! | `meta/pack_at` | the URL of the object store the chunks are in (UTF-8); absent for the local pack |
 //! | `meta/pack_base` | on an object store, after a compaction: `u64` LE where the address space it left behind ends, then `u64` LE the Unix time it did; the segments below it are deleted once the grace period has passed |
+//! | `meta/log_seq` | on an object store: `u64` LE, the newest commit of the journal replicas follow (see [`journal`]) |
+//! | `meta/log_pending` | on the writer: what the newest commit's log is made from (bincode) |
+//! | `meta/follows` | on a replica: the URL of the place it follows (UTF-8) |
 //! | `e/<patch>` | an [`EdgePatch`] the active surveys call for (bincode) |
 //! | `t/<patch>` | the patch's [`BoxState`] in the LOD index: `f64` LE top, then a byte that is 1 when the box is exposed; for active surveys' patches and the edge patches they call for |
 //! | `o/<survey>/<other>` | [`PairEvidence`] (bincode): what two overlapping surveys say of each other's claims, under both orders |
@@ -51,6 +54,7 @@
 pub mod chunks;
 mod commit;
 mod compact;
+mod journal;
 pub(crate) mod keys;
 mod lease;
 mod migrate;
@@ -65,6 +69,7 @@ mod verify;
 use crate::sync::{read, write};
 pub use chunks::{CacheStats, ChunkReader};
 pub use compact::CompactReport;
+pub use journal::Following;
 pub use migrate::CURRENT as SCHEMA_VERSION;
 use pack::ChunkStore;
 pub use space::{DiskSpace, SpaceGuard, SystemDisk};
@@ -121,6 +126,8 @@ pub struct StoreOptions {
     pub contradicted: Contradicted,
     /// Where the chunk bytes go. A store keeps the backend it was made with.
     pub backend: ChunkBackend,
+    /// On an object store, a snapshot of the database for replicas every this many commits.
+    pub snapshot_every: u64,
 }
 
 /// Where a store's chunk bytes live; the database stays in the store's directory either way.
@@ -131,6 +138,9 @@ pub enum ChunkBackend {
     Local,
     /// Segments of an object store (see [`objects`]).
     Objects(objects::Objects),
+    /// Another writer's segments, followed read-only: the store is a read replica whose
+    /// database is the writer's as published (see [`journal`]).
+    Follow(objects::Objects),
 }
 
 impl StoreOptions {
@@ -150,6 +160,7 @@ impl Default for StoreOptions {
             recipe: Recipe::default(),
             contradicted: Contradicted::default(),
             backend: ChunkBackend::Local,
+            snapshot_every: 64,
         }
     }
 }
@@ -220,6 +231,9 @@ pub enum StoreError {
     Samples(#[from] patchwork_core::model::source::SampleError),
     #[error("{0}")]
     Place(#[from] patchwork_core::model::place::PlaceError),
+    /// A read replica refuses writes: they go to the writer it follows.
+    #[error("this is a read replica of {url}: writes go to its writer{}", writer.as_ref().map(|w| format!(", {w}")).unwrap_or_default())]
+    Replica { url: String, writer: Option<String> },
 }
 
 impl From<sled::Error> for StoreError {
@@ -341,7 +355,18 @@ pub struct Store {
     migrated: Vec<(u32, u32)>,
     /// The damaged surveys the last open found, less those healed or dropped since.
     damaged: RwLock<BTreeMap<SurveyId, Damaged>>,
+    /// The journal replicas follow, on a writer whose chunks are on an object store; or the
+    /// writer's journal this replica follows.
+    replication: Replication,
     _lock: File,
+}
+
+/// A store's part in replication (see [`journal`]).
+enum Replication {
+    /// The local pack: no replicas.
+    None,
+    Writer(journal::Journal),
+    Follower(journal::Follower),
 }
 
 /// What the index is rebuilt from at open: the surveys without their samples, the edge

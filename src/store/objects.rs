@@ -29,7 +29,7 @@ use super::pack::{ChunkStore, Loc};
 use crate::sync::{lock, read, write};
 use futures::TryStreamExt;
 use object_store::path::Path as ObjectPath;
-use object_store::{ObjectStore, ObjectStoreExt, PutPayload, WriteMultipart};
+use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutPayload, WriteMultipart};
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::io;
@@ -104,6 +104,9 @@ pub struct ObjectPack {
     segments: RwLock<BTreeMap<u64, u64>>,
     /// Where the next segment starts. Appends take it in turn.
     end: Mutex<u64>,
+    /// A replica's view of another writer's pack: it reads, lists again as the writer's
+    /// commits arrive, and never writes or deletes.
+    follower: bool,
 }
 
 impl std::fmt::Debug for ObjectPack {
@@ -154,6 +157,7 @@ impl ObjectPack {
             runtime: Some(runtime),
             segments: RwLock::new(BTreeMap::new()),
             end: Mutex::new(committed),
+            follower: false,
         };
         // Before the lease, so that a place that is another store's is named as such, rather
         // than as held by its writer.
@@ -203,6 +207,125 @@ impl ObjectPack {
         Ok(pack)
     }
 
+    /// The pack at `objects` as a replica sees it: every segment listed, no lease taken,
+    /// nothing written or deleted. A segment past what the replica's database names yet is
+    /// the writer's commit on its way (see [`ObjectPack::refresh`]).
+    pub fn follow(objects: Objects) -> io::Result<ObjectPack> {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .thread_name("patchwork-objects")
+            .enable_all()
+            .build()?;
+        let pack = ObjectPack {
+            objects,
+            lease: None,
+            runtime: Some(runtime),
+            segments: RwLock::new(BTreeMap::new()),
+            end: Mutex::new(0),
+            follower: true,
+        };
+        pack.refresh()?;
+        Ok(pack)
+    }
+
+    /// Lists the segments again: a replica does before it applies the writer's commits, whose
+    /// segments were written before the commits were published.
+    pub fn refresh(&self) -> io::Result<()> {
+        let listed = self.list()?;
+        let end = listed.last().map_or(0, |(s, l)| s + l);
+        *write(&self.segments) = listed.into_iter().collect();
+        *lock(&self.end) = end;
+        Ok(())
+    }
+
+    /// The place, as a URL.
+    pub fn url(&self) -> &str {
+        &self.objects.url
+    }
+
+    /// The object `name` under the prefix (`log/…`, `snapshots/…`).
+    fn object(&self, name: &str) -> ObjectPath {
+        name.split('/')
+            .fold(self.objects.prefix.clone(), |p, part| p.join(part))
+    }
+
+    /// Writes `name` only if it is absent (`If-None-Match: *`). Returns whether this call
+    /// made it; `false` means it was there already.
+    pub fn put_new(&self, name: &str, bytes: Vec<u8>) -> io::Result<bool> {
+        let store = self.objects.store.clone();
+        let path = self.object(name);
+        let put = self.run(async move {
+            store
+                .put_opts(&path, PutPayload::from(bytes), PutMode::Create.into())
+                .await
+        });
+        match put {
+            Ok(_) => Ok(true),
+            Err(object_store::Error::AlreadyExists { .. }) => Ok(false),
+            Err(e) => Err(io_error(&format!("writing {}/{name}", self.objects.url), e)),
+        }
+    }
+
+    /// Writes `name` whole, in parts when large; what was there is replaced.
+    pub fn put_whole(&self, name: &str, bytes: Vec<u8>) -> io::Result<()> {
+        let path = self.object(name);
+        self.put_at(path, bytes)
+            .map_err(|e| io_error(&format!("writing {}/{name}", self.objects.url), e))
+    }
+
+    /// The object `name`, or `None` if it is absent.
+    pub fn get(&self, name: &str) -> io::Result<Option<Vec<u8>>> {
+        let store = self.objects.store.clone();
+        let path = self.object(name);
+        let got = self.run(async move {
+            match store.get(&path).await {
+                Ok(r) => r.bytes().await.map(Some),
+                Err(object_store::Error::NotFound { .. }) => Ok(None),
+                Err(e) => Err(e),
+            }
+        });
+        got.map(|b| b.map(|b| b.to_vec()))
+            .map_err(|e| io_error(&format!("reading {}/{name}", self.objects.url), e))
+    }
+
+    /// The objects of the folder `dir` under the prefix: (file name, when last written, as
+    /// Unix milliseconds), in name order.
+    pub fn list_names(&self, dir: &str) -> io::Result<Vec<(String, u64)>> {
+        let store = self.objects.store.clone();
+        let path = self.object(dir);
+        let listed = self
+            .run(async move { store.list(Some(&path)).try_collect::<Vec<_>>().await })
+            .map_err(|e| io_error(&format!("listing {}/{dir}", self.objects.url), e))?;
+        let mut out: Vec<(String, u64)> = listed
+            .iter()
+            .filter_map(|m| {
+                let name = m.location.filename()?.to_string();
+                Some((name, m.last_modified.timestamp_millis().max(0) as u64))
+            })
+            .collect();
+        out.sort();
+        Ok(out)
+    }
+
+    /// Deletes the object `name`; one already gone is no error.
+    pub fn delete_named(&self, name: &str) -> io::Result<()> {
+        let store = self.objects.store.clone();
+        let path = self.object(name);
+        match self.run(async move { store.delete(&path).await }) {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(io_error(
+                &format!("deleting {}/{name}", self.objects.url),
+                e,
+            )),
+        }
+    }
+
+    /// Who holds the writer's lease now, if anyone: for a replica's messages.
+    pub fn writer(&self) -> Option<lease::Held> {
+        let (store, path) = (self.objects.store.clone(), self.lease_path());
+        self.run(lease::holder_of(store, path))
+    }
+
     /// The segments' objects, as (start, length), in order.
     fn list(&self) -> io::Result<Vec<(u64, u64)>> {
         let store = self.objects.store.clone();
@@ -240,12 +363,7 @@ impl ObjectPack {
     }
 
     fn delete(&self, start: u64) -> io::Result<()> {
-        let store = self.objects.store.clone();
-        let path = self.path(start);
-        match self.run(async move { store.delete(&path).await }) {
-            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
-            Err(e) => Err(io_error(&format!("deleting {}", self.name(start)), e)),
-        }
+        self.delete_named(&format!("{SEGMENTS}/{start:020}.seg"))
     }
 
     /// Deletes the segments that end at or before `base`: those compaction let go of. Returns
@@ -285,8 +403,12 @@ impl ObjectPack {
 
     /// Writes one segment.
     fn put(&self, start: u64, bytes: Vec<u8>) -> Result<(), object_store::Error> {
+        self.put_at(self.path(start), bytes)
+    }
+
+    /// Writes one object whole: in one PUT, or in parts above [`MULTIPART_BYTES`].
+    fn put_at(&self, path: ObjectPath, bytes: Vec<u8>) -> Result<(), object_store::Error> {
         let store = self.objects.store.clone();
-        let path = self.path(start);
         self.run(async move {
             if bytes.len() <= MULTIPART_BYTES {
                 store.put(&path, PutPayload::from(bytes)).await.map(|_| ())
@@ -377,6 +499,12 @@ impl ChunkStore for ObjectPack {
     }
 
     fn append(&self, chunks: &[Vec<u8>]) -> io::Result<Vec<Loc>> {
+        if self.follower {
+            return Err(io::Error::new(
+                io::ErrorKind::PermissionDenied,
+                format!("{}: a replica does not write", self.objects.url),
+            ));
+        }
         if let Some(lease) = &self.lease {
             lease.check().map_err(|why| {
                 io::Error::other(Unreachable(format!("{}: {why}", self.objects.url)))

@@ -161,6 +161,25 @@ impl Store {
         let guard = opts.guard.clone();
         let released_reserve = guard.release_if_full(&dir)?;
         let db = open_sled(&dir, opts.sled_cache_bytes())?;
+        // A replica's database is the writer's as published: filled from the newest snapshot
+        // and the logs after it before anything below reads it.
+        let follower = match &opts.backend {
+            ChunkBackend::Follow(o) => {
+                let pack = Arc::new(objects::ObjectPack::follow(o.clone())?);
+                let f = journal::Follower::start(pack, &db, &dir)?;
+                let v = migrate::version(&db)?;
+                if v != migrate::CURRENT {
+                    return Err(StoreError::Invalid(format!(
+                        "the store {} follows is at schema {v}, this build's is {}: a replica \
+                         runs the writer's version",
+                        o.url,
+                        migrate::CURRENT
+                    )));
+                }
+                Some(f)
+            }
+            _ => None,
+        };
         if migrate::version(&db)? < migrate::CURRENT && db.get(keys::SCHEMA)?.is_some() {
             // A migration rewrites much of the store; refuse it on a full disk rather than
             // let sled run out of space halfway.
@@ -172,15 +191,21 @@ impl Store {
                 StoreError::Corrupt(format!("meta/pack_len holds {} bytes, not 8", v.len()))
             })?),
         };
-        let pack = open_pack(&db, &dir, committed, &opts.backend)?;
-        let migrated = migrate::migrate(
-            &db,
-            &migrate::Ctx {
-                layout,
-                index,
-                pack: pack.as_ref(),
-            },
-        )?;
+        let (pack, objects): (Arc<dyn ChunkStore>, _) = match &follower {
+            Some(f) => (f.pack(), None),
+            None => open_pack(&db, &dir, committed, &opts.backend)?,
+        };
+        let migrated = match follower {
+            Some(_) => Vec::new(),
+            None => migrate::migrate(
+                &db,
+                &migrate::Ctx {
+                    layout,
+                    index,
+                    pack: pack.as_ref(),
+                },
+            )?,
+        };
         if let ChunkBackend::Objects(o) = &opts.backend {
             // After the migration, which makes a fresh store from an empty tree: from now on
             // the store names the place, and no other store may take it.
@@ -206,6 +231,14 @@ impl Store {
                 .map(|v| decode_crs(&v, "meta/vertical_crs", VerticalCrs::parse))
                 .transpose()?,
         );
+        let replication = match (follower, objects) {
+            (Some(f), _) => Replication::Follower(f),
+            // Last, once the database is whole: its first snapshot is what replicas start from.
+            (None, Some(pack)) => {
+                Replication::Writer(journal::Journal::open(pack, &db, opts.snapshot_every)?)
+            }
+            (None, None) => Replication::None,
+        };
         let reader = Arc::new(ChunkReader::new(
             (*db).clone(),
             pack.clone(),
@@ -226,6 +259,7 @@ impl Store {
             crs: RwLock::new(crs),
             migrated,
             damaged: RwLock::new(BTreeMap::new()),
+            replication,
             _lock: lock,
         };
         let mut warnings = Vec::new();
@@ -537,17 +571,24 @@ impl Store {
 /// The chunk pack of the backend the store was made with: refused when the options name
 /// another. On an object store, the segments compaction let go of go once their grace period
 /// has passed.
+/// The pack a writer opens, and the same as an object store's, which also carries the
+/// journal.
+type Opened = (Arc<dyn ChunkStore>, Option<Arc<objects::ObjectPack>>);
+
 fn open_pack(
     db: &sled::Db,
     dir: &Path,
     committed: u64,
     backend: &ChunkBackend,
-) -> Result<Arc<dyn ChunkStore>, StoreError> {
+) -> Result<Opened, StoreError> {
     let at = db
         .get(keys::PACK_AT)?
         .map(|v| String::from_utf8_lossy(&v).into_owned());
     let o = match (backend, at.as_deref()) {
-        (ChunkBackend::Local, None) => return Ok(Arc::new(pack::PackFile::open(dir, committed)?)),
+        (ChunkBackend::Local, None) => {
+            return Ok((Arc::new(pack::PackFile::open(dir, committed)?), None))
+        }
+        (ChunkBackend::Follow(_), _) => unreachable!("a replica's pack is its follower's"),
         (ChunkBackend::Local, Some(url)) => {
             return Err(StoreError::Invalid(format!(
                 "the store's chunks are in {url}, but the storage backend is \"local\": \
@@ -577,7 +618,8 @@ fn open_pack(
             pack.collect_below(base)?;
         }
     }
-    Ok(Arc::new(pack))
+    let pack = Arc::new(pack);
+    Ok((pack.clone(), Some(pack)))
 }
 
 /// `meta/pack_base` for an address space that ends at `base`, left behind now.

@@ -357,6 +357,19 @@ impl Store {
                 }),
             ),
             keys::PACK_BASE => super::open::decode_base(v).map(|_| None),
+            keys::LOG_SEQ => {
+                Ok((v.len() != 8).then(|| format!("meta/log_seq holds {} bytes, not 8", v.len())))
+            }
+            keys::LOG_PENDING => Ok(super::journal::pending_problem(v)),
+            keys::FOLLOWS => Ok(
+                (String::from_utf8_lossy(v) != self.pack.describe()).then(|| {
+                    format!(
+                        "meta/follows names {}, but the chunks are read from {}",
+                        String::from_utf8_lossy(v),
+                        self.pack.describe()
+                    )
+                }),
+            ),
             keys::INDEX => decode::<IndexConfig>(v, &what).map(|c| {
                 (c != self.index)
                     .then(|| format!("index config {c:?} differs from the open store's"))

@@ -92,3 +92,152 @@ fn compaction_on_an_object_store_moves_the_live_chunks_and_lets_the_old_segments
     let refused = Engine::open(local).err().expect("refused").to_string();
     assert!(refused.contains("file://"), "{refused}");
 }
+
+/// What a server answers for the crops' region: the patch set of a uniform cut at two
+/// errors, each patch as (id, survey, level, top), and a tile's heights, bit for bit.
+type Answers = (Vec<(u64, String, u8, u64)>, Vec<u32>);
+
+fn answers(e: &Engine) -> Answers {
+    let roi = Aabb {
+        min: [-118.99, 34.46],
+        max: [-118.90, 34.53],
+    };
+    let mut patches = Vec::new();
+    for error in [0.0, 8.0] {
+        let (_, ps) = e.query(&Cut::Uniform { roi, error }).unwrap();
+        patches.extend(ps.iter().map(|p| {
+            (
+                p.id.0,
+                p.survey.to_string(),
+                p.level,
+                p.span.max_z.to_bits(),
+            )
+        }));
+    }
+    let heights = e
+        .tile(&Cut::Uniform { roi, error: 0.0 }, 64, 48, Backend::Cpu)
+        .unwrap()
+        .0
+        .heights
+        .iter()
+        .map(|h| h.to_bits())
+        .collect();
+    (patches, heights)
+}
+
+/// One round for each replica, then each answers as the writer does and stands at its commit.
+fn converged(writer: &Engine, replicas: &[&Engine]) {
+    let want = answers(writer);
+    let commit = writer
+        .replication()
+        .commit
+        .expect("the writer keeps a journal");
+    for (i, r) in replicas.iter().enumerate() {
+        r.round().unwrap();
+        let f = r.replication().following.expect("a replica");
+        assert_eq!((f.applied, f.published), (commit, commit), "replica {i}");
+        assert_eq!(r.replication().commit, Some(commit));
+        assert!(
+            answers(r) == want,
+            "replica {i} answers otherwise at commit {commit}"
+        );
+        assert!(r.verify().unwrap().problems.is_empty(), "replica {i}");
+    }
+}
+
+#[test]
+fn replicas_follow_the_writer_through_inserts_a_replacement_a_retirement_and_a_compaction() {
+    let tmp = tempfile::tempdir().unwrap();
+    let folder = tmp.path().join("objects");
+    let inbox = tmp.path().join("inbox");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let storage = Storage {
+        backend: BackendKind::Folder,
+        folder: Some(folder.clone()),
+        gc_grace_s: 0,
+        // A snapshot every second commit, so that the logs before the older of the two newest
+        // snapshots are deleted along the way.
+        snapshot_every: 2,
+        ..Storage::default()
+    };
+    let writer_cfg = Config {
+        data_dir: tmp.path().join("writer"),
+        ingest_roots: vec![crop(""), inbox.clone()],
+        storage: storage.clone(),
+        ..Config::default()
+    };
+    let replica_cfg = |name: &str| {
+        let mut storage = storage.clone();
+        storage
+            .set_follow(&format!("file://{}", folder.display()))
+            .unwrap();
+        Config {
+            data_dir: tmp.path().join(name),
+            storage,
+            ..Config::default()
+        }
+    };
+    let w = Engine::open(writer_cfg).unwrap();
+    let a = Engine::open(replica_cfg("a")).unwrap();
+    converged(&w, &[&a]);
+
+    let mut ids = Vec::new();
+    for f in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif"] {
+        let done = w.ingest(&crop(f), None, Origin::Request).unwrap();
+        assert!(done.error.is_empty(), "{f}: {}", done.error);
+        ids.push(done.survey.unwrap());
+    }
+    // The third survey comes through a file that then changes: the new content replaces it.
+    let changing = inbox.join("changing.tif");
+    std::fs::copy(crop("srtm_n44e005_voids_crop.tif"), &changing).unwrap();
+    w.ingest(&changing, None, Origin::Request).unwrap();
+    let b = Engine::open(replica_cfg("b")).unwrap();
+    converged(&w, &[&a, &b]);
+
+    std::fs::copy(crop("nasadem_n34w119_crop.tif"), &changing).unwrap();
+    let replaced = w.ingest(&changing, Some(3.0), Origin::Request).unwrap();
+    assert!(replaced.error.is_empty(), "{}", replaced.error);
+    w.retire(&ids[0].to_string()).unwrap();
+    converged(&w, &[&a, &b]);
+
+    // A replica refuses writes, naming the writer that holds the lease.
+    let Err(refused) = a.ingest(&crop("copernicus_n34w119_crop.tif"), None, Origin::Request) else {
+        panic!("a replica took an ingest");
+    };
+    let refused = refused.to_string();
+    assert!(
+        refused.contains("read replica") && refused.contains(&std::process::id().to_string()),
+        "{refused}"
+    );
+    assert!(a.retire(&ids[1].to_string()).is_err());
+
+    // Compaction rewrites the writer's database: its log sends the replicas to its snapshot.
+    // (The retired survey and the one replaced go.)
+    let report = w.compact().unwrap();
+    assert!(report.swapped && report.surveys_purged == 2, "{report:?}");
+    converged(&w, &[&a, &b]);
+    // A replica that starts now starts from the newest snapshot; the logs before the older of
+    // the two kept are gone.
+    let logs = std::fs::read_dir(folder.join("log")).unwrap().count();
+    let snapshots = std::fs::read_dir(folder.join("snapshots")).unwrap().count();
+    assert!(
+        snapshots <= 2 && logs <= 4,
+        "{snapshots} snapshots, {logs} logs"
+    );
+    let c = Engine::open(replica_cfg("c")).unwrap();
+    converged(&w, &[&a, &b, &c]);
+    drop(c);
+
+    // A replica restarted goes on from its own database.
+    drop(a);
+    w.retire(&ids[1].to_string()).unwrap();
+    let a = Engine::open(replica_cfg("a")).unwrap();
+    converged(&w, &[&a, &b]);
+
+    // A writer's directory is not a replica's to fill.
+    drop(w);
+    let mut taken = replica_cfg("writer");
+    taken.data_dir = tmp.path().join("writer");
+    let e = Engine::open(taken).err().expect("refused").to_string();
+    assert!(e.contains("holds a store of its own"), "{e}");
+}
