@@ -523,6 +523,12 @@ impl Config {
         if let Some(v) = get("PATCHWORK_FOLLOW").filter(|v| !v.is_empty()) {
             self.storage.set_follow(&v)?;
         }
+        if let Some(v) = get("PATCHWORK_STORAGE_POLL_MS") {
+            self.storage.poll_ms = num("PATCHWORK_STORAGE_POLL_MS", &v)?;
+        }
+        if let Some(v) = get("PATCHWORK_STORAGE_SNAPSHOT_EVERY") {
+            self.storage.snapshot_every = num("PATCHWORK_STORAGE_SNAPSHOT_EVERY", &v)?;
+        }
         if let Some(v) = get("PATCHWORK_STORAGE_FOLDER") {
             self.storage.folder = Some(v.into());
         }

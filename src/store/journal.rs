@@ -142,6 +142,7 @@ impl Journal {
         batch: &mut sled::Batch,
         touched: &[sled::IVec],
     ) -> Result<u64, StoreError> {
+        self.pack.check_lease().map_err(io)?;
         let (seq, up) = *lock(&self.state);
         if !up {
             return Err(StoreError::Invalid(format!(

@@ -76,6 +76,9 @@ struct Ours {
 pub struct Lease {
     ours: Arc<Mutex<Ours>>,
     renewer: tokio::task::AbortHandle,
+    /// Wakes the renewer before its next round: a commit that found the lease run out asks
+    /// for it at once rather than waiting up to a third of its life.
+    wake: Arc<tokio::sync::Notify>,
 }
 
 impl Drop for Lease {
@@ -161,10 +164,12 @@ pub async fn take(
         until_ms: expires - margin(ttl),
         lost: None,
     }));
-    let renewer = tokio::spawn(renew(store, path, holder, ttl, ours.clone()));
+    let wake = Arc::new(tokio::sync::Notify::new());
+    let renewer = tokio::spawn(renew(store, path, holder, ttl, ours.clone(), wake.clone()));
     Ok(Lease {
         ours,
         renewer: renewer.abort_handle(),
+        wake,
     })
 }
 
@@ -174,9 +179,17 @@ async fn renew(
     holder: String,
     ttl: Duration,
     ours: Arc<Mutex<Ours>>,
+    wake: Arc<tokio::sync::Notify>,
 ) {
+    let mut wait = ttl / 3;
     loop {
-        tokio::time::sleep(ttl / 3).await;
+        tokio::select! {
+            _ = tokio::time::sleep(wait) => {}
+            _ = wake.notified() => {}
+        }
+        // After a failure, sooner: the object store may be back any moment, and writes wait
+        // for the lease.
+        wait = ttl / 3;
         let seen = crate::sync::lock(&ours).version.clone();
         let (payload, expires) = body(&holder, ttl);
         match store
@@ -213,12 +226,25 @@ async fn renew(
             }
             // Tried again at the next round; the lease runs out meanwhile if this goes on,
             // and appends stop before it does.
-            Err(e) => tracing::warn!(error = %e, "could not renew the store's lease"),
+            Err(e) => {
+                tracing::warn!(error = %e, "could not renew the store's lease");
+                wait = (ttl / 3).min(Duration::from_secs(1));
+            }
         }
     }
 }
 
 impl Lease {
+    /// Whether another writer took the lease: for good, unlike one that ran out.
+    pub fn lost(&self) -> bool {
+        crate::sync::lock(&self.ours).lost.is_some()
+    }
+
+    /// Asks the renewer to renew now.
+    pub fn nudge(&self) {
+        self.wake.notify_one();
+    }
+
     /// Whether appends may go on: the lease is ours and has not run out.
     pub fn check(&self) -> Result<(), String> {
         let o = crate::sync::lock(&self.ours);

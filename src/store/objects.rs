@@ -43,6 +43,9 @@ pub const MULTIPART_BYTES: usize = 64 << 20;
 /// The size of each part of a multipart upload.
 const PART_BYTES: usize = 16 << 20;
 
+/// How long a commit waits for a lease that ran out to be renewed before it is refused.
+const RENEW_WAIT: Duration = Duration::from_secs(3);
+
 /// The folder of the prefix that holds the segments.
 const SEGMENTS: &str = "segments";
 
@@ -320,6 +323,26 @@ impl ObjectPack {
         }
     }
 
+    /// Whether this writer may commit: its lease is still its own and has not run out. A
+    /// commit that writes no segment (a retirement) is held to it as much as one that does.
+    /// One that ran out while the object store was away is renewed first, waiting a little
+    /// for it: writes resume as soon as the store is back.
+    pub fn check_lease(&self) -> io::Result<()> {
+        let Some(lease) = &self.lease else {
+            return Ok(());
+        };
+        if lease.check().is_err() && !lease.lost() {
+            lease.nudge();
+            let t0 = std::time::Instant::now();
+            while lease.check().is_err() && !lease.lost() && t0.elapsed() < RENEW_WAIT {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        }
+        lease
+            .check()
+            .map_err(|why| io::Error::other(Unreachable(format!("{}: {why}", self.objects.url))))
+    }
+
     /// Who holds the writer's lease now, if anyone: for a replica's messages.
     pub fn writer(&self) -> Option<lease::Held> {
         let (store, path) = (self.objects.store.clone(), self.lease_path());
@@ -505,11 +528,7 @@ impl ChunkStore for ObjectPack {
                 format!("{}: a replica does not write", self.objects.url),
             ));
         }
-        if let Some(lease) = &self.lease {
-            lease.check().map_err(|why| {
-                io::Error::other(Unreachable(format!("{}: {why}", self.objects.url)))
-            })?;
-        }
+        self.check_lease()?;
         let mut end = lock(&self.end);
         let start = *end;
         let mut at = start;

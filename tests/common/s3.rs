@@ -4,6 +4,8 @@
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex};
 
 pub const BUCKET: &str = "terrain";
 const KEY: &str = "patchwork-test-key";
@@ -13,7 +15,44 @@ pub struct S3Server {
     pub root: PathBuf,
     pub port: u16,
     runtime: Option<tokio::runtime::Runtime>,
+    /// What the server gets wrong on purpose; shared with the running server.
+    pub faults: Arc<Faults>,
 }
+
+/// Faults the server plays, as real ones behave: a 503 with S3's `SlowDown` error.
+#[derive(Default)]
+pub struct Faults {
+    /// PUTs of objects whose key contains this are refused while it is set.
+    pub refuse_puts: Mutex<Option<String>>,
+    /// The next this many requests are refused.
+    pub throttle: AtomicU32,
+    /// How many requests were refused.
+    pub refused: AtomicU32,
+}
+
+impl Faults {
+    fn refuses(&self, method: &hyper::Method, path: &str) -> bool {
+        let put = method == hyper::Method::PUT
+            && lock(&self.refuse_puts)
+                .as_deref()
+                .is_some_and(|k| path.contains(k));
+        let throttled = self
+            .throttle
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
+            .is_ok();
+        if put || throttled {
+            self.refused.fetch_add(1, Ordering::SeqCst);
+        }
+        put || throttled
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+const SLOW_DOWN: &str = "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<Error><Code>SlowDown</Code>\
+<Message>Please reduce your request rate.</Message></Error>";
 
 impl S3Server {
     /// A server over `root` (made, with the bucket's folder, if missing), on a free port.
@@ -23,6 +62,7 @@ impl S3Server {
             root: root.into(),
             port: 0,
             runtime: None,
+            faults: Arc::default(),
         };
         s.restart();
         s
@@ -53,7 +93,22 @@ impl S3Server {
         let fs = s3s_fs::FileSystem::new(&self.root).unwrap();
         let mut b = s3s::service::S3ServiceBuilder::new(fs);
         b.set_auth(s3s::auth::SimpleAuth::from_single(KEY, SECRET));
-        let service = b.build();
+        let s3 = b.build();
+        let faults = self.faults.clone();
+        let service = hyper::service::service_fn(move |req: hyper::Request<_>| {
+            let (s3, faults) = (s3.clone(), faults.clone());
+            async move {
+                if faults.refuses(req.method(), req.uri().path()) {
+                    let slow = hyper::Response::builder()
+                        .status(hyper::StatusCode::SERVICE_UNAVAILABLE)
+                        .header("content-type", "application/xml")
+                        .body(s3s::Body::from(SLOW_DOWN.to_string()))
+                        .expect("a valid response");
+                    return Ok(slow);
+                }
+                hyper::service::Service::call(&s3, req).await
+            }
+        });
         rt.spawn(async move {
             let http =
                 hyper_util::server::conn::auto::Builder::new(hyper_util::rt::TokioExecutor::new());

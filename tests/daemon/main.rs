@@ -10,6 +10,7 @@ mod load;
 mod objects;
 mod python_client;
 mod reliability;
+mod replicas;
 mod view_session;
 mod web;
 mod web_browser;
