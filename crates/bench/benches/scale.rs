@@ -4,9 +4,13 @@
 //!
 //! Reports the ingest rate from drop to committed, store bytes against input bytes, the time a
 //! restart takes to serve, and over 200 random 512² tiles at e = 0, 5 and 50 m with a small
-//! chunk cache, cold and warm latency and the daemon's peak resident memory.
+//! chunk cache, cold and warm latency and the daemon's peak resident memory. The same run goes
+//! on the local pack and on an S3 server on loopback (s3s-fs, in this process), where it also
+//! reports the bytes fetched per tile and, with a read replica following the writer, the lag
+//! from a commit to the replica serving it.
 //!
-//! cargo bench -p patchwork-bench --bench scale   (N = 8: 104 M samples)
+//! cargo bench -p patchwork-bench --bench scale   (N = 8: 104 M samples, both backends)
+//! PATCHWORK_SCALE_BACKENDS=s3 cargo bench -p patchwork-bench --bench scale
 //! PATCHWORK_SCALE_N=12 PATCHWORK_SCALE_CACHE_MB=64 cargo bench -p patchwork-bench --bench scale
 //! PATCHWORK_SCALE_LOG=debug cargo bench -p patchwork-bench --bench scale   (the daemon's log, with each ingest's timings)
 
@@ -16,7 +20,9 @@ use common::{quantile, shared};
 use patchwork::serve::proto::{
     self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
 };
+use patchwork_testkit::s3::S3Server;
 use std::path::Path;
+use std::sync::atomic::Ordering;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -90,12 +96,18 @@ struct Daemon {
 }
 
 impl Daemon {
-    fn start(data: &Path, inbox: &Path, cache_mb: u64) -> std::io::Result<Daemon> {
+    fn start(
+        data: &Path,
+        inbox: &Path,
+        cache_mb: u64,
+        env: &[(String, String)],
+    ) -> std::io::Result<Daemon> {
         let port = std::net::TcpListener::bind("127.0.0.1:0")?
             .local_addr()?
             .port();
         let child = Command::new(common::daemon_exe())
             .arg("serve")
+            .envs(env.iter().map(|(k, v)| (k, v)))
             .env("PATCHWORK_DATA_DIR", data)
             .env("PATCHWORK_INBOX", inbox)
             .env("PATCHWORK_LISTEN", format!("127.0.0.1:{port}"))
@@ -134,8 +146,56 @@ impl Daemon {
     }
 }
 
+/// The figures of one backend, for the table that sets them side by side.
+#[derive(Default)]
+struct Figures {
+    ingest_msps: f64,
+    store_mib: f64,
+    restart_s: f64,
+    index_bytes_per_patch: f64,
+    /// Per error: cold p50, warm p50 (ms), bytes fetched per cold and per warm tile.
+    tiles: Vec<(f64, f64, f64, f64, f64)>,
+    /// Commit to served on a replica, ms.
+    lag_ms: Vec<f64>,
+}
+
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let which = std::env::var("PATCHWORK_SCALE_BACKENDS").unwrap_or_else(|_| "local,s3".into());
+    let mut all = Vec::new();
+    for b in which.split(',').map(str::trim).filter(|b| !b.is_empty()) {
+        println!("== {b}");
+        all.push((b.to_string(), run(b == "s3").await?));
+    }
+    println!("\n| figure | {} |", all.iter().map(|(b, _)| b.as_str()).collect::<Vec<_>>().join(" | "));
+    println!("|---|{}", "---|".repeat(all.len()));
+    let row = |name: &str, f: &dyn Fn(&Figures) -> String| {
+        println!("| {name} | {} |", all.iter().map(|(_, x)| f(x)).collect::<Vec<_>>().join(" | "));
+    };
+    row("ingest, M samples/s", &|f| format!("{:.1}", f.ingest_msps));
+    row("store, MiB (segments on S3)", &|f| format!("{:.0}", f.store_mib));
+    row("restart to first answer, s", &|f| format!("{:.2}", f.restart_s));
+    row("index, bytes a patch", &|f| format!("{:.0}", f.index_bytes_per_patch));
+    for (i, e) in [0, 5, 50].iter().enumerate() {
+        row(&format!("512² tile e = {e} m, cold / warm p50 ms"), &|f| {
+            format!("{:.1} / {:.1}", f.tiles[i].1, f.tiles[i].2)
+        });
+        row(&format!("e = {e} m, kB fetched a cold / warm tile"), &|f| {
+            format!("{:.0} / {:.0}", f.tiles[i].3 / 1e3, f.tiles[i].4 / 1e3)
+        });
+    }
+    row("replica lag after a commit, ms (each)", &|f| {
+        if f.lag_ms.is_empty() {
+            "–".into()
+        } else {
+            f.lag_ms.iter().map(|l| format!("{l:.0}")).collect::<Vec<_>>().join(", ")
+        }
+    });
+    Ok(())
+}
+
+async fn run(on_s3: bool) -> Result<Figures, Box<dyn std::error::Error>> {
+    let mut fig = Figures::default();
     let n = env_or("PATCHWORK_SCALE_N", 8) as usize;
     let cache_mb = env_or("PATCHWORK_SCALE_CACHE_MB", 64);
     let requests = env_or("PATCHWORK_SCALE_REQUESTS", 200) as usize;
@@ -147,6 +207,12 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     std::fs::create_dir_all(&inbox)?;
     std::fs::create_dir_all(&staging)?;
+    let s3 = on_s3.then(|| S3Server::start(&tmp.path().join("s3")));
+    let env = s3.as_ref().map(|s| s.env("scale")).unwrap_or_default();
+    let fetched = || {
+        s3.as_ref()
+            .map_or(0, |s| s.faults.fetched.load(Ordering::Relaxed))
+    };
 
     // The mosaic: `cols` tiles a row, rows going south.
     let src = std::fs::read(shared("Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif"))?;
@@ -163,7 +229,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mosaic = [-119.0, 35.0 - rows as f64, -119.0 + cols as f64, 35.0];
 
     // An empty daemon: the memory that is not the store's.
-    let d = Daemon::start(&data, &inbox, cache_mb)?;
+    let d = Daemon::start(&data, &inbox, cache_mb, &env)?;
     let mut admin = AdminClient::new(d.channel().await);
     admin.stats(pb::StatsRequest {}).await?;
     let empty_rss = proc_bytes(d.child.id(), "VmRSS");
@@ -196,6 +262,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         tokio::time::sleep(Duration::from_millis(20)).await;
     };
     let ingest_s = t0.elapsed().as_secs_f64();
+    fig.ingest_msps = samples as f64 / ingest_s / 1e6;
     let ingest_cpu = cpu_seconds(d.child.id()) - cpu0;
     let ingest_peak = proc_bytes(d.child.id(), "VmHWM");
     let stats = admin.stats(pb::StatsRequest {}).await?.into_inner();
@@ -206,22 +273,33 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         mib(ingest_peak),
         100.0 * ingest_cpu / ingest_s / std::thread::available_parallelism().map_or(1, |n| n.get()) as f64
     );
+    let segments: u64 = s3.as_ref().map_or(0, |s| {
+        s.segments("scale")
+            .iter()
+            .map(|p| std::fs::metadata(p).map_or(0, |m| m.len()))
+            .sum()
+    });
+    let stored = stats.disk_bytes + segments;
+    fig.store_mib = mib(stored);
     println!(
-        "store: {:.1} MiB on disk for {:.1} MiB of input files: {:.2}×",
-        mib(stats.disk_bytes),
+        "store: {:.1} MiB ({:.1} MiB of it segments on S3) for {:.1} MiB of input files: {:.2}×",
+        mib(stored),
+        mib(segments),
         mib(input_bytes),
-        stats.disk_bytes as f64 / input_bytes as f64
+        stored as f64 / input_bytes as f64
     );
     d.stop();
 
     // A restart: from the process started to the first answer of a store with every survey.
     let t0 = Instant::now();
-    let d = Daemon::start(&data, &inbox, cache_mb)?;
+    let d = Daemon::start(&data, &inbox, cache_mb, &env)?;
     let mut admin = AdminClient::new(d.channel().await);
     let stats = admin.stats(pb::StatsRequest {}).await?.into_inner();
     let restart_s = t0.elapsed().as_secs_f64();
+    fig.restart_s = restart_s;
     let open_rss = proc_bytes(d.child.id(), "VmRSS");
     let index = open_rss.saturating_sub(empty_rss);
+    fig.index_bytes_per_patch = index as f64 / stats.patches.max(1) as f64;
     println!(
         "restart: serving {} patches {restart_s:.2} s after the process started; RSS {:.0} MiB, of which the index {:.0} MiB ({:.0} bytes a patch)",
         stats.patches,
@@ -244,6 +322,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     for e in [0.0, 5.0, 50.0] {
         let (mut cold, mut warm) = (Vec::new(), Vec::new());
         let mut patches = 0u64;
+        let (mut cold_bytes, mut warm_bytes) = (0u64, 0u64);
         for _ in 0..requests {
             let x0 = mosaic[0] + next() * (mosaic[2] - mosaic[0] - side);
             let y0 = mosaic[1] + next() * (mosaic[3] - mosaic[1] - side);
@@ -262,13 +341,15 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                 height: 512,
                 backend: pb::Backend::Cpu as i32,
             };
-            let t = Instant::now();
+            let (t, b) = (Instant::now(), fetched());
             let tile = terrain.resample_tile(req.clone()).await?.into_inner();
             cold.push(t.elapsed().as_secs_f64() * 1e3);
+            cold_bytes += fetched() - b;
             patches += tile.patches as u64;
-            let t = Instant::now();
+            let (t, b) = (Instant::now(), fetched());
             terrain.resample_tile(req).await?;
             warm.push(t.elapsed().as_secs_f64() * 1e3);
+            warm_bytes += fetched() - b;
         }
         cold.sort_by(f64::total_cmp);
         warm.sort_by(f64::total_cmp);
@@ -280,6 +361,21 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
             quantile(&warm, 0.99),
             patches as f64 / requests as f64
         );
+        let per = |b: u64| b as f64 / requests as f64;
+        if s3.is_some() {
+            println!(
+                "           {:.0} kB fetched a cold tile, {:.0} kB a warm one",
+                per(cold_bytes) / 1e3,
+                per(warm_bytes) / 1e3
+            );
+        }
+        fig.tiles.push((
+            e,
+            quantile(&cold, 0.5),
+            quantile(&warm, 0.5),
+            per(cold_bytes),
+            per(warm_bytes),
+        ));
     }
     let peak = proc_bytes(d.child.id(), "VmHWM");
     let budget = (cache_mb << 20) * 5 / 4 + index + (100 << 20);
@@ -290,6 +386,61 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         mib(budget),
         if peak <= budget { "within" } else { "OVER" }
     );
+    if on_s3 {
+        fig.lag_ms = replica_lag(&d, &mut admin, &tmp.path().join("replica"), &env, &names).await?;
+        println!("replica: a commit served {:?} ms after the writer made it", fig.lag_ms);
+    }
     d.stop();
-    Ok(())
+    Ok(fig)
+}
+
+/// Starts a replica of the writer `d`, then retires three tiles one by one and measures, for
+/// each, the time from the writer's answer to the replica standing at the same commit.
+async fn replica_lag(
+    d: &Daemon,
+    admin: &mut AdminClient<tonic::transport::Channel>,
+    root: &Path,
+    env: &[(String, String)],
+    names: &[String],
+) -> Result<Vec<f64>, Box<dyn std::error::Error>> {
+    let mut env = env.to_vec();
+    env.push(("PATCHWORK_FOLLOW".into(), "s3://terrain/scale".into()));
+    std::fs::create_dir_all(root.join("inbox"))?;
+    let r = Daemon::start(&root.join("data"), &root.join("inbox"), 64, &env)?;
+    let mut radmin = AdminClient::new(r.channel().await);
+    let commit = |s: &pb::StatsReply| s.commit;
+    let mut lags = Vec::new();
+    let list = admin.list_surveys(pb::ListSurveysRequest {}).await?.into_inner();
+    for name in names.iter().take(3) {
+        let source = list
+            .surveys
+            .iter()
+            .find(|s| s.source.ends_with(name.as_str()))
+            .ok_or("a tile's survey")?
+            .source
+            .clone();
+        admin
+            .retire(pb::RetireRequest {
+                id_or_source: source,
+            })
+            .await?;
+        let t0 = Instant::now();
+        let want = commit(&admin.stats(pb::StatsRequest {}).await?.into_inner());
+        loop {
+            // The replica may still be starting: its Stats answers once it serves.
+            if let Ok(s) = radmin.stats(pb::StatsRequest {}).await {
+                if commit(&s.into_inner()) >= want {
+                    break;
+                }
+            }
+            if t0.elapsed() > Duration::from_secs(120) {
+                return Err("the replica did not catch up in 120 s".into());
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        lags.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    r.stop();
+    let _ = d;
+    Ok(lags)
 }

@@ -5,6 +5,7 @@
 
 pub mod copies;
 pub mod fixtures;
+pub mod s3;
 
 use patchwork_core::geom::rng;
 use patchwork_core::model::grid::Grid;
