@@ -22,8 +22,8 @@ use patchwork::serve::proto::{
 };
 use patchwork_testkit::s3::S3Server;
 use std::path::Path;
-use std::sync::atomic::Ordering;
 use std::process::{Child, Command, Stdio};
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 fn env_or(name: &str, default: u64) -> u64 {
@@ -159,23 +159,45 @@ struct Figures {
     lag_ms: Vec<f64>,
 }
 
-#[tokio::main]
-async fn main() -> Result<(), Box<dyn std::error::Error>> {
+fn main() -> Result<(), Box<dyn std::error::Error>> {
     let which = std::env::var("PATCHWORK_SCALE_BACKENDS").unwrap_or_else(|_| "local,s3".into());
+    let rt = tokio::runtime::Runtime::new()?;
     let mut all = Vec::new();
     for b in which.split(',').map(str::trim).filter(|b| !b.is_empty()) {
         println!("== {b}");
-        all.push((b.to_string(), run(b == "s3").await?));
+        let tmp = tempfile::tempdir()?;
+        // The S3 server runs on a runtime of its own, which may be neither made nor dropped
+        // inside another.
+        let s3 = (b == "s3").then(|| S3Server::start(&tmp.path().join("s3")));
+        all.push((b.to_string(), rt.block_on(run(tmp.path(), s3.as_ref()))?));
     }
-    println!("\n| figure | {} |", all.iter().map(|(b, _)| b.as_str()).collect::<Vec<_>>().join(" | "));
+    println!(
+        "\n| figure | {} |",
+        all.iter()
+            .map(|(b, _)| b.as_str())
+            .collect::<Vec<_>>()
+            .join(" | ")
+    );
     println!("|---|{}", "---|".repeat(all.len()));
     let row = |name: &str, f: &dyn Fn(&Figures) -> String| {
-        println!("| {name} | {} |", all.iter().map(|(_, x)| f(x)).collect::<Vec<_>>().join(" | "));
+        println!(
+            "| {name} | {} |",
+            all.iter()
+                .map(|(_, x)| f(x))
+                .collect::<Vec<_>>()
+                .join(" | ")
+        );
     };
     row("ingest, M samples/s", &|f| format!("{:.1}", f.ingest_msps));
-    row("store, MiB (segments on S3)", &|f| format!("{:.0}", f.store_mib));
-    row("restart to first answer, s", &|f| format!("{:.2}", f.restart_s));
-    row("index, bytes a patch", &|f| format!("{:.0}", f.index_bytes_per_patch));
+    row("store, MiB (segments on S3)", &|f| {
+        format!("{:.0}", f.store_mib)
+    });
+    row("restart to first answer, s", &|f| {
+        format!("{:.2}", f.restart_s)
+    });
+    row("index, bytes a patch", &|f| {
+        format!("{:.0}", f.index_bytes_per_patch)
+    });
     for (i, e) in [0, 5, 50].iter().enumerate() {
         row(&format!("512² tile e = {e} m, cold / warm p50 ms"), &|f| {
             format!("{:.1} / {:.1}", f.tiles[i].1, f.tiles[i].2)
@@ -188,31 +210,26 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         if f.lag_ms.is_empty() {
             "–".into()
         } else {
-            f.lag_ms.iter().map(|l| format!("{l:.0}")).collect::<Vec<_>>().join(", ")
+            f.lag_ms
+                .iter()
+                .map(|l| format!("{l:.0}"))
+                .collect::<Vec<_>>()
+                .join(", ")
         }
     });
     Ok(())
 }
 
-async fn run(on_s3: bool) -> Result<Figures, Box<dyn std::error::Error>> {
+async fn run(root: &Path, s3: Option<&S3Server>) -> Result<Figures, Box<dyn std::error::Error>> {
     let mut fig = Figures::default();
     let n = env_or("PATCHWORK_SCALE_N", 8) as usize;
     let cache_mb = env_or("PATCHWORK_SCALE_CACHE_MB", 64);
     let requests = env_or("PATCHWORK_SCALE_REQUESTS", 200) as usize;
-    let tmp = tempfile::tempdir()?;
-    let (data, inbox, staging) = (
-        tmp.path().join("data"),
-        tmp.path().join("inbox"),
-        tmp.path().join("staging"),
-    );
+    let (data, inbox, staging) = (root.join("data"), root.join("inbox"), root.join("staging"));
     std::fs::create_dir_all(&inbox)?;
     std::fs::create_dir_all(&staging)?;
-    let s3 = on_s3.then(|| S3Server::start(&tmp.path().join("s3")));
-    let env = s3.as_ref().map(|s| s.env("scale")).unwrap_or_default();
-    let fetched = || {
-        s3.as_ref()
-            .map_or(0, |s| s.faults.fetched.load(Ordering::Relaxed))
-    };
+    let env = s3.map(|s| s.env("scale")).unwrap_or_default();
+    let fetched = || s3.map_or(0, |s| s.faults.fetched.load(Ordering::Relaxed));
 
     // The mosaic: `cols` tiles a row, rows going south.
     let src = std::fs::read(shared("Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif"))?;
@@ -273,7 +290,7 @@ async fn run(on_s3: bool) -> Result<Figures, Box<dyn std::error::Error>> {
         mib(ingest_peak),
         100.0 * ingest_cpu / ingest_s / std::thread::available_parallelism().map_or(1, |n| n.get()) as f64
     );
-    let segments: u64 = s3.as_ref().map_or(0, |s| {
+    let segments: u64 = s3.map_or(0, |s| {
         s.segments("scale")
             .iter()
             .map(|p| std::fs::metadata(p).map_or(0, |m| m.len()))
@@ -386,9 +403,12 @@ async fn run(on_s3: bool) -> Result<Figures, Box<dyn std::error::Error>> {
         mib(budget),
         if peak <= budget { "within" } else { "OVER" }
     );
-    if on_s3 {
-        fig.lag_ms = replica_lag(&d, &mut admin, &tmp.path().join("replica"), &env, &names).await?;
-        println!("replica: a commit served {:?} ms after the writer made it", fig.lag_ms);
+    if s3.is_some() {
+        fig.lag_ms = replica_lag(&d, &mut admin, &root.join("replica"), &env, &names).await?;
+        println!(
+            "replica: a commit served {:?} ms after the writer made it",
+            fig.lag_ms
+        );
     }
     d.stop();
     Ok(fig)
@@ -410,7 +430,10 @@ async fn replica_lag(
     let mut radmin = AdminClient::new(r.channel().await);
     let commit = |s: &pb::StatsReply| s.commit;
     let mut lags = Vec::new();
-    let list = admin.list_surveys(pb::ListSurveysRequest {}).await?.into_inner();
+    let list = admin
+        .list_surveys(pb::ListSurveysRequest {})
+        .await?
+        .into_inner();
     for name in names.iter().take(3) {
         let source = list
             .surveys
