@@ -21,7 +21,7 @@ use patchwork_geom::{Aabb, Affine, ORect};
 use patchwork_model::edge::EdgePatch;
 use patchwork_model::grid::Georef;
 use patchwork_model::ids::{PatchId, SurveyId};
-use patchwork_model::patch::Patch;
+use patchwork_model::patch::{CellRect, Patch};
 use patchwork_model::place::{Frame, PlaneId, STORE_PLANE};
 use patchwork_model::survey::SurveyMeta;
 use rayon::prelude::*;
@@ -55,6 +55,12 @@ impl Default for IndexConfig {
 /// [`patchwork_model::place`]). Coverage between patches of one plane is decided there, exactly
 /// as ever; between planes, through the store's plane, on each patch's frame, with the shapes
 /// grown or shrunk by the frames' bounds so that the answer stays conservative.
+///
+/// A box keeps its shapes as cells of its level's grid, which every box of the level shares,
+/// and makes the world's rectangles from them when asked, with the grid's own arithmetic, so
+/// that they are the rectangles the grid would give to the bit. An index holds a box for every
+/// patch of the store; 64-byte rectangles and their bounds kept ready made a box of about
+/// 300 bytes, where this one is about 110.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PatchBox {
     /// The patch the box stands for.
@@ -67,21 +73,67 @@ pub struct PatchBox {
     pub area: f64,
     /// Bottom of the box: the patch's error ε + δ.
     pub min_z: f64,
-    /// The plane `kernel`, `valid` and `window` lie in.
+    /// The plane the kernel, the valid parts and the window lie in.
     pub plane: PlaneId,
-    /// The kernel, in the patch's plane.
-    pub kernel: ORect,
-    /// The kernel's valid parts, as disjoint shapes in the patch's plane: what greater patches must
-    /// cover to cut the box.
-    pub valid: Vec<ORect>,
-    /// Where the patch can contribute to a blend.
-    pub window: ORect,
+    /// The grid the cells below are of.
+    lattice: Arc<Lattice>,
+    /// The kernel's cells.
+    kernel: CellRect,
+    /// The window's cells: where the patch can contribute to a blend.
+    window: CellRect,
+    /// The kernel's valid parts, as disjoint rectangles of grid coordinates (first column,
+    /// first row, end column, end row): what greater patches must cover to cut the box. None
+    /// where the valid part is the whole kernel, as it is for nearly every patch.
+    valid: Option<Box<[[f64; 4]]>>,
     /// For a patch of another plane, where it lies in the store's.
     pub placed: Option<Box<Placed>>,
-    /// Store-plane bounds of the kernel.
-    pub aabb: Aabb,
-    /// Store-plane bounds of the window.
-    pub window_aabb: Aabb,
+}
+
+/// A grid as boxes use it: the position of sample (0, 0), the unit vectors of its column and
+/// row axes, and its spacing. Worked out once from a [`Georef`] for all the boxes on it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Lattice {
+    origin: [f64; 2],
+    axes: [[f64; 2]; 2],
+    step: [f64; 2],
+}
+
+impl Lattice {
+    /// The lattice of a grid.
+    pub fn of(g: &Georef) -> Arc<Lattice> {
+        Arc::new(Lattice {
+            origin: g.origin,
+            axes: g.axes(),
+            step: g.step,
+        })
+    }
+
+    /// The world parallelogram spanned by grid coordinates (c0, r0, c1, r1): the arithmetic of
+    /// [`Georef::grid_rect`] and [`Georef::cells_rect`], step for step, so that the result is
+    /// theirs to the bit.
+    fn rect(&self, r: [f64; 4]) -> ORect {
+        let [u, v] = self.axes;
+        let a = r[0] * self.step[0];
+        let b = r[1] * self.step[1];
+        ORect {
+            origin: [
+                self.origin[0] + a * u[0] + b * v[0],
+                self.origin[1] + a * u[1] + b * v[1],
+            ],
+            u,
+            v,
+            size: [(r[2] - r[0]) * self.step[0], (r[3] - r[1]) * self.step[1]],
+        }
+    }
+
+    fn cells(&self, c: &CellRect) -> ORect {
+        self.rect(grid_coords(c))
+    }
+}
+
+/// A range of cells as grid coordinates: exact, as every u32 is an f64.
+fn grid_coords(c: &CellRect) -> [f64; 4] {
+    [c.c0 as f64, c.r0 as f64, c.c1 as f64, c.r1 as f64]
 }
 
 /// A patch of another plane in the store's: its shapes carried through its frame, each
@@ -106,37 +158,43 @@ impl PatchBox {
     /// A survey's patches as LOD-space boxes, placed in the store's plane as the survey is.
     pub fn of_survey(s: &SurveyMeta) -> Vec<PatchBox> {
         let frames = s.placement.as_ref().map(|pl| (pl.plane.id, &pl.frames));
+        let lattices: Vec<Arc<Lattice>> = s.shapes.iter().map(|l| Lattice::of(&l.georef)).collect();
         s.patches
             .iter()
             .enumerate()
             .map(|(k, p)| {
-                let g = &s.shapes[p.level as usize].georef;
+                let l = p.level as usize;
                 let framed = frames.map(|(plane, f)| (plane, &f[k]));
-                PatchBox::new(p, g, s.layout.kernel, framed)
+                PatchBox::new(p, &s.shapes[l].georef, &lattices[l], s.layout.kernel, framed)
             })
             .collect()
     }
 
-    /// The box of a survey's patch on a level georeferenced by `g`; `framed` places a patch
-    /// of another plane in the store's.
+    /// The box of a survey's patch on a level georeferenced by `g`, whose lattice is `lattice`;
+    /// `framed` places a patch of another plane in the store's.
     pub fn new(
         p: &Patch,
         g: &Georef,
+        lattice: &Arc<Lattice>,
         kernel_cells: usize,
         framed: Option<(PlaneId, &Frame)>,
     ) -> Self {
-        let kernel = g.cells_rect(&p.kernel);
-        let window = g.cells_rect(&p.window);
-        let valid = p.valid.iter().map(|c| g.cells_rect(c)).collect();
+        let whole = p.valid.len() == 1 && p.valid[0] == p.kernel;
+        let valid = (!whole).then(|| p.valid.iter().map(grid_coords).collect());
         Self::placed(
-            p.id,
-            p.survey,
-            p.level,
-            nominal_area(g, kernel_cells as f64),
-            p.error,
-            kernel,
-            valid,
-            window,
+            PatchBox {
+                id: p.id,
+                survey: p.survey,
+                level: p.level,
+                area: nominal_area(g, kernel_cells as f64),
+                min_z: p.error,
+                plane: STORE_PLANE,
+                lattice: lattice.clone(),
+                kernel: p.kernel,
+                window: p.window,
+                valid,
+                placed: None,
+            },
             framed,
         )
     }
@@ -145,46 +203,29 @@ impl PatchBox {
     /// size: its samples are level 0's, so it is ordered with level-0 patches.
     pub fn edge(e: &EdgePatch, framed: Option<(PlaneId, &Frame)>) -> Self {
         let g = &e.grid.georef;
+        let whole = e.valid.len() == 1 && e.valid[0] == grid_coords(&e.kernel);
         Self::placed(
-            e.id,
-            e.owner,
-            0,
-            nominal_area(g, e.kernel_cells as f64),
-            e.error,
-            g.cells_rect(&e.kernel),
-            e.valid.iter().map(|r| g.grid_rect(*r)).collect(),
-            g.cells_rect(&e.window),
+            PatchBox {
+                id: e.id,
+                survey: e.owner,
+                level: 0,
+                area: nominal_area(g, e.kernel_cells as f64),
+                min_z: e.error,
+                plane: STORE_PLANE,
+                lattice: Lattice::of(g),
+                kernel: e.kernel,
+                window: e.window,
+                valid: (!whole).then(|| e.valid.clone().into_boxed_slice()),
+                placed: None,
+            },
             framed,
         )
     }
 
-    #[allow(clippy::too_many_arguments)]
-    fn placed(
-        id: PatchId,
-        survey: SurveyId,
-        level: u8,
-        area: f64,
-        min_z: f64,
-        kernel: ORect,
-        valid: Vec<ORect>,
-        window: ORect,
-        framed: Option<(PlaneId, &Frame)>,
-    ) -> Self {
+    /// A box in the store's plane, or carried into it through `framed`.
+    fn placed(b: PatchBox, framed: Option<(PlaneId, &Frame)>) -> Self {
         let Some((plane, f)) = framed else {
-            return PatchBox {
-                id,
-                survey,
-                level,
-                area,
-                min_z,
-                plane: STORE_PLANE,
-                aabb: kernel.aabb(),
-                window_aabb: window.aabb(),
-                kernel,
-                valid,
-                window,
-                placed: None,
-            };
+            return b;
         };
         let inverse = f
             .map
@@ -194,25 +235,56 @@ impl PatchBox {
             frame: f.map,
             inverse,
             rho: f.rho,
-            kernel: kernel.mapped(&f.map),
-            valid: valid.iter().map(|v| v.mapped(&f.map)).collect(),
-            window: window.mapped(&f.map),
+            kernel: b.kernel().mapped(&f.map),
+            valid: b.valid().iter().map(|v| v.mapped(&f.map)).collect(),
+            window: b.window().mapped(&f.map),
         };
         PatchBox {
-            id,
-            survey,
-            level,
             // In the store's units, so that patches of every plane order together.
-            area: area * f.map.det().abs(),
-            min_z,
+            area: b.area * f.map.det().abs(),
             plane,
-            aabb: placed.kernel.inflated(f.rho).aabb(),
-            window_aabb: placed.window.inflated(f.rho).aabb(),
-            kernel,
-            valid,
-            window,
             placed: Some(Box::new(placed)),
+            ..b
         }
+    }
+
+    /// The kernel, in the patch's plane.
+    pub fn kernel(&self) -> ORect {
+        self.lattice.cells(&self.kernel)
+    }
+
+    /// Where the patch can contribute to a blend, in the patch's plane.
+    pub fn window(&self) -> ORect {
+        self.lattice.cells(&self.window)
+    }
+
+    /// The kernel's valid parts, as disjoint shapes in the patch's plane: what greater patches
+    /// must cover to cut the box.
+    pub fn valid(&self) -> Vec<ORect> {
+        let mut out = Vec::new();
+        self.valid_into(&mut out);
+        out
+    }
+
+    /// [`PatchBox::valid`], added to `out`.
+    pub fn valid_into(&self, out: &mut Vec<ORect>) {
+        match &self.valid {
+            None => out.push(self.kernel()),
+            Some(v) => out.extend(v.iter().map(|r| self.lattice.rect(*r))),
+        }
+    }
+
+    /// Store-plane bounds of the kernel.
+    pub fn aabb(&self) -> Aabb {
+        match &self.placed {
+            Some(p) => p.kernel.inflated(p.rho).aabb(),
+            None => self.kernel().aabb(),
+        }
+    }
+
+    /// Store-plane bounds of the window.
+    pub fn window_aabb(&self) -> Aabb {
+        self.reach().aabb()
     }
 
     /// How far this box's store-plane shapes may be from the truth.
@@ -222,7 +294,7 @@ impl PatchBox {
 
     /// The kernel in the store's plane (through the frame, for a patch of another plane).
     pub fn store_kernel(&self) -> ORect {
-        self.placed.as_ref().map_or(self.kernel, |p| p.kernel)
+        self.placed.as_ref().map_or_else(|| self.kernel(), |p| p.kernel)
     }
 
     /// Everywhere in the store's plane the patch can contribute to a blend: its window, grown
@@ -230,19 +302,15 @@ impl PatchBox {
     pub fn reach(&self) -> ORect {
         match &self.placed {
             Some(p) => p.window.inflated(p.rho),
-            None => self.window,
+            None => self.window(),
         }
-    }
-
-    fn store_valid(&self) -> &[ORect] {
-        self.placed.as_ref().map_or(&self.valid, |p| &p.valid)
     }
 
     /// Whether two kernels may meet: exactly within one plane, through the store's plane
     /// (with both frames' bounds) between two.
     fn meets(&self, o: &PatchBox) -> bool {
         if self.plane == o.plane {
-            return self.kernel.intersects(&o.kernel);
+            return self.kernel().intersects(&o.kernel());
         }
         self.store_kernel()
             .inflated(self.rho() + o.rho())
@@ -253,11 +321,19 @@ impl PatchBox {
     /// within a frame's bound, so that whatever they cover there they truly cover.
     fn seen_from(&self, t: &PatchBox, out: &mut Vec<ORect>) {
         if self.plane == t.plane {
-            out.extend_from_slice(&self.valid);
+            self.valid_into(out);
             return;
         }
         let shrink = self.rho() + t.rho();
-        for v in self.store_valid() {
+        let own;
+        let valid = match &self.placed {
+            Some(p) => &p.valid,
+            None => {
+                own = self.valid();
+                &own
+            }
+        };
+        for v in valid {
             let Some(v) = v.deflated(shrink) else {
                 continue;
             };
@@ -481,7 +557,7 @@ impl LodIndex {
             ceiling: slot.state.top,
             floor: slot.bx.min_z,
             exposed: slot.state.exposed,
-            aabb: slot.bx.window_aabb,
+            aabb: slot.bx.window_aabb(),
         }
     }
 
@@ -496,7 +572,7 @@ impl LodIndex {
 
     /// Boxes other than `p` whose kernels meet `p`'s and that `keep` accepts.
     fn neighbours(&self, p: &PatchBox, keep: impl Fn(&PatchBox) -> bool) -> Vec<&Arc<PatchBox>> {
-        self.boxes_in(&p.aabb)
+        self.boxes_in(&p.aabb())
             .into_iter()
             .filter(|q| q.id != p.id && q.meets(p) && keep(q))
             .collect()
@@ -517,6 +593,7 @@ impl LodIndex {
             return top;
         }
         cands.sort_by(|a, b| a.min_z.total_cmp(&b.min_z).then(a.id.cmp(&b.id)));
+        let valid = p.valid();
         let rects_upto = |n: usize| -> Vec<ORect> {
             let mut out = Vec::new();
             for q in &cands[..n] {
@@ -524,7 +601,7 @@ impl LodIndex {
             }
             out
         };
-        if !covered_all(&p.valid, &rects_upto(cands.len())) {
+        if !covered_all(&valid, &rects_upto(cands.len())) {
             return top;
         }
         // Ends of runs of equal error: the prefixes worth testing.
@@ -534,7 +611,7 @@ impl LodIndex {
         let (mut lo, mut hi) = (0usize, ends.len() - 1);
         while lo < hi {
             let mid = (lo + hi) / 2;
-            if covered_all(&p.valid, &rects_upto(ends[mid])) {
+            if covered_all(&valid, &rects_upto(ends[mid])) {
                 hi = mid;
             } else {
                 lo = mid + 1;
@@ -552,7 +629,7 @@ impl LodIndex {
         for q in near.iter().filter(|q| q.more_accurate(p)) {
             q.seen_from(p, &mut better);
         }
-        better.is_empty() || !covered_all(&p.valid, &better)
+        better.is_empty() || !covered_all(&p.valid(), &better)
     }
 
     fn derive(&self, p: &PatchBox) -> BoxState {
@@ -626,7 +703,7 @@ impl LodIndex {
             };
             for id in entry.patches {
                 if let Some(slot) = self.slots.remove(&id) {
-                    self.tree.remove(id, &slot.bx.window_aabb);
+                    self.tree.remove(id, &slot.bx.window_aabb());
                     removed.push(id);
                     changed.push(slot.bx);
                 }

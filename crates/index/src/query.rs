@@ -306,7 +306,8 @@ impl LodIndex {
                     return None;
                 }
                 // Judged on its kernel, within the ROI where the kernel reaches into it.
-                let (lo, hi) = field.range(&b.aabb.intersection(&area).unwrap_or(b.aabb));
+                let aabb = b.aabb();
+                let (lo, hi) = field.range(&aabb.intersection(&area).unwrap_or(aabb));
                 if span.is_active() && b.min_z <= hi && span.max_z > lo {
                     return Some(Extracted::of(b, span, false));
                 }

@@ -234,11 +234,11 @@ pub fn redundant(t: &Terrain, ps: &[Extracted], lattice: f64) -> Vec<String> {
     for (x, b) in &boxes {
         let greater: Vec<&Extracted> = boxes
             .iter()
-            .filter(|(_, q)| q.order(b) == Ordering::Greater && q.kernel.intersects(&b.kernel))
+            .filter(|(_, q)| q.order(b) == Ordering::Greater && q.kernel().intersects(&b.kernel()))
             .map(|(y, _)| y)
             .collect();
         let mut needed = false;
-        'rects: for r in &b.valid {
+        'rects: for r in &b.valid() {
             let a = r.aabb();
             let nx = (a.width() / lattice).round() as usize;
             let ny = (a.height() / lattice).round() as usize;
@@ -283,10 +283,10 @@ pub fn needless_fallback(
         let b = t.index().get(x.id).unwrap().0.clone();
         let better: Vec<&Extracted> = boxes
             .iter()
-            .filter(|(_, q)| q.more_accurate(&b) && q.kernel.intersects(&b.kernel))
+            .filter(|(_, q)| q.more_accurate(&b) && q.kernel().intersects(&b.kernel()))
             .map(|(y, _)| y)
             .collect();
-        let needed = b.valid.iter().any(|r| {
+        let needed = b.valid().iter().any(|r| {
             let a = r.aabb();
             let nx = (a.width() / lattice).round().max(1.0) as usize;
             let ny = (a.height() / lattice).round().max(1.0) as usize;
