@@ -1268,6 +1268,7 @@ impl Terrain {
                 id => 1 + planes.iter().position(|p| p.id == id).unwrap_or(0) as u16,
             }
         };
+        self.prefetch(ps)?;
         let patches = ps
             .par_iter()
             .filter_map(|x| {
@@ -1300,6 +1301,29 @@ impl Terrain {
         Ok(Some(PatchSet::new(patches).with_planes(
             planes.iter().map(|p| p.to_native.clone()).collect(),
         )))
+    }
+
+    /// Asks the store for the samples of every survey patch of `ps` at once, which an object
+    /// store answers with a few merged requests where a read a patch would make one each.
+    fn prefetch(&self, ps: &[Extracted]) -> Result<(), SampleError> {
+        let Some(source) = self.source.as_ref() else {
+            return Ok(());
+        };
+        let wants: Vec<(SurveyId, usize, patchwork_model::grid::Shape, SampleRect)> = ps
+            .iter()
+            .filter_map(|x| match self.patch(x.id)? {
+                PatchRef::Survey(s, p) if !self.resident.contains_key(&s.id) => {
+                    let level = p.level as usize;
+                    let shape = s.shapes[level];
+                    Some((s.id, level, shape, ResolvedPatch::reads(p, &shape)))
+                }
+                _ => None,
+            })
+            .collect();
+        if wants.len() > 1 {
+            source.prefetch(&wants)?;
+        }
+        Ok(())
     }
 
     /// Resamples patches at the points of a grid on the CPU.

@@ -59,6 +59,17 @@ pub trait SampleSource: Send + Sync + std::fmt::Debug {
         let g = self.read(survey, level, shape, rect)?;
         Ok(Window::of(std::sync::Arc::new(g), rect, *shape))
     }
+
+    /// Readies the samples of several reads to come, each a survey, a level, its shape and a
+    /// rectangle, where the source fetches them faster together than one at a time (an object
+    /// store, whose client merges neighbouring ranges into one request). Nothing it does is
+    /// needed for the reads to succeed, and what it fails to fetch the read tries again and
+    /// reports; but a store it could not reach at all is reported at once (`unavailable`), so
+    /// that the caller does not wait out the same deadline once more for every read.
+    fn prefetch(&self, wants: &[(SurveyId, usize, Shape, SampleRect)]) -> Result<(), SampleError> {
+        let _ = wants;
+        Ok(())
+    }
 }
 
 /// Samples held in memory, by survey: a source for terrains restored without a store.
