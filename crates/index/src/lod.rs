@@ -552,13 +552,13 @@ impl LodIndex {
     }
 
     fn entry(slot: &IndexedBox) -> Entry {
-        Entry {
-            id: slot.bx.id,
-            ceiling: slot.state.top,
-            floor: slot.bx.min_z,
-            exposed: slot.state.exposed,
-            aabb: slot.bx.window_aabb(),
-        }
+        Entry::new(
+            slot.bx.id,
+            slot.state.top,
+            slot.bx.min_z,
+            slot.state.exposed,
+            &slot.bx.window_aabb(),
+        )
     }
 
     /// Boxes whose window bounds meet `area`, each once, in id order.
@@ -660,7 +660,7 @@ impl LodIndex {
                 let old = Self::entry(slot);
                 slot.state = *state;
                 let new = Self::entry(slot);
-                self.tree.remove(old.id, &old.aabb);
+                self.tree.remove(old.id, &old.aabb());
                 self.tree.insert(new);
             }
             if changed || fresh.contains(id) {

@@ -17,22 +17,70 @@ use std::cmp::Ordering;
 const MAX_DEPTH: u32 = 40;
 
 /// A box as the quadtree stores it: its z-span, whether it is exposed, and its window's bounds.
+///
+/// The span and the bounds are kept in f32, rounded outwards (the ceiling up, the floor down,
+/// the bounds grown), so that what the tree answers is a superset of what the exact values
+/// would give, which callers refine on the boxes themselves; 40 bytes an entry where f64 took
+/// 64, and an entry is stored 1.6 times a box. Rounding is monotone, so the tree's ordering
+/// invariant over the rounded ceilings keeps every cut's early stop conservative.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Entry {
     /// The patch the box stands for.
     pub id: PatchId,
-    /// Top of the box's z-span (exclusive).
-    pub ceiling: f64,
-    /// Bottom of the box's z-span: the patch's error.
-    pub floor: f64,
+    ceiling: f32,
+    floor: f32,
     /// Whether the box is the most accurate data somewhere (see `lod`).
     pub exposed: bool,
-    /// Bounds of the box's window, where the patch reaches.
-    pub aabb: Aabb,
+    bounds: [f32; 4],
+}
+
+/// The greatest f32 no greater than `x`.
+fn down(x: f64) -> f32 {
+    let f = x as f32;
+    if f as f64 > x { f.next_down() } else { f }
+}
+
+/// The least f32 no less than `x`.
+fn up(x: f64) -> f32 {
+    let f = x as f32;
+    if (f as f64) < x { f.next_up() } else { f }
+}
+
+/// Bounds as the tree keeps them: grown to f32.
+fn stored_bounds(b: &Aabb) -> [f32; 4] {
+    [down(b.min[0]), down(b.min[1]), up(b.max[0]), up(b.max[1])]
 }
 
 impl Entry {
-    /// Whether the box's z-span `[floor, ceiling)` is non-empty.
+    /// The entry of a box whose z-span is `[floor, ceiling)` and whose window's bounds are
+    /// `aabb`.
+    pub fn new(id: PatchId, ceiling: f64, floor: f64, exposed: bool, aabb: &Aabb) -> Self {
+        Entry {
+            id,
+            ceiling: up(ceiling),
+            floor: down(floor),
+            exposed,
+            bounds: stored_bounds(aabb),
+        }
+    }
+
+    /// Top of the box's z-span (exclusive), rounded up.
+    pub fn ceiling(&self) -> f64 {
+        self.ceiling as f64
+    }
+
+    /// Bottom of the box's z-span, rounded down.
+    pub fn floor(&self) -> f64 {
+        self.floor as f64
+    }
+
+    /// Bounds of the box's window, grown to what f32 holds.
+    pub fn aabb(&self) -> Aabb {
+        let b = self.bounds.map(f64::from);
+        Aabb::new(b[0], b[1], b[2], b[3])
+    }
+
+    /// Whether the box's z-span `[floor, ceiling)`, as rounded, is non-empty.
     pub fn is_active(&self) -> bool {
         self.ceiling > self.floor
     }
@@ -83,7 +131,7 @@ impl Node {
     }
 
     fn insert(&mut self, e: Entry, cap: usize, depth: u32) {
-        if !self.bounds.intersects(&e.aabb) {
+        if !self.bounds.intersects(&e.aabb()) {
             return;
         }
         // A node that is not full has nothing below it (removal refills), so it takes the entry.
@@ -139,7 +187,7 @@ impl Node {
                 return;
             };
             for c in ch.iter_mut() {
-                c.remove(best.id, &best.aabb, cap);
+                c.remove(best.id, &best.aabb(), cap);
             }
             self.entries.push(best);
         }
@@ -150,7 +198,7 @@ impl Node {
             return;
         }
         for e in &self.entries {
-            if e.aabb.intersects(area) {
+            if e.aabb().intersects(area) {
                 f(e);
             }
         }
@@ -172,11 +220,11 @@ impl Node {
         };
         let (lo, hi) = range(&part);
         for e in &self.entries {
-            if e.ceiling <= lo {
+            if e.ceiling() <= lo {
                 // Every later entry, and everything below this node, is finer than needed.
                 return;
             }
-            if (e.floor <= hi || e.exposed) && e.aabb.intersects(area) {
+            if (e.floor() <= hi || e.exposed) && e.aabb().intersects(area) {
                 f(e);
             }
         }
@@ -272,18 +320,20 @@ impl MsQuadtree {
 
     /// Stores an entry, first growing the root until it holds the entry's bounds.
     pub fn insert(&mut self, e: Entry) {
-        self.ensure_root(&e.aabb);
+        self.ensure_root(&e.aabb());
         let cap = self.capacity;
         if let Some(r) = self.root.as_mut() {
             r.insert(e, cap, 0);
         }
     }
 
-    /// Removes the entry of patch `id`; `aabb` must be the bounds it was stored with. False when no
-    /// such entry is stored.
+    /// Removes the entry of patch `id`; `aabb` must be the bounds it was stored with (exact,
+    /// or as the entry rounded them). False when no such entry is stored.
     pub fn remove(&mut self, id: PatchId, aabb: &Aabb) -> bool {
         let cap = self.capacity;
-        self.root.as_mut().is_some_and(|r| r.remove(id, aabb, cap))
+        let b = stored_bounds(aabb).map(f64::from);
+        let aabb = Aabb::new(b[0], b[1], b[2], b[3]);
+        self.root.as_mut().is_some_and(|r| r.remove(id, &aabb, cap))
     }
 
     /// Every stored entry whose bounds meet `area`, possibly more than once.
@@ -340,7 +390,7 @@ impl MsQuadtree {
                     ));
                 }
             }
-            if let Some(e) = n.entries.iter().find(|e| !n.bounds.intersects(&e.aabb)) {
+            if let Some(e) = n.entries.iter().find(|e| !n.bounds.intersects(&e.aabb())) {
                 return Err(format!("node {:?} holds {} outside it", n.bounds, e.id));
             }
             if let Some(ch) = &n.children {
@@ -368,14 +418,21 @@ impl MsQuadtree {
 mod tests {
     use super::*;
 
+    /// An entry whose values f32 holds exactly, so that the tree's answers are exact too.
     fn entry(id: u64, x: f64, y: f64, s: f64, ceiling: f64) -> Entry {
-        Entry {
-            id: PatchId(id),
-            ceiling,
-            floor: 0.0,
-            exposed: false,
-            aabb: Aabb::new(x, y, x + s, y + s),
+        let (x, y, s) = (x as f32 as f64, y as f32 as f64, s as f32 as f64);
+        Entry::new(PatchId(id), ceiling, 0.0, false, &Aabb::new(x, y, x + s, y + s))
+    }
+
+    #[test]
+    fn rounding_keeps_every_value_inside_what_is_stored() {
+        for x in [0.1, -0.1, 1e-30, -118.999_999_9, 4_123_456.789, 1e300, f64::NEG_INFINITY] {
+            assert!(f64::from(down(x)) <= x && x <= f64::from(up(x)), "{x}");
         }
+        let b = Aabb::new(-118.3, 34.1, -118.2, 34.2);
+        let e = Entry::new(PatchId(1), 5.3, 2.1, false, &b);
+        assert!(e.aabb().contains(&b));
+        assert!(e.ceiling() >= 5.3 && e.floor() <= 2.1);
     }
 
     #[test]
@@ -400,7 +457,7 @@ mod tests {
             t.check().unwrap();
         }
         for e in all.iter().step_by(3) {
-            assert!(t.remove(e.id, &e.aabb));
+            assert!(t.remove(e.id, &e.aabb()));
             t.check().unwrap();
         }
         let kept: Vec<_> = all
@@ -417,7 +474,7 @@ mod tests {
             got.dedup();
             let mut want: Vec<u64> = kept
                 .iter()
-                .filter(|e| e.ceiling > z && e.floor <= z && e.aabb.intersects(&area))
+                .filter(|e| e.ceiling() > z && e.floor() <= z && e.aabb().intersects(&area))
                 .map(|e| e.id.0)
                 .collect();
             want.sort();
