@@ -365,7 +365,10 @@ impl ChunkReader {
     /// Fetches together the chunks `wants` needs that the cache lacks, when the pack is remote
     /// (see [`SampleSource::prefetch`]): a cold 512² tile on S3 needs about fifty, which one
     /// by one are fifty GETs. A local pack reads a chunk in microseconds, and is left alone.
-    fn fetch_missing(&self, wants: &[(SurveyId, usize, Shape, SampleRect)]) -> Result<(), SampleError> {
+    fn fetch_missing(
+        &self,
+        wants: &[(SurveyId, usize, Shape, SampleRect)],
+    ) -> Result<(), SampleError> {
         let open = read(&self.open);
         let Some((tree, pack)) = open.as_ref() else {
             return Ok(());
@@ -423,7 +426,8 @@ impl ChunkReader {
                 // What fails to arrive or to decode (its checksum checked as on every read) is
                 // read again, and reported, by the read that needs it.
                 if let Some(samples) = bytes.ok().and_then(|b| decode(&b, r.len(), r.cols()).ok()) {
-                    self.cache.insert(key, Arc::new(placed(&shape, &r, samples)));
+                    self.cache
+                        .insert(key, Arc::new(placed(&shape, &r, samples)));
                 }
             });
         Ok(())

@@ -165,7 +165,13 @@ impl PatchBox {
             .map(|(k, p)| {
                 let l = p.level as usize;
                 let framed = frames.map(|(plane, f)| (plane, &f[k]));
-                PatchBox::new(p, &s.shapes[l].georef, &lattices[l], s.layout.kernel, framed)
+                PatchBox::new(
+                    p,
+                    &s.shapes[l].georef,
+                    &lattices[l],
+                    s.layout.kernel,
+                    framed,
+                )
             })
             .collect()
     }
@@ -294,7 +300,9 @@ impl PatchBox {
 
     /// The kernel in the store's plane (through the frame, for a patch of another plane).
     pub fn store_kernel(&self) -> ORect {
-        self.placed.as_ref().map_or_else(|| self.kernel(), |p| p.kernel)
+        self.placed
+            .as_ref()
+            .map_or_else(|| self.kernel(), |p| p.kernel)
     }
 
     /// Everywhere in the store's plane the patch can contribute to a blend: its window, grown

@@ -37,13 +37,21 @@ pub struct Entry {
 /// The greatest f32 no greater than `x`.
 fn down(x: f64) -> f32 {
     let f = x as f32;
-    if f as f64 > x { f.next_down() } else { f }
+    if f as f64 > x {
+        f.next_down()
+    } else {
+        f
+    }
 }
 
 /// The least f32 no less than `x`.
 fn up(x: f64) -> f32 {
     let f = x as f32;
-    if (f as f64) < x { f.next_up() } else { f }
+    if (f as f64) < x {
+        f.next_up()
+    } else {
+        f
+    }
 }
 
 /// Bounds as the tree keeps them: grown to f32.
@@ -421,12 +429,26 @@ mod tests {
     /// An entry whose values f32 holds exactly, so that the tree's answers are exact too.
     fn entry(id: u64, x: f64, y: f64, s: f64, ceiling: f64) -> Entry {
         let (x, y, s) = (x as f32 as f64, y as f32 as f64, s as f32 as f64);
-        Entry::new(PatchId(id), ceiling, 0.0, false, &Aabb::new(x, y, x + s, y + s))
+        Entry::new(
+            PatchId(id),
+            ceiling,
+            0.0,
+            false,
+            &Aabb::new(x, y, x + s, y + s),
+        )
     }
 
     #[test]
     fn rounding_keeps_every_value_inside_what_is_stored() {
-        for x in [0.1, -0.1, 1e-30, -118.999_999_9, 4_123_456.789, 1e300, f64::NEG_INFINITY] {
+        for x in [
+            0.1,
+            -0.1,
+            1e-30,
+            -118.999_999_9,
+            4_123_456.789,
+            1e300,
+            f64::NEG_INFINITY,
+        ] {
             assert!(f64::from(down(x)) <= x && x <= f64::from(up(x)), "{x}");
         }
         let b = Aabb::new(-118.3, 34.1, -118.2, 34.2);
