@@ -84,6 +84,33 @@ pub(super) fn recover(dir: &Path) -> Result<(), StoreError> {
 }
 
 impl Store {
+    /// What a compaction that changed nothing gives back: the store as it was, loaded.
+    fn left_as_is(
+        self,
+        bytes_before: u64,
+        surveys_purged: usize,
+        keys_kept: u64,
+    ) -> Result<(Loaded, CompactReport), StoreError> {
+        let contents = self.load()?;
+        let bytes_after = self.disk_bytes();
+        Ok((
+            Loaded {
+                store: self,
+                contents,
+                warnings: Vec::new(),
+                released_reserve: false,
+            },
+            CompactReport {
+                bytes_before,
+                bytes_after,
+                surveys_purged,
+                keys_removed: 0,
+                keys_kept,
+                swapped: false,
+            },
+        ))
+    }
+
     /// Removes retired surveys for good (records, samples, patches) and every key that belongs
     /// to no active survey, then rewrites the files. `live` holds the patches of the terrain
     /// the store holds (its surveys' and the edge patches they call for): only their box
@@ -150,6 +177,21 @@ impl Store {
             }
             false
         };
+        // On an object store the copy uploads every live chunk again, which pays only where
+        // something goes: with nothing to drop the store stays as it is, as after a copy that
+        // gains nothing, and the bucket gains no segment to collect. (A key that cannot be
+        // read counts as something to do: the copy reports it.)
+        let remote = !matches!(self.opts.backend, ChunkBackend::Local);
+        if remote {
+            let mut keys_kept = 0u64;
+            let nothing_goes = self.db.iter().keys().all(|k| {
+                keys_kept += 1;
+                k.is_ok_and(|k| live(&k))
+            });
+            if nothing_goes {
+                return self.left_as_is(bytes_before, surveys_purged, keys_kept);
+            }
+        }
         let (mut kept, mut removed) = (0u64, 0u64);
         // The copy is checked against the free space batch by batch, like any write: a full
         // disk stops it with the store untouched, and the partial copy is deleted.
@@ -232,24 +274,7 @@ impl Store {
         if !gain {
             // Not even reopened: sled's open writes to its files too.
             std::fs::remove_dir_all(&tmp)?;
-            let contents = self.load()?;
-            let bytes_after = self.disk_bytes();
-            return Ok((
-                Loaded {
-                    store: self,
-                    contents,
-                    warnings: Vec::new(),
-                    released_reserve: false,
-                },
-                CompactReport {
-                    bytes_before,
-                    bytes_after,
-                    surveys_purged,
-                    keys_removed: 0,
-                    keys_kept: kept,
-                    swapped: false,
-                },
-            ));
+            return self.left_as_is(bytes_before, surveys_purged, kept);
         }
         self.db.flush()?;
         let Store {
