@@ -1,0 +1,158 @@
+//! The index's memory, counted by the allocator rather than read off the resident set: the
+//! heap a store's open holds once it serves, per patch, with the chunk and page caches made
+//! too small to matter. The scale bench's figure (resident memory after a restart less an
+//! empty daemon's) also counts sled's page cache and the allocator's slack.
+//!
+//! cargo run --release -p patchwork-bench --example index_memory -- [FILE ...]
+//!
+//! The files default to the Copernicus N34W119 tile in ../shared/data.
+
+use patchwork::config::Config;
+use patchwork::engine::{Engine, Origin};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicIsize, Ordering::Relaxed};
+
+/// Bytes allocated and not yet freed, by every thread.
+static LIVE: AtomicIsize = AtomicIsize::new(0);
+
+struct Counting;
+
+// SAFETY: every call is passed to the system allocator unchanged; the counter only watches.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc(l) };
+        if !p.is_null() {
+            LIVE.fetch_add(l.size() as isize, Relaxed);
+        }
+        p
+    }
+
+    unsafe fn alloc_zeroed(&self, l: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc_zeroed(l) };
+        if !p.is_null() {
+            LIVE.fetch_add(l.size() as isize, Relaxed);
+        }
+        p
+    }
+
+    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
+        unsafe { System.dealloc(p, l) };
+        LIVE.fetch_sub(l.size() as isize, Relaxed);
+    }
+
+    unsafe fn realloc(&self, p: *mut u8, l: Layout, new: usize) -> *mut u8 {
+        let q = unsafe { System.realloc(p, l, new) };
+        if !q.is_null() {
+            LIVE.fetch_add(new as isize - l.size() as isize, Relaxed);
+        }
+        q
+    }
+}
+
+#[global_allocator]
+static ALLOC: Counting = Counting;
+
+/// Set in the child that opens the store, so that nothing the ingest left behind is freed
+/// while the open is counted.
+const OPEN: &str = "INDEX_MEMORY_OPEN";
+
+fn config(store: PathBuf, roots: Vec<PathBuf>) -> Config {
+    Config {
+        data_dir: store,
+        ingest_roots: roots,
+        // One MiB of decoded chunks and a quarter of it for sled's pages: what is left is the
+        // index.
+        cache_mb: 1,
+        ..Config::default()
+    }
+}
+
+fn main() {
+    if let Ok(store) = std::env::var(OPEN) {
+        return measure(PathBuf::from(store));
+    }
+    let files: Vec<PathBuf> = {
+        let given: Vec<PathBuf> = std::env::args().skip(1).map(PathBuf::from).collect();
+        if given.is_empty() {
+            vec!["../shared/data/Copernicus_DSM_COG_10_N34_00_W119_00_DEM.tif".into()]
+        } else {
+            given
+        }
+    };
+    let tmp = tempfile::tempdir().expect("temporary directory");
+    let store = tmp.path().join("store");
+    let roots = files
+        .iter()
+        .filter_map(|f| f.parent().map(|p| p.to_path_buf()))
+        .collect();
+    {
+        let engine = Engine::open(config(store.clone(), roots)).expect("open the store");
+        for f in &files {
+            let done = engine.ingest(f, None, Origin::Request).expect("ingest");
+            assert!(done.error.is_empty(), "{}: {}", f.display(), done.error);
+        }
+    }
+    // An empty store's open first: what a daemon holds whatever it serves.
+    let me = std::env::current_exe().expect("this program");
+    let run = |store: &std::path::Path| -> i64 {
+        let out = std::process::Command::new(&me)
+            .env(OPEN, store)
+            .output()
+            .expect("run the open");
+        assert!(out.status.success(), "the open failed");
+        let text = String::from_utf8_lossy(&out.stdout).to_string();
+        print!("{text}");
+        text.lines()
+            .find_map(|l| l.strip_prefix("held "))
+            .and_then(|v| v.trim().parse().ok())
+            .expect("the child says what it holds")
+    };
+    let empty = run(&tmp.path().join("empty"));
+    let full = run(&store);
+    let patches: usize = std::fs::read_to_string(tmp.path().join("patches"))
+        .ok()
+        .and_then(|v| v.trim().parse().ok())
+        .expect("the child says how many patches");
+    println!(
+        "the index: {:.1} MiB beyond an empty store's open, {:.0} bytes a patch",
+        (full - empty) as f64 / (1 << 20) as f64,
+        (full - empty) as f64 / patches.max(1) as f64
+    );
+}
+
+/// Opens the store at `store` and prints what the open holds.
+fn measure(store: PathBuf) {
+    let store_dir = store.clone();
+    let before = LIVE.load(Relaxed);
+    let engine = Engine::open(config(store, Vec::new())).expect("open the store");
+    let held = LIVE.load(Relaxed) - before;
+    println!("held {held}");
+    let terrain = engine.snapshot();
+    let index = terrain.index();
+    let patches = index.len().max(1);
+    if index.is_empty() {
+        return;
+    }
+    // Beside the store, for the parent.
+    let at = store_dir.with_file_name("patches");
+    std::fs::write(at, index.len().to_string()).expect("write the count");
+    let samples: usize = terrain
+        .surveys()
+        .map(|s| s.shapes[0].cols * s.shapes[0].rows)
+        .sum();
+    println!(
+        "{} patches, {} samples a patch; the open holds {:.1} MiB: {:.0} bytes a patch",
+        index.len(),
+        samples / patches,
+        held as f64 / (1 << 20) as f64,
+        held as f64 / patches as f64
+    );
+    println!(
+        "by size alone: a box {} B, a patch {} B, a quadtree entry {} B ({:.2} stored a patch)",
+        std::mem::size_of::<patchwork_core::index::lod::PatchBox>(),
+        std::mem::size_of::<patchwork_core::model::patch::Patch>(),
+        std::mem::size_of::<patchwork_core::index::quadtree::Entry>(),
+        index.tree_stats().stored as f64 / patches as f64
+    );
+}
