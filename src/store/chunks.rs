@@ -329,39 +329,6 @@ impl ChunkReader {
         }
     }
 
-    fn chunk(
-        &self,
-        survey: SurveyId,
-        level: usize,
-        shape: &Shape,
-        k: usize,
-    ) -> Result<Chunk, SampleError> {
-        let key = (survey.0, level as u8, k as u32);
-        self.cache.get_or_insert_with(&key, || {
-            let fail = |reason: String| SampleError {
-                survey,
-                reason,
-                unavailable: false,
-            };
-            let r = chunk_rect(shape, k);
-            let open = read(&self.open);
-            let (tree, pack) = open
-                .as_ref()
-                .ok_or_else(|| fail("the store is closed".into()))?;
-            let bytes = located(tree, pack.as_ref(), &super::keys::chunk(survey, level, k))
-                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?
-                .map_err(|e| SampleError {
-                    unavailable: super::objects::is_unreachable(&e),
-                    ..fail(format!("chunk {k} of level {level}: reading the pack: {e}"))
-                })?;
-            let samples = decode(&bytes, r.len(), r.cols())
-                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
-            Ok(Arc::new(placed(shape, &r, samples)))
-        })
-    }
-}
-
-impl ChunkReader {
     /// Fetches together the chunks `wants` needs that the cache lacks, when the pack is remote
     /// (see [`SampleSource::prefetch`]): a cold 512² tile on S3 needs about fifty, which one
     /// by one are fifty GETs. A local pack reads a chunk in microseconds, and is left alone.
@@ -382,24 +349,15 @@ impl ChunkReader {
             if check_rect(survey, &rect, shape.cols, shape.rows).is_err() {
                 continue;
             }
-            let [nx, _] = chunk_counts(&shape);
-            for ty in rect.r0 / CHUNK..=(rect.r1 - 1) / CHUNK {
-                for tx in rect.c0 / CHUNK..=(rect.c1 - 1) / CHUNK {
-                    let k = ty * nx + tx;
-                    let key = (survey.0, level as u8, k as u32);
-                    if self.cache.contains_key(&key) || !seen.insert(key) {
-                        continue;
-                    }
-                    // A chunk whose location is missing or bad is left to the read to report.
-                    let loc = tree
-                        .get(super::keys::chunk(survey, level, k))
-                        .ok()
-                        .flatten()
-                        .and_then(|v| Loc::from_bytes(&v))
-                        .filter(|l| l.end() <= pack.len());
-                    if let Some(loc) = loc {
-                        todo.push((key, survey, level, shape, k, loc));
-                    }
+            for k in chunks_reached(&shape, &rect) {
+                let key = (survey.0, level as u8, k as u32);
+                if self.cache.contains_key(&key) || !seen.insert(key) {
+                    continue;
+                }
+                // A chunk whose location is missing or bad is left to the read to report.
+                let chunk = super::keys::chunk(survey, level, k);
+                if let Ok(loc) = location(tree, pack.as_ref(), &chunk) {
+                    todo.push((key, survey, level, shape, k, loc));
                 }
             }
         }
@@ -432,6 +390,47 @@ impl ChunkReader {
             });
         Ok(())
     }
+
+    fn chunk(
+        &self,
+        survey: SurveyId,
+        level: usize,
+        shape: &Shape,
+        k: usize,
+    ) -> Result<Chunk, SampleError> {
+        let key = (survey.0, level as u8, k as u32);
+        self.cache.get_or_insert_with(&key, || {
+            let fail = |reason: String| SampleError {
+                survey,
+                reason,
+                unavailable: false,
+            };
+            let r = chunk_rect(shape, k);
+            let open = read(&self.open);
+            let (tree, pack) = open
+                .as_ref()
+                .ok_or_else(|| fail("the store is closed".into()))?;
+            let bytes = located(tree, pack.as_ref(), &super::keys::chunk(survey, level, k))
+                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?
+                .map_err(|e| SampleError {
+                    unavailable: super::objects::is_unreachable(&e),
+                    ..fail(format!("chunk {k} of level {level}: reading the pack: {e}"))
+                })?;
+            let samples = decode(&bytes, r.len(), r.cols())
+                .map_err(|e| fail(format!("chunk {k} of level {level}: {e}")))?;
+            Ok(Arc::new(placed(shape, &r, samples)))
+        })
+    }
+}
+
+/// The chunks of a level shaped `shape` that `rect` (not empty) reaches, by index.
+fn chunks_reached(shape: &Shape, rect: &SampleRect) -> impl Iterator<Item = usize> {
+    let [nx, _] = chunk_counts(shape);
+    let (cols, rows) = (
+        rect.c0 / CHUNK..=(rect.c1 - 1) / CHUNK,
+        rect.r0 / CHUNK..=(rect.r1 - 1) / CHUNK,
+    );
+    rows.flat_map(move |ty| cols.clone().map(move |tx| ty * nx + tx))
 }
 
 /// A chunk's bytes: its location from the database, then the bytes from the pack.
@@ -461,6 +460,11 @@ fn located(
     pack: &dyn ChunkStore,
     key: &[u8],
 ) -> Result<std::io::Result<Vec<u8>>, String> {
+    Ok(pack.read(location(tree, pack, key)?))
+}
+
+/// The location the database holds for `key`, checked to lie within the pack.
+fn location(tree: &sled::Tree, pack: &dyn ChunkStore, key: &[u8]) -> Result<Loc, String> {
     let v = tree
         .get(key)
         .map_err(|e| e.to_string())?
@@ -474,7 +478,7 @@ fn located(
             pack.len()
         ));
     }
-    Ok(pack.read(loc))
+    Ok(loc)
 }
 
 /// `rect`'s samples of a level shaped `shape`, georeferenced where they lie in it.
@@ -504,19 +508,14 @@ impl SampleSource for ChunkReader {
     ) -> Result<Grid, SampleError> {
         check_rect(survey, &rect, shape.cols, shape.rows)?;
         let mut samples = vec![f32::NAN; rect.len()];
-        let [nx, _] = chunk_counts(shape);
-        for ty in rect.r0 / CHUNK..=(rect.r1 - 1) / CHUNK {
-            for tx in rect.c0 / CHUNK..=(rect.c1 - 1) / CHUNK {
-                let k = ty * nx + tx;
-                let cr = chunk_rect(shape, k);
-                let chunk = self.chunk(survey, level, shape, k)?;
-                let (c0, c1) = (rect.c0.max(cr.c0), rect.c1.min(cr.c1));
-                for r in rect.r0.max(cr.r0)..rect.r1.min(cr.r1) {
-                    let from = (r - cr.r0) * cr.cols() + (c0 - cr.c0);
-                    let to = (r - rect.r0) * rect.cols() + (c0 - rect.c0);
-                    samples[to..to + (c1 - c0)]
-                        .copy_from_slice(&chunk.samples[from..from + (c1 - c0)]);
-                }
+        for k in chunks_reached(shape, &rect) {
+            let cr = chunk_rect(shape, k);
+            let chunk = self.chunk(survey, level, shape, k)?;
+            let (c0, c1) = (rect.c0.max(cr.c0), rect.c1.min(cr.c1));
+            for r in rect.r0.max(cr.r0)..rect.r1.min(cr.r1) {
+                let from = (r - cr.r0) * cr.cols() + (c0 - cr.c0);
+                let to = (r - rect.r0) * rect.cols() + (c0 - rect.c0);
+                samples[to..to + (c1 - c0)].copy_from_slice(&chunk.samples[from..from + (c1 - c0)]);
             }
         }
         Ok(placed(shape, &rect, samples))

@@ -89,43 +89,30 @@ pub struct PatchBox {
     pub placed: Option<Box<Placed>>,
 }
 
-/// A grid as boxes use it: the position of sample (0, 0), the unit vectors of its column and
-/// row axes, and its spacing. Worked out once from a [`Georef`] for all the boxes on it.
+/// A grid as boxes use it: its georeference with its axes worked out once for all the boxes
+/// on it (each rectangle would otherwise take a sine and a cosine).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Lattice {
-    origin: [f64; 2],
+    georef: Georef,
     axes: [[f64; 2]; 2],
-    step: [f64; 2],
 }
 
 impl Lattice {
     /// The lattice of a grid.
     pub fn of(g: &Georef) -> Arc<Lattice> {
         Arc::new(Lattice {
-            origin: g.origin,
+            georef: *g,
             axes: g.axes(),
-            step: g.step,
         })
     }
 
-    /// The world parallelogram spanned by grid coordinates (c0, r0, c1, r1): the arithmetic of
-    /// [`Georef::grid_rect`] and [`Georef::cells_rect`], step for step, so that the result is
-    /// theirs to the bit.
+    /// The world parallelogram spanned by grid coordinates (c0, r0, c1, r1).
     fn rect(&self, r: [f64; 4]) -> ORect {
-        let [u, v] = self.axes;
-        let a = r[0] * self.step[0];
-        let b = r[1] * self.step[1];
-        ORect {
-            origin: [
-                self.origin[0] + a * u[0] + b * v[0],
-                self.origin[1] + a * u[1] + b * v[1],
-            ],
-            u,
-            v,
-            size: [(r[2] - r[0]) * self.step[0], (r[3] - r[1]) * self.step[1]],
-        }
+        self.georef.grid_rect_on(self.axes, r)
     }
 
+    /// The rectangle of a range of cells: [`Georef::cells_rect`]'s, to the bit, as the
+    /// coordinates and their differences are integers f64 holds exactly.
     fn cells(&self, c: &CellRect) -> ORect {
         self.rect(grid_coords(c))
     }

@@ -138,7 +138,14 @@ impl Georef {
     /// World position of fractional grid coordinates.
     #[inline]
     pub fn to_world(&self, col: f64, row: f64) -> [f64; 2] {
-        let [u, v] = self.axes();
+        self.to_world_on(self.axes(), col, row)
+    }
+
+    /// [`Georef::to_world`] with the grid's [`Georef::axes`] worked out already, for callers
+    /// that place many points or rectangles of one grid.
+    #[inline]
+    pub fn to_world_on(&self, axes: [[f64; 2]; 2], col: f64, row: f64) -> [f64; 2] {
+        let [u, v] = axes;
         let a = col * self.step[0];
         let b = row * self.step[1];
         [
@@ -632,9 +639,14 @@ impl Georef {
 
     /// The world parallelogram spanned by fractional grid coordinates (c0, r0, c1, r1).
     pub fn grid_rect(&self, r: [f64; 4]) -> ORect {
-        let [u, v] = self.axes();
+        self.grid_rect_on(self.axes(), r)
+    }
+
+    /// [`Georef::grid_rect`] with the grid's [`Georef::axes`] worked out already.
+    pub fn grid_rect_on(&self, axes: [[f64; 2]; 2], r: [f64; 4]) -> ORect {
+        let [u, v] = axes;
         ORect {
-            origin: self.to_world(r[0], r[1]),
+            origin: self.to_world_on(axes, r[0], r[1]),
             u,
             v,
             size: [(r[2] - r[0]) * self.step[0], (r[3] - r[1]) * self.step[1]],
