@@ -6,7 +6,7 @@
 use crate::store::{
     encode, CompactReport, Contents, Loaded, Store, StoreError, StoreOptions, VerifyReport,
 };
-use patchwork_core::index::lod::{BoxState, IndexConfig};
+use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::ids::PatchId;
 use patchwork_core::model::patch::PatchLayout;
 use patchwork_core::model::source::SampleSource;
@@ -138,25 +138,12 @@ fn derive(store: &mut Store, warnings: &mut Vec<String>) -> Result<Terrain, Stor
     for s in &surveys {
         t.try_insert(s).map_err(terrain_error)?;
     }
-    let tops: Vec<(PatchId, BoxState)> = t
-        .index()
-        .state()
-        .into_iter()
-        .map(|(id, (span, exposed))| {
-            (
-                id,
-                BoxState {
-                    top: span.max_z,
-                    exposed,
-                },
-            )
-        })
-        .collect();
+    let units = t.index().all_unit_states();
     let edges: Vec<_> = t.edges().cloned().collect();
     // A replica writes nothing: the writer stores what it derives, and the replica receives
     // it with the writer's commits.
     if !store.is_replica() {
-        match store.write_derived(&tops, &edges, &t.pairs()) {
+        match store.write_derived(&units, &edges, &t.pairs()) {
             Ok(()) => {}
             Err(e @ StoreError::Full { .. }) => warnings.push(format!(
                 "the index was derived again but could not be stored: {e}"

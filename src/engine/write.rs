@@ -448,11 +448,6 @@ impl Engine {
                     let rec = || {
                         record(&survey, source, &prepared, t1)
                     };
-                    let old_patches: Vec<_> = previous
-                        .as_ref()
-                        .and_then(|old| current.index().survey_patches(old.id))
-                        .map(|p| p.to_vec())
-                        .unwrap_or_default();
                     // The index work and the encoding of the samples need nothing of each
                     // other: the chunks go to the pack while the index takes the survey in.
                     let shared: &Store = store;
@@ -484,7 +479,6 @@ impl Engine {
                             store.commit(Change {
                                 retire: Some(Retirement {
                                     id: old.id,
-                                    patches: &old_patches,
                                     change: &retire,
                                     pin: false,
                                 }),
@@ -694,17 +688,11 @@ fn retire_in(
     rec: &SurveyRecord,
     pin: bool,
 ) -> Result<Terrain, StoreError> {
-    let patches: Vec<_> = current
-        .index()
-        .survey_patches(rec.id)
-        .map(|p| p.to_vec())
-        .unwrap_or_default();
     let mut next = current.clone();
     let change = next.try_retire(rec.id)?.unwrap_or_default();
     store.commit(Change {
         retire: Some(Retirement {
             id: rec.id,
-            patches: &patches,
             change: &change,
             pin,
         }),

@@ -191,7 +191,15 @@ pub fn unseal(bytes: &[u8], limit: usize) -> Result<Vec<u8>, String> {
     if checksum(&bytes[HEADER..]) != bytes[1..HEADER] {
         return Err("the checksum does not match: the record is damaged".into());
     }
-    zstd::bulk::decompress(&bytes[HEADER..], limit).map_err(|e| format!("zstd: {e}"))
+    // zstd writes the content's size in the frame, so the buffer is made that size: made the
+    // size of the limit, every record read would take a gibibyte of address space.
+    let payload = &bytes[HEADER..];
+    let size = match zstd::zstd_safe::get_frame_content_size(payload) {
+        Ok(Some(n)) if n <= limit as u64 => n as usize,
+        Ok(Some(n)) => return Err(format!("{n} bytes, more than a record may hold ({limit})")),
+        _ => limit,
+    };
+    zstd::bulk::decompress(payload, size).map_err(|e| format!("zstd: {e}"))
 }
 
 /// Decodes a chunk of `n` samples in `cols`-wide rows.

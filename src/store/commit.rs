@@ -26,10 +26,8 @@ pub struct Change<'a> {
 
 /// A survey going out of the terrain. Its samples stay until [`Store::compact`].
 pub struct Retirement<'a> {
-    /// The survey.
+    /// The survey: its boxes' states go with it.
     pub id: SurveyId,
-    /// Its patches, whose tops go.
-    pub patches: &'a [PatchId],
     /// What retiring it from the terrain changed.
     pub change: &'a ChangeStats,
     /// Whether its file, should it stay where it is, is kept from bringing it back (see
@@ -148,19 +146,19 @@ impl Store {
     /// from the surveys. Clears the mark that asked for it.
     pub fn write_derived(
         &mut self,
-        tops: &[(PatchId, BoxState)],
+        units: &[(SurveyId, Vec<(PatchId, BoxState)>)],
         edges: &[Arc<EdgePatch>],
         pairs: &[Arc<PairEvidence>],
     ) -> Result<(), StoreError> {
         let mut batch = Writes::default();
-        for prefix in [keys::TOP_PREFIX, keys::EDGE_PREFIX, keys::OVERLAP_PREFIX] {
+        for prefix in [keys::BOXES_PREFIX, keys::EDGE_PREFIX, keys::OVERLAP_PREFIX] {
             for kv in self.db.scan_prefix(prefix) {
                 batch.remove(kv?.0);
             }
         }
         stage_pairs(&mut batch, pairs)?;
-        for (id, st) in tops {
-            batch.insert(keys::top(*id), &encode_state(st));
+        for (unit, states) in units {
+            batch.insert(keys::boxes(*unit), encode_states(states));
         }
         stage_edges(&mut batch, edges)?;
         batch.remove(keys::REBUILD);
@@ -278,7 +276,6 @@ impl Store {
         &self,
         batch: &mut Writes,
         id: SurveyId,
-        patch_ids: &[PatchId],
         change: &ChangeStats,
     ) -> Result<SurveyRecord, StoreError> {
         let mut rec = match self.record(id)? {
@@ -287,9 +284,7 @@ impl Store {
         };
         rec.status = Status::Retired;
         batch.insert(keys::survey(id), encode(&rec)?);
-        for p in patch_ids {
-            batch.remove(keys::top(*p));
-        }
+        batch.remove(keys::boxes(id));
         stage_change(batch, change);
         for kv in self.db.scan_prefix(keys::overlaps_of(id)) {
             let (k, _) = kv?;
@@ -388,7 +383,7 @@ impl Store {
         let mut batch = Writes::default();
         let mut touched = Vec::with_capacity(2);
         if let Some(r) = &change.retire {
-            let rec = self.stage_retire(&mut batch, r.id, r.patches, r.change)?;
+            let rec = self.stage_retire(&mut batch, r.id, r.change)?;
             if r.pin && !rec.content_id.is_empty() {
                 batch.insert(keys::pin(&rec.source), rec.content_id.as_bytes());
             }
@@ -465,15 +460,17 @@ impl Store {
     }
 }
 
-/// The writes an index change calls for: the tops of the boxes it moved, and the removal of
-/// the boxes it removed (an edge patch's record among them).
+/// The writes an index change calls for: the states of every unit a box of which it moved,
+/// whole, the removal of the units it took out, and of the edge patches it removed.
 pub(super) fn stage_change(batch: &mut Writes, change: &ChangeStats) {
     for id in &change.removed {
-        batch.remove(keys::top(*id));
         batch.remove(keys::edge(*id));
     }
-    for (id, st) in &change.moved {
-        batch.insert(keys::top(*id), &encode_state(st));
+    for (unit, states) in &change.units {
+        match states {
+            Some(states) => batch.insert(keys::boxes(*unit), encode_states(states)),
+            None => batch.remove(keys::boxes(*unit)),
+        }
     }
 }
 

@@ -14,8 +14,8 @@
 use super::chunks::read_packed;
 use super::pack::{ChunkStore, PackFile};
 use super::{
-    dir_bytes, keys, open_sled, sibling, ChunkBackend, Loaded, Replication, Status, Store,
-    StoreError,
+    decode_states, dir_bytes, keys, open_sled, sibling, ChunkBackend, Loaded, Replication, Status,
+    Store, StoreError,
 };
 use patchwork_core::model::ids::{PatchId, SurveyId};
 use std::collections::HashSet;
@@ -153,6 +153,18 @@ impl Store {
                     || matches!(self.db.get(keys::accuracy(r.id)), Ok(Some(_)))
             })
             .count();
+        // A unit's box states go with the last of its boxes: units are surveys and edge
+        // patches, and an edge patch's unit is no survey.
+        let mut live_units = HashSet::new();
+        for kv in self.db.scan_prefix(keys::BOXES_PREFIX) {
+            let (k, v) = kv?;
+            if let Some(unit) = keys::parse_boxes(&k) {
+                let states = decode_states(&v, &String::from_utf8_lossy(&k))?;
+                if states.iter().any(|(id, _)| live.contains(id)) {
+                    live_units.insert(unit);
+                }
+            }
+        }
         let live = |k: &[u8]| -> bool {
             if k.starts_with(keys::META_PREFIX)
                 || k.starts_with(keys::FAILURE_PREFIX)
@@ -169,8 +181,11 @@ impl Store {
             if let Some((id, _, _)) = keys::parse_chunk(k) {
                 return active.contains(&id);
             }
-            if let Some(id) = keys::parse_top(k).or_else(|| keys::parse_edge(k)) {
+            if let Some(id) = keys::parse_edge(k) {
                 return live.contains(&id);
+            }
+            if let Some(unit) = keys::parse_boxes(k) {
+                return live_units.contains(&unit);
             }
             if let Some((a, b)) = keys::parse_overlap(k) {
                 return active.contains(&a) && active.contains(&b);

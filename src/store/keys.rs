@@ -41,7 +41,11 @@ pub const META_PREFIX: &[u8] = b"meta/";
 pub const SURVEY_PREFIX: &[u8] = b"s/";
 pub const PATCHES_PREFIX: &[u8] = b"p/";
 pub const CHUNK_PREFIX: &[u8] = b"c/";
+/// One key a patch, holding its box's state: schema 6 and before, read only by the step to 7.
 pub const TOP_PREFIX: &[u8] = b"t/";
+/// One key a unit (a survey, with the edge patches it owns), holding the states of all its
+/// boxes: a key a patch kept a node entry of the database in memory for every patch.
+pub const BOXES_PREFIX: &[u8] = b"b/";
 pub const FAILURE_PREFIX: &[u8] = b"f/";
 pub const OVERLAP_PREFIX: &[u8] = b"o/";
 pub const ACCURACY_PREFIX: &[u8] = b"a/";
@@ -84,8 +88,13 @@ pub fn parse_edge(k: &[u8]) -> Option<PatchId> {
     hex_id(k.strip_prefix(EDGE_PREFIX)?).map(PatchId)
 }
 
-pub fn top(id: PatchId) -> Vec<u8> {
-    format!("t/{id}").into_bytes()
+/// The states of a unit's boxes.
+pub fn boxes(unit: SurveyId) -> Vec<u8> {
+    format!("b/{unit}").into_bytes()
+}
+
+pub fn parse_boxes(k: &[u8]) -> Option<SurveyId> {
+    hex_id(k.strip_prefix(BOXES_PREFIX)?).map(SurveyId)
 }
 
 /// How survey `b` disagrees with survey `a`; stored under both orders.
@@ -178,8 +187,9 @@ mod tests {
         assert_eq!(parse_survey(&survey(s)), Some(s));
         assert_eq!(parse_patches(&patches(s)), Some(s));
         assert_eq!(parse_accuracy(&accuracy(s)), Some(s));
-        assert_eq!(top(p), b"t/ffffffffffffffff");
-        assert_eq!(parse_top(&top(p)), Some(p));
+        assert_eq!(parse_top(b"t/ffffffffffffffff"), Some(p));
+        assert_eq!(boxes(s), b"b/00abcdef01234567");
+        assert_eq!(parse_boxes(&boxes(s)), Some(s));
         assert_eq!(parse_edge(&edge(p)), Some(p));
         assert_eq!(chunk(s, 3, 17), b"c/00abcdef01234567/03/00000017");
         assert_eq!(parse_chunk(&chunk(s, 3, 17)), Some((s, 3, 17)));

@@ -24,7 +24,7 @@
 //! | `meta/log_pending` | on the writer: what the newest commit's log is made from (bincode) |
 //! | `meta/follows` | on a replica: the URL of the place it follows (UTF-8) |
 //! | `e/<patch>` | an [`EdgePatch`] the active surveys call for (bincode) |
-//! | `t/<patch>` | the patch's [`BoxState`] in the LOD index: `f64` LE top, then a byte that is 1 when the box is exposed; for active surveys' patches and the edge patches they call for |
+//! | `b/<unit>` | the [`BoxState`] of every box of a unit (a survey, or an edge patch) in the LOD index, in patch id order: each the patch id `u64` LE, the top `f64` LE, then a byte that is 1 when the box is exposed. One record a unit, not a key a box: the database keeps a node entry in memory for every key |
 //! | `o/<survey>/<other>` | [`PairEvidence`] (bincode): what two overlapping surveys say of each other's claims, under both orders |
 //! | `f/<source path>` | [`FailedRecord`] (bincode); at most one a path, and a bounded number |
 //! | `r/<source path>` | hex content id of a file whose survey was retired by hand while the file stayed in the inbox |
@@ -317,6 +317,39 @@ pub(crate) fn decode_state(b: &[u8], what: &str) -> Result<BoxState, StoreError>
         top: f64::from_le_bytes(a[..8].try_into().expect("8 bytes")),
         exposed: a[8] == 1,
     })
+}
+
+/// Bytes a box takes in a unit's record: its patch id, then its state.
+const BOX_BYTES: usize = 8 + 9;
+
+/// A unit's box states as one record: each box's id (`u64` LE) and state, in id order.
+pub(crate) fn encode_states(states: &[(PatchId, BoxState)]) -> Vec<u8> {
+    let mut b = Vec::with_capacity(states.len() * BOX_BYTES);
+    for (id, st) in states {
+        b.extend_from_slice(&id.0.to_le_bytes());
+        b.extend_from_slice(&encode_state(st));
+    }
+    b
+}
+
+pub(crate) fn decode_states(b: &[u8], what: &str) -> Result<Vec<(PatchId, BoxState)>, StoreError> {
+    if !b.len().is_multiple_of(BOX_BYTES) {
+        return Err(StoreError::Decode(format!(
+            "{what}: {} bytes, not a whole number of box states",
+            b.len()
+        )));
+    }
+    let mut out: Vec<(PatchId, BoxState)> = Vec::with_capacity(b.len() / BOX_BYTES);
+    for e in b.chunks_exact(BOX_BYTES) {
+        let id = PatchId(u64::from_le_bytes(e[..8].try_into().expect("8 bytes")));
+        if out.last().is_some_and(|(last, _)| *last >= id) {
+            return Err(StoreError::Decode(format!(
+                "{what}: patch {id} out of order"
+            )));
+        }
+        out.push((id, decode_state(&e[8..], what)?));
+    }
+    Ok(out)
 }
 
 /// A store's path to a sibling of its directory: `<dir><suffix>`.

@@ -436,12 +436,12 @@ impl Store {
 
     pub(super) fn states(&self) -> Result<HashMap<PatchId, BoxState>, StoreError> {
         let mut out = HashMap::new();
-        for kv in self.db.scan_prefix(keys::TOP_PREFIX) {
+        for kv in self.db.scan_prefix(keys::BOXES_PREFIX) {
             let (k, v) = kv?;
-            let id = keys::parse_top(&k).ok_or_else(|| {
-                StoreError::Corrupt(format!("bad top key {:?}", String::from_utf8_lossy(&k)))
+            let unit = keys::parse_boxes(&k).ok_or_else(|| {
+                StoreError::Corrupt(format!("bad boxes key {:?}", String::from_utf8_lossy(&k)))
             })?;
-            out.insert(id, decode_state(&v, &format!("top of patch {id}"))?);
+            out.extend(decode_states(&v, &format!("the boxes of unit {unit}"))?);
         }
         Ok(out)
     }

@@ -6,7 +6,7 @@
 use super::chunks::{chunk_counts, chunk_rect, decode as decode_chunk, read_chunk};
 use super::pack::Loc;
 use super::{
-    decode, decode_crs, decode_state, decode_u32, keys, migrate, setting_problem, FailedRecord,
+    decode, decode_crs, decode_states, decode_u32, keys, migrate, setting_problem, FailedRecord,
     Status, Store, StoreError, StoredPatches, SurveyRecord,
 };
 use patchwork_core::index::lod::{BoxState, IndexConfig};
@@ -139,11 +139,9 @@ impl Store {
                     }
                     Err(e) => pr.add("edge", e.to_string()),
                 }
-            } else if let Some(id) = keys::parse_top(&k) {
-                match decode_state(&v, &key_str(&k)) {
-                    Ok(t) => {
-                        tops.insert(id, t);
-                    }
+            } else if keys::parse_boxes(&k).is_some() {
+                match decode_states(&v, &key_str(&k)) {
+                    Ok(states) => tops.extend(states),
                     Err(e) => pr.add("top", e.to_string()),
                 }
             } else if let Some(id) = keys::parse_accuracy(&k) {

@@ -27,6 +27,34 @@ fn state_bytes(top: f64, exposed: bool) -> Vec<u8> {
     b.push(u8::from(exposed));
     b
 }
+
+/// Bytes a box takes in a unit's record (`b/<unit>`): its patch id, then its state.
+const BOX_BYTES: usize = 17;
+
+/// A unit's record with one box's state replaced (Some) or its entry dropped (None).
+fn with_box(record: &[u8], id: PatchId, state: Option<Vec<u8>>) -> Vec<u8> {
+    record
+        .chunks_exact(BOX_BYTES)
+        .flat_map(|e| {
+            if e[..8] != id.0.to_le_bytes() {
+                e.to_vec()
+            } else {
+                state.as_ref().map_or(Vec::new(), |s| [&e[..8], s].concat())
+            }
+        })
+        .collect()
+}
+
+/// A unit's record as version 6 kept it: a `t/<patch>` key a box.
+fn tops_v6(record: &[u8]) -> Vec<(String, Vec<u8>)> {
+    record
+        .chunks_exact(BOX_BYTES)
+        .map(|e| {
+            let id = PatchId(u64::from_le_bytes(e[..8].try_into().unwrap()));
+            (format!("t/{id}"), e[8..].to_vec())
+        })
+        .collect()
+}
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
@@ -72,18 +100,12 @@ fn commit_survey(
 fn commit_retire(
     store: &mut Store,
     id: SurveyId,
-    patches: &[PatchId],
     change: &ChangeStats,
     edges: &[Arc<EdgePatch>],
     pin: bool,
 ) -> Result<(), StoreError> {
     store.commit(Change {
-        retire: Some(Retirement {
-            id,
-            patches,
-            change,
-            pin,
-        }),
+        retire: Some(Retirement { id, change, pin }),
         edges,
         ..Change::default()
     })
@@ -94,7 +116,6 @@ fn commit_retire(
 fn commit_replace(
     store: &mut Store,
     old: SurveyId,
-    old_patches: &[PatchId],
     retire_change: &ChangeStats,
     new: &Survey,
     rec: &SurveyRecord,
@@ -106,7 +127,6 @@ fn commit_replace(
     store.commit(Change {
         retire: Some(Retirement {
             id: old,
-            patches: old_patches,
             change: retire_change,
             pin: false,
         }),
@@ -148,15 +168,10 @@ fn ingest(store: &mut Store, t: &mut Terrain, s: &Arc<Survey>, source: &str) {
     *t = next;
 }
 
-fn patch_ids(t: &Terrain, id: SurveyId) -> Vec<PatchId> {
-    t.survey(id).unwrap().patches.iter().map(|p| p.id).collect()
-}
-
 fn retire(store: &mut Store, t: &mut Terrain, id: SurveyId) {
     let mut next = t.clone();
-    let ids = patch_ids(t, id);
     let change = next.retire(id).expect("present");
-    commit_retire(store, id, &ids, &change, &next.edges_of(&[&change]), false).expect("retire");
+    commit_retire(store, id, &change, &next.edges_of(&[&change]), false).expect("retire");
     *t = next;
 }
 
@@ -235,7 +250,7 @@ fn committed_surveys_come_back_as_the_same_terrain() {
         } = open(&dir);
         assert_eq!(
             store.migrations_run(),
-            &[(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 6)]
+            &[(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 6), (6, 7)]
         );
         assert_eq!(terrain.index().len(), 0);
         ingest(&mut store, &mut t, &a, "/data/a.tif");
@@ -291,7 +306,7 @@ fn a_retired_survey_stays_retired() {
         }
         retire(&mut store, &mut t, b.id);
         assert!(matches!(
-            commit_retire(&mut store, b.id, &[], &Default::default(), &[], false),
+            commit_retire(&mut store, b.id, &Default::default(), &[], false),
             Err(StoreError::NotActive(_))
         ));
         assert_verified(&store);
@@ -325,7 +340,6 @@ fn a_replacement_is_one_commit() {
         ingest(&mut store, &mut t, &a, "a.tif");
         ingest(&mut store, &mut t, &b, "b.tif");
         let mut next = t.clone();
-        let old = patch_ids(&t, a.id);
         let retired = next.retire(a.id).unwrap();
         let inserted = next.insert(a2.clone());
         let rec = SurveyRecord::new(
@@ -339,7 +353,6 @@ fn a_replacement_is_one_commit() {
         commit_replace(
             &mut store,
             a.id,
-            &old,
             &retired,
             &a2,
             &rec,
@@ -389,8 +402,12 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     store.raw().insert(chunk.as_bytes(), saved).unwrap();
     assert_verified(&store);
 
-    let top = format!("t/{}", b.patches[3].id);
-    let saved = store.raw().remove(top.as_bytes()).unwrap().unwrap();
+    let top = format!("b/{}", b.id);
+    let saved = store.raw().get(top.as_bytes()).unwrap().unwrap();
+    store
+        .raw()
+        .insert(top.as_bytes(), with_box(&saved, b.patches[3].id, None))
+        .unwrap();
     let r = restore::verify(&store).unwrap();
     assert!(
         r.problems
@@ -403,7 +420,10 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     // A top that is there but wrong: only re-deriving the index can tell.
     store
         .raw()
-        .insert(top.as_bytes(), state_bytes(12345.0, false))
+        .insert(
+            top.as_bytes(),
+            with_box(&saved, b.patches[3].id, Some(state_bytes(12345.0, false))),
+        )
         .unwrap();
     let r = restore::verify(&store).unwrap();
     assert!(
@@ -414,17 +434,19 @@ fn verify_finds_a_missing_chunk_a_missing_top_and_a_wrong_top() {
     store.raw().insert(top.as_bytes(), saved).unwrap();
 
     // A top of a patch that belongs to nothing.
-    store
-        .raw()
-        .insert(b"t/0123456789abcdef", state_bytes(1.0, false))
-        .unwrap();
+    let stray = [
+        0x0123_4567_89ab_cdef_u64.to_le_bytes().to_vec(),
+        state_bytes(1.0, false),
+    ]
+    .concat();
+    store.raw().insert(b"b/0123456789abcdef", stray).unwrap();
     let r = restore::verify(&store).unwrap();
     assert!(
         r.problems.iter().any(|p| p.contains("0123456789abcdef")),
         "{:?}",
         r.problems
     );
-    store.raw().remove(b"t/0123456789abcdef").unwrap();
+    store.raw().remove(b"b/0123456789abcdef").unwrap();
 
     // A damaged chunk fails its checksum.
     let chunk0 = format!("c/{}/00/00000000", a.id);
@@ -824,17 +846,8 @@ fn a_pin_holds_the_content_of_a_survey_retired_by_hand_until_it_is_ingested_agai
         &t.pairs_of(a.id),
     )
     .unwrap();
-    let ids = patch_ids(&t, a.id);
     let change = t.retire(a.id).unwrap();
-    commit_retire(
-        &mut store,
-        a.id,
-        &ids,
-        &change,
-        &t.edges_of(&[&change]),
-        true,
-    )
-    .unwrap();
+    commit_retire(&mut store, a.id, &change, &t.edges_of(&[&change]), true).unwrap();
     let pins = store.pins().unwrap();
     assert_eq!(pins.get("/in/a.tif"), Some(&content));
     assert_verified(&store);
@@ -1173,11 +1186,12 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
                 let bytes =
                     bincode::serde::encode_to_vec(&old, bincode::config::standard()).unwrap();
                 db.insert(k, bytes).unwrap();
-            } else if key.starts_with("t/") {
-                if survey_patches.contains(&key) {
-                    db.insert(k, &v[..8]).unwrap();
-                } else {
-                    db.remove(k).unwrap();
+            } else if key.starts_with("b/") {
+                db.remove(k).unwrap();
+                for (top, state) in tops_v6(&v) {
+                    if survey_patches.contains(&top) {
+                        db.insert(top.as_bytes(), &state[..8]).unwrap();
+                    }
                 }
             } else if key.starts_with("o/") || key.starts_with("e/") || key.starts_with("c/") {
                 db.remove(k).unwrap();
@@ -1208,7 +1222,7 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(
         store.migrations_run(),
-        &[(1, 2), (2, 3), (3, 4), (4, 5), (5, 6)]
+        &[(1, 2), (2, 3), (3, 4), (4, 5), (5, 6), (6, 7)]
     );
     let roi = bounds_of(&[a.clone(), b.clone()]);
     assert_same(&terrain, &t, &roi);
@@ -1252,6 +1266,69 @@ fn chunks_a_crash_left_past_the_commit_are_cut_at_open() {
     // Later commits go where the cut tail was.
     let mut t2 = terrain.clone();
     ingest(&mut store, &mut t2, &b, "b");
+    assert_verified(&store);
+}
+
+#[test]
+fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    // A mosaic of four tiles with voids: units of both kinds, surveys and edge patches.
+    let tiles: Vec<Arc<Survey>> = [[0.0, 0.0], [24.0, 0.0], [0.0, -20.0], [24.0, -20.0]]
+        .iter()
+        .enumerate()
+        .map(|(k, &o)| spec(24, 20, o, 20 + k as u64, 0.5).survey().unwrap())
+        .collect();
+    let mut t = Terrain::new(IndexConfig::default());
+    let records: Vec<(sled::IVec, sled::IVec)>;
+    {
+        let Opened { mut store, .. } = open(&dir);
+        for (k, s) in tiles.iter().enumerate() {
+            ingest(&mut store, &mut t, s, &format!("tile{k}"));
+        }
+        // Back to version 6: a `t/<patch>` key a box.
+        let db = store.raw();
+        records = db.scan_prefix("b/").map(Result::unwrap).collect();
+        assert_eq!(records.len(), tiles.len() + t.edges().count());
+        for (k, v) in &records {
+            db.remove(k).unwrap();
+            for (top, state) in tops_v6(v) {
+                db.insert(top.as_bytes(), state).unwrap();
+            }
+        }
+        db.insert(b"meta/schema", &6u32.to_le_bytes()).unwrap();
+        db.flush().unwrap();
+    }
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_eq!(store.migrations_run(), &[(6, 7)]);
+    let migrated: Vec<(sled::IVec, sled::IVec)> =
+        store.raw().scan_prefix("b/").map(Result::unwrap).collect();
+    assert_eq!(migrated, records);
+    assert_eq!(store.raw().scan_prefix("t/").count(), 0);
+    assert_eq!(terrain.index().state(), t.index().state());
+    assert_verified(&store);
+    drop(store);
+    drop(terrain);
+
+    // A state no record names leaves the store to a rebuild, which derives the same index.
+    {
+        let Opened { store, .. } = open(&dir);
+        let db = store.raw();
+        for (k, v) in db.scan_prefix("b/").map(Result::unwrap).collect::<Vec<_>>() {
+            db.remove(&k).unwrap();
+            for (top, state) in tops_v6(&v) {
+                db.insert(top.as_bytes(), state).unwrap();
+            }
+        }
+        db.insert(b"t/0123456789abcdef", state_bytes(1.0, false))
+            .unwrap();
+        db.insert(b"meta/schema", &6u32.to_le_bytes()).unwrap();
+        db.flush().unwrap();
+    }
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_eq!(store.migrations_run(), &[(6, 7)]);
+    assert_eq!(store.raw().scan_prefix("t/").count(), 0);
+    assert_eq!(terrain.index().state(), t.index().state());
     assert_verified(&store);
 }
 
@@ -1437,7 +1514,6 @@ fn a_damaged_survey_is_left_out_at_open_and_every_other_one_is_served() {
             commit_replace(
                 &mut store,
                 b.id,
-                &[],
                 &Default::default(),
                 &b,
                 &rec,
@@ -1557,7 +1633,7 @@ fn a_version_5_store_keeps_its_failures_with_no_content_known() {
         store.raw().flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(5, SCHEMA_VERSION)]);
+    assert_eq!(store.migrations_run(), &[(5, 6), (6, 7)]);
     assert_eq!(
         store.failures().unwrap(),
         vec![FailedRecord {

@@ -128,6 +128,9 @@ fn measure(store: PathBuf) {
     let engine = Engine::open(config(store, Vec::new())).expect("open the store");
     let held = LIVE.load(Relaxed) - before;
     println!("held {held}");
+    if std::env::var_os("INDEX_MEMORY_EXIT").is_some() {
+        std::process::exit(0);
+    }
     let terrain = engine.snapshot();
     let index = terrain.index();
     let patches = index.len().max(1);
@@ -154,5 +157,14 @@ fn measure(store: PathBuf) {
         std::mem::size_of::<patchwork_core::model::patch::Patch>(),
         std::mem::size_of::<patchwork_core::index::quadtree::Entry>(),
         index.tree_stats().stored as f64 / patches as f64
+    );
+    // What the terrain alone holds: the engine (its database, caches and tasks) dropped, the
+    // published terrain kept.
+    drop(engine);
+    let terrain_only = LIVE.load(Relaxed) - before;
+    println!(
+        "the terrain alone: {:.0} bytes a patch; the engine and its database: {:.0}",
+        terrain_only as f64 / patches as f64,
+        (held - terrain_only) as f64 / patches as f64
     );
 }

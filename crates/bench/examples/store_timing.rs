@@ -169,7 +169,6 @@ fn main() {
 
     let t = Instant::now();
     let mut next = back.clone();
-    let ids: Vec<_> = cop.patches.iter().map(|p| p.id).collect();
     let change = next.retire(cop.id).unwrap();
     let index_ms = ms(t);
     let t = Instant::now();
@@ -177,7 +176,6 @@ fn main() {
         .commit(Change {
             retire: Some(Retirement {
                 id: cop.id,
-                patches: &ids,
                 change: &change,
                 pin: false,
             }),

@@ -409,6 +409,9 @@ impl BoxState {
     }
 }
 
+/// The states of a unit's boxes, in patch id order.
+pub type UnitStates = Vec<(PatchId, BoxState)>;
+
 #[derive(Clone, Debug)]
 /// A box in the index with its state: its top in LOD space, and whether it is exposed.
 struct IndexedBox {
@@ -428,6 +431,10 @@ pub struct ChangeStats {
     pub moved: Vec<(PatchId, BoxState)>,
     /// Boxes removed.
     pub removed: Vec<PatchId>,
+    /// Every unit a box of which moved or went, in id order, with the states of all its boxes
+    /// after the change (in id order), or None where the unit went: what a store that keeps
+    /// states a unit at a time rewrites.
+    pub units: Vec<(SurveyId, Option<UnitStates>)>,
 }
 
 #[derive(Clone, Debug)]
@@ -746,12 +753,52 @@ impl LodIndex {
         todo.sort_unstable();
         todo.dedup();
         let (recomputed, moved) = self.recompute(todo, &fresh);
+        let mut units: Vec<SurveyId> = remove
+            .iter()
+            .copied()
+            .chain(moved.iter().filter_map(|(id, _)| self.unit_of(*id)))
+            .collect();
+        units.sort_unstable();
+        units.dedup();
+        let units = units
+            .into_iter()
+            .map(|u| (u, self.unit_states(u)))
+            .collect();
         ChangeStats {
             patches: fresh.len(),
             recomputed,
             moved,
             removed,
+            units,
         }
+    }
+
+    /// The unit a present box came with.
+    pub fn unit_of(&self, id: PatchId) -> Option<SurveyId> {
+        self.slots.get(&id).map(|s| s.bx.survey)
+    }
+
+    /// The states of a present unit's boxes, in id order.
+    pub fn unit_states(&self, unit: SurveyId) -> Option<Vec<(PatchId, BoxState)>> {
+        let entry = self.surveys.get(&unit)?;
+        let mut v: Vec<(PatchId, BoxState)> = entry
+            .patches
+            .iter()
+            .filter_map(|id| self.slots.get(id).map(|s| (*id, s.state)))
+            .collect();
+        v.sort_unstable_by_key(|(id, _)| *id);
+        Some(v)
+    }
+
+    /// Every unit with the states of its boxes, both in id order: the whole index as a store
+    /// keeps it.
+    pub fn all_unit_states(&self) -> Vec<(SurveyId, Vec<(PatchId, BoxState)>)> {
+        let mut units: Vec<SurveyId> = self.surveys.keys().copied().collect();
+        units.sort_unstable();
+        units
+            .into_iter()
+            .filter_map(|u| Some((u, self.unit_states(u)?)))
+            .collect()
     }
 
     /// Adds a survey's patches. Adding a survey that is already present changes nothing.
