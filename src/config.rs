@@ -255,6 +255,22 @@ pub struct Limits {
     /// connection; more are refused with RESOURCE_EXHAUSTED.
     pub max_streams: u64,
     pub max_streams_per_connection: u64,
+    /// Most connections held open on both ports together; the daemon takes fewer where its
+    /// file limit leaves less after what the store and the inbox need. A connection past it
+    /// closes the one idle longest, or is closed itself when none is idle.
+    pub max_connections: u64,
+    /// Longest a new connection may take to send its first request's headers (and an
+    /// HTTP/1 request its headers), in milliseconds: a client that connects and says nothing,
+    /// or trickles its headers, is closed then.
+    pub header_timeout_ms: u64,
+    /// Longest a connection may sit with no request running and nothing sent either way, in
+    /// milliseconds. gRPC's keepalive pings (every 30 s) keep a live gRPC client's
+    /// connection from ever being idle that long.
+    pub idle_timeout_ms: u64,
+    /// Most patches the cut of one web map tile (XYZ raster) may blend: a tile whose cut at
+    /// the error asked holds more (a low zoom at a tiny error) is made from the finest coarser
+    /// cut within it, and its `X-Patchwork-Error` header says the error served.
+    pub max_web_tile_patches: u64,
 }
 
 impl Default for Limits {
@@ -273,6 +289,10 @@ impl Default for Limits {
             max_failures: 1000,
             max_streams: 256,
             max_streams_per_connection: 32,
+            max_connections: 4096,
+            header_timeout_ms: 10_000,
+            idle_timeout_ms: 75_000,
+            max_web_tile_patches: 4096,
         }
     }
 }
@@ -337,6 +357,10 @@ pub struct Http {
     /// the viewer page (`npm install maplibre-gl cesium` makes one); unset, the page loads
     /// them from a CDN.
     pub assets_dir: Option<PathBuf>,
+    /// The URL clients reach this server at (`https://terrain.example.org`, a proxy's), for
+    /// the absolute tile URLs of TileJSON. Unset, they name the Host the request came to,
+    /// and never carry a token: a header is the client's to write.
+    pub public_url: Option<String>,
 }
 
 impl Default for Http {
@@ -346,6 +370,7 @@ impl Default for Http {
             cache_control: "public, max-age=60".into(),
             tile_cache_mb: 64,
             assets_dir: None,
+            public_url: None,
         }
     }
 }
@@ -558,6 +583,9 @@ impl Config {
         if let Some(v) = get("PATCHWORK_HTTP_LISTEN") {
             self.http_listen = v;
         }
+        if let Some(v) = get("PATCHWORK_PUBLIC_URL") {
+            self.http.public_url = (!v.is_empty()).then_some(v);
+        }
         if let Some(v) = get("PATCHWORK_HTTP_ASSETS") {
             self.http.assets_dir = (!v.is_empty()).then(|| v.into());
         }
@@ -681,14 +709,29 @@ impl Config {
             l.ingest_parallel,
             l.max_streams,
             l.max_streams_per_connection,
+            l.max_connections,
+            l.header_timeout_ms,
+            l.idle_timeout_ms,
+            l.max_web_tile_patches,
         ];
         if !ordered || counts.contains(&0) {
             return Err(ConfigError::Invalid(
                 "limits.min_height_m must be below limits.max_height_m, and \
                  limits.max_ingest_mb, max_failures, max_ingest_paths, max_running_requests, \
-                 ingest_parallel, max_streams and max_streams_per_connection at least 1"
+                 ingest_parallel, max_streams, max_streams_per_connection, max_connections, \
+                 header_timeout_ms, idle_timeout_ms and max_web_tile_patches at least 1"
                     .into(),
             ));
+        }
+        if let Some(u) = &self.http.public_url {
+            let ok = (u.starts_with("http://") || u.starts_with("https://"))
+                && !u.contains(['?', '#', ' ']);
+            if !ok {
+                return Err(ConfigError::Invalid(format!(
+                    "http.public_url must be an http:// or https:// URL without a query, got \
+                     {u:?}"
+                )));
+            }
         }
         if self.read_token.is_some() && self.admin_token.is_none() {
             return Err(ConfigError::Invalid(

@@ -14,6 +14,9 @@ fn main() -> ExitCode {
     let _ = rustls::crypto::ring::default_provider().install_default();
     quiet_vulkan_layers();
     let args = cli::Cli::parse();
+    if !matches!(args.cmd, cli::Cmd::Serve(_)) {
+        die_on_closed_pipe();
+    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -40,5 +43,16 @@ fn quiet_vulkan_layers() {
         // SAFETY: called first thing in main, before the runtime or anything else starts a
         // thread that could read the environment at the same time.
         unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
+    }
+}
+
+/// A command whose output goes to a pipe closed early (`patchwork surveys | head -1`) ends
+/// there, quietly, with the status a shell expects of it (141): Rust ignores SIGPIPE, so
+/// that every print would otherwise fail with EPIPE and `println!` panic. Not for `serve`,
+/// whose sockets' peers may go at any moment and must not take the daemon with them.
+fn die_on_closed_pipe() {
+    // SAFETY: restores the default action for one signal, before any thread is started.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }

@@ -96,8 +96,16 @@ pub async fn serve(config: Option<PathBuf>, follow: Option<String>) -> Result<()
     let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|s| *s).await;
     };
-    // One service for both servers: the limits on running requests hold for them together.
+    // Before the service sizes its connection limit from it.
+    let files = patchwork::serve::conns::raise_file_limit();
+    // One service for both servers: the limits on running requests and connections hold for
+    // them together.
     let svc = grpc::Service::new(engine, stop_rx.clone());
+    tracing::info!(
+        connections = svc.conns().most(),
+        file_limit = files,
+        "connections held at most on both ports together"
+    );
     if let Some(h) = http {
         let web = patchwork::serve::web::serve(svc.clone(), h, stopped(stop_rx.clone()));
         tokio::spawn(async move {

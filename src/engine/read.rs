@@ -33,6 +33,23 @@ pub enum Cut {
 }
 
 impl Cut {
+    /// The error a uniform cut is made at; None for a view's, which varies over it.
+    pub fn error(&self) -> Option<f64> {
+        match self {
+            Cut::Uniform { error, .. } | Cut::UniformIn { error, .. } => Some(*error),
+            Cut::View(_) => None,
+        }
+    }
+
+    /// The same cut at another error; a view's is kept as it is.
+    fn at_error(&self, e: f64) -> Cut {
+        let mut c = self.clone();
+        if let Cut::Uniform { error, .. } | Cut::UniformIn { error, .. } = &mut c {
+            *error = e;
+        }
+        c
+    }
+
     /// The CRS the cut's region and a tile's positions are in; None for the store's.
     pub fn crs(&self) -> Option<&Crs> {
         match self {
@@ -208,6 +225,49 @@ impl Engine {
 
     /// The patches of a cut, with the snapshot they came from.
     pub fn query(&self, cut: &Cut) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
+        let (t, ps) = self.patches_of(cut)?;
+        self.within_max_patches(ps.len())?;
+        Ok((t, ps))
+    }
+
+    /// [`Engine::query`] for a tile worth at most `most` patches: where the cut at the error
+    /// asked holds more (a low zoom of a large store at a tiny error, whose samples would take
+    /// seconds to decode for a few hundred thousand pixels), the error is raised fourfold until
+    /// it holds no more, and the cut is returned with the error it was made at. At the top of
+    /// LOD space a cut holds a patch or so a survey, so this ends.
+    pub fn query_within(
+        &self,
+        cut: &Cut,
+        most: u64,
+    ) -> Result<(Cut, Arc<Terrain>, Vec<Extracted>), EngineError> {
+        let top = self.cfg.index.max_error;
+        let mut cut = cut.clone();
+        loop {
+            let (t, ps) = self.patches_of(&cut)?;
+            match cut.error() {
+                Some(e) if ps.len() as u64 > most && e < top => {
+                    cut = cut.at_error((e * 4.0).clamp(0.01, top));
+                }
+                _ => {
+                    self.within_max_patches(ps.len())?;
+                    return Ok((cut, t, ps));
+                }
+            }
+        }
+    }
+
+    fn within_max_patches(&self, n: usize) -> Result<(), EngineError> {
+        let max = self.cfg.limits.max_patches;
+        if n as u64 > max {
+            return Err(EngineError::TooLarge(format!(
+                "the query needs {n} patches, more than the limit of {max}: ask for a smaller region or a larger error"
+            )));
+        }
+        Ok(())
+    }
+
+    /// The patches of `cut`, however many.
+    fn patches_of(&self, cut: &Cut) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
         let t = self.snapshot();
         let ps = match cut {
             Cut::Uniform { roi, error } => {
@@ -225,13 +285,6 @@ impl Engine {
                 t.view(v)
             }
         };
-        let max = self.cfg.limits.max_patches;
-        if ps.len() as u64 > max {
-            return Err(EngineError::TooLarge(format!(
-                "the query needs {} patches, more than the limit of {max}: ask for a smaller region or a larger error",
-                ps.len()
-            )));
-        }
         Ok((t, ps))
     }
 
@@ -402,16 +455,12 @@ impl Engine {
         // each gets the height a request in `crs` gives there), and only those a survey can
         // reach: most voids of a tile at the data's edge are far from every survey.
         let own: Vec<[f64; 2]> = todo.iter().map(|&k| grid.point(k)).collect();
+        let areas = self.reach();
+        let near = |p: &[f64; 2]| areas.iter().any(|a| a.contains_point(*p));
         let mut points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
-            Some(r) => r.map(&own),
+            Some(r) => r.map_where(&own, |q| near(&q)),
             None => own,
         };
-        let areas: Vec<Aabb> = self
-            .snapshot()
-            .surveys()
-            .map(|s| super::write::changed_area(s))
-            .collect();
-        let near = |p: &[f64; 2]| areas.iter().any(|a| a.contains_point(*p));
         let mut kept = 0;
         for i in 0..todo.len() {
             if near(&points[i]) {
@@ -558,7 +607,10 @@ impl Engine {
                 // The tile's own positions, carried into the store's plane.
                 let own = SampleGrid::uniform(roi, width as usize, height as usize);
                 match self.to_store(crs)? {
-                    Some(r) => carried(&own, &r),
+                    Some(r) => {
+                        let areas = self.reach();
+                        carried(&own, &r, |q| areas.iter().any(|a| a.contains_point(q)))
+                    }
                     None => own,
                 }
             }
@@ -620,6 +672,15 @@ impl Engine {
     /// Heights at points of `crs` (None for the store's), given up once `cancel` is set: the
     /// points are carried into the store's plane as a tile's positions are, so a point has
     /// the height any tile of that CRS holding it gives.
+    /// Where any survey can give a height (each one's [`super::write::changed_area`]): a
+    /// point beyond all of them has none, at any error.
+    fn reach(&self) -> Vec<Aabb> {
+        self.snapshot()
+            .surveys()
+            .map(|s| super::write::changed_area(s))
+            .collect()
+    }
+
     pub fn sample_in(
         &self,
         points: &[[f64; 2]],
@@ -644,7 +705,8 @@ impl Engine {
         let carried;
         let points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
             Some(r) => {
-                carried = r.map(points);
+                let areas = self.reach();
+                carried = r.map_where(points, |q| areas.iter().any(|a| a.contains_point(q)));
                 &carried
             }
             None => points,
@@ -662,7 +724,14 @@ impl Engine {
 /// is several times faster than point by point: checked at the corners, the middle and
 /// between, each point must be where its column and its row put it, within 10⁻⁹ of the grid's
 /// extent (a micrometre on a kilometre's tile). Any other map is applied point by point.
-fn carried(own: &SampleGrid, r: &Reprojection) -> SampleGrid {
+///
+/// Positions whose exact image no survey reaches (`near` false) may be left out as NaN: a
+/// low zoom's tile spans continents the lattice would otherwise be built over.
+fn carried(
+    own: &SampleGrid,
+    r: &Reprojection,
+    near: impl Fn([f64; 2]) -> bool + Sync,
+) -> SampleGrid {
     if let Some(a) = &own.axes {
         let (w, h) = (a.xs.len(), a.ys.len());
         let (xm, ym) = (a.xs[w / 2], a.ys[h / 2]);
@@ -684,7 +753,7 @@ fn carried(own: &SampleGrid, r: &Reprojection) -> SampleGrid {
         }
     }
     let pts: Vec<[f64; 2]> = own.points().collect();
-    SampleGrid::of_points(own.width, own.height, r.map(&pts))
+    SampleGrid::of_points(own.width, own.height, r.map_where(&pts, near))
 }
 
 fn check_error(e: f64) -> Result<(), EngineError> {

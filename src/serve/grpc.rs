@@ -2,7 +2,9 @@
 //! deadline and maps errors in `status`.
 
 use super::auth::Gate;
+use super::conns::{self, Conns};
 use super::proto::{self as pb, admin_server, terrain_server};
+use super::turns::Turns;
 use super::{api, convert, status};
 use crate::engine::{Engine, EngineError};
 use crate::sync::lock;
@@ -18,10 +20,11 @@ use tonic::{Request, Response, Status};
 #[derive(Clone)]
 pub struct Service {
     engine: Arc<Engine>,
-    /// Requests running at once. A permit goes with the work, not the call: a request whose
-    /// caller gave up (past its deadline, or gone) holds its permit until its work is done, so
-    /// clients that ask and hang up cannot pile up work without bound.
-    running: Arc<tokio::sync::Semaphore>,
+    /// Requests running at once, their turns handed round the clients fairly. A turn goes
+    /// with the work, not the call: a request whose caller gave up (past its deadline, or
+    /// gone) holds its turn until its work sees its cancel, so clients that ask and hang up
+    /// cannot pile up work without bound.
+    running: Arc<Turns>,
     load: Arc<Load>,
     /// The view sessions' steps take their turns from this first: at most half the turns, so
     /// that however many sessions wait, one-off requests still find one.
@@ -31,6 +34,8 @@ pub struct Service {
     admin: Gate,
     /// True once the daemon is told to stop.
     stopping: tokio::sync::watch::Receiver<bool>,
+    /// The connections of both ports, within one limit.
+    conns: Arc<Conns>,
 }
 
 fn stopping_status() -> Status {
@@ -142,13 +147,24 @@ impl Service {
         });
         Service {
             admin: Gate::admin(engine.config()),
-            running: Arc::new(tokio::sync::Semaphore::new(n)),
+            running: Turns::new(n),
             session_turns: Arc::new(tokio::sync::Semaphore::new((n / 2).max(1))),
+            conns: Conns::new(
+                limits.max_connections,
+                conns::file_limit(),
+                Duration::from_millis(limits.header_timeout_ms),
+                Duration::from_millis(limits.idle_timeout_ms),
+            ),
             streams,
             engine,
             load: Arc::default(),
             stopping,
         }
+    }
+
+    /// The connections of both ports.
+    pub fn conns(&self) -> &Arc<Conns> {
+        &self.conns
     }
 
     /// The engine the service calls.
@@ -160,7 +176,7 @@ impl Service {
     fn load(&self, r: &mut pb::StatsReply) {
         let limit = self.engine.config().limits.max_running_requests as usize;
         r.requests_limit = limit as u32;
-        r.requests_running = limit.saturating_sub(self.running.available_permits()) as u32;
+        r.requests_running = self.running.taken().min(limit) as u32;
         r.requests_waiting = self.load.waiting.load(Ordering::Relaxed) as u32;
         r.requests_served = self.load.served.load(Ordering::Relaxed);
     }
@@ -205,12 +221,7 @@ impl Service {
                 ),
                 None => None,
             };
-            let permit = self
-                .running
-                .clone()
-                .acquire_owned()
-                .await
-                .map_err(|_| Status::unavailable("the daemon is stopping"))?;
+            let permit = self.running.take(conns::client()).await;
             drop(waiting);
             let job = tokio::task::spawn_blocking(move || {
                 let r = f(&engine, &job_cancel);
@@ -276,15 +287,14 @@ impl terrain_server::Terrain for Service {
         // reading holds two batches, not the whole cut, and only until the deadline.
         let (tx, rx) = tokio::sync::mpsc::channel(2);
         let running = self.running.clone();
+        let client = conns::client();
         // Set when the deadline cut the stream short, so that it ends in an error rather than
         // looking complete.
         let cut_short = Arc::new(std::sync::atomic::AtomicBool::new(false));
         let short = cut_short.clone();
         tokio::spawn(async move {
             for chunk in ps.chunks(size) {
-                let Ok(permit) = running.clone().acquire_owned().await else {
-                    return;
-                };
+                let permit = running.take(client.clone()).await;
                 let (t, chunk) = (t.clone(), chunk.to_vec());
                 let batch = tokio::task::spawn_blocking(move || {
                     let b = api::patch_batch(&t, &chunk);
@@ -580,13 +590,12 @@ pub async fn serve_service(
         .register_encoded_file_descriptor_set(pb::DESCRIPTOR)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
-    // Replies of more than a segment would otherwise wait out the client's delayed ACK
-    // (Nagle's algorithm): 40 ms on every tile.
-    let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener).map(|s| {
-        if let Ok(s) = &s {
-            let _ = s.set_nodelay(true);
-        }
-        s
+    // Connections within the daemon's limit, closed when silent or idle (see `conns`).
+    let conns = svc.conns.clone();
+    conns.start();
+    let incoming = futures::stream::unfold((conns.clone(), listener), |(c, l)| async move {
+        let t = c.accept(&l).await;
+        Some((Ok::<_, std::io::Error>(t), (c, l)))
     });
     // Flow control sized by measuring the connection (BDP) rather than HTTP/2's 64 KiB
     // default window, which a multi-megabyte tile would otherwise wait on, window by window.
@@ -610,6 +619,7 @@ pub async fn serve_service(
             .map_err(|e| format!("TLS: {e}"))?;
     }
     server
+        .layer(conns::TrackLayer(conns))
         .add_service(health_svc)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)

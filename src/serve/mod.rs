@@ -3,9 +3,11 @@
 
 pub mod api;
 pub mod auth;
+pub mod conns;
 pub mod convert;
 pub mod grpc;
 pub mod proto;
 pub mod status;
 pub mod tls;
+pub mod turns;
 pub mod web;

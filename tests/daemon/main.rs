@@ -6,6 +6,7 @@ mod common;
 
 mod daemon;
 mod exposure;
+mod hostile;
 mod load;
 mod objects;
 mod python_client;

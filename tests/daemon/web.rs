@@ -341,10 +341,15 @@ fn web_tiles_take_the_read_token_in_a_header_or_where_allowed_the_query() {
         ("PATCHWORK_ADMIN_TOKEN".to_string(), ADMIN.to_string()),
         ("PATCHWORK_READ_TOKEN".to_string(), READ.to_string()),
     ];
+    let mut env = tokens.clone();
+    env.push((
+        "PATCHWORK_PUBLIC_URL".into(),
+        "https://terrain.example.org/".into(),
+    ));
     let d = Daemon::start_with(
         tmp.path(),
         Setup {
-            env: tokens.clone(),
+            env,
             client_env: vec![("PATCHWORK_TOKEN".into(), ADMIN.into())],
             ..Setup::default()
         },
@@ -366,11 +371,14 @@ fn web_tiles_take_the_read_token_in_a_header_or_where_allowed_the_query() {
     assert_eq!(get(&format!("{tile}?token={ADMIN}"), &[]).status, 200);
     // The page and its libraries hold no data; documents hand the token on.
     assert_eq!(get(&format!("{}/", d.http), &[]).status, 200);
+    // TileJSON's absolute URLs name the configured public URL, with the token.
     let tj = get(&format!("{}/tiles.json?token={READ}", d.http), &[]).json();
-    assert!(tj["tiles"][0]
-        .as_str()
-        .unwrap()
-        .ends_with(&format!("&token={READ}")));
+    let url = tj["tiles"][0].as_str().unwrap();
+    assert!(
+        url.starts_with("https://terrain.example.org/tiles/{z}/")
+            && url.ends_with(&format!("&token={READ}")),
+        "{url}"
+    );
     let layer = get(&format!("{}/terrain/layer.json?token={READ}", d.http), &[]).json();
     assert!(layer["tiles"][0]
         .as_str()

@@ -168,6 +168,51 @@ impl Reprojection {
             .collect()
     }
 
+    /// [`Self::map`] of the points whose exact image `keep` takes, NaN for the others, where
+    /// the batch spreads wider than the lattice gathers at once (a world-wide tile over a
+    /// store of one region, say): carried one at a time, each of its points would build blocks
+    /// of nodes for itself, most of them far from anything `keep` wants, which took seconds
+    /// and hundreds of megabytes for one 512² tile. A point kept gets the position
+    /// [`Self::map`] gives it, so a height at a point still does not depend on the batch; a
+    /// narrower batch is mapped whole, as by [`Self::map`].
+    pub fn map_where(
+        &self,
+        points: &[[f64; 2]],
+        keep: impl Fn([f64; 2]) -> bool + Sync,
+    ) -> Vec<[f64; 2]> {
+        if self.exact.is_identity() || self.nodes_spanned(points) <= MOST_GATHERED as f64 {
+            return self.map(points);
+        }
+        let kept: Vec<usize> = (0..points.len())
+            .into_par_iter()
+            .filter(|&k| self.exact.apply(points[k]).is_some_and(&keep))
+            .collect();
+        let chosen: Vec<[f64; 2]> = kept.iter().map(|&k| points[k]).collect();
+        let mut out = vec![[f64::NAN; 2]; points.len()];
+        for (&k, q) in kept.iter().zip(self.map(&chosen)) {
+            out[k] = q;
+        }
+        out
+    }
+
+    /// How many lattice nodes the bounding box of the finite points among `points` spans.
+    fn nodes_spanned(&self, points: &[[f64; 2]]) -> f64 {
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for p in points
+            .iter()
+            .filter(|p| p[0].is_finite() && p[1].is_finite())
+        {
+            for k in 0..2 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        if lo[0] > hi[0] {
+            return 0.0;
+        }
+        ((hi[0] - lo[0]) / self.h + 4.0) * ((hi[1] - lo[1]) / self.h + 4.0)
+    }
+
     /// A bound on how far [`Self::at`] lies from the exact transformation anywhere in the
     /// source rectangle `[min, max]`, in the target CRS's units: twice the largest difference
     /// at nine points of every lattice cell there, plus the rounding of coordinates of that
@@ -290,5 +335,42 @@ mod tests {
             let node = [r.h * (min[0] / r.h).ceil(), r.h * (min[1] / r.h).ceil()];
             assert_eq!(r.at(node), r.exact().apply(node));
         }
+    }
+
+    /// A world-wide batch (a 512² Web Mercator tile at zoom 0) over a store of one region:
+    /// the points near it get what `map` gives them, bit for bit, and the rest are left out.
+    #[test]
+    fn a_wide_batch_carries_only_what_is_kept_and_carries_it_as_map_does() {
+        let r = Reprojection::new(&Crs::epsg(3857).unwrap(), &Crs::wgs84()).unwrap();
+        let half = 20_037_508.342_789_244;
+        let n = 512;
+        let pts: Vec<[f64; 2]> = (0..n * n)
+            .map(|k| {
+                let (i, j) = ((k % n) as f64 + 0.5, (k / n) as f64 + 0.5);
+                [
+                    -half + i * 2.0 * half / n as f64,
+                    half - j * 2.0 * half / n as f64,
+                ]
+            })
+            .collect();
+        let region =
+            |q: [f64; 2]| (-119.5..=-117.5).contains(&q[0]) && (33.5..=35.5).contains(&q[1]);
+        let out = r.map_where(&pts, region);
+        let kept: Vec<usize> = (0..pts.len()).filter(|&k| !out[k][0].is_nan()).collect();
+        assert!(!kept.is_empty() && kept.len() < 20, "{} kept", kept.len());
+        for k in 0..pts.len() {
+            if region(r.exact().apply(pts[k]).unwrap()) {
+                assert_eq!(
+                    out[k].map(f64::to_bits),
+                    r.at(pts[k]).unwrap().map(f64::to_bits),
+                    "one answer per point"
+                );
+            } else {
+                assert!(out[k][0].is_nan());
+            }
+        }
+        // A batch the lattice gathers at once is mapped whole.
+        let near = &pts[kept[0]..kept[0] + 1];
+        assert_eq!(r.map_where(near, |_| false), r.map(near));
     }
 }

@@ -47,6 +47,8 @@ pub struct Web {
     mercator: patchwork_core::crs::Crs,
     geographic: patchwork_core::crs::Crs,
     query_token: bool,
+    /// `[http] public_url`, for TileJSON's absolute URLs.
+    public_url: Option<String>,
     cache_control: HeaderValue,
     /// Encoded tiles by ETag: the ETag is made from the cut each time, so a tile found here is
     /// the one the data gives now.
@@ -75,6 +77,9 @@ pub struct Produced {
     /// Shared with the cache: a response takes no copy.
     body: Option<Bytes>,
     content_type: &'static str,
+    /// The error the tile was made at where it is not the one asked (see
+    /// `limits.max_web_tile_patches`): sent as `X-Patchwork-Error`.
+    error: Option<f64>,
 }
 
 impl Web {
@@ -92,6 +97,7 @@ impl Web {
                 .expect("EPSG:3857 is in every CRS database"),
             geographic: patchwork_core::crs::Crs::wgs84(),
             query_token: cfg.http.query_token,
+            public_url: cfg.http.public_url.clone(),
             cache_control: cache_control(&cfg.http.cache_control, gate.is_open()),
             gate,
             fingerprint: format!("{}/{}", env!("CARGO_PKG_VERSION"), cfg.index.max_error),
@@ -167,6 +173,7 @@ impl Web {
                 etag,
                 body: None,
                 content_type,
+                error: None,
             });
         }
         let body = match self.tiles.as_ref().and_then(|c| c.get(&etag)) {
@@ -183,6 +190,7 @@ impl Web {
             etag,
             body: Some(body),
             content_type,
+            error: None,
         })
     }
 
@@ -203,6 +211,12 @@ impl Web {
         let h = r.headers_mut();
         h.insert(header::ETAG, etag);
         h.insert(header::CACHE_CONTROL, self.cache_control.clone());
+        if let Some(e) = p.error {
+            h.insert(
+                "x-patchwork-error",
+                HeaderValue::from_str(&e.to_string()).expect("a number is a header value"),
+            );
+        }
         r
     }
 
@@ -342,7 +356,10 @@ pub fn router(svc: Service) -> Router {
         .allow_origin(tower_http::cors::Any)
         .allow_methods([Method::GET, Method::HEAD, Method::OPTIONS])
         .allow_headers([header::AUTHORIZATION, header::IF_NONE_MATCH, header::ACCEPT])
-        .expose_headers([header::ETAG]);
+        .expose_headers([
+            header::ETAG,
+            header::HeaderName::from_static("x-patchwork-error"),
+        ]);
     app.layer(middleware::from_fn_with_state(web.clone(), admit))
         // Quantized-mesh tiles and the documents are gzipped once, here, for clients that
         // accept it; PNG and GeoTIFF tiles are compressed already and go as they are.
@@ -354,102 +371,88 @@ pub fn router(svc: Service) -> Router {
 
 /// Serves the web clients on `listener` until `shutdown`: over TLS with the daemon's
 /// certificate when it has one (`tls_cert`, `tls_key`), as gRPC is, since tokens travel in
-/// the requests.
+/// the requests. Each connection is one of the service's [`super::conns`], within their limit
+/// and timeouts; its TLS handshake runs in a task of its own within [`HANDSHAKE`], so that a
+/// client that connects and says nothing holds up no other. Requests run knowing their
+/// connection, for the fair turns, and counted as running on it, so that it is not idle.
 pub async fn serve(
     svc: Service,
     listener: tokio::net::TcpListener,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), String> {
-    use axum::serve::ListenerExt;
+    use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
     let cfg = svc.engine().config().clone();
+    let conns = svc.conns().clone();
+    conns.start();
     let app = router(svc);
-    match (&cfg.tls_cert, &cfg.tls_key) {
-        (Some(cert), Some(key)) => {
-            let tls = super::tls::server_config(cert, key)?;
-            axum::serve(TlsListener::new(listener, tls)?, app)
-                .with_graceful_shutdown(shutdown)
-                .await
-        }
-        // Replies of more than a segment would otherwise wait out the client's delayed ACK.
-        _ => {
-            axum::serve(
-                listener.tap_io(|tcp| {
-                    let _ = tcp.set_nodelay(true);
-                }),
-                app,
-            )
-            .with_graceful_shutdown(shutdown)
-            .await
-        }
+    let tls = match (&cfg.tls_cert, &cfg.tls_key) {
+        (Some(cert), Some(key)) => Some(tokio_rustls::TlsAcceptor::from(
+            super::tls::server_config(cert, key)?,
+        )),
+        _ => None,
+    };
+    let mut builder = hyper_util::server::conn::auto::Builder::new(TokioExecutor::new());
+    builder
+        .http1()
+        .timer(TokioTimer::new())
+        .header_read_timeout(std::time::Duration::from_millis(
+            cfg.limits.header_timeout_ms,
+        ));
+    let builder = Arc::new(builder);
+    let graceful = hyper_util::server::graceful::GracefulShutdown::new();
+    tokio::pin!(shutdown);
+    loop {
+        let tcp = tokio::select! {
+            t = conns.accept(&listener) => t,
+            _ = &mut shutdown => break,
+        };
+        let conn = tcp.conn().clone();
+        let app = app.clone();
+        let service =
+            hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
+                let running = conn.begin();
+                let call = tower::ServiceExt::oneshot(app.clone(), req);
+                conns_scope(conn.clone(), async move {
+                    let r = call.await;
+                    drop(running);
+                    r
+                })
+            });
+        let (builder, watcher) = (builder.clone(), graceful.watcher());
+        let tls = tls.clone();
+        tokio::spawn(async move {
+            match tls {
+                None => {
+                    let c = builder.serve_connection_with_upgrades(TokioIo::new(tcp), service);
+                    let _ = watcher.watch(c.into_owned()).await;
+                }
+                Some(acceptor) => {
+                    let Ok(Ok(s)) = tokio::time::timeout(HANDSHAKE, acceptor.accept(tcp)).await
+                    else {
+                        return;
+                    };
+                    let c = builder.serve_connection_with_upgrades(TokioIo::new(s), service);
+                    let _ = watcher.watch(c.into_owned()).await;
+                }
+            }
+        });
     }
-    .map_err(|e| e.to_string())
+    // Requests in flight get the daemon's grace to finish; idle connections close now.
+    drop(listener);
+    graceful.shutdown().await;
+    Ok(())
 }
 
-/// Connections whose TLS handshake is done. Handshakes run in tasks of their own, each
-/// within [`HANDSHAKE`], so that a client that connects and says nothing holds up no other.
-struct TlsListener {
-    ready: tokio::sync::mpsc::Receiver<(
-        tokio_rustls::server::TlsStream<tokio::net::TcpStream>,
-        std::net::SocketAddr,
-    )>,
-    local: std::net::SocketAddr,
+/// `fut` run knowing its connection (see [`super::conns::CLIENT`]).
+fn conns_scope<F: std::future::Future>(
+    conn: Arc<super::conns::Conn>,
+    fut: F,
+) -> impl std::future::Future<Output = F::Output> {
+    super::conns::CLIENT.scope(conn, fut)
 }
 
 /// Longest a TLS handshake may take.
 const HANDSHAKE: std::time::Duration = std::time::Duration::from_secs(10);
-
-impl TlsListener {
-    fn new(
-        listener: tokio::net::TcpListener,
-        tls: Arc<rustls::ServerConfig>,
-    ) -> Result<TlsListener, String> {
-        let local = listener.local_addr().map_err(|e| e.to_string())?;
-        let acceptor = tokio_rustls::TlsAcceptor::from(tls);
-        let (tx, ready) = tokio::sync::mpsc::channel(64);
-        tokio::spawn(async move {
-            loop {
-                // The server is gone once its end of the channel is: so is the port then.
-                let accepted = tokio::select! {
-                    a = listener.accept() => a,
-                    _ = tx.closed() => return,
-                };
-                let (tcp, peer) = match accepted {
-                    Ok(c) => c,
-                    // Out of file descriptors, say: wait for some to close.
-                    Err(_) => {
-                        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
-                        continue;
-                    }
-                };
-                let _ = tcp.set_nodelay(true);
-                let (acceptor, done) = (acceptor.clone(), tx.clone());
-                tokio::spawn(async move {
-                    if let Ok(Ok(s)) = tokio::time::timeout(HANDSHAKE, acceptor.accept(tcp)).await {
-                        let _ = done.send((s, peer)).await;
-                    }
-                });
-            }
-        });
-        Ok(TlsListener { ready, local })
-    }
-}
-
-impl axum::serve::Listener for TlsListener {
-    type Io = tokio_rustls::server::TlsStream<tokio::net::TcpStream>;
-    type Addr = std::net::SocketAddr;
-
-    async fn accept(&mut self) -> (Self::Io, Self::Addr) {
-        match self.ready.recv().await {
-            Some(c) => c,
-            // The accepting task is gone only when the server is: wait for the shutdown.
-            None => std::future::pending().await,
-        }
-    }
-
-    fn local_addr(&self) -> std::io::Result<Self::Addr> {
-        Ok(self.local)
-    }
-}
 
 async fn viewer() -> Response {
     ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], VIEWER).into_response()
@@ -544,11 +547,22 @@ async fn tilejson(
     if let Some(e) = p.error {
         query.push_str(&format!("&error={e}"));
     }
-    if let Some(t) = token_param(&web, uri.query()) {
-        query.push('&');
-        query.push_str(t);
-    }
-    let url = format!("{}/tiles/{{z}}/{{x}}/{{y}}.png?{query}", base_url(&headers));
+    // TileJSON's tile URLs must be absolute. They name the configured public URL, with the
+    // request's token where tokens travel in URLs; else the Host the request came to, never
+    // with a token: any client may write that header, and a document naming another host
+    // with the token in it would hand the token to that host (or to whoever a shared cache
+    // serves the document to). The viewer page adds its token to each tile URL itself.
+    let base = match &web.public_url {
+        Some(u) => {
+            if let Some(t) = token_param(&web, uri.query()) {
+                query.push('&');
+                query.push_str(t);
+            }
+            u.trim_end_matches('/').to_string()
+        }
+        None => base_url(&headers),
+    };
+    let url = format!("{base}/tiles/{{z}}/{{x}}/{{y}}.png?{query}");
     let engine = web.engine().clone();
     let doc = web.pyramid(&engine).tilejson(url, size, encoding.name());
     document(&web, doc)

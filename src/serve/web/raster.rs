@@ -52,11 +52,14 @@ pub fn tile(
             error: r.error,
         },
     };
-    let (t, ps) = match engine.crs() {
-        Some(_) => engine.query(&cut)?,
+    let most = engine.config().limits.max_web_tile_patches;
+    let (cut, t, ps) = match engine.crs() {
+        Some(_) => engine.query_within(&cut, most)?,
         // A store with no survey yet has nothing anywhere.
-        None => (engine.snapshot(), Vec::new()),
+        None => (cut, engine.snapshot(), Vec::new()),
     };
+    // The error the tile is made at: the one asked, or a coarser one within the limit.
+    let error = cut.error().unwrap_or(r.error);
     let (kind, content_type) = match r.format {
         Format::Png(e) => (e.name(), "image/png"),
         Format::Tiff => ("tiff", "image/tiff"),
@@ -69,7 +72,7 @@ pub fn tile(
         .pyramid(engine)
         .near(&mercator::lonlat_bounds(r.z, r.x, r.y));
     let etag = web.etag(&what, &ps, &near);
-    web.produce(etag, if_none_match, content_type, || {
+    let made = web.produce(etag, if_none_match, content_type, || {
         let size = r.size as usize;
         // Nothing in the cut may still leave voids a survey just beyond the tile fills.
         let empty = ps.is_empty() && near.is_empty();
@@ -91,7 +94,7 @@ pub fn tile(
                 } else {
                     let grid = SampleGrid::uniform(&roi, size, size);
                     let own = cut.crs();
-                    engine.fill_voids(&mut heights, &grid, own, r.error, cancel)?
+                    engine.fill_voids(&mut heights, &grid, own, error, cancel)?
                 };
                 Ok(png(&heights, &voids, r.size, encoding))
             }
@@ -115,6 +118,10 @@ pub fn tile(
                 .map_err(|e| EngineError::Invalid(format!("the tile cannot be written: {e}")))
             }
         }
+    })?;
+    Ok(Produced {
+        error: (error != r.error).then_some(error),
+        ..made
     })
 }
 
