@@ -658,6 +658,12 @@ impl Engine {
         write(&self.replication).commit = opened.store.commit_seq();
         self.publish(opened.terrain, catalog);
         *guard = Some(opened.store);
+        drop(guard);
+        // The old terrain, its chunk cache and the old database's pages are free now (unless a
+        // request still holds that terrain): given back to the system, not kept by the
+        // allocator, which otherwise held ~60 MB more after every compaction (RSS 250 → 490 MB
+        // over five rounds of load and compaction on a four-survey store).
+        release_free_memory();
         report
     }
 }

@@ -261,3 +261,59 @@ fn the_cli_ends_quietly_on_a_closed_pipe() {
         out.status
     );
 }
+
+/// Resident memory of a process, in kB.
+fn rss_kb(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .expect("VmRSS in /proc")
+}
+
+#[test]
+fn memory_comes_back_after_each_compaction() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = daemon(tmp.path(), &[]);
+    let pid = d.pid().unwrap();
+    let mut rss = Vec::new();
+    for cycle in 0..30 {
+        // A survey comes and goes, so that every compaction has something to remove and
+        // swaps its copy in; tiles are read meanwhile, filling the caches.
+        drop_by_rename(&crop("nasadem_n34w119_crop.tif"), &d.inbox(), "nasa.tif");
+        d.wait("the second survey", |s| count(s, "active") == 2);
+        for z in 10..14 {
+            let t = patchwork_core::geom::tiles::mercator::over(
+                z,
+                &patchwork_core::geom::Aabb::new(-118.94, 34.49, -118.94, 34.49),
+            );
+            for e in [0.5, 2.0, 8.0] {
+                let r = get(
+                    &format!("{}/tiles/{z}/{}/{}.png?error={e}", d.http, t.x0, t.y0),
+                    &[],
+                );
+                assert_eq!(r.status, 200, "{}", r.text());
+            }
+        }
+        std::fs::remove_file(d.inbox().join("nasa.tif")).unwrap();
+        d.wait("the retirement", |s| count(s, "active") == 1);
+        let out = d.cli(&["compact"]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        rss.push(rss_kb(pid));
+        eprintln!("cycle {cycle}: {} kB", rss[cycle]);
+    }
+    // The first cycles warm up (caches fill, the allocator gives the threads that served
+    // their arenas): measured on this store, 43 MB after the first, a plateau of 55–58 MB
+    // from the twelfth on. Memory that does not come back grows with every cycle instead
+    // (300 MB a cycle once): the last ten cycles stay within 10% of the ten before them.
+    let peak = |r: &[u64]| *r.iter().max().unwrap() as f64;
+    assert!(
+        peak(&rss[20..]) <= peak(&rss[10..20]) * 1.1,
+        "resident memory grows with each load and compaction: {rss:?} kB"
+    );
+}
