@@ -18,7 +18,7 @@
 //! watcher warns, keeps the surveys, and watches the folder again once it is back.
 
 use crate::config::OnDelete;
-use crate::engine::{Engine, EngineError, Ingested, Origin};
+use crate::engine::{Engine, EngineError, Held, Ingested, Origin};
 use crate::ingest::is_temporary;
 use crate::paths::{escaped, source_name};
 use crate::store::Catalog;
@@ -43,6 +43,13 @@ pub trait Sink: Send + Sync + 'static {
     fn parallel(&self) -> usize {
         1
     }
+    /// Says that `source` is held back, and why (None: no longer).
+    fn hold(&self, _source: &str, _why: Option<Held>) {}
+    /// Bytes the store may still write: a file deferred for lack of space is read again
+    /// once this grows.
+    fn free_bytes(&self) -> u64 {
+        u64::MAX
+    }
 }
 
 impl Sink for Engine {
@@ -61,7 +68,56 @@ impl Sink for Engine {
     fn parallel(&self) -> usize {
         self.ingest_parallel()
     }
+
+    fn hold(&self, source: &str, why: Option<Held>) {
+        Engine::hold(self, source, why)
+    }
+
+    fn free_bytes(&self) -> u64 {
+        Engine::free_bytes(self)
+    }
 }
+
+/// Names beside elevation files that are theirs, not files of their own: world files, GDAL's
+/// auxiliary files and overviews, masks, checksums. (Sidecar `.toml` and `.prj` files are
+/// passed over with temporary names.)
+const COMPANION_EXTENSIONS: [&str; 9] = [
+    "xml", "tfw", "tifw", "ovr", "msk", "aux", "hdr", "md5", "sha256",
+];
+
+/// Why a file in the inbox that is not a DEM is skipped, or None for a DEM's companion.
+fn skipped_reason(p: &Path) -> Option<String> {
+    let ext = p
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    if COMPANION_EXTENSIONS.contains(&ext.as_str()) {
+        return None;
+    }
+    Some(format!(
+        "not an elevation file{}: the inbox takes GeoTIFF and COG (.tif, .tiff), SRTM (.hgt) \
+         and ESRI ASCII grids (.asc)",
+        if ext.is_empty() {
+            String::new()
+        } else {
+            format!(" (.{ext})")
+        }
+    ))
+}
+
+/// A file the store could not take (a full disk): when, and what the disk had then.
+struct Deferred {
+    stamp: Stamp,
+    /// [`Sink::free_bytes`] when it was deferred: it is read again once there is more.
+    free: u64,
+    /// Read again after this all the same, in case space came back unseen (a quota lifted).
+    retry_at: Instant,
+    wait: Duration,
+}
+
+/// Longest a deferred file waits before it is read again with nothing changed.
+const MOST_DEFERRED: Duration = Duration::from_secs(600);
 
 /// Extensions of files the readers take. A directory with one of these names is a candidate
 /// too, so that it is reported rather than silently skipped.
@@ -103,7 +159,12 @@ fn stamp(p: &Path) -> Stamp {
 /// Every candidate under `dir`, with its stamp (None when unreadable), into `out`; folders
 /// that could not be listed whole go into `incomplete`, since what they hold is unknown, not
 /// gone.
-fn scan(dir: &Path, out: &mut HashMap<PathBuf, Stamp>, incomplete: &mut Vec<PathBuf>) {
+fn scan(
+    dir: &Path,
+    out: &mut HashMap<PathBuf, Stamp>,
+    incomplete: &mut Vec<PathBuf>,
+    skipped: &mut Vec<(PathBuf, String)>,
+) {
     let mut stack = vec![dir.to_path_buf()];
     while let Some(dir) = stack.pop() {
         let Ok(entries) = std::fs::read_dir(&dir) else {
@@ -137,6 +198,8 @@ fn scan(dir: &Path, out: &mut HashMap<PathBuf, Stamp>, incomplete: &mut Vec<Path
                 );
             } else if is_dir {
                 stack.push(p);
+            } else if let Some(why) = skipped_reason(&p) {
+                skipped.push((p, why));
             }
         }
     }
@@ -160,6 +223,8 @@ struct Discovered {
     /// Resolved folders that are there.
     present: Vec<PathBuf>,
     incomplete: Vec<PathBuf>,
+    /// Files that are not elevation files, and why they are skipped.
+    skipped: Vec<(PathBuf, String)>,
 }
 
 impl Discovered {
@@ -210,6 +275,12 @@ pub struct Reconciler<S: Sink> {
     done: HashMap<String, Stamp>,
     pending: HashMap<PathBuf, Pending>,
     renamed: HashSet<PathBuf>,
+    /// Files the store could not take, by path: not read again until space is freed, they
+    /// change, or their wait runs out. A full disk once had two files read and modelled
+    /// every 3 s, at 85% of a core.
+    deferred: HashMap<PathBuf, Deferred>,
+    /// Sources listed as skipped (not elevation files).
+    skipped: HashSet<String>,
 }
 
 impl<S: Sink> Reconciler<S> {
@@ -229,6 +300,8 @@ impl<S: Sink> Reconciler<S> {
             done: HashMap::new(),
             pending: HashMap::new(),
             renamed: HashSet::new(),
+            deferred: HashMap::new(),
+            skipped: HashSet::new(),
         }
     }
 
@@ -240,6 +313,7 @@ impl<S: Sink> Reconciler<S> {
             sources: HashSet::new(),
             present: Vec::new(),
             incomplete: Vec::new(),
+            skipped: Vec::new(),
         };
         let mut back = Vec::new();
         for root in &mut self.roots {
@@ -258,7 +332,12 @@ impl<S: Sink> Reconciler<S> {
             root.real = now.as_ref().map(|(real, _)| real.clone());
             if let Some((real, identity)) = now {
                 let before = found.files.len();
-                scan(&real, &mut found.files, &mut found.incomplete);
+                scan(
+                    &real,
+                    &mut found.files,
+                    &mut found.incomplete,
+                    &mut found.skipped,
+                );
                 if found.files.len() > before {
                     root.identity = Some(identity);
                 }
@@ -313,11 +392,20 @@ impl<S: Sink> Reconciler<S> {
         let mut ready = Vec::new();
         let catalog = self.sink.catalog();
         let (found, back) = self.discover(&catalog);
+        self.note_skipped(&found);
+        // Free space is asked only while something waits for it.
+        let free = (!self.deferred.is_empty()).then(|| self.sink.free_bytes());
         for (p, stamp) in &found.files {
             let source = source_name(p);
             if self.done.get(&source) == Some(stamp) {
                 self.pending.remove(p);
                 continue;
+            }
+            if let (Some(d), Some(free)) = (self.deferred.get(p), free) {
+                let room = free > d.free.saturating_add(1 << 20);
+                if d.stamp == *stamp && !room && now < d.retry_at {
+                    continue;
+                }
             }
             let renamed = self.renamed.remove(p);
             let entry = self.pending.entry(p.clone()).or_insert(Pending {
@@ -340,19 +428,47 @@ impl<S: Sink> Reconciler<S> {
         }
         // The files that are ready, several at once: the store's answer does not depend on
         // the order they are taken in, and the sink bounds how many it reads at a time.
-        for ((_, source, stamp), result) in ready.iter().zip(self.ingest_all(&ready)) {
+        for ((p, source, stamp), result) in ready.iter().zip(self.ingest_all(&ready)) {
             match result {
                 Ok(r) => {
                     tracing::debug!(source = ?r.source, outcome = r.outcome.as_str(), "reconciled");
                     self.done.insert(source.clone(), *stamp);
+                    if self.deferred.remove(p).is_some() {
+                        self.sink.hold(source, None);
+                    }
                 }
-                // Not the file's fault: a later pass tries it again.
+                // Not the file's fault: it is read again once there is room, it changes, or
+                // its wait (doubling from 10 s to 10 min) runs out.
                 Err(e) => {
-                    tracing::debug!(source = ?source, error = ?e.to_string(), "ingest deferred")
+                    let wait = match self.deferred.get(p) {
+                        Some(d) => (d.wait * 2).min(MOST_DEFERRED),
+                        None => {
+                            tracing::warn!(source = ?source, error = %e, "ingest deferred until the store has room or the file changes");
+                            Duration::from_secs(10)
+                        }
+                    };
+                    self.deferred.insert(
+                        p.clone(),
+                        Deferred {
+                            stamp: *stamp,
+                            free: self.sink.free_bytes(),
+                            retry_at: Instant::now() + wait,
+                            wait,
+                        },
+                    );
+                    self.sink.hold(source, Some(Held::Deferred(e.to_string())));
                 }
             }
         }
         self.pending.retain(|p, _| found.files.contains_key(p));
+        let sink = &self.sink;
+        self.deferred.retain(|p, _| {
+            let there = found.files.contains_key(p);
+            if !there {
+                sink.hold(&source_name(p), None);
+            }
+            there
+        });
         if self.on_delete == OnDelete::Retire {
             self.retire_missing(&found);
         }
@@ -360,6 +476,29 @@ impl<S: Sink> Reconciler<S> {
         // entries: they are not gone.
         self.done.retain(|s, _| !found.gone(s));
         (!self.pending.is_empty(), back)
+    }
+
+    /// Lists the files that are not elevation files as skipped, each once, and forgets those
+    /// no longer there.
+    fn note_skipped(&mut self, found: &Discovered) {
+        for (p, why) in &found.skipped {
+            let source = source_name(p);
+            if self.skipped.insert(source.clone()) {
+                tracing::info!(source = ?source, reason = %why, "skipped");
+                self.sink.hold(&source, Some(Held::Skipped(why.clone())));
+            }
+        }
+        // Those in a folder that is away are not gone, only unseen.
+        let now: HashSet<String> = found.skipped.iter().map(|(p, _)| source_name(p)).collect();
+        let sink = &self.sink;
+        self.skipped.retain(|s| {
+            let gone =
+                !now.contains(s) && found.present.iter().any(|r| Path::new(s).starts_with(r));
+            if gone {
+                sink.hold(s, None);
+            }
+            !gone
+        });
     }
 
     /// Ingests files on up to [`Sink::parallel`] threads; the results in the files' order.

@@ -120,6 +120,18 @@ pub async fn surveys(args: SurveysArgs) -> Result<(), Fail> {
                     printable(&s.source),
                     printable(&s.error)
                 ),
+                pb::SurveyStatus::Deferred => println!(
+                    "{:<16}  deferred {}  {}; read again once space is freed or it changes",
+                    "-",
+                    printable(&s.source),
+                    printable(&s.error)
+                ),
+                pb::SurveyStatus::Skipped => println!(
+                    "{:<16}  skipped  {}  {}",
+                    "-",
+                    printable(&s.source),
+                    printable(&s.error)
+                ),
                 // Out of the terrain: what is wrong matters, not its claims.
                 pb::SurveyStatus::Damaged => println!(
                     "{:<16}  damaged  {}  {}; ingest the file again or run `patchwork repair`",

@@ -92,7 +92,10 @@ impl<'a> SurveyJson<'a> {
     pub fn of(s: &'a pb::SurveyInfo) -> Self {
         let failed = matches!(
             s.status(),
-            pb::SurveyStatus::Failed | pb::SurveyStatus::Damaged
+            pb::SurveyStatus::Failed
+                | pb::SurveyStatus::Damaged
+                | pb::SurveyStatus::Deferred
+                | pb::SurveyStatus::Skipped
         );
         SurveyJson {
             id: &s.id,

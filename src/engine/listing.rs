@@ -87,6 +87,18 @@ pub struct SurveyListing {
     pub damaged: BTreeMap<SurveyId, Damaged>,
     /// Conflicts of each active survey, in the other survey's id order.
     pub conflicts: HashMap<SurveyId, Vec<Conflict>>,
+    /// Inbox files the watcher holds back, by source.
+    pub held: BTreeMap<String, Held>,
+}
+
+/// Why the inbox watcher holds a file back. Not stored: a deferral is what a full disk
+/// could not record, and both are found again by the first pass after a restart.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Held {
+    /// The store could not take it now: not read again until space is freed or it changes.
+    Deferred(String),
+    /// Not an elevation file the daemon reads.
+    Skipped(String),
 }
 
 /// A store and the figures `stats` reports.

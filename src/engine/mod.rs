@@ -22,7 +22,9 @@ pub use crate::ingest::Phase;
 pub use error::EngineError;
 pub use follow::{rounds, Replication};
 pub use gpu::Used;
-pub use listing::{conflicts_of, Conflict, Distrusted, Footprint, Progress, Stats, SurveyListing};
+pub use listing::{
+    conflicts_of, Conflict, Distrusted, Footprint, Held, Progress, Stats, SurveyListing,
+};
 pub use patchwork_core::resample::Backend;
 pub use patchwork_read::REFUSED_PATH;
 pub use read::{Cut, MeshSpec, MeshTile, TileHead, MAX_MESH_SIZE};
@@ -82,6 +84,8 @@ pub struct Engine {
     request_crs: Mutex<HashMap<Crs, Arc<Reprojection>>>,
     /// Where the store stands in replication (see [`follow`]).
     replication: RwLock<Replication>,
+    /// Inbox files the watcher holds back, and why, by source.
+    held: Mutex<std::collections::BTreeMap<String, Held>>,
 }
 
 impl Engine {
@@ -156,6 +160,7 @@ impl Engine {
             geoids: Arc::new(Geoids::new(&cfg.vertical.geoids)),
             request_crs: Mutex::new(HashMap::new()),
             replication: RwLock::new(replication),
+            held: Mutex::new(Default::default()),
             cfg,
             events,
             gpu: gpu::Device::default(),
@@ -276,8 +281,31 @@ impl Engine {
             failures: c.failures.clone(),
             damaged: c.damaged.clone(),
             conflicts,
+            held: lock(&self.held).clone(),
         };
         (t, listing)
+    }
+
+    /// Records that the inbox watcher holds `source` back (None: no longer), for `surveys`.
+    pub fn hold(&self, source: &str, why: Option<Held>) {
+        let mut held = lock(&self.held);
+        match why {
+            Some(h) => {
+                held.insert(source.to_string(), h);
+            }
+            None => {
+                held.remove(source);
+            }
+        }
+    }
+
+    /// Bytes writes may still use on the store's disk, past what they must leave free.
+    pub fn free_bytes(&self) -> u64 {
+        self.guard
+            .disk
+            .available(&self.dir)
+            .unwrap_or(0)
+            .saturating_sub(self.guard.min_free)
     }
 
     /// Why writes are refused now, if they are.

@@ -4,8 +4,8 @@
 use super::proto as pb;
 use super::web::pyramid::Changed;
 use crate::engine::{
-    Backend, Conflict, Cut, Distrusted, Engine, EngineError, Event, Ingested, MeshTile, Outcome,
-    Phase, Stats, SurveyListing, TileHead, Used,
+    Backend, Conflict, Cut, Distrusted, Engine, EngineError, Event, Held, Ingested, MeshTile,
+    Outcome, Phase, Stats, SurveyListing, TileHead, Used,
 };
 use crate::store::Status;
 use patchwork_core::crs::Crs;
@@ -545,6 +545,18 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
         status: pb::SurveyStatus::Failed as i32,
         error: f.error.clone(),
         ..Default::default()
+    }));
+    out.extend(l.held.iter().map(|(source, h)| {
+        let (status, why) = match h {
+            Held::Deferred(why) => (pb::SurveyStatus::Deferred, why),
+            Held::Skipped(why) => (pb::SurveyStatus::Skipped, why),
+        };
+        pb::SurveyInfo {
+            source: source.clone(),
+            status: status as i32,
+            error: why.clone(),
+            ..Default::default()
+        }
     }));
     out.sort_by(|a, b| a.source.cmp(&b.source).then(a.id.cmp(&b.id)));
     pb::SurveyList { surveys: out }

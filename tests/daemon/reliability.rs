@@ -569,3 +569,86 @@ fn a_damaged_survey_is_left_out_and_its_inbox_file_ingested_again_at_start() {
     assert_eq!((tile(&e, cop), tile(&e, srtm)), before);
     assert!(e.verify().unwrap().problems.is_empty());
 }
+
+/// The engine as the watcher's sink, counting the files it is asked to take.
+struct Counting {
+    e: Arc<Engine>,
+    asked: AtomicU64,
+}
+
+impl patchwork::watch::Sink for Counting {
+    fn catalog(&self) -> Arc<patchwork::store::Catalog> {
+        self.e.catalog()
+    }
+
+    fn ingest(&self, path: &Path) -> Result<patchwork::engine::Ingested, EngineError> {
+        self.asked.fetch_add(1, Ordering::SeqCst);
+        patchwork::watch::Sink::ingest(&*self.e, path)
+    }
+
+    fn retire_deleted(&self, source: &str) -> Result<(), EngineError> {
+        self.e.retire_deleted(source)
+    }
+
+    fn hold(&self, source: &str, why: Option<patchwork::engine::Held>) {
+        self.e.hold(source, why)
+    }
+
+    fn free_bytes(&self) -> u64 {
+        self.e.free_bytes()
+    }
+}
+
+#[test]
+fn a_file_deferred_for_lack_of_space_waits_for_room_and_files_not_dems_are_listed() {
+    use patchwork::engine::Held;
+    let s = Setup::new();
+    let disk = Arc::new(FakeDisk(AtomicU64::new(1 << 20)));
+    let e = Arc::new(Engine::open_on(s.cfg.clone(), disk.clone()).unwrap());
+    let sink = Arc::new(Counting {
+        e: e.clone(),
+        asked: AtomicU64::new(0),
+    });
+    let mut r = Reconciler::new(sink.clone(), &s.cfg.inbox, Duration::ZERO, OnDelete::Retire);
+    r.startup();
+    let cop = s.put(COP, "inbox/cop.tif");
+    std::fs::write(s.at("inbox/notes.json"), "{}").unwrap();
+    std::fs::write(s.at("inbox/cop.tif.aux.xml"), "<PAMDataset/>").unwrap();
+    let held = |e: &Engine| e.surveys().1.held;
+
+    // The disk is full: the file is tried once, then waits, listed with the reason.
+    r.pass();
+    assert_eq!(sink.asked.load(Ordering::SeqCst), 1);
+    for _ in 0..5 {
+        r.pass();
+    }
+    assert_eq!(
+        sink.asked.load(Ordering::SeqCst),
+        1,
+        "a deferred file was read again with nothing changed"
+    );
+    let listed = held(&e);
+    let cop_source = cop.to_string_lossy().into_owned();
+    assert!(
+        matches!(listed.get(&cop_source), Some(Held::Deferred(why)) if why.contains("MiB")),
+        "{listed:?}"
+    );
+    // A file that is not a DEM is listed as skipped, saying why; a DEM's companion is not.
+    let json = s.at("inbox/notes.json").to_string_lossy().into_owned();
+    assert!(
+        matches!(listed.get(&json), Some(Held::Skipped(why)) if why.contains(".json")),
+        "{listed:?}"
+    );
+    assert_eq!(listed.len(), 2, "{listed:?}");
+
+    // Space comes back: the next pass takes the file, and nothing is held but the JSON.
+    disk.0.store(u64::MAX, Ordering::SeqCst);
+    r.pass();
+    assert_eq!(sink.asked.load(Ordering::SeqCst), 2);
+    assert_eq!(active(&e), vec![cop_source]);
+    let listed = held(&e);
+    assert_eq!(listed.keys().collect::<Vec<_>>(), vec![&json]);
+    std::fs::remove_file(s.at("inbox/notes.json")).unwrap();
+    r.pass();
+    assert!(held(&e).is_empty());
+}

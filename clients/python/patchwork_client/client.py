@@ -28,6 +28,11 @@ class SurveyStatus(str, Enum):
     #: An active survey whose records or chunks do not read back as written, out of the
     #: terrain until its file is ingested again or ``repair`` drops it.
     DAMAGED = "damaged"
+    #: A file in the inbox the store could not take now (a full disk): read again once space
+    #: is freed or the file changes.
+    DEFERRED = "deferred"
+    #: A file in the inbox that is not an elevation file the daemon reads.
+    SKIPPED = "skipped"
 
 
 class Outcome(str, Enum):
