@@ -700,6 +700,7 @@ mod tests {
             sources: ["/in/a.tif".to_string()].into(),
             present: vec![PathBuf::from("/in")],
             incomplete: vec![PathBuf::from("/in/stale")],
+            skipped: Vec::new(),
         };
         assert!(!found.gone("/in/a.tif"), "it is there");
         assert!(found.gone("/in/b.tif"), "listed whole and not found");
