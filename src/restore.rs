@@ -172,7 +172,16 @@ pub fn compact(
 /// and edge patches are the ones inserting its surveys again derives. Problems go in the
 /// report; `Err` is only for failing to read.
 pub fn verify(store: &Store) -> Result<VerifyReport, StoreError> {
-    let checked = store.check()?;
+    verify_with(store, &|_, _, _| {})
+}
+
+/// [`verify`], telling `progress` what it checks (`"surveys"`, then `"index"`) and how many
+/// of how many it has done.
+pub fn verify_with(
+    store: &Store,
+    progress: &dyn Fn(&'static str, u64, u64),
+) -> Result<VerifyReport, StoreError> {
+    let checked = store.check_with(&|done, total| progress("surveys", done, total))?;
     let crate::store::Checked {
         mut report,
         mut problems,
@@ -184,8 +193,10 @@ pub fn verify(store: &Store) -> Result<VerifyReport, StoreError> {
         whole.sort_by_key(|s| s.id);
         let mut terrain = Terrain::with_crs(store.index_config(), store.crs().as_ref(), None);
         terrain.set_contradicted(store.contradicted());
-        for s in whole {
-            terrain.try_insert(&s).map_err(terrain_error)?;
+        let total = whole.len() as u64;
+        for (n, s) in whole.iter().enumerate() {
+            progress("index", n as u64, total);
+            terrain.try_insert(s).map_err(terrain_error)?;
         }
         for (id, (span, exposed)) in terrain.index().state() {
             match tops.remove(&id) {

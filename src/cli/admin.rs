@@ -1,7 +1,7 @@
 //! The Admin service's commands: ingest, list, retire, forget, stats, verify, repair and
 //! compact.
 
-use super::client::{call, Client};
+use super::client::{call, Authed, Client};
 use super::json::{distrusted, StatsJson, SurveyJson, Word};
 use super::terrain::tile_crs;
 use super::{
@@ -12,6 +12,7 @@ use patchwork::engine::Engine;
 use patchwork::paths::source_name;
 use patchwork::serve::api;
 use patchwork::serve::proto as pb;
+use patchwork::serve::proto::admin_client::AdminClient;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -257,7 +258,19 @@ pub async fn stats(args: StatsArgs) -> Result<(), Fail> {
 pub async fn verify(args: VerifyArgs) -> Result<(), Fail> {
     let VerifyArgs { target } = args;
     let mut c = Client::connect(&target).await?;
-    let v = call!(&mut c, admin.verify(pb::VerifyRequest {}), api::verify)?;
+    // A long verification says how far it has got, from the daemon's stats, on stderr.
+    let shown = match &c {
+        Client::Remote { admin, .. } => Some(tokio::spawn(show_verify_progress((**admin).clone()))),
+        Client::Local(_) => None,
+    };
+    let v = call!(&mut c, admin.verify(pb::VerifyRequest {}), api::verify);
+    if let Some(task) = shown {
+        task.abort();
+        if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+            eprint!("\r\x1b[K");
+        }
+    }
+    let v = v?;
     for p in &v.problems {
         println!("problem: {p}");
     }
@@ -266,6 +279,38 @@ pub async fn verify(args: VerifyArgs) -> Result<(), Fail> {
         Ok(())
     } else {
         Err(format!("{} problem(s) found", v.problems.len()).into())
+    }
+}
+
+/// Prints where the daemon's verification stands, from its stats: from a second on, once a
+/// second on a terminal (one line, rewritten), else a line every five seconds.
+async fn show_verify_progress(mut admin: AdminClient<Authed>) {
+    let terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let every = if terminal { 1 } else { 5 };
+    let mut tick = tokio::time::interval(std::time::Duration::from_secs(every));
+    tick.tick().await;
+    loop {
+        tick.tick().await;
+        let Ok(s) = admin.stats(pb::StatsRequest {}).await else {
+            continue;
+        };
+        let s = s.into_inner();
+        if s.verify_step.is_empty() {
+            continue;
+        }
+        let what = match s.verify_step.as_str() {
+            "index" => "deriving the index again",
+            _ => "checking surveys",
+        };
+        let line = format!(
+            "verifying: {what}, {} of {} ({:.0} s)",
+            s.verify_done, s.verify_total, s.verify_seconds
+        );
+        if terminal {
+            eprint!("\r\x1b[K{line}");
+        } else {
+            eprintln!("{line}");
+        }
     }
 }
 

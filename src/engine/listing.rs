@@ -125,6 +125,17 @@ pub struct Stats {
     pub ingesting: Option<Progress>,
     /// The commit the store is at and, on a replica, how far behind its writer it is.
     pub replication: super::Replication,
+    /// The verification under way, if any.
+    pub verifying: Option<Verifying>,
+}
+
+/// Where a verification stands: what it checks now, how many of how many, since when.
+#[derive(Clone, Debug)]
+pub struct Verifying {
+    pub step: &'static str,
+    pub done: u64,
+    pub total: u64,
+    pub started: Instant,
 }
 
 /// The ingest under way: which file, how big, where it is and since when.

@@ -86,6 +86,8 @@ pub struct Engine {
     replication: RwLock<Replication>,
     /// Inbox files the watcher holds back, and why, by source.
     held: Mutex<std::collections::BTreeMap<String, Held>>,
+    /// The verification under way, for `stats`.
+    verifying: Mutex<Option<listing::Verifying>>,
 }
 
 impl Engine {
@@ -161,6 +163,7 @@ impl Engine {
             request_crs: Mutex::new(HashMap::new()),
             replication: RwLock::new(replication),
             held: Mutex::new(Default::default()),
+            verifying: Mutex::new(None),
             cfg,
             events,
             gpu: gpu::Device::default(),
@@ -339,6 +342,7 @@ impl Engine {
             read_only: self.read_only(),
             cache: read(&self.reader).stats(),
             ingesting: self.progress(),
+            verifying: lock(&self.verifying).clone(),
             replication: self.replication(),
         }
     }

@@ -625,7 +625,17 @@ impl Engine {
         let store = guard
             .as_ref()
             .ok_or_else(|| EngineError::Unavailable("the store is not open".into()))?;
-        Ok(restore::verify(store)?)
+        let started = std::time::Instant::now();
+        let report = restore::verify_with(store, &|step, done, total| {
+            *lock(&self.verifying) = Some(super::listing::Verifying {
+                step,
+                done,
+                total,
+                started,
+            });
+        });
+        *lock(&self.verifying) = None;
+        Ok(report?)
     }
 
     /// Physically removes retired surveys and rewrites the store's files.

@@ -606,6 +606,16 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
             .ingesting
             .as_ref()
             .map_or(0.0, |p| p.started.elapsed().as_secs_f64()),
+        verify_step: s
+            .verifying
+            .as_ref()
+            .map_or(String::new(), |v| v.step.to_string()),
+        verify_done: s.verifying.as_ref().map_or(0, |v| v.done),
+        verify_total: s.verifying.as_ref().map_or(0, |v| v.total),
+        verify_seconds: s
+            .verifying
+            .as_ref()
+            .map_or(0.0, |v| v.started.elapsed().as_secs_f64()),
         // The requests are the server's to count, not the engine's; it fills them in.
         ..Default::default()
     }

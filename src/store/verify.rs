@@ -90,6 +90,11 @@ impl Store {
     /// Re-checks everything the store holds but the index. Problems go in the report; `Err` is
     /// only for failing to read.
     pub fn check(&self) -> Result<Checked, StoreError> {
+        self.check_with(&|_, _| {})
+    }
+
+    /// [`Store::check`], telling `progress` how many of the surveys it has checked.
+    pub fn check_with(&self, progress: &dyn Fn(u64, u64)) -> Result<Checked, StoreError> {
         let mut pr = Problems {
             list: Vec::new(),
             counts: BTreeMap::new(),
@@ -182,7 +187,9 @@ impl Store {
 
         let store_vertical = self.vertical_crs();
         let mut whole: Vec<Arc<Survey>> = Vec::new();
-        for (id, r) in &records {
+        let total = records.len() as u64;
+        for (n, (id, r)) in records.iter().enumerate() {
+            progress(n as u64, total);
             if r.status == Status::Retired {
                 rep.retired += 1;
                 // Retired samples stay until compaction, and must stay sound until then.

@@ -1748,3 +1748,34 @@ fn damaged_database_files_are_an_error_that_says_what_to_do_never_a_panic() {
     );
     assert_verified(&store);
 }
+
+/// Verify says how far it has got: every survey record as it is checked, then every active
+/// survey as the index is derived again, each count rising to its total.
+#[test]
+fn verify_says_how_far_it_has_got() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (surveys, _) = retired_store(&dir);
+    let Opened { store, .. } = open(&dir);
+    let seen = std::sync::Mutex::new(Vec::new());
+    let report = restore::verify_with(&store, &|step, done, total| {
+        seen.lock().unwrap().push((step, done, total))
+    })
+    .unwrap();
+    assert!(report.is_ok(), "{:?}", report.problems);
+    let seen = seen.into_inner().unwrap();
+    let of = |step: &str| -> Vec<(u64, u64)> {
+        seen.iter()
+            .filter(|s| s.0 == step)
+            .map(|s| (s.1, s.2))
+            .collect()
+    };
+    let records = surveys.len() as u64;
+    assert_eq!(
+        of("surveys"),
+        (0..records).map(|k| (k, records)).collect::<Vec<_>>()
+    );
+    assert_eq!(of("index"), vec![(0, 1)], "one survey is active");
+    // The surveys are checked before the index is derived.
+    assert_eq!(seen.last().unwrap().0, "index");
+}
