@@ -170,6 +170,12 @@ pub struct StatsJson<'a> {
     follows: Option<&'a str>,
     published_commit: u64,
     lag_seconds: f64,
+    /// A verification under way: what it checks now ("surveys", then "index"), how many of
+    /// how many, for how long; null step when none runs.
+    verify_step: Option<&'a str>,
+    verify_done: u64,
+    verify_total: u64,
+    verify_seconds: f64,
 }
 
 impl<'a> StatsJson<'a> {
@@ -200,6 +206,10 @@ impl<'a> StatsJson<'a> {
             follows: (!s.follows.is_empty()).then_some(s.follows.as_str()),
             published_commit: s.published_commit,
             lag_seconds: s.lag_seconds,
+            verify_step: (!s.verify_step.is_empty()).then_some(s.verify_step.as_str()),
+            verify_done: s.verify_done,
+            verify_total: s.verify_total,
+            verify_seconds: s.verify_seconds,
         }
     }
 }

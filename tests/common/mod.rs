@@ -8,3 +8,23 @@ pub mod python;
 pub mod s3;
 
 pub use patchwork_testkit::fixtures::*;
+
+/// Every file under `dir` with a hash of its bytes, by path: what "byte for byte" compares.
+pub fn dir_digest(dir: &std::path::Path) -> Vec<(std::path::PathBuf, String)> {
+    let mut out = Vec::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let e = e.unwrap();
+            if e.file_type().unwrap().is_dir() {
+                todo.push(e.path());
+            } else {
+                let bytes = std::fs::read(e.path()).unwrap();
+                out.push((e.path(), blake3::hash(&bytes).to_hex().to_string()));
+            }
+        }
+    }
+    assert!(!out.is_empty(), "no files under {}", dir.display());
+    out.sort();
+    out
+}

@@ -311,10 +311,10 @@ fn memory_comes_back_after_each_compaction() {
     // from the twelfth on. Memory that does not come back grows with every cycle instead
     // (300 MB a cycle once): the last ten cycles stay within 10% of the ten before them.
     // With nothing to remove, compaction leaves the store byte for byte.
-    let files = digest(&d.root.join("data"));
+    let files = common::dir_digest(&d.root.join("data"));
     let (before, after) = compact(&d);
     assert_eq!(before, after);
-    assert_eq!(digest(&d.root.join("data")), files);
+    assert_eq!(common::dir_digest(&d.root.join("data")), files);
     let peak = |r: &[u64]| *r.iter().max().unwrap() as f64;
     assert!(
         peak(&rss[20..]) <= peak(&rss[10..20]) * 1.1,
@@ -338,27 +338,4 @@ fn compact(d: &Daemon) -> (u64, u64) {
         .collect();
     assert!(figures.len() >= 2, "{text}");
     (figures[0], figures[1])
-}
-
-/// The size and a hash of every file under `dir`, by path.
-fn digest(dir: &std::path::Path) -> Vec<(std::path::PathBuf, u64, u64)> {
-    use std::hash::{Hash, Hasher};
-    let mut out = Vec::new();
-    let mut todo = vec![dir.to_path_buf()];
-    while let Some(d) = todo.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let e = e.unwrap();
-            if e.file_type().unwrap().is_dir() {
-                todo.push(e.path());
-            } else {
-                let bytes = std::fs::read(e.path()).unwrap();
-                let mut h = std::collections::hash_map::DefaultHasher::new();
-                bytes.hash(&mut h);
-                out.push((e.path(), bytes.len() as u64, h.finish()));
-            }
-        }
-    }
-    assert!(!out.is_empty(), "no store under {}", dir.display());
-    out.sort();
-    out
 }

@@ -954,25 +954,6 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
     }
 }
 
-/// Every file under `dir` with a hash of its bytes, by path.
-fn dir_digest(dir: &Path) -> Vec<(PathBuf, String)> {
-    let mut out = Vec::new();
-    let mut todo = vec![dir.to_path_buf()];
-    while let Some(d) = todo.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let e = e.unwrap();
-            if e.file_type().unwrap().is_dir() {
-                todo.push(e.path());
-            } else {
-                let bytes = std::fs::read(e.path()).unwrap();
-                out.push((e.path(), blake3::hash(&bytes).to_hex().to_string()));
-            }
-        }
-    }
-    out.sort();
-    out
-}
-
 fn copy_dir(from: &Path, to: &Path) {
     std::fs::create_dir_all(to).unwrap();
     for e in std::fs::read_dir(from).unwrap() {
