@@ -56,11 +56,14 @@ pub struct Conns {
 /// One open connection.
 pub struct Conn {
     pub peer: SocketAddr,
-    /// When it was accepted, and when bytes last moved, in ms since [`Conns::epoch`].
-    opened: u64,
+    /// When bytes last moved (at first, when it was accepted), in ms since [`Conns::epoch`].
     last: AtomicU64,
     /// Whether it has sent anything at all.
     heard: AtomicBool,
+    /// When a read first found nothing to read, in ms since [`Conns::epoch`] (0: not yet).
+    /// Silence counts from then: a daemon too busy to read a connection for a while must
+    /// not take that for the client's silence.
+    asked: AtomicU64,
     /// Requests it has running now, and has started in all.
     in_flight: AtomicU64,
     served: AtomicU64,
@@ -174,7 +177,8 @@ impl Conns {
             if !c.idle() {
                 return !c.closing.load(Relaxed);
             }
-            let silent = !c.heard.load(Relaxed) && now.saturating_sub(c.opened) > header;
+            let asked = c.asked.load(Relaxed);
+            let silent = !c.heard.load(Relaxed) && asked > 0 && now.saturating_sub(asked) > header;
             let unused = now.saturating_sub(c.last.load(Relaxed)) > idle;
             if silent || unused {
                 tracing::debug!(peer = %c.peer, silent, "closing a connection");
@@ -240,9 +244,9 @@ impl Conns {
         }
         let conn = Arc::new(Conn {
             peer,
-            opened: now,
             last: AtomicU64::new(now),
             heard: AtomicBool::new(false),
+            asked: AtomicU64::new(0),
             in_flight: AtomicU64::new(0),
             served: AtomicU64::new(0),
             closing: AtomicBool::new(false),
@@ -296,9 +300,17 @@ impl<S: AsyncRead + Unpin> AsyncRead for Tracked<S> {
         }
         let before = buf.filled().len();
         let r = Pin::new(&mut me.io).poll_read(cx, buf);
-        if matches!(r, Poll::Ready(Ok(()))) && buf.filled().len() > before {
-            me.conn.heard.store(true, Relaxed);
-            me.conn.last.store(me.conns.now(), Relaxed);
+        match r {
+            Poll::Ready(Ok(())) if buf.filled().len() > before => {
+                me.conn.heard.store(true, Relaxed);
+                me.conn.last.store(me.conns.now(), Relaxed);
+            }
+            Poll::Pending if !me.conn.heard.load(Relaxed) => {
+                // The first time there was nothing to read (never 0: a millisecond at least).
+                let now = me.conns.now().max(1);
+                let _ = me.conn.asked.compare_exchange(0, now, Relaxed, Relaxed);
+            }
+            _ => {}
         }
         r
     }

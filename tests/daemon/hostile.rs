@@ -15,12 +15,12 @@ const READ: &str = "read-0123456789abcdef";
 const ADMIN: &str = "admin-0123456789abcdef";
 
 /// A daemon over the Copernicus crop with the limits the cases probe set low: 32 connections,
-/// a 1 s header timeout, a 3 s idle timeout, 10 s deadlines and 64 patches a web tile.
+/// a 2 s header timeout, a 3 s idle timeout, 10 s deadlines and 64 patches a web tile.
 fn daemon(tmp: &std::path::Path, extra: &[(&str, &str)]) -> Daemon {
     let cfg = tmp.join("hostile.toml");
     std::fs::write(
         &cfg,
-        "[limits]\nmax_connections = 32\nheader_timeout_ms = 1000\nidle_timeout_ms = 3000\n\
+        "[limits]\nmax_connections = 32\nheader_timeout_ms = 2000\nidle_timeout_ms = 3000\n\
          deadline_ms = 10000\nmax_web_tile_patches = 64\n",
     )
     .unwrap();
@@ -163,7 +163,7 @@ fn idle_silent_and_slow_connections_cannot_exhaust_the_daemon() {
     // Connections that never said a word are closed once the header timeout passes.
     let closed = idle
         .iter_mut()
-        .map(|s| closed_within(s, Duration::from_secs(5)))
+        .map(|s| closed_within(s, Duration::from_secs(10)))
         .filter(|c| *c)
         .count();
     assert_eq!(closed, idle.len(), "silent connections left open");
@@ -180,7 +180,7 @@ fn idle_silent_and_slow_connections_cannot_exhaust_the_daemon() {
         std::thread::sleep(Duration::from_millis(150));
     }
     assert!(
-        cut || closed_within(&mut slow, Duration::from_secs(3)),
+        cut || closed_within(&mut slow, Duration::from_secs(6)),
         "a slow client was kept {:?}",
         t0.elapsed()
     );
@@ -275,7 +275,9 @@ fn rss_kb(pid: u32) -> u64 {
 #[test]
 fn memory_comes_back_after_each_compaction() {
     let tmp = tempfile::tempdir().unwrap();
-    let d = daemon(tmp.path(), &[]);
+    // Two allocator arenas, not one for each thread that happens to serve: a thread that
+    // first allocates late would otherwise add its arena to the figures, and that is no leak.
+    let d = daemon(tmp.path(), &[("MALLOC_ARENA_MAX", "2")]);
     let pid = d.pid().unwrap();
     let mut rss = Vec::new();
     for cycle in 0..30 {
@@ -306,10 +308,11 @@ fn memory_comes_back_after_each_compaction() {
         rss.push(rss_kb(pid));
         eprintln!("cycle {cycle}: {} kB", rss[cycle]);
     }
-    // The first cycles warm up (caches fill, the allocator gives the threads that served
-    // their arenas): measured on this store, 43 MB after the first, a plateau of 55–58 MB
-    // from the twelfth on. Memory that does not come back grows with every cycle instead
-    // (300 MB a cycle once): the last ten cycles stay within 10% of the ten before them.
+    // The first cycles warm up (caches fill): measured on this store with two arenas, 41 MB
+    // after the first and 41–50 MB from then on (with an arena a thread, 43 MB, then a
+    // plateau of 55–58 MB from the twelfth). Memory that does not come back grows with every
+    // cycle instead (300 MB a cycle once): the last ten cycles stay within 10% of the ten
+    // before them.
     // With nothing to remove, compaction leaves the store byte for byte.
     let files = common::dir_digest(&d.root.join("data"));
     let (before, after) = compact(&d);
