@@ -226,10 +226,16 @@ impl Conns {
         let now = self.now();
         let mut open = lock(&self.open);
         if open.len() >= self.most {
+            // A connection that sent bytes in the last second and has no request running yet
+            // is most likely one whose request is being read: it goes last.
             let victim = open
                 .values()
                 .filter(|c| c.idle())
-                .min_by_key(|c| c.last.load(Relaxed))
+                .min_by_key(|c| {
+                    let last = c.last.load(Relaxed);
+                    let reading = c.heard.load(Relaxed) && now.saturating_sub(last) < 1000;
+                    (reading, last)
+                })
                 .cloned();
             match victim {
                 Some(v) => {

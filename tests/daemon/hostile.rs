@@ -153,6 +153,9 @@ fn idle_silent_and_slow_connections_cannot_exhaust_the_daemon() {
     let mut idle: Vec<TcpStream> = (0..96)
         .map(|k| TcpStream::connect(if k % 2 == 0 { &http } else { &grpc }).unwrap())
         .collect();
+    // Both ports take them in (a connection accepted later closes the one idle longest, and
+    // a client racing a flood of new connections may be that one before its request is read).
+    std::thread::sleep(Duration::from_millis(500));
     // A new client is served at once all the same: the connections idle longest make room.
     for _ in 0..3 {
         let r = get(&format!("{}/heights?points=-118.96,34.5", d.http), &[]);
