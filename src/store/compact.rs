@@ -289,9 +289,12 @@ impl Store {
         } else {
             (bytes_before / 100).max(64 << 10)
         };
-        if dir_bytes(&tmp) + margin > bytes_before {
+        // On an object store the bytes that go are the old segments in the bucket, which the
+        // database's size does not show: a copy that removed something always replaces it.
+        let smaller = dir_bytes(&tmp) + margin <= bytes_before;
+        if !(smaller || remote && removed > 0) {
             std::fs::remove_dir_all(&tmp)?;
-            if removed == 0 || remote {
+            if removed == 0 {
                 return self.left_as_is(bytes_before, surveys_purged, kept);
             }
             // What retirements left goes all the same, from the store itself: its keys are
