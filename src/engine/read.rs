@@ -455,15 +455,14 @@ impl Engine {
         // each gets the height a request in `crs` gives there), and only those a survey can
         // reach: most voids of a tile at the data's edge are far from every survey.
         let own: Vec<[f64; 2]> = todo.iter().map(|&k| grid.point(k)).collect();
-        let areas = self.reach();
-        let near = |p: &[f64; 2]| areas.iter().any(|a| a.contains_point(*p));
+        let near = self.reach();
         let mut points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
-            Some(r) => r.map_where(&own, |q| near(&q)),
+            Some(r) => r.map_where(&own, &near),
             None => own,
         };
         let mut kept = 0;
         for i in 0..todo.len() {
-            if near(&points[i]) {
+            if near(points[i]) {
                 (todo[kept], points[kept]) = (todo[i], points[i]);
                 kept += 1;
             }
@@ -607,10 +606,7 @@ impl Engine {
                 // The tile's own positions, carried into the store's plane.
                 let own = SampleGrid::uniform(roi, width as usize, height as usize);
                 match self.to_store(crs)? {
-                    Some(r) => {
-                        let areas = self.reach();
-                        carried(&own, &r, |q| areas.iter().any(|a| a.contains_point(q)))
-                    }
+                    Some(r) => carried(&own, &r, self.reach()),
                     None => own,
                 }
             }
@@ -669,18 +665,21 @@ impl Engine {
         self.sample_in(points, None, e, cancel)
     }
 
+    /// Whether a point of the store's plane is where any survey can give a height (within
+    /// one's [`super::write::changed_area`]): a point beyond all of them has none, at any
+    /// error.
+    fn reach(&self) -> impl Fn([f64; 2]) -> bool + Sync {
+        let areas: Vec<Aabb> = self
+            .snapshot()
+            .surveys()
+            .map(|s| super::write::changed_area(s))
+            .collect();
+        move |p| areas.iter().any(|a| a.contains_point(p))
+    }
+
     /// Heights at points of `crs` (None for the store's), given up once `cancel` is set: the
     /// points are carried into the store's plane as a tile's positions are, so a point has
     /// the height any tile of that CRS holding it gives.
-    /// Where any survey can give a height (each one's [`super::write::changed_area`]): a
-    /// point beyond all of them has none, at any error.
-    fn reach(&self) -> Vec<Aabb> {
-        self.snapshot()
-            .surveys()
-            .map(|s| super::write::changed_area(s))
-            .collect()
-    }
-
     pub fn sample_in(
         &self,
         points: &[[f64; 2]],
@@ -705,8 +704,7 @@ impl Engine {
         let carried;
         let points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
             Some(r) => {
-                let areas = self.reach();
-                carried = r.map_where(points, |q| areas.iter().any(|a| a.contains_point(q)));
+                carried = r.map_where(points, self.reach());
                 &carried
             }
             None => points,

@@ -150,12 +150,8 @@ impl Conns {
     }
 
     /// How many are open now.
-    pub fn len(&self) -> usize {
+    fn len(&self) -> usize {
         lock(&self.open).len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
     }
 
     fn now(&self) -> u64 {

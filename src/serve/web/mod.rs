@@ -412,7 +412,7 @@ pub async fn serve(
             hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
                 let running = conn.begin();
                 let call = tower::ServiceExt::oneshot(app.clone(), req);
-                conns_scope(conn.clone(), async move {
+                super::conns::CLIENT.scope(conn.clone(), async move {
                     let r = call.await;
                     drop(running);
                     r
@@ -441,14 +441,6 @@ pub async fn serve(
     drop(listener);
     graceful.shutdown().await;
     Ok(())
-}
-
-/// `fut` run knowing its connection (see [`super::conns::CLIENT`]).
-fn conns_scope<F: std::future::Future>(
-    conn: Arc<super::conns::Conn>,
-    fut: F,
-) -> impl std::future::Future<Output = F::Output> {
-    super::conns::CLIENT.scope(conn, fut)
 }
 
 /// Longest a TLS handshake may take.
