@@ -12,6 +12,7 @@ mod v3_to_v4;
 mod v4_to_v5;
 mod v5_to_v6;
 mod v6_to_v7;
+mod v7_to_v8;
 
 /// Every step, as (from version, to version, step). `migrate` follows them from the version a
 /// store records up to `migrate::CURRENT`.
@@ -23,4 +24,5 @@ pub(super) const STEPS: &[(u32, u32, Step)] = &[
     (4, 5, v4_to_v5::run),
     (5, 6, v5_to_v6::run),
     (6, 7, v6_to_v7::run),
+    (7, 8, v7_to_v8::run),
 ];

@@ -400,12 +400,29 @@ fn watch_ingest(
 
 /// A conflict as `patchwork surveys` says it.
 fn conflict_line(c: &pb::Conflict) -> String {
+    let why = if c.decided_by.is_empty() || c.decided_by == "undetermined" {
+        let tie = if c.takes_tie {
+            "this survey"
+        } else {
+            "the other"
+        };
+        format!("undetermined, the tie goes to {tie}")
+    } else {
+        format!(
+            "by {} ({:.2}, confidence {:.2})",
+            c.decided_by, c.statistic, c.confidence
+        )
+    };
     let whose = match distrusted(c) {
-        pb::Distrusted::This => "this survey's claim is the false one",
-        pb::Distrusted::Other => "the other's claim is the false one",
-        _ => "either claim may be the false one",
+        pb::Distrusted::This => format!("this survey's claim is the false one, {why}"),
+        pb::Distrusted::Other => format!("the other's claim is the false one, {why}"),
+        _ => format!("either claim may be the false one: {why}"),
     };
     let shift = match &c.shift {
+        Some(s) if !c.shift_determined => format!(
+            "; the shift is undetermined ({:.1} m east, {:.1} m north fit no better than none)",
+            s.east_m, s.north_m
+        ),
         Some(s) => format!(
             "; it lies {:.1} m east, {:.1} m north and {:.2} m up of this one, {:.2} m RMS once moved back",
             s.east_m, s.north_m, s.up_m, s.rms_after_m

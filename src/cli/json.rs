@@ -78,6 +78,15 @@ pub struct ConflictJson<'a> {
     /// Whose claim the evidence finds false: "this", "other" or "both".
     #[serde(serialize_with = "word")]
     distrusted: pb::Distrusted,
+    /// The test that decided it ("prediction", "detail", "noise", "consensus" or
+    /// "undetermined"), its statistic and confidence.
+    decided_by: &'a str,
+    statistic: f64,
+    confidence: f64,
+    /// Whether the shift is determined; one that is not blames nobody.
+    shift_determined: bool,
+    /// Undetermined: whether this survey takes the tie.
+    takes_tie: bool,
 }
 
 /// Whose claim a conflict distrusts; either, for a value this client does not know.
@@ -122,6 +131,11 @@ impl<'a> SurveyJson<'a> {
                     shift_m: c.shift.as_ref().map(|s| [s.east_m, s.north_m, s.up_m]),
                     rms_after_m: c.shift.as_ref().map(|s| s.rms_after_m),
                     distrusted: distrusted(c),
+                    decided_by: &c.decided_by,
+                    statistic: c.statistic,
+                    confidence: c.confidence,
+                    shift_determined: c.shift_determined,
+                    takes_tie: c.takes_tie,
                 })
                 .collect(),
         }

@@ -5,7 +5,7 @@ use crate::store::{CacheStats, Damaged, FailedRecord, SurveyRecord};
 use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::{Crs, Transform};
 use patchwork_core::geom::Aabb;
-use patchwork_core::model::evidence::Blame;
+use patchwork_core::model::evidence::{Blame, Decided};
 use patchwork_core::model::ids::SurveyId;
 use patchwork_core::terrain::Terrain;
 use std::collections::{BTreeMap, HashMap};
@@ -25,6 +25,12 @@ pub struct Conflict {
     pub rms_after_m: Option<f64>,
     /// Whose claim the evidence finds false.
     pub distrusted: Distrusted,
+    /// The test that decided it, with its statistic and confidence.
+    pub decided: Decided,
+    /// Whether the coregistration is determined; one that is not blames nobody.
+    pub shift_determined: bool,
+    /// Undetermined: whether this survey takes the tie.
+    pub takes_tie: bool,
 }
 
 /// Which claim of a conflicting pair is false, from one of the two's side.
@@ -57,7 +63,8 @@ pub fn conflicts_of(t: &Terrain, id: SurveyId) -> Vec<Conflict> {
         .filter_map(|p| {
             let other = p.other(id);
             let finer = p.finer == id;
-            let distrusted = match t.blame(id, other)? {
+            let verdict = t.verdict(id, other)?;
+            let distrusted = match verdict.blame? {
                 Blame::Finer if finer => Distrusted::This,
                 Blame::Coarser if !finer => Distrusted::This,
                 Blame::Finer | Blame::Coarser => Distrusted::Other,
@@ -71,6 +78,9 @@ pub fn conflicts_of(t: &Terrain, id: SurveyId) -> Vec<Conflict> {
                 shift_m: p.shift_m().map(|s| if finer { s } else { s.map(|v| -v) }),
                 rms_after_m: p.coreg.as_ref().map(|c| c.rms_after),
                 distrusted,
+                decided: verdict.by,
+                shift_determined: p.coreg.as_ref().is_some_and(|c| c.conditioned),
+                takes_tie: p.tie_to_finer() == Some(finer),
             })
         })
         .collect();

@@ -461,6 +461,11 @@ pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
                 Distrusted::Other => pb::Distrusted::Other,
                 Distrusted::Both => pb::Distrusted::Both,
             } as i32,
+            decided_by: c.decided.test.name().to_string(),
+            statistic: c.decided.statistic,
+            confidence: c.decided.confidence,
+            shift_determined: c.shift_determined,
+            takes_tie: c.takes_tie,
         })
         .collect()
 }

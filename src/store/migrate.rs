@@ -10,7 +10,7 @@ use patchwork_core::model::patch::PatchLayout;
 mod steps;
 
 /// The schema this binary writes.
-pub const CURRENT: u32 = 7;
+pub const CURRENT: u32 = 8;
 
 /// What a step may need beyond the tree: the settings `open` was called with, which a fresh
 /// store adopts, and the pack that chunk bytes go to.

@@ -1226,7 +1226,7 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(
         store.migrations_run(),
-        &[(1, 2), (2, 3), (3, 4), (4, 5), (5, 6), (6, 7)]
+        &[(1, 2), (2, 3), (3, 4), (4, 5), (5, 6), (6, 7), (7, 8)]
     );
     let roi = bounds_of(&[a.clone(), b.clone()]);
     assert_same(&terrain, &t, &roi);
@@ -1304,7 +1304,7 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(6, 7)]);
+    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8)]);
     let migrated: Vec<(sled::IVec, sled::IVec)> =
         store.raw().scan_prefix("b/").map(Result::unwrap).collect();
     assert_eq!(migrated, records);
@@ -1330,7 +1330,7 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(6, 7)]);
+    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8)]);
     assert_eq!(store.raw().scan_prefix("t/").count(), 0);
     assert_eq!(terrain.index().state(), t.index().state());
     assert_verified(&store);
@@ -1637,7 +1637,7 @@ fn a_version_5_store_keeps_its_failures_with_no_content_known() {
         store.raw().flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(5, 6), (6, 7)]);
+    assert_eq!(store.migrations_run(), &[(5, 6), (6, 7), (7, 8)]);
     assert_eq!(
         store.failures().unwrap(),
         vec![FailedRecord {
@@ -1759,4 +1759,55 @@ fn verify_says_how_far_it_has_got() {
     assert_eq!(of("index"), vec![(0, 1)], "one survey is active");
     // The surveys are checked before the index is derived.
     assert_eq!(seen.last().unwrap().0, "index");
+}
+
+#[test]
+fn a_version_7_store_measures_its_overlaps_again() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    // A real crop and a blurred copy of it: a pair whose evidence the step drops.
+    let g = real_crop("srtm_n44e005_voids_crop.tif");
+    let auto = |g| {
+        Arc::new(
+            Survey::build(
+                g,
+                patchwork_core::model::accuracy::AccuracySpec::Auto,
+                Some(patchwork_core::crs::Crs::epsg(4326).unwrap()),
+                LAYOUT,
+            )
+            .unwrap(),
+        )
+    };
+    let (orig, copy) = (
+        auto(g.clone()),
+        auto(patchwork_core::model::coreg::blurred(&g, 2.0)),
+    );
+    let mut t = Terrain::new(IndexConfig::default());
+    {
+        let Opened { mut store, .. } = open(&dir);
+        ingest(&mut store, &mut t, &orig, "orig");
+        ingest(&mut store, &mut t, &copy, "copy");
+        // Back to version 7: overlaps in a format this binary no longer reads.
+        let db = store.raw();
+        let keys: Vec<sled::IVec> = db.scan_prefix("o/").map(|kv| kv.unwrap().0).collect();
+        assert_eq!(keys.len(), 2);
+        for k in keys {
+            db.insert(k, &b"an overlap of schema 7"[..]).unwrap();
+        }
+        db.insert(b"meta/schema", &7u32.to_le_bytes()).unwrap();
+        db.flush().unwrap();
+    }
+    let Opened { store, terrain, .. } = open(&dir);
+    assert_eq!(store.migrations_run(), &[(7, 8)]);
+    let pairs: Vec<PairEvidence> = store
+        .all_pairs()
+        .unwrap()
+        .iter()
+        .map(|p| (**p).clone())
+        .collect();
+    let fresh: Vec<PairEvidence> = t.pairs().iter().map(|p| (**p).clone()).collect();
+    assert_eq!(pairs, fresh);
+    assert_eq!(terrain.index().state(), t.index().state());
+    assert!(terrain.blame(orig.id, copy.id).is_some());
+    assert_verified(&store);
 }

@@ -6,7 +6,6 @@ use patchwork_crs::Crs;
 use patchwork_geom::Aabb;
 use patchwork_index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, PatchBox};
 use patchwork_index::query::{shortfall, Extracted, Shortfall, ViewQuery};
-use patchwork_model::coreg::Degraded;
 use patchwork_model::edge::{self, EdgePatch, Member};
 use patchwork_model::evidence::{self, Blame, Contradicted, PairEvidence};
 use patchwork_model::grid::{Grid, SampleRect, Window};
@@ -954,11 +953,20 @@ impl Terrain {
 
     /// Which claim of the pair of `a` and `b` is false, where they contradict each other.
     pub fn blame(&self, a: SurveyId, b: SurveyId) -> Option<Blame> {
+        self.verdict(a, b)?.blame
+    }
+
+    /// What the pair of `a` and `b` decides, and by which test; None where they are no pair.
+    pub fn verdict(&self, a: SurveyId, b: SurveyId) -> Option<evidence::Verdict> {
         let p = self.pairs.get(&pair_key(a, b))?;
-        self.blame_pair(p)
+        Some(self.verdict_of(p))
     }
 
     fn blame_pair(&self, p: &PairEvidence) -> Option<Blame> {
+        self.verdict_of(p).blame
+    }
+
+    fn verdict_of(&self, p: &PairEvidence) -> evidence::Verdict {
         let (f, c) = (p.finer, p.coarser);
         let empty = BTreeSet::new();
         let nf = self.neighbours.get(&f).unwrap_or(&empty);
@@ -1004,14 +1012,22 @@ impl Terrain {
         self.pairs_of(id).iter().any(|p| self.alone(p, id))
     }
 
-    /// Whether some pair of the survey finds it, by itself, a degraded version of the other.
+    /// Whether some pair of the survey finds it, by itself, a lesser copy of the other.
     fn a_copy(&self, id: SurveyId) -> bool {
         self.pairs_of(id).iter().any(|p| {
             matches!(
-                (p.degraded(), p.finer == id),
-                (Degraded::Reference, true) | (Degraded::Other, false)
+                (p.finding(), p.finer == id),
+                (Some((Blame::Finer, _)), true) | (Some((Blame::Coarser, _)), false)
             )
         })
+    }
+
+    /// Whether `id` loses the tie of a pair that nothing decides and whose claims contradict
+    /// each other: it is then held, over the overlap, to what the winner's claim allows.
+    fn loses_tie(&self, p: &PairEvidence, id: SurveyId) -> bool {
+        self.blame_pair(p) == Some(Blame::Both)
+            && p.tie_to_finer()
+                .is_some_and(|finer| finer != (p.finer == id))
     }
 
     /// Whether the pair finds `id` alone the false one.
@@ -1050,16 +1066,22 @@ impl Terrain {
         let mut raise = self.contested(id);
         let own = &base.kernel_accuracy;
         for p in self.pairs_of(id) {
-            if !self.alone(&p, id) {
+            if !self.alone(&p, id) && !self.loses_tie(&p, id) {
                 continue;
             }
             let other = p.other(id);
             let theirs = &self.bases[&other].kernel_accuracy;
             let contested = self.contested(other);
+            // A coarser survey's evidence never makes a finer one worse than its own claim.
+            let capped = p.finer == id && p.cell_ratio() >= 2.0;
             for &(k, ko, d) in p.departs(id) {
                 let claim =
                     theirs.values[ko as usize].max(contested.get(&ko).map_or(0.0, |&v| v as f64));
-                let need = d as f64 + claim;
+                let need = if capped {
+                    (d as f64 + claim).min(claim)
+                } else {
+                    d as f64 + claim
+                };
                 if need > own.values[k as usize] * (1.0 + 1e-9) + 1e-9 {
                     let e = raise.entry(k).or_insert(0.0);
                     *e = e.max(need as f32);

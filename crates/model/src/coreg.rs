@@ -41,7 +41,7 @@ pub type Carry<'a> = &'a (dyn Fn([f64; 2]) -> Option<[f64; 2]> + Sync);
 const MOST_POINTS: usize = 60_000;
 /// Points for the whole-cell search, and its reach in cells of the coarser survey.
 const SEARCH_POINTS: usize = 3_000;
-const SEARCH_CELLS: i32 = 8;
+const SEARCH_CELLS: i32 = 13;
 
 /// How one survey lies against another.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -60,7 +60,19 @@ pub struct Coregistration {
     pub nmad_after: f64,
     /// How many reference samples the figures once shifted and offset are over.
     pub samples: u64,
+    /// Whether the shift is determined: enough samples, relief in every direction (the
+    /// shift's standard error along the flattest direction under [`MOST_SHIFT_ERROR`]
+    /// cells), and an overlap at least [`LEAST_WIDTH`] coarse cells wide. A thin, low-relief strip of coast is not: any shift fits it about as well, and
+    /// the one found blames nobody.
+    pub conditioned: bool,
 }
+
+/// The fewest samples that determine a shift.
+pub const LEAST_SAMPLES: u64 = 1000;
+/// The narrowest overlap, in cells of the coarser survey, that determines a shift.
+pub const LEAST_WIDTH: f64 = 8.0;
+/// The largest standard error of a determined shift, in cells of the coarser survey.
+pub const MOST_SHIFT_ERROR: f64 = 0.1;
 
 /// Every `stride`-th valid sample of `g` inside `bounds`, by rows and columns: world position
 /// and height.
@@ -199,6 +211,8 @@ pub fn coregister_by(
     }
     let mut s = best.0;
     let mut dz = robust(&diffs(s, &pts)).0;
+    // The slopes' second moments at the last step: how well the terrain fixes a shift.
+    let mut slopes = [0.0f64; 3];
 
     // Nuth and Kääb's fit, iterated from there.
     let h = step * 0.5;
@@ -230,6 +244,12 @@ pub fn coregister_by(
                 b[i] -= g[i] * d;
             }
         }
+        let kept = rows
+            .iter()
+            .filter(|x| (x.1 - m).abs() <= keep)
+            .count()
+            .max(1) as f64;
+        slopes = [n[0][0] / kept, n[0][1] / kept, n[1][1] / kept];
         let Some(x) = solve3(n, b) else {
             break;
         };
@@ -251,6 +271,22 @@ pub fn coregister_by(
     let (m, nmad_after) = robust(&after);
     // The offset as the robust centre of what is left, so that outliers do not pull it.
     let dz = m;
+    // The flattest direction's RMS slope: the smaller eigenvalue of the slopes' moments.
+    let [sxx, sxy, syy] = slopes;
+    let flattest = (0.5 * (sxx + syy - ((sxx - syy).powi(2) + 4.0 * sxy * sxy).sqrt()))
+        .max(0.0)
+        .sqrt();
+    let (w, h) = (bounds.max[0] - bounds.min[0], bounds.max[1] - bounds.min[1]);
+    // The shift's standard error along the flattest direction, in coarse cells: the spread
+    // left over the slope, over the root of the independent samples. Residuals are
+    // correlated over a few cells, so a block of 3 × 3 coarse cells counts once.
+    let independent = ((w * h) / (9.0 * step * step))
+        .min(after.len() as f64)
+        .max(1.0);
+    let error_cells = nmad_after / (flattest * step * independent.sqrt());
+    let conditioned = after.len() as u64 >= LEAST_SAMPLES
+        && w.min(h) >= LEAST_WIDTH * step
+        && error_cells <= MOST_SHIFT_ERROR;
     Some(Coregistration {
         shift: s,
         dz,
@@ -258,6 +294,7 @@ pub fn coregister_by(
         rms_after: rms(&after, dz),
         nmad_after,
         samples: after.len() as u64,
+        conditioned,
     })
 }
 
@@ -405,22 +442,41 @@ pub fn blurred(g: &Grid, sigma: f64) -> Grid {
 /// At most this many samples a side in the windows a degradation is measured on.
 const DEGRADE_SIDE: usize = 256;
 
-/// A window of at most `DEGRADE_SIDE`² samples of `g` at the middle of `bounds`.
-fn middle_window(g: &Grid, bounds: &Aabb) -> Option<Grid> {
-    let rect = g.shape().rect_over(bounds)?;
+/// At most this many windows a side over an overlap.
+const DEGRADE_WINDOWS: usize = 3;
+
+/// Windows of at most `DEGRADE_SIDE`² samples of `g` spread evenly over `bounds`: up to
+/// `DEGRADE_WINDOWS`² of them, so that the test sees the whole overlap and not one place.
+fn windows_over(g: &Grid, bounds: &Aabb) -> Vec<Grid> {
+    let Some(rect) = g.shape().rect_over(bounds) else {
+        return Vec::new();
+    };
     let (w, h) = (rect.cols().min(DEGRADE_SIDE), rect.rows().min(DEGRADE_SIDE));
     if w < 8 || h < 8 {
-        return None;
+        return Vec::new();
     }
-    let c0 = rect.c0 + (rect.cols() - w) / 2;
-    let r0 = rect.r0 + (rect.rows() - h) / 2;
-    Some(g.window(c0, r0, w, h))
+    let starts = |lo: usize, n: usize, side: usize| -> Vec<usize> {
+        let count = n.div_ceil(side).min(DEGRADE_WINDOWS);
+        (0..count)
+            .map(|i| lo + i * (n - side) / (count - 1).max(1))
+            .collect()
+    };
+    let mut out = Vec::new();
+    for r0 in starts(rect.r0, rect.rows(), h) {
+        for c0 in starts(rect.c0, rect.cols(), w) {
+            out.push(g.window(c0, r0, w, h));
+        }
+    }
+    out
 }
 
-/// How well `target`'s samples are predicted by low-passes of `source`, each sample carried
-/// into the source's plane by `to_source` (the coregistration already applied), with `dz`
-/// added to the prediction; the best over [`SIGMAS`].
-fn predict(source: &Grid, target: &Grid, to_source: Carry, dz: f64) -> Option<Prediction> {
+/// Residuals of one prediction, one list per width of [`SIGMAS`].
+type Residuals = Vec<Vec<f64>>;
+
+/// The residuals of `target`'s samples predicted by low-passes of `source`, one list per
+/// width of [`SIGMAS`], each sample carried into the source's plane by `to_source` (the
+/// coregistration already applied), with `dz` added to the prediction.
+fn residuals(source: &Grid, target: &Grid, to_source: Carry, dz: f64) -> Residuals {
     let pts: Vec<([f64; 2], f64)> = (0..target.rows)
         .flat_map(|r| (0..target.cols).map(move |c| (c, r)))
         .filter_map(|(c, r)| {
@@ -429,26 +485,34 @@ fn predict(source: &Grid, target: &Grid, to_source: Carry, dz: f64) -> Option<Pr
         })
         .filter_map(|(p, z)| Some((to_source(p)?, z)))
         .collect();
+    SIGMAS
+        .iter()
+        .map(|&sigma| {
+            let b = blurred(source, sigma);
+            // Only points whose filtered value is whole: 3σ inside the source's samples.
+            let margin = 3.0 * sigma + 1.0;
+            pts.iter()
+                .filter_map(|&(q, z)| {
+                    let g = b.georef.to_grid(q);
+                    let inside = g[0] >= margin
+                        && g[1] >= margin
+                        && g[0] <= (b.cols - 1) as f64 - margin
+                        && g[1] <= (b.rows - 1) as f64 - margin;
+                    inside.then(|| Some(b.bilinear_grid(g)? + dz - z)).flatten()
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The best prediction over [`SIGMAS`] from residuals gathered over several windows.
+fn best_prediction(per_sigma: &[Vec<f64>]) -> Option<Prediction> {
     let mut best: Option<Prediction> = None;
-    for sigma in SIGMAS {
-        let b = blurred(source, sigma);
-        // Only points whose filtered value is whole: 3σ inside the source's samples.
-        let margin = 3.0 * sigma + 1.0;
-        let d: Vec<f64> = pts
-            .iter()
-            .filter_map(|&(q, z)| {
-                let g = b.georef.to_grid(q);
-                let inside = g[0] >= margin
-                    && g[1] >= margin
-                    && g[0] <= (b.cols - 1) as f64 - margin
-                    && g[1] <= (b.rows - 1) as f64 - margin;
-                inside.then(|| Some(b.bilinear_grid(g)? + dz - z)).flatten()
-            })
-            .collect();
+    for (d, &sigma) in per_sigma.iter().zip(SIGMAS.iter()) {
         if d.len() < 32 {
             continue;
         }
-        let (m, _) = robust(&d);
+        let (m, _) = robust(d);
         let rms = (d.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / d.len() as f64).sqrt();
         if best.is_none_or(|b| rms < b.rms) {
             best = Some(Prediction { rms, sigma });
@@ -457,9 +521,9 @@ fn predict(source: &Grid, target: &Grid, to_source: Carry, dz: f64) -> Option<Pr
     best
 }
 
-/// Which of `reference` and `other` is the degraded one, over the middle of their overlap
-/// `bounds` (in the reference's plane), once `c` is applied. `to_other` and `to_reference`
-/// carry points between the planes.
+/// Which of `reference` and `other` is the degraded one, over windows spread across their
+/// overlap `bounds` (in the reference's plane), once `c` is applied. `to_other` and
+/// `to_reference` carry points between the planes.
 pub fn degradation(
     reference: &Grid,
     other: &Grid,
@@ -468,54 +532,65 @@ pub fn degradation(
     c: &Coregistration,
     bounds: &Aabb,
 ) -> Option<Degradation> {
-    let a = middle_window(reference, bounds)?;
-    // The other's samples over the reference's window, with room for the widest filter.
-    let reach = (3.0 * SIGMAS[SIGMAS.len() - 1] + 2.0)
-        * reference.georef.step[0].max(reference.georef.step[1]);
-    let wb = a.world_bounds();
-    let corners = [
-        [wb.min[0] - reach, wb.min[1] - reach],
-        [wb.max[0] + reach, wb.min[1] - reach],
-        [wb.min[0] - reach, wb.max[1] + reach],
-        [wb.max[0] + reach, wb.max[1] + reach],
-    ];
-    let there: Vec<[f64; 2]> = corners
-        .iter()
-        .filter_map(|&p| to_other([p[0] + c.shift[0], p[1] + c.shift[1]]))
-        .collect();
-    if there.len() < 4 {
-        return None;
-    }
-    let rect = other.shape().rect_over(&Aabb::of_points(&there))?;
-    let b = other.window(rect.c0, rect.r0, rect.cols(), rect.rows());
-    // The other's sample q lies at the reference's point p where q = to_other(p + s).
     let s = c.shift;
     let back = |q: [f64; 2]| to_reference(q).map(|p| [p[0] - s[0], p[1] - s[1]]);
     let forth = |p: [f64; 2]| to_other([p[0] + s[0], p[1] + s[1]]);
-    // Predicting the other from a wider reference window, so that its samples over the
-    // window have whole filtered values.
-    let ra = reference.shape().rect_over(&Aabb::new(
-        wb.min[0] - reach,
-        wb.min[1] - reach,
-        wb.max[0] + reach,
-        wb.max[1] + reach,
-    ))?;
-    let wide = reference.window(ra.c0, ra.r0, ra.cols(), ra.rows());
-    // The other's samples over the reference's window only.
-    let rb = other.shape().rect_over(&Aabb::of_points(
-        &[
-            [wb.min[0], wb.min[1]],
-            [wb.max[0], wb.min[1]],
-            [wb.min[0], wb.max[1]],
-            [wb.max[0], wb.max[1]],
+    // Room for the widest filter around each window.
+    let reach = (3.0 * SIGMAS[SIGMAS.len() - 1] + 2.0)
+        * reference.georef.step[0].max(reference.georef.step[1]);
+    let corners = |b: &Aabb, r: f64| {
+        [
+            [b.min[0] - r, b.min[1] - r],
+            [b.max[0] + r, b.min[1] - r],
+            [b.min[0] - r, b.max[1] + r],
+            [b.max[0] + r, b.max[1] + r],
         ]
-        .iter()
-        .filter_map(|&p| forth(p))
-        .collect::<Vec<_>>(),
-    ))?;
-    let b_inner = other.window(rb.c0, rb.r0, rb.cols(), rb.rows());
+    };
+    let per_window: Vec<(Residuals, Residuals)> = windows_over(reference, bounds)
+        .par_iter()
+        .filter_map(|a| {
+            let wb = a.world_bounds();
+            // The other's samples over the window and the filters' reach.
+            let there: Vec<[f64; 2]> = corners(&wb, reach)
+                .iter()
+                .filter_map(|&p| forth(p))
+                .collect();
+            if there.len() < 4 {
+                return None;
+            }
+            let rect = other.shape().rect_over(&Aabb::of_points(&there))?;
+            let b = other.window(rect.c0, rect.r0, rect.cols(), rect.rows());
+            // The reference a little wider, so that the other's samples over the window
+            // have whole filtered values.
+            let wide = Aabb::new(
+                wb.min[0] - reach,
+                wb.min[1] - reach,
+                wb.max[0] + reach,
+                wb.max[1] + reach,
+            );
+            let ra = reference.shape().rect_over(&wide)?;
+            let wide = reference.window(ra.c0, ra.r0, ra.cols(), ra.rows());
+            // The other's samples over the window only.
+            let inner: Vec<[f64; 2]> = corners(&wb, 0.0).iter().filter_map(|&p| forth(p)).collect();
+            let rb = other.shape().rect_over(&Aabb::of_points(&inner))?;
+            let b_inner = other.window(rb.c0, rb.r0, rb.cols(), rb.rows());
+            Some((
+                residuals(&wide, &b_inner, &back, c.dz),
+                residuals(&b, a, &forth, -c.dz),
+            ))
+        })
+        .collect();
+    let pool = |pick: fn(&(Residuals, Residuals)) -> &Residuals| {
+        let mut all = vec![Vec::new(); SIGMAS.len()];
+        for w in &per_window {
+            for (into, from) in all.iter_mut().zip(pick(w)) {
+                into.extend_from_slice(from);
+            }
+        }
+        all
+    };
     Some(Degradation {
-        other_from_reference: predict(&wide, &b_inner, &back, c.dz)?,
-        reference_from_other: predict(&b, &a, &forth, -c.dz)?,
+        other_from_reference: best_prediction(&pool(|w| &w.0))?,
+        reference_from_other: best_prediction(&pool(|w| &w.1))?,
     })
 }

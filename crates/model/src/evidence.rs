@@ -22,6 +22,7 @@
 
 use super::accuracy::{Deviation, KernelAccuracy};
 use super::coreg::{self, Carry, Coregistration, Degradation, Degraded};
+use super::detail::{self, Detail, Finding};
 use super::grid::Grid;
 use super::ids::SurveyId;
 use super::patch::Tiling;
@@ -42,8 +43,15 @@ pub struct PairEvidence {
     /// How the coarser lies against the finer, the finer as reference; None where they share too
     /// little ground to say.
     pub coreg: Option<Coregistration>,
-    /// Which of the two is a degraded copy of the other; None where that cannot be measured.
+    /// Which of the two is a degraded copy of the other, by predicting each from low-passes
+    /// of the other; None where that cannot be measured.
     pub degradation: Option<Degradation>,
+    /// The detail each holds and shares, band by band; None where the overlap is too small.
+    pub detail: Option<Detail>,
+    /// The finer survey's cell, in its plane's units.
+    pub finer_cell: f64,
+    /// The median claim of each, the finer's then the coarser's, over the samples compared.
+    pub claims: (f64, f64),
     /// The coarser survey's cell, in the finer's plane units: a shift under half of it is
     /// registration noise.
     pub cell: f64,
@@ -123,6 +131,12 @@ pub fn compare(
     metres_per_unit: [f64; 2],
 ) -> Option<PairEvidence> {
     let (f, c) = (finer.grid, coarser.grid);
+    let cell = seen_step(c, to_finer);
+    let finer_cell = f.georef.step[0].max(f.georef.step[1]);
+    // A coarser survey testifies against a finer one only at the scale it resolves: against
+    // the finer low-passed to half its cell, and never for more than its own claim.
+    let ratio = cell / finer_cell;
+    let seen_coarse = (ratio >= COARSER).then(|| coreg::blurred(f, 0.5 * ratio));
     // Every valid sample of the finer against the coarser's surface.
     let (worst, sum, n, [against_f, against_c], [departs_f, departs_c]) = (0..f.rows)
         .into_par_iter()
@@ -151,12 +165,29 @@ pub fn compare(
                 // What the other's claim leaves for this one, and what it could claim were it
                 // derived from the other, where either is more than it claims.
                 let ([af, ac], [df, dc]) = (&mut acc.3, &mut acc.4);
+                // Where the two differ by more than their claims allow, the excess is split
+                // evenly: the least raise of both that makes them agree, and one that does
+                // not favour the side that claims less (smoothness flatters a claim).
+                let seen = match &seen_coarse {
+                    Some(lp) => {
+                        let zl = lp.at(col, r);
+                        (!zl.is_nan()).then(|| (h - zl as f64).abs())
+                    }
+                    None => Some(d),
+                };
                 for k in finer.kernels_at(col, r) {
-                    raise(af, k, finer.claim(k), d - ec);
+                    let own = finer.claim(k);
+                    if let Some(dl) = seen {
+                        let mut need = 0.5 * (dl + ef - ec);
+                        if seen_coarse.is_some() {
+                            need = need.min(ec);
+                        }
+                        raise(af, k, own, need);
+                    }
                     keep_max(df, (k, kc), d);
                     keep_max(dc, (kc, k), d);
                 }
-                raise(ac, kc, ec, d - ef);
+                raise(ac, kc, ec, 0.5 * (d + ec - ef));
             }
             acc
         })
@@ -188,9 +219,41 @@ pub fn compare(
         v
     };
     let coreg = coreg::coregister(f, c, to_coarser, bounds);
-    let degradation = coreg
+    // The tests of detail run on the surveys aligned where the alignment is determined, and
+    // as they lie where it is not.
+    let aligned = coreg.map(|k| {
+        if k.conditioned {
+            k
+        } else {
+            Coregistration {
+                shift: [0.0, 0.0],
+                ..k
+            }
+        }
+    });
+    let degradation = aligned
         .as_ref()
         .and_then(|k| coreg::degradation(f, c, to_coarser, to_finer, k, bounds));
+    let detail = aligned
+        .as_ref()
+        .and_then(|k| detail::measure(f, c, to_coarser, to_finer, k.shift, bounds, cell));
+    let departs_finer = departures(departs_f);
+    let departs_coarser = departures(departs_c);
+    // Each one's median claim over the kernels compared.
+    let median_claim = |side: &Side, d: &[(u32, u32, f32)]| {
+        let mut ks: Vec<u32> = d.iter().map(|e| e.0).collect();
+        ks.dedup();
+        let mut v: Vec<f64> = ks.iter().map(|&k| side.claim(k)).collect();
+        if v.is_empty() {
+            return 0.0;
+        }
+        let m = v.len() / 2;
+        *v.select_nth_unstable_by(m, f64::total_cmp).1
+    };
+    let claims = (
+        median_claim(finer, &departs_finer),
+        median_claim(coarser, &departs_coarser),
+    );
     Some(PairEvidence {
         finer: finer.id,
         coarser: coarser.id,
@@ -201,12 +264,15 @@ pub fn compare(
         },
         coreg,
         degradation,
-        cell: seen_step(c, to_finer),
+        detail,
+        finer_cell,
+        cell,
         metres_per_unit,
         against_finer: sorted(against_f),
         against_coarser: sorted(against_c),
-        departs_finer: departures(departs_f),
-        departs_coarser: departures(departs_c),
+        claims,
+        departs_finer,
+        departs_coarser,
     })
 }
 
@@ -315,12 +381,13 @@ impl PairEvidence {
     /// more, or by more height than the spread of their differences once aligned explains.
     pub fn misregistered(&self) -> bool {
         self.coreg.as_ref().is_some_and(|c| {
-            c.shift[0].hypot(c.shift[1]) >= 0.5 * self.cell
-                || c.dz.abs() > (3.0 * c.nmad_after).max(1.0)
+            c.conditioned
+                && (c.shift[0].hypot(c.shift[1]) >= 0.5 * self.cell
+                    || c.dz.abs() > (3.0 * c.nmad_after).max(1.0))
         })
     }
 
-    /// Which one the pair alone finds degraded: the comparison of predictions (see
+    /// Which one the comparison of predictions finds degraded (see
     /// [`Degradation::degraded`]), undecided where both predict the other to within a
     /// hundredth of their differences (the same content, shifted or offset).
     pub fn degraded(&self) -> Degraded {
@@ -332,6 +399,111 @@ impl PairEvidence {
             return Degraded::Undecided;
         }
         d.degraded()
+    }
+
+    /// Which one the pair alone finds the lesser copy, by the first test that decides: the
+    /// predictions (a low-pass of one predicts the other, and not the other way round), the
+    /// bands' shared detail (one lacks detail the other has, which noise cannot fake), or
+    /// added noise (one holds detail the other does not share, while all of the other's is
+    /// shared). None where no test decides.
+    pub fn finding(&self) -> Option<(Blame, Decided)> {
+        if let Some(d) = &self.degradation {
+            let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { 1.0 };
+            let (a, b) = (d.other_from_reference.rms, d.reference_from_other.rms);
+            match self.degraded() {
+                Degraded::Other if self.may_be_degraded(false) => {
+                    return Some((Blame::Coarser, Decided::new(Test::Prediction, ratio(a, b))))
+                }
+                Degraded::Reference if self.may_be_degraded(true) => {
+                    return Some((Blame::Finer, Decided::new(Test::Prediction, ratio(b, a))))
+                }
+                _ => {}
+            }
+        }
+        let detail = self.detail.as_ref()?;
+        Some(match detail.finding() {
+            Finding::ReferenceLacks { gain, .. } => {
+                (Blame::Finer, Decided::new(Test::Detail, gain))
+            }
+            Finding::OtherLacks { gain, .. } => (Blame::Coarser, Decided::new(Test::Detail, gain)),
+            Finding::ReferenceNoisy { excess, .. } => {
+                (Blame::Finer, Decided::new(Test::Noise, excess))
+            }
+            Finding::OtherNoisy { excess, .. } => {
+                (Blame::Coarser, Decided::new(Test::Noise, excess))
+            }
+            Finding::Undecided => return None,
+        })
+    }
+
+    /// Whether the side the predictions find degraded (the finer where `finer`) may be.
+    /// Noise turns the predictions round (a low-pass of a noisy copy predicts the clean
+    /// original, which cannot predict noise). Its mark at the finest band is a clean side
+    /// whose detail is all shared (`E / C` within 2% of 1) beside one holding detail the
+    /// other does not share (over 1.1); where the band shares too little to say, a side
+    /// with over twice the other's energy. A blurred or resampled copy lacks shared detail
+    /// or holds aliases of its own, and is not taken for the clean side.
+    fn may_be_degraded(&self, finer: bool) -> bool {
+        let Some(b) = self.detail.as_ref().and_then(|d| d.bands.first()) else {
+            return true;
+        };
+        let pick = |r: f64, o: f64| if finer { (r, o) } else { (o, r) };
+        if b.informative() {
+            let (mine, theirs) = pick(b.reference_gain(), b.other_gain());
+            !((0.98..=1.02).contains(&mine) && theirs > 1.1)
+        } else {
+            let (mine, theirs) = pick(b.energy_reference, b.energy_other);
+            theirs <= 2.0 * mine
+        }
+    }
+
+    /// The cell of the coarser over the cell of the finer.
+    pub fn cell_ratio(&self) -> f64 {
+        if self.finer_cell > 0.0 {
+            self.cell / self.finer_cell
+        } else {
+            1.0
+        }
+    }
+
+    /// Who takes a pair that nothing decides: the finer cells, then the one whose bands lack
+    /// less of the detail the two share, then the one a low-pass of the other predicts less
+    /// well, then the one that adds less detail the other does not share. Never the smoother
+    /// by its own estimate, which smoothness flatters. Some(true) where the finer survey
+    /// takes it; None where nothing tells them apart (the same content moved or offset),
+    /// and the claims, raised alike, decide. Where the two hold the same detail, the one
+    /// claiming less over the overlap takes it.
+    pub fn tie_to_finer(&self) -> Option<bool> {
+        if self.cell_ratio() >= COARSER_TIE {
+            return Some(true);
+        }
+        let detail = self.detail.as_ref();
+        if let Some(lack) = detail.map(|d| d.lack()) {
+            if lack.abs() > LEAN {
+                return Some(lack < 0.0);
+            }
+        }
+        if let Some(d) = &self.degradation {
+            let (a, b) = (d.other_from_reference.rms, d.reference_from_other.rms);
+            if a < 0.5 * b && self.may_be_degraded(false) {
+                return Some(true);
+            }
+            if b < 0.5 * a && self.may_be_degraded(true) {
+                return Some(false);
+            }
+        }
+        if let Some(x) = detail.and_then(|d| d.excess()) {
+            if x.abs() > 0.1 {
+                return Some(x > 0.0);
+            }
+        }
+        // The two hold the same detail: the lower claim over the overlap, which no longer
+        // flatters one for being smoother.
+        match self.claims.0.total_cmp(&self.claims.1) {
+            std::cmp::Ordering::Less => Some(true),
+            std::cmp::Ordering::Greater => Some(false),
+            std::cmp::Ordering::Equal => None,
+        }
     }
 
     /// The shift of the coarser against the finer, in metres east and north, and its height
@@ -374,26 +546,111 @@ impl PairEvidence {
     }
 }
 
+/// How far apart two surveys' cells must be for the coarser's evidence to be taken at its
+/// own scale.
+const COARSER: f64 = 2.0;
+/// How far apart their cells must be for a pair nothing decides to go to the finer outright.
+const COARSER_TIE: f64 = 1.25;
+/// The least lack of shared detail (the sum of `ln E / C` under 1) that leans a tie: the
+/// figure of two copies of one content moved by whole cells is within ±0.01.
+const LEAN: f64 = 0.02;
+
+/// The test that decided a pair.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Test {
+    /// A low-pass of one predicts the other, and not the other way round; the statistic is
+    /// the ratio of the two predictions' residuals (under [`coreg::DEGRADED_RATIO`]).
+    Prediction,
+    /// One lacks detail the other has: the statistic is its band's `E / C`, an upper bound
+    /// on its gain there (under [`detail::LACKS_BELOW`]).
+    Detail,
+    /// One adds detail the other does not share: the statistic is its band's excess
+    /// `E / C − 1` (over [`detail::NOISY_ABOVE`]).
+    Noise,
+    /// Surveys overlapping both lie where one lies: the statistic is the margin of votes.
+    Consensus,
+    /// Nothing decides: the statistic is 0, and the pair's tie goes as
+    /// [`PairEvidence::tie_to_finer`] says.
+    Undetermined,
+}
+
+impl Test {
+    /// The name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Test::Prediction => "prediction",
+            Test::Detail => "detail",
+            Test::Noise => "noise",
+            Test::Consensus => "consensus",
+            Test::Undetermined => "undetermined",
+        }
+    }
+}
+
+/// A decision with the figure it rests on and how far that figure is past its threshold,
+/// from 0 (at it) to 1.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Decided {
+    /// The test.
+    pub test: Test,
+    /// Its statistic.
+    pub statistic: f64,
+    /// How clear the decision is: 0 at the threshold, 1 as clear as it gets.
+    pub confidence: f64,
+}
+
+impl Decided {
+    fn new(test: Test, statistic: f64) -> Self {
+        let confidence = match test {
+            Test::Prediction => 1.0 - statistic / coreg::DEGRADED_RATIO,
+            Test::Detail => 1.0 - statistic / detail::LACKS_BELOW,
+            Test::Noise => 1.0 - detail::NOISY_ABOVE / statistic,
+            Test::Consensus => statistic,
+            Test::Undetermined => 0.0,
+        };
+        Decided {
+            test,
+            statistic,
+            confidence: confidence.clamp(0.0, 1.0),
+        }
+    }
+}
+
+/// What a pair's evidence decides: whose claim is false, if any, and by which test.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Verdict {
+    /// Whose claim is false; None for a pair that contradicts nothing and holds no copy.
+    pub blame: Option<Blame>,
+    /// How it was decided.
+    pub by: Decided,
+}
+
 /// Which claim of a pair is false, given the pairs each of its surveys makes with every survey
 /// that overlaps both: `thirds` yields, for each such survey, its pair with the finer and its
-/// pair with the coarser. A degraded copy is blamed whether or not its claims contradict the
-/// other's, since it must not displace what it was made from; otherwise None for a pair that
-/// contradicts nothing.
+/// pair with the coarser. A lesser copy (see [`PairEvidence::finding`]) is blamed whether or
+/// not its claims contradict the other's, since it must not displace what it was made from;
+/// otherwise there is no blame for a pair that contradicts nothing.
 pub fn blame<'a>(
     pair: &PairEvidence,
     thirds: impl Iterator<Item = (&'a PairEvidence, &'a PairEvidence)>,
-) -> Option<Blame> {
-    match pair.degraded() {
-        Degraded::Other => return Some(Blame::Coarser),
-        Degraded::Reference => return Some(Blame::Finer),
-        Degraded::Undecided => {}
+) -> Verdict {
+    if let Some((blame, by)) = pair.finding() {
+        return Verdict {
+            blame: Some(blame),
+            by,
+        };
     }
+    let undetermined = |blame| Verdict {
+        blame,
+        by: Decided::new(Test::Undetermined, 0.0),
+    };
     if !pair.contradicted() {
-        return None;
+        return undetermined(None);
     }
     // Two surveys of one content, one moved: whichever lies where the others lie is right.
     if !pair.misregistered() {
-        return Some(Blame::Both);
+        return undetermined(Some(Blame::Both));
     }
     let (mut finer_off, mut coarser_off) = (0, 0);
     for (with_finer, with_coarser) in thirds {
@@ -403,9 +660,16 @@ pub fn blame<'a>(
             _ => {}
         }
     }
-    Some(match coarser_off.cmp(&finer_off) {
-        std::cmp::Ordering::Greater => Blame::Coarser,
-        std::cmp::Ordering::Less => Blame::Finer,
-        std::cmp::Ordering::Equal => Blame::Both,
-    })
+    let margin = |a: i32, b: i32| (a - b) as f64 / (a + b) as f64;
+    match coarser_off.cmp(&finer_off) {
+        std::cmp::Ordering::Greater => Verdict {
+            blame: Some(Blame::Coarser),
+            by: Decided::new(Test::Consensus, margin(coarser_off, finer_off)),
+        },
+        std::cmp::Ordering::Less => Verdict {
+            blame: Some(Blame::Finer),
+            by: Decided::new(Test::Consensus, margin(finer_off, coarser_off)),
+        },
+        std::cmp::Ordering::Equal => undetermined(Some(Blame::Both)),
+    }
 }

@@ -4,6 +4,7 @@
 
 pub mod accuracy;
 pub mod coreg;
+pub mod detail;
 pub mod edge;
 pub mod evidence;
 pub mod geoid;

@@ -318,6 +318,15 @@ pub fn real_crop(name: &str) -> Grid {
 
 pub use patchwork_core::geom::rng::uniform;
 
+/// One of the committed crops as a grid with its file's CRS.
+pub fn real_crop_in_crs(name: &str) -> (Grid, Option<patchwork_core::crs::Crs>) {
+    let path = data_dir().join(name);
+    let r = patchwork_read::read_raster(&path, &Default::default())
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
+    let crs = r.crs.crs.clone();
+    (r.into_grid().unwrap(), crs)
+}
+
 /// One of the committed crops as a survey of its own CRS (the file's), its accuracy
 /// estimated, with the default patch layout.
 pub fn crop_survey(name: &str) -> Arc<Survey> {

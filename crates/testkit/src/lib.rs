@@ -4,6 +4,7 @@
 //! no request.
 
 pub mod copies;
+pub mod degrade;
 pub mod fixtures;
 pub mod s3;
 
