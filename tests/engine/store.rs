@@ -250,7 +250,16 @@ fn committed_surveys_come_back_as_the_same_terrain() {
         } = open(&dir);
         assert_eq!(
             store.migrations_run(),
-            &[(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 6), (6, 7)]
+            &[
+                (0, 1),
+                (1, 2),
+                (2, 3),
+                (3, 4),
+                (4, 5),
+                (5, 6),
+                (6, 7),
+                (7, 8)
+            ]
         );
         assert_eq!(terrain.index().len(), 0);
         ingest(&mut store, &mut t, &a, "/data/a.tif");

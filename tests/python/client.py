@@ -67,8 +67,10 @@ def check_resample(c, roi, error, width, height):
 
 def check_conflicts(active):
     """Accuracies as served are what each survey claims, raised where the others contradict
-    it; each overlap says where the other survey lies. The rotated copy (d.tif) is a
-    misregistered version of the Copernicus crop, so it is the one distrusted."""
+    it; each overlap says where the other survey lies. The rotated copy (d.tif) is a coarser
+    copy of the Copernicus crop on a turned lattice: no shift aligns it, so either it is found
+    the false one or the pair is undetermined and the finer surveys take the tie; each
+    conflict names the test that decided it."""
     by_name = {os.path.basename(s.source): s for s in active}
     for s in active:
         require(s.accuracy_median_m <= s.accuracy_p90_m <= s.accuracy_m + 1e-9, f"{s}")
@@ -82,8 +84,13 @@ def check_conflicts(active):
     # each says so of the other with the sign turned.
     require(np.hypot(ab.shift_m[0], ab.shift_m[1]) < 5.0, f"{ab}")
     require(np.allclose(ab.shift_m, [-v for v in ba.shift_m]), f"{ab} vs {ba}")
-    require(all(k.distrusted == "this" for k in d.conflicts) and len(d.conflicts) == 2, f"{d}")
-    require(all(k.distrusted == "other" for s in (a, b) for k in s.conflicts if k.survey == d.id), f"{a}")
+    tests = {"prediction", "detail", "noise", "consensus", "undetermined"}
+    require(all(k.decided_by in tests for s in active for k in s.conflicts), f"{active}")
+    require(len(d.conflicts) == 2, f"{d}")
+    require(all(k.distrusted == "this" or (k.distrusted == "both" and not k.takes_tie)
+                for k in d.conflicts), f"{d}")
+    require(all(k.distrusted == "other" or (k.distrusted == "both" and k.takes_tie)
+                for s in (a, b) for k in s.conflicts if k.survey == d.id), f"{a}")
     require(d.accuracy_m > d.claimed_accuracy_m, f"{d}")
 
 

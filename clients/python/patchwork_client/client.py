@@ -153,6 +153,15 @@ class Conflict:
     rms_after_m: Optional[float] = None
     #: Whose claim the evidence finds false: "this", "other", "both" or "" (neither).
     distrusted: str = ""
+    #: The test that decided it: "prediction", "detail", "noise", "consensus" or
+    #: "undetermined", with its statistic and a confidence from 0 to 1.
+    decided_by: str = ""
+    statistic: float = 0.0
+    confidence: float = 0.0
+    #: Whether the shift is determined; one that is not blames nobody.
+    shift_determined: bool = False
+    #: Undetermined: whether this survey takes the tie, never displaced by the other.
+    takes_tie: bool = False
 
 
 @dataclass(frozen=True)
@@ -251,7 +260,9 @@ def _conflict(c) -> Conflict:
     return Conflict(survey=c.survey, max_m=c.max_m, rms_m=c.rms_m,
                     shift_m=(c.shift.east_m, c.shift.north_m, c.shift.up_m) if has else None,
                     rms_after_m=c.shift.rms_after_m if has else None,
-                    distrusted=_DISTRUSTED.get(c.distrusted, ""))
+                    distrusted=_DISTRUSTED.get(c.distrusted, ""),
+                    decided_by=c.decided_by, statistic=c.statistic, confidence=c.confidence,
+                    shift_determined=c.shift_determined, takes_tie=c.takes_tie)
 
 
 def _conflicts(cs) -> List[Conflict]:
