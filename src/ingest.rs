@@ -172,6 +172,31 @@ pub fn sidecar_path(path: &Path) -> PathBuf {
     PathBuf::from(s)
 }
 
+/// The content id of an elevation file as the store records it: the hash of its bytes, and
+/// where a sidecar sits beside it, the hash of the sidecar's bytes after a `+`. A file whose
+/// sidecar is added, edited or removed is then a new content, and ingested again; a file with
+/// no sidecar keeps the id it always had.
+pub fn with_sidecar(path: &Path, content: String, roots: Option<&[PathBuf]>) -> String {
+    let side = sidecar_path(path);
+    if side.symlink_metadata().is_err() {
+        return content;
+    }
+    let bytes = open_untrusted(&side, roots).ok().and_then(|f| {
+        let mut bytes = Vec::new();
+        std::io::Read::read_to_end(
+            &mut std::io::Read::take(f, SIDECAR_MOST as u64 + 1),
+            &mut bytes,
+        )
+        .ok()
+        .map(|_| bytes)
+    });
+    match bytes {
+        Some(b) => format!("{content}+{}", &blake3::hash(&b).to_hex()[..16]),
+        // One that cannot be read fails the ingest with its own message.
+        None => format!("{content}+unreadable"),
+    }
+}
+
 fn read_sidecar(path: &Path, roots: Option<&[PathBuf]>) -> Result<Sidecar, IngestError> {
     let side = sidecar_path(path);
     // No entry at all is no sidecar; anything else is opened like the DEM itself.
@@ -307,6 +332,7 @@ pub fn prepare_with(
     let t0 = Instant::now();
     // Opened and read once: the content id recorded is that of the bytes parsed.
     let (raster, content_id) = read_raster_hashed(path, &s.read_limits)?;
+    let content_id = with_sidecar(path, content_id, roots);
     let read_ms = t0.elapsed().as_millis() as u64;
     check_heights(&raster.samples, s.heights)?;
     // Not the CRS's own error: it quotes the text, and a sidecar could be any file.

@@ -141,18 +141,32 @@ pub(crate) struct FileStamp {
     ctime: (i64, i64),
     dev: u64,
     ino: u64,
+    /// The sidecar's own (size, mtime, ctime, inode), where there is one: adding, editing or
+    /// removing it changes the file's stamp, and the file is looked at again.
+    sidecar: Option<(u64, (i64, i64), (i64, i64), u64)>,
 }
 
 /// The stamp of the file at `p`, following symlinks.
 fn stamp(p: &Path) -> Stamp {
     use std::os::unix::fs::MetadataExt;
     let m = std::fs::metadata(p).ok()?;
+    let sidecar = std::fs::metadata(crate::ingest::sidecar_path(p))
+        .ok()
+        .map(|s| {
+            (
+                s.len(),
+                (s.mtime(), s.mtime_nsec()),
+                (s.ctime(), s.ctime_nsec()),
+                s.ino(),
+            )
+        });
     Some(FileStamp {
         size: m.len(),
         mtime: (m.mtime(), m.mtime_nsec()),
         ctime: (m.ctime(), m.ctime_nsec()),
         dev: m.dev(),
         ino: m.ino(),
+        sidecar,
     })
 }
 
@@ -375,7 +389,8 @@ impl<S: Sink> Reconciler<S> {
                 .flatten()
                 .filter(|c| !c.is_empty())
                 .collect::<Vec<_>>();
-            if !known.is_empty() && file_content_id(p, None).is_ok_and(|c| known.contains(&c)) {
+            let content = file_content_id(p, None).map(|c| crate::ingest::with_sidecar(p, c, None));
+            if !known.is_empty() && content.is_ok_and(|c| known.contains(&c)) {
                 self.done.insert(source, *stamp);
             }
         }

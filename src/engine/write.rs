@@ -340,6 +340,7 @@ impl Engine {
         let content = content_id(&handle)
             .map_err(|e| Refusal::File(format!("cannot read {}: {e}", path.display())))?;
         drop(handle);
+        let content = crate::ingest::with_sidecar(path, content, Some(&roots));
         *content_out = Some(content.clone());
         if path.to_str().is_none() {
             // Sources are text everywhere (listings, events, the wire): a name that is not
@@ -553,6 +554,7 @@ impl Engine {
             .parent()
             .is_some_and(|d| inbox.iter().any(|r| d.starts_with(r)))
             && file_content_id(Path::new(&rec.source), Some(&inbox))
+                .map(|c| crate::ingest::with_sidecar(Path::new(&rec.source), c, Some(&inbox)))
                 .is_ok_and(|c| c == rec.content_id);
         let n = self.retire_record(&rec, still_there)?;
         Ok((rec.id, n))

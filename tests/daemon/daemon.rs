@@ -1005,3 +1005,41 @@ fn the_cli_asks_for_points_tiles_cuts_and_meshes_in_any_crs() {
     let e = String::from_utf8_lossy(&done.stderr);
     assert!(e.contains("--crs EPSG:4326"), "{e}");
 }
+
+#[test]
+fn a_sidecar_added_edited_or_removed_beside_a_file_ingests_it_again() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    let side = d.inbox().join("a.tif.toml");
+    // The file's survey as served: its earlier ones are listed as retired.
+    let of = |s: &[Value]| -> Option<Value> {
+        s.iter()
+            .find(|v| v["source"].as_str().unwrap().ends_with("a.tif") && v["status"] != "retired")
+            .cloned()
+    };
+    // A sidecar that cannot be right: the file fails on it.
+    std::fs::write(&side, "accuracy_m = 1e308\n").unwrap();
+    drop_by_rename(&crop("srtm_n44e005_voids_crop.tif"), &d.inbox(), "a.tif");
+    d.wait("the file to fail on its sidecar", |s| {
+        count(s, "failed") == 1
+    });
+    // Mended beside the failed file, the file is taken under it.
+    std::fs::write(&side, "accuracy_m = 3.0\n").unwrap();
+    let s = d.wait("the file under its mended sidecar", |s| {
+        of(s).is_some_and(|v| v["status"] == "active" && v["claimed_accuracy_m"] == 3.0)
+    });
+    assert_eq!(of(&s).unwrap()["accuracy_source"], "sidecar");
+    assert_eq!(count(&s, "failed"), 0, "{s:#?}");
+    // Edited, the survey is taken again with the new claim, replacing the old one.
+    std::fs::write(&side, "accuracy_m = 5.0\n").unwrap();
+    let s = d.wait("the file under its edited sidecar", |s| {
+        of(s).is_some_and(|v| v["status"] == "active" && v["claimed_accuracy_m"] == 5.0)
+    });
+    assert_eq!(count(&s, "active"), 1, "{s:#?}");
+    // Removed, its accuracy is what a file without one gets again.
+    std::fs::remove_file(&side).unwrap();
+    let s = d.wait("the file with its sidecar gone", |s| {
+        of(s).is_some_and(|v| v["status"] == "active" && v["accuracy_source"] != "sidecar")
+    });
+    assert_eq!(count(&s, "active"), 1, "{s:#?}");
+}
