@@ -143,8 +143,11 @@ pub(crate) struct FileStamp {
     ino: u64,
     /// The sidecar's own (size, mtime, ctime, inode), where there is one: adding, editing or
     /// removing it changes the file's stamp, and the file is looked at again.
-    sidecar: Option<(u64, (i64, i64), (i64, i64), u64)>,
+    sidecar: Option<SidecarStamp>,
 }
+
+/// A sidecar's size, mtime, ctime and inode.
+type SidecarStamp = (u64, (i64, i64), (i64, i64), u64);
 
 /// The stamp of the file at `p`, following symlinks.
 fn stamp(p: &Path) -> Stamp {
