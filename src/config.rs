@@ -316,8 +316,8 @@ pub struct Config {
     pub tls_key: Option<PathBuf>,
     /// ε for files with no sidecar and no `--accuracy`.
     pub accuracy_m: DefaultAccuracy,
-    /// The store's horizontal CRS: an EPSG code, a WKT or a PROJ string; unset adopts the
-    /// first survey's.
+    /// The store's horizontal CRS: an EPSG code, a WKT or a PROJ string; unset, a new store
+    /// is in EPSG:4326 whatever survey arrives first.
     pub crs: Option<String>,
     /// How long a file's size and mtime must stay unchanged before it is ingested.
     pub settle_ms: u64,

@@ -133,9 +133,15 @@ impl Engine {
             }
         }
         let mut opened = opened;
-        if let (None, Some(c)) = (opened.terrain.crs(), cfg.crs_def()) {
-            // An empty store takes the config's CRS, not its first survey's.
-            opened.terrain.set_crs(c);
+        if opened.terrain.crs().is_none() {
+            // An empty store takes the config's CRS, else EPSG:4326: never its first survey's,
+            // which would make the store's plane (and the web pyramid's root tiles) depend on
+            // which file finished first. A store of surveys that name no CRS keeps none.
+            if let Some(c) = cfg.crs_def() {
+                opened.terrain.set_crs(c);
+            } else if opened.terrain.surveys().next().is_none() {
+                opened.terrain.set_crs(Crs::wgs84());
+            }
         }
         if let Err(e) = opened.store.writable() {
             tracing::warn!(reason = %e, "serving read-only: writes resume once the disk has room");
@@ -239,7 +245,8 @@ impl Engine {
         });
     }
 
-    /// The store's horizontal CRS: the config's, else the one it took from its first survey.
+    /// The store's horizontal CRS: the config's, else EPSG:4326 (or, for a store made before
+    /// that default, the one it took from its first survey).
     pub fn crs(&self) -> Option<Crs> {
         self.cfg.crs_def().or_else(|| self.catalog().crs.clone())
     }

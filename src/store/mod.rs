@@ -7,7 +7,7 @@
 //! | key | value |
 //! | --- | --- |
 //! | `meta/schema` | `u32` LE: the schema version (see `migrations/`) |
-//! | `meta/crs` | the store's horizontal CRS as its [`Crs::key`] (UTF-8): the config's, or the first survey's |
+//! | `meta/crs` | the store's horizontal CRS as its [`Crs::key`] (UTF-8): the config's, else EPSG:4326 (a store made before that default: its first survey's) |
 //! | `meta/vertical_crs` | the store's vertical CRS as its [`VerticalCrs::key`] (UTF-8): the config's, or the first survey's that names one |
 //! | `meta/layout`, `meta/index` | the [`PatchLayout`] and [`IndexConfig`] (bincode) |
 //! | `meta/mipmap` | the name of the mipmap [`Filter`] its surveys are built with, set when the store is made (absent: `smooth`, a store from before the choice) |

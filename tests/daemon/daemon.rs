@@ -1043,3 +1043,18 @@ fn a_sidecar_added_edited_or_removed_beside_a_file_ingests_it_again() {
     });
     assert_eq!(count(&s, "active"), 1, "{s:#?}");
 }
+
+#[test]
+fn a_store_without_a_configured_crs_is_geographic_whatever_arrives_first() {
+    // A UTM survey alone, first: the store is still in EPSG:4326, as it would be had the
+    // geographic copy of the same ground come first.
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("real/ventoux_utm31.tif"), &d.inbox(), "utm.tif");
+    let s = d.wait("the UTM survey", |s| count(s, "active") == 1);
+    assert_eq!(s[0]["crs"], "EPSG:32631");
+    assert_eq!(d.json(&["stats", "--json"])["crs"], "EPSG:4326");
+    drop_by_rename(&crop("real/ventoux_geographic.tif"), &d.inbox(), "geo.tif");
+    d.wait("both surveys", |s| count(s, "active") == 2);
+    assert_eq!(d.json(&["stats", "--json"])["crs"], "EPSG:4326");
+}
