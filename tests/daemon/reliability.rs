@@ -387,7 +387,9 @@ fn height_at_centre(e: &Engine) -> f64 {
 
 #[test]
 fn a_file_rewritten_with_its_size_and_mtime_kept_is_seen_in_place_and_by_rename() {
-    let s = Setup::new();
+    let mut s = Setup::new();
+    // A store of the grid's own UTM zone, whose tiles the checks ask in metres.
+    s.cfg.crs = Some("EPSG:32631".into());
     let prj = r#"PROJCS["WGS 84 / UTM zone 31N",AUTHORITY["EPSG","32631"]]"#;
     let a = s.at("inbox/a.asc");
     std::fs::write(&a, fixed_width_grid(1000.0)).unwrap();

@@ -16,6 +16,7 @@ use patchwork_core::model::grid::Grid;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::terrain::Terrain;
 use patchwork_testkit::copies::{self, Copy};
+use patchwork_testkit::degrade::served_within_claim;
 use std::sync::Arc;
 
 fn auto(g: Grid) -> Arc<Survey> {
@@ -342,42 +343,6 @@ const SCENES: [&str; 6] = [
     "real/rhine_deflate_strips.tif",
 ];
 
-/// The share of `orig`'s valid samples that the terrain serves at e = 0 within the
-/// original's own claim there, and how many samples that is over.
-fn served_within_own_error(t: &Terrain, orig: &Survey, g: &Grid) -> (f64, usize) {
-    let base = t.base(orig.id).unwrap();
-    let (tiling, acc) = (&base.tiling, &base.kernel_accuracy);
-    let [cw, ch] = tiling.cells;
-    let claim = |c: usize, r: usize| -> f64 {
-        let mut e: f64 = 0.0;
-        for rr in [r.saturating_sub(1), r.min(ch - 1)] {
-            for cc in [c.saturating_sub(1), c.min(cw - 1)] {
-                let k = tiling.kernel_at(cc as u32, rr as u32);
-                e = e.max(acc.values[k[1] as usize * acc.dims[0] + k[0] as usize]);
-            }
-        }
-        e
-    };
-    let mut pts = Vec::new();
-    let mut want = Vec::new();
-    for r in 0..g.rows {
-        for c in 0..g.cols {
-            let z = g.at(c, r);
-            if !z.is_nan() {
-                pts.push(g.georef.to_world(c as f64, r as f64));
-                want.push((z as f64, claim(c, r)));
-            }
-        }
-    }
-    let got = t.sample(&pts, 0.0);
-    let ok = got
-        .iter()
-        .zip(&want)
-        .filter(|(h, (z, e))| !h.is_nan() && (**h as f64 - z).abs() <= e + 1e-3)
-        .count();
-    (ok as f64 / want.len().max(1) as f64, want.len())
-}
-
 /// Degraded copies drawn at random (filters, resampling, splines, shifts, offsets, noise,
 /// quantisation, and chains of them), one to three a scene, inserted in a random order with
 /// their original: at e = 0 the original serves at least 98% of its samples within its own
@@ -405,51 +370,17 @@ fn degraded_copies_drawn_at_random_rarely_displace_their_original() {
     let mut failed = Vec::new();
     for draw in 0..draws {
         let (name, (g, crs)) = &scenes[(next() * scenes.len() as f64) as usize];
-        let build = |g: Grid| {
-            Arc::new(Survey::build(g, AccuracySpec::Auto, crs.clone(), Default::default()).unwrap())
-        };
-        let orig = build(g.clone());
-        let mut all = vec![orig.clone()];
-        let mut labels = Vec::new();
-        for _ in 0..1 + (next() * 3.0) as usize {
-            let d = patchwork_testkit::degrade::draw(g, &mut next);
-            labels.push(d.label);
-            all.push(build(d.grid));
-        }
-        // A random insertion order.
-        for i in (1..all.len()).rev() {
-            let j = (next() * (i + 1) as f64) as usize;
-            all.swap(i, j);
-        }
-        let t = terrain(&all, Contradicted::Distrust);
-        let (share, n) = served_within_own_error(&t, &orig, g);
+        let s = patchwork_testkit::degrade::scene(g, crs.clone(), &mut next);
         let line = format!(
-            "draw {draw}: {name}, copies [{}]: {:.2}% of {n} samples within the original's claim",
-            labels.join("; "),
-            100.0 * share
+            "draw {draw}: {name}, copies [{}]: {:.2}% of {} samples within the original's claim",
+            s.labels.join("; "),
+            100.0 * s.share,
+            s.samples
         );
         println!("{line}");
-        if share < 0.98 {
+        if s.share < 0.98 {
             // Who served instead, and why the pairs let it.
-            let mut why = vec![line];
-            for p in t.pairs() {
-                let (f, c) = (p.finer, p.coarser);
-                let name = |id| all.iter().position(|s| s.id == id).unwrap();
-                why.push(format!(
-                    "    #{} vs #{}: {:?}, ε medians {:.2} → {:.2} and {:.2} → {:.2}, coreg {:?}",
-                    name(f),
-                    name(c),
-                    t.verdict(f, c).unwrap(),
-                    t.base(f).unwrap().kernel_accuracy.quantile(0.5),
-                    t.survey(f).unwrap().kernel_accuracy.quantile(0.5),
-                    t.base(c).unwrap().kernel_accuracy.quantile(0.5),
-                    t.survey(c).unwrap().kernel_accuracy.quantile(0.5),
-                    p.coreg.map(|k| (k.shift, k.conditioned)),
-                ));
-            }
-            let o = all.iter().position(|s| s.id == orig.id).unwrap();
-            why.push(format!("    the original is #{o}"));
-            failed.push(why.join("\n"));
+            failed.push(format!("{line}\n{}", s.explain()));
         }
     }
     println!(
@@ -483,7 +414,7 @@ fn a_coarse_independent_survey_never_displaces_a_fine_one() {
     let (f, c) = (auto(fine.clone()), auto(coarse));
     for order in [[f.clone(), c.clone()], [c.clone(), f.clone()]] {
         let t = terrain(&order, Contradicted::Distrust);
-        let (share, n) = served_within_own_error(&t, &f, &fine);
+        let (share, n) = served_within_claim(&t, &f, &fine);
         println!(
             "Copernicus beside NASADEM at 4″: {:.2}% of {n}",
             100.0 * share
@@ -535,7 +466,7 @@ fn a_coarse_independent_survey_never_displaces_a_fine_one() {
     let (s, b) = (auto(strip.clone()), auto(bathy));
     for order in [[s.clone(), b.clone()], [b.clone(), s.clone()]] {
         let t = terrain(&order, Contradicted::Distrust);
-        let (share, n) = served_within_own_error(&t, &s, &strip);
+        let (share, n) = served_within_claim(&t, &s, &strip);
         println!(
             "a coastal strip beside a 10× coarser grid: {:.2}% of {n}",
             100.0 * share

@@ -9,6 +9,7 @@
 pub mod charts;
 pub use patchwork_testkit::copies;
 pub mod crs;
+pub mod draws;
 pub mod evidence;
 pub mod flight;
 pub mod meet;

@@ -34,6 +34,13 @@ struct Cli {
     /// originals: what the store makes of each, before and after it distrusts them.
     #[arg(long, conflicts_with_all = ["meshes_only", "crs_only"])]
     copies_only: bool,
+    /// Only this many draws of degraded copies of the committed crops, each beside its
+    /// original: which degradations still displace the original, and by how much.
+    #[arg(long, conflicts_with_all = ["meshes_only", "crs_only", "copies_only"])]
+    draws: Option<usize>,
+    /// The seed of the draws; by default the clock's, printed.
+    #[arg(long, requires = "draws")]
+    seed: Option<u64>,
 }
 
 fn main() -> ExitCode {
@@ -57,7 +64,19 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         meshes_only,
         crs_only,
         copies_only,
+        draws,
+        seed,
     } = cli;
+    if let Some(n) = draws {
+        let seed = seed.unwrap_or_else(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(1, |d| d.as_nanos() as u64)
+        });
+        patchwork_bench::draws::run(&out, n, seed)?;
+        println!("wrote {}", out.display());
+        return Ok(());
+    }
     let files = if !files.is_empty() {
         files
     } else if smoke {

@@ -1066,25 +1066,18 @@ impl Terrain {
         let mut raise = self.contested(id);
         let own = &base.kernel_accuracy;
         for p in self.pairs_of(id) {
-            // A survey found false is held over the whole overlap; one that loses the tie of
-            // an undetermined pair only where the two contradict each other (elsewhere both
-            // claims may be true, and the evidence shows nothing against it).
-            let held: Option<BTreeSet<u32>> = if self.alone(&p, id) {
-                None
-            } else if self.loses_tie(&p, id) {
-                Some(p.against(id).iter().map(|e| e.0).collect())
-            } else {
+            // A survey found false, or one that loses the tie of a pair nothing decides, is
+            // held over the whole overlap: where the two agree within their claims the
+            // loser's own estimate (which smoothness flatters) would otherwise still win.
+            if !self.alone(&p, id) && !self.loses_tie(&p, id) {
                 continue;
-            };
+            }
             let other = p.other(id);
             let theirs = &self.bases[&other].kernel_accuracy;
             let contested = self.contested(other);
             // A coarser survey's evidence never makes a finer one worse than its own claim.
             let capped = p.finer == id && p.cell_ratio() >= 2.0;
             for &(k, ko, d) in p.departs(id) {
-                if held.as_ref().is_some_and(|h| !h.contains(&k)) {
-                    continue;
-                }
                 let claim =
                     theirs.values[ko as usize].max(contested.get(&ko).map_or(0.0, |&v| v as f64));
                 let need = if capped {

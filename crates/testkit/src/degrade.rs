@@ -6,8 +6,16 @@
 //! quantisation. Every draw follows from a seed, which a failing test prints.
 
 use super::copies::{noisy, offset, shifted};
+use patchwork_core::crs::Crs;
+use patchwork_core::index::lod::IndexConfig;
+use patchwork_core::model::accuracy::AccuracySpec;
 use patchwork_core::model::coreg::blurred;
+use patchwork_core::model::evidence::Contradicted;
 use patchwork_core::model::grid::Grid;
+use patchwork_core::model::ids::SurveyId;
+use patchwork_core::model::survey::Survey;
+use patchwork_core::terrain::Terrain;
+use std::sync::Arc;
 
 /// A drawn copy: what was done, in words, and the result.
 #[derive(Clone, Debug)]
@@ -260,4 +268,115 @@ pub fn quantised(g: &Grid, q: f64) -> Grid {
         *z = ((*z as f64 / q).round() * q) as f32;
     }
     out
+}
+
+/// The share of `orig`'s valid samples (of `g`, its grid) that `t` serves at e = 0 within the
+/// original's own claim there (the largest of the kernels around the sample), and how many
+/// samples that is over.
+pub fn served_within_claim(t: &Terrain, orig: &Survey, g: &Grid) -> (f64, usize) {
+    let base = t.base(orig.id).expect("the original is in the terrain");
+    let (tiling, acc) = (&base.tiling, &base.kernel_accuracy);
+    let [cw, ch] = tiling.cells;
+    let claim = |c: usize, r: usize| -> f64 {
+        let mut e: f64 = 0.0;
+        for rr in [r.saturating_sub(1), r.min(ch - 1)] {
+            for cc in [c.saturating_sub(1), c.min(cw - 1)] {
+                let k = tiling.kernel_at(cc as u32, rr as u32);
+                e = e.max(acc.values[k[1] as usize * acc.dims[0] + k[0] as usize]);
+            }
+        }
+        e
+    };
+    let mut pts = Vec::new();
+    let mut want = Vec::new();
+    for r in 0..g.rows {
+        for c in 0..g.cols {
+            let z = g.at(c, r);
+            if !z.is_nan() {
+                pts.push(g.georef.to_world(c as f64, r as f64));
+                want.push((z as f64, claim(c, r)));
+            }
+        }
+    }
+    let got = t.sample(&pts, 0.0);
+    let ok = got
+        .iter()
+        .zip(&want)
+        .filter(|(h, (z, e))| !h.is_nan() && (**h as f64 - z).abs() <= e + 1e-3)
+        .count();
+    (ok as f64 / want.len().max(1) as f64, want.len())
+}
+
+/// One draw: an original, its copies, the terrain of all of them inserted in a random order,
+/// and how the original fares.
+pub struct Scene {
+    /// The copies' operations, one label a copy.
+    pub labels: Vec<String>,
+    /// The original first, then the copies, in the order they were inserted.
+    pub surveys: Vec<Arc<Survey>>,
+    pub original: SurveyId,
+    pub terrain: Terrain,
+    /// The share of the original's samples served within its own claim at e = 0.
+    pub share: f64,
+    pub samples: usize,
+}
+
+/// Draws one to three copies of `g` (a survey in `crs`), inserts them with the original in a
+/// random order (the store distrusting contradicted claims), and measures what the original
+/// keeps.
+pub fn scene(g: &Grid, crs: Option<Crs>, next: &mut impl FnMut() -> f64) -> Scene {
+    let build = |g: Grid| {
+        Arc::new(Survey::build(g, AccuracySpec::Auto, crs.clone(), Default::default()).unwrap())
+    };
+    let orig = build(g.clone());
+    let mut all = vec![orig.clone()];
+    let mut labels = Vec::new();
+    for _ in 0..1 + (next() * 3.0) as usize {
+        let d = draw(g, next);
+        labels.push(d.label);
+        all.push(build(d.grid));
+    }
+    for i in (1..all.len()).rev() {
+        let j = (next() * (i + 1) as f64) as usize;
+        all.swap(i, j);
+    }
+    let mut t = Terrain::new(IndexConfig::default());
+    t.set_contradicted(Contradicted::Distrust);
+    for s in &all {
+        t.insert(s.clone());
+    }
+    let (share, samples) = served_within_claim(&t, &orig, g);
+    Scene {
+        labels,
+        surveys: all,
+        original: orig.id,
+        terrain: t,
+        share,
+        samples,
+    }
+}
+
+impl Scene {
+    /// Every pair's verdict and the claims before and after, for a failure message.
+    pub fn explain(&self) -> String {
+        let name = |id| self.surveys.iter().position(|s| s.id == id).unwrap();
+        let t = &self.terrain;
+        let mut out = Vec::new();
+        for p in t.pairs() {
+            let (f, c) = (p.finer, p.coarser);
+            out.push(format!(
+                "    #{} vs #{}: {:?}, ε medians {:.2} → {:.2} and {:.2} → {:.2}, coreg {:?}",
+                name(f),
+                name(c),
+                t.verdict(f, c).unwrap(),
+                t.base(f).unwrap().kernel_accuracy.quantile(0.5),
+                t.survey(f).unwrap().kernel_accuracy.quantile(0.5),
+                t.base(c).unwrap().kernel_accuracy.quantile(0.5),
+                t.survey(c).unwrap().kernel_accuracy.quantile(0.5),
+                p.coreg.map(|k| (k.shift, k.conditioned)),
+            ));
+        }
+        out.push(format!("    the original is #{}", name(self.original)));
+        out.join("\n")
+    }
 }
