@@ -572,3 +572,46 @@ pub fn copies(out: &Path, cases: &[super::evidence::Case]) -> Result<(), Fail> {
     }
     Ok(())
 }
+
+/// Each draw of degraded copies (`draws.csv`): the share of the original's samples it still
+/// serves within its own claim, draws sorted from the worst, a series a scene.
+pub fn draws(out: &Path, rows: &[(String, f64)]) -> Result<(), Fail> {
+    fonts();
+    let mut order: Vec<usize> = (0..rows.len()).collect();
+    order.sort_by(|&a, &b| rows[a].1.total_cmp(&rows[b].1));
+    let mut scenes: Vec<&str> = Vec::new();
+    for (s, _) in rows {
+        if !scenes.contains(&s.as_str()) {
+            scenes.push(s);
+        }
+    }
+    let series = scenes
+        .iter()
+        .map(|scene| {
+            let pts = order
+                .iter()
+                .enumerate()
+                .filter(|(_, &k)| rows[k].0 == *scene)
+                .map(|(rank, &k)| ((rank + 1) as f64, 100.0 * rows[k].1))
+                .collect();
+            (scene.to_string(), pts)
+        })
+        .collect();
+    let title = format!(
+        "{} draws of degraded copies: the original's samples served within its claim",
+        rows.len()
+    );
+    both(
+        out,
+        "draws",
+        &Chart {
+            title: &title,
+            x: "draw, from the worst",
+            y: "% of the original's samples",
+            series,
+            log_y: false,
+            diagonal: false,
+            scatter: true,
+        },
+    )
+}

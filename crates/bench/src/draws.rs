@@ -62,6 +62,8 @@ pub fn run(out: &Path, n: usize, seed: u64) -> Result<(), Fail> {
         rows.push((name.to_string(), s.labels, s.share));
     }
     std::fs::write(out.join("draws.csv"), csv)?;
+    let shares: Vec<(String, f64)> = rows.iter().map(|r| (r.0.clone(), r.2)).collect();
+    crate::charts::draws(out, &shares)?;
     let held = rows.iter().filter(|r| r.2 >= 0.98).count();
     println!(
         "the original kept 98% of its samples within its claim in {held} of {n} draws ({:.1}%)",
