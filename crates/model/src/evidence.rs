@@ -3,22 +3,28 @@
 //! A claim ε is a bound: the survey's surface is within ε of the ground. Two surveys of the
 //! same ground with claims ε₁ and ε₂ can then differ by at most ε₁ + ε₂ anywhere; where they
 //! differ by more, at least one claim is false. Which one is decided from what cannot be
-//! faked (see [`super::coreg`]): a survey that a low-pass of the other predicts, and that
-//! predicts the other no better, is a degraded copy, and its claim is the false one. Where the
-//! pair cannot tell, surveys that overlap both can: one that lies where a third survey lies,
-//! against one shifted or offset from both, is right. Where nothing tells, neither claim is
-//! trusted beyond what the other allows.
+//! faked, never from the surveys' own estimates, which smoothness flatters: a survey that a
+//! low-pass of the other predicts, and that predicts the other no better (see
+//! [`super::coreg`]), or whose bands lack detail the other has (see [`super::detail`]), is a
+//! lesser copy, and its claim is the false one. Where the pair cannot tell, surveys that
+//! overlap both can: one that lies where a third survey lies, against one shifted or offset
+//! from both, is right. Where nothing tells, the pair is undetermined.
 //!
-//! The false claim is raised, kernel by kernel, to what the evidence shows. Where nothing tells
-//! the two apart, each is raised only where they contradict each other, to the least that the
-//! other's claim allows: the difference less the other's ε. Where one is found to be the
-//! degraded or misplaced one, it carries nothing the other does not, so its claim can be no
-//! better than the other's (as raised by the first rule) plus how far it departs from it, over
-//! the whole overlap; it never displaces the other there.
-//! Every figure here is a function of the
-//! pair (measured at the finer survey's samples, whichever came first) or of the set of pairs,
-//! so the accuracies that follow, and the index built on them, do not depend on the order the
-//! surveys arrived in, and retiring a survey takes its evidence with it.
+//! The false claim is raised, kernel by kernel, to what the evidence shows. Where the pair is
+//! undetermined, each is raised only where they contradict each other, by half the excess of
+//! their difference over their claims (the least raise of both that makes them agree), and the
+//! pair's tie (the finer cells, then the more shared detail; see
+//! [`PairEvidence::tie_to_finer`]) holds the loser as a copy of the winner would be held. A
+//! survey found to be the lesser or misplaced one carries nothing the other does not, so its
+//! claim can be no better than the other's (as raised by the first rule) plus how far it
+//! departs from it, over the whole overlap; it never displaces the other there. A coarser
+//! survey testifies against a much finer one only at its own scale, and never for more than
+//! its own claim.
+//!
+//! Every figure here is a function of the pair (measured at the finer survey's samples,
+//! whichever came first) or of the set of pairs, so the accuracies that follow, and the index
+//! built on them, do not depend on the order the surveys arrived in, and retiring a survey
+//! takes its evidence with it.
 
 use super::accuracy::{Deviation, KernelAccuracy};
 use super::coreg::{self, Carry, Coregistration, Degradation, Degraded};
