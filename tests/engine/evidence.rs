@@ -16,7 +16,7 @@ use patchwork_core::model::grid::Grid;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::terrain::Terrain;
 use patchwork_testkit::copies::{self, Copy};
-use patchwork_testkit::degrade::served_within_claim;
+use patchwork_testkit::degrade::{served_within_claim, SCENES};
 use std::sync::Arc;
 
 fn auto(g: Grid) -> Arc<Survey> {
@@ -331,17 +331,6 @@ fn a_tile_says_where_no_data_is_as_accurate_as_asked_and_what_served_there() {
     // Past every kernel's, none of it falls short.
     assert_eq!(t.tile(&roi, 200, 200, eps.max() + 1.0).shortfall, None);
 }
-
-/// The real scenes copies are drawn from: five DEMs of four origins (Copernicus, NASADEM and
-/// SRTM radar, two lidar surveys) and a basin-scale grid.
-const SCENES: [&str; 6] = [
-    "copernicus_n34w119_crop.tif",
-    "nasadem_n34w119_crop.tif",
-    "srtm_n44e005_voids_crop.tif",
-    "real/philondenx_zero_nan.tif",
-    "real/lidar_tiles_padded.tif",
-    "real/rhine_deflate_strips.tif",
-];
 
 /// Degraded copies drawn at random (filters, resampling, splines, shifts, offsets, noise,
 /// quantisation, and chains of them), one to three a scene, inserted in a random order with

@@ -4,20 +4,10 @@
 //! 98% and the lowest share they left.
 
 use crate::Fail;
-use patchwork_testkit::degrade;
+use patchwork_testkit::degrade::{self, SCENES};
 use patchwork_testkit::fixtures::real_crop_in_crs;
 use std::fmt::Write as _;
 use std::path::Path;
-
-/// The committed crops the draws are made from, as the test draws them.
-pub const SCENES: [&str; 6] = [
-    "copernicus_n34w119_crop.tif",
-    "nasadem_n34w119_crop.tif",
-    "srtm_n44e005_voids_crop.tif",
-    "real/philondenx_zero_nan.tif",
-    "real/lidar_tiles_padded.tif",
-    "real/rhine_deflate_strips.tif",
-];
 
 /// The kinds of operation, as their labels begin.
 const KINDS: [&str; 10] = [

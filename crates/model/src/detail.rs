@@ -28,6 +28,7 @@ use super::grid::{Georef, Grid};
 use patchwork_geom::Aabb;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
 
 /// Band edges, in cells of the coarser survey: band i lies between the low-passes of σ =
 /// `EDGES[i]` and `EDGES[i + 1]`.
@@ -185,32 +186,12 @@ impl Detail {
             .sum()
     }
 
-    /// The band energy of the other over the reference's at the finest band, whether or not
-    /// the band is informative: a noisy copy holds more there, a degraded one less or about
-    /// the same.
-    pub fn energy_ratio(&self) -> Option<f64> {
-        let b = self.bands.first()?;
-        (b.energy_reference > 0.0).then(|| b.energy_other / b.energy_reference)
-    }
-
     /// The other's excess `E / C − 1` less the reference's, at the finest informative band
     /// past the first (see [`Detail::finding`] for why not the first): positive where the
     /// other holds more detail the reference does not share.
     pub fn excess(&self) -> Option<f64> {
         let b = self.bands.iter().skip(1).find(|b| b.informative())?;
         Some(b.other_gain() - b.reference_gain())
-    }
-
-    /// Which side holds more of the detail the two share: the sum over informative bands of
-    /// the log of the ratio of their energies, positive where the reference holds more. Noise
-    /// counts as detail here; it is only a tie-break between surveys that the finding could
-    /// not tell apart.
-    pub fn lean(&self) -> f64 {
-        self.bands
-            .iter()
-            .filter(|b| b.informative())
-            .map(|b| (b.energy_reference / b.energy_other).ln())
-            .sum()
     }
 }
 
@@ -297,8 +278,19 @@ pub fn measure(
     // The finer one low-passed and thinned to about half the coarser's cell, so that the
     // finest band (σ half a coarse cell) still spans a sample or more.
     let k = ((cell / own) / 2.0).floor().max(1.0) as usize;
-    let whole = reference.window(rect.c0, rect.r0, rect.cols(), rect.rows());
-    let a = block_mean(&whole, k);
+    // The overlap's samples, copied only where they are not the whole grid already (the
+    // caller reads the overlap alone) or where they are thinned.
+    let whole =
+        if (rect.c0, rect.r0, rect.cols(), rect.rows()) == (0, 0, reference.cols, reference.rows) {
+            Cow::Borrowed(reference)
+        } else {
+            Cow::Owned(reference.window(rect.c0, rect.r0, rect.cols(), rect.rows()))
+        };
+    let a = if k > 1 {
+        Cow::Owned(block_mean(&whole, k))
+    } else {
+        whole
+    };
     let step_a = own * k as f64;
     // Sigmas in the reference's plane units, then in each grid's cells. The other's are in
     // its own plane; its cell there stands for `cell` here.

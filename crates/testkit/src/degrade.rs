@@ -17,6 +17,17 @@ use patchwork_core::model::survey::Survey;
 use patchwork_core::terrain::Terrain;
 use std::sync::Arc;
 
+/// The committed crops copies are drawn from: five DEMs of four origins (Copernicus,
+/// NASADEM and SRTM radar, two lidar surveys) and a basin-scale grid.
+pub const SCENES: [&str; 6] = [
+    "copernicus_n34w119_crop.tif",
+    "nasadem_n34w119_crop.tif",
+    "srtm_n44e005_voids_crop.tif",
+    "real/philondenx_zero_nan.tif",
+    "real/lidar_tiles_padded.tif",
+    "real/rhine_deflate_strips.tif",
+];
+
 /// A drawn copy: what was done, in words, and the result.
 #[derive(Clone, Debug)]
 pub struct Drawn {

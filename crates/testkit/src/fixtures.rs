@@ -330,13 +330,10 @@ pub fn real_crop_in_crs(name: &str) -> (Grid, Option<patchwork_core::crs::Crs>) 
 /// One of the committed crops as a survey of its own CRS (the file's), its accuracy
 /// estimated, with the default patch layout.
 pub fn crop_survey(name: &str) -> Arc<Survey> {
-    let path = data_dir().join(name);
-    let r = patchwork_read::read_raster(&path, &Default::default())
-        .unwrap_or_else(|e| panic!("{name}: {e}"));
-    let crs = r.crs.crs.clone();
+    let (grid, crs) = real_crop_in_crs(name);
     Arc::new(
         Survey::build(
-            r.into_grid().unwrap(),
+            grid,
             patchwork_core::model::accuracy::AccuracySpec::Auto,
             crs,
             PatchLayout::default(),
