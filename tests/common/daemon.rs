@@ -16,11 +16,28 @@ pub fn crop(name: &str) -> PathBuf {
 }
 
 /// A free loopback port whose next one is free too, for a daemon's gRPC and HTTP servers.
+///
+/// Drawn below the kernel's ephemeral range (32768 and up on Linux), where the CLI's own
+/// outgoing connections take their ports: a port from `bind(0)` could be taken by one of
+/// those between this check and the daemon's bind. Tests running side by side can still race
+/// for one, so [`Daemon::start_with`] starts again on another port if the bind fails.
 pub fn free_port() -> u16 {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static STATE: AtomicU64 = AtomicU64::new(0);
+    let seed = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as u64
+        ^ (u64::from(std::process::id()) << 32);
+    let _ = STATE.compare_exchange(0, seed | 1, Ordering::Relaxed, Ordering::Relaxed);
     loop {
-        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-        let port = l.local_addr().unwrap().port();
-        if port < u16::MAX && std::net::TcpListener::bind(("127.0.0.1", port + 1)).is_ok() {
+        let x = STATE
+            .fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed)
+            .wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        let port = 20_000 + ((x >> 33) % 12_000) as u16;
+        if std::net::TcpListener::bind(("127.0.0.1", port)).is_ok()
+            && std::net::TcpListener::bind(("127.0.0.1", port + 1)).is_ok()
+        {
             return port;
         }
     }
@@ -117,8 +134,6 @@ impl Daemon {
 
     /// Starts a daemon under `root` as `setup` says, and waits until it answers.
     pub fn start_with(root: &Path, setup: Setup) -> Daemon {
-        let port = free_port();
-        let child = Self::command(root, port, &setup).spawn().unwrap();
         let mut client_env = setup.client_env.clone();
         if setup.tls {
             client_env.push((
@@ -131,24 +146,43 @@ impl Daemon {
         } else {
             "http://127.0.0.1"
         };
-        let d = Daemon {
-            child: Some(child),
-            root: root.into(),
-            port,
-            client_env,
-            url: format!("{scheme}:{port}"),
-            http: format!("http://127.0.0.1:{}", http_port(port)),
-        };
-        let t0 = Instant::now();
-        while !d.cli(&["stats"]).status.success() {
-            assert!(
-                t0.elapsed() < Duration::from_secs(30),
-                "the daemon did not come up: {}",
-                d.log()
-            );
-            std::thread::sleep(Duration::from_millis(100));
+        // Tests running side by side can race for a port between `free_port` and the
+        // daemon's bind; a daemon that lost the race exits saying so and starts again on
+        // another port.
+        for _ in 0..8 {
+            let port = free_port();
+            let log_len = std::fs::metadata(root.join("serve.log")).map_or(0, |m| m.len());
+            let child = Self::command(root, port, &setup).spawn().unwrap();
+            let mut d = Daemon {
+                child: Some(child),
+                root: root.into(),
+                port,
+                client_env: client_env.clone(),
+                url: format!("{scheme}:{port}"),
+                http: format!("http://127.0.0.1:{}", http_port(port)),
+            };
+            let t0 = Instant::now();
+            loop {
+                if d.cli(&["stats"]).status.success() {
+                    return d;
+                }
+                let exited = d.child.as_mut().unwrap().try_wait().unwrap().is_some();
+                let log = std::fs::read(root.join("serve.log")).unwrap_or_default();
+                let since =
+                    String::from_utf8_lossy(&log[(log_len as usize).min(log.len())..]).into_owned();
+                if exited && since.contains("Address already in use") {
+                    d.child = None;
+                    break;
+                }
+                assert!(
+                    !exited && t0.elapsed() < Duration::from_secs(30),
+                    "the daemon did not come up: {}",
+                    d.log()
+                );
+                std::thread::sleep(Duration::from_millis(100));
+            }
         }
-        d
+        panic!("no free port for a daemon after 8 tries");
     }
 
     pub fn inbox(&self) -> PathBuf {
