@@ -159,13 +159,28 @@ impl Detail {
         }
         // Not the finest band: reading between samples damps it, and a nonlinear filter (a
         // median) removes detail there without damping what it keeps, which looks the same.
+        // The clean side must look clean in every band that says anything, not only in the
+        // one where the other's excess is largest: a smoothed side beside a noisy-looking one
+        // shows `E / C` under 1 somewhere (its gain), and a band where it happens to come
+        // near 1 proves nothing.
+        let clean = |reference: bool| {
+            useful().filter(|(i, _)| *i > 0).all(|(_, b)| {
+                let g = if reference {
+                    b.reference_gain()
+                } else {
+                    b.other_gain()
+                };
+                (SHARED[0]..=SHARED[1]).contains(&g)
+            })
+        };
+        let (reference_clean, other_clean) = (clean(true), clean(false));
         let noisiest = useful()
             .filter(|(i, _)| *i > 0)
             .flat_map(|(i, b)| {
                 let (r, o) = (b.reference_gain() - 1.0, b.other_gain() - 1.0);
-                [(i, r, o + 1.0, true), (i, o, r + 1.0, false)]
+                [(i, r, other_clean, true), (i, o, reference_clean, false)]
             })
-            .filter(|&(_, e, other, _)| e > NOISY_ABOVE && (SHARED[0]..=SHARED[1]).contains(&other))
+            .filter(|&(_, e, other_clean, _)| e > NOISY_ABOVE && other_clean)
             .max_by(|x, y| x.1.total_cmp(&y.1));
         match noisiest {
             Some((band, excess, _, true)) => Finding::ReferenceNoisy { band, excess },
