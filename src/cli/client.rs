@@ -5,7 +5,9 @@ use super::Fail;
 use clap::Args;
 use patchwork::config::Config;
 use patchwork::engine::Engine;
-use patchwork::serve::proto::{admin_client::AdminClient, terrain_client::TerrainClient};
+use patchwork::serve::proto::{
+    self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
+};
 use std::path::PathBuf;
 use std::sync::Arc;
 use tonic::service::interceptor::InterceptedService;
@@ -124,6 +126,18 @@ impl Client {
                 AdminClient::with_interceptor(ch, bearer).max_decoding_message_size(1 << 30),
             ),
         })
+    }
+}
+
+impl Client {
+    /// Opens the GPU of a store opened in this process, for a request whose `backend` may use
+    /// it, as the daemon opens its own at start; a daemon's client has nothing to open.
+    pub async fn open_gpu_for(&self, backend: pb::Backend) -> Result<(), Fail> {
+        if let (Client::Local(e), false) = (self, backend == pb::Backend::Cpu) {
+            let e = e.clone();
+            tokio::task::spawn_blocking(move || super::serve::open_gpu(&e)).await?;
+        }
+        Ok(())
     }
 }
 

@@ -35,12 +35,7 @@ pub async fn serve(config: Option<PathBuf>, follow: Option<String>) -> Result<()
     let engine = Arc::new(
         tokio::task::spawn_blocking(move || {
             let e = Engine::open(cfg)?;
-            match real_gpu(e.config().allow_emulated_gpu) {
-                Ok(()) => e.enable_gpu(),
-                Err(why) => {
-                    tracing::info!(reason = %why, "no GPU device: resampling on the CPU")
-                }
-            }
+            open_gpu(&e);
             Ok::<_, patchwork::engine::EngineError>(e)
         })
         .await??,
@@ -134,6 +129,17 @@ pub async fn serve(config: Option<PathBuf>, follow: Option<String>) -> Result<()
 /// child process finds a real one. Asking in a child keeps a software driver the daemon will
 /// not use out of its memory (Mesa's lavapipe maps 50 MB of libLLVM that never unloads), and
 /// a driver that crashes while probing takes only the child with it.
+/// Opens the GPU device `e` resamples on, where a real one (or an allowed software one) is
+/// there; otherwise says why not, and `e` resamples on the CPU. The daemon does this at start,
+/// and a command on a store opened in its own process (`--data-dir`) before a tile or mesh
+/// that may use the GPU.
+pub(super) fn open_gpu(e: &Engine) {
+    match real_gpu(e.config().allow_emulated_gpu) {
+        Ok(()) => e.enable_gpu(),
+        Err(why) => tracing::info!(reason = %why, "no GPU device: resampling on the CPU"),
+    }
+}
+
 fn real_gpu(allow_emulated: bool) -> Result<(), String> {
     if allow_emulated {
         return Ok(());

@@ -75,6 +75,7 @@ pub async fn tile(args: TileArgs) -> Result<(), Fail> {
         .and_then(|(a, b)| Some((a.parse::<u32>().ok()?, b.parse::<u32>().ok()?)))
         .ok_or_else(|| format!("--size: expected WxH, e.g. 512x512, got {size:?}"))?;
     let backend = pb::Backend::from(backend);
+    c.open_gpu_for(backend).await?;
     let req = pb::TileRequest {
         cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
             roi: Some(roi),
@@ -204,6 +205,7 @@ pub async fn mesh(args: MeshArgs) -> Result<(), Fail> {
         return Err(format!("--out {}: write .obj, .glb or .terrain", out.display()).into());
     }
     let mut c = Client::connect(&target).await?;
+    c.open_gpu_for(pb::Backend::from(backend)).await?;
     let req = pb::MeshRequest {
         cut: Some(pb::UniformCut {
             roi: Some(rect(&roi)?),

@@ -3,8 +3,8 @@
 //!
 //! The device is behind one mutex, since a wgpu queue takes one submission at a time. The
 //! mutex guards the device alone: a request gathers its patches' samples (reads from the pack
-//! and decodes) before it asks for the device, so that GPU tiles never queue behind each
-//! other's disk I/O.
+//! and decodes), bins them and packs its positions before it asks for the device, so that GPU
+//! tiles never queue behind each other's disk I/O or CPU work.
 
 use super::{release_free_memory, Engine, EngineError};
 #[cfg(feature = "gpu")]
@@ -87,11 +87,14 @@ impl Engine {
             return Ok(None);
         }
         #[cfg(feature = "gpu")]
-        {
+        if lock(&self.gpu.resampler).is_some() {
+            // Binning and packing need no device: done before taking it, so that requests
+            // queue on the device only for the device's own work.
+            let prepared = crate::gpu::prepare(set, grid);
             let mut gpu = lock(&self.gpu.resampler);
             if let Some(g) = gpu.as_mut() {
-                match g.resample(set, grid) {
-                    Ok(heights) => return Ok(Some(heights)),
+                match g.resample_prepared(set, &prepared) {
+                    Ok((heights, _)) => return Ok(Some(heights)),
                     Err(e) => {
                         tracing::warn!(error = %e, "GPU resampling failed; this request and later ones use the CPU");
                         if matches!(e, GpuError::Lost(_) | GpuError::Device(_)) {

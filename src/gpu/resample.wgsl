@@ -8,8 +8,9 @@
 // coordinates are formed as (hi, lo) pairs with error-free sums and products: they carry about
 // 48 bits, so that the cell, the position inside it and the side of every edge test come out
 // as with f64.
-// Heights arrive relative to a per-patch base, and the result is returned relative to the base
-// of the first patch that contributed: f32 then only ever holds height differences.
+// Heights arrive relative to a per-patch base, and the blend is formed relative to the base
+// of the first patch that contributed: f32 then only ever holds height differences, until
+// the base is added back once at the end.
 
 // Samples at or above this are void, as are sample points whose x is.
 const VOID: f32 = 3.0e38;
@@ -36,6 +37,12 @@ struct Params {
     height: u32,
     blocks_x: u32,
     has_fallback: u32,
+    // 1 where the store plane's positions are a north-up grid's axes: `points` then holds
+    // each column's x (as x hi, 0, x lo, 0), then each row's y (0, y hi, 0, y lo).
+    axes: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 // Grid coordinates below are local to the patch's uploaded samples: the window grown by one
@@ -78,9 +85,22 @@ struct Patch {
 @group(0) @binding(3) var<storage, read> samples: array<f32>;
 @group(0) @binding(4) var<storage, read> bin_offsets: array<u32>;
 @group(0) @binding(5) var<storage, read> bins: array<u32>;
-// (height relative to the reference base, the reference base).
-@group(0) @binding(6) var<storage, read_write> heights: array<vec2<f32>>;
-@group(0) @binding(7) var<storage, read_write> valid: array<u32>;
+// Each sample's height as f32 bits, NaN where void.
+@group(0) @binding(6) var<storage, read_write> heights: array<u32>;
+
+// A quiet NaN's bits: WGSL has no NaN literal, and the bits reach the CPU as written.
+const NAN_BITS: u32 = 0x7fc00000u;
+
+// Sample i's position in the plane whose positions start at `start`: from the axes for the
+// store plane of a north-up grid (exact: each half is the split the CPU made), else its own.
+fn point_at(start: u32, i: u32) -> vec4<f32> {
+    if params.axes != 0u && start == 0u {
+        let c = points[i % params.width];
+        let r = points[params.width + i / params.width];
+        return vec4<f32>(c.x, r.y, c.z, r.w);
+    }
+    return points[start + i];
+}
 
 // The 1-D blending weight on t in [-1, 1]: the tent, (1 - |t|)^3 (3|t| + 1) for bicubic
 // patches, or for edge patches one flat on the kernel (`ResolvedPatch::weight`).
@@ -320,7 +340,7 @@ fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
 
 // The patch's weight and answer at sample i: (weight, height, covered, reaches).
 fn sample_patch(q: Patch, i: u32) -> vec4<f32> {
-    let pt = points[q.points + i];
+    let pt = point_at(q.points, i);
     if pt.x >= VOID {
         return vec4<f32>(0.0);
     }
@@ -379,9 +399,8 @@ fn main(
         return;
     }
     let i = gid.y * params.width + gid.x;
-    heights[i] = vec2<f32>(0.0, 0.0);
-    valid[i] = 0u;
-    let pt = points[i];
+    heights[i] = NAN_BITS;
+    let pt = point_at(0u, i);
     if pt.x >= VOID {
         return;
     }
@@ -428,7 +447,7 @@ fn main(
         covered = covered || s.z != 0.0;
     }
     if covered && wsum > 0.0 {
-        heights[i] = vec2<f32>(sum / wsum, zref);
-        valid[i] = 1u;
+        // One rounding of the exact sum, as the CPU's f64 sum rounded to f32.
+        heights[i] = bitcast<u32>(zref + sum / wsum);
     }
 }

@@ -290,6 +290,19 @@ fn gpu_uploads_shared_patches_once_and_survives_eviction() {
     assert_eq!(again.uploaded_patches, 0, "{again:?}");
     assert_eq!(again.cached_patches, set.patches.len());
     assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+    // Warm, a north-up grid sends its axes and the bins, not a point a sample: a 2048² tile
+    // uploads under 1 MB (64 MB of points before) and reads back 4 bytes a sample.
+    let big = SampleGrid::uniform(&roi, 2048, 2048);
+    let want = cpu::resample(&set, &big);
+    g.resample_timed(&set, &big).unwrap();
+    let (got, warm) = g.resample_timed(&set, &big).unwrap();
+    println!("warm 2048²: {warm:?}");
+    assert_eq!(warm.uploaded_patches, 0);
+    assert!(warm.uploaded_bytes <= 1 << 20, "{warm:?}");
+    assert!(got
+        .iter()
+        .zip(&want)
+        .all(|(a, b)| a.is_nan() == b.is_nan() && (a.is_nan() || (a - b).abs() <= 1e-3)));
     // Half the tile shares its patches with the whole one.
     let half = Aabb {
         min: roi.min,
