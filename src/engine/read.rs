@@ -626,7 +626,20 @@ impl Engine {
             .try_resolve_until(&ps, &|| cancel.is_cancelled())
             .map_err(StoreError::from)?
             .ok_or(EngineError::Cancelled)?;
+        // `auto` goes to whichever backend is expected to finish the tile first.
+        let router = &self.gpu.router;
+        let samples = (grid.width * grid.height) as u64;
+        let backend = if backend == Backend::Auto && self.has_gpu() && !router.prefers_gpu(samples)
+        {
+            Backend::Cpu
+        } else {
+            backend
+        };
+        let on_gpu = (backend != Backend::Cpu).then(|| router.start(Used::Gpu, samples));
         if let Some(heights) = self.gpu_heights(&set, &grid, backend)? {
+            if let Some(run) = on_gpu {
+                run.finish();
+            }
             let head = head(Used::Gpu);
             let rows = rows.max(1);
             if rows >= grid.height {
@@ -642,11 +655,18 @@ impl Engine {
             }
             return Ok((ps, Used::Gpu));
         }
+        drop(on_gpu);
         let head = head(Used::Cpu);
+        let mut run = router.start(Used::Cpu, samples);
         cpu::resample_bands(&set, &grid, rows, cancel, &mut |j0, band| {
-            sink(&head, j0, band)
+            // Handing a band to a slow client is not the CPU's time.
+            let t = std::time::Instant::now();
+            let more = sink(&head, j0, band);
+            run.pause(t.elapsed());
+            more
         })
         .ok_or(EngineError::Cancelled)?;
+        run.finish();
         Ok((ps, Used::Cpu))
     }
 
