@@ -162,6 +162,8 @@ pub struct GpuTimings {
     /// Copying the results back and turning them into heights.
     pub readback: Duration,
     pub uploaded_bytes: u64,
+    /// Bytes read back: 4 a sample.
+    pub read_bytes: u64,
     /// Patches whose samples were uploaded, and those found already on the device.
     pub uploaded_patches: usize,
     pub cached_patches: usize,
@@ -601,6 +603,7 @@ impl GpuResampler {
             tm.uploaded_bytes += bytes.len() as u64;
         }
         let out_bytes = (n * 4) as u64;
+        tm.read_bytes = out_bytes;
         self.pool.take(&self.device, OUT, out_bytes, out_usage);
         self.pool.take(&self.device, READ, out_bytes, read_usage);
         let bufs = &self.pool.buffers;

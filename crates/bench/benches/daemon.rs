@@ -2,11 +2,15 @@
 //! - ingest throughput of Copernicus N34W119, in samples/s from the file dropped to committed;
 //! - store size against input size;
 //! - p50 and p99 latency of a 512² tile at 5 m;
-//! - under load: 32 clients asking for 512² tiles of 0.05° at 5 m anywhere on the cell for
-//!   60 s, the tiles served a second, p50 and p99 latency, and how many requests queued.
+//! - under load: clients (32 unless `--clients N`) asking for tiles of 0.05° at 5 m anywhere
+//!   on the cell for 60 s, the tiles served a second, p50 and p99 latency, and how many
+//!   requests queued; for each backend of `--backend` (cpu unless given, e.g.
+//!   `--backend auto,cpu,gpu`) and each size of `--size` (512 unless given, e.g.
+//!   `--size 512,2048`), one after the other on the same daemon and store.
 //!
-//! cargo bench -p patchwork-bench --bench daemon   (PATCHWORK_BENCH_REQUESTS sets the tile count,
-//!                                                 PATCHWORK_LOAD_SECONDS the load's length)
+//! cargo bench -p patchwork-bench --bench daemon [-- --backend auto,cpu --size 512 --clients 16]
+//! (PATCHWORK_BENCH_REQUESTS sets the tile count, PATCHWORK_LOAD_SECONDS the load's length;
+//! PATCHWORK_ALLOW_EMULATED_GPU=1 lets the daemon take a software GPU such as lavapipe.)
 
 mod common;
 
@@ -19,7 +23,32 @@ use std::time::{Duration, Instant};
 
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
-    // `cargo bench` passes criterion-style flags; this program takes none.
+    // `cargo bench` passes criterion-style flags (`--bench`); only these are read.
+    let args: Vec<String> = std::env::args().collect();
+    let arg = |name: &str| {
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1).cloned())
+    };
+    let backends: Vec<pb::Backend> = arg("--backend")
+        .unwrap_or_else(|| "cpu".into())
+        .split(',')
+        .map(|b| match b {
+            "auto" => Ok(pb::Backend::Auto),
+            "cpu" => Ok(pb::Backend::Cpu),
+            "gpu" => Ok(pb::Backend::Gpu),
+            other => Err(format!("--backend: {other:?} is not auto, cpu or gpu")),
+        })
+        .collect::<Result<_, _>>()?;
+    let sizes: Vec<u32> = arg("--size")
+        .unwrap_or_else(|| "512".into())
+        .split(',')
+        .map(|s| {
+            s.parse()
+                .map_err(|_| format!("--size: {s:?} is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    let clients: usize = arg("--clients").map_or(Ok(32), |c| c.parse())?;
     let tmp = tempfile::tempdir()?;
     let inbox = tmp.path().join("inbox");
     std::fs::create_dir_all(&inbox)?;
@@ -132,21 +161,68 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(60);
-    load(&terrain, &mut admin, 32, Duration::from_secs(secs)).await?;
+    let backend = admin.stats(pb::StatsRequest {}).await?.into_inner().backend;
+    println!("the daemon resamples on {backend}");
+    let mut rows = Vec::new();
+    for &size in &sizes {
+        for &b in &backends {
+            if let Some(r) = load(
+                &terrain,
+                &mut admin,
+                clients,
+                size,
+                b,
+                Duration::from_secs(secs),
+            )
+            .await?
+            {
+                rows.push((size, b, r));
+            }
+        }
+    }
+    println!("\n| tiles | clients | backend | tiles/s | p50 | p99 |\n|---|---|---|---|---|---|");
+    for (size, b, (rate, p50, p99)) in &rows {
+        println!(
+            "| {size}² | {clients} | {} | {rate:.1} | {p50:.1} ms | {p99:.1} ms |",
+            b.as_str_name().to_lowercase()
+        );
+    }
     let _ = child.kill();
     let _ = child.wait();
     Ok(())
 }
 
-/// `clients` clients, each asking for one tile after another for `length`: 512² tiles of
-/// 0.05° at 5 m, placed by a seeded hash anywhere on the cell so that the chunk cache does not
-/// answer them all.
+/// `clients` clients, each asking for one tile after another for `length`: `size`² tiles of
+/// 0.05° at 5 m on `backend`, placed by a seeded hash anywhere on the cell so that the chunk
+/// cache does not answer them all. The tiles a second, p50 and p99 in milliseconds; None
+/// where the daemon refuses the backend.
 async fn load(
     terrain: &TerrainClient<tonic::transport::Channel>,
     admin: &mut AdminClient<tonic::transport::Channel>,
     clients: usize,
+    size: u32,
+    backend: pb::Backend,
     length: Duration,
-) -> Result<(), Box<dyn std::error::Error>> {
+) -> Result<Option<(f64, f64, f64)>, Box<dyn std::error::Error>> {
+    let probe = pb::TileRequest {
+        crs: String::new(),
+        cut: Some(pb::tile_request::Cut::Uniform(pb::UniformCut {
+            roi: Some(pb::Rect {
+                xmin: -118.7,
+                ymin: 34.3,
+                xmax: -118.65,
+                ymax: 34.35,
+            }),
+            error: 5.0,
+        })),
+        width: 16,
+        height: 16,
+        backend: backend as i32,
+    };
+    if let Err(e) = terrain.clone().resample_tile(probe).await {
+        println!("load on {backend:?}: refused ({})", e.message());
+        return Ok(None);
+    }
     let end = Instant::now() + length;
     let tasks: Vec<_> = (0..clients as u64)
         .map(|c| {
@@ -172,9 +248,9 @@ async fn load(
                             }),
                             error: 5.0,
                         })),
-                        width: 512,
-                        height: 512,
-                        backend: pb::Backend::Cpu as i32,
+                        width: size,
+                        height: size,
+                        backend: backend as i32,
                     };
                     let t0 = Instant::now();
                     let mut s = t.tile_bands(req.clone()).await?.into_inner();
@@ -201,13 +277,13 @@ async fn load(
     let most = waiting.iter().map(|w| w.0).max().unwrap_or(0);
     let mean = waiting.iter().map(|w| w.0 as f64).sum::<f64>() / waiting.len().max(1) as f64;
     let limit = waiting.first().map_or(0, |w| w.2);
+    let rate = ms.len() as f64 / length.as_secs_f64();
     println!(
-        "load: {clients} clients for {:.0} s: {} tiles of 512² (TileBands), {:.1} tiles/s, p50 {:.1} ms, p99 {:.1} ms; {limit} at work at most, {mean:.1} waiting on average, {most} at most",
+        "load on {backend:?}: {clients} clients for {:.0} s: {} tiles of {size}² (TileBands), {rate:.1} tiles/s, p50 {:.1} ms, p99 {:.1} ms; {limit} at work at most, {mean:.1} waiting on average, {most} at most",
         length.as_secs_f64(),
         ms.len(),
-        ms.len() as f64 / length.as_secs_f64(),
         quantile(&ms, 0.5),
         quantile(&ms, 0.99),
     );
-    Ok(())
+    Ok(Some((rate, quantile(&ms, 0.5), quantile(&ms, 0.99))))
 }

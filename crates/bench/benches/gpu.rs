@@ -5,7 +5,8 @@
 //! cargo bench -p patchwork-bench --bench gpu   (PATCHWORK_SHARED_DATA points at the data folder)
 //!
 //! "cold" is the first request, which uploads every patch's samples; "warm" finds them on the
-//! device and uploads only the points, patch table and bins.
+//! device and uploads only the grid's axes, the patch table and the bins ("up KB"), and reads
+//! back 4 bytes a sample ("read KB").
 
 use patchwork::gpu::{Emulated, GpuResampler, GpuTimings};
 use patchwork_core::geom::Aabb;
@@ -75,7 +76,7 @@ fn main() {
         ],
     };
     println!(
-        "{:>9} {:>5} {:>6} {:>8} | {:>10} | {:>10} {:>10} | {:>8} {:>8} {:>8} {:>8} | {:>9} {:>9}",
+        "{:>9} {:>5} {:>6} {:>8} | {:>10} | {:>10} {:>10} | {:>8} {:>8} {:>8} {:>8} | {:>8} {:>8} | {:>9} {:>9}",
         "roi",
         "e",
         "size",
@@ -87,6 +88,8 @@ fn main() {
         "up ms",
         "comp ms",
         "read ms",
+        "up KB",
+        "read KB",
         "cold up",
         "max |Δ|"
     );
@@ -122,7 +125,7 @@ fn main() {
                     .fold(0.0, f64::max);
                 let total = tm.prepare + tm.upload + tm.compute + tm.readback;
                 println!(
-                    "{label:>9} {e:>5} {n:>6} {:>8} | {:>10.2} | {:>10.2} {:>10.2} | {:>8.1} {:>8.1} {:>8.1} {:>8.1} | {:>6.1} ms {:>9.1e}",
+                    "{label:>9} {e:>5} {n:>6} {:>8} | {:>10.2} | {:>10.2} {:>10.2} | {:>8.2} {:>8.1} {:>8.1} {:>8.1} | {:>8.0} {:>8.0} | {:>6.1} ms {:>9.1e}",
                     set.patches.len(),
                     samples / cpu_s / 1e6,
                     samples / tm.compute.as_secs_f64() / 1e6,
@@ -131,6 +134,8 @@ fn main() {
                     ms(tm.upload),
                     ms(tm.compute),
                     ms(tm.readback),
+                    tm.uploaded_bytes as f64 / 1024.0,
+                    tm.read_bytes as f64 / 1024.0,
                     ms(cold.upload),
                     worst
                 );
