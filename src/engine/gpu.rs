@@ -41,6 +41,10 @@ impl Used {
 pub(super) struct Device {
     #[cfg(feature = "gpu")]
     resampler: std::sync::Mutex<Option<GpuResampler>>,
+    /// The device's adapter while it serves, behind a lock of its own: the device's is held
+    /// for a whole dispatch, and asking whether there is a device (every `auto` tile, every
+    /// `stats`) must not wait for one.
+    adapter: std::sync::Mutex<Option<String>>,
     pub(super) router: Router,
 }
 
@@ -49,14 +53,14 @@ pub(super) struct Device {
 /// flight shared out (a moving average over finished tiles); a tile of n samples is expected
 /// to finish on a backend after `(in flight + n) × cost`. So a fast device takes the tiles
 /// until its queue makes the CPU sooner, and a slow, busy or emulated one takes almost none:
-/// the backend not chosen is tried again at most every [`RETRY`], so that its cost follows
-/// what it can do now.
+/// the backend not chosen is tried again now and then (every [`RETRY`] at most, and less
+/// often the longer it takes), so that its cost follows what it can do now.
 #[derive(Default)]
 pub(super) struct Router {
     sides: [Side; 2],
 }
 
-/// How often the backend `auto` does not prefer is given a tile to measure it again.
+/// How often, at most, the backend `auto` does not prefer is given a tile to measure it again.
 const RETRY: Duration = Duration::from_secs(2);
 
 #[derive(Default)]
@@ -84,11 +88,15 @@ impl Router {
         }
         let finish = |s: &Side, c: f64| (s.in_flight.load(Relaxed) + n) as f64 * c;
         let gpu_first = finish(gpu, cg) <= finish(cpu, cc);
-        let other = if gpu_first { cpu } else { gpu };
+        let (other, c_other) = if gpu_first { (cpu, cc) } else { (gpu, cg) };
+        // A retry costs what the tile takes on the slower side (an emulated device takes the
+        // CPU's own cores for it): it comes at most every 50 such durations, so that it
+        // never costs more than 2% of the time.
+        let every = (RETRY.as_secs_f64() * 1e3).max(50.0 * n as f64 * c_other * 1e3) as u64;
         let now = epoch_ms();
         let last = other.last_ms.load(Relaxed);
         if other.in_flight.load(Relaxed) == 0
-            && now.saturating_sub(last) >= RETRY.as_millis() as u64
+            && now.saturating_sub(last) >= every
             && other
                 .last_ms
                 .compare_exchange(last, now, Relaxed, Relaxed)
@@ -169,6 +177,7 @@ impl Engine {
             match GpuResampler::new(emulated) {
                 Ok(g) => {
                     tracing::info!(adapter = %g.adapter(), "resampling on the GPU");
+                    *crate::sync::lock(&self.gpu.adapter) = Some(g.adapter());
                     *lock(&self.gpu.resampler) = Some(g);
                 }
                 Err(e) => tracing::info!(reason = %e, "no GPU device: resampling on the CPU"),
@@ -182,20 +191,15 @@ impl Engine {
 
     /// Whether a GPU device serves.
     pub(super) fn has_gpu(&self) -> bool {
-        #[cfg(feature = "gpu")]
-        if lock(&self.gpu.resampler).is_some() {
-            return true;
-        }
-        false
+        crate::sync::lock(&self.gpu.adapter).is_some()
     }
 
     /// "cpu", or "gpu (adapter)".
     pub(super) fn backend_name(&self) -> String {
-        #[cfg(feature = "gpu")]
-        if let Some(g) = lock(&self.gpu.resampler).as_ref() {
-            return format!("gpu ({})", g.adapter());
+        match crate::sync::lock(&self.gpu.adapter).as_ref() {
+            Some(a) => format!("gpu ({a})"),
+            None => "cpu".into(),
         }
-        "cpu".into()
     }
 
     /// The heights of `grid` from the GPU when `backend` allows it and the device serves:
@@ -211,7 +215,7 @@ impl Engine {
             return Ok(None);
         }
         #[cfg(feature = "gpu")]
-        if lock(&self.gpu.resampler).is_some() {
+        if self.has_gpu() {
             // Binning and packing need no device: done before taking it, so that requests
             // queue on the device only for the device's own work.
             let prepared = crate::gpu::prepare(set, grid);
@@ -223,6 +227,7 @@ impl Engine {
                         tracing::warn!(error = %e, "GPU resampling failed; this request and later ones use the CPU");
                         if matches!(e, GpuError::Lost(_) | GpuError::Device(_)) {
                             *gpu = None;
+                            *crate::sync::lock(&self.gpu.adapter) = None;
                         }
                         if backend == Backend::Gpu {
                             return Err(EngineError::Unavailable(format!(
