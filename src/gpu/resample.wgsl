@@ -91,12 +91,15 @@ struct Patch {
 // A quiet NaN's bits: WGSL has no NaN literal, and the bits reach the CPU as written.
 const NAN_BITS: u32 = 0x7fc00000u;
 
+// This invocation's column and row, set once in `main`.
+var<private> here: vec2<u32>;
+
 // Sample i's position in the plane whose positions start at `start`: from the axes for the
 // store plane of a north-up grid (exact: each half is the split the CPU made), else its own.
 fn point_at(start: u32, i: u32) -> vec4<f32> {
     if params.axes != 0u && start == 0u {
-        let c = points[i % params.width];
-        let r = points[params.width + i / params.width];
+        let c = points[here.x];
+        let r = points[params.width + here.y];
         return vec4<f32>(c.x, r.y, c.z, r.w);
     }
     return points[start + i];
@@ -399,6 +402,7 @@ fn main(
         return;
     }
     let i = gid.y * params.width + gid.x;
+    here = gid.xy;
     heights[i] = NAN_BITS;
     let pt = point_at(0u, i);
     if pt.x >= VOID {

@@ -1058,3 +1058,76 @@ fn a_store_without_a_configured_crs_is_geographic_whatever_arrives_first() {
     d.wait("both surveys", |s| count(s, "active") == 2);
     assert_eq!(d.json(&["stats", "--json"])["crs"], "EPSG:4326");
 }
+
+/// A store opened in the CLI's own process (`--data-dir`) resamples on the GPU as the daemon
+/// does: `--backend gpu` opens the device (a software one where allowed), and is refused,
+/// saying so, only where there is none.
+#[test]
+fn direct_mode_opens_the_gpu_for_a_tile() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let cli = |args: &[&str]| {
+        std::process::Command::new(BIN)
+            .args(args)
+            .arg(format!("--data-dir={}", data.display()))
+            .env("PATCHWORK_ALLOW_EMULATED_GPU", "1")
+            .env("PATCHWORK_CRS", "EPSG:4326")
+            .output()
+            .unwrap()
+    };
+    let crop = crop("copernicus_n34w119_crop.tif");
+    let o = cli(&["ingest", crop.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let tile = |backend: &str| {
+        let out = tmp.path().join(format!("{backend}.tif"));
+        let o = cli(&[
+            "tile",
+            "--roi=-119.0,34.46,-118.92,34.54",
+            "--size=200x200",
+            "--error=0",
+            &format!("--backend={backend}"),
+            &format!("--out={}", out.display()),
+        ]);
+        (o, out)
+    };
+    let (cpu, cpu_file) = tile("cpu");
+    assert!(
+        cpu.status.success(),
+        "{}",
+        String::from_utf8_lossy(&cpu.stderr)
+    );
+    let (gpu, gpu_file) = tile("gpu");
+    let said = String::from_utf8_lossy(&gpu.stdout).into_owned();
+    let err = String::from_utf8_lossy(&gpu.stderr).into_owned();
+    let required = std::env::var("PATCHWORK_REQUIRE_GPU").as_deref() == Ok("1");
+    if !gpu.status.success() {
+        assert!(!required, "PATCHWORK_REQUIRE_GPU=1 but: {err}");
+        assert!(err.contains("no GPU device"), "{err}");
+        println!("GPU path NOT exercised: {err}");
+        return;
+    }
+    assert!(said.contains("gpu"), "{said}");
+    // The same heights as the CPU's, within the GPU's tolerance.
+    let read = |p: &Path| {
+        patchwork_read::read_raster(p, &Default::default())
+            .unwrap()
+            .into_grid()
+            .unwrap()
+    };
+    let (a, b) = (read(&cpu_file), read(&gpu_file));
+    let worst = a
+        .samples
+        .iter()
+        .zip(&b.samples)
+        .map(|(x, y)| {
+            assert_eq!(x.is_nan(), y.is_nan());
+            if x.is_nan() {
+                0.0
+            } else {
+                (x - y).abs()
+            }
+        })
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 1e-3, "{worst}");
+    println!("direct mode: {said}");
+}
