@@ -195,7 +195,9 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     for (size, b, (rate, p50, p99)) in &rows {
         println!(
             "| {size}² | {clients} | {} | {rate:.1} | {p50:.1} ms | {p99:.1} ms |",
-            b.as_str_name().trim_start_matches("BACKEND_").to_lowercase()
+            b.as_str_name()
+                .trim_start_matches("BACKEND_")
+                .to_lowercase()
         );
     }
     Ok(())
