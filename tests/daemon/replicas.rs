@@ -40,8 +40,10 @@ fn answers(d: &Daemon, tag: &str) -> Vec<Vec<u8>> {
     let mut out = Vec::new();
     for (i, roi) in ROIS.iter().enumerate() {
         let file = d.root.join(format!("{tag}{i}.tif"));
+        // On the CPU: compared bit for bit, where `auto` may pick either backend.
         let t = d.cli(&[
             "tile",
+            "--backend=cpu",
             "--roi",
             roi,
             "--size",

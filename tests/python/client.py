@@ -208,8 +208,11 @@ def run(address):
         # 2. Tiles: bands put together equal the unary ResampleTile, and a tile far past gRPC's
         # default 4 MB comes through a channel that keeps that limit.
         cut = terrain_pb2.UniformCut(roi=terrain_pb2.Rect(xmin=MEET[0], ymin=MEET[1], xmax=MEET[2], ymax=MEET[3]), error=5.0)
-        unary = c.terrain.ResampleTile(terrain_pb2.TileRequest(uniform=cut, width=64, height=48), timeout=30)
-        banded, info = c.tile_with_info(MEET, 64, 48, 5.0)
+        # Both on the CPU: `auto` may send the two to different backends, which agree only to
+        # the GPU's tolerance, and this compares them bit for bit.
+        unary = c.terrain.ResampleTile(terrain_pb2.TileRequest(uniform=cut, width=64, height=48,
+                                                               backend=terrain_pb2.BACKEND_CPU), timeout=30)
+        banded, info = c.tile_with_info(MEET, 64, 48, 5.0, backend="cpu")
         require(np.array_equal(banded, np.array(unary.heights, dtype=np.float32).reshape(48, 64), equal_nan=True),
                 "TileBands and ResampleTile disagree")
         require(info.backend == unary.backend and info.patches == unary.patches, f"{info} vs {unary.backend}")
