@@ -125,10 +125,6 @@ pub async fn serve(config: Option<PathBuf>, follow: Option<String>) -> Result<()
     Ok(())
 }
 
-/// Whether the daemon should open a GPU device: with software adapters refused, only when a
-/// child process finds a real one. Asking in a child keeps a software driver the daemon will
-/// not use out of its memory (Mesa's lavapipe maps 50 MB of libLLVM that never unloads), and
-/// a driver that crashes while probing takes only the child with it.
 /// Opens the GPU device `e` resamples on, where a real one (or an allowed software one) is
 /// there; otherwise says why not, and `e` resamples on the CPU. The daemon does this at start,
 /// and a command on a store opened in its own process (`--data-dir`) before a tile or mesh
@@ -140,6 +136,10 @@ pub(super) fn open_gpu(e: &Engine) {
     }
 }
 
+/// Whether the daemon should open a GPU device: with software adapters refused, only when a
+/// child process finds a real one. Asking in a child keeps a software driver the daemon will
+/// not use out of its memory (Mesa's lavapipe maps 50 MB of libLLVM that never unloads), and
+/// a driver that crashes while probing takes only the child with it.
 fn real_gpu(allow_emulated: bool) -> Result<(), String> {
     if allow_emulated {
         return Ok(());

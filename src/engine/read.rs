@@ -629,13 +629,13 @@ impl Engine {
         // `auto` goes to whichever backend is expected to finish the tile first.
         let router = &self.gpu.router;
         let samples = (grid.width * grid.height) as u64;
-        let backend = if backend == Backend::Auto && self.has_gpu() && !router.prefers_gpu(samples)
-        {
+        let has_gpu = self.has_gpu();
+        let backend = if backend == Backend::Auto && has_gpu && !router.prefers_gpu(samples) {
             Backend::Cpu
         } else {
             backend
         };
-        let on_gpu = (backend != Backend::Cpu).then(|| router.start(Used::Gpu, samples));
+        let on_gpu = (backend != Backend::Cpu && has_gpu).then(|| router.start(Used::Gpu, samples));
         if let Some(heights) = self.gpu_heights(&set, &grid, backend)? {
             if let Some(run) = on_gpu {
                 run.finish();

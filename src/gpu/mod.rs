@@ -271,11 +271,6 @@ impl Prepared {
             (first + (k - 1) * n) as u32
         }
     }
-
-    /// Bytes of positions a request uploads.
-    pub fn point_bytes(&self) -> usize {
-        self.points.len() * 16
-    }
 }
 
 /// Bins the patches of `set` into the grid's blocks and packs the grid's positions for the
