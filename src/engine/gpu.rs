@@ -221,7 +221,7 @@ impl Engine {
             let prepared = crate::gpu::prepare(set, grid);
             let mut gpu = lock(&self.gpu.resampler);
             if let Some(g) = gpu.as_mut() {
-                match g.resample_prepared(set, &prepared) {
+                match g.resample_prepared(set, prepared) {
                     Ok((heights, _)) => return Ok(Some(heights)),
                     Err(e) => {
                         tracing::warn!(error = %e, "GPU resampling failed; this request and later ones use the CPU");

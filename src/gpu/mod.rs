@@ -1,28 +1,30 @@
 //! Formula 1 on a GPU through wgpu: the sums of [`cpu::blend`] evaluated by a compute shader
 //! (`resample.wgsl`), one workgroup per [`BLOCK`] × [`BLOCK`] block of output samples, each
-//! visiting only the patches of its block's bin (§7.3).
+//! visiting only the patches that meet its block (§7.3).
 //!
-//! A request is in two parts. [`prepare`] is the CPU's: binning, and the positions packed
-//! (for a north-up grid its axes, a column's x and a row's y, not a point a sample: 32 KB for
-//! a 2048² tile where points took 64 MB). [`GpuResampler::resample_prepared`] is the device's:
-//! the patches' samples not yet on it, the dispatch, and 4 bytes a sample read back, through
-//! buffers kept from one request to the next. Only the second needs the device, so a daemon
-//! prepares outside its lock.
+//! A request is in two parts. [`prepare`] is the CPU's: the patches binned into squares of
+//! [`SUPER`] × [`SUPER`] blocks (by bisection along a north-up grid's axes), what the request
+//! adds to each patch (its first sample from the request's origin, its rank and weight: 32
+//! bytes), and the positions packed (for a north-up grid its axes, a column's x and a row's
+//! y, not a point a sample: 64 KB for a 2048² tile where points took 64 MB).
+//! [`GpuResampler::resample_prepared`] is the device's: the patches not yet on it, then two
+//! dispatches, the first listing each block's patches from its square's bin (binning on the
+//! device, which the paper leaves to future work), the second blending, and 4 bytes a sample
+//! read back, through buffers kept from one request to the next. Only the second part needs
+//! the device, so a daemon prepares outside its lock.
 //!
-//! Patch samples live in one storage buffer, an append-only arena keyed by [`PatchId`], so a
-//! request that shares patches with an earlier one uploads only the new ones. When the arena
-//! would grow past its byte budget it is emptied and refilled with the current request's
-//! patches: crude, but it never fragments and the next requests refill it.
-//!
-//! # Precision
-//!
-//! The shader works in f32 and the CPU in f64, so the two differ by rounding. Write
-//! u = 2⁻²⁴ for the unit roundoff of f32.
+//! Patches live on the device: their samples in one storage buffer, an append-only arena,
+//! and their records (grid axes, window, kernel, base: 144 bytes) in a table beside it, both
+//! keyed by [`PatchId`], so a request that shares patches with an earlier one uploads only
+//! the new ones, and a warm request uploads 32 bytes a patch and its bin entries. When the
+//! arena would grow past its byte budget both are emptied and refilled with the current
+//! request's patches: crude, but it never fragments and the next requests refill it.
 //!
 //! *Positions.* Geographic coordinates near −119° have an f32 spacing of 7.6·10⁻⁶° (≈ 0.8 m),
 //! so world positions never reach the GPU as f32. The CPU subtracts a tile origin in f64 and
-//! sends each sample point, each patch's first sample and each patch's axes (divided by the
-//! spacing) as unevaluated sums hi + lo of two f32s, exact to u² relative. The shader forms the
+//! sends each sample point (or axis) and each patch's first sample, and keeps each patch's
+//! axes (divided by the spacing) on the device, as unevaluated sums hi + lo of two f32s,
+//! exact to u² relative. The shader forms the
 //! grid coordinates with error-free sums and products (`two_sum`, `two_prod` with `fma`), so
 //! they carry about 48 bits: for a tile L cells across (relative to the tile origin), the
 //! error is below ~4u²·L ≈ 10⁻¹³·L cells, under 10⁻⁹ cells for any tile under 10⁴ level cells.
@@ -70,6 +72,27 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use thiserror::Error;
 
+/// Patch ids are blake3 hashes already: hashing them again for the cache only cost time,
+/// a tenth of a warm request's preparation at 16,000 patches.
+#[derive(Default)]
+struct IdHasher(u64);
+
+impl std::hash::Hasher for IdHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = self.0.rotate_left(8) ^ u64::from(b);
+        }
+    }
+    fn write_u64(&mut self, n: u64) {
+        self.0 = n;
+    }
+}
+
+type Cache = HashMap<PatchId, Uploaded, std::hash::BuildHasherDefault<IdHasher>>;
+
 /// Samples are void at or above this, both in the arena and as a point's x.
 const VOID: f32 = f32::MAX;
 
@@ -77,9 +100,6 @@ const VOID: f32 = f32::MAX;
 pub const KIND_BILINEAR: u32 = 0;
 pub const KIND_EDGE: u32 = 1;
 pub const KIND_BICUBIC: u32 = 2;
-
-/// `PATCH_FALLBACK` in the shader.
-const PATCH_FALLBACK: u32 = 1;
 
 /// Byte budget of the sample arena before it is emptied and refilled.
 pub const DEFAULT_ARENA_BYTES: u64 = 256 << 20;
@@ -98,33 +118,57 @@ pub enum GpuError {
     TooLarge(String),
 }
 
-/// One patch as the shader reads it; see `struct Patch` in `resample.wgsl`.
+/// One patch as the shader reads it, kept on the device beside its samples: written once,
+/// when they are uploaded, and read by every request that uses the patch. See `struct Patch`
+/// in `resample.wgsl`; what differs from one request to the next is in [`GpuUse`].
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 struct GpuPatch {
-    origin_hi: [f32; 2],
-    origin_lo: [f32; 2],
+    /// The window's world bounds in the store's plane (min x, min y, max x, max y), each as
+    /// hi + lo: what a block of samples is tested against.
+    bounds_hi: [f32; 4],
+    bounds_lo: [f32; 4],
     col_hi: [f32; 2],
     col_lo: [f32; 2],
     row_hi: [f32; 2],
     row_lo: [f32; 2],
     centre: [f32; 2],
     inv_half: [f32; 2],
-    norm: f32,
-    base: f32,
-    rank: u32,
-    flags: u32,
     window: [f32; 4],
     kernel: [f32; 4],
+    base: f32,
+    flat: f32,
     offset: u32,
     cols: u32,
     rows: u32,
     kind: u32,
-    flat: f32,
+    _pad: [u32; 2],
+}
+
+/// What a request adds to a patch kept on the device: where its first sample is from the
+/// request's origin, its rank and weight there, and which positions it reads. 32 bytes a
+/// patch, the only per-patch bytes a warm request uploads.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+struct GpuUse {
+    origin_hi: [f32; 2],
+    origin_lo: [f32; 2],
+    /// The patch's record in the device's table.
+    slot: u32,
+    /// Rank among the fallback patches, with [`FALLBACK`] set for a fallback patch.
+    rank: u32,
+    norm: f32,
     /// Where the patch's plane's positions start in the points buffer.
     points: u32,
-    _pad: [f32; 2],
 }
+
+/// Set in [`GpuUse::rank`] for a fallback patch.
+const FALLBACK: u32 = 1 << 31;
+
+/// Blocks along each side of a bin that the CPU fills: the shader picks each block's patches
+/// from its bin, so the CPU bins 64 times fewer boxes and uploads a bin entry where it would
+/// have uploaded dozens.
+const SUPER: usize = 8;
 
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
@@ -135,13 +179,29 @@ struct Params {
     has_fallback: u32,
     /// 1 where the store plane's positions are a north-up grid's axes (see [`Prepared`]).
     axes: u32,
-    _pad: [u32; 3],
+    /// Bins along a row: blocks_x / [`SUPER`], rounded up.
+    supers_x: u32,
+    _pad0: [u32; 2],
+    /// The request's origin in the store's plane, as hi + lo.
+    origin_hi: [f32; 2],
+    origin_lo: [f32; 2],
+    /// How far a patch's bounds are widened before a block is tested against them: more
+    /// than the error of forming them relative to the origin, so the test keeps every patch
+    /// that the CPU's would.
+    pad: f32,
+    _pad1: [u32; 3],
 }
 
 /// Where a patch's samples sit in the arena: its window grown by one cell where the level has
 /// one (the edge rule may use the cell beyond the window), first sample at level `(c0, r0)`.
 #[derive(Clone, Copy, Debug)]
 struct Uploaded {
+    /// The patch's record in the device's table of patches.
+    slot: u32,
+    /// The window's bounds in the store's plane that the record holds: a patch of another
+    /// CRS has other bounds in a store of another, so a resampler that serves two stores
+    /// (tests do) keeps a record only for the bounds it was made with.
+    bounds: [f64; 4],
     offset: u32,
     cols: u32,
     rows: u32,
@@ -169,20 +229,20 @@ pub struct GpuTimings {
     pub cached_patches: usize,
 }
 
-/// One device and queue, the resampling pipeline, and the samples already on the device.
+/// One device and queue, the resampling pipeline, and the patches already on the device.
 pub struct GpuResampler {
     device: wgpu::Device,
     queue: wgpu::Queue,
+    /// Lists each block's patches from its bin, then resamples.
+    binner: wgpu::ComputePipeline,
     pipeline: wgpu::ComputePipeline,
-    layout: wgpu::BindGroupLayout,
     info: wgpu::AdapterInfo,
     max_binding: u64,
     budget: u64,
-    arena: wgpu::Buffer,
-    /// Arena size and use, in f32s.
-    arena_len: u64,
-    arena_used: u64,
-    cache: HashMap<PatchId, Uploaded>,
+    /// The patches' samples, f32s, and their records ([`GpuPatch`]), one a slot.
+    arena: Store,
+    table: Store,
+    cache: Cache,
     /// The per-request buffers, kept from one request to the next.
     pool: Pool,
     /// Errors the device reported outside any scope, and device loss.
@@ -190,16 +250,77 @@ pub struct GpuResampler {
     lost: Arc<Mutex<Option<String>>>,
 }
 
-/// Slots of the [`Pool`]: params, points, patches, bin offsets and bins are uploaded in that
-/// order (0–4), then the heights the shader writes and the buffer they are read back through.
-const OUT: usize = 5;
-const READ: usize = 6;
+/// A device buffer that is appended to and grown by doubling, keeping what it holds.
+struct Store {
+    label: &'static str,
+    buffer: wgpu::Buffer,
+    /// Size and use, in bytes.
+    len: u64,
+    used: u64,
+}
+
+impl Store {
+    fn new(device: &wgpu::Device, label: &'static str, len: u64) -> Self {
+        Store {
+            label,
+            buffer: store_buffer(device, label, len),
+            len: len.max(16),
+            used: 0,
+        }
+    }
+
+    /// Room for `len` bytes in all, up to `cap` unless that is less than `len`.
+    fn reserve(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, len: u64, cap: u64) {
+        if len <= self.len {
+            return;
+        }
+        let mut new_len = self.len.max(16);
+        while new_len < len {
+            new_len *= 2;
+        }
+        let new_len = new_len.min(cap.max(len)).next_multiple_of(4);
+        let buffer = store_buffer(device, self.label, new_len);
+        if self.used > 0 {
+            let mut enc = device.create_command_encoder(&Default::default());
+            enc.copy_buffer_to_buffer(&self.buffer, 0, &buffer, 0, self.used);
+            queue.submit([enc.finish()]);
+        }
+        self.buffer = buffer;
+        self.len = new_len;
+    }
+
+    fn append(&mut self, queue: &wgpu::Queue, bytes: &[u8]) {
+        if !bytes.is_empty() {
+            queue.write_buffer(&self.buffer, self.used, bytes);
+            self.used += bytes.len() as u64;
+        }
+    }
+}
+
+fn store_buffer(device: &wgpu::Device, label: &str, len: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: len.max(16).next_multiple_of(4),
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_DST
+            | wgpu::BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    })
+}
+
+/// Slots of the [`Pool`]: params, points, uses, bin offsets, bins and block bounds are
+/// uploaded in that order (0–5), then the heights the shader writes, the buffer they are
+/// read back through, and the blocks' lists of patches, which never leave the device.
+const UPLOADS: usize = 6;
+const OUT: usize = 6;
+const READ: usize = 7;
+const LISTS: usize = 8;
 
 /// The buffers a request uses, kept between requests and grown (to powers of two) only when
 /// one needs more: creating them afresh cost more than the dispatch on a hardware GPU.
 #[derive(Default)]
 struct Pool {
-    buffers: [Option<wgpu::Buffer>; 7],
+    buffers: [Option<wgpu::Buffer>; 9],
 }
 
 impl Pool {
@@ -226,37 +347,74 @@ impl Pool {
     }
 }
 
-const POOL_LABELS: [&str; 7] = [
+const POOL_LABELS: [&str; 9] = [
     "params",
     "points",
-    "patches",
+    "uses",
     "bin offsets",
     "bins",
+    "block bounds",
     "heights",
     "heights readback",
+    "block lists",
 ];
 
-/// The CPU's part of a request: the patches binned into blocks and the sample positions
-/// packed for the shader. It needs no device, so it runs before the device is taken.
+/// The CPU's part of a request: the patches binned, what the request adds to each patch,
+/// and the sample positions packed for the shader. It needs no device, so it runs before the
+/// device is taken.
 pub struct Prepared {
     width: usize,
     height: usize,
     /// No valid point or no patch: every height is void, and the device is not needed.
     empty: bool,
-    /// The origin positions are relative to, of the store plane and then of each other plane.
-    origins: Vec<[f64; 2]>,
+    /// The origin the store plane's positions are relative to.
+    origin: [f64; 2],
+    /// The widening of patch bounds, [`Params::pad`].
+    pad: f32,
     /// Whether the store plane's positions are a north-up grid's axes: its columns' x then
     /// its rows' y (width + height entries), not one entry a sample.
     axes: bool,
     /// Positions as (x hi, y hi, x lo, y lo) relative to their plane's origin: the store
     /// plane's, then every other plane's, one a sample.
     points: Vec<[f32; 4]>,
+    /// Each block's bounds relative to the origin, rounded outwards, for a grid without axes
+    /// (the shader finds a north-up block's from the axes); (1, 1, 0, 0) for a block without
+    /// a valid point.
+    blocks: Vec<[f32; 4]>,
+    /// Bins of [`SUPER`]² blocks: patch indices, ascending, whose window meets the bin.
+    supers_x: usize,
     offsets: Vec<u32>,
     bins: Vec<u32>,
+    /// One a patch of the set, its table slot filled in when the device places it.
+    uses: Vec<GpuUse>,
     took: Duration,
 }
 
 impl Prepared {
+    /// How many bins of [`SUPER`]² blocks, and how many entries they hold in all.
+    pub fn bins(&self) -> (usize, usize) {
+        (
+            self.offsets.len().saturating_sub(1),
+            *self.offsets.last().unwrap_or(&0) as usize,
+        )
+    }
+
+    /// The most patches a bin of [`SUPER`]² blocks holds.
+    pub fn largest_bin(&self) -> usize {
+        self.offsets
+            .windows(2)
+            .map(|w| (w[1] - w[0]) as usize)
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// Words of the blocks' lists of patches: each block of a bin has room for all of the
+    /// bin's patches and their count (`list_start` in the shader).
+    fn lists_len(&self) -> u64 {
+        let bins = self.offsets.len().saturating_sub(1) as u64;
+        (SUPER * SUPER) as u64 * (bins + *self.offsets.last().unwrap_or(&0) as u64)
+    }
+
     /// Where plane `k`'s positions start in `points`.
     fn plane_start(&self, k: usize) -> u32 {
         let n = self.width * self.height;
@@ -273,21 +431,25 @@ impl Prepared {
     }
 }
 
-/// Bins the patches of `set` into the grid's blocks and packs the grid's positions for the
-/// shader. A north-up grid sends its axes, one entry a column and one a row, not one a
-/// sample: the same f64 positions the CPU blends at, each split into two f32s, so both
-/// backends work from the same coordinates.
+/// Bins the patches of `set` into bins of [`SUPER`]² blocks, works out what the request adds
+/// to each patch, and packs the grid's positions for the shader. A north-up grid sends its
+/// axes, one entry a column and one a row, not one a sample: the same f64 positions the CPU
+/// blends at, each split into two f32s, so both backends work from the same coordinates.
 pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     let t0 = Instant::now();
     let mut p = Prepared {
         width: grid.width,
         height: grid.height,
         empty: true,
-        origins: Vec::new(),
+        origin: [0.0; 2],
+        pad: 0.0,
         axes: false,
         points: Vec::new(),
+        blocks: Vec::new(),
+        supers_x: 0,
         offsets: Vec::new(),
         bins: Vec::new(),
+        uses: Vec::new(),
         took: Duration::ZERO,
     };
     let Some(origin) = grid.points().find(|p| !p[0].is_nan() && !p[1].is_nan()) else {
@@ -296,10 +458,11 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     if set.patches.is_empty() {
         return p;
     }
+    p.origin = origin;
     // The samples' positions in each other plane of the set, each relative to an origin of
     // its own, after the store plane's.
     let planes = set.positions(grid);
-    p.origins = std::iter::once(origin)
+    let origins: Vec<[f64; 2]> = std::iter::once(origin)
         .chain(planes.iter().map(|ps| {
             ps.iter()
                 .copied()
@@ -307,17 +470,68 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
                 .unwrap_or([0.0; 2])
         }))
         .collect();
-    let bins = cpu::bin(&set.patches, grid);
-    p.offsets.reserve(bins.len() + 1);
-    p.offsets.push(0u32);
-    for b in &bins {
-        p.bins.extend_from_slice(b);
-        p.offsets.push(p.bins.len() as u32);
-    }
+
+    let side = BLOCK * SUPER;
+    p.supers_x = grid.width.div_ceil(side);
+    let flat = match grid.axis_bounds(side) {
+        Some((cols, rows)) => cpu::Flat::of_axes(&set.patches, &cols, &rows),
+        None => None,
+    };
+    let flat = match flat {
+        Some(f) => f,
+        None => {
+            // The shader needs each block's bounds, which a grid of points cannot give it
+            // cheaply; the bins' are their unions.
+            let blocks = grid.block_bounds();
+            let rel = |v: f64, o: f64, up: bool| {
+                let x = (v - o) as f32;
+                match (up, (x as f64) < v - o, (x as f64) > v - o) {
+                    (true, true, _) => x.next_up(),
+                    (false, _, true) => x.next_down(),
+                    _ => x,
+                }
+            };
+            p.blocks = blocks
+                .iter()
+                .map(|b| match b {
+                    Some(b) => [
+                        rel(b.min[0], origin[0], false),
+                        rel(b.min[1], origin[1], false),
+                        rel(b.max[0], origin[0], true),
+                        rel(b.max[1], origin[1], true),
+                    ],
+                    None => [1.0, 1.0, 0.0, 0.0],
+                })
+                .collect();
+            let bx = grid.width.div_ceil(BLOCK);
+            let by = grid.height.div_ceil(BLOCK);
+            let mut supers = vec![None; p.supers_x * by.div_ceil(SUPER)];
+            for (k, b) in blocks.iter().enumerate() {
+                if let Some(b) = b {
+                    let s: &mut Option<patchwork_core::geom::Aabb> =
+                        &mut supers[(k / bx / SUPER) * p.supers_x + (k % bx) / SUPER];
+                    *s = Some(s.map_or(*b, |a| a.union(b)));
+                }
+            }
+            cpu::Flat::of(&cpu::bin_boxes(&set.patches, &supers))
+        }
+    };
+    (p.offsets, p.bins) = (flat.offsets, flat.entries);
     if p.bins.is_empty() {
         // Bindings cannot be empty; the offsets keep the shader from reading this.
         p.bins.push(0);
     }
+    // Forming a patch's bounds relative to the origin from their hi + lo halves errs by a
+    // few units of 2⁻⁴⁸ of the coordinates' size; the widening is far above that and far
+    // below anything that moves a block's patches.
+    let scale = origin[0].abs().max(origin[1].abs())
+        + set
+            .patches
+            .iter()
+            .map(|q| q.window_aabb.width().max(q.window_aabb.height()))
+            .fold(0.0, f64::max);
+    p.pad = (scale * 2f64.powi(-40)) as f32;
+
     let pack = |q: [f64; 2], origin: [f64; 2]| {
         if q[0].is_nan() || q[1].is_nan() {
             [VOID, 0.0, 0.0, 0.0]
@@ -343,9 +557,18 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         }
         None => p.points.extend(grid.points().map(|q| pack(q, origin))),
     }
-    for (ps, o) in planes.iter().zip(&p.origins[1..]) {
+    for (ps, o) in planes.iter().zip(&origins[1..]) {
         p.points.extend(ps.iter().map(|&q| pack(q, *o)));
     }
+    let max_norm = set.patches.iter().map(|q| q.norm).fold(0.0f64, f64::max);
+    p.uses = set
+        .patches
+        .iter()
+        .map(|q| {
+            let k = q.plane as usize;
+            use_of(q, origins[k], p.plane_start(k), max_norm)
+        })
+        .collect();
     p.empty = false;
     p.took = t0.elapsed();
     p
@@ -422,67 +645,35 @@ impl GpuResampler {
             label: Some("resample.wgsl"),
             source: wgpu::ShaderSource::Wgsl(include_str!("resample.wgsl").into()),
         });
-        let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty,
-            count: None,
+        // Each entry point's layout is derived from the bindings it uses.
+        let pipeline = |entry| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
         };
-        let storage = |read_only| wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("resample"),
-            entries: &[
-                entry(
-                    0,
-                    wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                ),
-                entry(1, storage(true)),
-                entry(2, storage(true)),
-                entry(3, storage(true)),
-                entry(4, storage(true)),
-                entry(5, storage(true)),
-                entry(6, storage(false)),
-            ],
-        });
-        let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("resample"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("resample"),
-            layout: Some(&pl),
-            module: &module,
-            entry_point: Some("main"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        let (binner, pipeline) = (pipeline("bin_blocks"), pipeline("main"));
         let max_binding = limits
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
         let budget = budget.min(max_binding);
-        let arena_len = (16u64 << 20).min(budget) / 4;
-        let arena = arena_buffer(&device, arena_len);
+        let arena = Store::new(&device, "sample arena", (16u64 << 20).min(budget));
+        let table = Store::new(&device, "patch table", 1 << 20);
         let g = GpuResampler {
             device,
             queue,
+            binner,
             pipeline,
-            layout,
             info,
             max_binding,
             budget,
             arena,
-            arena_len,
-            arena_used: 0,
-            cache: HashMap::new(),
+            table,
+            cache: Cache::default(),
             pool: Pool::default(),
             errors,
             lost,
@@ -518,7 +709,7 @@ impl GpuResampler {
         grid: &SampleGrid,
     ) -> Result<(Vec<f32>, GpuTimings), GpuError> {
         let prepared = prepare(set, grid);
-        self.resample_prepared(set, &prepared)
+        self.resample_prepared(set, prepared)
     }
 
     /// The device's part of a request whose CPU part, [`prepare`], ran already (outside
@@ -526,7 +717,7 @@ impl GpuResampler {
     pub fn resample_prepared(
         &mut self,
         set: &PatchSet,
-        prep: &Prepared,
+        mut prep: Prepared,
     ) -> Result<(Vec<f32>, GpuTimings), GpuError> {
         self.check()?;
         let mut tm = GpuTimings {
@@ -541,6 +732,8 @@ impl GpuResampler {
         let wg_max = self.device.limits().max_compute_workgroups_per_dimension as usize;
         if (prep.points.len() * 16) as u64 > self.max_binding
             || (n * 4) as u64 > self.max_binding
+            || prep.lists_len() * 4 > self.max_binding
+            || (bx * by).div_ceil(64) > wg_max
             || bx > wg_max
             || by > wg_max
         {
@@ -551,44 +744,46 @@ impl GpuResampler {
         }
 
         let t0 = Instant::now();
-        let (placed, samples) = self.place(set)?;
-        let max_norm = set.patches.iter().map(|p| p.norm).fold(0.0f64, f64::max);
-        let table: Vec<GpuPatch> = set
-            .patches
-            .iter()
-            .zip(&placed)
-            .map(|(p, a)| {
-                let k = p.plane as usize;
-                gpu_patch(p, a, prep.origins[k], prep.plane_start(k), max_norm)
-            })
-            .collect();
+        let placed = self.place(set)?;
+        for (u, slot) in prep.uses.iter_mut().zip(&placed.slots) {
+            u.slot = slot.expect("every patch placed");
+        }
         tm.prepare += t0.elapsed();
 
         let t1 = Instant::now();
-        tm.uploaded_patches = samples.as_ref().map_or(0, |s| s.1);
+        tm.uploaded_patches = placed.records.len();
         tm.cached_patches = set.patches.len() - tm.uploaded_patches;
-        if let Some((data, _)) = &samples {
-            tm.uploaded_bytes += (data.len() * 4) as u64;
-        }
-        self.write_samples(samples.map(|s| s.0))?;
+        let samples: &[u8] = bytemuck::cast_slice(&placed.samples);
+        let records: &[u8] = bytemuck::cast_slice(&placed.records);
+        tm.uploaded_bytes += (samples.len() + records.len()) as u64;
+        self.arena.append(&self.queue, samples);
+        self.table.append(&self.queue, records);
+        let [ox, oy] = prep.origin;
+        let ([oxh, oxl], [oyh, oyl]) = (split(ox), split(oy));
         let params = Params {
             width: prep.width as u32,
             height: prep.height as u32,
             blocks_x: bx as u32,
             has_fallback: u32::from(set.has_fallback),
             axes: u32::from(prep.axes),
-            _pad: [0; 3],
+            supers_x: prep.supers_x as u32,
+            _pad0: [0; 2],
+            origin_hi: [oxh, oyh],
+            origin_lo: [oxl, oyl],
+            pad: prep.pad,
+            _pad1: [0; 3],
         };
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let uniform = wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST;
         let out_usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
         let read_usage = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-        let uploads: [(&[u8], _); 5] = [
+        let uploads: [(&[u8], _); UPLOADS] = [
             (bytemuck::bytes_of(&params), uniform),
             (bytemuck::cast_slice(&prep.points), storage),
-            (bytemuck::cast_slice(&table), storage),
+            (bytemuck::cast_slice(&prep.uses), storage),
             (bytemuck::cast_slice(&prep.offsets), storage),
             (bytemuck::cast_slice(&prep.bins), storage),
+            (bytemuck::cast_slice(&prep.blocks), storage),
         ];
         for (slot, (bytes, usage)) in uploads.iter().enumerate() {
             let b = self
@@ -601,25 +796,55 @@ impl GpuResampler {
         tm.read_bytes = out_bytes;
         self.pool.take(&self.device, OUT, out_bytes, out_usage);
         self.pool.take(&self.device, READ, out_bytes, read_usage);
+        self.pool.take(
+            &self.device,
+            LISTS,
+            prep.lists_len() * 4,
+            wgpu::BufferUsages::STORAGE,
+        );
         let bufs = &self.pool.buffers;
         let buf = |slot: usize| bufs[slot].as_ref().expect("taken above");
-        let bind = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("resample"),
-            layout: &self.layout,
-            entries: &[
+        let group = |pipeline: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
+            let entries: Vec<_> = entries
+                .iter()
+                .map(|&(binding, b)| wgpu::BindGroupEntry {
+                    binding,
+                    resource: b.as_entire_binding(),
+                })
+                .collect();
+            self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &entries,
+            })
+        };
+        let (table, arena) = (&self.table.buffer, &self.arena.buffer);
+        let bin_group = group(
+            &self.binner,
+            &[
                 (0, buf(0)),
                 (1, buf(1)),
-                (2, buf(2)),
-                (3, &self.arena),
+                (2, table),
                 (4, buf(3)),
                 (5, buf(4)),
+                (7, buf(2)),
+                (8, buf(5)),
+                (9, buf(LISTS)),
+            ],
+        );
+        let bind = group(
+            &self.pipeline,
+            &[
+                (0, buf(0)),
+                (1, buf(1)),
+                (2, table),
+                (3, arena),
+                (4, buf(3)),
                 (6, buf(OUT)),
-            ]
-            .map(|(binding, b)| wgpu::BindGroupEntry {
-                binding,
-                resource: b.as_entire_binding(),
-            }),
-        });
+                (7, buf(2)),
+                (10, buf(LISTS)),
+            ],
+        );
         // Flush the queued writes so that the upload is timed apart from the dispatch.
         self.queue.submit([]);
         self.wait()?;
@@ -629,6 +854,9 @@ impl GpuResampler {
         let mut enc = self.device.create_command_encoder(&Default::default());
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.binner);
+            pass.set_bind_group(0, &bin_group, &[]);
+            pass.dispatch_workgroups((bx * by).div_ceil(64) as u32, 1, 1);
             pass.set_pipeline(&self.pipeline);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(bx as u32, by as u32, 1);
@@ -666,83 +894,80 @@ impl GpuResampler {
         Ok((out, tm))
     }
 
-    /// Arena places for every patch of the set, and the samples still to upload (packed to
-    /// follow what the arena holds) with how many patches they are.
-    #[allow(clippy::type_complexity)]
-    fn place(
-        &mut self,
-        set: &PatchSet,
-    ) -> Result<(Vec<Uploaded>, Option<(Vec<f32>, usize)>), GpuError> {
-        let missing = |cache: &HashMap<PatchId, Uploaded>| {
+    /// The table slot of every patch of the set, and the samples and records of those not on
+    /// the device yet (packed to follow what it holds), with room made for them.
+    fn place(&mut self, set: &PatchSet) -> Result<Placed, GpuError> {
+        let held = |cache: &Cache, p: &ResolvedPatch| {
+            cache
+                .get(&p.id)
+                .filter(|u| u.bounds == bounds(p))
+                .map(|u| u.slot)
+        };
+        let mut out = Placed {
+            slots: set.patches.iter().map(|p| held(&self.cache, p)).collect(),
+            samples: Vec::new(),
+            records: Vec::new(),
+        };
+        if out.slots.iter().all(Option::is_some) {
+            return Ok(out);
+        }
+        let missing = |slots: &[Option<u32>]| {
             let mut seen = std::collections::HashSet::new();
             set.patches
                 .iter()
-                .filter(|p| !cache.contains_key(&p.id) && seen.insert(p.id))
-                .map(|p| extent(p).len(p))
-                .sum::<u64>()
+                .zip(slots)
+                .filter(|(p, s)| s.is_none() && seen.insert(p.id))
+                .fold((0u64, 0u64), |(f, n), (p, _)| (f + extent(p).len(p), n + 1))
         };
-        let mut need = missing(&self.cache);
-        if self.arena_used + need > self.budget / 4 {
+        let record = std::mem::size_of::<GpuPatch>() as u64;
+        let mut need = missing(&out.slots);
+        if self.arena.used + 4 * need.0 > self.budget
+            || self.table.used + record * need.1 > self.max_binding
+        {
+            // Emptied and refilled with this request's patches: crude, but it never
+            // fragments, and the next requests refill it.
             self.cache.clear();
-            self.arena_used = 0;
-            need = missing(&self.cache);
+            self.arena.used = 0;
+            self.table.used = 0;
+            out.slots.fill(None);
+            need = missing(&out.slots);
         }
-        if need > self.max_binding / 4 {
+        if 4 * need.0 > self.max_binding || record * need.1 > self.max_binding {
             return Err(GpuError::TooLarge(format!(
                 "the patches of this request need {} MiB of samples, more than the device binds",
-                (need * 4) >> 20
+                (need.0 * 4) >> 20
             )));
         }
-        self.reserve(self.arena_used + need)?;
-        let mut data = Vec::with_capacity(need as usize);
-        let mut count = 0;
-        let placed = set
-            .patches
-            .iter()
-            .map(|p| {
-                if let Some(u) = self.cache.get(&p.id) {
-                    return *u;
-                }
-                let u = pack(p, (self.arena_used + data.len() as u64) as u32, &mut data);
-                self.cache.insert(p.id, u);
-                count += 1;
-                u
-            })
-            .collect();
-        Ok((placed, (!data.is_empty()).then_some((data, count))))
-    }
-
-    /// Grows the arena to hold `len` f32s, keeping what it holds.
-    fn reserve(&mut self, len: u64) -> Result<(), GpuError> {
-        if len <= self.arena_len {
-            return Ok(());
+        let (used, table_used) = (self.arena.used, self.table.used);
+        self.arena
+            .reserve(&self.device, &self.queue, used + 4 * need.0, self.budget);
+        self.table.reserve(
+            &self.device,
+            &self.queue,
+            table_used + record * need.1,
+            self.max_binding,
+        );
+        self.check()?;
+        out.samples.reserve(need.0 as usize);
+        out.records.reserve(need.1 as usize);
+        let first_slot = (table_used / record) as u32;
+        for (p, slot) in set.patches.iter().zip(out.slots.iter_mut()) {
+            if slot.is_some() {
+                continue;
+            }
+            // A patch listed twice is packed once.
+            if let Some(s) = held(&self.cache, p) {
+                *slot = Some(s);
+                continue;
+            }
+            let offset = (used / 4) as u32 + out.samples.len() as u32;
+            let s = first_slot + out.records.len() as u32;
+            let u = pack(p, s, offset, &mut out.samples);
+            out.records.push(gpu_patch(p, &u));
+            self.cache.insert(p.id, u);
+            *slot = Some(s);
         }
-        let mut new_len = self.arena_len.max(1);
-        while new_len < len {
-            new_len *= 2;
-        }
-        let new_len = new_len.min((self.budget / 4).max(len));
-        let arena = arena_buffer(&self.device, new_len);
-        if self.arena_used > 0 {
-            let mut enc = self.device.create_command_encoder(&Default::default());
-            enc.copy_buffer_to_buffer(&self.arena, 0, &arena, 0, self.arena_used * 4);
-            self.queue.submit([enc.finish()]);
-        }
-        self.arena = arena;
-        self.arena_len = new_len;
-        self.check()
-    }
-
-    fn write_samples(&mut self, data: Option<Vec<f32>>) -> Result<(), GpuError> {
-        if let Some(data) = data {
-            self.queue.write_buffer(
-                &self.arena,
-                self.arena_used * 4,
-                bytemuck::cast_slice(&data),
-            );
-            self.arena_used += data.len() as u64;
-        }
-        Ok(())
+        Ok(out)
     }
 
     fn wait(&self) -> Result<(), GpuError> {
@@ -844,15 +1069,13 @@ fn pick_adapter(instance: &wgpu::Instance, emulated: Emulated) -> Result<wgpu::A
         })
 }
 
-fn arena_buffer(device: &wgpu::Device, len: u64) -> wgpu::Buffer {
-    device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("sample arena"),
-        size: len.max(1) * 4,
-        usage: wgpu::BufferUsages::STORAGE
-            | wgpu::BufferUsages::COPY_DST
-            | wgpu::BufferUsages::COPY_SRC,
-        mapped_at_creation: false,
-    })
+/// What [`GpuResampler::place`] found and made: a table slot a patch of the set, and the
+/// samples and records to append.
+struct Placed {
+    /// Every one is Some once placed.
+    slots: Vec<Option<u32>>,
+    samples: Vec<f32>,
+    records: Vec<GpuPatch>,
 }
 
 /// The samples a patch uploads: a survey patch's window plus one cell on every side its level
@@ -902,7 +1125,7 @@ fn extent(p: &ResolvedPatch) -> Extent {
 
 /// Appends a patch's samples relative to its base, voids as [`VOID`], and after them an edge
 /// patch's flags or a bicubic patch's spline coefficients (relative to the same base).
-fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
+fn pack(p: &ResolvedPatch, slot: u32, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     let e = extent(p);
     // Where the surface's samples start in its level: a window of a level may begin inside it.
     let (heights, cols, flags, at): (&[f32], usize, Option<&[u8]>, [usize; 2]) = match &p.surface {
@@ -947,6 +1170,8 @@ fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
         }
     }
     Uploaded {
+        slot,
+        bounds: bounds(p),
         offset,
         cols: e.cols,
         rows: e.rows,
@@ -956,24 +1181,14 @@ fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     }
 }
 
-/// The shader's record of a patch, its first sample relative to `origin`, the origin of its
-/// plane's positions, which start at `points` in the points buffer.
-fn gpu_patch(
-    p: &ResolvedPatch,
-    a: &Uploaded,
-    origin: [f64; 2],
-    points: u32,
-    max_norm: f64,
-) -> GpuPatch {
+fn bounds(p: &ResolvedPatch) -> [f64; 4] {
+    let b = &p.window_aabb;
+    [b.min[0], b.min[1], b.max[0], b.max[1]]
+}
+
+/// The shader's record of a patch whose samples were packed as `a` says.
+fn gpu_patch(p: &ResolvedPatch, a: &Uploaded) -> GpuPatch {
     let (c0, r0) = (a.c0 as f64, a.r0 as f64);
-    // The first uploaded sample, from the same origin and axes `to_grid` uses.
-    let [u, v] = p.axes;
-    let o = [
-        p.origin[0] + c0 * u[0] / p.inv_step[0] + r0 * v[0] / p.inv_step[1],
-        p.origin[1] + c0 * u[1] / p.inv_step[0] + r0 * v[1] / p.inv_step[1],
-    ];
-    let [xh, xl] = split(o[0] - origin[0]);
-    let [yh, yl] = split(o[1] - origin[1]);
     let rect = |r: &patchwork_core::model::patch::CellRect| {
         [
             (r.c0 as f64 - c0) as f32,
@@ -990,19 +1205,16 @@ fn gpu_patch(
     };
     let (col_hi, col_lo) = axis(p.u, p.inv_step[0]);
     let (row_hi, row_lo) = axis(p.v, p.inv_step[1]);
+    let halves = bounds(p).map(split);
     GpuPatch {
-        origin_hi: [xh, yh],
-        origin_lo: [xl, yl],
+        bounds_hi: halves.map(|h| h[0]),
+        bounds_lo: halves.map(|h| h[1]),
         col_hi,
         col_lo,
         row_hi,
         row_lo,
         centre: [(p.centre[0] - c0) as f32, (p.centre[1] - r0) as f32],
         inv_half: f2(p.inv_half),
-        rank: p.rank,
-        flags: if p.fallback { PATCH_FALLBACK } else { 0 },
-        // Only ratios of weights matter; scaling keeps them far from f32's range limits.
-        norm: (p.norm / max_norm) as f32,
         base: a.base,
         window: rect(&p.window),
         kernel: rect(&p.kernel),
@@ -1015,7 +1227,30 @@ fn gpu_patch(
             Surface::Edge(_) => KIND_EDGE,
         },
         flat: p.flat as f32,
+        _pad: [0; 2],
+    }
+}
+
+/// What a request adds to patch `p`: its first uploaded sample relative to `origin`, the
+/// origin of its plane's positions, which start at `points` in the points buffer.
+fn use_of(p: &ResolvedPatch, origin: [f64; 2], points: u32, max_norm: f64) -> GpuUse {
+    let e = extent(p);
+    let (c0, r0) = (e.c0 as f64, e.r0 as f64);
+    // The first uploaded sample, from the same origin and axes `to_grid` uses.
+    let [u, v] = p.axes;
+    let o = [
+        p.origin[0] + c0 * u[0] / p.inv_step[0] + r0 * v[0] / p.inv_step[1],
+        p.origin[1] + c0 * u[1] / p.inv_step[0] + r0 * v[1] / p.inv_step[1],
+    ];
+    let [xh, xl] = split(o[0] - origin[0]);
+    let [yh, yl] = split(o[1] - origin[1]);
+    GpuUse {
+        origin_hi: [xh, yh],
+        origin_lo: [xl, yl],
+        slot: 0,
+        rank: p.rank | if p.fallback { FALLBACK } else { 0 },
+        // Only ratios of weights matter; scaling keeps them far from f32's range limits.
+        norm: (p.norm / max_norm) as f32,
         points,
-        _pad: [0.0; 2],
     }
 }

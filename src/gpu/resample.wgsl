@@ -1,6 +1,8 @@
 // Formula 1 on the GPU: the same sums as `cpu::blend`, one invocation per output sample, one
-// workgroup per BLOCK × BLOCK block of samples, visiting only the patches in that block's bin.
-// Where a set holds fallback patches, a first pass over the bin finds the tier that serves the
+// workgroup per BLOCK × BLOCK block of samples, visiting only the patches that meet the block.
+// The CPU bins patches into squares of SUPER × SUPER blocks; a first dispatch (`bin_blocks`)
+// tests each bin's patches against each of its blocks' bounds and lists those that meet it,
+// in the bin's order, which is the CPU's, so the sums are formed in the same order. Where a set holds fallback patches, a first pass over the bin finds the tier that serves the
 // sample (see `cpu.rs`) and the second blends that tier.
 //
 // Positions arrive as (hi, lo) f32 pairs relative to a tile origin (one origin per plane: a
@@ -23,8 +25,11 @@ const KIND_BICUBIC: u32 = 2u;
 const FLAG_VALID: u32 = 1u;
 const FLAG_EDGE_CELL: u32 = 2u;
 
-// Patch flags.
-const PATCH_FALLBACK: u32 = 1u;
+// Set in `Use::rank` for a fallback patch.
+const FALLBACK: u32 = 0x80000000u;
+
+// Blocks along each side of a bin (`SUPER` in `mod.rs`).
+const SUPER: u32 = 8u;
 
 // `edge::MIN_WEIGHT`.
 const MIN_WEIGHT: f32 = 1e-6;
@@ -40,17 +45,27 @@ struct Params {
     // 1 where the store plane's positions are a north-up grid's axes: `points` then holds
     // each column's x (as x hi, 0, x lo, 0), then each row's y (0, y hi, 0, y lo).
     axes: u32,
+    // Bins along a row of them.
+    supers_x: u32,
     _pad0: u32,
     _pad1: u32,
-    _pad2: u32,
-}
-
-// Grid coordinates below are local to the patch's uploaded samples: the window grown by one
-// cell where the level has one, because the edge rule may look at the cell beyond the window.
-struct Patch {
-    // World position of the first uploaded sample minus the tile origin, as hi + lo.
+    // The request's origin in the store's plane, as hi + lo.
     origin_hi: vec2<f32>,
     origin_lo: vec2<f32>,
+    // How far patch bounds are widened before a block is tested against them.
+    pad: f32,
+    _pad2: u32,
+    _pad3: u32,
+    _pad4: u32,
+}
+
+// A patch as kept on the device, beside its samples. Grid coordinates below are local to the
+// patch's uploaded samples: the window grown by one cell where the level has one, because
+// the edge rule may look at the cell beyond the window.
+struct Patch {
+    // The window's world bounds in the store's plane (min x, min y, max x, max y), hi + lo.
+    bounds_hi: vec4<f32>,
+    bounds_lo: vec4<f32>,
     // The column and row axes divided by the spacing: grid coordinate = dot(axis, d).
     col_hi: vec2<f32>,
     col_lo: vec2<f32>,
@@ -58,35 +73,50 @@ struct Patch {
     row_lo: vec2<f32>,
     centre: vec2<f32>,
     inv_half: vec2<f32>,
-    norm: f32,
-    base: f32,
-    // Rank among the fallback patches, and PATCH_* flags.
-    rank: u32,
-    flags: u32,
     // (c0, r0, c1, r1), closed, in local grid coordinates.
     window: vec4<f32>,
     kernel: vec4<f32>,
+    base: f32,
+    // `ResolvedPatch::flat`: 0 for the tent, else the slope of a weight flat on the kernel.
+    flat: f32,
     offset: u32,
     cols: u32,
     rows: u32,
     kind: u32,
-    // `ResolvedPatch::flat`: 0 for the tent, else the slope of a weight flat on the kernel.
-    flat: f32,
-    // Where the positions of the patch's plane start in `points`: 0 for the store's plane,
-    // k · width · height for the k-th plane of a survey in another CRS.
+    _pad1: u32,
+    _pad2: u32,
+}
+
+// What a request adds to a patch.
+struct Use {
+    // World position of the first uploaded sample minus the plane's origin, as hi + lo.
+    origin_hi: vec2<f32>,
+    origin_lo: vec2<f32>,
+    // The patch's record in `patches`.
+    slot: u32,
+    // Rank among the fallback patches, with FALLBACK set for a fallback patch.
+    rank: u32,
+    norm: f32,
+    // Where the positions of the patch's plane start in `points`: 0 for the store's plane.
     points: u32,
-    _pad1: f32,
-    _pad2: f32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> patches: array<Patch>;
 @group(0) @binding(3) var<storage, read> samples: array<f32>;
+// Bins of SUPER × SUPER blocks: indices into `uses`, ascending.
 @group(0) @binding(4) var<storage, read> bin_offsets: array<u32>;
 @group(0) @binding(5) var<storage, read> bins: array<u32>;
 // Each sample's height as f32 bits, NaN where void.
 @group(0) @binding(6) var<storage, read_write> heights: array<u32>;
+@group(0) @binding(7) var<storage, read> uses: array<Use>;
+// For a grid without axes, each block's bounds relative to the origin, rounded outwards.
+@group(0) @binding(8) var<storage, read> blocks: array<vec4<f32>>;
+// Each block's patches, written by `bin_blocks` and read by `main` (the same buffer): how
+// many, then their indices into `uses`, in a region of the block's own (`list_start`).
+@group(0) @binding(9) var<storage, read_write> lists_out: array<u32>;
+@group(0) @binding(10) var<storage, read> lists: array<u32>;
 
 // A quiet NaN's bits: WGSL has no NaN literal, and the bits reach the CPU as written.
 const NAN_BITS: u32 = 0x7fc00000u;
@@ -342,15 +372,15 @@ fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
 }
 
 // The patch's weight and answer at sample i: (weight, height, covered, reaches).
-fn sample_patch(q: Patch, i: u32) -> vec4<f32> {
-    let pt = point_at(q.points, i);
+fn sample_patch(u: Use, q: Patch, i: u32) -> vec4<f32> {
+    let pt = point_at(u.points, i);
     if pt.x >= VOID {
         return vec4<f32>(0.0);
     }
-    let sx = two_sum(pt.x, -q.origin_hi.x);
-    let sy = two_sum(pt.y, -q.origin_hi.y);
+    let sx = two_sum(pt.x, -u.origin_hi.x);
+    let sy = two_sum(pt.y, -u.origin_hi.y);
     let dh = vec2<f32>(sx.x, sy.x);
-    let dl = vec2<f32>(sx.y, sy.y) + (pt.zw - q.origin_lo);
+    let dl = vec2<f32>(sx.y, sy.y) + (pt.zw - u.origin_lo);
     let cx = coord(dh, dl, q.col_hi, q.col_lo);
     let cy = coord(dh, dl, q.row_hi, q.row_lo);
     var gh = vec2<f32>(cx.x, cy.x);
@@ -367,7 +397,7 @@ fn sample_patch(q: Patch, i: u32) -> vec4<f32> {
     if e.w == 0.0 {
         return vec4<f32>(0.0);
     }
-    let w = weight(q, t.x) * weight(q, t.y) * q.norm * e.y;
+    let w = weight(q, t.x) * weight(q, t.y) * u.norm * e.y;
     return vec4<f32>(w, e.x, e.z, 1.0);
 }
 
@@ -393,6 +423,84 @@ fn coord(dh: vec2<f32>, dl: vec2<f32>, ah: vec2<f32>, al: vec2<f32>) -> vec2<f32
     return two_sum(s.x, lo);
 }
 
+// x widened outwards by a few units in its last place and by params.pad.
+fn widen(b: vec4<f32>) -> vec4<f32> {
+    let m = abs(b) * 1e-6 + params.pad;
+    return vec4<f32>(b.xy - m.xy, b.zw + m.zw);
+}
+
+// hi + lo − the origin, as one f32.
+fn from_origin(hi: vec2<f32>, lo: vec2<f32>) -> vec2<f32> {
+    let sx = two_sum(hi.x, -params.origin_hi.x);
+    let sy = two_sum(hi.y, -params.origin_hi.y);
+    return vec2<f32>(sx.x, sy.x) + (vec2<f32>(sx.y, sy.y) + (lo - params.origin_lo));
+}
+
+// The bounds of block w's points relative to the origin, widened: from the axes of a
+// north-up grid (its first and last column and row, as the CPU's `block_bounds`), else as
+// the CPU worked them out. Empty (min > max) for a block without a valid point.
+fn bounds_of_block(w: vec2<u32>) -> vec4<f32> {
+    if params.axes != 0u {
+        let i0 = w.x * 16u;
+        let i1 = min(i0 + 15u, params.width - 1u);
+        let j0 = params.width + w.y * 16u;
+        let j1 = params.width + min(w.y * 16u + 15u, params.height - 1u);
+        let xa = points[i0].x + points[i0].z;
+        let xb = points[i1].x + points[i1].z;
+        let ya = points[j0].y + points[j0].w;
+        let yb = points[j1].y + points[j1].w;
+        return widen(vec4<f32>(min(xa, xb), min(ya, yb), max(xa, xb), max(ya, yb)));
+    }
+    return blocks[w.y * params.blocks_x + w.x];
+}
+
+// Whether the patch of use k may reach a point of the block: its window's bounds, widened,
+// meet the block's. A superset of the CPU's test, which is harmless: a patch reaches no point
+// outside its window.
+fn meets(k: u32, b: vec4<f32>) -> bool {
+    let q = patches[uses[k].slot];
+    let lo = from_origin(q.bounds_hi.xy, q.bounds_lo.xy);
+    let hi = from_origin(q.bounds_hi.zw, q.bounds_lo.zw);
+    let p = widen(vec4<f32>(lo, hi));
+    return all(p.xy <= b.zw) && all(b.xy <= p.zw);
+}
+
+// Bin s holds entries first..end of `bins`. Each of its blocks has room for all of them and
+// their count: the bins before it take SUPER² · (first + s) words.
+fn list_start(w: vec2<u32>, s: u32, first: u32, end: u32) -> u32 {
+    let local = (w.y % SUPER) * SUPER + w.x % SUPER;
+    return SUPER * SUPER * (first + s) + local * (1u + end - first);
+}
+
+fn bin_of(w: vec2<u32>) -> u32 {
+    return (w.y / SUPER) * params.supers_x + w.x / SUPER;
+}
+
+// One invocation a block: the patches of its bin whose bounds meet the block's, in order.
+@compute @workgroup_size(64, 1, 1)
+fn bin_blocks(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let blocks_y = (params.height + 15u) / 16u;
+    if gid.x >= params.blocks_x * blocks_y {
+        return;
+    }
+    let w = vec2<u32>(gid.x % params.blocks_x, gid.x / params.blocks_x);
+    let s = bin_of(w);
+    let first = bin_offsets[s];
+    let end = bin_offsets[s + 1u];
+    let start = list_start(w, s, first, end);
+    let b = bounds_of_block(w);
+    var n = 0u;
+    if b.x <= b.z {
+        for (var k = first; k < end; k++) {
+            if meets(bins[k], b) {
+                n++;
+                lists_out[start + n] = bins[k];
+            }
+        }
+    }
+    lists_out[start] = n;
+}
+
 @compute @workgroup_size(16, 16, 1)
 fn main(
     @builtin(global_invocation_id) gid: vec3<u32>,
@@ -404,27 +512,27 @@ fn main(
     let i = gid.y * params.width + gid.x;
     here = gid.xy;
     heights[i] = NAN_BITS;
-    let pt = point_at(0u, i);
-    if pt.x >= VOID {
+    if point_at(0u, i).x >= VOID {
         return;
     }
-    let block = wid.y * params.blocks_x + wid.x;
-    let first = bin_offsets[block];
-    let end = bin_offsets[block + 1u];
+    let s = bin_of(wid.xy);
+    let start = list_start(wid.xy, s, bin_offsets[s], bin_offsets[s + 1u]);
+    let first = start + 1u;
+    let end = first + lists[start];
     // The tier: whether a cut patch covers the sample, else the best fallback rank that does.
     var cut_covers = false;
     var best = 0xffffffffu;
     if params.has_fallback != 0u {
         for (var b = first; b < end; b++) {
-            let q = patches[bins[b]];
-            let s = sample_patch(q, i);
-            if s.w == 0.0 || s.z == 0.0 {
+            let u = uses[lists[b]];
+            let sp = sample_patch(u, patches[u.slot], i);
+            if sp.w == 0.0 || sp.z == 0.0 {
                 continue;
             }
-            if (q.flags & PATCH_FALLBACK) == 0u {
+            if (u.rank & FALLBACK) == 0u {
                 cut_covers = true;
             } else {
-                best = min(best, q.rank);
+                best = min(best, u.rank & ~FALLBACK);
             }
         }
     }
@@ -434,21 +542,22 @@ fn main(
     var have_ref = false;
     var zref = 0.0;
     for (var b = first; b < end; b++) {
-        let q = patches[bins[b]];
-        if (q.flags & PATCH_FALLBACK) != 0u && (cut_covers || q.rank > best) {
+        let u = uses[lists[b]];
+        if (u.rank & FALLBACK) != 0u && (cut_covers || (u.rank & ~FALLBACK) > best) {
             continue;
         }
-        let s = sample_patch(q, i);
-        if s.w == 0.0 {
+        let q = patches[u.slot];
+        let sp = sample_patch(u, q, i);
+        if sp.w == 0.0 {
             continue;
         }
         if !have_ref {
             zref = q.base;
             have_ref = true;
         }
-        sum += s.x * (s.y + (q.base - zref));
-        wsum += s.x;
-        covered = covered || s.z != 0.0;
+        sum += sp.x * (sp.y + (q.base - zref));
+        wsum += sp.x;
+        covered = covered || sp.z != 0.0;
     }
     if covered && wsum > 0.0 {
         // One rounding of the exact sum, as the CPU's f64 sum rounded to f32.

@@ -208,6 +208,15 @@ fn gpu_matches_cpu_on_the_real_crops() {
             worst = worst.max(compare(&mut g, &t, t.uniform(&roi, e), &grid, &what));
         }
     }
+    // The three over N34W119 at full resolution onto a small tile: one bin holds hundreds
+    // of patches, from which the device picks each block's few.
+    let all = bounds_of(&surveys[..3]);
+    let grid = SampleGrid::uniform(&all, 100, 90);
+    let ps = t.uniform(&all, 0.0);
+    let largest = patchwork::gpu::prepare(&t.resolve(&ps), &grid).largest_bin();
+    assert!(largest > 256, "a bin of only {largest} patches");
+    let what = format!("the N34W119 three at e = 0, 100×90, a bin of {largest} patches");
+    worst = worst.max(compare(&mut g, &t, ps, &grid, &what));
     // A view over the N34W119 pair from a corner, looking across it.
     let pair = [surveys[1].clone(), surveys[2].clone()];
     let b: Aabb = bounds_of(&pair);
@@ -291,7 +300,9 @@ fn gpu_uploads_shared_patches_once_and_survives_eviction() {
     assert_eq!(again.cached_patches, set.patches.len());
     assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
     // Warm, a north-up grid sends its axes and the bins, not a point a sample: a 2048² tile
-    // uploads under 1 MB (64 MB of points before) and reads back 4 bytes a sample.
+    // uploads under 1 MB (64 MB of points before) and reads back 4 bytes a sample. The
+    // patches' records stay on the device: a patch costs what the request adds to it (32
+    // bytes) and its entries in the bins of 128² samples, not its 144-byte record.
     let big = SampleGrid::uniform(&roi, 2048, 2048);
     let want = cpu::resample(&set, &big);
     g.resample_timed(&set, &big).unwrap();
@@ -299,6 +310,16 @@ fn gpu_uploads_shared_patches_once_and_survives_eviction() {
     println!("warm 2048²: {warm:?}");
     assert_eq!(warm.uploaded_patches, 0);
     assert!(warm.uploaded_bytes <= 1 << 20, "{warm:?}");
+    let prep = patchwork::gpu::prepare(&set, &big);
+    let (bins, entries) = prep.bins();
+    let params = 64;
+    let axes = 2 * 2048 * 16;
+    assert_eq!(
+        warm.uploaded_bytes as usize,
+        params + axes + 32 * set.patches.len() + 4 * (bins + 1 + entries),
+        "{warm:?}"
+    );
+    assert_eq!(warm.read_bytes, 2048 * 2048 * 4);
     assert!(got
         .iter()
         .zip(&want)

@@ -16,7 +16,132 @@ use rayon::prelude::*;
 /// Patch indices per block of output samples, so each sample visits only patches near it:
 /// those whose window meets the block's bounds, in ascending order.
 pub fn bin(patches: &[ResolvedPatch], grid: &SampleGrid) -> Vec<Vec<u32>> {
-    let blocks = grid.block_bounds();
+    bin_squares(patches, grid, BLOCK)
+}
+
+/// [`bin`] for squares of `side` × `side` samples.
+pub fn bin_squares(patches: &[ResolvedPatch], grid: &SampleGrid, side: usize) -> Vec<Vec<u32>> {
+    if let Some((cols, rows)) = grid.axis_bounds(side) {
+        if let Some(bins) = bin_axes(patches, &cols, &rows) {
+            return bins;
+        }
+    }
+    bin_boxes(patches, &grid.bounds_of(side))
+}
+
+/// [`bin_boxes`] for the boxes of a north-up grid, box (i, j) the product of the x interval
+/// `cols[i]` and the y interval `rows[j]`, row-major. None where the intervals do not run one
+/// way along each list (see [`Flat::of_axes`]).
+pub fn bin_axes(
+    patches: &[ResolvedPatch],
+    cols: &[[f64; 2]],
+    rows: &[[f64; 2]],
+) -> Option<Vec<Vec<u32>>> {
+    let flat = Flat::of_axes(patches, cols, rows)?;
+    Some(
+        flat.offsets
+            .windows(2)
+            .map(|w| flat.entries[w[0] as usize..w[1] as usize].to_vec())
+            .collect(),
+    )
+}
+
+/// Bins laid end to end: bin b holds `entries[offsets[b]..offsets[b + 1]]`, the form a GPU
+/// takes them in.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Flat {
+    /// Where each bin starts in `entries`, and after the last where it ends.
+    pub offsets: Vec<u32>,
+    /// Patch indices, ascending within a bin.
+    pub entries: Vec<u32>,
+}
+
+impl Flat {
+    /// [`bin_axes`], end to end. Where the intervals' ends run one way along each list (as
+    /// monotone axes make them), each patch finds the boxes its window meets by bisection,
+    /// rather than each box looking for its patches; bins are counted, then filled, in the
+    /// patches' order.
+    pub fn of_axes(
+        patches: &[ResolvedPatch],
+        cols: &[[f64; 2]],
+        rows: &[[f64; 2]],
+    ) -> Option<Flat> {
+        // The indices of the intervals that meet [a, b]: a run of them, found by bisection.
+        type Span = fn(&[[f64; 2]], f64, f64) -> std::ops::Range<usize>;
+        fn rising(v: &[[f64; 2]], a: f64, b: f64) -> std::ops::Range<usize> {
+            v.partition_point(|c| c[1] < a)..v.partition_point(|c| c[0] <= b)
+        }
+        fn falling(v: &[[f64; 2]], a: f64, b: f64) -> std::ops::Range<usize> {
+            v.partition_point(|c| c[0] > b)..v.partition_point(|c| c[1] >= a)
+        }
+        let order = |v: &[[f64; 2]]| -> Option<Span> {
+            let pairs = || v.windows(2);
+            if pairs().all(|w| w[0][0] <= w[1][0] && w[0][1] <= w[1][1]) {
+                Some(rising)
+            } else if pairs().all(|w| w[0][0] >= w[1][0] && w[0][1] >= w[1][1]) {
+                Some(falling)
+            } else {
+                None
+            }
+        };
+        let (x_span, y_span) = (order(cols)?, order(rows)?);
+        let spans: Vec<_> = patches
+            .iter()
+            .map(|p| {
+                let a = &p.window_aabb;
+                (
+                    x_span(cols, a.min[0], a.max[0]),
+                    y_span(rows, a.min[1], a.max[1]),
+                )
+            })
+            .collect();
+        let w = cols.len();
+        let mut offsets = vec![0u32; w * rows.len() + 1];
+        for (xs, ys) in &spans {
+            for j in ys.clone() {
+                for i in xs.clone() {
+                    offsets[j * w + i + 1] += 1;
+                }
+            }
+        }
+        for b in 1..offsets.len() {
+            offsets[b] += offsets[b - 1];
+        }
+        let mut next = offsets.clone();
+        let mut entries = vec![0u32; *offsets.last().expect("one offset at least") as usize];
+        for (k, (xs, ys)) in spans.into_iter().enumerate() {
+            for j in ys {
+                for i in xs.clone() {
+                    let at = &mut next[j * w + i];
+                    entries[*at as usize] = k as u32;
+                    *at += 1;
+                }
+            }
+        }
+        Some(Flat { offsets, entries })
+    }
+
+    /// Bins given one by one.
+    pub fn of(bins: &[Vec<u32>]) -> Flat {
+        let mut f = Flat {
+            offsets: Vec::with_capacity(bins.len() + 1),
+            entries: Vec::with_capacity(bins.iter().map(Vec::len).sum()),
+        };
+        f.offsets.push(0);
+        for b in bins {
+            f.entries.extend_from_slice(b);
+            f.offsets.push(f.entries.len() as u32);
+        }
+        f
+    }
+}
+
+/// Patch indices per box, those whose window meets it, in ascending order: [`bin`] for boxes
+/// of any size (the GPU bins blocks of blocks, and each block picks its own from those).
+pub fn bin_boxes(
+    patches: &[ResolvedPatch],
+    blocks: &[Option<patchwork_geom::Aabb>],
+) -> Vec<Vec<u32>> {
     // Testing every patch against every block cost a 2048² tile of 15,000 patches 0.5 s:
     // buckets narrow each block's test to the patches near it.
     let buckets = Buckets::new(patches);

@@ -66,6 +66,9 @@ pub struct SampleGrid {
     pub axes: Option<Axes>,
 }
 
+/// Closed intervals [min, max] along one axis.
+pub type Intervals = Vec<[f64; 2]>;
+
 /// The coordinates of a north-up tile's columns and rows.
 #[derive(Clone, Debug)]
 pub struct Axes {
@@ -135,30 +138,48 @@ impl SampleGrid {
         (0..self.width * self.height).map(|k| self.point(k))
     }
 
+    /// For a north-up grid, the x interval of each column of `side` × `side` squares of
+    /// samples and the y interval of each row of them, from the first and last sample each
+    /// spans: square (i, j) is their product.
+    pub fn axis_bounds(&self, side: usize) -> Option<(Intervals, Intervals)> {
+        let Axes { xs, ys } = self.axes.as_ref()?;
+        let spans = |v: &[f64]| {
+            v.chunks(side)
+                .map(|c| {
+                    let (a, b) = (c[0], c[c.len() - 1]);
+                    [a.min(b), a.max(b)]
+                })
+                .collect()
+        };
+        Some((spans(xs), spans(ys)))
+    }
+
     /// Bounds of each block's points, row-major over blocks; None for a block without any.
     pub fn block_bounds(&self) -> Vec<Option<Aabb>> {
-        let bx = self.width.div_ceil(BLOCK);
-        let by = self.height.div_ceil(BLOCK);
-        if let Some(Axes { xs, ys }) = &self.axes {
-            let span = |v: &[f64]| {
-                let (a, b) = (v[0], v[v.len() - 1]);
-                (a.min(b), a.max(b))
-            };
+        self.bounds_of(BLOCK)
+    }
+
+    /// Bounds of the points of each `side` × `side` square of samples, row-major; None for
+    /// one without any.
+    pub fn bounds_of(&self, side: usize) -> Vec<Option<Aabb>> {
+        let bx = self.width.div_ceil(side);
+        let by = self.height.div_ceil(side);
+        if let Some((cols, rows)) = self.axis_bounds(side) {
             return (0..bx * by)
                 .map(|b| {
-                    let (i0, j0) = ((b % bx) * BLOCK, (b / bx) * BLOCK);
-                    let (x0, x1) = span(&xs[i0..(i0 + BLOCK).min(self.width)]);
-                    let (y0, y1) = span(&ys[j0..(j0 + BLOCK).min(self.height)]);
+                    let ([x0, x1], [y0, y1]) = (cols[b % bx], rows[b / bx]);
                     Some(Aabb::new(x0, y0, x1, y1))
                 })
                 .collect();
         }
+        use rayon::prelude::*;
         (0..bx * by)
+            .into_par_iter()
             .map(|b| {
-                let (i0, j0) = ((b % bx) * BLOCK, (b / bx) * BLOCK);
+                let (i0, j0) = ((b % bx) * side, (b / bx) * side);
                 let mut acc: Option<Aabb> = None;
-                for j in j0..(j0 + BLOCK).min(self.height) {
-                    for i in i0..(i0 + BLOCK).min(self.width) {
+                for j in j0..(j0 + side).min(self.height) {
+                    for i in i0..(i0 + side).min(self.width) {
                         let p = self.list[j * self.width + i];
                         if p[0].is_nan() {
                             continue;

@@ -9,7 +9,7 @@ use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::accuracy::AccuracySpec::Auto;
 use patchwork_core::model::grid::Grid;
-use patchwork_core::resample::{cpu, SampleGrid};
+use patchwork_core::resample::{cpu, SampleGrid, BLOCK};
 use patchwork_core::terrain::Terrain;
 
 fn cop() -> Grid {
@@ -479,9 +479,11 @@ fn blocks_that_one_patch_serves_alone_get_the_blend_to_the_bit() {
 
 #[test]
 fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
-    // Binning looks up patches by buckets; the plain test of every patch against every block
-    // is the reference. Surveys of several levels, edge patches and a rotated survey, on
-    // north-up grids and on a grid of scattered points with holes in it.
+    // Binning finds a north-up grid's blocks by bisection along its axes and any other
+    // grid's by buckets; the plain test of every patch against every block is the reference.
+    // Surveys of several levels, edge patches and a rotated survey, on north-up grids (their
+    // axes either way round), in blocks and in the GPU's squares of 8 × 8 blocks, and on a
+    // grid of scattered points with holes in it.
     let surveys = every_kind_of_patch();
     let t = terrain_of(&surveys);
     let b = bounds_of(&surveys);
@@ -513,10 +515,19 @@ fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
                     })
                     .collect(),
             );
-            for grid in [uniform, scattered] {
-                let bins = cpu::bin(&set.patches, &grid);
+            let axes = uniform.axes.clone().expect("a uniform grid has axes");
+            let reversed = SampleGrid::of_axes(
+                axes.xs.iter().rev().copied().collect(),
+                axes.ys.iter().rev().copied().collect(),
+            );
+            let squares = [BLOCK, 8 * BLOCK];
+            for (grid, side) in [uniform, reversed, scattered]
+                .into_iter()
+                .flat_map(|g| squares.map(|s| (g.clone(), s)))
+            {
+                let bins = cpu::bin_squares(&set.patches, &grid, side);
                 let want: Vec<Vec<u32>> = grid
-                    .block_bounds()
+                    .bounds_of(side)
                     .iter()
                     .map(|bb| match bb {
                         Some(bb) => (0..set.patches.len() as u32)
@@ -525,7 +536,7 @@ fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
                         None => Vec::new(),
                     })
                     .collect();
-                assert_eq!(bins, want, "{roi:?} e = {e}");
+                assert_eq!(bins, want, "{roi:?} e = {e}, squares of {side}");
                 seen += bins.iter().map(Vec::len).sum::<usize>();
             }
         }
