@@ -217,16 +217,20 @@ impl Engine {
         #[cfg(feature = "gpu")]
         if self.has_gpu() {
             // Binning and packing need no device: done before taking it, so that requests
-            // queue on the device only for the device's own work.
+            // queue on the device only for the device's own work. The device is held only to
+            // queue the request's uploads and dispatches; the wait for its heights and their
+            // readback are outside, so the next request is queued while this one runs.
             let prepared = crate::gpu::prepare(set, grid);
-            let mut gpu = lock(&self.gpu.resampler);
-            if let Some(g) = gpu.as_mut() {
-                match g.resample_prepared(set, prepared) {
+            let submitted = lock(&self.gpu.resampler)
+                .as_mut()
+                .map(|g| g.submit(set, prepared));
+            if let Some(submitted) = submitted {
+                match submitted.and_then(|s| s.wait()) {
                     Ok((heights, _)) => return Ok(Some(heights)),
                     Err(e) => {
                         tracing::warn!(error = %e, "GPU resampling failed; this request and later ones use the CPU");
                         if matches!(e, GpuError::Lost(_) | GpuError::Device(_)) {
-                            *gpu = None;
+                            *lock(&self.gpu.resampler) = None;
                             *crate::sync::lock(&self.gpu.adapter) = None;
                         }
                         if backend == Backend::Gpu {

@@ -213,13 +213,15 @@ struct Uploaded {
 /// Where one request's time went.
 #[derive(Clone, Debug, Default)]
 pub struct GpuTimings {
-    /// Binning and packing on the CPU.
+    /// The CPU's work: binning and packing ([`prepare`]), and placing the patches on the
+    /// device (under its lock).
     pub prepare: Duration,
-    /// Buffer creation and the transfer of samples, points, patches and bins.
-    pub upload: Duration,
-    /// The dispatch, from submission until the device is idle.
-    pub compute: Duration,
-    /// Copying the results back and turning them into heights.
+    /// Queuing the uploads and the dispatches and submitting them, under the device's lock.
+    pub queue: Duration,
+    /// From submission until the heights can be read: the transfer of what was uploaded,
+    /// both dispatches and the copy to the readback buffer.
+    pub device: Duration,
+    /// Copying the heights out of the readback buffer.
     pub readback: Duration,
     pub uploaded_bytes: u64,
     /// Bytes read back: 4 a sample.
@@ -245,9 +247,39 @@ pub struct GpuResampler {
     cache: Cache,
     /// The per-request buffers, kept from one request to the next.
     pool: Pool,
-    /// Errors the device reported outside any scope, and device loss.
+    /// Buffers that heights were read back through, for the next requests.
+    spare: Spare,
+    health: Health,
+}
+
+/// Readback buffers free for a request: one a request in flight, kept for the next.
+type Spare = Arc<Mutex<Vec<wgpu::Buffer>>>;
+
+/// How many readback buffers are kept free: as many requests in flight as reuse them.
+const SPARE: usize = 8;
+
+/// Errors the device reported outside any scope, and device loss: shared with the requests
+/// in flight, which wait outside the device's lock.
+#[derive(Clone, Default)]
+struct Health {
     errors: Arc<Mutex<Vec<String>>>,
     lost: Arc<Mutex<Option<String>>>,
+}
+
+impl Health {
+    /// Fails with what the device reported since the last check.
+    fn check(&self) -> Result<(), GpuError> {
+        if let Some(l) = lock(&self.lost).clone() {
+            return Err(GpuError::Lost(l));
+        }
+        let mut errors = lock(&self.errors);
+        if !errors.is_empty() {
+            let msg = errors.join("; ");
+            errors.clear();
+            return Err(GpuError::Failed(msg));
+        }
+        Ok(())
+    }
 }
 
 /// A device buffer that is appended to and grown by doubling, keeping what it holds.
@@ -309,18 +341,19 @@ fn store_buffer(device: &wgpu::Device, label: &str, len: u64) -> wgpu::Buffer {
 }
 
 /// Slots of the [`Pool`]: params, points, uses, bin offsets, bins and block bounds are
-/// uploaded in that order (0–5), then the heights the shader writes, the buffer they are
-/// read back through, and the blocks' lists of patches, which never leave the device.
+/// uploaded in that order (0–5), then the heights the shader writes and the blocks' lists of
+/// patches, which never leave the device. A request in flight holds only its readback
+/// buffer: the queue runs requests in order, so the next one's writes to these wait for the
+/// last one's dispatch.
 const UPLOADS: usize = 6;
 const OUT: usize = 6;
-const READ: usize = 7;
-const LISTS: usize = 8;
+const LISTS: usize = 7;
 
 /// The buffers a request uses, kept between requests and grown (to powers of two) only when
 /// one needs more: creating them afresh cost more than the dispatch on a hardware GPU.
 #[derive(Default)]
 struct Pool {
-    buffers: [Option<wgpu::Buffer>; 9],
+    buffers: [Option<wgpu::Buffer>; 8],
 }
 
 impl Pool {
@@ -347,7 +380,7 @@ impl Pool {
     }
 }
 
-const POOL_LABELS: [&str; 9] = [
+const POOL_LABELS: [&str; 8] = [
     "params",
     "points",
     "uses",
@@ -355,7 +388,6 @@ const POOL_LABELS: [&str; 9] = [
     "bins",
     "block bounds",
     "heights",
-    "heights readback",
     "block lists",
 ];
 
@@ -628,15 +660,14 @@ impl GpuResampler {
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device(e.to_string()))?;
-        let errors: Arc<Mutex<Vec<String>>> = Arc::default();
-        let lost: Arc<Mutex<Option<String>>> = Arc::default();
+        let health = Health::default();
         {
-            let errors = errors.clone();
+            let errors = health.errors.clone();
             device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
                 tracing::error!(error = %e, "GPU error");
                 lock(&errors).push(e.to_string());
             }));
-            let lost = lost.clone();
+            let lost = health.lost.clone();
             device.set_device_lost_callback(move |reason, msg| {
                 *lock(&lost) = Some(format!("{reason:?}: {msg}"));
             });
@@ -675,8 +706,8 @@ impl GpuResampler {
             table,
             cache: Cache::default(),
             pool: Pool::default(),
-            errors,
-            lost,
+            spare: Spare::default(),
+            health,
         };
         g.check()?;
         Ok(g)
@@ -709,24 +740,34 @@ impl GpuResampler {
         grid: &SampleGrid,
     ) -> Result<(Vec<f32>, GpuTimings), GpuError> {
         let prepared = prepare(set, grid);
-        self.resample_prepared(set, prepared)
+        self.submit(set, prepared)?.wait()
     }
 
     /// The device's part of a request whose CPU part, [`prepare`], ran already (outside
-    /// whatever lock guards this resampler).
-    pub fn resample_prepared(
-        &mut self,
-        set: &PatchSet,
-        mut prep: Prepared,
-    ) -> Result<(Vec<f32>, GpuTimings), GpuError> {
+    /// whatever lock guards this resampler): the patches not on the device yet, the uploads
+    /// and both dispatches, queued and submitted. The heights come back through
+    /// [`Submitted::wait`], which needs no `&mut self`: a daemon releases the device for the
+    /// next request while this one runs and is read back.
+    pub fn submit(&mut self, set: &PatchSet, mut prep: Prepared) -> Result<Submitted, GpuError> {
         self.check()?;
         let mut tm = GpuTimings {
             prepare: prep.took,
             ..Default::default()
         };
         let n = prep.width * prep.height;
+        let mut done = Submitted {
+            device: self.device.clone(),
+            health: self.health.clone(),
+            spare: self.spare.clone(),
+            index: None,
+            read: None,
+            n,
+            tm: GpuTimings::default(),
+            submitted: Instant::now(),
+        };
         if prep.empty {
-            return Ok((vec![f32::NAN; n], tm));
+            done.tm = tm;
+            return Ok(done);
         }
         let (bx, by) = (prep.width.div_ceil(BLOCK), prep.height.div_ceil(BLOCK));
         let wg_max = self.device.limits().max_compute_workgroups_per_dimension as usize;
@@ -795,13 +836,24 @@ impl GpuResampler {
         let out_bytes = (n * 4) as u64;
         tm.read_bytes = out_bytes;
         self.pool.take(&self.device, OUT, out_bytes, out_usage);
-        self.pool.take(&self.device, READ, out_bytes, read_usage);
         self.pool.take(
             &self.device,
             LISTS,
             prep.lists_len() * 4,
             wgpu::BufferUsages::STORAGE,
         );
+        let read = {
+            let mut spare = lock(&self.spare);
+            match spare.iter().position(|b| b.size() >= out_bytes) {
+                Some(k) => spare.swap_remove(k),
+                None => self.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("heights readback"),
+                    size: out_bytes.max(16).next_power_of_two(),
+                    usage: read_usage,
+                    mapped_at_creation: false,
+                }),
+            }
+        };
         let bufs = &self.pool.buffers;
         let buf = |slot: usize| bufs[slot].as_ref().expect("taken above");
         let group = |pipeline: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
@@ -845,12 +897,6 @@ impl GpuResampler {
                 (10, buf(LISTS)),
             ],
         );
-        // Flush the queued writes so that the upload is timed apart from the dispatch.
-        self.queue.submit([]);
-        self.wait()?;
-        tm.upload = t1.elapsed();
-
-        let t2 = Instant::now();
         let mut enc = self.device.create_command_encoder(&Default::default());
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
@@ -861,37 +907,14 @@ impl GpuResampler {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(bx as u32, by as u32, 1);
         }
-        self.queue.submit([enc.finish()]);
-        self.wait()?;
-        tm.compute = t2.elapsed();
-
-        let t3 = Instant::now();
-        let (out_buf, read_buf) = (buf(OUT), buf(READ));
-        let mut enc = self.device.create_command_encoder(&Default::default());
-        enc.copy_buffer_to_buffer(out_buf, 0, read_buf, 0, Some(out_bytes));
-        self.queue.submit([enc.finish()]);
-        let mapped: Arc<Mutex<Option<Result<(), wgpu::BufferAsyncError>>>> = Arc::default();
-        {
-            let mapped = mapped.clone();
-            read_buf.map_async(wgpu::MapMode::Read, ..out_bytes, move |r| {
-                *lock(&mapped) = Some(r)
-            });
-        }
-        self.wait()?;
-        if let Some(Err(e)) = lock(&mapped).take() {
-            return Err(GpuError::Failed(format!("reading the results back: {e}")));
-        }
-        // The shader writes each height whole, as f32 bits (NaN where void): the sum of the
-        // blend and its base rounded once, as the CPU rounds its f64 sum.
-        let out = {
-            let bytes = read_buf
-                .get_mapped_range(..out_bytes)
-                .map_err(|e| GpuError::Failed(e.to_string()))?;
-            bytemuck::cast_slice::<u8, f32>(&bytes).to_vec()
-        };
-        read_buf.unmap();
-        tm.readback = t3.elapsed();
-        Ok((out, tm))
+        enc.copy_buffer_to_buffer(buf(OUT), 0, &read, 0, Some(out_bytes));
+        done.index = Some(self.queue.submit([enc.finish()]));
+        done.submitted = Instant::now();
+        tm.queue = t1.elapsed();
+        done.read = Some(read);
+        done.tm = tm;
+        self.check()?;
+        Ok(done)
     }
 
     /// The table slot of every patch of the set, and the samples and records of those not on
@@ -970,25 +993,75 @@ impl GpuResampler {
         Ok(out)
     }
 
-    fn wait(&self) -> Result<(), GpuError> {
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Failed(e.to_string()))?;
-        self.check()
-    }
-
-    /// Fails with what the device reported since the last check.
     fn check(&self) -> Result<(), GpuError> {
-        if let Some(l) = lock(&self.lost).clone() {
-            return Err(GpuError::Lost(l));
+        self.health.check()
+    }
+}
+
+/// A request on the device: its heights come back through [`Submitted::wait`].
+pub struct Submitted {
+    device: wgpu::Device,
+    health: Health,
+    spare: Spare,
+    /// None for a request with nothing to do on the device (every height void).
+    index: Option<wgpu::SubmissionIndex>,
+    read: Option<wgpu::Buffer>,
+    n: usize,
+    tm: GpuTimings,
+    submitted: Instant,
+}
+
+impl Submitted {
+    /// Waits for the device to finish this request and reads its heights back: NaN where
+    /// no valid kernel reaches, what [`cpu::resample`] returns to f32 rounding.
+    pub fn wait(mut self) -> Result<(Vec<f32>, GpuTimings), GpuError> {
+        let (Some(index), Some(read)) = (self.index.take(), self.read.take()) else {
+            return Ok((vec![f32::NAN; self.n], self.tm));
+        };
+        let bytes = (self.n * 4) as u64;
+        let mapped: Arc<Mutex<Option<Result<(), wgpu::BufferAsyncError>>>> = Arc::default();
+        {
+            let mapped = mapped.clone();
+            read.map_async(wgpu::MapMode::Read, ..bytes, move |r| {
+                *lock(&mapped) = Some(r)
+            });
         }
-        let mut errors = lock(&self.errors);
-        if !errors.is_empty() {
-            let msg = errors.join("; ");
-            errors.clear();
-            return Err(GpuError::Failed(msg));
+        // Waiting for this submission, not the device: later ones may run on.
+        let wait = |index| {
+            self.device
+                .poll(wgpu::PollType::Wait {
+                    submission_index: index,
+                    timeout: None,
+                })
+                .map_err(|e| GpuError::Failed(e.to_string()))
+        };
+        wait(Some(index))?;
+        if lock(&mapped).is_none() {
+            wait(None)?;
         }
-        Ok(())
+        self.health.check()?;
+        match lock(&mapped).take() {
+            Some(Ok(())) => {}
+            Some(Err(e)) => return Err(GpuError::Failed(format!("reading the results back: {e}"))),
+            None => return Err(GpuError::Failed("the results never came back".into())),
+        }
+        self.tm.device = self.submitted.elapsed();
+        let t = Instant::now();
+        // The shader writes each height whole, as f32 bits (NaN where void): the sum of the
+        // blend and its base rounded once, as the CPU rounds its f64 sum.
+        let out = {
+            let view = read
+                .get_mapped_range(..bytes)
+                .map_err(|e| GpuError::Failed(e.to_string()))?;
+            bytemuck::cast_slice::<u8, f32>(&view).to_vec()
+        };
+        read.unmap();
+        let mut spare = lock(&self.spare);
+        if spare.len() < SPARE {
+            spare.push(read);
+        }
+        self.tm.readback = t.elapsed();
+        Ok((out, self.tm))
     }
 }
 

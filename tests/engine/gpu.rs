@@ -16,7 +16,7 @@ use patchwork::gpu::{Emulated, GpuResampler};
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Metric, ViewQuery};
 use patchwork_core::model::survey::Survey;
-use patchwork_core::resample::{cpu, SampleGrid};
+use patchwork_core::resample::{cpu, PatchSet, SampleGrid};
 use patchwork_core::terrain::Terrain;
 use std::sync::Arc;
 
@@ -358,6 +358,52 @@ fn gpu_uploads_shared_patches_once_and_survives_eviction() {
         assert!(worst <= TOLERANCE, "{what}: {worst}");
         println!("small arena, {what}: {tm:?}");
     }
+}
+
+#[test]
+fn requests_in_flight_together_each_get_their_own_heights() {
+    // Threads share one device as a daemon's requests do: each holds it only to submit, and
+    // waits for its heights and reads them back while others submit. Every request gets
+    // what it gets alone, bit for bit, whatever else was queued beside it.
+    let Some(g) = gpu() else { return };
+    let cop = real_crop("copernicus_n34w119_crop.tif");
+    let s = real_survey(cop);
+    let t = terrain_of(std::slice::from_ref(&s));
+    let roi = s.levels[0].world_bounds();
+    let cases: Vec<(PatchSet, SampleGrid)> = [(0.0, 96), (5.0, 64), (20.0, 80), (2.0, 48)]
+        .into_iter()
+        .map(|(e, n)| {
+            (
+                t.resolve(&t.uniform(&roi, e)),
+                SampleGrid::uniform(&roi, n, n + 7),
+            )
+        })
+        .collect();
+    let g = std::sync::Mutex::new(g);
+    let alone: Vec<Vec<f32>> = cases
+        .iter()
+        .map(|(set, grid)| g.lock().unwrap().resample(set, grid).unwrap())
+        .collect();
+    std::thread::scope(|scope| {
+        for worker in 0..4 {
+            let (g, cases, alone) = (&g, &cases, &alone);
+            scope.spawn(move || {
+                for round in 0..6 {
+                    let k = (worker + round) % cases.len();
+                    let (set, grid) = &cases[k];
+                    let prep = patchwork::gpu::prepare(set, grid);
+                    let submitted = g.lock().unwrap().submit(set, prep).unwrap();
+                    let (got, _) = submitted.wait().unwrap();
+                    assert!(
+                        got.iter()
+                            .zip(&alone[k])
+                            .all(|(a, b)| a.to_bits() == b.to_bits()),
+                        "case {k} differs when other requests are in flight"
+                    );
+                }
+            });
+        }
+    });
 }
 
 #[test]

@@ -1,12 +1,14 @@
 //! GPU against CPU resampling over the full Copernicus N34W119 tile: samples per second for
 //! 256² to 2048² uniform tiles at a few cut errors (so a few patch counts), with the GPU's
-//! time split into preparation (binning, packing), upload, compute and readback.
+//! time split into the CPU's preparation (binning, packing, placing patches), queuing the
+//! uploads and dispatches, the device's time from submission until the heights can be read,
+//! and the readback.
 //!
 //! cargo bench -p patchwork-bench --bench gpu   (PATCHWORK_SHARED_DATA points at the data folder)
 //!
-//! "cold" is the first request, which uploads every patch's samples; "warm" finds them on the
-//! device and uploads only the grid's axes, the patch table and the bins ("up KB"), and reads
-//! back 4 bytes a sample ("read KB").
+//! "cold" is the first request, which uploads every patch's samples and record; "warm" finds
+//! them on the device and uploads only the grid's axes, 32 bytes a patch and the bins ("up
+//! KB"), and reads back 4 bytes a sample ("read KB").
 
 use patchwork::gpu::{Emulated, GpuResampler, GpuTimings};
 use patchwork_core::geom::Aabb;
@@ -85,12 +87,12 @@ fn main() {
         "gpu Ms/s",
         "gpu+x Ms/s",
         "prep ms",
-        "up ms",
-        "comp ms",
+        "queue ms",
+        "dev ms",
         "read ms",
         "up KB",
         "read KB",
-        "cold up",
+        "cold",
         "max |Δ|"
     );
     for (label, roi) in [("quarter", quarter), ("full", full)] {
@@ -112,7 +114,7 @@ fn main() {
                 for _ in 0..2 {
                     let (h, tm) = gpu.resample_timed(&set, &grid).unwrap();
                     got = h;
-                    if best.as_ref().is_none_or(|b| tm.compute < b.compute) {
+                    if best.as_ref().is_none_or(|b| tm.device < b.device) {
                         best = Some(tm);
                     }
                 }
@@ -123,28 +125,29 @@ fn main() {
                     .filter(|(a, b)| !a.is_nan() && !b.is_nan())
                     .map(|(a, b)| (*a as f64 - *b as f64).abs())
                     .fold(0.0, f64::max);
-                let total = tm.prepare + tm.upload + tm.compute + tm.readback;
+                let total = tm.prepare + tm.queue + tm.device + tm.readback;
                 println!(
-                    "{label:>9} {e:>5} {n:>6} {:>8} | {:>10.2} | {:>10.2} {:>10.2} | {:>8.2} {:>8.1} {:>8.1} {:>8.1} | {:>8.0} {:>8.0} | {:>6.1} ms {:>9.1e}",
+                    "{label:>9} {e:>5} {n:>6} {:>8} | {:>10.2} | {:>10.2} {:>10.2} | {:>8.2} {:>8.2} {:>8.1} {:>8.1} | {:>8.0} {:>8.0} | {:>6.1} ms {:>9.1e}",
                     set.patches.len(),
                     samples / cpu_s / 1e6,
-                    samples / tm.compute.as_secs_f64() / 1e6,
+                    samples / tm.device.as_secs_f64() / 1e6,
                     samples / total.as_secs_f64() / 1e6,
                     ms(tm.prepare),
-                    ms(tm.upload),
-                    ms(tm.compute),
+                    ms(tm.queue),
+                    ms(tm.device),
                     ms(tm.readback),
                     tm.uploaded_bytes as f64 / 1024.0,
                     tm.read_bytes as f64 / 1024.0,
-                    ms(cold.upload),
+                    ms(cold.prepare + cold.queue + cold.device + cold.readback),
                     worst
                 );
             }
         }
     }
     println!(
-        "cpu: {} rayon threads; gpu Ms/s counts the dispatch alone, gpu+x adds preparation, \
-         upload and readback of a warm request; cold up is the first request's upload",
+        "cpu: {} rayon threads; gpu Ms/s counts the device's time (uploads, dispatches, copy) \
+         alone, gpu+x adds the CPU's preparation, queuing and readback of a warm request; cold \
+         is the first request end to end",
         rayon::current_num_threads()
     );
 }
