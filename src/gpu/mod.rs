@@ -91,7 +91,19 @@ impl std::hash::Hasher for IdHasher {
     }
 }
 
-type Cache = HashMap<PatchId, Uploaded, std::hash::BuildHasherDefault<IdHasher>>;
+type Cache = HashMap<PatchId, Held, std::hash::BuildHasherDefault<IdHasher>>;
+
+/// A patch on the device, as the cache knows it: all a warm request looks up, kept small
+/// (24 bytes) so that the lookups of 16,000 patches stay in the CPU's caches.
+#[derive(Clone, Copy, Debug)]
+struct Held {
+    /// The patch's record in the device's table of patches.
+    slot: u32,
+    /// A hash of the window's bounds in the store's plane that the record holds: a patch of
+    /// another CRS has other bounds in a store of another, so a resampler that serves two
+    /// stores (tests do) keeps a record only for the bounds it was made with.
+    bounds: u64,
+}
 
 /// Samples are void at or above this, both in the arena and as a point's x.
 const VOID: f32 = f32::MAX;
@@ -196,12 +208,6 @@ struct Params {
 /// one (the edge rule may use the cell beyond the window), first sample at level `(c0, r0)`.
 #[derive(Clone, Copy, Debug)]
 struct Uploaded {
-    /// The patch's record in the device's table of patches.
-    slot: u32,
-    /// The window's bounds in the store's plane that the record holds: a patch of another
-    /// CRS has other bounds in a store of another, so a resampler that serves two stores
-    /// (tests do) keeps a record only for the bounds it was made with.
-    bounds: [f64; 4],
     offset: u32,
     cols: u32,
     rows: u32,
@@ -419,6 +425,8 @@ pub struct Prepared {
     bins: Vec<u32>,
     /// One a patch of the set, its table slot filled in when the device places it.
     uses: Vec<GpuUse>,
+    /// Each patch's id and [`bounds_hash`]: what the device's cache is searched by.
+    keys: Vec<(PatchId, u64)>,
     took: Duration,
 }
 
@@ -482,6 +490,7 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         offsets: Vec::new(),
         bins: Vec::new(),
         uses: Vec::new(),
+        keys: Vec::new(),
         took: Duration::ZERO,
     };
     let Some(origin) = grid.points().find(|p| !p[0].is_nan() && !p[1].is_nan()) else {
@@ -491,6 +500,7 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         return p;
     }
     p.origin = origin;
+    p.axes = grid.axes.is_some();
     // The samples' positions in each other plane of the set, each relative to an origin of
     // its own, after the store plane's.
     let planes = set.positions(grid);
@@ -503,10 +513,33 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         }))
         .collect();
 
+    // One pass over the patches for all that is needed of them: a ResolvedPatch is several
+    // cache lines, and at 16,000 patches each further pass cost a tenth of a millisecond.
+    let n = set.patches.len();
+    let (mut windows, mut norms) = (Vec::with_capacity(n), Vec::with_capacity(n));
+    p.keys.reserve(n);
+    p.uses.reserve(n);
+    let mut scale = origin[0].abs().max(origin[1].abs());
+    let mut max_norm = 0.0f64;
+    for q in &set.patches {
+        let w = q.window_aabb;
+        windows.push(w);
+        norms.push(q.norm);
+        max_norm = max_norm.max(q.norm);
+        scale = scale.max(w.width()).max(w.height());
+        p.keys.push((q.id, bounds_hash(q)));
+        let k = q.plane as usize;
+        p.uses.push(use_of(q, origins[k], p.plane_start(k)));
+    }
+    for (u, norm) in p.uses.iter_mut().zip(norms) {
+        // Only ratios of weights matter; scaling keeps them far from f32's range limits.
+        u.norm = (norm / max_norm) as f32;
+    }
+
     let side = BLOCK * SUPER;
     p.supers_x = grid.width.div_ceil(side);
     let flat = match grid.axis_bounds(side) {
-        Some((cols, rows)) => cpu::Flat::of_axes(&set.patches, &cols, &rows),
+        Some((cols, rows)) => cpu::Flat::of_axes(&windows, &cols, &rows),
         None => None,
     };
     let flat = match flat {
@@ -556,13 +589,7 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     // Forming a patch's bounds relative to the origin from their hi + lo halves errs by a
     // few units of 2⁻⁴⁸ of the coordinates' size; the widening is far above that and far
     // below anything that moves a block's patches.
-    let scale = origin[0].abs().max(origin[1].abs())
-        + set
-            .patches
-            .iter()
-            .map(|q| q.window_aabb.width().max(q.window_aabb.height()))
-            .fold(0.0, f64::max);
-    p.pad = (scale * 2f64.powi(-40)) as f32;
+    p.pad = (2.0 * scale * 2f64.powi(-40)) as f32;
 
     let pack = |q: [f64; 2], origin: [f64; 2]| {
         if q[0].is_nan() || q[1].is_nan() {
@@ -575,7 +602,6 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     };
     match &grid.axes {
         Some(axes) => {
-            p.axes = true;
             p.points
                 .reserve(grid.width + grid.height + planes.len() * grid.width * grid.height);
             p.points.extend(axes.xs.iter().map(|&x| {
@@ -592,15 +618,6 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     for (ps, o) in planes.iter().zip(&origins[1..]) {
         p.points.extend(ps.iter().map(|&q| pack(q, *o)));
     }
-    let max_norm = set.patches.iter().map(|q| q.norm).fold(0.0f64, f64::max);
-    p.uses = set
-        .patches
-        .iter()
-        .map(|q| {
-            let k = q.plane as usize;
-            use_of(q, origins[k], p.plane_start(k), max_norm)
-        })
-        .collect();
     p.empty = false;
     p.took = t0.elapsed();
     p
@@ -785,7 +802,7 @@ impl GpuResampler {
         }
 
         let t0 = Instant::now();
-        let placed = self.place(set)?;
+        let placed = self.place(set, &prep.keys)?;
         for (u, slot) in prep.uses.iter_mut().zip(&placed.slots) {
             u.slot = slot.expect("every patch placed");
         }
@@ -919,15 +936,15 @@ impl GpuResampler {
 
     /// The table slot of every patch of the set, and the samples and records of those not on
     /// the device yet (packed to follow what it holds), with room made for them.
-    fn place(&mut self, set: &PatchSet) -> Result<Placed, GpuError> {
-        let held = |cache: &Cache, p: &ResolvedPatch| {
+    fn place(&mut self, set: &PatchSet, keys: &[(PatchId, u64)]) -> Result<Placed, GpuError> {
+        let held = |cache: &Cache, (id, bounds): &(PatchId, u64)| {
             cache
-                .get(&p.id)
-                .filter(|u| u.bounds == bounds(p))
+                .get(id)
+                .filter(|u| u.bounds == *bounds)
                 .map(|u| u.slot)
         };
         let mut out = Placed {
-            slots: set.patches.iter().map(|p| held(&self.cache, p)).collect(),
+            slots: keys.iter().map(|k| held(&self.cache, k)).collect(),
             samples: Vec::new(),
             records: Vec::new(),
         };
@@ -974,20 +991,26 @@ impl GpuResampler {
         out.samples.reserve(need.0 as usize);
         out.records.reserve(need.1 as usize);
         let first_slot = (table_used / record) as u32;
-        for (p, slot) in set.patches.iter().zip(out.slots.iter_mut()) {
+        for ((p, key), slot) in set.patches.iter().zip(keys).zip(out.slots.iter_mut()) {
             if slot.is_some() {
                 continue;
             }
             // A patch listed twice is packed once.
-            if let Some(s) = held(&self.cache, p) {
+            if let Some(s) = held(&self.cache, key) {
                 *slot = Some(s);
                 continue;
             }
             let offset = (used / 4) as u32 + out.samples.len() as u32;
             let s = first_slot + out.records.len() as u32;
-            let u = pack(p, s, offset, &mut out.samples);
+            let u = pack(p, offset, &mut out.samples);
             out.records.push(gpu_patch(p, &u));
-            self.cache.insert(p.id, u);
+            self.cache.insert(
+                p.id,
+                Held {
+                    slot: s,
+                    bounds: key.1,
+                },
+            );
             *slot = Some(s);
         }
         Ok(out)
@@ -1198,7 +1221,7 @@ fn extent(p: &ResolvedPatch) -> Extent {
 
 /// Appends a patch's samples relative to its base, voids as [`VOID`], and after them an edge
 /// patch's flags or a bicubic patch's spline coefficients (relative to the same base).
-fn pack(p: &ResolvedPatch, slot: u32, offset: u32, data: &mut Vec<f32>) -> Uploaded {
+fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     let e = extent(p);
     // Where the surface's samples start in its level: a window of a level may begin inside it.
     let (heights, cols, flags, at): (&[f32], usize, Option<&[u8]>, [usize; 2]) = match &p.surface {
@@ -1243,8 +1266,6 @@ fn pack(p: &ResolvedPatch, slot: u32, offset: u32, data: &mut Vec<f32>) -> Uploa
         }
     }
     Uploaded {
-        slot,
-        bounds: bounds(p),
         offset,
         cols: e.cols,
         rows: e.rows,
@@ -1257,6 +1278,13 @@ fn pack(p: &ResolvedPatch, slot: u32, offset: u32, data: &mut Vec<f32>) -> Uploa
 fn bounds(p: &ResolvedPatch) -> [f64; 4] {
     let b = &p.window_aabb;
     [b.min[0], b.min[1], b.max[0], b.max[1]]
+}
+
+/// [`bounds`] hashed for [`Held`].
+fn bounds_hash(p: &ResolvedPatch) -> u64 {
+    bounds(p).iter().fold(0x9e37_79b9_7f4a_7c15u64, |h, v| {
+        (h.rotate_left(23) ^ v.to_bits()).wrapping_mul(0x2545_f491_4f6c_dd1d)
+    })
 }
 
 /// The shader's record of a patch whose samples were packed as `a` says.
@@ -1306,7 +1334,7 @@ fn gpu_patch(p: &ResolvedPatch, a: &Uploaded) -> GpuPatch {
 
 /// What a request adds to patch `p`: its first uploaded sample relative to `origin`, the
 /// origin of its plane's positions, which start at `points` in the points buffer.
-fn use_of(p: &ResolvedPatch, origin: [f64; 2], points: u32, max_norm: f64) -> GpuUse {
+fn use_of(p: &ResolvedPatch, origin: [f64; 2], points: u32) -> GpuUse {
     let e = extent(p);
     let (c0, r0) = (e.c0 as f64, e.r0 as f64);
     // The first uploaded sample, from the same origin and axes `to_grid` uses.
@@ -1322,8 +1350,8 @@ fn use_of(p: &ResolvedPatch, origin: [f64; 2], points: u32, max_norm: f64) -> Gp
         origin_lo: [xl, yl],
         slot: 0,
         rank: p.rank | if p.fallback { FALLBACK } else { 0 },
-        // Only ratios of weights matter; scaling keeps them far from f32's range limits.
-        norm: (p.norm / max_norm) as f32,
+        // Set once the set's largest is known.
+        norm: 0.0,
         points,
     }
 }

@@ -37,7 +37,8 @@ pub fn bin_axes(
     cols: &[[f64; 2]],
     rows: &[[f64; 2]],
 ) -> Option<Vec<Vec<u32>>> {
-    let flat = Flat::of_axes(patches, cols, rows)?;
+    let windows: Vec<patchwork_geom::Aabb> = patches.iter().map(|p| p.window_aabb).collect();
+    let flat = Flat::of_axes(&windows, cols, rows)?;
     Some(
         flat.offsets
             .windows(2)
@@ -57,12 +58,13 @@ pub struct Flat {
 }
 
 impl Flat {
-    /// [`bin_axes`], end to end. Where the intervals' ends run one way along each list (as
+    /// [`bin_axes`] of patches whose windows' bounds are `windows`, end to end. Where the
+    /// intervals' ends run one way along each list (as
     /// monotone axes make them), each patch finds the boxes its window meets by bisection,
     /// rather than each box looking for its patches; bins are counted, then filled, in the
     /// patches' order.
     pub fn of_axes(
-        patches: &[ResolvedPatch],
+        windows: &[patchwork_geom::Aabb],
         cols: &[[f64; 2]],
         rows: &[[f64; 2]],
     ) -> Option<Flat> {
@@ -85,10 +87,9 @@ impl Flat {
             }
         };
         let (x_span, y_span) = (order(cols)?, order(rows)?);
-        let spans: Vec<_> = patches
+        let spans: Vec<_> = windows
             .iter()
-            .map(|p| {
-                let a = &p.window_aabb;
+            .map(|a| {
                 (
                     x_span(cols, a.min[0], a.max[0]),
                     y_span(rows, a.min[1], a.max[1]),
