@@ -113,7 +113,8 @@ pub const KIND_BILINEAR: u32 = 0;
 pub const KIND_EDGE: u32 = 1;
 pub const KIND_BICUBIC: u32 = 2;
 
-/// Byte budget of the sample arena before it is emptied and refilled.
+/// Byte budget of the patches on the device (samples and records) before they are emptied
+/// and refilled.
 pub const DEFAULT_ARENA_BYTES: u64 = 256 << 20;
 
 #[derive(Debug, Error)]
@@ -658,8 +659,8 @@ impl GpuResampler {
         Self::with_budget(DEFAULT_ARENA_BYTES, emulated)
     }
 
-    /// A resampler whose sample arena holds at most `budget` bytes (more only when a single
-    /// request needs it).
+    /// A resampler whose patches (their samples and records) take at most `budget` bytes of
+    /// the device (more only when a single request needs it).
     pub fn with_budget(budget: u64, emulated: Emulated) -> Result<Self, GpuError> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         // Vulkan, Metal and DX12. GL goes through EGL, whose Mesa build writes to stderr on
@@ -961,7 +962,9 @@ impl GpuResampler {
         };
         let record = std::mem::size_of::<GpuPatch>() as u64;
         let mut need = missing(&out.slots);
-        if self.arena.used + 4 * need.0 > self.budget
+        // The records count against the budget with the samples: the patches on the
+        // device take at most `budget` bytes in all.
+        if self.arena.used + self.table.used + 4 * need.0 + record * need.1 > self.budget
             || self.table.used + record * need.1 > self.max_binding
         {
             // Emptied and refilled with this request's patches: crude, but it never
@@ -985,7 +988,7 @@ impl GpuResampler {
             &self.device,
             &self.queue,
             table_used + record * need.1,
-            self.max_binding,
+            self.budget,
         );
         self.check()?;
         out.samples.reserve(need.0 as usize);
