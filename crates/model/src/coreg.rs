@@ -436,7 +436,14 @@ pub fn blurred(g: &Grid, sigma: f64) -> Grid {
             }
         })
         .collect();
-    Grid::new(g.cols, g.rows, samples, g.georef).expect("the same shape")
+    // The grid's own shape, whatever it is: a window one sample wide is still blurred along
+    // its length, where the constructor would refuse it.
+    Grid {
+        cols: g.cols,
+        rows: g.rows,
+        samples,
+        georef: g.georef,
+    }
 }
 
 /// At most this many samples a side in the windows a degradation is measured on.
@@ -593,4 +600,38 @@ pub fn degradation(
         other_from_reference: best_prediction(&pool(|w| &w.0))?,
         reference_from_other: best_prediction(&pool(|w| &w.1))?,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::Georef;
+
+    #[test]
+    fn a_window_one_sample_wide_is_blurred_along_its_length() {
+        // The window of a survey over a narrow overlap may be one column wide, which a grid
+        // built from samples could not be: blurring it keeps its shape (and, with half the
+        // kernel's weight nowhere within it, leaves nothing measured).
+        let samples: Vec<f32> = (0..17).map(|k| (k % 3) as f32).collect();
+        let g = Grid {
+            cols: 1,
+            rows: 17,
+            samples,
+            georef: Georef::north_up([0.0, 0.0], [1.0, 1.0]),
+        };
+        let b = blurred(&g, 1.0);
+        assert_eq!((b.cols, b.rows), (1, 17));
+        assert!(b.samples.iter().all(|z| z.is_nan()), "{:?}", b.samples);
+        let wide = Grid {
+            cols: 7,
+            ..g.clone()
+        };
+        let wide = Grid {
+            samples: (0..7 * 17).map(|k| (k % 3) as f32).collect(),
+            ..wide
+        };
+        let b = blurred(&wide, 1.0);
+        assert_eq!((b.cols, b.rows), (7, 17));
+        assert!(b.samples[3 * 7 + 3].is_finite());
+    }
 }

@@ -301,6 +301,10 @@ pub fn measure(
         } else {
             Cow::Owned(reference.window(rect.c0, rect.r0, rect.cols(), rect.rows()))
         };
+    if whole.cols / k < 2 || whole.rows / k < 2 {
+        // Thinned to less than a cell: no detail to measure.
+        return None;
+    }
     let a = if k > 1 {
         Cow::Owned(block_mean(&whole, k))
     } else {
