@@ -317,7 +317,9 @@ impl Store {
         while new_len < len {
             new_len *= 2;
         }
-        let new_len = new_len.min(cap.max(len)).next_multiple_of(4);
+        let new_len = new_len
+            .min(cap.max(len) / 4 * 4)
+            .max(len.next_multiple_of(4));
         let buffer = store_buffer(device, self.label, new_len);
         if self.used > 0 {
             let mut enc = device.create_command_encoder(&Default::default());
@@ -358,9 +360,10 @@ const LISTS: usize = 7;
 
 /// The buffers a request uses, kept between requests and grown (to powers of two) only when
 /// one needs more: creating them afresh cost more than the dispatch on a hardware GPU.
-#[derive(Default)]
 struct Pool {
     buffers: [Option<wgpu::Buffer>; 8],
+    /// The largest buffer a binding takes, rounded down to 16 bytes: growth stops there.
+    limit: u64,
 }
 
 impl Pool {
@@ -378,7 +381,7 @@ impl Pool {
         if b.as_ref().is_none_or(|b| b.size() < size) {
             *b = Some(device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(POOL_LABELS[slot]),
-                size: size.next_power_of_two(),
+                size: size.next_power_of_two().min(self.limit.max(size)),
                 usage,
                 mapped_at_creation: false,
             }));
@@ -478,6 +481,14 @@ impl Prepared {
 /// blends at, each split into two f32s, so both backends work from the same coordinates.
 pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     let t0 = Instant::now();
+    // Axes that turn back bound no square by their ends: such a grid goes point by point.
+    let pointwise;
+    let grid = if grid.axes.is_some() && grid.axis_bounds(BLOCK).is_none() {
+        pointwise = grid.clone().pointwise();
+        &pointwise
+    } else {
+        grid
+    };
     let mut p = Prepared {
         width: grid.width,
         height: grid.height,
@@ -723,7 +734,10 @@ impl GpuResampler {
             arena,
             table,
             cache: Cache::default(),
-            pool: Pool::default(),
+            pool: Pool {
+                buffers: Default::default(),
+                limit: max_binding / 16 * 16,
+            },
             spare: Spare::default(),
             health,
         };
@@ -766,7 +780,32 @@ impl GpuResampler {
     /// and both dispatches, queued and submitted. The heights come back through
     /// [`Submitted::wait`], which needs no `&mut self`: a daemon releases the device for the
     /// next request while this one runs and is read back.
-    pub fn submit(&mut self, set: &PatchSet, mut prep: Prepared) -> Result<Submitted, GpuError> {
+    pub fn submit(&mut self, set: &PatchSet, prep: Prepared) -> Result<Submitted, GpuError> {
+        // The device's errors from this request's calls are this request's: caught in scopes
+        // of this thread, not in the list that every request in flight checks.
+        let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let memory = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let submitted = self.submit_scoped(set, prep);
+        let errors = [
+            pollster::block_on(memory.pop()),
+            pollster::block_on(validation.pop()),
+        ];
+        let Some(e) = errors.into_iter().flatten().next() else {
+            return submitted;
+        };
+        // What the cache says is on the device may not have got there.
+        self.cache.clear();
+        self.arena.used = 0;
+        self.table.used = 0;
+        Err(match e {
+            wgpu::Error::OutOfMemory { .. } => {
+                GpuError::TooLarge("the device ran out of memory for this request".into())
+            }
+            e => GpuError::Failed(e.to_string()),
+        })
+    }
+
+    fn submit_scoped(&mut self, set: &PatchSet, mut prep: Prepared) -> Result<Submitted, GpuError> {
         self.check()?;
         let mut tm = GpuTimings {
             prepare: prep.took,
@@ -866,7 +905,10 @@ impl GpuResampler {
                 Some(k) => spare.swap_remove(k),
                 None => self.device.create_buffer(&wgpu::BufferDescriptor {
                     label: Some("heights readback"),
-                    size: out_bytes.max(16).next_power_of_two(),
+                    size: out_bytes
+                        .max(16)
+                        .next_power_of_two()
+                        .min(self.max_binding.max(out_bytes)),
                     usage: read_usage,
                     mapped_at_creation: false,
                 }),
@@ -957,8 +999,11 @@ impl GpuResampler {
             set.patches
                 .iter()
                 .zip(slots)
-                .filter(|(p, s)| s.is_none() && seen.insert(p.id))
-                .fold((0u64, 0u64), |(f, n), (p, _)| (f + extent(p).len(p), n + 1))
+                .zip(keys)
+                .filter(|((_, s), k)| s.is_none() && seen.insert(**k))
+                .fold((0u64, 0u64), |(f, n), ((p, _), _)| {
+                    (f + extent(p).len(p), n + 1)
+                })
         };
         let record = std::mem::size_of::<GpuPatch>() as u64;
         let mut need = missing(&out.slots);
@@ -1045,31 +1090,35 @@ impl Submitted {
             return Ok((vec![f32::NAN; self.n], self.tm));
         };
         let bytes = (self.n * 4) as u64;
-        let mapped: Arc<Mutex<Option<Result<(), wgpu::BufferAsyncError>>>> = Arc::default();
-        {
-            let mapped = mapped.clone();
-            read.map_async(wgpu::MapMode::Read, ..bytes, move |r| {
-                *lock(&mapped) = Some(r)
-            });
-        }
-        // Waiting for this submission, not the device: later ones may run on.
-        let wait = |index| {
+        let (tx, rx) = std::sync::mpsc::channel();
+        read.map_async(wgpu::MapMode::Read, ..bytes, move |r| {
+            let _ = tx.send(r);
+        });
+        // Waiting for this submission, not the device: later ones may run on. The callback
+        // runs on whichever thread's poll finds the submission done, maybe another request's
+        // and maybe a moment after that poll returns, so it is waited for in turn.
+        let poll = |how| {
             self.device
-                .poll(wgpu::PollType::Wait {
-                    submission_index: index,
-                    timeout: None,
-                })
+                .poll(how)
                 .map_err(|e| GpuError::Failed(e.to_string()))
         };
-        wait(Some(index))?;
-        if lock(&mapped).is_none() {
-            wait(None)?;
-        }
+        poll(wgpu::PollType::Wait {
+            submission_index: Some(index),
+            timeout: None,
+        })?;
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let mapped = loop {
+            match rx.recv_timeout(Duration::from_millis(1)) {
+                Ok(r) => break r,
+                Err(std::sync::mpsc::RecvTimeoutError::Timeout) if Instant::now() < deadline => {
+                    poll(wgpu::PollType::Poll)?;
+                }
+                Err(_) => return Err(GpuError::Failed("the results never came back".into())),
+            }
+        };
         self.health.check()?;
-        match lock(&mapped).take() {
-            Some(Ok(())) => {}
-            Some(Err(e)) => return Err(GpuError::Failed(format!("reading the results back: {e}"))),
-            None => return Err(GpuError::Failed("the results never came back".into())),
+        if let Err(e) = mapped {
+            return Err(GpuError::Failed(format!("reading the results back: {e}")));
         }
         self.tm.device = self.submitted.elapsed();
         let t = Instant::now();

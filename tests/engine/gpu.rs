@@ -216,7 +216,13 @@ fn gpu_matches_cpu_on_the_real_crops() {
     let largest = patchwork::gpu::prepare(&t.resolve(&ps), &grid).largest_bin();
     assert!(largest > 256, "a bin of only {largest} patches");
     let what = format!("the N34W119 three at e = 0, 100×90, a bin of {largest} patches");
-    worst = worst.max(compare(&mut g, &t, ps, &grid, &what));
+    worst = worst.max(compare(&mut g, &t, ps.clone(), &grid, &what));
+    // Columns that go back and forth: no block is bounded by its first and last column.
+    let axes = grid.axes.clone().expect("a uniform grid has axes");
+    let mut xs = axes.xs.clone();
+    xs.swap(5, 70);
+    let zigzag = SampleGrid::of_axes(xs, axes.ys);
+    worst = worst.max(compare(&mut g, &t, ps, &zigzag, "columns out of order"));
     // A view over the N34W119 pair from a corner, looking across it.
     let pair = [surveys[1].clone(), surveys[2].clone()];
     let b: Aabb = bounds_of(&pair);

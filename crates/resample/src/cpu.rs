@@ -253,6 +253,16 @@ pub fn resample_bands(
     sink: &mut dyn FnMut(usize, Vec<f32>) -> bool,
 ) -> Option<()> {
     let rows = rows.max(1).div_ceil(BLOCK) * BLOCK;
+    // Columns out of order go point by point: the pass by columns finds a patch's columns
+    // by bisection.
+    let pointwise;
+    let grid = match &grid.axes {
+        Some(a) if !a.xs.windows(2).all(|w| w[0] <= w[1]) => {
+            pointwise = grid.clone().pointwise();
+            &pointwise
+        }
+        _ => grid,
+    };
     let bins = bin(&set.patches, grid);
     // Where each sample lies in the planes of surveys of other CRSs, once for the tile.
     let planes = set.positions(grid);

@@ -138,9 +138,10 @@ impl SampleGrid {
         (0..self.width * self.height).map(|k| self.point(k))
     }
 
-    /// For a north-up grid, the x interval of each column of `side` × `side` squares of
-    /// samples and the y interval of each row of them, from the first and last sample each
-    /// spans: square (i, j) is their product.
+    /// For a north-up grid whose axes each run one way, the x interval of each column of
+    /// `side` × `side` squares of samples and the y interval of each row of them, from the
+    /// first and last sample each spans: square (i, j) is their product. None for any other
+    /// grid, whose squares' bounds come from their points.
     pub fn axis_bounds(&self, side: usize) -> Option<(Intervals, Intervals)> {
         let Axes { xs, ys } = self.axes.as_ref()?;
         let spans = |v: &[f64]| {
@@ -151,6 +152,12 @@ impl SampleGrid {
                 })
                 .collect()
         };
+        // First and last bound a square only along an axis that runs one way.
+        let monotone =
+            |v: &[f64]| v.windows(2).all(|w| w[0] <= w[1]) || v.windows(2).all(|w| w[0] >= w[1]);
+        if !(monotone(xs) && monotone(ys)) {
+            return None;
+        }
         Some((spans(xs), spans(ys)))
     }
 
@@ -180,7 +187,7 @@ impl SampleGrid {
                 let mut acc: Option<Aabb> = None;
                 for j in j0..(j0 + side).min(self.height) {
                     for i in i0..(i0 + side).min(self.width) {
-                        let p = self.list[j * self.width + i];
+                        let p = self.point(j * self.width + i);
                         if p[0].is_nan() {
                             continue;
                         }

@@ -520,8 +520,12 @@ fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
                 axes.xs.iter().rev().copied().collect(),
                 axes.ys.iter().rev().copied().collect(),
             );
+            // Columns that go back and forth bound no block by their ends.
+            let mut xs = axes.xs.clone();
+            xs.swap(3, 40);
+            let zigzag = SampleGrid::of_axes(xs, axes.ys.clone());
             let squares = [BLOCK, 8 * BLOCK];
-            for (grid, side) in [uniform, reversed, scattered]
+            for (grid, side) in [uniform, reversed, zigzag, scattered]
                 .into_iter()
                 .flat_map(|g| squares.map(|s| (g.clone(), s)))
             {
