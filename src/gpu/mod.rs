@@ -137,8 +137,8 @@ pub enum GpuError {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 struct GpuPatch {
-    /// The window's world bounds in the store's plane (min x, min y, max x, max y), each as
-    /// hi + lo: what a block of samples is tested against.
+    /// The patch's reach in the store's plane (`ResolvedPatch::reach`: min x, min y, max x,
+    /// max y), each as hi + lo: what a block of samples is tested against.
     bounds_hi: [f32; 4],
     bounds_lo: [f32; 4],
     col_hi: [f32; 2],
@@ -534,7 +534,7 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     let mut scale = origin[0].abs().max(origin[1].abs());
     let mut max_norm = 0.0f64;
     for q in &set.patches {
-        let w = q.window_aabb;
+        let w = q.reach();
         windows.push(w);
         norms.push(q.norm);
         max_norm = max_norm.max(q.norm);
@@ -1328,7 +1328,7 @@ fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
 }
 
 fn bounds(p: &ResolvedPatch) -> [f64; 4] {
-    let b = &p.window_aabb;
+    let b = &p.reach();
     [b.min[0], b.min[1], b.max[0], b.max[1]]
 }
 

@@ -63,7 +63,7 @@ struct Params {
 // patch's uploaded samples: the window grown by one cell where the level has one, because
 // the edge rule may look at the cell beyond the window.
 struct Patch {
-    // The window's world bounds in the store's plane (min x, min y, max x, max y), hi + lo.
+    // The patch's reach in the store's plane (min x, min y, max x, max y), hi + lo.
     bounds_hi: vec4<f32>,
     bounds_lo: vec4<f32>,
     // The column and row axes divided by the spacing: grid coordinate = dot(axis, d).
@@ -454,9 +454,9 @@ fn bounds_of_block(w: vec2<u32>) -> vec4<f32> {
     return blocks[w.y * params.blocks_x + w.x];
 }
 
-// Whether the patch of use k may reach a point of the block: its window's bounds, widened,
-// meet the block's. A superset of the CPU's test, which is harmless: a patch reaches no point
-// outside its window.
+// Whether the patch of use k may reach a point of the block: its reach (`ResolvedPatch::reach`),
+// widened by the rounding of forming it here, meets the block's bounds. A superset of the
+// CPU's test, which is harmless: a patch reaches no point outside its reach.
 fn meets(k: u32, b: vec4<f32>) -> bool {
     let q = patches[uses[k].slot];
     let lo = from_origin(q.bounds_hi.xy, q.bounds_lo.xy);

@@ -37,7 +37,7 @@ pub fn bin_axes(
     cols: &[[f64; 2]],
     rows: &[[f64; 2]],
 ) -> Option<Vec<Vec<u32>>> {
-    let windows: Vec<patchwork_geom::Aabb> = patches.iter().map(|p| p.window_aabb).collect();
+    let windows: Vec<patchwork_geom::Aabb> = patches.iter().map(ResolvedPatch::reach).collect();
     let flat = Flat::of_axes(&windows, cols, rows)?;
     Some(
         flat.offsets
@@ -151,7 +151,7 @@ pub fn bin_boxes(
         .map(|b| match b {
             Some(b) => {
                 let mut near = buckets.near(b);
-                near.retain(|&k| patches[k as usize].window_aabb.intersects(b));
+                near.retain(|&k| patches[k as usize].reach().intersects(b));
                 near
             }
             None => Vec::new(),
@@ -173,7 +173,7 @@ impl Buckets {
         let side = ((patches.len() as f64).sqrt().ceil() as usize).clamp(1, 256);
         let bounds = patches
             .iter()
-            .map(|p| p.window_aabb)
+            .map(ResolvedPatch::reach)
             .reduce(|a, b| a.union(&b));
         let mut b = Buckets {
             min: [0.0; 2],
@@ -189,7 +189,7 @@ impl Buckets {
         let per = |w: f64| if w > 0.0 { side as f64 / w } else { 0.0 };
         b.scale = [per(bounds.width()), per(bounds.height())];
         for (k, p) in patches.iter().enumerate() {
-            let ([i0, i1], [j0, j1]) = b.span(&p.window_aabb);
+            let ([i0, i1], [j0, j1]) = b.span(&p.reach());
             for j in j0..=j1 {
                 for i in i0..=i1 {
                     b.cells[j * side + i].push(k as u32);

@@ -270,7 +270,7 @@ pub struct ResolvedPatch {
     /// evaluation of the weight keeps its precision there).
     pub flat: f64,
     /// The window's world bounds, clipped to the unclipped window's (beyond which the weight
-    /// is 0): what [`cpu::bin`] tests blocks against.
+    /// is 0): what [`cpu::bin`] tests blocks against, widened a little ([`Self::reach`]).
     pub window_aabb: Aabb,
     /// The patch's error, for the fallback's tiers.
     pub error: f64,
@@ -411,6 +411,16 @@ impl ResolvedPatch {
             snap((d[0] * self.u[0] + d[1] * self.u[1]) * self.inv_step[0]),
             snap((d[0] * self.v[0] + d[1] * self.v[1]) * self.inv_step[1]),
         ]
+    }
+
+    /// The bounds a block is binned against: the window's, widened by 10⁻⁸ of their size.
+    /// A point within [`SNAP`](patchwork_geom::SNAP) of a window's edge is put on it, and a
+    /// window is at least a cell wide, so every point the patch reaches lies inside, and a
+    /// block's patches never depend on where the block begins.
+    pub fn reach(&self) -> Aabb {
+        let b = self.window_aabb;
+        let d = 1e-8 * b.width().max(b.height());
+        Aabb::new(b.min[0] - d, b.min[1] - d, b.max[0] + d, b.max[1] + d)
     }
 
     /// Whether the patch's grid coordinate along x depends on x alone and along y on y alone

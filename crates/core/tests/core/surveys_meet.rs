@@ -535,7 +535,7 @@ fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
                     .iter()
                     .map(|bb| match bb {
                         Some(bb) => (0..set.patches.len() as u32)
-                            .filter(|&k| set.patches[k as usize].window_aabb.intersects(bb))
+                            .filter(|&k| set.patches[k as usize].reach().intersects(bb))
                             .collect(),
                         None => Vec::new(),
                     })
