@@ -65,6 +65,7 @@
 
 use crate::sync::lock;
 use bytemuck::{Pod, Zeroable};
+use patchwork_core::geom::Aabb;
 use patchwork_core::model::ids::PatchId;
 use patchwork_core::resample::{cpu, Backend, PatchSet, ResolvedPatch, SampleGrid, Surface, BLOCK};
 use std::collections::HashMap;
@@ -539,7 +540,7 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         norms.push(q.norm);
         max_norm = max_norm.max(q.norm);
         scale = scale.max(w.width()).max(w.height());
-        p.keys.push((q.id, bounds_hash(q)));
+        p.keys.push((q.id, bounds_hash(&w)));
         let k = q.plane as usize;
         p.uses.push(use_of(q, origins[k], p.plane_start(k)));
     }
@@ -585,7 +586,7 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
             let mut supers = vec![None; p.supers_x * by.div_ceil(SUPER)];
             for (k, b) in blocks.iter().enumerate() {
                 if let Some(b) = b {
-                    let s: &mut Option<patchwork_core::geom::Aabb> =
+                    let s: &mut Option<Aabb> =
                         &mut supers[(k / bx / SUPER) * p.supers_x + (k % bx) / SUPER];
                     *s = Some(s.map_or(*b, |a| a.union(b)));
                 }
@@ -1327,14 +1328,14 @@ fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     }
 }
 
-fn bounds(p: &ResolvedPatch) -> [f64; 4] {
-    let b = &p.reach();
+/// A patch's reach ([`ResolvedPatch::reach`]) as (min x, min y, max x, max y).
+fn bounds(b: &Aabb) -> [f64; 4] {
     [b.min[0], b.min[1], b.max[0], b.max[1]]
 }
 
 /// [`bounds`] hashed for [`Held`].
-fn bounds_hash(p: &ResolvedPatch) -> u64 {
-    bounds(p).iter().fold(0x9e37_79b9_7f4a_7c15u64, |h, v| {
+fn bounds_hash(b: &Aabb) -> u64 {
+    bounds(b).iter().fold(0x9e37_79b9_7f4a_7c15u64, |h, v| {
         (h.rotate_left(23) ^ v.to_bits()).wrapping_mul(0x2545_f491_4f6c_dd1d)
     })
 }
@@ -1358,7 +1359,7 @@ fn gpu_patch(p: &ResolvedPatch, a: &Uploaded) -> GpuPatch {
     };
     let (col_hi, col_lo) = axis(p.u, p.inv_step[0]);
     let (row_hi, row_lo) = axis(p.v, p.inv_step[1]);
-    let halves = bounds(p).map(split);
+    let halves = bounds(&p.reach()).map(split);
     GpuPatch {
         bounds_hi: halves.map(|h| h[0]),
         bounds_lo: halves.map(|h| h[1]),
