@@ -747,7 +747,7 @@ impl Engine {
 /// low zoom's tile spans continents the lattice would otherwise be built over.
 fn carried(
     own: &SampleGrid,
-    r: &Reprojection,
+    r: &Arc<Reprojection>,
     near: impl Fn([f64; 2]) -> bool + Sync,
 ) -> SampleGrid {
     if let Some(a) = &own.axes {
@@ -768,6 +768,20 @@ fn carried(
             if separable {
                 return SampleGrid::of_axes(xs, ys);
             }
+        }
+    }
+    if let Some(a) = &own.axes {
+        let span = |v: &[f64]| {
+            v.iter()
+                .fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], &x| {
+                    [lo.min(x), hi.max(x)]
+                })
+        };
+        let ([x0, x1], [y0, y1]) = (span(&a.xs), span(&a.ys));
+        if r.gathers([x0, y0], [x1, y1]) {
+            // Kept as the lattice and the grid it carries: a device carries the points
+            // itself, and the CPU lists them as `map` would.
+            return SampleGrid::carried(a.clone(), r.clone());
         }
     }
     let pts: Vec<[f64; 2]> = own.points().collect();

@@ -63,6 +63,8 @@
 //! surveys), and up to 4 mm where a synthetic survey 400 m off the others shares a pixel with
 //! them; they hold the GPU to 1 mm (two f32 spacings above 8,192 m) plus 2·10⁻⁵·Δ.
 
+mod positions;
+
 use crate::sync::lock;
 use bytemuck::{Pod, Zeroable};
 use patchwork_core::geom::Aabb;
@@ -195,7 +197,10 @@ struct Params {
     axes: u32,
     /// Bins along a row: blocks_x / [`SUPER`], rounded up.
     supers_x: u32,
-    _pad0: [u32; 2],
+    /// What the device makes positions from ([`positions::SOURCE_AXES`] or `SOURCE_ROWS`),
+    /// and whether a lattice carries them into the store's plane.
+    source: u32,
+    carry: u32,
     /// The request's origin in the store's plane, as hi + lo.
     origin_hi: [f32; 2],
     origin_lo: [f32; 2],
@@ -203,7 +208,10 @@ struct Params {
     /// than the error of forming them relative to the origin, so the test keeps every patch
     /// that the CPU's would.
     pad: f32,
-    _pad1: [u32; 3],
+    /// Planes whose positions the device makes, and where the first one's start.
+    planes: u32,
+    plane0: u32,
+    _pad0: u32,
 }
 
 /// Where a patch's samples sit in the arena: its window grown by one cell where the level has
@@ -243,7 +251,9 @@ pub struct GpuTimings {
 pub struct GpuResampler {
     device: wgpu::Device,
     queue: wgpu::Queue,
-    /// Lists each block's patches from its bin, then resamples.
+    /// Makes the positions of a grid that is not listed, lists each block's patches from
+    /// its bin, then resamples.
+    placer: wgpu::ComputePipeline,
     binner: wgpu::ComputePipeline,
     pipeline: wgpu::ComputePipeline,
     info: wgpu::AdapterInfo,
@@ -253,6 +263,12 @@ pub struct GpuResampler {
     arena: Store,
     table: Store,
     cache: Cache,
+    /// Lattice nodes, a block of 16² in a slot of [`positions::BLOCK_BYTES`], and which
+    /// block of which lattice each slot holds.
+    nodes: Store,
+    node_cache: HashMap<(u64, [i64; 2]), u32>,
+    /// [0], the shader's `unit`: a word it cannot know at compile time.
+    unit: wgpu::Buffer,
     /// The per-request buffers, kept from one request to the next.
     pool: Pool,
     /// Buffers that heights were read back through, for the next requests.
@@ -350,19 +366,23 @@ fn store_buffer(device: &wgpu::Device, label: &str, len: u64) -> wgpu::Buffer {
     })
 }
 
-/// Slots of the [`Pool`]: params, points, uses, bin offsets, bins and block bounds are
-/// uploaded in that order (0–5), then the heights the shader writes and the blocks' lists of
-/// patches, which never leave the device. A request in flight holds only its readback
-/// buffer: the queue runs requests in order, so the next one's writes to these wait for the
-/// last one's dispatch.
-const UPLOADS: usize = 6;
-const OUT: usize = 6;
-const LISTS: usize = 7;
+/// Slots of the [`Pool`]: params, points, uses, bin offsets, bins, and what the device makes
+/// positions from (the source, the lattices and their blocks) are uploaded in that order
+/// (0–7), then the heights the shader writes and the blocks' lists of patches, which never
+/// leave the device. Points made on the device are not uploaded. A request in flight holds
+/// only its readback buffer: the queue runs requests in order, so the next one's writes to
+/// these wait for the last one's dispatch.
+const UPLOADS: usize = 8;
+const POINTS: usize = 1;
+const OUT: usize = 8;
+const LISTS: usize = 9;
+/// Bytes of lattice nodes kept on the device: 4,096 blocks, each some 16 km or ¼° square.
+const NODE_BYTES: u64 = 4096 * positions::BLOCK_BYTES;
 
 /// The buffers a request uses, kept between requests and grown (to powers of two) only when
 /// one needs more: creating them afresh cost more than the dispatch on a hardware GPU.
 struct Pool {
-    buffers: [Option<wgpu::Buffer>; 8],
+    buffers: [Option<wgpu::Buffer>; 10],
     /// The largest buffer a binding takes, rounded down to 16 bytes: growth stops there.
     limit: u64,
 }
@@ -376,8 +396,9 @@ impl Pool {
         size: u64,
         usage: wgpu::BufferUsages,
     ) -> &wgpu::Buffer {
-        // Bindings may not be empty; storage sizes must be multiples of 4.
-        let size = size.max(16).next_multiple_of(16);
+        // Bindings may not be empty, nor smaller than one element (48 bytes for a lattice);
+        // storage sizes must be multiples of 4.
+        let size = size.max(64).next_multiple_of(16);
         let b = &mut self.buffers[slot];
         if b.as_ref().is_none_or(|b| b.size() < size) {
             *b = Some(device.create_buffer(&wgpu::BufferDescriptor {
@@ -391,13 +412,15 @@ impl Pool {
     }
 }
 
-const POOL_LABELS: [&str; 8] = [
+const POOL_LABELS: [&str; 10] = [
     "params",
     "points",
     "uses",
     "bin offsets",
     "bins",
-    "block bounds",
+    "position source",
+    "lattices",
+    "lattice blocks",
     "heights",
     "block lists",
 ];
@@ -418,12 +441,12 @@ pub struct Prepared {
     /// its rows' y (width + height entries), not one entry a sample.
     axes: bool,
     /// Positions as (x hi, y hi, x lo, y lo) relative to their plane's origin: the store
-    /// plane's, then every other plane's, one a sample.
+    /// plane's, then every other plane's, one a sample; empty where the device makes them.
     points: Vec<[f32; 4]>,
-    /// Each block's bounds relative to the origin, rounded outwards, for a grid without axes
-    /// (the shader finds a north-up block's from the axes); (1, 1, 0, 0) for a block without
-    /// a valid point.
-    blocks: Vec<[f32; 4]>,
+    /// Entries of the device's points buffer: `points.len()`, or what the device makes.
+    points_len: usize,
+    /// What the device makes the positions from, unless they are listed or axes alone.
+    generated: Option<positions::Generated>,
     /// Bins of [`SUPER`]² blocks: patch indices, ascending, whose window meets the bin.
     supers_x: usize,
     offsets: Vec<u32>,
@@ -442,6 +465,13 @@ impl Prepared {
             self.offsets.len().saturating_sub(1),
             *self.offsets.last().unwrap_or(&0) as usize,
         )
+    }
+
+    /// Whether the CPU listed a position a sample (and plane) for the device, rather than
+    /// the axes, rows and lattices the device makes them from: only a grid of scattered
+    /// points, or one whose lattices span more than a device keeps, is listed.
+    pub fn listed(&self) -> bool {
+        self.generated.is_none() && !(self.axes && self.points.len() == self.width + self.height)
     }
 
     /// The most patches a bin of [`SUPER`]² blocks holds.
@@ -477,9 +507,12 @@ impl Prepared {
 }
 
 /// Bins the patches of `set` into bins of [`SUPER`]² blocks, works out what the request adds
-/// to each patch, and packs the grid's positions for the shader. A north-up grid sends its
-/// axes, one entry a column and one a row, not one a sample: the same f64 positions the CPU
-/// blends at, each split into two f32s, so both backends work from the same coordinates.
+/// to each patch, and says how the device finds the samples' positions. A north-up grid sends
+/// its axes, one entry a column and one a row, not one a sample: the same f64 positions the
+/// CPU blends at, each split into two f32s, so both backends work from the same coordinates.
+/// A view sends two points a row, and positions in other CRSs are carried on the device
+/// through lattices kept there ([`positions`]); the CPU lists a sample's positions only for a
+/// grid of scattered points or one spanning more lattice than a device keeps.
 pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     let t0 = Instant::now();
     // Axes that turn back bound no square by their ends: such a grid goes point by point.
@@ -498,7 +531,8 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         pad: 0.0,
         axes: false,
         points: Vec::new(),
-        blocks: Vec::new(),
+        points_len: 0,
+        generated: None,
         supers_x: 0,
         offsets: Vec::new(),
         bins: Vec::new(),
@@ -506,25 +540,40 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         keys: Vec::new(),
         took: Duration::ZERO,
     };
-    let Some(origin) = grid.points().find(|p| !p[0].is_nan() && !p[1].is_nan()) else {
-        return p;
-    };
-    if set.patches.is_empty() {
+    if set.patches.is_empty() || grid.width * grid.height == 0 {
         return p;
     }
+    let side = BLOCK * SUPER;
+    // A north-up grid of the store's plane alone needs nothing made.
+    let plan = if grid.axes.is_some() && set.planes.is_empty() {
+        None
+    } else {
+        positions::plan(set, grid, side)
+    };
+    // Listed: every sample's position in each plane, each relative to an origin of its own.
+    let mut listed = Vec::new();
+    let (origin, plane_origins) = match &plan {
+        Some(plan) => (plan.origin, plan.plane_origins.clone()),
+        None => {
+            let Some(origin) = grid.points().find(|p| !p[0].is_nan() && !p[1].is_nan()) else {
+                return p;
+            };
+            listed = set.positions(grid);
+            let origins = listed
+                .iter()
+                .map(|ps| {
+                    ps.iter()
+                        .copied()
+                        .find(|p| !p[0].is_nan() && !p[1].is_nan())
+                        .unwrap_or([0.0; 2])
+                })
+                .collect();
+            (origin, origins)
+        }
+    };
     p.origin = origin;
     p.axes = grid.axes.is_some();
-    // The samples' positions in each other plane of the set, each relative to an origin of
-    // its own, after the store plane's.
-    let planes = set.positions(grid);
-    let origins: Vec<[f64; 2]> = std::iter::once(origin)
-        .chain(planes.iter().map(|ps| {
-            ps.iter()
-                .copied()
-                .find(|p| !p[0].is_nan() && !p[1].is_nan())
-                .unwrap_or([0.0; 2])
-        }))
-        .collect();
+    let origins: Vec<[f64; 2]> = std::iter::once(origin).chain(plane_origins).collect();
 
     // One pass over the patches for all that is needed of them: a ResolvedPatch is several
     // cache lines, and at 16,000 patches each further pass cost a tenth of a millisecond.
@@ -549,7 +598,6 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         u.norm = (norm / max_norm) as f32;
     }
 
-    let side = BLOCK * SUPER;
     p.supers_x = grid.width.div_ceil(side);
     let flat = match grid.axis_bounds(side) {
         Some((cols, rows)) => cpu::Flat::of_axes(&windows, &cols, &rows),
@@ -557,42 +605,12 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     };
     let flat = match flat {
         Some(f) => f,
-        None => {
-            // The shader needs each block's bounds, which a grid of points cannot give it
-            // cheaply; the bins' are their unions.
-            let blocks = grid.block_bounds();
-            let rel = |v: f64, o: f64, up: bool| {
-                let x = (v - o) as f32;
-                match (up, (x as f64) < v - o, (x as f64) > v - o) {
-                    (true, true, _) => x.next_up(),
-                    (false, _, true) => x.next_down(),
-                    _ => x,
-                }
-            };
-            p.blocks = blocks
-                .iter()
-                .map(|b| match b {
-                    Some(b) => [
-                        rel(b.min[0], origin[0], false),
-                        rel(b.min[1], origin[1], false),
-                        rel(b.max[0], origin[0], true),
-                        rel(b.max[1], origin[1], true),
-                    ],
-                    None => [1.0, 1.0, 0.0, 0.0],
-                })
-                .collect();
-            let bx = grid.width.div_ceil(BLOCK);
-            let by = grid.height.div_ceil(BLOCK);
-            let mut supers = vec![None; p.supers_x * by.div_ceil(SUPER)];
-            for (k, b) in blocks.iter().enumerate() {
-                if let Some(b) = b {
-                    let s: &mut Option<Aabb> =
-                        &mut supers[(k / bx / SUPER) * p.supers_x + (k % bx) / SUPER];
-                    *s = Some(s.map_or(*b, |a| a.union(b)));
-                }
-            }
-            cpu::Flat::of(&cpu::bin_boxes(&set.patches, &supers))
-        }
+        // The shader finds each block's bounds from its points; the bins here need only
+        // their squares'.
+        None => match plan.as_ref().and_then(|p| p.squares.as_ref()) {
+            Some(squares) => cpu::Flat::of(&cpu::bin_boxes(&set.patches, squares)),
+            None => cpu::Flat::of(&cpu::bin_boxes(&set.patches, &grid.bounds_of(side))),
+        },
     };
     (p.offsets, p.bins) = (flat.offsets, flat.entries);
     if p.bins.is_empty() {
@@ -604,32 +622,31 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
     // below anything that moves a block's patches.
     p.pad = (2.0 * scale * 2f64.powi(-40)) as f32;
 
-    let pack = |q: [f64; 2], origin: [f64; 2]| {
-        if q[0].is_nan() || q[1].is_nan() {
-            [VOID, 0.0, 0.0, 0.0]
-        } else {
-            let [xh, xl] = split(q[0] - origin[0]);
-            let [yh, yl] = split(q[1] - origin[1]);
-            [xh, yh, xl, yl]
+    match (plan, &grid.axes) {
+        (Some(plan), _) => {
+            p.points_len = p.plane_start(set.planes.len() + 1) as usize;
+            p.generated = Some(plan.generated);
         }
-    };
-    match &grid.axes {
-        Some(axes) => {
-            p.points
-                .reserve(grid.width + grid.height + planes.len() * grid.width * grid.height);
-            p.points.extend(axes.xs.iter().map(|&x| {
-                let [xh, xl] = split(x - origin[0]);
-                [xh, 0.0, xl, 0.0]
-            }));
-            p.points.extend(axes.ys.iter().map(|&y| {
-                let [yh, yl] = split(y - origin[1]);
-                [0.0, yh, 0.0, yl]
-            }));
+        (None, axes) => {
+            let pack = |q: [f64; 2], origin: [f64; 2]| {
+                if q[0].is_nan() || q[1].is_nan() {
+                    [VOID, 0.0, 0.0, 0.0]
+                } else {
+                    let [xh, xl] = split(q[0] - origin[0]);
+                    let [yh, yl] = split(q[1] - origin[1]);
+                    [xh, yh, xl, yl]
+                }
+            };
+            match axes {
+                Some(axes) => p.points = positions::axes_source(axes, origin),
+                None => p.points.extend(grid.points().map(|q| pack(q, origin))),
+            }
+            p.points.reserve(listed.len() * grid.width * grid.height);
+            for (ps, o) in listed.iter().zip(&origins[1..]) {
+                p.points.extend(ps.iter().map(|&q| pack(q, *o)));
+            }
+            p.points_len = p.points.len();
         }
-        None => p.points.extend(grid.points().map(|q| pack(q, origin))),
-    }
-    for (ps, o) in planes.iter().zip(&origins[1..]) {
-        p.points.extend(ps.iter().map(|&q| pack(q, *o)));
     }
     p.empty = false;
     p.took = t0.elapsed();
@@ -717,16 +734,24 @@ impl GpuResampler {
                 cache: None,
             })
         };
-        let (binner, pipeline) = (pipeline("bin_blocks"), pipeline("main"));
+        let (placer, binner, pipeline) = (
+            pipeline("place_points"),
+            pipeline("bin_blocks"),
+            pipeline("main"),
+        );
         let max_binding = limits
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
         let budget = budget.min(max_binding);
         let arena = Store::new(&device, "sample arena", (16u64 << 20).min(budget));
         let table = Store::new(&device, "patch table", 1 << 20);
+        let nodes = Store::new(&device, "lattice nodes", 64 * positions::BLOCK_BYTES);
+        let unit = store_buffer(&device, "unit", 16);
+        queue.write_buffer(&unit, 0, bytemuck::cast_slice(&[0u32; 4]));
         let g = GpuResampler {
             device,
             queue,
+            placer,
             binner,
             pipeline,
             info,
@@ -735,6 +760,9 @@ impl GpuResampler {
             arena,
             table,
             cache: Cache::default(),
+            nodes,
+            node_cache: HashMap::new(),
+            unit,
             pool: Pool {
                 buffers: Default::default(),
                 limit: max_binding / 16 * 16,
@@ -794,10 +822,12 @@ impl GpuResampler {
         let Some(e) = errors.into_iter().flatten().next() else {
             return submitted;
         };
-        // What the cache says is on the device may not have got there.
+        // What the caches say is on the device may not have got there.
         self.cache.clear();
         self.arena.used = 0;
         self.table.used = 0;
+        self.node_cache.clear();
+        self.nodes.used = 0;
         Err(match e {
             wgpu::Error::OutOfMemory { .. } => {
                 GpuError::TooLarge("the device ran out of memory for this request".into())
@@ -829,7 +859,7 @@ impl GpuResampler {
         }
         let (bx, by) = (prep.width.div_ceil(BLOCK), prep.height.div_ceil(BLOCK));
         let wg_max = self.device.limits().max_compute_workgroups_per_dimension as usize;
-        if (prep.points.len() * 16) as u64 > self.max_binding
+        if (prep.points_len * 16) as u64 > self.max_binding
             || (n * 4) as u64 > self.max_binding
             || prep.lists_len() * 4 > self.max_binding
             || (bx * by).div_ceil(64) > wg_max
@@ -847,6 +877,11 @@ impl GpuResampler {
         for (u, slot) in prep.uses.iter_mut().zip(&placed.slots) {
             u.slot = slot.expect("every patch placed");
         }
+        let generated = prep.generated.take();
+        let nodes = match &generated {
+            Some(g) => self.place_nodes(g)?,
+            None => (Vec::new(), Vec::new()),
+        };
         tm.prepare += t0.elapsed();
 
         let t1 = Instant::now();
@@ -857,6 +892,18 @@ impl GpuResampler {
         tm.uploaded_bytes += (samples.len() + records.len()) as u64;
         self.arena.append(&self.queue, samples);
         self.table.append(&self.queue, records);
+        let node_bytes: &[u8] = bytemuck::cast_slice(&nodes.1);
+        tm.uploaded_bytes += node_bytes.len() as u64;
+        self.nodes.append(&self.queue, node_bytes);
+        let mut refs = generated.as_ref().map_or(Vec::new(), |g| g.refs.clone());
+        for (r, slot) in refs.iter_mut().zip(&nodes.0) {
+            r.slot = *slot;
+        }
+        let planes = if generated.is_some() {
+            set.planes.len()
+        } else {
+            0
+        };
         let [ox, oy] = prep.origin;
         let ([oxh, oxl], [oyh, oyl]) = (split(ox), split(oy));
         let params = Params {
@@ -866,29 +913,46 @@ impl GpuResampler {
             has_fallback: u32::from(set.has_fallback),
             axes: u32::from(prep.axes),
             supers_x: prep.supers_x as u32,
-            _pad0: [0; 2],
+            source: generated.as_ref().map_or(0, |g| g.kind),
+            carry: generated.as_ref().map_or(0, |g| u32::from(g.carry)),
             origin_hi: [oxh, oyh],
             origin_lo: [oxl, oyl],
             pad: prep.pad,
-            _pad1: [0; 3],
+            planes: planes as u32,
+            plane0: prep.plane_start(1),
+            _pad0: 0,
         };
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let uniform = wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST;
         let out_usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
         let read_usage = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
+        let (source, lattices): (&[[f32; 4]], &[positions::GpuLattice]) = match &generated {
+            Some(g) => (&g.source, &g.lattices),
+            None => (&[], &[]),
+        };
         let uploads: [(&[u8], _); UPLOADS] = [
             (bytemuck::bytes_of(&params), uniform),
             (bytemuck::cast_slice(&prep.points), storage),
             (bytemuck::cast_slice(&prep.uses), storage),
             (bytemuck::cast_slice(&prep.offsets), storage),
             (bytemuck::cast_slice(&prep.bins), storage),
-            (bytemuck::cast_slice(&prep.blocks), storage),
+            (
+                bytemuck::cast_slice(source),
+                storage | wgpu::BufferUsages::COPY_SRC,
+            ),
+            (bytemuck::cast_slice(lattices), storage),
+            (bytemuck::cast_slice(&refs), storage),
         ];
         for (slot, (bytes, usage)) in uploads.iter().enumerate() {
-            let b = self
-                .pool
-                .take(&self.device, slot, bytes.len() as u64, *usage);
-            self.queue.write_buffer(b, 0, bytes);
+            let len = match slot {
+                // Made on the device where they are not listed.
+                POINTS => (prep.points_len * 16) as u64,
+                _ => bytes.len() as u64,
+            };
+            let b = self.pool.take(&self.device, slot, len, *usage);
+            if !bytes.is_empty() {
+                self.queue.write_buffer(b, 0, bytes);
+            }
             tm.uploaded_bytes += bytes.len() as u64;
         }
         let out_bytes = (n * 4) as u64;
@@ -932,35 +996,61 @@ impl GpuResampler {
             })
         };
         let (table, arena) = (&self.table.buffer, &self.arena.buffer);
+        let place_group = generated.is_some().then(|| {
+            group(
+                &self.placer,
+                &[
+                    (0, buf(0)),
+                    (11, buf(5)),
+                    (12, buf(6)),
+                    (13, buf(7)),
+                    (14, &self.nodes.buffer),
+                    (15, buf(POINTS)),
+                    (16, &self.unit),
+                ],
+            )
+        });
         let bin_group = group(
             &self.binner,
             &[
                 (0, buf(0)),
-                (1, buf(1)),
+                (1, buf(POINTS)),
                 (2, table),
                 (4, buf(3)),
                 (5, buf(4)),
                 (7, buf(2)),
-                (8, buf(5)),
                 (9, buf(LISTS)),
+                (16, &self.unit),
             ],
         );
         let bind = group(
             &self.pipeline,
             &[
                 (0, buf(0)),
-                (1, buf(1)),
+                (1, buf(POINTS)),
                 (2, table),
                 (3, arena),
                 (4, buf(3)),
                 (6, buf(OUT)),
                 (7, buf(2)),
                 (10, buf(LISTS)),
+                (16, &self.unit),
             ],
         );
         let mut enc = self.device.create_command_encoder(&Default::default());
+        if place_group.is_some() && prep.axes {
+            // The store plane's positions are the axes, as uploaded; the device makes the
+            // other planes' after them.
+            let axes = ((prep.width + prep.height) * 16) as u64;
+            enc.copy_buffer_to_buffer(buf(5), 0, buf(POINTS), 0, Some(axes));
+        }
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
+            if let Some(place) = &place_group {
+                pass.set_pipeline(&self.placer);
+                pass.set_bind_group(0, place, &[]);
+                pass.dispatch_workgroups(bx as u32, by as u32, 1);
+            }
             pass.set_pipeline(&self.binner);
             pass.set_bind_group(0, &bin_group, &[]);
             pass.dispatch_workgroups((bx * by).div_ceil(64) as u32, 1, 1);
@@ -1063,6 +1153,63 @@ impl GpuResampler {
             *slot = Some(s);
         }
         Ok(out)
+    }
+
+    /// The node slot of every block a request's lattices read ([`positions::NO_SLOT`] for
+    /// one without nodes), and the nodes of those not on the device yet, packed to follow
+    /// what it holds, with room made for them. Emptied and refilled when full, as the
+    /// patches are.
+    fn place_nodes(
+        &mut self,
+        g: &positions::Generated,
+    ) -> Result<(Vec<u32>, Vec<[f32; 4]>), GpuError> {
+        let missing = |cache: &HashMap<(u64, [i64; 2]), u32>| {
+            let mut seen = std::collections::HashSet::new();
+            g.blocks
+                .iter()
+                .filter(|b| b.anchor[0].is_finite() && !cache.contains_key(&b.key))
+                .filter(|b| seen.insert(b.key))
+                .count() as u64
+        };
+        let mut need = missing(&self.node_cache);
+        if self.nodes.used + need * positions::BLOCK_BYTES > NODE_BYTES {
+            self.node_cache.clear();
+            self.nodes.used = 0;
+            need = missing(&self.node_cache);
+        }
+        let bytes = need * positions::BLOCK_BYTES;
+        if bytes > self.max_binding {
+            return Err(GpuError::TooLarge(
+                "this request's lattices need more nodes than the device binds".into(),
+            ));
+        }
+        let used = self.nodes.used;
+        self.nodes.reserve(
+            &self.device,
+            &self.queue,
+            used + bytes,
+            NODE_BYTES.max(used + bytes),
+        );
+        self.check()?;
+        let mut packed = Vec::with_capacity((bytes / 16) as usize);
+        let mut slots = Vec::with_capacity(g.blocks.len());
+        for b in &g.blocks {
+            if !b.anchor[0].is_finite() {
+                slots.push(positions::NO_SLOT);
+                continue;
+            }
+            let slot = match self.node_cache.get(&b.key) {
+                Some(&s) => s,
+                None => {
+                    let s = ((used + packed.len() as u64 * 16) / positions::BLOCK_BYTES) as u32;
+                    b.pack(&mut packed);
+                    self.node_cache.insert(b.key, s);
+                    s
+                }
+            };
+            slots.push(slot);
+        }
+        Ok((slots, packed))
     }
 
     fn check(&self) -> Result<(), GpuError> {

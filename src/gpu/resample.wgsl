@@ -5,11 +5,13 @@
 // in the bin's order, which is the CPU's, so the sums are formed in the same order. Where a set holds fallback patches, a first pass over the bin finds the tier that serves the
 // sample (see `cpu.rs`) and the second blends that tier.
 //
-// Positions arrive as (hi, lo) f32 pairs relative to a tile origin (one origin per plane: a
+// Positions are (hi, lo) f32 pairs relative to a tile origin (one origin per plane: a
 // sample's positions in the CRSs of surveys of other CRSs follow the store plane's), and grid
 // coordinates are formed as (hi, lo) pairs with error-free sums and products: they carry about
 // 48 bits, so that the cell, the position inside it and the side of every edge test come out
-// as with f64.
+// as with f64. A north-up grid's positions are its axes; any other grid's are made here
+// (`place_points`) from a view's rows, or through a CRS lattice kept on the device, in the
+// same double-f32 arithmetic, unless the CPU lists them.
 // Heights arrive relative to a per-patch base, and the blend is formed relative to the base
 // of the first patch that contributed: f32 then only ever holds height differences, until
 // the base is added back once at the end.
@@ -47,16 +49,51 @@ struct Params {
     axes: u32,
     // Bins along a row of them.
     supers_x: u32,
-    _pad0: u32,
-    _pad1: u32,
+    // What `place_points` makes the positions from: SOURCE_AXES or SOURCE_ROWS.
+    source: u32,
+    // 1 where lattice 0 carries the source's positions into the store's plane.
+    carry: u32,
     // The request's origin in the store's plane, as hi + lo.
     origin_hi: vec2<f32>,
     origin_lo: vec2<f32>,
     // How far patch bounds are widened before a block is tested against them.
     pad: f32,
+    // Planes other than the store's whose positions `place_points` makes, each through the
+    // lattice after the carry's (if any), and where the first one's start in `points`.
+    planes: u32,
+    plane0: u32,
+    _pad0: u32,
+}
+
+// A lattice of a transformation between two CRSs (`Reprojection`), as one request reads it:
+// its nodes' images kept in `nodes`, 16 × 16 a block, found through `refs`.
+struct Lattice {
+    // The fraction of a node spacing at which the positions it reads have their origin S:
+    // S/h − floor(S/h), per axis, as hi + lo.
+    g_hi: vec2<f32>,
+    g_lo: vec2<f32>,
+    // 1/h, as hi + lo.
+    inv_h_hi: f32,
+    inv_h_lo: f32,
+    // Its blocks' entries in `refs`, row-major, `width` × `height` of them.
+    table: u32,
+    width: u32,
+    height: u32,
+    _pad: u32,
+    // The node of floor(S/h), counted from the first node of the table's first block.
+    first: vec2<i32>,
+}
+
+// One block of a request's lattice: where its nodes are in `nodes` (NO_SLOT where it has
+// none), and its anchor (the node its nodes are stored relative to) relative to the origin of
+// the plane the lattice carries to, as hi + lo.
+struct BlockRef {
+    anchor_hi: vec2<f32>,
+    anchor_lo: vec2<f32>,
+    slot: u32,
+    _pad0: u32,
+    _pad1: u32,
     _pad2: u32,
-    _pad3: u32,
-    _pad4: u32,
 }
 
 // A patch as kept on the device, beside its samples. Grid coordinates below are local to the
@@ -111,12 +148,28 @@ struct Use {
 // Each sample's height as f32 bits, NaN where void.
 @group(0) @binding(6) var<storage, read_write> heights: array<u32>;
 @group(0) @binding(7) var<storage, read> uses: array<Use>;
-// For a grid without axes, each block's bounds relative to the origin, rounded outwards.
-@group(0) @binding(8) var<storage, read> blocks: array<vec4<f32>>;
 // Each block's patches, written by `bin_blocks` and read by `main` (the same buffer): how
 // many, then their indices into `uses`, in a region of the block's own (`list_start`).
 @group(0) @binding(9) var<storage, read_write> lists_out: array<u32>;
 @group(0) @binding(10) var<storage, read> lists: array<u32>;
+// What `place_points` makes the positions from: a north-up grid's axes, laid out as in
+// `points`, or two entries a row of a view, its first point (relative to the origin) and the
+// step to the next, (x hi, y hi, x lo, y lo) each, the first x VOID for a row without points.
+@group(0) @binding(11) var<storage, read> source: array<vec4<f32>>;
+@group(0) @binding(12) var<storage, read> lattices: array<Lattice>;
+@group(0) @binding(13) var<storage, read> refs: array<BlockRef>;
+// Lattice nodes, 256 a block: each node's offset from its block's anchor as (x hi, y hi,
+// x lo, y lo), x hi VOID where the transformation has no image.
+@group(0) @binding(14) var<storage, read> nodes: array<vec4<f32>>;
+// [0], which no compiler can know: see `opaque`.
+@group(0) @binding(16) var<storage, read> unit: array<u32>;
+// `points`, written by `place_points`.
+@group(0) @binding(15) var<storage, read_write> points_out: array<vec4<f32>>;
+
+const SOURCE_AXES: u32 = 1u;
+const SOURCE_ROWS: u32 = 2u;
+const NO_SLOT: u32 = 0xffffffffu;
+const VOID_POINT: vec4<f32> = vec4<f32>(VOID, 0.0, 0.0, 0.0);
 
 // A quiet NaN's bits: WGSL has no NaN literal, and the bits reach the CPU as written.
 const NAN_BITS: u32 = 0x7fc00000u;
@@ -401,17 +454,43 @@ fn sample_patch(u: Use, q: Patch, i: u32) -> vec4<f32> {
     return vec4<f32>(w, e.x, e.z, 1.0);
 }
 
-// a + b exactly, as (sum, error).
-fn two_sum(a: f32, b: f32) -> vec2<f32> {
-    let s = a + b;
-    let bb = s - a;
-    return vec2<f32>(s, (a - (s - bb)) + (b - bb));
+// Error-free transformations: a sum or product of two f32s as the rounded result and its
+// exact error. Every intermediate passes through `opaque`, an integer xor with a word the
+// compiler cannot know (`unit`, 0): a compiler that treats float arithmetic as real
+// arithmetic (lavapipe's LLVM simplifies (a + b) − a to b, and sees through a multiplication
+// by a 1.0 it cannot know) would otherwise compute every error as 0, and the double-f32
+// arithmetic would silently be f32. No float algebra crosses integer operations.
+fn opaque(x: f32) -> f32 {
+    return bitcast<f32>(bitcast<u32>(x) ^ unit[0]);
 }
 
-// a · b exactly, as (product, error).
+// a + b exactly, as (sum, error) (Knuth).
+fn two_sum(a: f32, b: f32) -> vec2<f32> {
+    let s = opaque(a + b);
+    let bb = opaque(s - a);
+    let av = opaque(s - bb);
+    return vec2<f32>(s, opaque(a - av) + opaque(b - bb));
+}
+
+// a split into two halves of 12 bits, whose products are exact in f32 (Veltkamp).
+fn halves(a: f32) -> vec2<f32> {
+    let c = opaque(4097.0 * a);
+    let big = opaque(c - a);
+    let hi = opaque(c - big);
+    return vec2<f32>(hi, a - hi);
+}
+
+// a · b exactly, as (product, error), by Dekker's products of halves rather than `fma`: a
+// software driver (lavapipe) evaluates fma(a, b, −a·b) unfused, as 0, which would leave
+// products at f32.
 fn two_prod(a: f32, b: f32) -> vec2<f32> {
-    let p = a * b;
-    return vec2<f32>(p, fma(a, b, -p));
+    let p = opaque(a * b);
+    let x = halves(a);
+    let y = halves(b);
+    let e0 = opaque(x.x * y.x - p);
+    let e1 = opaque(e0 + x.x * y.y);
+    let e2 = opaque(e1 + x.y * y.x);
+    return vec2<f32>(p, e2 + x.y * y.y);
 }
 
 // dot(d, axis) for d = dh + dl and axis = ah + al, as (hi, lo).
@@ -437,8 +516,8 @@ fn from_origin(hi: vec2<f32>, lo: vec2<f32>) -> vec2<f32> {
 }
 
 // The bounds of block w's points relative to the origin, widened: from the axes of a
-// north-up grid (its first and last column and row, as the CPU's `block_bounds`), else as
-// the CPU worked them out. Empty (min > max) for a block without a valid point.
+// north-up grid (its first and last column and row, as the CPU's `block_bounds`), else from
+// its points. Empty (min > max) for a block without a valid point.
 fn bounds_of_block(w: vec2<u32>) -> vec4<f32> {
     if params.axes != 0u {
         let i0 = w.x * 16u;
@@ -451,7 +530,23 @@ fn bounds_of_block(w: vec2<u32>) -> vec4<f32> {
         let yb = points[j1].y + points[j1].w;
         return widen(vec4<f32>(min(xa, xb), min(ya, yb), max(xa, xb), max(ya, yb)));
     }
-    return blocks[w.y * params.blocks_x + w.x];
+    var lo = vec2<f32>(VOID);
+    var hi = vec2<f32>(-VOID);
+    for (var j = w.y * 16u; j < min(w.y * 16u + 16u, params.height); j++) {
+        for (var i = w.x * 16u; i < min(w.x * 16u + 16u, params.width); i++) {
+            let p = points[j * params.width + i];
+            if p.x >= VOID {
+                continue;
+            }
+            let v = p.xy + p.zw;
+            lo = min(lo, v);
+            hi = max(hi, v);
+        }
+    }
+    if lo.x > hi.x {
+        return vec4<f32>(1.0, 1.0, 0.0, 0.0);
+    }
+    return widen(vec4<f32>(lo, hi));
 }
 
 // Whether the patch of use k may reach a point of the block: its reach (`ResolvedPatch::reach`),
@@ -562,5 +657,169 @@ fn main(
     if covered && wsum > 0.0 {
         // One rounding of the exact sum, as the CPU's f64 sum rounded to f32.
         heights[i] = bitcast<u32>(zref + sum / wsum);
+    }
+}
+
+// Double-f32 arithmetic on (hi, lo) pairs, for positions carried through a lattice: about 44
+// bits at every step, where the CPU's f64 has 53 and f32 24.
+
+// a + b for |a| ≥ |b| or a = 0, as (sum, error).
+fn quick_two_sum(a: f32, b: f32) -> vec2<f32> {
+    let s = opaque(a + b);
+    return vec2<f32>(s, b - opaque(s - a));
+}
+
+fn df_add(a: vec2<f32>, b: vec2<f32>) -> vec2<f32> {
+    let s = two_sum(a.x, b.x);
+    let t = two_sum(a.y, b.y);
+    let u = quick_two_sum(s.x, opaque(s.y + t.x));
+    return quick_two_sum(u.x, opaque(u.y + t.y));
+}
+
+fn df_sub(a: vec2<f32>, b: vec2<f32>) -> vec2<f32> {
+    return df_add(a, -b);
+}
+
+fn df_mul(a: vec2<f32>, b: vec2<f32>) -> vec2<f32> {
+    let p = two_prod(a.x, b.x);
+    return quick_two_sum(p.x, p.y + (a.x * b.y + a.y * b.x));
+}
+
+fn df_scale(a: vec2<f32>, k: f32) -> vec2<f32> {
+    let p = two_prod(a.x, k);
+    return quick_two_sum(p.x, p.y + a.y * k);
+}
+
+// The Catmull-Rom weights of the four nodes around a point a fraction t of the way between
+// the middle two (`lattice::weights`).
+fn cr_weights(t: vec2<f32>) -> array<vec2<f32>, 4> {
+    let t2 = df_mul(t, t);
+    let t3 = df_mul(t2, t);
+    let w0 = df_add(df_add(-t3, df_scale(t2, 2.0)), -t);
+    let w1 = df_add(df_add(df_scale(t3, 3.0), df_scale(t2, -5.0)), vec2<f32>(2.0, 0.0));
+    let w2 = df_add(df_add(df_scale(t3, -3.0), df_scale(t2, 4.0)), t);
+    let w3 = df_add(t3, -t2);
+    return array<vec2<f32>, 4>(0.5 * w0, 0.5 * w1, 0.5 * w2, 0.5 * w3);
+}
+
+// The lattice cell holding u (in node spacings) as (cell, fraction hi, fraction lo), the
+// fraction in [0, 1).
+fn cell_of(u: vec2<f32>) -> vec3<f32> {
+    var c = floor(u.x);
+    var f = two_sum(u.x - c, u.y);
+    if f.x < 0.0 {
+        c -= 1.0;
+        f = df_add(f, vec2<f32>(1.0, 0.0));
+    } else if f.x >= 1.0 {
+        c += 1.0;
+        f = df_add(f, vec2<f32>(-1.0, 0.0));
+    }
+    return vec3<f32>(c, f);
+}
+
+// Lattice node (ix, iy), counted from the first node of the table, relative to the origin
+// of the plane the lattice carries to; VOID_POINT where it has no image.
+fn node_at(l: Lattice, ix: i32, iy: i32) -> vec4<f32> {
+    if ix < 0 || iy < 0 {
+        return VOID_POINT;
+    }
+    let b = vec2<u32>(u32(ix) / 16u, u32(iy) / 16u);
+    if b.x >= l.width || b.y >= l.height {
+        return VOID_POINT;
+    }
+    let r = refs[l.table + b.y * l.width + b.x];
+    if r.slot == NO_SLOT {
+        return VOID_POINT;
+    }
+    let d = nodes[r.slot * 256u + (u32(iy) % 16u) * 16u + u32(ix) % 16u];
+    if d.x >= VOID {
+        return VOID_POINT;
+    }
+    let x = df_add(vec2<f32>(r.anchor_hi.x, r.anchor_lo.x), vec2<f32>(d.x, d.z));
+    let y = df_add(vec2<f32>(r.anchor_hi.y, r.anchor_lo.y), vec2<f32>(d.y, d.w));
+    return vec4<f32>(x.x, y.x, x.y, y.y);
+}
+
+// Position p carried by lattice k (`Reprojection::at`): the tensor Catmull-Rom cubic through
+// the 4 × 4 nodes around it, summed as offsets from the cell's first node as the CPU sums
+// them; VOID_POINT where a node has no image.
+fn carry(k: u32, p: vec4<f32>) -> vec4<f32> {
+    if p.x >= VOID {
+        return VOID_POINT;
+    }
+    let l = lattices[k];
+    let ih = vec2<f32>(l.inv_h_hi, l.inv_h_lo);
+    let cx = cell_of(df_add(vec2<f32>(l.g_hi.x, l.g_lo.x), df_mul(vec2<f32>(p.x, p.z), ih)));
+    let cy = cell_of(df_add(vec2<f32>(l.g_hi.y, l.g_lo.y), df_mul(vec2<f32>(p.y, p.w), ih)));
+    var wx = cr_weights(cx.yz);
+    var wy = cr_weights(cy.yz);
+    let ix = i32(cx.x) + l.first.x - 1;
+    let iy = i32(cy.x) + l.first.y - 1;
+    let base = node_at(l, ix + 1, iy + 1);
+    if base.x >= VOID {
+        return VOID_POINT;
+    }
+    let bx = base.xz;
+    let by = base.yw;
+    var ox = vec2<f32>(0.0);
+    var oy = vec2<f32>(0.0);
+    for (var b = 0; b < 4; b++) {
+        var rx = vec2<f32>(0.0);
+        var ry = vec2<f32>(0.0);
+        for (var a = 0; a < 4; a++) {
+            let n = node_at(l, ix + a, iy + b);
+            if n.x >= VOID {
+                return VOID_POINT;
+            }
+            rx = df_add(rx, df_mul(wx[a], df_sub(n.xz, bx)));
+            ry = df_add(ry, df_mul(wx[a], df_sub(n.yw, by)));
+        }
+        ox = df_add(ox, df_mul(wy[b], rx));
+        oy = df_add(oy, df_mul(wy[b], ry));
+    }
+    let x = df_add(bx, ox);
+    let y = df_add(by, oy);
+    return vec4<f32>(x.x, y.x, x.y, y.y);
+}
+
+// One invocation a sample: its position in the store's plane, from a view's row or through
+// the carrying lattice from the axes of a grid of another CRS (unless the plane's positions
+// are axes, which were copied), and in every other plane through that plane's lattice.
+@compute @workgroup_size(16, 16, 1)
+fn place_points(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if gid.x >= params.width || gid.y >= params.height {
+        return;
+    }
+    let n = params.width * params.height;
+    let col = gid.x;
+    let row = gid.y;
+    let i = row * params.width + col;
+    var p: vec4<f32>;
+    if params.source == SOURCE_ROWS {
+        let first = source[2u * row];
+        if first.x >= VOID {
+            p = VOID_POINT;
+        } else {
+            let step = source[2u * row + 1u];
+            let k = f32(col);
+            let x = df_add(first.xz, df_scale(step.xz, k));
+            let y = df_add(first.yw, df_scale(step.yw, k));
+            p = vec4<f32>(x.x, y.x, x.y, y.y);
+        }
+    } else {
+        let c = source[col];
+        let r = source[params.width + row];
+        p = vec4<f32>(c.x, r.y, c.z, r.w);
+    }
+    var next = 0u;
+    if params.carry != 0u {
+        p = carry(0u, p);
+        next = 1u;
+    }
+    if params.axes == 0u {
+        points_out[i] = p;
+    }
+    for (var k = 0u; k < params.planes; k++) {
+        points_out[params.plane0 + k * n + i] = carry(next + k, p);
     }
 }

@@ -468,7 +468,7 @@ fn gpu_matches_cpu_where_surveys_meet() {
 
 #[test]
 fn gpu_matches_cpu_across_crss() {
-    use patchwork_core::crs::Crs;
+    use patchwork_core::crs::{Crs, Reprojection};
     use patchwork_core::index::lod::IndexConfig;
     let Some(mut g) = gpu() else { return };
     // Mont Ventoux in geographic WGS 84 and in UTM 31N, each in a store of the other's CRS
@@ -522,6 +522,46 @@ fn gpu_matches_cpu_across_crss() {
         let grid = patchwork_core::terrain::view_grid(&v, 240, 160);
         let what = format!("view across the pair in {}", store.key());
         worst = worst.max(compare(&mut g, &t, t.view(&v), &grid, &what));
+        // Made on the device: the view's rows and the other plane's lattice, not a
+        // position a sample and plane.
+        let set = t.resolve(&t.view(&v));
+        assert!(!patchwork::gpu::prepare(&set, &grid).listed());
+        let (_, warm) = g.resample_timed(&set, &grid).unwrap();
+        let listed = 16 * 2 * grid.width * grid.height;
+        println!("{what}, warm: {warm:?}, where listed positions took {listed} bytes");
+        assert!(warm.uploaded_bytes as usize * 10 < listed, "{warm:?}");
+
+        // A north-up tile in the other survey's CRS: carried into the store's plane by a
+        // lattice on the device, and from there into the other plane by another.
+        let other_crs = if store.is_geographic() {
+            Crs::epsg(32631).unwrap()
+        } else {
+            Crs::wgs84()
+        };
+        let to_store = Arc::new(Reprojection::new(&other_crs, &store).unwrap());
+        let back = Reprojection::new(&store, &other_crs).unwrap();
+        let (a, b) = (
+            back.exact().apply(both.min).unwrap(),
+            back.exact().apply(both.max).unwrap(),
+        );
+        let own = Aabb::new(
+            a[0].min(b[0]),
+            a[1].min(b[1]),
+            a[0].max(b[0]),
+            a[1].max(b[1]),
+        );
+        let axes = SampleGrid::uniform(&own, 230, 190).axes.unwrap();
+        let grid = SampleGrid::carried(axes, to_store);
+        let stored = Aabb::of_points(grid.list());
+        let ps = t.uniform(&stored, 2.0);
+        let set = t.resolve(&ps);
+        assert!(!patchwork::gpu::prepare(&set, &grid).listed());
+        let what = format!(
+            "a tile in {} over the pair in {}",
+            other_crs.key(),
+            store.key()
+        );
+        worst = worst.max(compare(&mut g, &t, ps, &grid, &what));
     }
     println!("across CRSs: max |gpu − cpu| = {worst:.3e} m");
 }

@@ -129,7 +129,7 @@ pub struct Tile {
 /// The sample grid of a view: a screen of `width × height` pixels projected onto the plane
 /// of the point looked at (§5, persistent grid mapping).
 pub fn view_grid(v: &ViewQuery, width: usize, height: usize) -> SampleGrid {
-    SampleGrid::of_points(width, height, v.ground_points(width, height, v.look[2]))
+    SampleGrid::of_rows(width, v.ground_rows(width, height, v.look[2]))
 }
 
 /// The [`Shortfall`] of a tile's patches over its grid, measured at no more than 64 × 64 of

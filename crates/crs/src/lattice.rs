@@ -17,6 +17,8 @@ use std::sync::Arc;
 
 /// Nodes per side of a cached block.
 const SIDE: usize = 16;
+/// Nodes per side of a block, as [`Reprojection::block`] gives them.
+pub const BLOCK_SIDE: usize = SIDE;
 /// Blocks kept per reprojection: 8,192 of 4 KiB, 32 MiB at most, covering some 2 × 10⁶ km²
 /// at the default spacing.
 const BLOCKS: usize = 8192;
@@ -24,7 +26,10 @@ const BLOCKS: usize = 8192;
 /// at a time.
 const MOST_GATHERED: usize = 1 << 22;
 
-type Block = [[f64; 2]; SIDE * SIDE];
+/// The images of a block's nodes, row-major: node (i, j) of block (bx, by) is lattice node
+/// (16·bx + i, 16·by + j), at (that node × the spacing) in the source CRS. NaN where the
+/// exact transformation has no image.
+pub type Block = [[f64; 2]; SIDE * SIDE];
 
 /// A transformation from one CRS to another, interpolated on a lattice.
 pub struct Reprojection {
@@ -70,7 +75,22 @@ impl Reprojection {
         &self.exact
     }
 
-    fn block(&self, b: [i64; 2]) -> Arc<Block> {
+    /// The node spacing, in the source CRS's units: node (i, j) is at (i·h, j·h).
+    pub fn spacing(&self) -> f64 {
+        self.h
+    }
+
+    /// Whether [`Self::map`] gathers the nodes around a batch of points within `[min, max]`
+    /// at once (and so whether a device may be handed them): a batch spanning more goes
+    /// point by point.
+    pub fn gathers(&self, min: [f64; 2], max: [f64; 2]) -> bool {
+        let spanned = ((max[0] - min[0]) / self.h + 4.0) * ((max[1] - min[1]) / self.h + 4.0);
+        spanned.is_finite() && spanned <= MOST_GATHERED as f64
+    }
+
+    /// The images of block `b`'s nodes (see [`Block`]), worked out once and cached: what
+    /// [`Self::at`] interpolates, for a device that interpolates them itself.
+    pub fn block(&self, b: [i64; 2]) -> Arc<Block> {
         let make = || -> Result<Arc<Block>, std::convert::Infallible> {
             let mut out = Box::new([[f64::NAN; 2]; SIDE * SIDE]);
             for (k, node) in out.iter_mut().enumerate() {

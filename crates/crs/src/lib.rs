@@ -18,7 +18,7 @@
 mod lattice;
 pub mod vertical;
 
-pub use lattice::Reprojection;
+pub use lattice::{Block as LatticeBlock, Reprojection, BLOCK_SIDE as LATTICE_SIDE};
 
 use proj_core::{AxisOrder, CrsDef};
 use std::collections::HashMap;

@@ -416,8 +416,33 @@ impl ErrorField for ViewField {
 impl ViewQuery {
     /// The points of a screen grid of `width × height` pixels projected from the eye onto the
     /// plane z = `ground`, row-major: dense near the viewer, sparse far away (§5, persistent
-    /// grid mapping); NaN where a pixel's ray misses the plane.
+    /// grid mapping); NaN where a pixel's ray misses the plane. Point (i, j) is row j's
+    /// first point plus i of its steps ([`Self::ground_rows`]).
     pub fn ground_points(&self, width: usize, height: usize, ground: f64) -> Vec<[f64; 2]> {
+        let mut points = Vec::with_capacity(width * height);
+        for row in self.ground_rows(width, height, ground) {
+            match row {
+                Some([p, q]) => points.extend((0..width).map(|i| {
+                    let i = i as f64;
+                    [p[0] + i * q[0], p[1] + i * q[1]]
+                })),
+                None => points.extend(std::iter::repeat_n([f64::NAN; 2], width)),
+            }
+        }
+        points
+    }
+
+    /// Each row of [`Self::ground_points`] as its first point and the step from one point to
+    /// the next, None for a row whose rays miss the plane. A screen row's rays share their
+    /// vertical component (the camera's right vector is level), so they meet the plane at
+    /// one distance along the view and their points lie evenly on a line: a view grid is
+    /// two points a row, not one a pixel.
+    pub fn ground_rows(
+        &self,
+        width: usize,
+        height: usize,
+        ground: f64,
+    ) -> Vec<Option<[[f64; 2]; 2]>> {
         let view = self;
         let s = view.metric.scale;
         let eye = [view.eye[0] * s[0], view.eye[1] * s[1], view.eye[2]];
@@ -434,25 +459,21 @@ impl ViewQuery {
         let up = cross(right, f);
         let t = (view.fov_deg.to_radians() / 2.0).tan();
         let aspect = height as f64 / width as f64;
-        let mut points = Vec::with_capacity(width * height);
-        for j in 0..height {
-            for i in 0..width {
-                let x = (2.0 * (i as f64 + 0.5) / width as f64 - 1.0) * t;
+        // Pixel i's ray is f + (x0 + i·dx)·right + y·up.
+        let x0 = (1.0 / width as f64 - 1.0) * t;
+        let dx = 2.0 * t / width as f64;
+        (0..height)
+            .map(|j| {
                 let y = (1.0 - 2.0 * (j as f64 + 0.5) / height as f64) * t * aspect;
-                let d = [
-                    f[0] + x * right[0] + y * up[0],
-                    f[1] + x * right[1] + y * up[1],
-                    f[2] + x * right[2] + y * up[2],
-                ];
-                let k = (ground - eye[2]) / d[2];
-                points.push(if d[2] < -1e-12 && k > 0.0 {
-                    [(eye[0] + k * d[0]) / s[0], (eye[1] + k * d[1]) / s[1]]
-                } else {
-                    [f64::NAN, f64::NAN]
-                });
-            }
-        }
-        points
+                let dz = f[2] + y * up[2];
+                let k = (ground - eye[2]) / dz;
+                (dz < -1e-12 && k > 0.0).then(|| {
+                    let first = |a: usize| (eye[a] + k * (f[a] + y * up[a] + x0 * right[a])) / s[a];
+                    let step = |a: usize| k * dx * right[a] / s[a];
+                    [[first(0), first(1)], [step(0), step(1)]]
+                })
+            })
+            .collect()
     }
 
     /// Checks that the view can be cut: finite eye and look, a field of view in (0°, 180°), a

@@ -306,6 +306,8 @@ fn by_points(
     cancel: &Cancel,
 ) {
     let bx = grid.width.div_ceil(BLOCK);
+    // Listed here, once, rather than by whichever thread first needs it.
+    let list = grid.list();
     out.par_chunks_mut(grid.width)
         .enumerate()
         .for_each(|(dj, row)| {
@@ -313,7 +315,7 @@ fn by_points(
                 return;
             }
             let j = j0 + dj;
-            let pts = &grid.list[j * grid.width..(j + 1) * grid.width];
+            let pts = &list[j * grid.width..(j + 1) * grid.width];
             let mut tiers = Vec::with_capacity(8);
             for (i, (o, &p)) in row.iter_mut().zip(pts).enumerate() {
                 if p[0].is_nan() {

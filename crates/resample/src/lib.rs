@@ -51,19 +51,53 @@ pub const BLOCK: usize = 16;
 
 /// Where to sample: a `width × height` array of plane positions, row-major. A NaN position
 /// (a view ray above the horizon) yields nodata.
+///
+/// A grid is kept in the form it was made in, so that a device can generate its points from
+/// a few numbers where the CPU lists them: a north-up grid's axes, a view's rows (each an
+/// evenly spaced line), or another CRS's north-up grid carried through a lattice; any other
+/// grid lists its points.
 #[derive(Clone, Debug)]
 pub struct SampleGrid {
     /// Samples per row.
     pub width: usize,
     /// Rows of samples.
     pub height: usize,
-    /// Every point, row-major; empty where `axes` gives them. Listing a 2048² tile's points
-    /// took longer than blending most of it.
-    list: Vec<[f64; 2]>,
+    /// Every point, row-major, listed on first use by a grid of rows or a carried grid, and
+    /// never by a north-up one: listing a 2048² tile's points took longer than blending most
+    /// of it.
+    list: std::sync::OnceLock<Vec<[f64; 2]>>,
     /// For a north-up tile, the x of each column and the y of each row: point (i, j) is
     /// (xs[i], ys[j]), which lets the CPU work out per column and per row what it would
     /// otherwise work out per sample.
     pub axes: Option<Axes>,
+    /// For a grid of rows, each row's first point and step (point (i, j) is first + i·step),
+    /// or None for a row without points.
+    rows: Option<Arc<Vec<Row>>>,
+    /// For a grid carried from another CRS, the grid there and the lattice that carries it.
+    carry: Option<Arc<Carried>>,
+}
+
+/// A row of evenly spaced points: the first, and the step to the next. None for a row all
+/// of whose points are NaN.
+pub type Row = Option<[[f64; 2]; 2]>;
+
+/// A north-up grid of another CRS whose points are carried into the store's plane by a
+/// lattice, point (i, j) to `by.at([own.xs[i], own.ys[j]])`.
+pub struct Carried {
+    /// The grid in its own CRS.
+    pub own: Axes,
+    /// From its CRS to the store's.
+    pub by: Arc<Reprojection>,
+}
+
+impl std::fmt::Debug for Carried {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Carried")
+            .field("width", &self.own.xs.len())
+            .field("height", &self.own.ys.len())
+            .field("from", &self.by.from().key())
+            .finish()
+    }
 }
 
 /// Closed intervals [min, max] along one axis.
@@ -79,6 +113,17 @@ pub struct Axes {
 }
 
 impl SampleGrid {
+    fn of(width: usize, height: usize) -> Self {
+        SampleGrid {
+            width,
+            height,
+            list: std::sync::OnceLock::new(),
+            axes: None,
+            rows: None,
+            carry: None,
+        }
+    }
+
     /// A north-up tile over `roi`, sample (i, j) at the centre of its pixel.
     pub fn uniform(roi: &Aabb, width: usize, height: usize) -> Self {
         let dx = roi.width() / width as f64;
@@ -89,48 +134,111 @@ impl SampleGrid {
         let ys: Vec<f64> = (0..height)
             .map(|j| roi.max[1] - (j as f64 + 0.5) * dy)
             .collect();
-        SampleGrid {
-            width,
-            height,
-            list: Vec::new(),
-            axes: Some(Axes { xs, ys }),
-        }
+        Self::of_axes(xs, ys)
     }
 
     /// A north-up grid of any columns and rows: point (i, j) is (xs[i], ys[j]).
     pub fn of_axes(xs: Vec<f64>, ys: Vec<f64>) -> Self {
         SampleGrid {
-            width: xs.len(),
-            height: ys.len(),
-            list: Vec::new(),
             axes: Some(Axes { xs, ys }),
+            ..Self::of(0, 0)
         }
+        .sized()
     }
 
     /// A grid of any points, row-major, `width × height` of them.
     pub fn of_points(width: usize, height: usize, points: Vec<[f64; 2]>) -> Self {
         assert_eq!(points.len(), width * height, "a point for every sample");
-        SampleGrid {
-            width,
-            height,
-            list: points,
-            axes: None,
-        }
+        let g = Self::of(width, height);
+        g.list.set(points).expect("a new grid lists nothing");
+        g
     }
 
-    /// The same points without their axes: resampled one point at a time, as any grid is.
+    /// A grid of `width` points a row, each row evenly spaced: point (i, j) is
+    /// `first + i·step` of `rows[j]`, computed so in f64, or NaN for a row that is None.
+    pub fn of_rows(width: usize, rows: Vec<Row>) -> Self {
+        SampleGrid {
+            rows: Some(Arc::new(rows)),
+            ..Self::of(width, 0)
+        }
+        .sized()
+    }
+
+    /// The north-up grid `own` of another CRS, carried by `by` into the store's plane: point
+    /// (i, j) is where [`Reprojection::map`] takes (xs[i], ys[j]).
+    pub fn carried(own: Axes, by: Arc<Reprojection>) -> Self {
+        SampleGrid {
+            carry: Some(Arc::new(Carried { own, by })),
+            ..Self::of(0, 0)
+        }
+        .sized()
+    }
+
+    /// Width and height from the form.
+    fn sized(mut self) -> Self {
+        if let Some(a) = &self.axes {
+            (self.width, self.height) = (a.xs.len(), a.ys.len());
+        }
+        if let Some(r) = &self.rows {
+            self.height = r.len();
+        }
+        if let Some(c) = &self.carry {
+            (self.width, self.height) = (c.own.xs.len(), c.own.ys.len());
+        }
+        self
+    }
+
+    /// The same points without their form: resampled one point at a time, as any grid is.
     pub fn pointwise(self) -> Self {
         let list = self.points().collect();
         SampleGrid::of_points(self.width, self.height, list)
     }
 
+    /// For a grid of rows, each row's first point and step.
+    pub fn rows(&self) -> Option<&[Row]> {
+        self.rows.as_deref().map(Vec::as_slice)
+    }
+
+    /// For a carried grid, the grid in its own CRS and the lattice that carries it.
+    pub fn carry(&self) -> Option<&Carried> {
+        self.carry.as_deref()
+    }
+
+    /// Every point, row-major, listed on first use for a grid that does not list them (a
+    /// north-up grid's are its axes' products).
+    pub fn list(&self) -> &[[f64; 2]] {
+        self.list.get_or_init(|| {
+            if let Some(c) = &self.carry {
+                let pts: Vec<[f64; 2]> = c
+                    .own
+                    .ys
+                    .iter()
+                    .flat_map(|&y| c.own.xs.iter().map(move |&x| [x, y]))
+                    .collect();
+                return c.by.map(&pts);
+            }
+            (0..self.width * self.height)
+                .map(|k| self.point(k))
+                .collect()
+        })
+    }
+
     /// Sample k's position, row-major.
     #[inline]
     pub fn point(&self, k: usize) -> [f64; 2] {
-        match &self.axes {
-            Some(a) => [a.xs[k % self.width], a.ys[k / self.width]],
-            None => self.list[k],
+        if let Some(a) = &self.axes {
+            return [a.xs[k % self.width], a.ys[k / self.width]];
         }
+        if let Some(rows) = &self.rows {
+            return match rows[k / self.width] {
+                Some([p, q]) => {
+                    let i = (k % self.width) as f64;
+                    [p[0] + i * q[0], p[1] + i * q[1]]
+                }
+                None => [f64::NAN; 2],
+            };
+        }
+        self.list()[k]
     }
 
     /// Every sample's position, row-major.
