@@ -5,13 +5,16 @@
 //! A request is in two parts. [`prepare`] is the CPU's: the patches binned into squares of
 //! [`SUPER`] × [`SUPER`] blocks (by bisection along a north-up grid's axes), what the request
 //! adds to each patch (its first sample from the request's origin, its rank and weight: 32
-//! bytes), and the positions packed (for a north-up grid its axes, a column's x and a row's
-//! y, not a point a sample: 64 KB for a 2048² tile where points took 64 MB).
-//! [`GpuResampler::resample_prepared`] is the device's: the patches not yet on it, then two
-//! dispatches, the first listing each block's patches from its square's bin (binning on the
-//! device, which the paper leaves to future work), the second blending, and 4 bytes a sample
-//! read back, through buffers kept from one request to the next. Only the second part needs
-//! the device, so a daemon prepares outside its lock.
+//! bytes), and what the positions are made from (for a north-up grid its axes, a column's x
+//! and a row's y, not a point a sample: 64 KB for a 2048² tile where points took 64 MB; for
+//! a view two points a row; for a grid of another CRS, and for the planes of surveys of other
+//! CRSs, the lattices of [`positions`], kept on the device).
+//! [`GpuResampler::submit`] is the device's: the patches and lattice nodes not yet on it, then
+//! up to three dispatches, the first making the positions that are not axes, the second
+//! listing each block's patches from its square's bin (binning on the device, which the paper
+//! leaves to future work), the third blending, and 4 bytes a sample read back, through
+//! buffers kept from one request to the next. Only the second part needs the device, so a
+//! daemon prepares outside its lock.
 //!
 //! Patches live on the device: their samples in one storage buffer, an append-only arena,
 //! and their records (grid axes, window, kernel, base: 144 bytes) in a table beside it, both
@@ -22,11 +25,15 @@
 //!
 //! *Positions.* Geographic coordinates near −119° have an f32 spacing of 7.6·10⁻⁶° (≈ 0.8 m),
 //! so world positions never reach the GPU as f32. The CPU subtracts a tile origin in f64 and
-//! sends each sample point (or axis) and each patch's first sample, and keeps each patch's
-//! axes (divided by the spacing) on the device, as unevaluated sums hi + lo of two f32s,
-//! exact to u² relative. The shader forms the
-//! grid coordinates with error-free sums and products (`two_sum`, `two_prod` with `fma`), so
-//! they carry about 48 bits: for a tile L cells across (relative to the tile origin), the
+//! sends the axes (or rows, or lattice nodes) and each patch's first sample, and keeps each
+//! patch's axes (divided by the spacing) on the device, as unevaluated sums hi + lo of two
+//! f32s, exact to u² relative. The shader forms positions and grid coordinates with
+//! error-free sums and products (`two_sum`, and `two_prod` by Dekker's halves, as lavapipe
+//! evaluates `fma` unfused), each step behind an integer barrier (`opaque`): a driver that
+//! treats float arithmetic as real arithmetic (lavapipe's LLVM does) would otherwise reduce
+//! every error term to 0 and leave the coordinates at f32, 10⁻⁷ of the tile, as it did here
+//! until the barrier went in (the GPU was then up to 1.6 mm off the CPU; it is 0.24 mm now).
+//! So they carry about 48 bits: for a tile L cells across (relative to the tile origin), the
 //! error is below ~4u²·L ≈ 10⁻¹³·L cells, under 10⁻⁹ cells for any tile under 10⁴ level cells.
 //! The cell, the position inside it and the side of every window, kernel and edge test are
 //! then those of the f64 path, and a point within [`SNAP`](patchwork_core::geom::SNAP) = 10⁻⁹ cells of a grid line

@@ -8,7 +8,8 @@
 //!
 //! "cold" is the first request, which uploads every patch's samples and record; "warm" finds
 //! them on the device and uploads only the grid's axes, 32 bytes a patch and the bins ("up
-//! KB"), and reads back 4 bytes a sample ("read KB").
+//! KB"), and reads back 4 bytes a sample ("read KB"). A second table does the same for grids
+//! whose positions the device makes: a view, and a tile in another CRS.
 
 use patchwork::gpu::{Emulated, GpuResampler, GpuTimings};
 use patchwork_core::geom::Aabb;
@@ -150,4 +151,89 @@ fn main() {
          is the first request end to end",
         rayon::current_num_threads()
     );
+    made_on_the_device(&t, &quarter);
+}
+
+/// Grids whose positions the device makes: a view over the quarter tile (two points a row)
+/// and a tile in UTM zone 11 over it (carried into the store's plane by a lattice kept on the
+/// device), against what listing a position a sample would upload.
+fn made_on_the_device(t: &Terrain, quarter: &Aabb) {
+    use patchwork_core::crs::{Crs, Reprojection};
+    use patchwork_core::index::query::{Metric, ViewQuery};
+    println!(
+        "\n{:>14} {:>6} {:>8} | {:>10} {:>10} | {:>8} {:>8} | {:>8} {:>9} | {:>9}",
+        "grid",
+        "size",
+        "patches",
+        "cpu Ms/s",
+        "gpu Ms/s",
+        "prep ms",
+        "dev ms",
+        "up KB",
+        "listed KB",
+        "max |Δ|"
+    );
+    let utm = Crs::epsg(32611).unwrap();
+    let to_store = Arc::new(Reprojection::new(&utm, &Crs::wgs84()).unwrap());
+    let back = Reprojection::new(&Crs::wgs84(), &utm).unwrap();
+    let (a, b) = (
+        back.exact().apply(quarter.min).unwrap(),
+        back.exact().apply(quarter.max).unwrap(),
+    );
+    // Inside the quarter's image, so that every sample has data.
+    let own = Aabb::new(
+        a[0].max(b[0] - 20_000.0),
+        a[1],
+        b[0],
+        b[1].min(a[1] + 20_000.0),
+    );
+    for n in [512usize, 2048] {
+        let view = ViewQuery {
+            eye: [quarter.min[0], quarter.min[1], 2500.0],
+            look: [quarter.max[0], quarter.max[1], 800.0],
+            fov_deg: 60.0,
+            viewport_px: n as u32,
+            pixel_error: 1.0,
+            metric: Metric::geographic(quarter.min[1]),
+        };
+        let carried = SampleGrid::carried(
+            SampleGrid::uniform(&own, n, n).axes.unwrap(),
+            to_store.clone(),
+        );
+        let cut = Aabb::of_points(carried.list());
+        for (label, ps, grid) in [
+            (
+                "view",
+                t.view(&view),
+                patchwork_core::terrain::view_grid(&view, n, n),
+            ),
+            ("UTM 11N tile", t.uniform(&cut, 20.0), carried.clone()),
+        ] {
+            let set = t.resolve(&ps);
+            let t1 = Instant::now();
+            let want = cpu::resample(&set, &grid);
+            let cpu_s = t1.elapsed().as_secs_f64();
+            let mut gpu = GpuResampler::new(Emulated::Allow).unwrap();
+            gpu.resample_timed(&set, &grid).unwrap();
+            let (got, tm) = gpu.resample_timed(&set, &grid).unwrap();
+            let worst = got
+                .iter()
+                .zip(&want)
+                .filter(|(a, b)| !a.is_nan() && !b.is_nan())
+                .map(|(a, b)| (*a as f64 - *b as f64).abs())
+                .fold(0.0, f64::max);
+            let samples = (n * n) as f64;
+            println!(
+                "{label:>14} {n:>6} {:>8} | {:>10.2} {:>10.2} | {:>8.2} {:>8.1} | {:>8.0} {:>9.0} | {:>9.1e}",
+                set.patches.len(),
+                samples / cpu_s / 1e6,
+                samples / tm.device.as_secs_f64() / 1e6,
+                ms(tm.prepare),
+                ms(tm.device),
+                tm.uploaded_bytes as f64 / 1024.0,
+                16.0 * samples / 1024.0,
+                worst
+            );
+        }
+    }
 }
