@@ -79,9 +79,12 @@ impl Router {
         let [gpu, cpu] = &self.sides;
         let cost = |s: &Side| f64::from_bits(s.cost.load(Relaxed));
         let (cg, cc) = (cost(gpu), cost(cpu));
-        // Each side measured once before any comparison.
+        // Each side measured once before any comparison: one tile measures the device, and
+        // while it runs the others go to the CPU, not into a queue on a device that may turn
+        // out to be a hundred times slower (a burst of clients at start-up piled seconds of
+        // work on an emulated one).
         if cg == 0.0 {
-            return true;
+            return gpu.in_flight.load(Relaxed) == 0;
         }
         if cc == 0.0 {
             return false;
@@ -281,7 +284,12 @@ mod tests {
     fn each_backend_is_measured_before_they_are_compared() {
         let r = Router::default();
         assert!(r.prefers_gpu(1000), "the device first");
-        r.start(Used::Gpu, 1000).finish();
+        let first = r.start(Used::Gpu, 1000);
+        assert!(
+            !r.prefers_gpu(1000),
+            "the CPU while the device's first tile runs"
+        );
+        first.finish();
         assert!(!r.prefers_gpu(1000), "then the CPU");
         r.start(Used::Cpu, 1000).finish();
         assert!(f64::from_bits(r.sides[1].cost.load(Relaxed)) > 0.0);
