@@ -55,7 +55,7 @@ pub mod chunks;
 mod commit;
 mod compact;
 mod journal;
-pub(crate) mod keys;
+pub mod keys;
 mod lease;
 mod migrate;
 pub mod objects;
@@ -266,7 +266,9 @@ pub fn now_unix() -> u64 {
         .unwrap_or(0)
 }
 
-pub(crate) fn encode<T: Serialize>(v: &T) -> Result<Vec<u8>, StoreError> {
+/// A record as the store writes it: bincode's standard configuration. Part of the format
+/// (the format tests decode every committed record and encode it back).
+pub fn encode<T: Serialize>(v: &T) -> Result<Vec<u8>, StoreError> {
     bincode::serde::encode_to_vec(v, bincode::config::standard())
         .map_err(|e| StoreError::Encode(e.to_string()))
 }
@@ -288,7 +290,8 @@ pub(crate) fn setting_problem<T: Setting>(v: &[u8], open: T) -> Option<String> {
     }
 }
 
-pub(crate) fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, StoreError> {
+/// A record as the store reads it: the whole of `b`, or an error naming `what`.
+pub fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, StoreError> {
     let (v, n) = bincode::serde::decode_from_slice(b, bincode::config::standard())
         .map_err(|e| StoreError::Decode(format!("{what}: {e}")))?;
     if n != b.len() {
@@ -300,14 +303,16 @@ pub(crate) fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, Sto
     Ok(v)
 }
 
-pub(crate) fn encode_state(s: &BoxState) -> [u8; 9] {
+/// A box's state in a unit's record: the top (f64 LE), then 1 where it is exposed.
+pub fn encode_state(s: &BoxState) -> [u8; 9] {
     let mut b = [0u8; 9];
     b[..8].copy_from_slice(&s.top.to_le_bytes());
     b[8] = u8::from(s.exposed);
     b
 }
 
-pub(crate) fn decode_state(b: &[u8], what: &str) -> Result<BoxState, StoreError> {
+/// [`encode_state`] read back.
+pub fn decode_state(b: &[u8], what: &str) -> Result<BoxState, StoreError> {
     let bad = || StoreError::Decode(format!("{what}: {} bytes, not a top and a flag", b.len()));
     let a: [u8; 9] = b.try_into().map_err(|_| bad())?;
     if a[8] > 1 {

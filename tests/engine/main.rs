@@ -7,6 +7,7 @@ mod common;
 
 mod crs;
 mod evidence;
+mod format;
 mod fuzz;
 #[cfg(feature = "gpu")]
 mod gpu;
