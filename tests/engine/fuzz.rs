@@ -6,7 +6,7 @@
 //! the same code run longer:
 //!
 //! ```text
-//! PATCHWORK_FUZZ_INPUTS=1000000 cargo test --release --test fuzz -- --nocapture
+//! PATCHWORK_FUZZ_INPUTS=1000000 cargo test --release --test engine fuzz:: -- --nocapture
 //! ```
 //!
 //! Mutations are deterministic (a seeded xorshift), so a failure names the target and the

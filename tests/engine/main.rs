@@ -6,6 +6,7 @@
 mod common;
 
 mod crs;
+mod docs;
 mod evidence;
 mod format;
 mod fuzz;
