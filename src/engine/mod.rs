@@ -19,7 +19,7 @@ mod read;
 mod write;
 
 pub use crate::ingest::Phase;
-pub use error::EngineError;
+pub use error::{EngineError, Reason};
 pub use follow::{rounds, Replication};
 pub use gpu::Used;
 pub use listing::{

@@ -2,6 +2,7 @@
 //! at a time; it computes the next terrain on a copy, commits the change in one batch, and
 //! publishes the copy with the catalog the store now holds.
 
+use super::error::{ingest_reason, Reason};
 use super::listing::{conflicts_of, Conflict};
 use super::{release_free_memory, store_options, Engine, EngineError, Phase, Progress};
 use crate::ingest::{open_file, prepare_with, IngestError, IngestSettings};
@@ -91,6 +92,8 @@ pub struct Ingested {
     pub outcome: Outcome,
     pub survey: Option<SurveyId>,
     pub error: String,
+    /// Why the file failed; None unless it did.
+    pub reason: Option<Reason>,
     pub samples: u64,
     pub seconds: f64,
     pub conflicts: Vec<Conflict>,
@@ -213,11 +216,12 @@ impl Engine {
     ) -> Result<Ingested, EngineError> {
         let t0 = Instant::now();
         let source = source_name(path);
-        let failed = |error: String| Ingested {
+        let failed = |reason: Reason, error: String| Ingested {
             source: source.clone(),
             outcome: Outcome::Failed,
             survey: None,
             error,
+            reason: Some(reason),
             samples: 0,
             seconds: t0.elapsed().as_secs_f64(),
             conflicts: Vec::new(),
@@ -252,7 +256,7 @@ impl Engine {
                 if origin == Origin::Inbox {
                     self.record_failure(path, &source, REFUSED_PATH, content.as_deref());
                 }
-                Ok(failed(REFUSED_PATH.into()))
+                Ok(failed(Reason::OutsideIngestFolders, REFUSED_PATH.into()))
             }
             Ok(c) => {
                 let seconds = t0.elapsed().as_secs_f64();
@@ -264,6 +268,7 @@ impl Engine {
                     outcome: c.outcome,
                     survey: Some(c.survey),
                     error: String::new(),
+                    reason: None,
                     samples: c.samples,
                     seconds,
                     conflicts: c.conflicts,
@@ -273,10 +278,10 @@ impl Engine {
                 tracing::warn!(source = ?source, error = ?e.to_string(), "ingest deferred: the store cannot take it now");
                 Err(e)
             }
-            Err(Refusal::File(error)) => {
-                tracing::warn!(source = ?source, error = ?error, "ingest failed");
+            Err(Refusal::File(reason, error)) => {
+                tracing::warn!(source = ?source, error = ?error, reason = reason.as_str(), "ingest failed");
                 self.record_failure(path, &source, &error, content.as_deref());
-                Ok(failed(error))
+                Ok(failed(reason, error))
             }
         }
     }
@@ -331,14 +336,18 @@ impl Engine {
         let roots: Arc<[PathBuf]> = self.roots().into();
         let file = |e: IngestError| match e {
             IngestError::Refused | IngestError::Read(ReadError::Outside) => Refusal::Outside,
-            e => Refusal::File(e.to_string()),
+            e => Refusal::File(ingest_reason(&e), e.to_string()),
         };
         // This look decides only whether the file needs reading at all (its content may be
         // served already). What a new survey records is the content id of the very bytes its
         // parse read (`Prepared::content_id`): the file may change between the two.
         let handle = open_file(path, Some(&roots)).map_err(file)?;
-        let content = content_id(&handle)
-            .map_err(|e| Refusal::File(format!("cannot read {}: {e}", path.display())))?;
+        let content = content_id(&handle).map_err(|e| {
+            Refusal::File(
+                Reason::Unreadable,
+                format!("cannot read {}: {e}", path.display()),
+            )
+        })?;
         drop(handle);
         let content = crate::ingest::with_sidecar(path, content, Some(&roots));
         *content_out = Some(content.clone());
@@ -346,9 +355,10 @@ impl Engine {
             // Sources are text everywhere (listings, events, the wire): a name that is not
             // cannot be one. Recorded under its escaped name, so that it is seen and can be
             // forgotten.
-            return Err(Refusal::File(format!(
-                "the file name {source} is not valid UTF-8: rename the file to ingest it"
-            )));
+            return Err(Refusal::File(
+                Reason::InvalidRequest,
+                format!("the file name {source} is not valid UTF-8: rename the file to ingest it"),
+            ));
         }
         let catalog = self.catalog();
         if origin == Origin::Inbox {
@@ -413,7 +423,7 @@ impl Engine {
                 prepared
                     .survey
                     .placed(&planes)
-                    .map_err(|e| Refusal::File(e.to_string()))?
+                    .map_err(|e| Refusal::File(Reason::Crs, e.to_string()))?
             }
             None => prepared.survey.clone(),
         };
@@ -683,7 +693,8 @@ impl Engine {
 /// Why an ingest did not happen: the path leads outside, the file's fault, or the store's.
 enum Refusal {
     Outside,
-    File(String),
+    /// The file is at fault: why, in kind and in words.
+    File(Reason, String),
     Store(EngineError),
 }
 

@@ -5,7 +5,7 @@ use super::proto as pb;
 use super::web::pyramid::Changed;
 use crate::engine::{
     Backend, Conflict, Cut, Distrusted, Engine, EngineError, Event, Held, Ingested, MeshTile,
-    Outcome, Phase, Stats, SurveyListing, TileHead, Used,
+    Outcome, Phase, Reason, Stats, SurveyListing, TileHead, Used,
 };
 use crate::store::Status;
 use patchwork_core::crs::Crs;
@@ -479,7 +479,14 @@ pub fn ingested(i: &Ingested) -> pb::IngestResult {
         samples: i.samples,
         seconds: i.seconds,
         conflicts: conflicts(&i.conflicts),
+        reason: i.reason.map_or(pb::ErrorReason::Unspecified, reason) as i32,
     }
+}
+
+/// A failure's kind on the wire: the proto's value of the same name.
+pub fn reason(r: Reason) -> pb::ErrorReason {
+    pb::ErrorReason::from_str_name(&format!("ERROR_REASON_{}", r.as_str()))
+        .unwrap_or(pb::ErrorReason::Unspecified)
 }
 
 pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
@@ -739,5 +746,20 @@ mod tests {
         let cop = [812.3456f32, 813.1, f32::NAN, 1e-7];
         assert_eq!(round_trips(&cop), pb::SampleEncoding::F32);
         assert_eq!(Packed::of(&cop).data.len(), 16);
+    }
+}
+
+#[cfg(test)]
+mod reason_tests {
+    use super::*;
+
+    #[test]
+    fn every_reason_has_its_value_on_the_wire() {
+        for r in Reason::ALL {
+            let v = reason(r);
+            assert_ne!(v, pb::ErrorReason::Unspecified, "{r:?}");
+            assert_eq!(v.as_str_name(), format!("ERROR_REASON_{}", r.as_str()));
+            assert_eq!(Reason::parse(r.as_str()), Some(r));
+        }
     }
 }

@@ -1,8 +1,10 @@
 //! The one place where engine errors become gRPC status codes.
 
-use crate::engine::EngineError;
+use crate::engine::{EngineError, Reason};
 use crate::store::StoreError;
+use std::collections::HashMap;
 use tonic::Status;
+use tonic_types::{ErrorDetails, StatusExt};
 
 /// Longest message a status carries: it travels in an HTTP/2 header, and a client's megabyte
 /// of input must not come back in it.
@@ -20,7 +22,35 @@ fn short(mut m: String) -> String {
     m
 }
 
+/// The status of an engine error: its code, its message, and its kind as the `reason` of a
+/// `google.rpc.ErrorInfo` in the details (domain [`DOMAIN`]).
 pub fn to_status(e: EngineError) -> Status {
+    let r = e.reason();
+    let s = code_of(e);
+    with_reason(s.code(), s.message().to_string(), r)
+}
+
+/// The `domain` of the `ErrorInfo` the daemon's statuses carry.
+pub const DOMAIN: &str = "patchwork";
+
+/// A status of `code` and message `m` whose details name its kind.
+pub fn with_reason(code: tonic::Code, m: String, r: Reason) -> Status {
+    Status::with_error_details(
+        code,
+        m,
+        ErrorDetails::with_error_info(r.as_str(), DOMAIN, HashMap::<String, String>::new()),
+    )
+}
+
+/// The kind a status's details name, where they name one.
+pub fn reason_of(s: &Status) -> Option<Reason> {
+    let info = s.get_error_details().error_info()?.clone();
+    (info.domain == DOMAIN)
+        .then(|| Reason::parse(&info.reason))
+        .flatten()
+}
+
+fn code_of(e: EngineError) -> Status {
     let m = short(e.to_string());
     match e {
         EngineError::Invalid(_) => Status::invalid_argument(m),
@@ -51,9 +81,13 @@ pub fn to_status(e: EngineError) -> Status {
 
 /// What a request that ran past its deadline gets.
 pub fn deadline(ms: u64) -> Status {
-    Status::deadline_exceeded(format!(
-        "the request took longer than the {ms} ms limit: ask for a smaller region, a larger error or a smaller tile"
-    ))
+    with_reason(
+        tonic::Code::DeadlineExceeded,
+        format!(
+            "the request took longer than the {ms} ms limit: ask for a smaller region, a larger error or a smaller tile"
+        ),
+        Reason::Deadline,
+    )
 }
 
 #[cfg(test)]
@@ -67,13 +101,17 @@ mod tests {
             available_mb: 1,
             needed_mb: 70,
         };
-        assert_eq!(to_status(full.into()).code(), Code::ResourceExhausted);
+        let s = to_status(full.into());
+        assert_eq!(s.code(), Code::ResourceExhausted);
+        assert_eq!(reason_of(&s), Some(Reason::DiskFull));
         let enospc = std::io::Error::from(std::io::ErrorKind::StorageFull);
         let s = to_status(StoreError::Sled(sled::Error::Io(enospc)).into());
         assert_eq!(s.code(), Code::ResourceExhausted);
         let eio = std::io::Error::other("Input/output error");
         let s = to_status(StoreError::Sled(sled::Error::Io(eio)).into());
         assert_eq!(s.code(), Code::Unavailable);
+        assert_eq!(reason_of(&s), Some(Reason::StorageUnavailable));
+        assert_eq!(reason_of(&deadline(5)), Some(Reason::Deadline));
         let s = to_status(EngineError::StoreFailed("Input/output error".into()));
         assert_eq!(s.code(), Code::Unavailable);
         let s = to_status(EngineError::NotFound("x".repeat(1 << 20)));

@@ -651,6 +651,11 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
             .unwrap_err();
         assert_eq!(bad.code(), tonic::Code::InvalidArgument);
         assert!(bad.message().contains("xmin < xmax"), "{}", bad.message());
+        // The kinds, in the statuses' google.rpc.ErrorInfo.
+        use patchwork::engine::Reason;
+        use patchwork::serve::status::reason_of;
+        assert_eq!(reason_of(&bad), Some(Reason::InvalidRequest));
+        assert_eq!(reason_of(&big), Some(Reason::TooLarge));
         let none = t
             .resample_tile(pb::TileRequest {
                 crs: String::new(),

@@ -99,6 +99,12 @@ fn ingest_stays_inside_its_folders_and_says_nothing_about_the_rest() {
         let r = ingest(&e, p);
         assert_eq!(r.outcome, Outcome::Failed, "{}", p.display());
         assert_eq!(r.error, REFUSED_PATH, "{}", p.display());
+        assert_eq!(
+            r.reason,
+            Some(patchwork::engine::Reason::OutsideIngestFolders),
+            "{}",
+            p.display()
+        );
     }
     assert!(
         e.catalog().failures.is_empty(),
@@ -108,6 +114,7 @@ fn ingest_stays_inside_its_folders_and_says_nothing_about_the_rest() {
     // Inside, the errors say what is wrong; the ASCII grid has no CRS.
     let r = ingest(&e, &asc);
     assert!(r.error.contains("no CRS"), "{}", r.error);
+    assert_eq!(r.reason, Some(patchwork::engine::Reason::Crs));
     let good = s.put(COP, "roots/good.tif");
     assert_eq!(ingest(&e, &good).outcome, Outcome::Inserted);
     let inbox = s.put(NASA, "inbox/nasa.tif");

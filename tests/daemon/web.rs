@@ -213,6 +213,13 @@ fn raster_tiles_are_the_stores_heights_and_change_exactly_with_its_data() {
     ] {
         let r = get(&format!("{}{bad}", d.http), &[]);
         assert_eq!(r.status, code, "{bad}: {}", r.text());
+        if code == 400 {
+            // The kind, for clients to branch on, beside the words.
+            let body: serde_json::Value = serde_json::from_slice(&r.body)
+                .unwrap_or_else(|e| panic!("{bad}: {e}: {}", r.text()));
+            assert_eq!(body["reason"], "INVALID_REQUEST", "{bad}: {body}");
+            assert!(!body["error"].as_str().unwrap().is_empty(), "{bad}");
+        }
     }
     let long = format!("/heights?points={}", "1,".repeat(10_000));
     assert_eq!(get(&format!("{}{long}", d.http), &[]).status, 414);

@@ -202,6 +202,7 @@ fn without_the_geoid_grid_it_needs_a_survey_is_refused_naming_both_crss_and_the_
     let e = engine(dir, &[("EPSG:5773", &g96)]);
     let done = e.ingest(&b, None, Origin::Request).unwrap();
     assert_eq!(done.outcome, Outcome::Failed);
+    assert_eq!(done.reason, Some(patchwork::engine::Reason::Geoid));
     for needle in [
         "EPSG:3855",
         "EPSG:5773",

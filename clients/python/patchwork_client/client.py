@@ -201,6 +201,9 @@ class IngestResult:
     samples: int
     seconds: float
     conflicts: List[Conflict]
+    #: Why the file failed, as a kind to branch on ("NOT_A_DEM", "CRS_CONFLICT", …, the
+    #: proto's ErrorReason without its prefix); "" unless it failed.
+    reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -263,6 +266,13 @@ def _conflict(c) -> Conflict:
                     distrusted=_DISTRUSTED.get(c.distrusted, ""),
                     decided_by=c.decided_by, statistic=c.statistic, confidence=c.confidence,
                     shift_determined=c.shift_determined, takes_tie=c.takes_tie)
+
+
+def _reason(value: int) -> str:
+    """An ErrorReason as its name without the prefix; "" for UNSPECIFIED."""
+    if value == 0:
+        return ""
+    return admin_pb2.ErrorReason.Name(value).removeprefix("ERROR_REASON_")
 
 
 def _conflicts(cs) -> List[Conflict]:
@@ -429,7 +439,8 @@ class Client:
         # Ingest takes as long as the files need.
         r = self.admin.Ingest(req, metadata=self._metadata)
         return [IngestResult(source=i.source, outcome=_OUTCOME[i.outcome], survey=f"{i.survey:016x}", error=i.error,
-                             samples=i.samples, seconds=i.seconds, conflicts=_conflicts(i.conflicts))
+                             samples=i.samples, seconds=i.seconds, conflicts=_conflicts(i.conflicts),
+                             reason=_reason(i.reason))
                 for i in r.results]
 
     def surveys(self) -> List[Survey]:

@@ -15,7 +15,7 @@ mod terrain;
 
 use super::auth::Gate;
 use super::grpc::Service;
-use crate::engine::{Engine, EngineError};
+use crate::engine::{Engine, EngineError, Reason};
 use crate::sync::lock;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, Request, State};
@@ -285,7 +285,17 @@ pub fn status_response(s: Status) -> Response {
         }
         _ => StatusCode::INTERNAL_SERVER_ERROR,
     };
-    let mut r = (code, s.message().to_string()).into_response();
+    let reason = super::status::reason_of(&s).unwrap_or(match s.code() {
+        Code::InvalidArgument | Code::OutOfRange => Reason::InvalidRequest,
+        Code::Unauthenticated => Reason::Unauthenticated,
+        Code::PermissionDenied => Reason::PermissionDenied,
+        Code::NotFound => Reason::NotFound,
+        Code::ResourceExhausted => Reason::TooLarge,
+        Code::FailedPrecondition | Code::Unavailable => Reason::Unavailable,
+        Code::DeadlineExceeded | Code::Cancelled => Reason::Deadline,
+        _ => Reason::Internal,
+    });
+    let mut r = error_body(code, s.message(), reason);
     if code == StatusCode::UNAUTHORIZED {
         r.headers_mut()
             .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
@@ -294,7 +304,17 @@ pub fn status_response(s: Status) -> Response {
 }
 
 fn bad_request(m: impl Into<String>) -> Response {
-    (StatusCode::BAD_REQUEST, m.into()).into_response()
+    error_body(StatusCode::BAD_REQUEST, &m.into(), Reason::InvalidRequest)
+}
+
+/// An error's body: `{"error": what went wrong, "reason": its kind}`, the kind spelled as on
+/// gRPC (`Reason::as_str`), for clients to branch on.
+fn error_body(code: StatusCode, m: &str, reason: Reason) -> Response {
+    (
+        code,
+        axum::Json(serde_json::json!({"error": m, "reason": reason.as_str()})),
+    )
+        .into_response()
 }
 
 /// The token a request carries: its `Authorization` header, else, where the config allows
@@ -326,15 +346,55 @@ async fn admit(State(web): State<Arc<Web>>, req: Request, next: Next) -> Respons
 /// Refuses a URI past [`MAX_URI`] before anything reads it.
 async fn bounded(req: Request, next: Next) -> Response {
     if req.uri().to_string().len() > MAX_URI {
-        return (
+        return error_body(
             StatusCode::URI_TOO_LONG,
-            format!(
+            &format!(
                 "the request's URI is longer than {MAX_URI} bytes: ask for fewer points at once"
             ),
-        )
-            .into_response();
+            Reason::TooLarge,
+        );
     }
     next.run(req).await
+}
+
+/// Every error the router answers with outside the handlers (a path or a query that does not
+/// parse, a route that does not exist) in the same JSON body as the handlers' own
+/// ([`error_body`]), its kind from its code.
+async fn json_errors(r: Response) -> Response {
+    let status = r.status();
+    let json = r
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || json {
+        return r;
+    }
+    let reason = match status {
+        StatusCode::BAD_REQUEST => Reason::InvalidRequest,
+        StatusCode::UNAUTHORIZED => Reason::Unauthenticated,
+        StatusCode::FORBIDDEN => Reason::PermissionDenied,
+        StatusCode::NOT_FOUND | StatusCode::METHOD_NOT_ALLOWED => Reason::NotFound,
+        StatusCode::PAYLOAD_TOO_LARGE | StatusCode::URI_TOO_LONG => Reason::TooLarge,
+        StatusCode::CONFLICT | StatusCode::SERVICE_UNAVAILABLE => Reason::Unavailable,
+        _ => Reason::Internal,
+    };
+    let (parts, body) = r.into_parts();
+    let text = axum::body::to_bytes(body, 64 << 10)
+        .await
+        .unwrap_or_default();
+    let text = String::from_utf8_lossy(&text);
+    let m = if text.is_empty() {
+        status.canonical_reason().unwrap_or("error")
+    } else {
+        &text
+    };
+    let mut out = error_body(status, m, reason);
+    for (k, v) in &parts.headers {
+        if k != header::CONTENT_TYPE && k != header::CONTENT_LENGTH {
+            out.headers_mut().insert(k.clone(), v.clone());
+        }
+    }
+    out
 }
 
 /// The router of the web server over `svc`.
@@ -361,6 +421,7 @@ pub fn router(svc: Service) -> Router {
             header::HeaderName::from_static("x-patchwork-error"),
         ]);
     app.layer(middleware::from_fn_with_state(web.clone(), admit))
+        .layer(middleware::map_response(json_errors))
         // Quantized-mesh tiles and the documents are gzipped once, here, for clients that
         // accept it; PNG and GeoTIFF tiles are compressed already and go as they are.
         .layer(tower_http::compression::CompressionLayer::new().gzip(true))

@@ -25,23 +25,25 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18patchwork/v1/admin.proto\x12\x0cpatchwork.v1\"F\n\rIngestRequest\x12\r\n\x05paths\x18\x01 \x03(\t\x12\x17\n\naccuracy_m\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\r\n\x0b_accuracy_m\"\x81\x02\n\x08\x43onflict\x12\x0e\n\x06survey\x18\x01 \x01(\t\x12\r\n\x05max_m\x18\x02 \x01(\x01\x12\r\n\x05rms_m\x18\x03 \x01(\x01\x12\'\n\x05shift\x18\x04 \x01(\x0b\x32\x13.patchwork.v1.ShiftH\x00\x88\x01\x01\x12,\n\ndistrusted\x18\x05 \x01(\x0e\x32\x18.patchwork.v1.Distrusted\x12\x12\n\ndecided_by\x18\x06 \x01(\t\x12\x11\n\tstatistic\x18\x07 \x01(\x01\x12\x12\n\nconfidence\x18\x08 \x01(\x01\x12\x18\n\x10shift_determined\x18\t \x01(\x08\x12\x11\n\ttakes_tie\x18\n \x01(\x08\x42\x08\n\x06_shift\"K\n\x05Shift\x12\x0e\n\x06\x65\x61st_m\x18\x01 \x01(\x01\x12\x0f\n\x07north_m\x18\x02 \x01(\x01\x12\x0c\n\x04up_m\x18\x03 \x01(\x01\x12\x13\n\x0brms_after_m\x18\x04 \x01(\x01\"\xb8\x01\n\x0cIngestResult\x12\x0e\n\x06source\x18\x01 \x01(\t\x12&\n\x07outcome\x18\x08 \x01(\x0e\x32\x15.patchwork.v1.Outcome\x12\x0e\n\x06survey\x18\x03 \x01(\x06\x12\r\n\x05\x65rror\x18\x04 \x01(\t\x12\x0f\n\x07samples\x18\x05 \x01(\x04\x12\x0f\n\x07seconds\x18\x06 \x01(\x01\x12)\n\tconflicts\x18\x07 \x03(\x0b\x32\x16.patchwork.v1.ConflictJ\x04\x08\x02\x10\x03\":\n\x0bIngestReply\x12+\n\x07results\x18\x01 \x03(\x0b\x32\x1a.patchwork.v1.IngestResult\"\x14\n\x12ListSurveysRequest\"\xa4\x03\n\nSurveyInfo\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12*\n\x06status\x18\x11 \x01(\x0e\x32\x1a.patchwork.v1.SurveyStatus\x12\r\n\x05\x65rror\x18\x04 \x01(\t\x12\x12\n\naccuracy_m\x18\x05 \x01(\x01\x12\x19\n\x11\x61\x63\x63uracy_median_m\x18\x0e \x01(\x01\x12\x16\n\x0e\x61\x63\x63uracy_p90_m\x18\x0f \x01(\x01\x12\x1a\n\x12\x63laimed_accuracy_m\x18\x10 \x01(\x01\x12\x0f\n\x07samples\x18\x06 \x01(\x04\x12\x0b\n\x03\x63rs\x18\x07 \x01(\r\x12\x0f\n\x07\x63rs_key\x18\x0b \x01(\t\x12\x0f\n\x07patches\x18\x08 \x01(\r\x12\x35\n\x0f\x61\x63\x63uracy_source\x18\x12 \x01(\x0e\x32\x1c.patchwork.v1.AccuracySource\x12)\n\tconflicts\x18\n \x03(\x0b\x32\x16.patchwork.v1.Conflict\x12\x14\n\x0cvertical_crs\x18\x0c \x01(\t\x12\x18\n\x10vertical_error_m\x18\r \x01(\x01J\x04\x08\x03\x10\x04J\x04\x08\t\x10\n\"7\n\nSurveyList\x12)\n\x07surveys\x18\x01 \x03(\x0b\x32\x18.patchwork.v1.SurveyInfo\"%\n\rRetireRequest\x12\x14\n\x0cid_or_source\x18\x01 \x01(\t\"*\n\x0bRetireReply\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0f\n\x07patches\x18\x02 \x01(\r\"\x1f\n\rForgetRequest\x12\x0e\n\x06source\x18\x01 \x01(\t\"\r\n\x0b\x46orgetReply\"\x0e\n\x0cStatsRequest\"\xfd\x05\n\nStatsReply\x12\x0f\n\x07surveys\x18\x01 \x01(\r\x12\x0f\n\x07retired\x18\x02 \x01(\r\x12\x0e\n\x06\x66\x61iled\x18\x03 \x01(\r\x12\x0f\n\x07patches\x18\x04 \x01(\x04\x12\x14\n\x0c\x61\x63tive_boxes\x18\x05 \x01(\x04\x12\x0f\n\x07samples\x18\x06 \x01(\x04\x12\x12\n\ndisk_bytes\x18\x07 \x01(\x04\x12\x0b\n\x03\x63rs\x18\x08 \x01(\r\x12\x0f\n\x07\x63rs_key\x18\x18 \x01(\t\x12\x14\n\x0cvertical_crs\x18\x19 \x01(\t\x12\x0f\n\x07\x62\x61\x63kend\x18\t \x01(\t\x12\x16\n\x0equadtree_nodes\x18\n \x01(\r\x12\x11\n\tread_only\x18\x0b \x01(\t\x12\x13\n\x0b\x63\x61\x63he_bytes\x18\x0c \x01(\x04\x12\x1c\n\x14\x63\x61\x63he_capacity_bytes\x18\r \x01(\x04\x12\x12\n\ncache_hits\x18\x0e \x01(\x04\x12\x14\n\x0c\x63\x61\x63he_misses\x18\x0f \x01(\x04\x12\x18\n\x10ingesting_source\x18\x10 \x01(\t\x12\x17\n\x0fingesting_bytes\x18\x11 \x01(\x04\x12\x32\n\x0fingesting_phase\x18\x1b \x01(\x0e\x32\x19.patchwork.v1.IngestPhase\x12\x19\n\x11ingesting_seconds\x18\x13 \x01(\x01\x12\x18\n\x10requests_running\x18\x14 \x01(\r\x12\x18\n\x10requests_waiting\x18\x15 \x01(\r\x12\x17\n\x0frequests_served\x18\x16 \x01(\x04\x12\x16\n\x0erequests_limit\x18\x17 \x01(\r\x12\x0f\n\x07\x64\x61maged\x18\x1a \x01(\r\x12\x0e\n\x06\x63ommit\x18\x1c \x01(\x04\x12\x0f\n\x07\x66ollows\x18\x1d \x01(\t\x12\x18\n\x10published_commit\x18\x1e \x01(\x04\x12\x13\n\x0blag_seconds\x18\x1f \x01(\x01\x12\x13\n\x0bverify_step\x18  \x01(\t\x12\x13\n\x0bverify_done\x18! \x01(\x04\x12\x14\n\x0cverify_total\x18\" \x01(\x04\x12\x16\n\x0everify_seconds\x18# \x01(\x01J\x04\x08\x12\x10\x13\"\x0f\n\rVerifyRequest\"M\n\x0bVerifyReply\x12\n\n\x02ok\x18\x01 \x01(\x08\x12\x10\n\x08problems\x18\x02 \x03(\t\x12\x0f\n\x07surveys\x18\x03 \x01(\r\x12\x0f\n\x07patches\x18\x04 \x01(\x04\"\x0f\n\rRepairRequest\";\n\x0bRepairReply\x12,\n\x07\x64ropped\x18\x01 \x03(\x0b\x32\x1b.patchwork.v1.DroppedSurvey\";\n\rDroppedSurvey\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12\x0e\n\x06reason\x18\x03 \x01(\t\"\x10\n\x0e\x43ompactRequest\"R\n\x0c\x43ompactReply\x12\x14\n\x0c\x62ytes_before\x18\x01 \x01(\x04\x12\x13\n\x0b\x62ytes_after\x18\x02 \x01(\x04\x12\x17\n\x0fsurveys_removed\x18\x03 \x01(\r*h\n\nDistrusted\x12\x1a\n\x16\x44ISTRUSTED_UNSPECIFIED\x10\x00\x12\x13\n\x0f\x44ISTRUSTED_THIS\x10\x01\x12\x14\n\x10\x44ISTRUSTED_OTHER\x10\x02\x12\x13\n\x0f\x44ISTRUSTED_BOTH\x10\x03*\x8e\x01\n\x07Outcome\x12\x17\n\x13OUTCOME_UNSPECIFIED\x10\x00\x12\x14\n\x10OUTCOME_INSERTED\x10\x01\x12\x14\n\x10OUTCOME_REPLACED\x10\x02\x12\x15\n\x11OUTCOME_UNCHANGED\x10\x03\x12\x13\n\x0fOUTCOME_RETIRED\x10\x04\x12\x12\n\x0eOUTCOME_FAILED\x10\x05*\xce\x01\n\x0cSurveyStatus\x12\x1d\n\x19SURVEY_STATUS_UNSPECIFIED\x10\x00\x12\x18\n\x14SURVEY_STATUS_ACTIVE\x10\x01\x12\x19\n\x15SURVEY_STATUS_RETIRED\x10\x02\x12\x18\n\x14SURVEY_STATUS_FAILED\x10\x03\x12\x19\n\x15SURVEY_STATUS_DAMAGED\x10\x04\x12\x1a\n\x16SURVEY_STATUS_DEFERRED\x10\x05\x12\x19\n\x15SURVEY_STATUS_SKIPPED\x10\x06*\xc0\x01\n\x0e\x41\x63\x63uracySource\x12\x1f\n\x1b\x41\x43\x43URACY_SOURCE_UNSPECIFIED\x10\x00\x12\x1b\n\x17\x41\x43\x43URACY_SOURCE_SIDECAR\x10\x01\x12\x18\n\x14\x41\x43\x43URACY_SOURCE_FLAG\x10\x02\x12\x1a\n\x16\x41\x43\x43URACY_SOURCE_CONFIG\x10\x03\x12\x1d\n\x19\x41\x43\x43URACY_SOURCE_ESTIMATED\x10\x04\x12\x1b\n\x17\x41\x43\x43URACY_SOURCE_UNKNOWN\x10\x05*\x99\x01\n\x0bIngestPhase\x12\x1c\n\x18INGEST_PHASE_UNSPECIFIED\x10\x00\x12\x18\n\x14INGEST_PHASE_READING\x10\x01\x12\x1a\n\x16INGEST_PHASE_MODELLING\x10\x02\x12\x19\n\x15INGEST_PHASE_INDEXING\x10\x03\x12\x1b\n\x17INGEST_PHASE_COMMITTING\x10\x04\x32\xa0\x04\n\x05\x41\x64min\x12@\n\x06Ingest\x12\x1b.patchwork.v1.IngestRequest\x1a\x19.patchwork.v1.IngestReply\x12I\n\x0bListSurveys\x12 .patchwork.v1.ListSurveysRequest\x1a\x18.patchwork.v1.SurveyList\x12@\n\x06Retire\x12\x1b.patchwork.v1.RetireRequest\x1a\x19.patchwork.v1.RetireReply\x12@\n\x06\x46orget\x12\x1b.patchwork.v1.ForgetRequest\x1a\x19.patchwork.v1.ForgetReply\x12=\n\x05Stats\x12\x1a.patchwork.v1.StatsRequest\x1a\x18.patchwork.v1.StatsReply\x12@\n\x06Verify\x12\x1b.patchwork.v1.VerifyRequest\x1a\x19.patchwork.v1.VerifyReply\x12@\n\x06Repair\x12\x1b.patchwork.v1.RepairRequest\x1a\x19.patchwork.v1.RepairReply\x12\x43\n\x07\x43ompact\x12\x1c.patchwork.v1.CompactRequest\x1a\x1a.patchwork.v1.CompactReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18patchwork/v1/admin.proto\x12\x0cpatchwork.v1\"F\n\rIngestRequest\x12\r\n\x05paths\x18\x01 \x03(\t\x12\x17\n\naccuracy_m\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\r\n\x0b_accuracy_m\"\x81\x02\n\x08\x43onflict\x12\x0e\n\x06survey\x18\x01 \x01(\t\x12\r\n\x05max_m\x18\x02 \x01(\x01\x12\r\n\x05rms_m\x18\x03 \x01(\x01\x12\'\n\x05shift\x18\x04 \x01(\x0b\x32\x13.patchwork.v1.ShiftH\x00\x88\x01\x01\x12,\n\ndistrusted\x18\x05 \x01(\x0e\x32\x18.patchwork.v1.Distrusted\x12\x12\n\ndecided_by\x18\x06 \x01(\t\x12\x11\n\tstatistic\x18\x07 \x01(\x01\x12\x12\n\nconfidence\x18\x08 \x01(\x01\x12\x18\n\x10shift_determined\x18\t \x01(\x08\x12\x11\n\ttakes_tie\x18\n \x01(\x08\x42\x08\n\x06_shift\"K\n\x05Shift\x12\x0e\n\x06\x65\x61st_m\x18\x01 \x01(\x01\x12\x0f\n\x07north_m\x18\x02 \x01(\x01\x12\x0c\n\x04up_m\x18\x03 \x01(\x01\x12\x13\n\x0brms_after_m\x18\x04 \x01(\x01\"\xe3\x01\n\x0cIngestResult\x12\x0e\n\x06source\x18\x01 \x01(\t\x12&\n\x07outcome\x18\x08 \x01(\x0e\x32\x15.patchwork.v1.Outcome\x12\x0e\n\x06survey\x18\x03 \x01(\x06\x12\r\n\x05\x65rror\x18\x04 \x01(\t\x12\x0f\n\x07samples\x18\x05 \x01(\x04\x12\x0f\n\x07seconds\x18\x06 \x01(\x01\x12)\n\tconflicts\x18\x07 \x03(\x0b\x32\x16.patchwork.v1.Conflict\x12)\n\x06reason\x18\t \x01(\x0e\x32\x19.patchwork.v1.ErrorReasonJ\x04\x08\x02\x10\x03\":\n\x0bIngestReply\x12+\n\x07results\x18\x01 \x03(\x0b\x32\x1a.patchwork.v1.IngestResult\"\x14\n\x12ListSurveysRequest\"\xa4\x03\n\nSurveyInfo\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12*\n\x06status\x18\x11 \x01(\x0e\x32\x1a.patchwork.v1.SurveyStatus\x12\r\n\x05\x65rror\x18\x04 \x01(\t\x12\x12\n\naccuracy_m\x18\x05 \x01(\x01\x12\x19\n\x11\x61\x63\x63uracy_median_m\x18\x0e \x01(\x01\x12\x16\n\x0e\x61\x63\x63uracy_p90_m\x18\x0f \x01(\x01\x12\x1a\n\x12\x63laimed_accuracy_m\x18\x10 \x01(\x01\x12\x0f\n\x07samples\x18\x06 \x01(\x04\x12\x0b\n\x03\x63rs\x18\x07 \x01(\r\x12\x0f\n\x07\x63rs_key\x18\x0b \x01(\t\x12\x0f\n\x07patches\x18\x08 \x01(\r\x12\x35\n\x0f\x61\x63\x63uracy_source\x18\x12 \x01(\x0e\x32\x1c.patchwork.v1.AccuracySource\x12)\n\tconflicts\x18\n \x03(\x0b\x32\x16.patchwork.v1.Conflict\x12\x14\n\x0cvertical_crs\x18\x0c \x01(\t\x12\x18\n\x10vertical_error_m\x18\r \x01(\x01J\x04\x08\x03\x10\x04J\x04\x08\t\x10\n\"7\n\nSurveyList\x12)\n\x07surveys\x18\x01 \x03(\x0b\x32\x18.patchwork.v1.SurveyInfo\"%\n\rRetireRequest\x12\x14\n\x0cid_or_source\x18\x01 \x01(\t\"*\n\x0bRetireReply\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0f\n\x07patches\x18\x02 \x01(\r\"\x1f\n\rForgetRequest\x12\x0e\n\x06source\x18\x01 \x01(\t\"\r\n\x0b\x46orgetReply\"\x0e\n\x0cStatsRequest\"\xfd\x05\n\nStatsReply\x12\x0f\n\x07surveys\x18\x01 \x01(\r\x12\x0f\n\x07retired\x18\x02 \x01(\r\x12\x0e\n\x06\x66\x61iled\x18\x03 \x01(\r\x12\x0f\n\x07patches\x18\x04 \x01(\x04\x12\x14\n\x0c\x61\x63tive_boxes\x18\x05 \x01(\x04\x12\x0f\n\x07samples\x18\x06 \x01(\x04\x12\x12\n\ndisk_bytes\x18\x07 \x01(\x04\x12\x0b\n\x03\x63rs\x18\x08 \x01(\r\x12\x0f\n\x07\x63rs_key\x18\x18 \x01(\t\x12\x14\n\x0cvertical_crs\x18\x19 \x01(\t\x12\x0f\n\x07\x62\x61\x63kend\x18\t \x01(\t\x12\x16\n\x0equadtree_nodes\x18\n \x01(\r\x12\x11\n\tread_only\x18\x0b \x01(\t\x12\x13\n\x0b\x63\x61\x63he_bytes\x18\x0c \x01(\x04\x12\x1c\n\x14\x63\x61\x63he_capacity_bytes\x18\r \x01(\x04\x12\x12\n\ncache_hits\x18\x0e \x01(\x04\x12\x14\n\x0c\x63\x61\x63he_misses\x18\x0f \x01(\x04\x12\x18\n\x10ingesting_source\x18\x10 \x01(\t\x12\x17\n\x0fingesting_bytes\x18\x11 \x01(\x04\x12\x32\n\x0fingesting_phase\x18\x1b \x01(\x0e\x32\x19.patchwork.v1.IngestPhase\x12\x19\n\x11ingesting_seconds\x18\x13 \x01(\x01\x12\x18\n\x10requests_running\x18\x14 \x01(\r\x12\x18\n\x10requests_waiting\x18\x15 \x01(\r\x12\x17\n\x0frequests_served\x18\x16 \x01(\x04\x12\x16\n\x0erequests_limit\x18\x17 \x01(\r\x12\x0f\n\x07\x64\x61maged\x18\x1a \x01(\r\x12\x0e\n\x06\x63ommit\x18\x1c \x01(\x04\x12\x0f\n\x07\x66ollows\x18\x1d \x01(\t\x12\x18\n\x10published_commit\x18\x1e \x01(\x04\x12\x13\n\x0blag_seconds\x18\x1f \x01(\x01\x12\x13\n\x0bverify_step\x18  \x01(\t\x12\x13\n\x0bverify_done\x18! \x01(\x04\x12\x14\n\x0cverify_total\x18\" \x01(\x04\x12\x16\n\x0everify_seconds\x18# \x01(\x01J\x04\x08\x12\x10\x13\"\x0f\n\rVerifyRequest\"M\n\x0bVerifyReply\x12\n\n\x02ok\x18\x01 \x01(\x08\x12\x10\n\x08problems\x18\x02 \x03(\t\x12\x0f\n\x07surveys\x18\x03 \x01(\r\x12\x0f\n\x07patches\x18\x04 \x01(\x04\"\x0f\n\rRepairRequest\";\n\x0bRepairReply\x12,\n\x07\x64ropped\x18\x01 \x03(\x0b\x32\x1b.patchwork.v1.DroppedSurvey\";\n\rDroppedSurvey\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12\x0e\n\x06reason\x18\x03 \x01(\t\"\x10\n\x0e\x43ompactRequest\"R\n\x0c\x43ompactReply\x12\x14\n\x0c\x62ytes_before\x18\x01 \x01(\x04\x12\x13\n\x0b\x62ytes_after\x18\x02 \x01(\x04\x12\x17\n\x0fsurveys_removed\x18\x03 \x01(\r*h\n\nDistrusted\x12\x1a\n\x16\x44ISTRUSTED_UNSPECIFIED\x10\x00\x12\x13\n\x0f\x44ISTRUSTED_THIS\x10\x01\x12\x14\n\x10\x44ISTRUSTED_OTHER\x10\x02\x12\x13\n\x0f\x44ISTRUSTED_BOTH\x10\x03*\x8e\x01\n\x07Outcome\x12\x17\n\x13OUTCOME_UNSPECIFIED\x10\x00\x12\x14\n\x10OUTCOME_INSERTED\x10\x01\x12\x14\n\x10OUTCOME_REPLACED\x10\x02\x12\x15\n\x11OUTCOME_UNCHANGED\x10\x03\x12\x13\n\x0fOUTCOME_RETIRED\x10\x04\x12\x12\n\x0eOUTCOME_FAILED\x10\x05*\xc1\x06\n\x0b\x45rrorReason\x12\x1c\n\x18\x45RROR_REASON_UNSPECIFIED\x10\x00\x12 \n\x1c\x45RROR_REASON_INVALID_REQUEST\x10\x01\x12\x1a\n\x16\x45RROR_REASON_TOO_LARGE\x10\x02\x12\x1a\n\x16\x45RROR_REASON_NOT_FOUND\x10\x03\x12\x1c\n\x18\x45RROR_REASON_UNAVAILABLE\x10\x04\x12\x19\n\x15\x45RROR_REASON_DEADLINE\x10\x05\x12 \n\x1c\x45RROR_REASON_UNAUTHENTICATED\x10\x06\x12\"\n\x1e\x45RROR_REASON_PERMISSION_DENIED\x10\x07\x12\x1d\n\x19\x45RROR_REASON_STORE_FAILED\x10\x08\x12\x1a\n\x16\x45RROR_REASON_DISK_FULL\x10\t\x12\x1d\n\x19\x45RROR_REASON_STORE_LOCKED\x10\n\x12\"\n\x1e\x45RROR_REASON_READ_ONLY_REPLICA\x10\x0b\x12$\n ERROR_REASON_STORAGE_UNAVAILABLE\x10\x0c\x12\x1a\n\x16\x45RROR_REASON_DATA_LOSS\x10\r\x12\x1e\n\x1a\x45RROR_REASON_STORE_CORRUPT\x10\x0e\x12\x19\n\x15\x45RROR_REASON_INTERNAL\x10\x0f\x12\'\n#ERROR_REASON_OUTSIDE_INGEST_FOLDERS\x10\x10\x12\x1b\n\x17\x45RROR_REASON_UNREADABLE\x10\x11\x12\x1a\n\x16\x45RROR_REASON_NOT_A_DEM\x10\x12\x12\x1f\n\x1b\x45RROR_REASON_FILE_TOO_LARGE\x10\x13\x12\x18\n\x14\x45RROR_REASON_SIDECAR\x10\x14\x12\x14\n\x10\x45RROR_REASON_CRS\x10\x15\x12\x1d\n\x19\x45RROR_REASON_CRS_CONFLICT\x10\x16\x12\x16\n\x12\x45RROR_REASON_GEOID\x10\x17\x12\x1d\n\x19\x45RROR_REASON_BAD_ACCURACY\x10\x18\x12\x1c\n\x18\x45RROR_REASON_IMPLAUSIBLE\x10\x19\x12\x19\n\x15\x45RROR_REASON_BAD_GRID\x10\x1a*\xce\x01\n\x0cSurveyStatus\x12\x1d\n\x19SURVEY_STATUS_UNSPECIFIED\x10\x00\x12\x18\n\x14SURVEY_STATUS_ACTIVE\x10\x01\x12\x19\n\x15SURVEY_STATUS_RETIRED\x10\x02\x12\x18\n\x14SURVEY_STATUS_FAILED\x10\x03\x12\x19\n\x15SURVEY_STATUS_DAMAGED\x10\x04\x12\x1a\n\x16SURVEY_STATUS_DEFERRED\x10\x05\x12\x19\n\x15SURVEY_STATUS_SKIPPED\x10\x06*\xc0\x01\n\x0e\x41\x63\x63uracySource\x12\x1f\n\x1b\x41\x43\x43URACY_SOURCE_UNSPECIFIED\x10\x00\x12\x1b\n\x17\x41\x43\x43URACY_SOURCE_SIDECAR\x10\x01\x12\x18\n\x14\x41\x43\x43URACY_SOURCE_FLAG\x10\x02\x12\x1a\n\x16\x41\x43\x43URACY_SOURCE_CONFIG\x10\x03\x12\x1d\n\x19\x41\x43\x43URACY_SOURCE_ESTIMATED\x10\x04\x12\x1b\n\x17\x41\x43\x43URACY_SOURCE_UNKNOWN\x10\x05*\x99\x01\n\x0bIngestPhase\x12\x1c\n\x18INGEST_PHASE_UNSPECIFIED\x10\x00\x12\x18\n\x14INGEST_PHASE_READING\x10\x01\x12\x1a\n\x16INGEST_PHASE_MODELLING\x10\x02\x12\x19\n\x15INGEST_PHASE_INDEXING\x10\x03\x12\x1b\n\x17INGEST_PHASE_COMMITTING\x10\x04\x32\xa0\x04\n\x05\x41\x64min\x12@\n\x06Ingest\x12\x1b.patchwork.v1.IngestRequest\x1a\x19.patchwork.v1.IngestReply\x12I\n\x0bListSurveys\x12 .patchwork.v1.ListSurveysRequest\x1a\x18.patchwork.v1.SurveyList\x12@\n\x06Retire\x12\x1b.patchwork.v1.RetireRequest\x1a\x19.patchwork.v1.RetireReply\x12@\n\x06\x46orget\x12\x1b.patchwork.v1.ForgetRequest\x1a\x19.patchwork.v1.ForgetReply\x12=\n\x05Stats\x12\x1a.patchwork.v1.StatsRequest\x1a\x18.patchwork.v1.StatsReply\x12@\n\x06Verify\x12\x1b.patchwork.v1.VerifyRequest\x1a\x19.patchwork.v1.VerifyReply\x12@\n\x06Repair\x12\x1b.patchwork.v1.RepairRequest\x1a\x19.patchwork.v1.RepairReply\x12\x43\n\x07\x43ompact\x12\x1c.patchwork.v1.CompactRequest\x1a\x1a.patchwork.v1.CompactReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'patchwork.v1.admin_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_DISTRUSTED']._serialized_start=2452
-  _globals['_DISTRUSTED']._serialized_end=2556
-  _globals['_OUTCOME']._serialized_start=2559
-  _globals['_OUTCOME']._serialized_end=2701
-  _globals['_SURVEYSTATUS']._serialized_start=2704
-  _globals['_SURVEYSTATUS']._serialized_end=2910
-  _globals['_ACCURACYSOURCE']._serialized_start=2913
-  _globals['_ACCURACYSOURCE']._serialized_end=3105
-  _globals['_INGESTPHASE']._serialized_start=3108
-  _globals['_INGESTPHASE']._serialized_end=3261
+  _globals['_DISTRUSTED']._serialized_start=2495
+  _globals['_DISTRUSTED']._serialized_end=2599
+  _globals['_OUTCOME']._serialized_start=2602
+  _globals['_OUTCOME']._serialized_end=2744
+  _globals['_ERRORREASON']._serialized_start=2747
+  _globals['_ERRORREASON']._serialized_end=3580
+  _globals['_SURVEYSTATUS']._serialized_start=3583
+  _globals['_SURVEYSTATUS']._serialized_end=3789
+  _globals['_ACCURACYSOURCE']._serialized_start=3792
+  _globals['_ACCURACYSOURCE']._serialized_end=3984
+  _globals['_INGESTPHASE']._serialized_start=3987
+  _globals['_INGESTPHASE']._serialized_end=4140
   _globals['_INGESTREQUEST']._serialized_start=42
   _globals['_INGESTREQUEST']._serialized_end=112
   _globals['_CONFLICT']._serialized_start=115
@@ -49,41 +51,41 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_SHIFT']._serialized_start=374
   _globals['_SHIFT']._serialized_end=449
   _globals['_INGESTRESULT']._serialized_start=452
-  _globals['_INGESTRESULT']._serialized_end=636
-  _globals['_INGESTREPLY']._serialized_start=638
-  _globals['_INGESTREPLY']._serialized_end=696
-  _globals['_LISTSURVEYSREQUEST']._serialized_start=698
-  _globals['_LISTSURVEYSREQUEST']._serialized_end=718
-  _globals['_SURVEYINFO']._serialized_start=721
-  _globals['_SURVEYINFO']._serialized_end=1141
-  _globals['_SURVEYLIST']._serialized_start=1143
-  _globals['_SURVEYLIST']._serialized_end=1198
-  _globals['_RETIREREQUEST']._serialized_start=1200
-  _globals['_RETIREREQUEST']._serialized_end=1237
-  _globals['_RETIREREPLY']._serialized_start=1239
-  _globals['_RETIREREPLY']._serialized_end=1281
-  _globals['_FORGETREQUEST']._serialized_start=1283
-  _globals['_FORGETREQUEST']._serialized_end=1314
-  _globals['_FORGETREPLY']._serialized_start=1316
-  _globals['_FORGETREPLY']._serialized_end=1329
-  _globals['_STATSREQUEST']._serialized_start=1331
-  _globals['_STATSREQUEST']._serialized_end=1345
-  _globals['_STATSREPLY']._serialized_start=1348
-  _globals['_STATSREPLY']._serialized_end=2113
-  _globals['_VERIFYREQUEST']._serialized_start=2115
-  _globals['_VERIFYREQUEST']._serialized_end=2130
-  _globals['_VERIFYREPLY']._serialized_start=2132
-  _globals['_VERIFYREPLY']._serialized_end=2209
-  _globals['_REPAIRREQUEST']._serialized_start=2211
-  _globals['_REPAIRREQUEST']._serialized_end=2226
-  _globals['_REPAIRREPLY']._serialized_start=2228
-  _globals['_REPAIRREPLY']._serialized_end=2287
-  _globals['_DROPPEDSURVEY']._serialized_start=2289
-  _globals['_DROPPEDSURVEY']._serialized_end=2348
-  _globals['_COMPACTREQUEST']._serialized_start=2350
-  _globals['_COMPACTREQUEST']._serialized_end=2366
-  _globals['_COMPACTREPLY']._serialized_start=2368
-  _globals['_COMPACTREPLY']._serialized_end=2450
-  _globals['_ADMIN']._serialized_start=3264
-  _globals['_ADMIN']._serialized_end=3808
+  _globals['_INGESTRESULT']._serialized_end=679
+  _globals['_INGESTREPLY']._serialized_start=681
+  _globals['_INGESTREPLY']._serialized_end=739
+  _globals['_LISTSURVEYSREQUEST']._serialized_start=741
+  _globals['_LISTSURVEYSREQUEST']._serialized_end=761
+  _globals['_SURVEYINFO']._serialized_start=764
+  _globals['_SURVEYINFO']._serialized_end=1184
+  _globals['_SURVEYLIST']._serialized_start=1186
+  _globals['_SURVEYLIST']._serialized_end=1241
+  _globals['_RETIREREQUEST']._serialized_start=1243
+  _globals['_RETIREREQUEST']._serialized_end=1280
+  _globals['_RETIREREPLY']._serialized_start=1282
+  _globals['_RETIREREPLY']._serialized_end=1324
+  _globals['_FORGETREQUEST']._serialized_start=1326
+  _globals['_FORGETREQUEST']._serialized_end=1357
+  _globals['_FORGETREPLY']._serialized_start=1359
+  _globals['_FORGETREPLY']._serialized_end=1372
+  _globals['_STATSREQUEST']._serialized_start=1374
+  _globals['_STATSREQUEST']._serialized_end=1388
+  _globals['_STATSREPLY']._serialized_start=1391
+  _globals['_STATSREPLY']._serialized_end=2156
+  _globals['_VERIFYREQUEST']._serialized_start=2158
+  _globals['_VERIFYREQUEST']._serialized_end=2173
+  _globals['_VERIFYREPLY']._serialized_start=2175
+  _globals['_VERIFYREPLY']._serialized_end=2252
+  _globals['_REPAIRREQUEST']._serialized_start=2254
+  _globals['_REPAIRREQUEST']._serialized_end=2269
+  _globals['_REPAIRREPLY']._serialized_start=2271
+  _globals['_REPAIRREPLY']._serialized_end=2330
+  _globals['_DROPPEDSURVEY']._serialized_start=2332
+  _globals['_DROPPEDSURVEY']._serialized_end=2391
+  _globals['_COMPACTREQUEST']._serialized_start=2393
+  _globals['_COMPACTREQUEST']._serialized_end=2409
+  _globals['_COMPACTREPLY']._serialized_start=2411
+  _globals['_COMPACTREPLY']._serialized_end=2493
+  _globals['_ADMIN']._serialized_start=4143
+  _globals['_ADMIN']._serialized_end=4687
 # @@protoc_insertion_point(module_scope)
