@@ -776,6 +776,10 @@ fn daemon_tiles_on_the_gpu_match_the_cpu_and_gpu_without_a_device_is_refused() {
                 .unwrap_err();
             assert_eq!(err.code(), tonic::Code::FailedPrecondition);
             assert!(err.message().contains("no GPU device"), "{}", err.message());
+            assert_eq!(
+                patchwork::serve::status::reason_of(&err),
+                Some(patchwork::engine::Reason::Unavailable)
+            );
             return;
         }
         for e in [0.0, 5.0, 30.0] {

@@ -210,6 +210,7 @@ fn replicas_follow_the_writer_through_inserts_a_replacement_a_retirement_and_a_c
     let Err(refused) = a.ingest(&crop("copernicus_n34w119_crop.tif"), None, Origin::Request) else {
         panic!("a replica took an ingest");
     };
+    assert_eq!(refused.reason(), patchwork::engine::Reason::ReadOnlyReplica);
     let refused = refused.to_string();
     assert!(
         refused.contains("read replica") && refused.contains(&std::process::id().to_string()),
