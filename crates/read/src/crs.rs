@@ -9,6 +9,7 @@ use patchwork_crs::Crs;
 /// What a file says of its CRS.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FileCrs {
+    /// The horizontal CRS, where the file names one that can be read.
     pub crs: Option<Crs>,
     /// A CRS the file describes that could not be read, by name (for the error).
     pub unreadable: Option<String>,
@@ -97,11 +98,15 @@ pub fn by_name(name: &str) -> Option<Crs> {
 pub struct GeoTiffCrs<'a> {
     /// GeographicTypeGeoKey, GeogGeodeticDatumGeoKey and GeogEllipsoidGeoKey, where codes.
     pub geographic: Option<u16>,
+    /// See `geographic`.
     pub datum: Option<u16>,
+    /// See `geographic`.
     pub ellipsoid: Option<u16>,
     /// GeogSemiMajorAxisGeoKey and GeogInvFlatteningGeoKey (or GeogSemiMinorAxisGeoKey).
     pub semi_major: Option<f64>,
+    /// See `semi_major`.
     pub inv_flattening: Option<f64>,
+    /// See `semi_major`.
     pub semi_minor: Option<f64>,
     /// GeogTOWGS84GeoKey: 3 or 7 Helmert parameters.
     pub towgs84: Option<Vec<f64>>,
@@ -109,9 +114,11 @@ pub struct GeoTiffCrs<'a> {
     pub projection: Option<u16>,
     /// ProjCoordTransGeoKey and the parameters, by key.
     pub transform: Option<u16>,
+    /// See `transform`.
     pub params: Vec<(u16, f64)>,
     /// ProjLinearUnitsGeoKey.
     pub linear_units: Option<u16>,
+    /// GTCitationGeoKey (or the geographic citation): the CRS's name, for messages.
     pub name: &'a str,
 }
 

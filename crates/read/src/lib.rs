@@ -1,6 +1,8 @@
 //! Readers that turn elevation files (GeoTIFF/COG, SRTM `.hgt`, ESRI ASCII grid) into a
 //! [`Raster`], plus a small GeoTIFF writer used for exports and test fixtures.
 
+#![warn(missing_docs)]
+
 pub mod ascii;
 pub mod crs;
 pub mod geotiff;
@@ -22,7 +24,9 @@ pub use write_tiff::{write_geotiff_f32, write_geotiff_i16};
 /// A raster as read from a file, before it becomes a model Grid.
 #[derive(Clone)]
 pub struct Raster {
+    /// Samples a row.
     pub cols: usize,
+    /// Rows of samples.
     pub rows: usize,
     /// Row-major, row 0 is the first row in the file (north for north-up rasters). Nodata samples are f32::NAN.
     pub samples: Vec<f32>,
@@ -121,20 +125,38 @@ impl std::fmt::Debug for Raster {
 /// Why a raster file could not be read (or written).
 #[derive(Debug, thiserror::Error)]
 pub enum ReadError {
+    /// The file ends before all the data its header describes.
     #[error("the file is truncated: it ends before all the data its header describes")]
     Truncated,
+    /// A raster of a kind this reader does not read (a sample format, a compression).
     #[error("unsupported raster: {what}")]
-    Unsupported { what: String },
+    Unsupported {
+        /// What is not supported.
+        what: String,
+    },
+    /// A file that is not a valid raster of its format.
     #[error("invalid raster file: {what}")]
-    Invalid { what: String },
+    Invalid {
+        /// What is wrong.
+        what: String,
+    },
+    /// A raster whose samples need more memory than the limit.
     #[error(
         "raster is too large: {cols} x {rows} samples need more memory than the limit of \
          {limit_mb} MiB (limits.max_ingest_mb)"
     )]
-    TooLarge { cols: u64, rows: u64, limit_mb: u64 },
+    TooLarge {
+        /// Its samples a row.
+        cols: u64,
+        /// Its rows.
+        rows: u64,
+        /// The limit, in MiB.
+        limit_mb: u64,
+    },
     /// The file, or one beside it, does not resolve inside the folders it may be read from.
     #[error("{}", REFUSED_PATH)]
     Outside,
+    /// Reading the file failed.
     #[error("I/O error: {0}")]
     Io(#[source] std::io::Error),
 }
@@ -351,15 +373,21 @@ pub fn read_raster_hashed(path: &Path, limits: &ReadLimits) -> Result<(Raster, S
 /// Why a file someone else controls was not opened.
 #[derive(Debug, thiserror::Error)]
 pub enum OpenError {
+    /// The path names a directory.
     #[error("{} is a directory", .0.display())]
     Directory(PathBuf),
+    /// The path names something other than a regular file (a device, a socket, a pipe).
     #[error("{} is not a regular file", .0.display())]
     NotAFile(PathBuf),
+    /// The path does not resolve inside the folders it may be read from.
     #[error("{}", REFUSED_PATH)]
     Outside,
+    /// Opening or reading the file failed.
     #[error("cannot read {}: {source}", path.display())]
     Io {
+        /// The file.
         path: PathBuf,
+        /// Why.
         source: std::io::Error,
     },
 }

@@ -10,7 +10,9 @@ use patchwork_core::model::grid::Grid;
 /// One copy of a grid, and where its content lies against the original's.
 #[derive(Clone, Debug)]
 pub struct Copy {
+    /// What was done to make it, for messages.
     pub label: &'static str,
+    /// The copy's samples and georeference.
     pub grid: Grid,
     /// How far the content moved, in the original's cells (columns right, rows down).
     pub shift_px: [f64; 2],

@@ -33,6 +33,7 @@ pub const SCENES: [&str; 6] = [
 pub struct Drawn {
     /// The operations, in the order applied.
     pub label: String,
+    /// The degraded samples.
     pub grid: Grid,
 }
 
@@ -322,13 +323,17 @@ pub fn served_within_claim(t: &Terrain, orig: &Survey, g: &Grid) -> (f64, usize)
 /// and how the original fares.
 pub struct Scene {
     /// The copies' operations, one label a copy.
+    /// Each copy's operations, as [`Drawn::label`].
     pub labels: Vec<String>,
     /// The original first, then the copies, in the order they were inserted.
     pub surveys: Vec<Arc<Survey>>,
+    /// The original's id.
     pub original: SurveyId,
+    /// The terrain of the original and its copies.
     pub terrain: Terrain,
     /// The share of the original's samples served within its own claim at e = 0.
     pub share: f64,
+    /// The original's valid samples that share is of.
     pub samples: usize,
 }
 

@@ -29,21 +29,29 @@ pub fn landscape(x: f64, y: f64, seed: u64) -> f32 {
     (200.0 + hills + ridge + cliff) as f32
 }
 
+/// A synthetic survey: a rotated grid of a smooth random landscape with disc-shaped voids.
 #[derive(Clone, Debug)]
 pub struct Spec {
+    /// Samples a row.
     pub cols: usize,
+    /// Rows of samples.
     pub rows: usize,
+    /// Where sample (0, 0) lies, in the world.
     pub origin: [f64; 2],
+    /// The grid's rotation, in radians.
     pub theta: f64,
+    /// Its cell size along the columns and the rows.
     pub step: [f64; 2],
     /// Voids as discs (centre col, centre row, radius in cells).
     pub voids: Vec<(f64, f64, f64)>,
     /// ε in metres; a negative value asks for it to be estimated from the samples.
     pub accuracy: f64,
+    /// Draws the landscape.
     pub seed: u64,
 }
 
 impl Spec {
+    /// The grid the spec describes.
     pub fn grid(&self) -> Grid {
         let g = Georef {
             origin: self.origin,
@@ -68,6 +76,7 @@ impl Spec {
         Grid::new(self.cols, self.rows, s, g).unwrap()
     }
 
+    /// Its survey in UTM zone 31N; None where it cannot be built (every sample void).
     pub fn survey(&self) -> Option<Arc<Survey>> {
         let spec = if self.accuracy < 0.0 {
             patchwork_core::model::accuracy::AccuracySpec::Auto
@@ -85,6 +94,7 @@ impl Spec {
     }
 }
 
+/// A terrain of these surveys, inserted in order.
 pub fn terrain_of(surveys: &[Arc<Survey>]) -> Terrain {
     let mut t = Terrain::new(IndexConfig::default());
     for s in surveys {
@@ -93,6 +103,7 @@ pub fn terrain_of(surveys: &[Arc<Survey>]) -> Terrain {
     t
 }
 
+/// The bounds of the surveys' level-0 grids together.
 pub fn bounds_of(surveys: &[Arc<Survey>]) -> Aabb {
     surveys
         .iter()

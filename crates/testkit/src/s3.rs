@@ -7,12 +7,16 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
+/// The bucket the server holds.
 pub const BUCKET: &str = "terrain";
 const KEY: &str = "patchwork-test-key";
 const SECRET: &str = "patchwork-test-secret-key";
 
+/// The server: its folder, its port, and the runtime it runs on until stopped.
 pub struct S3Server {
+    /// The folder its buckets are folders of.
     pub root: PathBuf,
+    /// Its loopback port.
     pub port: u16,
     runtime: Option<tokio::runtime::Runtime>,
     /// What the server gets wrong on purpose; shared with the running server.
@@ -148,6 +152,7 @@ impl S3Server {
         std::thread::sleep(std::time::Duration::from_millis(100));
     }
 
+    /// Its URL, for an S3 client's endpoint.
     pub fn endpoint(&self) -> String {
         format!("http://127.0.0.1:{}", self.port)
     }
