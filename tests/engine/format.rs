@@ -199,16 +199,6 @@ fn every_record_of_the_current_schema_decodes_and_encodes_back_to_its_bytes() {
 fn every_committed_store_opens_verifies_and_gives_back_its_samples() {
     for v in committed() {
         let (_tmp, dir) = copy_of(v);
-        // Each survey's file, from the records as they were written.
-        let sources: BTreeMap<SurveyId, String> = {
-            let db = sled::open(&dir).unwrap();
-            db.scan_prefix(keys::SURVEY_PREFIX)
-                .map(|kv| {
-                    let r: SurveyRecord = decode(&kv.unwrap().1, "a survey record").unwrap();
-                    (r.id, r.source)
-                })
-                .collect()
-        };
         let loaded = Store::open_with(
             &dir,
             PatchLayout::default(),
@@ -216,6 +206,19 @@ fn every_committed_store_opens_verifies_and_gives_back_its_samples() {
             StoreOptions::default(),
         )
         .unwrap_or_else(|e| panic!("the store of schema {v} no longer opens: {e}"));
+        let ran = loaded.store.migrations_run().to_vec();
+        let want: Vec<(u32, u32)> = (v..SCHEMA_VERSION).map(|n| (n, n + 1)).collect();
+        assert_eq!(ran, want, "schema {v}: the migrations run");
+        // Each survey's file, from its record as the migrations left it.
+        let sources: BTreeMap<SurveyId, String> = loaded
+            .store
+            .raw()
+            .scan_prefix(keys::SURVEY_PREFIX)
+            .map(|kv| {
+                let r: SurveyRecord = decode(&kv.unwrap().1, "a survey record").unwrap();
+                (r.id, r.source)
+            })
+            .collect();
         let surveys = loaded.store.whole_surveys().unwrap();
         assert_eq!(surveys.len(), 3, "schema {v}: active surveys");
         for s in &surveys {
