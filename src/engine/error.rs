@@ -192,7 +192,8 @@ fn store_reason(e: &StoreError) -> Reason {
         StoreError::Corrupt(_) | StoreError::Newer { .. } | StoreError::Migration { .. } => {
             Reason::StoreCorrupt
         }
-        StoreError::Invalid(_) => Reason::InvalidRequest,
+        // The store refusing what its writer or its settings asked: the daemon's fault, not
+        // the request's.
         _ => Reason::Internal,
     }
 }

@@ -771,14 +771,7 @@ fn carried(
         }
     }
     if let Some(a) = &own.axes {
-        let span = |v: &[f64]| {
-            v.iter()
-                .fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], &x| {
-                    [lo.min(x), hi.max(x)]
-                })
-        };
-        let ([x0, x1], [y0, y1]) = (span(&a.xs), span(&a.ys));
-        if r.gathers([x0, y0], [x1, y1]) {
+        if a.bounds().is_some_and(|b| r.gathers(b.min, b.max)) {
             // Kept as the lattice and the grid it carries: a device carries the points
             // itself, and the CPU lists them as `map` would.
             return SampleGrid::carried(a.clone(), r.clone());

@@ -25,7 +25,7 @@ use super::{split, VOID};
 use bytemuck::{Pod, Zeroable};
 use patchwork_core::crs::{LatticeBlock, Reprojection, LATTICE_SIDE};
 use patchwork_core::geom::Aabb;
-use patchwork_core::resample::{Axes, Carried, PatchSet, Row, SampleGrid};
+use patchwork_core::resample::{row_point, Axes, Carried, PatchSet, Row, SampleGrid};
 use std::hash::{Hash, Hasher};
 use std::sync::Arc;
 
@@ -132,7 +132,7 @@ pub(super) fn plan(set: &PatchSet, grid: &SampleGrid, side: usize) -> Option<Pla
     let (origin, squares, bounds) = if let Some(a) = &grid.axes {
         let origin = [a.xs[0], a.ys[0]];
         g.source = axes_source(a, origin);
-        (origin, None, axes_bounds(a)?)
+        (origin, None, a.bounds()?)
     } else if let Some(rows) = grid.rows() {
         let origin = rows.iter().flatten().next()?[0];
         g.kind = SOURCE_ROWS;
@@ -144,7 +144,7 @@ pub(super) fn plan(set: &PatchSet, grid: &SampleGrid, side: usize) -> Option<Pla
         let (squares, origin) = carried_squares(c, side)?;
         let own = [c.own.xs[0], c.own.ys[0]];
         g.source = axes_source(&c.own, own);
-        let own_bounds = axes_bounds(&c.own)?;
+        let own_bounds = c.own.bounds()?;
         lattice(&c.by, &own_bounds, own, origin, &mut g)?;
         g.carry = true;
         let bounds = union(&squares)?;
@@ -184,20 +184,6 @@ pub(super) fn axes_source(a: &Axes, origin: [f64; 2]) -> Vec<[f32; 4]> {
     out
 }
 
-fn axes_bounds(a: &Axes) -> Option<Aabb> {
-    let span = |v: &[f64]| {
-        v.iter()
-            .fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], &x| {
-                [lo.min(x), hi.max(x)]
-            })
-    };
-    let ([x0, x1], [y0, y1]) = (span(&a.xs), span(&a.ys));
-    [x0, x1, y0, y1]
-        .iter()
-        .all(|v| v.is_finite())
-        .then(|| Aabb::new(x0, y0, x1, y1))
-}
-
 /// Two entries a row: its first point relative to `origin`, and its step.
 fn rows_source(rows: &[Row], origin: [f64; 2]) -> Vec<[f32; 4]> {
     let mut out = Vec::with_capacity(2 * rows.len());
@@ -215,19 +201,14 @@ fn rows_source(rows: &[Row], origin: [f64; 2]) -> Vec<[f32; 4]> {
     out
 }
 
-/// The bounds of each square of `side`² samples of a grid of rows: a row's points lie on a
-/// line in order (each coordinate of `first + i·step`, rounded, moves one way with i), so a
-/// square's are bounded by its rows' first and last points within it.
+/// The bounds of each square of `side`² samples of a grid of rows: a square's are bounded by
+/// its rows' first and last points within it ([`row_point`]).
 fn row_squares(rows: &[Row], width: usize, side: usize) -> Vec<Option<Aabb>> {
     let sx = width.div_ceil(side);
     let mut out: Vec<Option<Aabb>> = vec![None; sx * rows.len().div_ceil(side)];
     for (j, row) in rows.iter().enumerate() {
-        let Some([p, q]) = row else { continue };
-        // As `SampleGrid::point` computes it.
-        let at = |i: usize| {
-            let i = i as f64;
-            [p[0] + i * q[0], p[1] + i * q[1]]
-        };
+        let Some(row) = row else { continue };
+        let at = |i: usize| row_point(row, i);
         for s in 0..sx {
             let (a, b) = (at(s * side), at(((s + 1) * side).min(width) - 1));
             if a.iter().chain(&b).any(|v| !v.is_finite()) {

@@ -1,9 +1,8 @@
 //! The one place where engine errors become gRPC status codes.
 
 use crate::engine::{EngineError, Reason};
-use crate::store::StoreError;
 use std::collections::HashMap;
-use tonic::Status;
+use tonic::{Code, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
 /// Longest message a status carries: it travels in an HTTP/2 header, and a client's megabyte
@@ -22,19 +21,18 @@ fn short(mut m: String) -> String {
     m
 }
 
-/// The status of an engine error: its code, its message, and its kind as the `reason` of a
-/// `google.rpc.ErrorInfo` in the details (domain [`DOMAIN`]).
+/// The status of an engine error: the code of its kind ([`code`]), its message, and its kind
+/// as the `reason` of a `google.rpc.ErrorInfo` in the details (domain [`DOMAIN`]).
 pub fn to_status(e: EngineError) -> Status {
     let r = e.reason();
-    let s = code_of(e);
-    with_reason(s.code(), s.message().to_string(), r)
+    with_reason(code(r), short(e.to_string()), r)
 }
 
 /// The `domain` of the `ErrorInfo` the daemon's statuses carry.
 pub const DOMAIN: &str = "patchwork";
 
 /// A status of `code` and message `m` whose details name its kind.
-pub fn with_reason(code: tonic::Code, m: String, r: Reason) -> Status {
+pub fn with_reason(code: Code, m: String, r: Reason) -> Status {
     Status::with_error_details(
         code,
         m,
@@ -50,39 +48,41 @@ pub fn reason_of(s: &Status) -> Option<Reason> {
         .flatten()
 }
 
-fn code_of(e: EngineError) -> Status {
-    let m = short(e.to_string());
-    match e {
-        EngineError::Invalid(_) => Status::invalid_argument(m),
-        EngineError::TooLarge(_) => Status::resource_exhausted(m),
-        EngineError::NotFound(_) => Status::not_found(m),
-        EngineError::Unavailable(_) => Status::failed_precondition(m),
-        // Retrying later can help: the disk may get room, the daemon a restart.
-        EngineError::StoreFailed(_) => Status::unavailable(m),
-        EngineError::Store(StoreError::Full { .. }) => Status::resource_exhausted(m),
-        EngineError::Store(StoreError::Locked { .. }) => Status::unavailable(m),
-        // Not this server's to do: the message names the writer.
-        EngineError::Store(StoreError::Replica { .. }) => Status::failed_precondition(m),
-        EngineError::Store(StoreError::Sled(sled::Error::Io(io)))
-            if io.kind() == std::io::ErrorKind::StorageFull =>
-        {
-            Status::resource_exhausted(m)
-        }
-        EngineError::Store(StoreError::Sled(sled::Error::Io(_)) | StoreError::Io(_)) => {
-            Status::unavailable(m)
-        }
-        // An object store down or slow: the bytes are there, and a retry may find them.
-        EngineError::Store(StoreError::Samples(e)) if e.unavailable => Status::unavailable(m),
-        EngineError::Store(StoreError::Samples(_)) => Status::data_loss(m),
-        EngineError::Store(_) => Status::internal(m),
-        EngineError::Cancelled => Status::deadline_exceeded(m),
+/// The gRPC code of a kind of failure: the one table of them.
+pub fn code(r: Reason) -> Code {
+    match r {
+        Reason::InvalidRequest => Code::InvalidArgument,
+        Reason::TooLarge | Reason::DiskFull => Code::ResourceExhausted,
+        Reason::NotFound => Code::NotFound,
+        // Not this server's to do: the message says what (no GPU; the writer's name).
+        Reason::Unavailable | Reason::ReadOnlyReplica => Code::FailedPrecondition,
+        Reason::Deadline => Code::DeadlineExceeded,
+        Reason::Unauthenticated => Code::Unauthenticated,
+        Reason::PermissionDenied => Code::PermissionDenied,
+        // Retrying later can help: the disk may get room, the daemon a restart, an object
+        // store down or slow come back.
+        Reason::StoreFailed | Reason::StoreLocked | Reason::StorageUnavailable => Code::Unavailable,
+        Reason::DataLoss => Code::DataLoss,
+        Reason::StoreCorrupt | Reason::Internal => Code::Internal,
+        // A file's kinds, which reach a client in an ingest result rather than a status.
+        Reason::OutsideIngestFolders
+        | Reason::Unreadable
+        | Reason::NotADem
+        | Reason::FileTooLarge
+        | Reason::Sidecar
+        | Reason::Crs
+        | Reason::CrsConflict
+        | Reason::Geoid
+        | Reason::BadAccuracy
+        | Reason::Implausible
+        | Reason::BadGrid => Code::InvalidArgument,
     }
 }
 
 /// What a request that ran past its deadline gets.
 pub fn deadline(ms: u64) -> Status {
     with_reason(
-        tonic::Code::DeadlineExceeded,
+        Code::DeadlineExceeded,
         format!(
             "the request took longer than the {ms} ms limit: ask for a smaller region, a larger error or a smaller tile"
         ),
@@ -93,6 +93,7 @@ pub fn deadline(ms: u64) -> Status {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::store::StoreError;
 
     #[test]
     fn each_error_gets_its_code_and_a_bounded_message() {

@@ -9,6 +9,20 @@ pub mod s3;
 
 pub use patchwork_testkit::fixtures::*;
 
+/// A copy of the folder `from` and everything under it at `to`.
+pub fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let p = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &p);
+        } else {
+            std::fs::copy(e.path(), p).unwrap();
+        }
+    }
+}
+
 /// Every file under `dir` with a hash of its bytes, by path: what "byte for byte" compares.
 pub fn dir_digest(dir: &std::path::Path) -> Vec<(std::path::PathBuf, String)> {
     let mut out = Vec::new();

@@ -4,6 +4,7 @@
 //! the next open; a second store is refused the place, and a second writer the lease; a lost
 //! segment is named as damage.
 
+use crate::common::copy_dir;
 use crate::common::daemon::*;
 use crate::common::s3::S3Server;
 use std::path::Path;
@@ -72,18 +73,6 @@ fn cold_tile(d: &Daemon) -> tonic::Status {
             .await
             .expect_err("a cold read with the server down")
     })
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
 }
 
 fn active(d: &Daemon) {

@@ -5,6 +5,10 @@
 //! the current version's must decode and encode back to its very bytes. A change to what the
 //! store writes that comes without a migration and a new committed store fails here.
 
+use crate::common;
+
+use common::copy_dir;
+use common::daemon::crop;
 use patchwork::store::pack::{Loc, PackFile, PACK_FILE};
 use patchwork::store::{
     chunks, decode, decode_state, encode, encode_state, keys, FailedRecord, Store, StoreOptions,
@@ -21,12 +25,6 @@ use serde::de::DeserializeOwned;
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-
-fn crop(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name)
-}
 
 fn stores() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/stores")
@@ -55,18 +53,6 @@ fn copy_of(v: u32) -> (tempfile::TempDir, PathBuf) {
     let dir = tmp.path().join("store");
     copy_dir(&stores().join(format!("v{v}")), &dir);
     (tmp, dir)
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
 }
 
 #[test]

@@ -963,19 +963,6 @@ fn compaction_gives_space_back_and_keeps_the_answers() {
     }
 }
 
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let p = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &p);
-        } else {
-            std::fs::copy(e.path(), p).unwrap();
-        }
-    }
-}
-
 #[test]
 fn open_recovers_from_a_crash_at_any_step_of_compaction() {
     let tmp = tempfile::tempdir().unwrap();

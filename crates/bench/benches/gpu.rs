@@ -30,6 +30,15 @@ fn data(name: &str) -> PathBuf {
         .join(name)
 }
 
+/// The largest |GPU − CPU| where both have a height.
+fn max_diff(got: &[f32], want: &[f32]) -> f64 {
+    got.iter()
+        .zip(want)
+        .filter(|(a, b)| !a.is_nan() && !b.is_nan())
+        .map(|(a, b)| (*a as f64 - *b as f64).abs())
+        .fold(0.0, f64::max)
+}
+
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
@@ -120,12 +129,7 @@ fn main() {
                     }
                 }
                 let tm = best.unwrap();
-                let worst = got
-                    .iter()
-                    .zip(&want)
-                    .filter(|(a, b)| !a.is_nan() && !b.is_nan())
-                    .map(|(a, b)| (*a as f64 - *b as f64).abs())
-                    .fold(0.0, f64::max);
+                let worst = max_diff(&got, &want);
                 let total = tm.prepare + tm.queue + tm.device + tm.readback;
                 println!(
                     "{label:>9} {e:>5} {n:>6} {:>8} | {:>10.2} | {:>10.2} {:>10.2} | {:>8.2} {:>8.2} {:>8.1} {:>8.1} | {:>8.0} {:>8.0} | {:>6.1} ms {:>9.1e}",
@@ -216,12 +220,7 @@ fn made_on_the_device(t: &Terrain, quarter: &Aabb) {
             let mut gpu = GpuResampler::new(Emulated::Allow).unwrap();
             gpu.resample_timed(&set, &grid).unwrap();
             let (got, tm) = gpu.resample_timed(&set, &grid).unwrap();
-            let worst = got
-                .iter()
-                .zip(&want)
-                .filter(|(a, b)| !a.is_nan() && !b.is_nan())
-                .map(|(a, b)| (*a as f64 - *b as f64).abs())
-                .fold(0.0, f64::max);
+            let worst = max_diff(&got, &want);
             let samples = (n * n) as f64;
             println!(
                 "{label:>14} {n:>6} {:>8} | {:>10.2} {:>10.2} | {:>8.2} {:>8.1} | {:>8.0} {:>9.0} | {:>9.1e}",

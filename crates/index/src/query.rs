@@ -415,28 +415,12 @@ impl ErrorField for ViewField {
 
 impl ViewQuery {
     /// The points of a screen grid of `width × height` pixels projected from the eye onto the
-    /// plane z = `ground`, row-major: dense near the viewer, sparse far away (§5, persistent
-    /// grid mapping); NaN where a pixel's ray misses the plane. Point (i, j) is row j's
-    /// first point plus i of its steps ([`Self::ground_rows`]).
-    pub fn ground_points(&self, width: usize, height: usize, ground: f64) -> Vec<[f64; 2]> {
-        let mut points = Vec::with_capacity(width * height);
-        for row in self.ground_rows(width, height, ground) {
-            match row {
-                Some([p, q]) => points.extend((0..width).map(|i| {
-                    let i = i as f64;
-                    [p[0] + i * q[0], p[1] + i * q[1]]
-                })),
-                None => points.extend(std::iter::repeat_n([f64::NAN; 2], width)),
-            }
-        }
-        points
-    }
-
-    /// Each row of [`Self::ground_points`] as its first point and the step from one point to
-    /// the next, None for a row whose rays miss the plane. A screen row's rays share their
-    /// vertical component (the camera's right vector is level), so they meet the plane at
-    /// one distance along the view and their points lie evenly on a line: a view grid is
-    /// two points a row, not one a pixel.
+    /// plane z = `ground` (§5, persistent grid mapping), dense near the viewer and sparse far
+    /// away, as each row's first point and the step from one point to the next: None for a
+    /// row whose rays miss the plane. A screen row's rays share their vertical component (the
+    /// camera's right vector is level), so they meet the plane at one distance along the view
+    /// and their points lie evenly on a line: a view grid is two points a row, not one a
+    /// pixel.
     pub fn ground_rows(
         &self,
         width: usize,

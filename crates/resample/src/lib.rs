@@ -81,6 +81,14 @@ pub struct SampleGrid {
 /// of whose points are NaN.
 pub type Row = Option<[[f64; 2]; 2]>;
 
+/// Point `i` of a row, `first + i·step`, computed so in f64: each coordinate moves one way
+/// with `i`, so a run of a row's points is bounded by its ends.
+#[inline]
+pub fn row_point([p, q]: &[[f64; 2]; 2], i: usize) -> [f64; 2] {
+    let i = i as f64;
+    [p[0] + i * q[0], p[1] + i * q[1]]
+}
+
 /// A north-up grid of another CRS whose points are carried into the store's plane by a
 /// lattice, point (i, j) to `by.at([own.xs[i], own.ys[j]])`.
 pub struct Carried {
@@ -112,6 +120,23 @@ pub struct Axes {
     pub ys: Vec<f64>,
 }
 
+impl Axes {
+    /// The bounds of the grid's points; None where a coordinate is not finite.
+    pub fn bounds(&self) -> Option<Aabb> {
+        let span = |v: &[f64]| {
+            v.iter()
+                .fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], &x| {
+                    [lo.min(x), hi.max(x)]
+                })
+        };
+        let ([x0, x1], [y0, y1]) = (span(&self.xs), span(&self.ys));
+        [x0, x1, y0, y1]
+            .iter()
+            .all(|v| v.is_finite())
+            .then(|| Aabb::new(x0, y0, x1, y1))
+    }
+}
+
 impl SampleGrid {
     fn of(width: usize, height: usize) -> Self {
         SampleGrid {
@@ -139,11 +164,12 @@ impl SampleGrid {
 
     /// A north-up grid of any columns and rows: point (i, j) is (xs[i], ys[j]).
     pub fn of_axes(xs: Vec<f64>, ys: Vec<f64>) -> Self {
-        SampleGrid {
-            axes: Some(Axes { xs, ys }),
-            ..Self::of(0, 0)
-        }
-        .sized()
+        Self::of(xs.len(), ys.len()).with_axes(Axes { xs, ys })
+    }
+
+    fn with_axes(mut self, a: Axes) -> Self {
+        self.axes = Some(a);
+        self
     }
 
     /// A grid of any points, row-major, `width × height` of them.
@@ -157,34 +183,22 @@ impl SampleGrid {
     /// A grid of `width` points a row, each row evenly spaced: point (i, j) is
     /// `first + i·step` of `rows[j]`, computed so in f64, or NaN for a row that is None.
     pub fn of_rows(width: usize, rows: Vec<Row>) -> Self {
-        SampleGrid {
-            rows: Some(Arc::new(rows)),
-            ..Self::of(width, 0)
-        }
-        .sized()
+        Self::of(width, rows.len()).with_rows(rows)
+    }
+
+    fn with_rows(mut self, rows: Vec<Row>) -> Self {
+        self.rows = Some(Arc::new(rows));
+        self
     }
 
     /// The north-up grid `own` of another CRS, carried by `by` into the store's plane: point
     /// (i, j) is where [`Reprojection::map`] takes (xs[i], ys[j]).
     pub fn carried(own: Axes, by: Arc<Reprojection>) -> Self {
-        SampleGrid {
-            carry: Some(Arc::new(Carried { own, by })),
-            ..Self::of(0, 0)
-        }
-        .sized()
+        Self::of(own.xs.len(), own.ys.len()).with_carry(Carried { own, by })
     }
 
-    /// Width and height from the form.
-    fn sized(mut self) -> Self {
-        if let Some(a) = &self.axes {
-            (self.width, self.height) = (a.xs.len(), a.ys.len());
-        }
-        if let Some(r) = &self.rows {
-            self.height = r.len();
-        }
-        if let Some(c) = &self.carry {
-            (self.width, self.height) = (c.own.xs.len(), c.own.ys.len());
-        }
+    fn with_carry(mut self, c: Carried) -> Self {
+        self.carry = Some(Arc::new(c));
         self
     }
 
@@ -230,11 +244,8 @@ impl SampleGrid {
             return [a.xs[k % self.width], a.ys[k / self.width]];
         }
         if let Some(rows) = &self.rows {
-            return match rows[k / self.width] {
-                Some([p, q]) => {
-                    let i = (k % self.width) as f64;
-                    [p[0] + i * q[0], p[1] + i * q[1]]
-                }
+            return match &rows[k / self.width] {
+                Some(row) => row_point(row, k % self.width),
                 None => [f64::NAN; 2],
             };
         }
