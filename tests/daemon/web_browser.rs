@@ -26,7 +26,7 @@ const EQUATOR_M: f64 = 40_075_016.686;
 /// Cesium's geometric error at terrain level 0 (a 65-sample heightmap over two root tiles):
 /// G(L) = G0 / 2^L, half for the cut and half for the mesh.
 const G0: f64 = 77_067.34;
-/// Samples a side of a quantized-mesh tile's grid (src/serve/web/pyramid.rs): between two of
+/// Samples a side of a quantized-mesh tile's grid (crates/server/src/web/pyramid.rs): between two of
 /// them the mesh interpolates.
 const TERRAIN_GRID: f64 = 257.0;
 /// A terrarium PNG's height step (1/256 m), with room for f32 rounding.

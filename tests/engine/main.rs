@@ -12,7 +12,6 @@ mod format;
 mod fuzz;
 #[cfg(feature = "gpu")]
 mod gpu;
-mod layers;
 mod mesh;
 mod objects;
 mod store;

@@ -15,7 +15,7 @@
 mod common;
 
 use common::{quantile, shared};
-use patchwork::serve::proto::{
+use patchwork_server::proto::{
     self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
 };
 use std::process::{Command, Stdio};

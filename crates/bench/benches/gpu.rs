@@ -11,13 +11,13 @@
 //! KB"), and reads back 4 bytes a sample ("read KB"). A second table does the same for grids
 //! whose positions the device makes: a view, and a tile in another CRS.
 
-use patchwork::gpu::{Emulated, GpuResampler, GpuTimings};
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::patch::PatchLayout;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::resample::{cpu, SampleGrid};
 use patchwork_core::terrain::Terrain;
+use patchwork_engine::gpu::{Emulated, GpuResampler, GpuTimings};
 use patchwork_read::{read_raster, ReadLimits};
 use std::path::PathBuf;
 use std::sync::Arc;

@@ -17,7 +17,7 @@
 mod common;
 
 use common::{quantile, shared};
-use patchwork::serve::proto::{
+use patchwork_server::proto::{
     self as pb, admin_client::AdminClient, terrain_client::TerrainClient,
 };
 use patchwork_testkit::s3::S3Server;

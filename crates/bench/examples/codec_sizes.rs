@@ -5,10 +5,10 @@
 //!
 //! cargo run --release -p patchwork-bench --example codec_sizes -- [DATA_DIR]
 
-use patchwork::store::chunks::{chunk_counts, chunk_rect, encode_at};
 use patchwork_core::model::grid::Grid;
 use patchwork_core::model::mipmap;
 use patchwork_read::{read_raster, ReadLimits};
+use patchwork_store::chunks::{chunk_counts, chunk_rect, encode_at};
 use rayon::prelude::*;
 use std::path::PathBuf;
 use std::sync::Arc;

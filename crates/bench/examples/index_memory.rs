@@ -7,8 +7,8 @@
 //!
 //! The files default to the Copernicus N34W119 tile in ../shared/data.
 
-use patchwork::config::Config;
-use patchwork::engine::{Engine, Origin};
+use patchwork_engine::config::Config;
+use patchwork_engine::{Engine, Origin};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicIsize, Ordering::Relaxed};

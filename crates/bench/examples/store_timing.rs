@@ -5,16 +5,16 @@
 //!
 //! DATA_DIR defaults to ../shared/data; STORE_DIR to a temporary directory, removed at the end.
 
-use patchwork::restore::{self, Opened};
-use patchwork::store::{
-    Change, IngestTimings, Insertion, Retirement, Store, StoreOptions, SurveyRecord,
-};
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::patch::PatchLayout;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::terrain::Terrain;
+use patchwork_engine::restore::{self, Opened};
 use patchwork_read::file_content_id;
 use patchwork_read::{read_raster, ReadLimits};
+use patchwork_store::{
+    Change, IngestTimings, Insertion, Retirement, Store, StoreOptions, SurveyRecord,
+};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;

@@ -7,10 +7,10 @@
 //! DATA_DIR defaults to ../shared/data. STORE_DIR, when given, is kept between runs, so that a
 //! second run skips the ingest.
 
-use patchwork::config::Config;
-use patchwork::engine::{Cut, Engine, Origin};
 use patchwork_core::geom::Aabb;
 use patchwork_core::resample::{cpu, SampleGrid};
+use patchwork_engine::config::Config;
+use patchwork_engine::{Cut, Engine, Origin};
 use std::path::PathBuf;
 use std::time::Instant;
 

@@ -11,8 +11,6 @@
 
 use super::{errors, median, timed};
 use crate::Fail;
-use patchwork::config::Config;
-use patchwork::engine::{Backend, Cut, Engine, Origin};
 use patchwork_core::crs::{Crs, Reprojection, Transform};
 use patchwork_core::geom::Aabb;
 use patchwork_core::model::accuracy::AccuracySpec;
@@ -20,6 +18,8 @@ use patchwork_core::model::place::Planes;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::resample::SampleGrid;
 use patchwork_core::terrain::Terrain;
+use patchwork_engine::config::Config;
+use patchwork_engine::{Backend, Cut, Engine, Origin};
 use patchwork_read::{read_raster, write_npy, ReadLimits};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

@@ -146,14 +146,14 @@ fn case(
             ms,
         });
     }
-    let verdict = match patchwork::engine::conflicts_of(&after, copy.id)
+    let verdict = match patchwork_engine::conflicts_of(&after, copy.id)
         .iter()
         .find(|k| k.survey == orig.id)
         .map(|k| k.distrusted)
     {
-        Some(patchwork::engine::Distrusted::This) => "copy",
-        Some(patchwork::engine::Distrusted::Other) => "original",
-        Some(patchwork::engine::Distrusted::Both) => "both",
+        Some(patchwork_engine::Distrusted::This) => "copy",
+        Some(patchwork_engine::Distrusted::Other) => "original",
+        Some(patchwork_engine::Distrusted::Both) => "both",
         None => "none",
     };
     let median = |t: &Terrain, s: &Survey, served: bool| {

@@ -1,11 +1,11 @@
 //! A flight through a view session (§6.4, Fig. 7): bytes per frame of the delta that the
 //! server sends beside the whole cut that a stateless client would fetch, at two speeds.
 
-use patchwork::engine::Engine;
-use patchwork::serve::api::ViewSession;
-use patchwork::serve::convert;
-use patchwork::serve::proto as pb;
 use patchwork_core::geom::Aabb;
+use patchwork_engine::Engine;
+use patchwork_server::api::ViewSession;
+use patchwork_server::convert;
+use patchwork_server::proto as pb;
 use prost::Message;
 use std::fmt::Write as _;
 use std::path::Path;

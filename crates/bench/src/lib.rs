@@ -17,15 +17,15 @@ pub mod meshes;
 pub mod stability;
 pub mod variants;
 
-use patchwork::config::Config;
-use patchwork::engine::{Cut, Engine};
-use patchwork::serve::convert;
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Metric, ViewQuery};
 use patchwork_core::model::grid::Grid;
 use patchwork_core::resample::SampleGrid;
 use patchwork_core::terrain::Terrain;
+use patchwork_engine::config::Config;
+use patchwork_engine::{Cut, Engine};
 use patchwork_read::write_npy;
+use patchwork_server::convert;
 use prost::Message;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -171,9 +171,9 @@ pub fn run(opts: &Options) -> Result<Report, Fail> {
     let mut ingest = Vec::new();
     let mut first_survey = None;
     for f in &opts.files {
-        let r = engine.ingest(f, None, patchwork::engine::Origin::Request)?;
+        let r = engine.ingest(f, None, patchwork_engine::Origin::Request)?;
         first_survey = first_survey.or(r.survey);
-        if r.outcome == patchwork::engine::Outcome::Failed {
+        if r.outcome == patchwork_engine::Outcome::Failed {
             return Err(format!("{}: {}", f.display(), r.error).into());
         }
         println!(

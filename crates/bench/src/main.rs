@@ -45,7 +45,7 @@ struct Cli {
 
 fn main() -> ExitCode {
     // As the daemon does: the ingest figures are the daemon's.
-    patchwork::tune_allocator();
+    patchwork_engine::tune_allocator();
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

@@ -23,4 +23,5 @@ pub use patchwork_mesh as mesh;
 pub use patchwork_model as model;
 pub use patchwork_resample as resample;
 
+pub mod sync;
 pub mod terrain;

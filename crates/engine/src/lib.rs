@@ -1,0 +1,644 @@
+//! The engine behind the server and the CLI: one store, one published state, one writer.
+//!
+//! Readers take the published state, the terrain and the catalog of records beside it, and
+//! never touch the store or wait for a writer. The writer owns the store: it computes the next
+//! terrain on a copy, commits the change in one batch, and only then publishes the copy with
+//! the catalog read back from the store, so readers see the old state or the new one, never
+//! half of a change, and a failed commit leaves both as they were.
+//!
+//! A write that would not fit on the disk is refused before sled sees it (see
+//! [`patchwork_store::space`]). Should sled fail all the same (an I/O error, or a disk another
+//! process filled in the meantime), its handle is unusable from then on, so the engine stops
+//! writing, says why, and keeps serving reads from what it has published.
+
+pub mod config;
+#[cfg(feature = "gpu")]
+pub mod gpu;
+pub mod ingest;
+pub mod paths;
+pub mod restore;
+pub mod watch;
+
+mod error;
+mod follow;
+mod listing;
+mod read;
+mod route;
+mod write;
+
+pub use crate::ingest::Phase;
+pub use error::{EngineError, Reason};
+pub use follow::{rounds, Replication};
+pub use listing::{
+    conflicts_of, Conflict, Distrusted, Footprint, Held, Progress, Stats, SurveyListing,
+};
+pub use patchwork_core::resample::Backend;
+pub use patchwork_read::REFUSED_PATH;
+pub use read::{Cut, MeshSpec, MeshTile, TileHead, MAX_MESH_SIZE};
+pub use route::Used;
+pub use write::{Event, Ingested, Origin, Outcome};
+
+use crate::config::{BackendKind, Config, Storage};
+use crate::ingest::Geoids;
+use patchwork_core::crs::vertical::VerticalCrs;
+use patchwork_core::crs::{Crs, Reprojection};
+use patchwork_core::model::ids::SurveyId;
+use patchwork_core::sync::{lock, read, write};
+use patchwork_core::terrain::Terrain;
+use patchwork_store::objects::Objects;
+use patchwork_store::ChunkBackend;
+use patchwork_store::{
+    now_unix, Catalog, ChunkReader, DiskSpace, FailedRecord, SpaceGuard, Store, StoreOptions,
+    SurveyRecord, SystemDisk,
+};
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, OnceLock, RwLock};
+use tokio::sync::broadcast;
+
+/// Lets the allocator reuse freed buffers of up to 512 MiB instead of handing each back to the
+/// system at once. An ingest allocates a few raster-sized buffers (52 MB for a 3600² tile) and
+/// frees them within a second; by default glibc maps each afresh, and the kernel's faulting
+/// and zeroing of those pages cost about a tenth of the CPU time of a batch of ingests (the
+/// scale bench, docs/BENCHMARKS.md). Freed pages still go back after each batch (the engine
+/// trims the heap once no ingest is left running); one ingest peaks some 12% higher.
+///
+/// Process-wide, so it is the program's to set: `main` calls it first thing, before any
+/// thread starts.
+pub fn tune_allocator() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets a parameter of the allocator, which serialises it with
+    // allocations; called from main before any other thread exists.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 512 << 20);
+        // Nor is the free space at the top of a thread's heap handed back after every
+        // request: a 256² web tile frees a few MB, and giving them back (then faulting them in
+        // again, with a TLB shootdown across the cores each time) took 7 of its 12 ms. The
+        // engine still trims after its large work (`malloc_trim`).
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+    }
+}
+
+/// What readers see: a terrain and the catalog of the same commit.
+struct Published {
+    terrain: Arc<Terrain>,
+    catalog: Arc<Catalog>,
+}
+
+/// One store, the terrain and catalog published from it, and its one writer.
+pub struct Engine {
+    cfg: Config,
+    published: RwLock<Published>,
+    /// The writer owns the store: every write, and verification, holds it. `None` only when
+    /// a compaction could not reopen the store.
+    writer: Mutex<Option<Store>>,
+    /// Set once the store failed under a write: sled cannot recover its handle.
+    broken: OnceLock<String>,
+    /// Ingests under way, at most `limits.ingest_parallel`: an ingest takes about five times
+    /// its raster in memory, and `limits.max_ingest_mb` bounds one raster, not many at once.
+    ingest_slots: (Mutex<u64>, std::sync::Condvar),
+    /// The ingests under way, oldest first, for progress displays.
+    progress: Mutex<Vec<Progress>>,
+    /// The store's directory and space rules, for `stats` without the writer.
+    dir: PathBuf,
+    guard: SpaceGuard,
+    events: broadcast::Sender<Event>,
+    /// The GPU resampler, when the daemon opened one; dropped if the device is lost.
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    gpu: route::Device,
+    /// The store's chunk reader, for cache figures without the writer.
+    reader: RwLock<Arc<ChunkReader>>,
+    /// The geoid grids the config names, read once each when a conversion needs them.
+    geoids: Arc<Geoids>,
+    /// The maps from the CRSs requests have named to the store's.
+    request_crs: Mutex<HashMap<Crs, Arc<Reprojection>>>,
+    /// Where the store stands in replication (see [`follow`]).
+    replication: RwLock<Replication>,
+    /// Inbox files the watcher holds back, and why, by source.
+    held: Mutex<std::collections::BTreeMap<String, Held>>,
+    /// The verification under way, for `stats`.
+    verifying: Mutex<Option<listing::Verifying>>,
+}
+
+impl Engine {
+    pub fn open(cfg: Config) -> Result<Engine, EngineError> {
+        Self::open_on(cfg, Arc::new(SystemDisk))
+    }
+
+    /// [`Engine::open`] with free space measured by `disk`.
+    pub fn open_on(cfg: Config, disk: Arc<dyn DiskSpace>) -> Result<Engine, EngineError> {
+        let guard = SpaceGuard {
+            disk,
+            min_free: cfg.storage.min_free_mb << 20,
+            reserve: cfg.storage.reserve_mb << 20,
+        };
+        let opened = restore::open(
+            &cfg.data_dir,
+            cfg.patches.layout(),
+            cfg.index,
+            store_options(&cfg, &guard)?,
+        )?;
+        for w in &opened.warnings {
+            tracing::warn!(warning = %w, "store opened with a problem; `patchwork verify` tells more");
+        }
+        if let (Some(want), Some(have)) = (cfg.crs_def(), opened.store.crs()) {
+            if want != have {
+                return Err(EngineError::Invalid(format!(
+                    "the config says crs = {} but the store at {} is in {}",
+                    want.label(),
+                    cfg.data_dir.display(),
+                    have.label()
+                )));
+            }
+        }
+        if let (Some(want), Some(have)) = (cfg.vertical_crs(), opened.store.vertical_crs()) {
+            if !want.same_reference(&have) {
+                return Err(EngineError::Invalid(format!(
+                    "the config says vertical.crs = {} but the heights of the store at {} are \
+                     in {}",
+                    want.label(),
+                    cfg.data_dir.display(),
+                    have.label()
+                )));
+            }
+        }
+        let mut opened = opened;
+        if opened.terrain.crs().is_none() {
+            // An empty store takes the config's CRS, else EPSG:4326: never its first survey's,
+            // which would make the store's plane (and the web pyramid's root tiles) depend on
+            // which file finished first. A store of surveys that name no CRS keeps none.
+            if let Some(c) = cfg.crs_def() {
+                opened.terrain.set_crs(c);
+            } else if opened.terrain.surveys().next().is_none() {
+                opened.terrain.set_crs(Crs::wgs84());
+            }
+        }
+        if let Err(e) = opened.store.writable() {
+            tracing::warn!(reason = %e, "serving read-only: writes resume once the disk has room");
+        }
+        let catalog = opened.store.catalog()?;
+        let replication = Replication {
+            commit: opened.store.commit_seq(),
+            following: opened.store.following(),
+        };
+        release_free_memory();
+        let (events, _) = broadcast::channel(1024);
+        Ok(Engine {
+            progress: Mutex::new(Vec::new()),
+            reader: RwLock::new(opened.store.reader()),
+            dir: opened.store.path().to_path_buf(),
+            guard,
+            published: RwLock::new(Published {
+                terrain: Arc::new(opened.terrain),
+                catalog: Arc::new(catalog),
+            }),
+            writer: Mutex::new(Some(opened.store)),
+            broken: OnceLock::new(),
+            ingest_slots: (Mutex::new(0), std::sync::Condvar::new()),
+            geoids: Arc::new(Geoids::new(&cfg.vertical.geoids)),
+            request_crs: Mutex::new(HashMap::new()),
+            replication: RwLock::new(replication),
+            held: Mutex::new(Default::default()),
+            verifying: Mutex::new(None),
+            cfg,
+            events,
+            gpu: route::Device::default(),
+        })
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.cfg
+    }
+
+    /// The current terrain; cheap, and stable for as long as the caller holds it.
+    pub fn snapshot(&self) -> Arc<Terrain> {
+        read(&self.published).terrain.clone()
+    }
+
+    /// The records, failures, overlaps and pins of the current terrain.
+    pub fn catalog(&self) -> Arc<Catalog> {
+        read(&self.published).catalog.clone()
+    }
+
+    /// The terrain and its catalog, of one and the same commit.
+    pub fn published(&self) -> (Arc<Terrain>, Arc<Catalog>) {
+        let p = read(&self.published);
+        (p.terrain.clone(), p.catalog.clone())
+    }
+
+    pub fn subscribe(&self) -> broadcast::Receiver<Event> {
+        self.events.subscribe()
+    }
+
+    fn set_phase(&self, source: &str, phase: Phase) {
+        let mut all = lock(&self.progress);
+        if let Some(p) = all.iter_mut().find(|p| p.source == source) {
+            p.phase = phase;
+        }
+    }
+
+    /// The oldest ingest under way, if any.
+    pub fn progress(&self) -> Option<Progress> {
+        lock(&self.progress).first().cloned()
+    }
+
+    /// How many files may be ingested at once.
+    pub fn ingest_parallel(&self) -> usize {
+        self.cfg.limits.ingest_parallel as usize
+    }
+
+    fn publish(&self, terrain: Terrain, catalog: Catalog) {
+        *write(&self.published) = Published {
+            terrain: Arc::new(terrain),
+            catalog: Arc::new(catalog),
+        };
+    }
+
+    fn emit(
+        &self,
+        kind: Outcome,
+        survey: Option<SurveyId>,
+        source: &str,
+        error: &str,
+        conflicts: Vec<Conflict>,
+        area: Option<patchwork_core::geom::Aabb>,
+    ) {
+        // Nobody listening is fine.
+        let _ = self.events.send(Event {
+            kind,
+            survey,
+            source: source.into(),
+            error: error.into(),
+            at_unix: now_unix(),
+            conflicts,
+            area,
+        });
+    }
+
+    /// The store's horizontal CRS: the config's, else EPSG:4326 (or, for a store made before
+    /// that default, the one it took from its first survey).
+    pub fn crs(&self) -> Option<Crs> {
+        self.cfg.crs_def().or_else(|| self.catalog().crs.clone())
+    }
+
+    /// The store's vertical CRS, once it has one.
+    pub fn vertical_crs(&self) -> Option<VerticalCrs> {
+        self.cfg
+            .vertical_crs()
+            .or_else(|| self.catalog().vertical.clone())
+    }
+
+    /// The folders files may be ingested from, as they resolve now: a folder that appears
+    /// later (a share mounted late) counts from then on.
+    fn roots(&self) -> Vec<PathBuf> {
+        self.cfg
+            .inbox
+            .iter()
+            .chain(&self.cfg.ingest_roots)
+            .filter_map(|d| d.canonicalize().ok())
+            .collect()
+    }
+
+    /// Every survey record and the failed files.
+    pub fn records(&self) -> (Vec<SurveyRecord>, Vec<FailedRecord>) {
+        let c = self.catalog();
+        (c.records.clone(), c.failures.clone())
+    }
+
+    /// The terrain, and every survey record, the failed files, and each active survey's
+    /// conflicts, all of one commit.
+    pub fn surveys(&self) -> (Arc<Terrain>, SurveyListing) {
+        let (t, c) = self.published();
+        let mut conflicts = HashMap::new();
+        for r in c.active() {
+            let mine = conflicts_of(&t, r.id);
+            if !mine.is_empty() {
+                conflicts.insert(r.id, mine);
+            }
+        }
+        let listing = SurveyListing {
+            records: c.records.clone(),
+            failures: c.failures.clone(),
+            damaged: c.damaged.clone(),
+            conflicts,
+            held: lock(&self.held).clone(),
+        };
+        (t, listing)
+    }
+
+    /// Records that the inbox watcher holds `source` back (None: no longer), for `surveys`.
+    pub fn hold(&self, source: &str, why: Option<Held>) {
+        let mut held = lock(&self.held);
+        match why {
+            Some(h) => {
+                held.insert(source.to_string(), h);
+            }
+            None => {
+                held.remove(source);
+            }
+        }
+    }
+
+    /// Bytes writes may still use on the store's disk, past what they must leave free.
+    pub fn free_bytes(&self) -> u64 {
+        self.guard
+            .disk
+            .available(&self.dir)
+            .unwrap_or(0)
+            .saturating_sub(self.guard.min_free)
+    }
+
+    /// Why writes are refused now, if they are.
+    pub fn read_only(&self) -> Option<String> {
+        if let Some(why) = self.broken.get() {
+            return Some(EngineError::StoreFailed(why.clone()).to_string());
+        }
+        self.guard.check(&self.dir, 0).err().map(|e| e.to_string())
+    }
+
+    pub fn stats(&self) -> Stats {
+        let (t, c) = self.published();
+        let active: Vec<_> = c.active().collect();
+        Stats {
+            surveys: active.len() as u32,
+            retired: c
+                .records
+                .iter()
+                .filter(|r| r.status == patchwork_store::Status::Retired)
+                .count() as u32,
+            failed: c.failures.len() as u32,
+            damaged: c.damaged.len() as u32,
+            patches: t.index().len() as u64,
+            active_boxes: t.index().active_count() as u64,
+            samples: active.iter().map(|r| r.samples).sum(),
+            disk_bytes: patchwork_store::dir_bytes(&self.dir),
+            crs: self.cfg.crs_def().or_else(|| c.crs.clone()),
+            vertical_crs: self.cfg.vertical_crs().or_else(|| c.vertical.clone()),
+            backend: self.backend_name(),
+            quadtree_nodes: t.index().tree_stats().nodes as u32,
+            read_only: self.read_only(),
+            cache: read(&self.reader).stats(),
+            ingesting: self.progress(),
+            verifying: lock(&self.verifying).clone(),
+            replication: self.replication(),
+        }
+    }
+}
+
+/// Gives the allocator's free memory back to the system. Opening a store and ingesting a file
+/// allocate far more, briefly, than serving keeps (tops read once, a raster's mipmap and
+/// chunks); glibc keeps such freed pages in its arenas, so without this a daemon's resident
+/// memory would stay at its largest ingest rather than what it serves from.
+fn release_free_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free pages of the allocator's own arenas to the
+    // system; it touches no memory in use.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
+/// How the engine's store is opened.
+fn store_options(cfg: &Config, guard: &SpaceGuard) -> Result<StoreOptions, EngineError> {
+    Ok(StoreOptions {
+        guard: guard.clone(),
+        cache_bytes: cfg.cache_mb << 20,
+        recipe: cfg.recipe(),
+        contradicted: cfg.accuracy.contradicted,
+        backend: backend(&cfg.storage)?,
+        snapshot_every: cfg.storage.snapshot_every,
+    })
+}
+
+/// The object store `[storage]` names, as a client: nothing is sent until the store opens.
+fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
+    use object_store::{ClientOptions, RetryConfig};
+    let timeout = std::time::Duration::from_millis(st.timeout_ms);
+    // Each try gets the whole deadline; the retries, with backoff, share it.
+    let retry = RetryConfig {
+        max_retries: st.retries as usize,
+        retry_timeout: timeout,
+        ..RetryConfig::default()
+    };
+    let bad =
+        |what: &str, e: object_store::Error| EngineError::Invalid(format!("storage: {what}: {e}"));
+    let (store, prefix, url): (Arc<dyn object_store::ObjectStore>, _, _) = match st.backend {
+        BackendKind::Local => return Ok(ChunkBackend::Local),
+        BackendKind::S3 => {
+            let s3 = &st.s3;
+            let mut b = object_store::aws::AmazonS3Builder::from_env()
+                .with_bucket_name(&s3.bucket)
+                .with_region(&s3.region)
+                .with_retry(retry)
+                .with_client_options(
+                    ClientOptions::new()
+                        .with_timeout(timeout)
+                        .with_connect_timeout(timeout.min(std::time::Duration::from_secs(5)))
+                        .with_allow_http(s3.allow_http),
+                );
+            if !s3.endpoint.is_empty() {
+                b = b.with_endpoint(&s3.endpoint);
+            }
+            let store = b.build().map_err(|e| bad("s3", e))?;
+            let prefix = s3.prefix.trim_matches('/').to_string();
+            let url = format!("s3://{}/{prefix}", s3.bucket);
+            (Arc::new(store), prefix, url)
+        }
+        BackendKind::Folder => {
+            let dir = st.folder.as_ref().expect("validated: folder is set");
+            std::fs::create_dir_all(dir).map_err(|e| {
+                EngineError::Invalid(format!("storage.folder {}: {e}", dir.display()))
+            })?;
+            let store = object_store::local::LocalFileSystem::new_with_prefix(dir)
+                .map_err(|e| bad("folder", e))?;
+            let dir = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.clone());
+            (
+                Arc::new(store),
+                String::new(),
+                format!("file://{}", dir.display()),
+            )
+        }
+    };
+    let objects = Objects {
+        store,
+        prefix: object_store::path::Path::from(prefix),
+        url: url.trim_end_matches('/').to_string(),
+        grace: std::time::Duration::from_secs(st.gc_grace_s),
+        lease: std::time::Duration::from_secs(st.lease_s),
+    };
+    Ok(if st.follow.is_empty() {
+        ChunkBackend::Objects(objects)
+    } else {
+        ChunkBackend::Follow(objects)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::paths::source_name;
+    use patchwork_store::StoreError;
+    use std::path::Path;
+
+    #[test]
+    fn after_an_io_error_under_a_write_the_engine_stops_writing_and_keeps_reading() {
+        let tmp = tempfile::tempdir().unwrap();
+        let inbox = tmp.path().join("inbox");
+        std::fs::create_dir_all(&inbox).unwrap();
+        let cfg = Config {
+            data_dir: tmp.path().join("data"),
+            inbox: vec![inbox.clone()],
+            ..Config::default()
+        };
+        let e = Engine::open(cfg).unwrap();
+        let file = inbox.join("a.tif");
+        std::fs::copy(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../../tests/data/copernicus_n34w119_crop.tif"),
+            &file,
+        )
+        .unwrap();
+        // sled cannot go on after an I/O error; the engine must not try.
+        let eio = std::io::Error::other("Input/output error");
+        let err = e.failed(StoreError::Sled(sled::Error::Io(eio)));
+        assert!(matches!(err, EngineError::StoreFailed(_)), "{err}");
+        let err = e.ingest(&file, None, Origin::Request).unwrap_err();
+        assert!(
+            err.to_string().contains("until the daemon restarts"),
+            "{err}"
+        );
+        assert!(matches!(e.compact(), Err(EngineError::StoreFailed(_))));
+        assert!(e.read_only().unwrap().contains("Input/output error"));
+        assert_eq!(e.stats().surveys, 0);
+        assert!(e.sample(&[[0.0, 0.0]], 0.0).is_ok());
+    }
+
+    /// Engine over a fresh store whose inbox is `inbox`.
+    fn engine_in(tmp: &Path, inbox: &Path) -> Engine {
+        std::fs::create_dir_all(inbox).unwrap();
+        Engine::open(Config {
+            data_dir: tmp.join("data"),
+            inbox: vec![inbox.to_path_buf()],
+            ..Config::default()
+        })
+        .unwrap()
+    }
+
+    fn crop(name: &str) -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../tests/data")
+            .join(name)
+    }
+
+    /// The content id a survey records is that of the very bytes its samples came from, even
+    /// while its file is replaced again and again as it is ingested: the file is opened and
+    /// read once, hashed as it is parsed.
+    #[test]
+    fn the_content_id_recorded_is_of_the_bytes_ingested() {
+        let tmp = tempfile::tempdir().unwrap();
+        let inbox = tmp.path().join("inbox");
+        // What each content is served as, from a store that takes the two files as they lie.
+        let truth = engine_in(&tmp.path().join("truth"), &inbox);
+        let mut pairs = Vec::new();
+        for name in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif"] {
+            let f = inbox.join(name);
+            std::fs::copy(crop(name), &f).unwrap();
+            truth.ingest(&f, None, Origin::Request).unwrap();
+            let r = truth
+                .catalog()
+                .active_from(&source_name(&f))
+                .cloned()
+                .unwrap();
+            pairs.push((r.content_id, r.id));
+        }
+        drop(truth);
+
+        let e = engine_in(tmp.path(), &inbox);
+        let file = inbox.join("swapped.tif");
+        std::fs::copy(crop("copernicus_n34w119_crop.tif"), &file).unwrap();
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let swapper = {
+            let (stop, file) = (stop.clone(), file.clone());
+            let dir = inbox.clone();
+            std::thread::spawn(move || {
+                let names = ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif"];
+                let mut k = 0;
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    // Each replacement is whole (a rename), as a careful writer makes it.
+                    let part = dir.join(".swap.part");
+                    std::fs::copy(dir.join(names[k % 2]), &part).unwrap();
+                    std::fs::rename(&part, &file).unwrap();
+                    k += 1;
+                }
+                k
+            })
+        };
+        let mut seen = std::collections::HashSet::new();
+        for _ in 0..30 {
+            e.ingest(&file, None, Origin::Request).unwrap();
+            let r = e
+                .catalog()
+                .active_from(&source_name(&file))
+                .cloned()
+                .unwrap();
+            assert!(
+                pairs.contains(&(r.content_id.clone(), r.id)),
+                "survey {} was recorded with the content id {} of other bytes",
+                r.id,
+                r.content_id
+            );
+            seen.insert(r.id);
+        }
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let swaps = swapper.join().unwrap();
+        assert!(swaps > 30, "the file was replaced only {swaps} times");
+    }
+
+    /// A tile reads its patches' samples before it asks for the GPU device, so that tiles on
+    /// the GPU never wait for each other's disk reads: while the device is held, another
+    /// tile's reads still go on.
+    #[cfg(feature = "gpu")]
+    #[test]
+    fn a_tile_reads_its_samples_before_it_waits_for_the_gpu() {
+        let tmp = tempfile::tempdir().unwrap();
+        let inbox = tmp.path().join("inbox");
+        let file = inbox.join("a.tif");
+        {
+            let e = engine_in(tmp.path(), &inbox);
+            std::fs::copy(crop("copernicus_n34w119_crop.tif"), &file).unwrap();
+            e.ingest(&file, None, Origin::Request).unwrap();
+        }
+        // Opened afresh: no chunk is cached, so the tile must read its samples from the pack.
+        let e = Arc::new(engine_in(tmp.path(), &inbox));
+        let bounds = patchwork_read::read_raster(&file, &Default::default())
+            .unwrap()
+            .into_grid()
+            .unwrap()
+            .world_bounds();
+        let misses = |e: &Engine| read(&e.reader).stats().misses;
+        let before = misses(&e);
+        let device = e.hold_gpu();
+        let tile = {
+            let e = e.clone();
+            std::thread::spawn(move || {
+                let cut = Cut::Uniform {
+                    roi: bounds,
+                    error: 0.0,
+                };
+                e.tile(&cut, 64, 64, Backend::Auto)
+                    .map(|(t, _)| t.heights.len())
+            })
+        };
+        let t0 = std::time::Instant::now();
+        while misses(&e) == before && t0.elapsed() < std::time::Duration::from_secs(20) {
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        let read_while_held = misses(&e) > before;
+        drop(device);
+        assert_eq!(tile.join().unwrap().unwrap(), 64 * 64);
+        assert!(
+            read_while_held,
+            "the tile waited for the GPU device before reading its samples"
+        );
+    }
+}

@@ -1,0 +1,251 @@
+//! What the engine reports of the store: its surveys with their conflicts, and its figures.
+
+use super::Phase;
+use patchwork_core::crs::vertical::VerticalCrs;
+use patchwork_core::crs::{Crs, Transform};
+use patchwork_core::geom::Aabb;
+use patchwork_core::model::evidence::{Blame, Decided};
+use patchwork_core::model::ids::SurveyId;
+use patchwork_core::terrain::Terrain;
+use patchwork_store::{CacheStats, Damaged, FailedRecord, SurveyRecord};
+use std::collections::{BTreeMap, HashMap};
+use std::time::Instant;
+
+/// Two surveys that disagree by more than their accuracies allow where they overlap.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Conflict {
+    /// The other survey.
+    pub survey: SurveyId,
+    /// How far they differ where they overlap, measured at the finer one's samples.
+    pub max_m: f64,
+    pub rms_m: f64,
+    /// Where the other lies against this one, metres east, north and up, and how far they
+    /// differ once it is moved back; None where they could not be coregistered.
+    pub shift_m: Option<[f64; 3]>,
+    pub rms_after_m: Option<f64>,
+    /// Whose claim the evidence finds false.
+    pub distrusted: Distrusted,
+    /// The test that decided it, with its statistic and confidence.
+    pub decided: Decided,
+    /// Whether the coregistration is determined; one that is not blames nobody.
+    pub shift_determined: bool,
+    /// Undetermined: whether this survey takes the tie.
+    pub takes_tie: bool,
+}
+
+/// Which claim of a conflicting pair is false, from one of the two's side.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Distrusted {
+    /// This survey's: a degraded copy of the other, or the one shifted from where a third
+    /// survey lies.
+    This,
+    Other,
+    /// Either could be: nothing tells them apart.
+    Both,
+}
+
+impl Distrusted {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Distrusted::This => "this",
+            Distrusted::Other => "other",
+            Distrusted::Both => "both",
+        }
+    }
+}
+
+/// The conflicts of a survey of `t`: its pairs whose evidence finds a claim false (where their
+/// claims contradict each other, or one is a degraded copy of the other), by the other's id.
+pub fn conflicts_of(t: &Terrain, id: SurveyId) -> Vec<Conflict> {
+    let mut out: Vec<Conflict> = t
+        .pairs_of(id)
+        .iter()
+        .filter_map(|p| {
+            let other = p.other(id);
+            let finer = p.finer == id;
+            let verdict = t.verdict(id, other)?;
+            let distrusted = match verdict.blame? {
+                Blame::Finer if finer => Distrusted::This,
+                Blame::Coarser if !finer => Distrusted::This,
+                Blame::Finer | Blame::Coarser => Distrusted::Other,
+                Blame::Both => Distrusted::Both,
+            };
+            Some(Conflict {
+                survey: other,
+                max_m: p.deviation.max_m,
+                rms_m: p.deviation.rms_m,
+                // The pair measures the coarser against the finer.
+                shift_m: p.shift_m().map(|s| if finer { s } else { s.map(|v| -v) }),
+                rms_after_m: p.coreg.as_ref().map(|c| c.rms_after),
+                distrusted,
+                decided: verdict.by,
+                shift_determined: p.coreg.as_ref().is_some_and(|c| c.conditioned),
+                takes_tie: p.tie_to_finer() == Some(finer),
+            })
+        })
+        .collect();
+    out.sort_by_key(|c| c.survey);
+    out
+}
+
+/// The store's surveys with their failures and conflicts.
+#[derive(Clone, Debug, Default)]
+pub struct SurveyListing {
+    pub records: Vec<SurveyRecord>,
+    pub failures: Vec<FailedRecord>,
+    /// Active surveys out of the terrain because they are damaged.
+    pub damaged: BTreeMap<SurveyId, Damaged>,
+    /// Conflicts of each active survey, in the other survey's id order.
+    pub conflicts: HashMap<SurveyId, Vec<Conflict>>,
+    /// Inbox files the watcher holds back, by source.
+    pub held: BTreeMap<String, Held>,
+}
+
+/// Why the inbox watcher holds a file back. Not stored: a deferral is what a full disk
+/// could not record, and both are found again by the first pass after a restart.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Held {
+    /// The store could not take it now: not read again until space is freed or it changes.
+    Deferred(String),
+    /// Not an elevation file the daemon reads.
+    Skipped(String),
+}
+
+/// A store and the figures `stats` reports.
+#[derive(Clone, Debug, Default)]
+pub struct Stats {
+    pub surveys: u32,
+    pub retired: u32,
+    pub failed: u32,
+    /// Active surveys out of the terrain because they are damaged.
+    pub damaged: u32,
+    pub patches: u64,
+    pub active_boxes: u64,
+    pub samples: u64,
+    pub disk_bytes: u64,
+    pub crs: Option<Crs>,
+    pub vertical_crs: Option<VerticalCrs>,
+    /// "cpu", or "gpu (adapter)".
+    pub backend: String,
+    pub quadtree_nodes: u32,
+    /// Why writes are refused now (a full disk, a failed store); None when they are not.
+    pub read_only: Option<String>,
+    pub cache: CacheStats,
+    /// The ingest under way, if any.
+    pub ingesting: Option<Progress>,
+    /// The commit the store is at and, on a replica, how far behind its writer it is.
+    pub replication: super::Replication,
+    /// The verification under way, if any.
+    pub verifying: Option<Verifying>,
+}
+
+/// Where a verification stands: what it checks now, how many of how many, since when.
+#[derive(Clone, Debug)]
+pub struct Verifying {
+    pub step: &'static str,
+    pub done: u64,
+    pub total: u64,
+    pub started: Instant,
+}
+
+/// The ingest under way: which file, how big, where it is and since when.
+#[derive(Clone, Debug)]
+pub struct Progress {
+    pub source: String,
+    pub bytes: u64,
+    pub phase: Phase,
+    pub started: Instant,
+}
+
+/// Where a survey lies, in longitude and latitude: what web maps draw and tile pyramids are
+/// made over.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Footprint {
+    pub id: SurveyId,
+    /// ε, metres: the largest over its kernels.
+    pub accuracy_m: f64,
+    /// Its footprint's outline (the store-plane bounds of its pixels carried into longitude
+    /// and latitude, 16 points a side), closed.
+    pub ring: Vec<[f64; 2]>,
+    /// The outline's bounds, degrees.
+    pub bounds: Aabb,
+    /// Its level 0's cell, in degrees of latitude: how fine a tile pyramid over it goes.
+    pub cell_deg: f64,
+    /// Where its arrival or departure can change heights, degrees: its footprint grown by
+    /// the cells that edge patches and the fill of voids reach across.
+    pub reach: Aabb,
+}
+
+impl super::Engine {
+    /// Every survey's footprint in longitude and latitude, in id order; empty until the store
+    /// has a CRS.
+    pub fn footprints(&self) -> Vec<Footprint> {
+        let t = self.snapshot();
+        let Some(to) = self.lonlat_transform() else {
+            return Vec::new();
+        };
+        let mut out: Vec<Footprint> = t
+            .surveys()
+            .filter_map(|s| {
+                // Out to the edges of its pixels, as far as its data is served.
+                let f = s.footprint();
+                let g = &s.shapes[0];
+                let half = [
+                    f.width() / (g.cols.max(2) - 1) as f64 / 2.0,
+                    f.height() / (g.rows.max(2) - 1) as f64 / 2.0,
+                ];
+                let f = Aabb::new(
+                    f.min[0] - half[0],
+                    f.min[1] - half[1],
+                    f.max[0] + half[0],
+                    f.max[1] + half[1],
+                );
+                let ring = outline(&to, &f)?;
+                let bounds = Aabb::of_points(&ring);
+                let reach = Aabb::of_points(&outline(&to, &super::write::changed_area(s))?);
+                let rows = g.rows.max(2) - 1;
+                Some(Footprint {
+                    id: s.id,
+                    accuracy_m: s.accuracy,
+                    ring,
+                    cell_deg: bounds.height() / (rows + 1) as f64,
+                    bounds,
+                    reach,
+                })
+            })
+            .collect();
+        out.sort_by_key(|f| f.id);
+        out
+    }
+
+    /// A rectangle of the store's plane in longitude and latitude: the bounds of its outline
+    /// carried over. None where it cannot be (outside the projection's domain, or no CRS).
+    pub fn to_lonlat(&self, area: &Aabb) -> Option<Aabb> {
+        Some(Aabb::of_points(&outline(&self.lonlat_transform()?, area)?))
+    }
+
+    fn lonlat_transform(&self) -> Option<Transform> {
+        Transform::new(&self.crs()?, &Crs::wgs84()).ok()
+    }
+}
+
+/// A rectangle's outline carried by `to`, 16 points a side, closed.
+fn outline(to: &Transform, r: &Aabb) -> Option<Vec<[f64; 2]>> {
+    let n = 16;
+    let corners = [
+        [r.min[0], r.min[1]],
+        [r.max[0], r.min[1]],
+        [r.max[0], r.max[1]],
+        [r.min[0], r.max[1]],
+    ];
+    let mut ring = Vec::with_capacity(4 * n + 1);
+    for k in 0..4 {
+        let (a, b) = (corners[k], corners[(k + 1) % 4]);
+        for i in 0..n {
+            let t = i as f64 / n as f64;
+            ring.push(to.apply([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])])?);
+        }
+    }
+    ring.push(ring[0]);
+    Some(ring)
+}

@@ -1,0 +1,801 @@
+//! The read path: cuts, tiles, meshes and points, from the published terrain and never the
+//! writer. Requests are checked here (regions, errors, sizes against the limits) before any
+//! work starts, and long work stops once its [`Cancel`] is set.
+
+use super::route::Used;
+use super::{Engine, EngineError};
+use patchwork_core::crs::{Crs, Reprojection};
+use patchwork_core::geom::Aabb;
+use patchwork_core::index::query::{Extracted, Metric, Shortfall, ViewQuery};
+use patchwork_core::mesh;
+use patchwork_core::resample::{cpu, Backend, Cancel, SampleGrid};
+use patchwork_core::sync::lock;
+use patchwork_core::terrain::{tile_shortfall, view_grid, Terrain, Tile};
+use patchwork_store::StoreError;
+use std::sync::Arc;
+
+/// A query's cut through LOD space.
+#[derive(Clone, Debug)]
+pub enum Cut {
+    /// Over a rectangle of the store's CRS.
+    Uniform {
+        roi: Aabb,
+        error: f64,
+    },
+    /// Over a rectangle of another CRS: a tile of it is resampled at its own sample
+    /// positions, carried into the store's.
+    UniformIn {
+        crs: Crs,
+        roi: Aabb,
+        error: f64,
+    },
+    View(ViewQuery),
+}
+
+impl Cut {
+    /// The error a uniform cut is made at; None for a view's, which varies over it.
+    pub fn error(&self) -> Option<f64> {
+        match self {
+            Cut::Uniform { error, .. } | Cut::UniformIn { error, .. } => Some(*error),
+            Cut::View(_) => None,
+        }
+    }
+
+    /// The same cut at another error; a view's is kept as it is.
+    fn at_error(&self, e: f64) -> Cut {
+        let mut c = self.clone();
+        if let Cut::Uniform { error, .. } | Cut::UniformIn { error, .. } = &mut c {
+            *error = e;
+        }
+        c
+    }
+
+    /// The CRS the cut's region and a tile's positions are in; None for the store's.
+    pub fn crs(&self) -> Option<&Crs> {
+        match self {
+            Cut::UniformIn { crs, .. } => Some(crs),
+            _ => None,
+        }
+    }
+}
+
+/// Most vertices a row or column of a mesh: a 2049² grid resamples 4.2 M heights.
+pub const MAX_MESH_SIZE: usize = 2049;
+
+/// The most coarser cuts [`Engine::fill_voids`] asks: 8⁵ times the error is past every
+/// survey's coarsest level.
+pub const FILL_STEPS: usize = 5;
+
+/// A mesh asked of a uniform cut.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MeshSpec {
+    /// The tile the grid spans, and the cut's error in metres.
+    pub roi: Aabb,
+    pub error: f64,
+    /// Grid vertices a row, and rows: 2 to [`MAX_MESH_SIZE`] each.
+    pub cols: usize,
+    pub rows: usize,
+    /// How far the triangles may depart from the resampled heights at the grid's vertices.
+    pub mesh_error: f64,
+    /// Depth of the skirts under the border; 0 leaves them out.
+    pub skirt_m: f64,
+    pub border: mesh::Border,
+    pub method: mesh::Method,
+    /// How far the surface may be drawn over a void from the nearest measured vertex,
+    /// metres (seed 004's horizontal error); 0 keeps holes exact.
+    pub hole_reach_m: f64,
+    /// The CRS of the ROI and of the vertices; None for the store's.
+    pub crs: Option<Crs>,
+    /// Whether void vertices are given heights (see [`Engine::fill_voids`], and 0 m where
+    /// no survey is near) so that the mesh covers the whole tile, as a globe's terrain must.
+    pub fill_voids: bool,
+}
+
+/// A mesh of a uniform cut and what it was made from.
+#[derive(Clone, Debug)]
+pub struct MeshTile {
+    pub mesh: mesh::Mesh,
+    /// The tile its grid spans.
+    pub roi: Aabb,
+    /// The patches blended, in id order.
+    pub patches: Vec<Extracted>,
+    pub backend: Used,
+    /// Where no data is as accurate as the cut asked.
+    pub shortfall: Option<Shortfall>,
+    /// With [`MeshSpec::fill_voids`], which grid vertices (row by row) had no data at the
+    /// cut's error and were filled; empty when none were.
+    pub voids: Vec<bool>,
+}
+
+/// What a tile is, told with each of its bands.
+#[derive(Clone, Copy, Debug)]
+pub struct TileHead<'a> {
+    pub width: usize,
+    pub height: usize,
+    /// The patches the heights are blended from, in id order.
+    pub patches: &'a [Extracted],
+    /// The backend that resampled.
+    pub backend: Used,
+    /// Where no data is as accurate as the cut asked.
+    pub shortfall: Option<Shortfall>,
+}
+
+impl Engine {
+    fn metric_at(&self, lat: f64) -> Metric {
+        match self.crs() {
+            Some(c) if c.is_geographic() => Metric::geographic(lat),
+            _ => Metric::PROJECTED,
+        }
+    }
+
+    /// A view query as a client describes it, with the store's metric.
+    pub fn view_query(
+        &self,
+        eye: [f64; 3],
+        look: [f64; 3],
+        fov_deg: f64,
+        viewport_px: u32,
+        pixel_error: f64,
+    ) -> Result<ViewQuery, EngineError> {
+        let v = ViewQuery {
+            eye,
+            look,
+            fov_deg,
+            viewport_px,
+            pixel_error,
+            metric: self.metric_at(eye[1]),
+        };
+        v.validate().map_err(EngineError::Invalid)?;
+        Ok(v)
+    }
+
+    /// The map from a CRS to the store's, None for the store's own: one per CRS, kept, so
+    /// that its lattice's nodes are worked out once for every request in it.
+    pub fn to_store(&self, crs: &Crs) -> Result<Option<Arc<Reprojection>>, EngineError> {
+        let Some(store) = self.crs() else {
+            return Err(EngineError::Unavailable(
+                "the store has no CRS yet (no survey and none in the config): ask in its own \
+                 coordinates once it has one"
+                    .into(),
+            ));
+        };
+        if *crs == store {
+            return Ok(None);
+        }
+        let mut cache = lock(&self.request_crs);
+        if let Some(r) = cache.get(crs).filter(|r| *r.to() == store) {
+            return Ok(Some(r.clone()));
+        }
+        let r = Arc::new(
+            Reprojection::new(crs, &store).map_err(|e| EngineError::Invalid(e.to_string()))?,
+        );
+        // Clients name few CRSs; a bound keeps a client naming many from holding memory.
+        if cache.len() >= 64 {
+            cache.clear();
+        }
+        cache.insert(crs.clone(), r.clone());
+        Ok(Some(r))
+    }
+
+    /// A CRS a request names: None for the store's own (or no CRS named).
+    pub fn request_crs(&self, text: &str) -> Result<Option<Crs>, EngineError> {
+        if text.trim().is_empty() {
+            return Ok(None);
+        }
+        let c = Crs::parse(text).map_err(|e| EngineError::Invalid(format!("crs: {e}")))?;
+        Ok((Some(&c) != self.crs().as_ref()).then_some(c))
+    }
+
+    /// The store-plane bounds of a rectangle of another CRS: its border carried over.
+    fn store_roi(&self, crs: &Crs, roi: &Aabb) -> Result<Aabb, EngineError> {
+        let Some(r) = self.to_store(crs)? else {
+            return Ok(*roi);
+        };
+        let n = 32;
+        let mut pts = Vec::with_capacity(4 * n + 1);
+        for k in 0..=n {
+            let t = k as f64 / n as f64;
+            let x = roi.min[0] + t * roi.width();
+            let y = roi.min[1] + t * roi.height();
+            pts.extend([
+                [x, roi.min[1]],
+                [x, roi.max[1]],
+                [roi.min[0], y],
+                [roi.max[0], y],
+            ]);
+        }
+        let mapped: Option<Vec<[f64; 2]>> = pts.iter().map(|&p| r.at(p)).collect();
+        let mapped = mapped.ok_or_else(|| {
+            EngineError::Invalid(format!(
+                "part of the region lies where {} cannot be carried into the store's {}",
+                crs.label(),
+                r.to().label()
+            ))
+        })?;
+        // A side bows between the points by far less than a thousandth of the extent.
+        let b = Aabb::of_points(&mapped);
+        let m = 1e-3 * b.width().max(b.height());
+        Ok(Aabb::new(
+            b.min[0] - m,
+            b.min[1] - m,
+            b.max[0] + m,
+            b.max[1] + m,
+        ))
+    }
+
+    /// The patches of a cut, with the snapshot they came from.
+    pub fn query(&self, cut: &Cut) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
+        let (t, ps) = self.patches_of(cut)?;
+        self.within_max_patches(ps.len())?;
+        Ok((t, ps))
+    }
+
+    /// [`Engine::query`] for a tile worth at most `most` patches: where the cut at the error
+    /// asked holds more (a low zoom of a large store at a tiny error, whose samples would take
+    /// seconds to decode for a few hundred thousand pixels), the error is raised fourfold until
+    /// it holds no more, and the cut is returned with the error it was made at. At the top of
+    /// LOD space a cut holds a patch or so a survey, so this ends.
+    pub fn query_within(
+        &self,
+        cut: &Cut,
+        most: u64,
+    ) -> Result<(Cut, Arc<Terrain>, Vec<Extracted>), EngineError> {
+        let top = self.cfg.index.max_error;
+        let mut cut = cut.clone();
+        loop {
+            let (t, ps) = self.patches_of(&cut)?;
+            match cut.error() {
+                Some(e) if ps.len() as u64 > most && e < top => {
+                    cut = cut.at_error((e * 4.0).clamp(0.01, top));
+                }
+                _ => {
+                    self.within_max_patches(ps.len())?;
+                    return Ok((cut, t, ps));
+                }
+            }
+        }
+    }
+
+    fn within_max_patches(&self, n: usize) -> Result<(), EngineError> {
+        let max = self.cfg.limits.max_patches;
+        if n as u64 > max {
+            return Err(EngineError::TooLarge(format!(
+                "the query needs {n} patches, more than the limit of {max}: ask for a smaller region or a larger error"
+            )));
+        }
+        Ok(())
+    }
+
+    /// The patches of `cut`, however many.
+    fn patches_of(&self, cut: &Cut) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
+        let t = self.snapshot();
+        let ps = match cut {
+            Cut::Uniform { roi, error } => {
+                check_roi(roi)?;
+                check_error(*error)?;
+                t.uniform(roi, *error)
+            }
+            Cut::UniformIn { crs, roi, error } => {
+                check_roi(roi)?;
+                check_error(*error)?;
+                t.uniform(&self.store_roi(crs, roi)?, *error)
+            }
+            Cut::View(v) => {
+                v.validate().map_err(EngineError::Invalid)?;
+                t.view(v)
+            }
+        };
+        Ok((t, ps))
+    }
+
+    /// A resampled tile.
+    pub fn tile(
+        &self,
+        cut: &Cut,
+        width: u32,
+        height: u32,
+        backend: Backend,
+    ) -> Result<(Tile, Used), EngineError> {
+        self.tile_until(cut, width, height, backend, &Cancel::default())
+    }
+
+    /// A mesh of a uniform cut: the resampled heights at the corners of a `cols × rows` grid
+    /// of vertices over the ROI (a tile over the ROI grown by half a cell, whose pixel
+    /// centres fall on them), triangulated as `spec` says.
+    pub fn mesh_until(
+        &self,
+        spec: &MeshSpec,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<MeshTile, EngineError> {
+        self.mesh_from(spec, None, backend, cancel)
+    }
+
+    /// [`Engine::mesh_until`] of a cut already made: [`Engine::query`] of
+    /// [`Engine::mesh_cut`]`(spec)`.
+    pub fn mesh_of(
+        &self,
+        spec: &MeshSpec,
+        made: (Arc<Terrain>, Vec<Extracted>),
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<MeshTile, EngineError> {
+        self.mesh_from(spec, Some(made), backend, cancel)
+    }
+
+    /// The cut a mesh resamples: over the ROI grown by half a cell, whose pixel centres fall
+    /// on the grid's vertices.
+    pub fn mesh_cut(spec: &MeshSpec) -> Cut {
+        let pixels = mesh::pixel_roi(&spec.roi, spec.cols, spec.rows);
+        match &spec.crs {
+            Some(crs) => Cut::UniformIn {
+                crs: crs.clone(),
+                roi: pixels,
+                error: spec.error,
+            },
+            None => Cut::Uniform {
+                roi: pixels,
+                error: spec.error,
+            },
+        }
+    }
+
+    fn mesh_from(
+        &self,
+        spec: &MeshSpec,
+        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<MeshTile, EngineError> {
+        let (roi, cols, rows) = (spec.roi, spec.cols, spec.rows);
+        for (name, n) in [("columns", cols), ("rows", rows)] {
+            if !(2..=MAX_MESH_SIZE).contains(&n) {
+                return Err(EngineError::Invalid(format!(
+                    "a mesh has 2 to {MAX_MESH_SIZE} {name}: got {n}"
+                )));
+            }
+        }
+        for (name, v) in [
+            ("mesh_error", spec.mesh_error),
+            ("skirt_m", spec.skirt_m),
+            ("hole_reach_m", spec.hole_reach_m),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(EngineError::Invalid(format!(
+                    "{name} must be a finite number of metres ≥ 0, got {v}"
+                )));
+            }
+        }
+        let pixels = mesh::pixel_roi(&roi, cols, rows);
+        let cut = Self::mesh_cut(spec);
+        let (mut tile, used) =
+            self.tile_from(&cut, made, cols as u32, rows as u32, backend, cancel)?;
+        let mut voids = Vec::new();
+        if spec.fill_voids {
+            let grid = SampleGrid::uniform(&pixels, cols, rows);
+            voids = self.fill_voids(
+                &mut tile.heights,
+                &grid,
+                spec.crs.as_ref(),
+                spec.error,
+                cancel,
+            )?;
+            // Nothing near enough to fill from: no survey is there, and a globe shows its
+            // ellipsoid.
+            for h in tile.heights.iter_mut().filter(|h| h.is_nan()) {
+                *h = 0.0;
+            }
+        }
+        let holes = if spec.hole_reach_m > 0.0 {
+            let mid = (roi.min[1] + roi.max[1]) / 2.0;
+            let scale = match &spec.crs {
+                Some(c) => match c.unit_m() {
+                    Some(m) => [m, m],
+                    None => Metric::geographic(mid).scale,
+                },
+                None => self.metric_at(mid).scale,
+            };
+            mesh::Holes::Reach {
+                reach: spec.hole_reach_m,
+                cell: [
+                    roi.width() / (cols - 1) as f64 * scale[0],
+                    roi.height() / (rows - 1) as f64 * scale[1],
+                ],
+            }
+        } else {
+            mesh::Holes::Exact
+        };
+        let options = mesh::Options {
+            max_error: spec.mesh_error,
+            border: spec.border,
+            method: spec.method,
+            holes,
+        };
+        let mut mesh = mesh::triangulate_until(&tile.heights, cols, rows, &options, &|| {
+            cancel.is_cancelled()
+        })
+        .ok_or(EngineError::Cancelled)?;
+        if spec.skirt_m > 0.0 {
+            mesh::add_skirts(&mut mesh, spec.skirt_m as f32);
+        }
+        Ok(MeshTile {
+            mesh,
+            roi,
+            patches: tile.patches,
+            backend: used,
+            shortfall: tile.shortfall,
+            voids,
+        })
+    }
+
+    /// Fills the voids (NaN) of `heights`, a tile at `grid`'s positions (of `crs`, None for
+    /// the store's) cut at error `e`, from ever coarser cuts at the same points: at 8, 64, …
+    /// times `e` (1 m at least), up to [`FILL_STEPS`] of them, each void taking the first
+    /// height it is given. A coarser level of a survey averages the samples around a void,
+    /// so a hole no wider than its cells is bridged by the survey's own terrain. Each height
+    /// is that of a point at an error, as any request gives it: a void is filled alike in
+    /// every tile that holds it, so neighbouring tiles still meet. Voids that no coarser cut
+    /// reaches stay NaN. Returns which samples were void at `e` (empty when none were).
+    pub fn fill_voids(
+        &self,
+        heights: &mut [f32],
+        grid: &SampleGrid,
+        crs: Option<&Crs>,
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Vec<bool>, EngineError> {
+        let mut todo: Vec<usize> = (0..heights.len())
+            .filter(|&k| heights[k].is_nan())
+            .collect();
+        if todo.is_empty() {
+            return Ok(Vec::new());
+        }
+        let voids = heights.iter().map(|h| h.is_nan()).collect();
+        // The voids' positions in the store's plane, carried once as a tile's are (so that
+        // each gets the height a request in `crs` gives there), and only those a survey can
+        // reach: most voids of a tile at the data's edge are far from every survey.
+        let own: Vec<[f64; 2]> = todo.iter().map(|&k| grid.point(k)).collect();
+        let near = self.reach();
+        let mut points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
+            Some(r) => r.map_where(&own, &near),
+            None => own,
+        };
+        let mut kept = 0;
+        for i in 0..todo.len() {
+            if near(points[i]) {
+                (todo[kept], points[kept]) = (todo[i], points[i]);
+                kept += 1;
+            }
+        }
+        todo.truncate(kept);
+        points.truncate(kept);
+        // A cut at the top of LOD space holds nothing: stop below it.
+        let top = self.cfg.index.max_error / 2.0;
+        let mut coarser = e.max(1.0);
+        for _ in 0..FILL_STEPS {
+            if todo.is_empty() || coarser >= top {
+                break;
+            }
+            coarser = (coarser * 8.0).min(top);
+            let found = self.sample_in(&points, None, coarser, cancel)?;
+            let (mut left, mut at) = (Vec::new(), Vec::new());
+            for ((&k, p), h) in todo.iter().zip(&points).zip(found) {
+                if h.is_nan() {
+                    left.push(k);
+                    at.push(*p);
+                } else {
+                    heights[k] = h;
+                }
+            }
+            (todo, points) = (left, at);
+        }
+        Ok(voids)
+    }
+
+    /// A resampled tile of a cut already made (by [`Engine::query`] of the same `cut`), given
+    /// up once `cancel` is set: for a caller that looks at the patches first, to see whether
+    /// it has the tile already.
+    pub fn tile_of(
+        &self,
+        cut: &Cut,
+        made: (Arc<Terrain>, Vec<Extracted>),
+        width: u32,
+        height: u32,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<(Tile, Used), EngineError> {
+        self.tile_from(cut, Some(made), width, height, backend, cancel)
+    }
+
+    /// A resampled tile, given up once `cancel` is set.
+    pub fn tile_until(
+        &self,
+        cut: &Cut,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<(Tile, Used), EngineError> {
+        self.tile_from(cut, None, width, height, backend, cancel)
+    }
+
+    fn tile_from(
+        &self,
+        cut: &Cut,
+        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        cancel: &Cancel,
+    ) -> Result<(Tile, Used), EngineError> {
+        let (mut heights, mut shortfall) = (Vec::new(), None);
+        let (patches, used) = self.bands(
+            cut,
+            made,
+            width,
+            height,
+            backend,
+            height as usize,
+            cancel,
+            &mut |head, _, band| {
+                heights = band;
+                shortfall = head.shortfall;
+                true
+            },
+        )?;
+        let tile = Tile {
+            width: width as usize,
+            height: height as usize,
+            heights,
+            patches,
+            shortfall,
+        };
+        Ok((tile, used))
+    }
+
+    /// A resampled tile in bands of about `rows` rows, top first: `sink` gets what the tile
+    /// is, each band's first row and its heights, and says whether to go on. On the CPU a band
+    /// goes to `sink` as soon as it is done, so that it can be sent while the next is worked
+    /// out. Returns the patches blended and the backend that ran.
+    #[allow(clippy::too_many_arguments)]
+    pub fn tile_bands_until(
+        &self,
+        cut: &Cut,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        rows: usize,
+        cancel: &Cancel,
+        sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
+    ) -> Result<(Vec<Extracted>, Used), EngineError> {
+        self.bands(cut, None, width, height, backend, rows, cancel, sink)
+    }
+
+    /// [`Engine::tile_bands_until`] of a cut made already, or made here when `made` is None.
+    #[allow(clippy::too_many_arguments)]
+    fn bands(
+        &self,
+        cut: &Cut,
+        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
+        width: u32,
+        height: u32,
+        backend: Backend,
+        rows: usize,
+        cancel: &Cancel,
+        sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
+    ) -> Result<(Vec<Extracted>, Used), EngineError> {
+        let n = width as u64 * height as u64;
+        if width == 0 || height == 0 {
+            return Err(EngineError::Invalid(
+                "tile width and height must be at least 1".into(),
+            ));
+        }
+        let max = self.cfg.limits.max_tile_samples;
+        if n > max {
+            return Err(EngineError::TooLarge(format!(
+                "a {width}×{height} tile has {n} samples, more than the limit of {max}: ask for a smaller tile"
+            )));
+        }
+        let (t, ps) = match made {
+            Some(m) => m,
+            None => self.query(cut)?,
+        };
+        let grid = match cut {
+            Cut::Uniform { roi, .. } => SampleGrid::uniform(roi, width as usize, height as usize),
+            Cut::UniformIn { crs, roi, .. } => {
+                // The tile's own positions, carried into the store's plane.
+                let own = SampleGrid::uniform(roi, width as usize, height as usize);
+                match self.to_store(crs)? {
+                    Some(r) => carried(&own, &r, self.reach()),
+                    None => own,
+                }
+            }
+            Cut::View(v) => view_grid(v, width as usize, height as usize),
+        };
+        let shortfall = tile_shortfall(&ps, &grid);
+        let head = |backend| TileHead {
+            width: grid.width,
+            height: grid.height,
+            patches: &ps,
+            backend,
+            shortfall,
+        };
+        // The samples are read (from the pack, or the chunk cache) before the GPU is asked
+        // for, so that the device's lock is never held across disk I/O.
+        let set = t
+            .try_resolve_until(&ps, &|| cancel.is_cancelled())
+            .map_err(StoreError::from)?
+            .ok_or(EngineError::Cancelled)?;
+        // `auto` goes to whichever backend is expected to finish the tile first.
+        let router = &self.gpu.router;
+        let samples = (grid.width * grid.height) as u64;
+        let has_gpu = self.has_gpu();
+        let backend = if backend == Backend::Auto && has_gpu && !router.prefers_gpu(samples) {
+            Backend::Cpu
+        } else {
+            backend
+        };
+        let on_gpu = (backend != Backend::Cpu && has_gpu).then(|| router.start(Used::Gpu, samples));
+        if let Some(heights) = self.gpu_heights(&set, &grid, backend)? {
+            if let Some(run) = on_gpu {
+                run.finish();
+            }
+            let head = head(Used::Gpu);
+            let rows = rows.max(1);
+            if rows >= grid.height {
+                if !sink(&head, 0, heights) {
+                    return Err(EngineError::Cancelled);
+                }
+            } else {
+                for (k, band) in heights.chunks(rows * grid.width).enumerate() {
+                    if !sink(&head, k * rows, band.to_vec()) {
+                        return Err(EngineError::Cancelled);
+                    }
+                }
+            }
+            return Ok((ps, Used::Gpu));
+        }
+        drop(on_gpu);
+        let head = head(Used::Cpu);
+        let mut run = router.start(Used::Cpu, samples);
+        cpu::resample_bands(&set, &grid, rows, cancel, &mut |j0, band| {
+            // Handing a band to a slow client is not the CPU's time.
+            let t = std::time::Instant::now();
+            let more = sink(&head, j0, band);
+            run.pause(t.elapsed());
+            more
+        })
+        .ok_or(EngineError::Cancelled)?;
+        run.finish();
+        Ok((ps, Used::Cpu))
+    }
+
+    /// Heights at points, at error `e`: what any tile holding the same points gives there.
+    pub fn sample(&self, points: &[[f64; 2]], e: f64) -> Result<Vec<f32>, EngineError> {
+        self.sample_until(points, e, &Cancel::default())
+    }
+
+    /// Heights at points, given up once `cancel` is set.
+    pub fn sample_until(
+        &self,
+        points: &[[f64; 2]],
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Vec<f32>, EngineError> {
+        self.sample_in(points, None, e, cancel)
+    }
+
+    /// Whether a point of the store's plane is where any survey can give a height (within
+    /// one's [`super::write::changed_area`]): a point beyond all of them has none, at any
+    /// error.
+    fn reach(&self) -> impl Fn([f64; 2]) -> bool + Sync {
+        let areas: Vec<Aabb> = self
+            .snapshot()
+            .surveys()
+            .map(|s| super::write::changed_area(s))
+            .collect();
+        move |p| areas.iter().any(|a| a.contains_point(p))
+    }
+
+    /// Heights at points of `crs` (None for the store's), given up once `cancel` is set: the
+    /// points are carried into the store's plane as a tile's positions are, so a point has
+    /// the height any tile of that CRS holding it gives.
+    pub fn sample_in(
+        &self,
+        points: &[[f64; 2]],
+        crs: Option<&Crs>,
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Vec<f32>, EngineError> {
+        if points.len() as u64 > self.cfg.limits.max_points {
+            return Err(EngineError::TooLarge(format!(
+                "{} points, more than the limit of {}: send them in smaller requests",
+                points.len(),
+                self.cfg.limits.max_points
+            )));
+        }
+        if points
+            .iter()
+            .any(|p| !(p[0].is_finite() && p[1].is_finite()))
+        {
+            return Err(EngineError::Invalid("points must be finite".into()));
+        }
+        check_error(e)?;
+        let carried;
+        let points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
+            Some(r) => {
+                carried = r.map_where(points, self.reach());
+                &carried
+            }
+            None => points,
+        };
+        self.snapshot()
+            .try_sample_until(points, e, cancel)
+            .map_err(StoreError::from)?
+            .ok_or(EngineError::Cancelled)
+    }
+}
+
+/// A north-up grid's points carried into the store's plane by `r`. Where the map takes the
+/// grid's columns to columns and its rows to rows (Web Mercator to longitude and latitude,
+/// say), the carried grid keeps axes, and the resampler its pass by rows and columns, which
+/// is several times faster than point by point: checked at the corners, the middle and
+/// between, each point must be where its column and its row put it, within 10⁻⁹ of the grid's
+/// extent (a micrometre on a kilometre's tile). Any other map is applied point by point.
+///
+/// Positions whose exact image no survey reaches (`near` false) may be left out as NaN: a
+/// low zoom's tile spans continents the lattice would otherwise be built over.
+fn carried(
+    own: &SampleGrid,
+    r: &Arc<Reprojection>,
+    near: impl Fn([f64; 2]) -> bool + Sync,
+) -> SampleGrid {
+    if let Some(a) = &own.axes {
+        let (w, h) = (a.xs.len(), a.ys.len());
+        let (xm, ym) = (a.xs[w / 2], a.ys[h / 2]);
+        let xs: Option<Vec<f64>> = a.xs.iter().map(|&x| r.at([x, ym]).map(|p| p[0])).collect();
+        let ys: Option<Vec<f64>> = a.ys.iter().map(|&y| r.at([xm, y]).map(|p| p[1])).collect();
+        if let (Some(xs), Some(ys)) = (xs, ys) {
+            let span = |v: &[f64]| (v[0] - v[v.len() - 1]).abs();
+            let tol = 1e-9 * span(&xs).max(span(&ys)).max(f64::MIN_POSITIVE);
+            let probes = [0, w / 4, w / 2, 3 * w / 4, w - 1]
+                .into_iter()
+                .flat_map(|i| [0, h / 3, h / 2, 2 * h / 3, h - 1].map(|j| (i, j)));
+            let separable = probes.into_iter().all(|(i, j)| {
+                r.at([a.xs[i], a.ys[j]])
+                    .is_some_and(|p| (p[0] - xs[i]).abs() <= tol && (p[1] - ys[j]).abs() <= tol)
+            });
+            if separable {
+                return SampleGrid::of_axes(xs, ys);
+            }
+        }
+    }
+    if let Some(a) = &own.axes {
+        if a.bounds().is_some_and(|b| r.gathers(b.min, b.max)) {
+            // Kept as the lattice and the grid it carries: a device carries the points
+            // itself, and the CPU lists them as `map` would.
+            return SampleGrid::carried(a.clone(), r.clone());
+        }
+    }
+    let pts: Vec<[f64; 2]> = own.points().collect();
+    SampleGrid::of_points(own.width, own.height, r.map_where(&pts, near))
+}
+
+fn check_error(e: f64) -> Result<(), EngineError> {
+    if !(e.is_finite() && e >= 0.0) {
+        return Err(EngineError::Invalid(format!(
+            "error must be a number of metres ≥ 0, got {e}"
+        )));
+    }
+    Ok(())
+}
+
+fn check_roi(roi: &Aabb) -> Result<(), EngineError> {
+    if !roi.is_valid() || roi.width() <= 0.0 || roi.height() <= 0.0 {
+        return Err(EngineError::Invalid(format!(
+            "the region must have xmin < xmax and ymin < ymax, got [{}, {}, {}, {}]",
+            roi.min[0], roi.min[1], roi.max[0], roi.max[1]
+        )));
+    }
+    Ok(())
+}

@@ -1,0 +1,362 @@
+//! Requests to replies: the dispatcher between the API and the engine. The gRPC handlers run
+//! these on a blocking thread; the CLI's `--data-dir` mode calls them directly.
+
+use super::convert;
+use super::proto as pb;
+use patchwork_core::index::query::Extracted;
+use patchwork_core::resample::{Cancel, BLOCK};
+use patchwork_core::terrain::Terrain;
+use patchwork_engine::{Backend, Cut, Engine, EngineError, MeshSpec, Origin};
+use patchwork_store::StoreError;
+use std::path::Path;
+use std::sync::Arc;
+
+fn cut_of(
+    engine: &Engine,
+    u: Option<&pb::UniformCut>,
+    v: Option<&pb::ViewCut>,
+    crs: &str,
+) -> Result<Cut, EngineError> {
+    match (u, v) {
+        (Some(u), None) => convert::uniform_cut(engine, u, crs),
+        (None, Some(_)) if !crs.trim().is_empty() => Err(EngineError::Invalid(
+            "a view cut is in the store's CRS: leave crs empty".into(),
+        )),
+        (None, Some(v)) => convert::view_cut(engine, v),
+        _ => Err(EngineError::Invalid(
+            "give exactly one cut: uniform (roi + error) or view".into(),
+        )),
+    }
+}
+
+/// A patch query's cut: the snapshot it was taken from, its patches, and how many go in a
+/// batch. The batches are made one at a time as the client takes them ([`patch_batch`]).
+pub fn patch_cut(
+    engine: &Engine,
+    r: &pb::PatchQuery,
+) -> Result<(Arc<Terrain>, Vec<Extracted>, usize), EngineError> {
+    let (u, v) = match &r.cut {
+        Some(pb::patch_query::Cut::Uniform(u)) => (Some(u), None),
+        Some(pb::patch_query::Cut::View(v)) => (None, Some(v)),
+        None => (None, None),
+    };
+    let cut = cut_of(engine, u, v, &r.crs)?;
+    let (t, ps) = engine.query(&cut)?;
+    let size = if r.batch_size == 0 {
+        BATCH
+    } else {
+        r.batch_size as usize
+    };
+    Ok((t, ps, size))
+}
+
+/// Patches in a batch when the client does not say.
+pub const BATCH: usize = 256;
+
+/// What the client of a view session holds: the patches it was sent, each with what of it
+/// can change while its id stays. At most one cut's worth, so `limits.max_patches` bounds it.
+#[derive(Debug, Default)]
+pub struct ViewSession {
+    held: std::collections::HashMap<patchwork_core::model::ids::PatchId, Held>,
+    frame: u64,
+}
+
+/// The parts of a sent patch that are the cut's rather than the patch's: whether it is a
+/// fallback, and its box in LOD space, whose top comes down when a more accurate survey
+/// arrives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Held {
+    fallback: bool,
+    span: [u64; 2],
+}
+
+impl Held {
+    fn of(x: &Extracted) -> Self {
+        Held {
+            fallback: x.fallback,
+            span: [x.span.min_z.to_bits(), x.span.max_z.to_bits()],
+        }
+    }
+}
+
+impl ViewSession {
+    /// The messages that take the client from what it holds to the cut for `v`. What the
+    /// session holds changes only once the step is made whole, so a step that fails leaves it
+    /// as the client has it.
+    pub fn step(
+        &mut self,
+        engine: &Engine,
+        v: &pb::ViewCut,
+    ) -> Result<Vec<pb::ViewDelta>, EngineError> {
+        let cut = convert::view_cut(engine, v)?;
+        let (t, ps) = engine.query(&cut)?;
+        let next: std::collections::HashMap<_, _> =
+            ps.iter().map(|x| (x.id, Held::of(x))).collect();
+        let mut removed: Vec<u64> = self
+            .held
+            .iter()
+            .filter(|(id, f)| next.get(id) != Some(f))
+            .map(|(id, _)| id.0)
+            .collect();
+        removed.sort_unstable();
+        let added: Vec<Extracted> = ps
+            .into_iter()
+            .filter(|x| self.held.get(&x.id) != next.get(&x.id))
+            .collect();
+        let mut deltas = Vec::with_capacity(added.len().div_ceil(BATCH).max(1));
+        for chunk in added.chunks(BATCH) {
+            deltas.push(pb::ViewDelta {
+                frame: self.frame,
+                added: patch_batch(&t, chunk)?.patches,
+                ..Default::default()
+            });
+        }
+        if deltas.is_empty() {
+            deltas.push(pb::ViewDelta {
+                frame: self.frame,
+                ..Default::default()
+            });
+        }
+        deltas[0].removed = removed;
+        let last = deltas.last_mut().expect("one message at least");
+        last.last = true;
+        last.patches = next.len() as u32;
+        self.held = next;
+        self.frame += 1;
+        Ok(deltas)
+    }
+}
+
+/// One batch of a patch query, samples read.
+pub fn patch_batch(t: &Terrain, ps: &[Extracted]) -> Result<pb::PatchBatch, EngineError> {
+    let patches = ps
+        .iter()
+        .filter_map(|x| convert::patch(t, x).transpose())
+        .collect::<Result<_, _>>()
+        .map_err(StoreError::from)?;
+    Ok(pb::PatchBatch { patches })
+}
+
+/// Every batch of a patch query at once: for callers in the same process.
+pub fn query_patches(
+    engine: &Engine,
+    r: &pb::PatchQuery,
+) -> Result<Vec<pb::PatchBatch>, EngineError> {
+    let (t, ps, size) = patch_cut(engine, r)?;
+    ps.chunks(size).map(|c| patch_batch(&t, c)).collect()
+}
+
+pub fn resample_tile(
+    engine: &Engine,
+    r: &pb::TileRequest,
+    cancel: &Cancel,
+) -> Result<pb::Tile, EngineError> {
+    let (cut, backend) = tile_cut(engine, r)?;
+    let (tile, used) = engine.tile_until(&cut, r.width, r.height, backend, cancel)?;
+    Ok(convert::tile(&tile, used, tile_crs(engine, &cut).as_ref()))
+}
+
+/// The tile of [`resample_tile`] as bands of f32 bytes, each handed to `send` as soon as it
+/// is resampled; `send` says whether to go on.
+pub fn tile_bands(
+    engine: &Engine,
+    r: &pb::TileRequest,
+    cancel: &Cancel,
+    send: &mut dyn FnMut(pb::TileBand) -> bool,
+) -> Result<(), EngineError> {
+    let (cut, backend) = tile_cut(engine, r)?;
+    let crs = tile_crs(engine, &cut);
+    // Whole blocks of the resampler in a band where a band holds that many rows.
+    let rows = convert::band_rows(r.width as usize);
+    let rows = if rows >= BLOCK {
+        rows / BLOCK * BLOCK
+    } else {
+        rows
+    };
+    engine.tile_bands_until(
+        &cut,
+        r.width,
+        r.height,
+        backend,
+        rows,
+        cancel,
+        &mut |head, row, heights| {
+            convert::tile_bands(head, row, &heights, crs.as_ref())
+                .into_iter()
+                .all(&mut *send)
+        },
+    )?;
+    Ok(())
+}
+
+/// The CRS a cut's tile is in: the request's, else the store's.
+fn tile_crs(engine: &Engine, cut: &Cut) -> Option<patchwork_core::crs::Crs> {
+    cut.crs().cloned().or_else(|| engine.crs())
+}
+
+/// The cut and backend a tile request asks for.
+fn tile_cut(engine: &Engine, r: &pb::TileRequest) -> Result<(Cut, Backend), EngineError> {
+    let (u, v) = match &r.cut {
+        Some(pb::tile_request::Cut::Uniform(u)) => (Some(u), None),
+        Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
+        None => (None, None),
+    };
+    Ok((cut_of(engine, u, v, &r.crs)?, convert::backend(r.backend)?))
+}
+
+/// Vertices a side of a mesh when the request does not say.
+pub const MESH_SIZE: u32 = 257;
+
+pub fn mesh_tile(
+    engine: &Engine,
+    r: &pb::MeshRequest,
+    cancel: &Cancel,
+) -> Result<pb::Mesh, EngineError> {
+    let u = r
+        .cut
+        .as_ref()
+        .ok_or_else(|| EngineError::Invalid("a mesh needs a uniform cut (roi + error)".into()))?;
+    let cols = if r.size == 0 { MESH_SIZE } else { r.size } as usize;
+    let spec = MeshSpec {
+        roi: convert::aabb(&u.roi)?,
+        error: u.error,
+        cols,
+        rows: if r.rows == 0 { cols } else { r.rows as usize },
+        mesh_error: r.mesh_error,
+        skirt_m: r.skirt_m,
+        border: convert::mesh_border(r.border)?,
+        method: convert::mesh_method(r.method)?,
+        hole_reach_m: r.hole_reach_m,
+        crs: engine.request_crs(&r.crs)?,
+        fill_voids: false,
+    };
+    let m = engine.mesh_until(&spec, convert::backend(r.backend)?, cancel)?;
+    let crs = spec.crs.clone().or_else(|| engine.crs());
+    Ok(convert::mesh(&m, crs.as_ref()))
+}
+
+pub fn sample_heights(
+    engine: &Engine,
+    r: &pb::SampleRequest,
+    cancel: &Cancel,
+) -> Result<pb::Samples, EngineError> {
+    let pts: Vec<[f64; 2]> = r.points.iter().map(|p| [p.x, p.y]).collect();
+    let crs = engine.request_crs(&r.crs)?;
+    let heights = engine.sample_in(&pts, crs.as_ref(), r.error, cancel)?;
+    Ok(pb::Samples {
+        valid: heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
+        heights,
+    })
+}
+
+/// Longest path or id a request may carry: PATH_MAX on Linux.
+const MAX_PATH_BYTES: usize = 4096;
+
+fn check_path(what: &str, p: &str) -> Result<(), EngineError> {
+    if p.len() > MAX_PATH_BYTES {
+        return Err(EngineError::Invalid(format!(
+            "{what} is {} bytes long, more than the {MAX_PATH_BYTES} a path may have",
+            p.len()
+        )));
+    }
+    if p.is_empty() || p.contains('\0') {
+        return Err(EngineError::Invalid(format!(
+            "{what} must be a non-empty path without NUL characters"
+        )));
+    }
+    Ok(())
+}
+
+/// Ingests the files in order. A file's own problem is its result; a storage failure (a full
+/// disk) fails the call, and the files before it stay ingested.
+pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply, EngineError> {
+    if let Some(a) = r.accuracy_m {
+        if !(a.is_finite() && a >= 0.0) {
+            return Err(EngineError::Invalid(format!(
+                "accuracy must be ≥ 0 m, got {a}"
+            )));
+        }
+    }
+    let most = engine.config().limits.max_ingest_paths;
+    if r.paths.len() as u64 > most {
+        return Err(EngineError::TooLarge(format!(
+            "{} paths in one request, more than the limit of {most} (limits.max_ingest_paths): send them in smaller requests",
+            r.paths.len()
+        )));
+    }
+    for p in &r.paths {
+        check_path("a path", p)?;
+    }
+    let results = r
+        .paths
+        .iter()
+        .map(|p| {
+            engine
+                .ingest(Path::new(p), r.accuracy_m, Origin::Request)
+                .map(|i| convert::ingested(&i))
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(pb::IngestReply { results })
+}
+
+pub fn list_surveys(engine: &Engine) -> Result<pb::SurveyList, EngineError> {
+    let (terrain, listing) = engine.surveys();
+    Ok(convert::surveys(&terrain, &listing))
+}
+
+pub fn forget(engine: &Engine, r: &pb::ForgetRequest) -> Result<pb::ForgetReply, EngineError> {
+    check_path("the source", &r.source)?;
+    if !engine.forget(&r.source)? {
+        return Err(EngineError::NotFound(format!(
+            "no failure is recorded for {}; `patchwork surveys` lists them",
+            patchwork_engine::paths::quote_short(&r.source)
+        )));
+    }
+    Ok(pb::ForgetReply {})
+}
+
+pub fn retire(engine: &Engine, r: &pb::RetireRequest) -> Result<pb::RetireReply, EngineError> {
+    check_path("the id or source", &r.id_or_source)?;
+    let (id, patches) = engine.retire(&r.id_or_source)?;
+    Ok(pb::RetireReply {
+        id: id.to_string(),
+        patches: patches as u32,
+    })
+}
+
+pub fn stats(engine: &Engine) -> Result<pb::StatsReply, EngineError> {
+    Ok(convert::stats(&engine.stats()))
+}
+
+pub fn verify(engine: &Engine) -> Result<pb::VerifyReply, EngineError> {
+    let v = engine.verify()?;
+    Ok(pb::VerifyReply {
+        ok: v.problems.is_empty(),
+        problems: v.problems.clone(),
+        surveys: v.active as u32,
+        patches: v.patches as u64,
+    })
+}
+
+pub fn repair(engine: &Engine) -> Result<pb::RepairReply, EngineError> {
+    let dropped = engine.repair()?;
+    Ok(pb::RepairReply {
+        dropped: dropped
+            .into_iter()
+            .map(|d| pb::DroppedSurvey {
+                id: d.id.to_string(),
+                source: d.source,
+                reason: d.reason,
+            })
+            .collect(),
+    })
+}
+
+pub fn compact(engine: &Engine) -> Result<pb::CompactReply, EngineError> {
+    let c = engine.compact()?;
+    Ok(pb::CompactReply {
+        bytes_before: c.bytes_before,
+        bytes_after: c.bytes_after,
+        surveys_removed: c.surveys_purged as u32,
+    })
+}

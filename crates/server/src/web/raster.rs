@@ -1,0 +1,210 @@
+//! Web Mercator XYZ raster tiles: heights resampled at the tile's pixel centres in
+//! EPSG:3857 (sample (i, j) at the centre of pixel (i, j), as GDAL writes a raster and as
+//! MapLibre reads a DEM tile: it takes pixel (i, j) for the height of the pixel's square and
+//! backfills its own one-pixel border from the neighbours), as raster-DEM PNG or float32
+//! GeoTIFF.
+
+use super::{Encoding, Produced, Web};
+use patchwork_core::geom::tiles::mercator;
+use patchwork_core::resample::{Cancel, SampleGrid};
+use patchwork_engine::{Backend, Cut, Engine, EngineError};
+
+/// What a raster tile is encoded as.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    Png(Encoding),
+    Tiff,
+}
+
+/// A raster tile asked for.
+#[derive(Clone, Copy, Debug)]
+pub struct Request {
+    pub z: u32,
+    pub x: u32,
+    pub y: u32,
+    pub size: u32,
+    pub format: Format,
+    /// The cut's error, metres.
+    pub error: f64,
+}
+
+/// What a GeoTIFF tile says of pixels without data.
+const TIFF_NODATA: f64 = -9999.0;
+
+/// The tile `r`: its ETag from the cut, then its bytes unless the client has them.
+pub fn tile(
+    engine: &Engine,
+    web: &Web,
+    r: &Request,
+    if_none_match: Option<&str>,
+    cancel: &Cancel,
+) -> Result<Produced, EngineError> {
+    let roi = mercator::bounds(r.z, r.x, r.y);
+    let crs = web.mercator.clone();
+    let cut = match web.unless_store(engine, &crs) {
+        Some(c) => Cut::UniformIn {
+            crs: c,
+            roi,
+            error: r.error,
+        },
+        None => Cut::Uniform {
+            roi,
+            error: r.error,
+        },
+    };
+    let most = engine.config().limits.max_web_tile_patches;
+    let (cut, t, ps) = match engine.crs() {
+        Some(_) => engine.query_within(&cut, most)?,
+        // A store with no survey yet has nothing anywhere.
+        None => (cut, engine.snapshot(), Vec::new()),
+    };
+    // The error the tile is made at: the one asked, or a coarser one within the limit.
+    let error = cut.error().unwrap_or(r.error);
+    let (kind, content_type) = match r.format {
+        Format::Png(e) => (e.name(), "image/png"),
+        Format::Tiff => ("tiff", "image/tiff"),
+    };
+    let what = format!(
+        "raster/{kind}/{}/{}/{}/{}/{:e}",
+        r.z, r.x, r.y, r.size, r.error
+    );
+    let near = web
+        .pyramid(engine)
+        .near(&mercator::lonlat_bounds(r.z, r.x, r.y));
+    let etag = web.etag(&what, &ps, &near);
+    let made = web.produce(etag, if_none_match, content_type, || {
+        let size = r.size as usize;
+        // Nothing in the cut may still leave voids a survey just beyond the tile fills.
+        let empty = ps.is_empty() && near.is_empty();
+        let mut heights = if empty {
+            vec![f32::NAN; size * size]
+        } else {
+            engine
+                .tile_of(&cut, (t, ps), r.size, r.size, Backend::Auto, cancel)?
+                .0
+                .heights
+        };
+        match r.format {
+            Format::Png(encoding) => {
+                // MapLibre reads every pixel as a height, whatever its alpha: voids are
+                // filled from coarser levels for it (alpha still says they hold no data),
+                // so that hillshade draws no cliff into a hole.
+                let voids = if empty {
+                    vec![true; size * size]
+                } else {
+                    let grid = SampleGrid::uniform(&roi, size, size);
+                    let own = cut.crs();
+                    engine.fill_voids(&mut heights, &grid, own, error, cancel)?
+                };
+                Ok(png(&heights, &voids, r.size, encoding))
+            }
+            Format::Tiff => {
+                let gt = [
+                    roi.min[0],
+                    roi.width() / r.size as f64,
+                    0.0,
+                    roi.max[1],
+                    0.0,
+                    -roi.height() / r.size as f64,
+                ];
+                patchwork_read::write_tiff::geotiff_f32_bytes(
+                    size,
+                    size,
+                    &heights,
+                    gt,
+                    Some(&crs),
+                    Some(TIFF_NODATA),
+                )
+                .map_err(|e| EngineError::Invalid(format!("the tile cannot be written: {e}")))
+            }
+        }
+    })?;
+    Ok(Produced {
+        error: (error != r.error).then_some(error),
+        ..made
+    })
+}
+
+/// The number a height is stored as in an encoding's 24 bits of RGB.
+fn code(h: f64, encoding: Encoding) -> u32 {
+    let n = match encoding {
+        Encoding::Terrarium => (h + 32768.0) * 256.0,
+        Encoding::Mapbox => (h + 10000.0) * 10.0,
+    };
+    n.round().clamp(0.0, (1 << 24) as f64 - 1.0) as u32
+}
+
+/// An RGBA PNG of heights in `encoding`: alpha 0 where `voids` says the cut had no data
+/// (empty: none), and 0 m in the colour where no height could be found at all.
+pub fn png(heights: &[f32], voids: &[bool], size: u32, encoding: Encoding) -> Vec<u8> {
+    let mut rgba = Vec::with_capacity(heights.len() * 4);
+    for (k, &h) in heights.iter().enumerate() {
+        let void = voids.get(k).copied().unwrap_or(false) || h.is_nan();
+        let n = code(if h.is_nan() { 0.0 } else { h as f64 }, encoding);
+        rgba.extend([
+            (n >> 16) as u8,
+            (n >> 8) as u8,
+            n as u8,
+            if void { 0 } else { 255 },
+        ]);
+    }
+    let mut out = Vec::with_capacity(rgba.len() / 3);
+    let mut e = png::Encoder::new(&mut out, size, size);
+    e.set_color(png::ColorType::Rgba);
+    e.set_depth(png::BitDepth::Eight);
+    // The fast deflate: a 256² tile in well under a millisecond, at a size near the default's
+    // (docs/BENCHMARKS.md, "Web tiles").
+    e.set_compression(png::Compression::Fast);
+    let mut w = e.write_header().expect("a PNG header in memory");
+    w.write_image_data(&rgba)
+        .expect("as many pixels as the header says, in memory");
+    drop(w);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The decoders MapLibre uses.
+    fn decode(rgb: [u8; 3], encoding: Encoding) -> f64 {
+        let [r, g, b] = rgb.map(f64::from);
+        match encoding {
+            Encoding::Terrarium => r * 256.0 + g + b / 256.0 - 32768.0,
+            Encoding::Mapbox => -10000.0 + (r * 65536.0 + g * 256.0 + b) * 0.1,
+        }
+    }
+
+    #[test]
+    fn heights_round_trip_through_both_encodings() {
+        for h in [-432.1f64, 0.0, 0.001, 1234.567, 8848.86] {
+            for (enc, step) in [(Encoding::Terrarium, 1.0 / 256.0), (Encoding::Mapbox, 0.1)] {
+                let n = code(h, enc);
+                let back = decode([(n >> 16) as u8, (n >> 8) as u8, n as u8], enc);
+                assert!((back - h).abs() <= step / 2.0 + 1e-9, "{h} {enc:?} {back}");
+            }
+        }
+    }
+
+    #[test]
+    fn voids_are_transparent() {
+        let bytes = png(
+            &[100.0, f32::NAN, 200.0, 300.0],
+            &[false, true, true, false],
+            2,
+            Encoding::Terrarium,
+        );
+        let d = png::Decoder::new(std::io::Cursor::new(bytes));
+        let mut r = d.read_info().unwrap();
+        let mut buf = vec![0; r.output_buffer_size()];
+        r.next_frame(&mut buf).unwrap();
+        let alpha: Vec<u8> = buf.chunks(4).map(|p| p[3]).collect();
+        assert_eq!(alpha, [255, 0, 0, 255]);
+        // The filled void keeps its colour; the one with no height at all is 0 m.
+        assert_eq!(
+            decode([buf[8], buf[9], buf[10]], Encoding::Terrarium),
+            200.0
+        );
+        assert_eq!(decode([buf[4], buf[5], buf[6]], Encoding::Terrarium), 0.0);
+    }
+}

@@ -1,0 +1,231 @@
+//! Cesium's quantized-mesh terrain: a tile of the geographic TMS pyramid is the cut at half
+//! Cesium's geometric error for its level, resampled on a 257² grid over the tile, its voids
+//! filled (the water mask says where), and meshed by RTIN within the other half, keeping
+//! every border vertex: neighbours of one level share their edges' vertices and heights.
+
+use super::pyramid::{Pyramid, TERRAIN_GRID};
+use super::{Produced, Web};
+use patchwork_core::geom::tiles::geographic;
+use patchwork_core::mesh::{self, encode, Border, Method};
+use patchwork_core::resample::Cancel;
+use patchwork_engine::{Backend, Engine, EngineError, MeshSpec};
+use serde_json::json;
+
+/// The extensions a client asked for in its `Accept` header.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Asked {
+    pub normals: bool,
+    pub watermask: bool,
+    pub metadata: bool,
+}
+
+impl Asked {
+    /// Reads `application/vnd.quantized-mesh;extensions=octvertexnormals-watermask-metadata`
+    /// (Cesium's spelling; `vertexnormals`, the older one, counts as normals too).
+    pub fn from_accept(accept: &str) -> Asked {
+        let mut a = Asked::default();
+        for part in accept.split([',', ';']) {
+            if let Some(list) = part.trim().strip_prefix("extensions=") {
+                for e in list.split('-') {
+                    match e.trim() {
+                        "octvertexnormals" | "vertexnormals" => a.normals = true,
+                        "watermask" => a.watermask = true,
+                        "metadata" => a.metadata = true,
+                        _ => {}
+                    }
+                }
+            }
+        }
+        a
+    }
+}
+
+/// Levels of availability a tile's metadata tells of below it (layer.json's
+/// `metadataAvailability`).
+pub(super) const METADATA_LEVELS: u32 = 10;
+
+/// How Cesium's geometric error for a level is spent: half on the cut, half on the mesh.
+/// Either half alone is a vertical error no larger than what Cesium allows the tile, and the
+/// two add up to it.
+pub fn errors(z: u32) -> (f64, f64) {
+    let g = geographic::geometric_error(z);
+    (g / 2.0, g / 2.0)
+}
+
+#[allow(clippy::too_many_arguments)]
+pub fn tile(
+    engine: &Engine,
+    web: &Web,
+    z: u32,
+    x: u32,
+    y: u32,
+    asked: Asked,
+    if_none_match: Option<&str>,
+    cancel: &Cancel,
+) -> Result<Produced, EngineError> {
+    let roi = geographic::bounds(z, x, y);
+    let (cut_error, mesh_error) = errors(z);
+    let n = TERRAIN_GRID;
+    let crs = web.unless_store(engine, &web.geographic);
+    let spec = MeshSpec {
+        roi,
+        error: cut_error,
+        cols: n,
+        rows: n,
+        mesh_error,
+        skirt_m: 0.0,
+        border: Border::Shared,
+        method: Method::Rtin,
+        hole_reach_m: 0.0,
+        crs,
+        fill_voids: true,
+    };
+    let (t, ps) = match engine.crs() {
+        Some(_) => engine.query(&Engine::mesh_cut(&spec))?,
+        // A store with no survey yet has nothing anywhere.
+        None => (engine.snapshot(), Vec::new()),
+    };
+    let pyramid = web.pyramid(engine);
+    // The metadata tells of levels as deep as the finest survey anywhere goes.
+    let depth = if asked.metadata {
+        pyramid.terrain_max
+    } else {
+        0
+    };
+    let what = format!("terrain/{z}/{x}/{y}/{asked:?}/{depth}");
+    let near = pyramid.near(&roi);
+    let etag = web.etag(&what, &ps, &near);
+    web.produce(
+        etag,
+        if_none_match,
+        "application/vnd.quantized-mesh",
+        || {
+            // Nothing in the cut may still leave voids a survey just beyond the tile fills.
+            let (mesh, voids) = if ps.is_empty() && near.is_empty() {
+                // No data under the tile: the ellipsoid, all water.
+                let flat = mesh::triangulate(
+                    &vec![0.0; n * n],
+                    n,
+                    n,
+                    &mesh::Options {
+                        max_error: mesh_error,
+                        ..Default::default()
+                    },
+                );
+                (flat, vec![true; n * n])
+            } else {
+                let m = engine.mesh_of(&spec, (t, ps), Backend::Auto, cancel)?;
+                (m.mesh, m.voids)
+            };
+            let ext = encode::Extensions {
+                normals: asked.normals,
+                watermask: asked.watermask.then(|| watermask(&voids, n)),
+                metadata: asked.metadata.then(|| metadata(&pyramid, z, x, y)),
+            };
+            Ok(encode::quantized_mesh(&mesh, &roi, &ext))
+        },
+    )
+}
+
+/// The water mask of a tile whose grid (`n` = 257 vertices a side) had no data at the
+/// vertices `voids` marks (empty: none): one byte for a tile all land or all water, else
+/// 256 × 256, each pixel the cell between four vertices, water where two or more of them are
+/// void.
+pub fn watermask(voids: &[bool], n: usize) -> Vec<u8> {
+    if voids.is_empty() || voids.iter().all(|v| !v) {
+        return vec![0];
+    }
+    if voids.iter().all(|v| *v) {
+        return vec![255];
+    }
+    let cells = n - 1;
+    let mut m = vec![0u8; cells * cells];
+    for j in 0..cells {
+        for i in 0..cells {
+            let k = j * n + i;
+            let wet = [voids[k], voids[k + 1], voids[k + n], voids[k + n + 1]]
+                .iter()
+                .filter(|v| **v)
+                .count();
+            if wet >= 2 {
+                m[j * cells + i] = 255;
+            }
+        }
+    }
+    m
+}
+
+/// The metadata extension: which tiles under this one exist, level by level from the next
+/// one down, as layer.json's `available` says.
+fn metadata(p: &Pyramid, z: u32, x: u32, y: u32) -> String {
+    let available = p.terrain_available();
+    let mut levels = Vec::new();
+    for dz in 1..=METADATA_LEVELS {
+        let Some(level) = available.get((z + dz) as usize) else {
+            break;
+        };
+        let (cx0, cx1) = (x << dz, ((x + 1) << dz) - 1);
+        let (cy0, cy1) = (y << dz, ((y + 1) << dz) - 1);
+        let ranges: Vec<_> = level
+            .iter()
+            .filter(|r| r.x0 <= cx1 && cx0 <= r.x1 && r.y0 <= cy1 && cy0 <= r.y1)
+            .map(|r| {
+                json!({
+                    "startX": r.x0.max(cx0), "startY": r.y0.max(cy0),
+                    "endX": r.x1.min(cx1), "endY": r.y1.min(cy1),
+                })
+            })
+            .collect();
+        levels.push(ranges);
+    }
+    json!({ "available": levels }).to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cesiums_accept_header_names_the_extensions() {
+        let a = Asked::from_accept(
+            "application/vnd.quantized-mesh;extensions=octvertexnormals-watermask-metadata,*/*;q=0.01",
+        );
+        assert_eq!(
+            a,
+            Asked {
+                normals: true,
+                watermask: true,
+                metadata: true
+            }
+        );
+        assert_eq!(
+            Asked::from_accept("application/octet-stream"),
+            Asked::default()
+        );
+        let w = Asked::from_accept("application/vnd.quantized-mesh;extensions=watermask");
+        assert!(w.watermask && !w.normals);
+    }
+
+    #[test]
+    fn the_water_mask_is_one_byte_unless_the_tile_is_mixed() {
+        let n = 257;
+        assert_eq!(watermask(&[], n), vec![0]);
+        assert_eq!(watermask(&vec![true; n * n], n), vec![255]);
+        let mut v = vec![false; n * n];
+        // The westmost column of vertices void: the westmost cells have two void corners.
+        for r in 0..n {
+            v[r * n] = true;
+        }
+        let m = watermask(&v, n);
+        assert_eq!(m.len(), 256 * 256);
+        assert!(m
+            .chunks(256)
+            .all(|row| row[0] == 255 && row[1..].iter().all(|b| *b == 0)));
+    }
+
+    #[test]
+    fn the_error_split_adds_up_to_cesiums() {
+        let (a, b) = errors(12);
+        assert!((a + b - geographic::geometric_error(12)).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,511 @@
+//! The commit journal on an object store, which read replicas follow.
+//!
+//! A writer whose chunks are on an object store publishes each database batch it applies as
+//! a numbered log object, `<prefix>/log/<seq:020>.log`, written only if absent
+//! (`If-None-Match: *`), and every [`Journal::every`] commits a snapshot of the whole database,
+//! `<prefix>/snapshots/<seq:020>.snap`: the state after commit `seq`. A replica starts from
+//! the newest snapshot and applies the logs after it in order; the same commits give it the
+//! same database, and order independence makes its terrain answer as the writer's does.
+//!
+//! The order of a commit on the writer is: its segment (see [`super::objects`]), then the
+//! database batch, then the log. A log names only segments that exist, and a replica never
+//! sees a commit the writer's database does not hold. The batch itself records the commit's
+//! number and the keys it wrote (`meta/log_seq`, `meta/log_pending`); the log is made from
+//! those keys' values as the database holds them once the commit is done. A writer that
+//! crashed before its log went up publishes it at the next open, from the same keys; one that
+//! could not reach the object store publishes it before its next commit, which waits for it.
+//! Compaction rewrites the database without a batch to replay: it records a pending
+//! *snapshot* instead, and its log tells replicas to start again from that snapshot.
+//!
+//! Snapshots older than the two newest are deleted, with the logs up to the older of the
+//! two: a replica that fell further behind than that starts again from the newest snapshot.
+
+use super::chunks::{seal, unseal};
+use super::objects::ObjectPack;
+use super::*;
+use patchwork_core::sync::lock;
+use std::sync::Mutex;
+use std::time::Duration;
+
+/// The folder of the logs and of the snapshots under the prefix.
+const LOGS: &str = "log";
+const SNAPSHOTS: &str = "snapshots";
+
+/// The largest log or snapshot a replica decodes: a database, without its samples, of a
+/// store far larger than one replica serves.
+const LIMIT: usize = 8 << 30;
+
+/// What a commit's log is made from, as the batch records it.
+#[derive(Serialize, Deserialize)]
+enum Pending {
+    /// The keys the batch wrote or removed.
+    Batch(Vec<Vec<u8>>),
+    /// The database was rewritten whole (a compaction): replicas start again from the
+    /// snapshot of this commit.
+    Snapshot,
+}
+
+/// One published commit.
+#[derive(Serialize, Deserialize)]
+enum Entry {
+    /// Each key with its value after the commit, `None` where the commit removed it.
+    Batch(Vec<(Vec<u8>, Option<Vec<u8>>)>),
+    Snapshot,
+}
+
+/// A snapshot: every key of the database after commit `seq` but the journal's own.
+#[derive(Serialize, Deserialize)]
+struct Snapshot {
+    seq: u64,
+    keys: Vec<(Vec<u8>, Vec<u8>)>,
+}
+
+fn log_name(seq: u64) -> String {
+    format!("{LOGS}/{seq:020}.log")
+}
+
+fn snapshot_name(seq: u64) -> String {
+    format!("{SNAPSHOTS}/{seq:020}.snap")
+}
+
+/// The numbers of the objects in `names` (`<seq:020>.<ext>`), in order.
+fn numbers(names: &[(String, u64)], ext: &str) -> Vec<(u64, u64)> {
+    let mut out: Vec<(u64, u64)> = names
+        .iter()
+        .filter_map(|(n, at)| Some((n.strip_suffix(ext)?.parse().ok()?, *at)))
+        .collect();
+    out.sort_unstable();
+    out
+}
+
+fn seq_of(db: &sled::Db) -> Result<u64, StoreError> {
+    match db.get(keys::LOG_SEQ)? {
+        None => Ok(0),
+        Some(v) => Ok(u64::from_le_bytes(v.as_ref().try_into().map_err(|_| {
+            StoreError::Corrupt(format!("meta/log_seq holds {} bytes, not 8", v.len()))
+        })?)),
+    }
+}
+
+/// Whether a key is the journal's own bookkeeping, which each side keeps for itself.
+fn own(k: &[u8]) -> bool {
+    k == keys::LOG_SEQ || k == keys::LOG_PENDING || k == keys::FOLLOWS
+}
+
+fn io(e: std::io::Error) -> StoreError {
+    StoreError::Io(e)
+}
+
+/// The writer's side.
+pub(super) struct Journal {
+    pack: Arc<ObjectPack>,
+    /// A snapshot every this many commits.
+    every: u64,
+    /// The newest commit, and whether its log is up.
+    state: Mutex<(u64, bool)>,
+}
+
+impl Journal {
+    /// The journal of the writer whose database is `db`: the newest commit's log published
+    /// if a crash kept it back, and a first snapshot written if there is none.
+    pub(super) fn open(
+        pack: Arc<ObjectPack>,
+        db: &sled::Db,
+        every: u64,
+    ) -> Result<Journal, StoreError> {
+        let seq = seq_of(db)?;
+        let up =
+            db.get(keys::LOG_PENDING)?.is_none() || pack.get(&log_name(seq)).map_err(io)?.is_some();
+        let j = Journal {
+            pack,
+            every: every.max(1),
+            state: Mutex::new((seq, up)),
+        };
+        j.publish(db)?;
+        let snapshots = j.pack.list_names(SNAPSHOTS).map_err(io)?;
+        if numbers(&snapshots, ".snap").is_empty() {
+            j.snapshot(db, seq)?;
+        }
+        Ok(j)
+    }
+
+    /// The newest commit.
+    pub(super) fn seq(&self) -> u64 {
+        lock(&self.state).0
+    }
+
+    /// Adds the journal's keys to a batch about to be applied: the commit's number and what
+    /// its log is made from. The previous commit's log must be up first (see
+    /// [`Journal::publish`]), or its keys would be lost.
+    pub(super) fn stage(
+        &self,
+        batch: &mut sled::Batch,
+        touched: &[sled::IVec],
+    ) -> Result<u64, StoreError> {
+        self.pack.check_lease().map_err(io)?;
+        let (seq, up) = *lock(&self.state);
+        if !up {
+            return Err(StoreError::Invalid(format!(
+                "commit {seq} is not yet published to {}",
+                self.pack.url()
+            )));
+        }
+        let keys: Vec<Vec<u8>> = touched.iter().map(|k| k.to_vec()).collect();
+        batch.insert(keys::LOG_SEQ, &(seq + 1).to_le_bytes()[..]);
+        batch.insert(keys::LOG_PENDING, encode(&Pending::Batch(keys))?);
+        Ok(seq + 1)
+    }
+
+    /// Notes that the batch of commit `seq` was applied: its log is due.
+    pub(super) fn applied(&self, seq: u64) {
+        *lock(&self.state) = (seq, false);
+    }
+
+    /// Publishes the newest commit's log if it is not up yet, and the snapshot it is due.
+    /// Fails (UNAVAILABLE to a caller) while the object store cannot be reached; the commit
+    /// stays in the database, and is published by the next call.
+    pub(super) fn publish(&self, db: &sled::Db) -> Result<(), StoreError> {
+        let (seq, up) = *lock(&self.state);
+        if up {
+            return Ok(());
+        }
+        let pending: Pending = match db.get(keys::LOG_PENDING)? {
+            Some(v) => decode(&v, "meta/log_pending")?,
+            None => return Err(StoreError::Corrupt("meta/log_pending is missing".into())),
+        };
+        let whole = matches!(pending, Pending::Snapshot);
+        let entry = match pending {
+            Pending::Batch(touched) => {
+                let mut out = Vec::with_capacity(touched.len());
+                for k in touched {
+                    let v = db.get(&k)?.map(|v| v.to_vec());
+                    out.push((k, v));
+                }
+                Entry::Batch(out)
+            }
+            Pending::Snapshot => {
+                self.snapshot(db, seq)?;
+                Entry::Snapshot
+            }
+        };
+        // Written at most once: a writer that crashed after its PUT went through finds it
+        // there, made from the same keys.
+        self.pack
+            .put_new(&log_name(seq), seal(&encode(&(seq, entry))?))
+            .map_err(io)?;
+        lock(&self.state).1 = true;
+        if seq % self.every == 0 && !whole {
+            if let Err(e) = self.snapshot(db, seq) {
+                // Replicas apply more logs until the next one; nothing is lost.
+                tracing::warn!(error = %e, "could not write a snapshot for replicas");
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes the snapshot of commit `seq` (the database as it is now), and deletes what the
+    /// two newest snapshots make unneeded.
+    fn snapshot(&self, db: &sled::Db, seq: u64) -> Result<(), StoreError> {
+        let mut keys = Vec::new();
+        for kv in db.iter() {
+            let (k, v) = kv?;
+            if !own(&k) {
+                keys.push((k.to_vec(), v.to_vec()));
+            }
+        }
+        let bytes = seal(&encode(&Snapshot { seq, keys })?);
+        self.pack
+            .put_whole(&snapshot_name(seq), bytes)
+            .map_err(io)?;
+        let snapshots = numbers(&self.pack.list_names(SNAPSHOTS).map_err(io)?, ".snap");
+        if snapshots.len() > 2 {
+            let keep_from = snapshots[snapshots.len() - 2].0;
+            for &(s, _) in snapshots.iter().filter(|(s, _)| *s < keep_from) {
+                self.pack.delete_named(&snapshot_name(s)).map_err(io)?;
+            }
+            let logs = numbers(&self.pack.list_names(LOGS).map_err(io)?, ".log");
+            for &(s, _) in logs.iter().filter(|(s, _)| *s <= keep_from) {
+                self.pack.delete_named(&log_name(s)).map_err(io)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What is wrong with a recorded `meta/log_pending`, if anything.
+pub(super) fn pending_problem(v: &[u8]) -> Option<String> {
+    decode::<Pending>(v, "meta/log_pending")
+        .err()
+        .map(|e| e.to_string())
+}
+
+/// Marks, in a batch that rewrites the database whole, that the next commit is a snapshot.
+pub(super) fn stage_rewrite(batch: &mut sled::Batch, seq: u64) -> Result<(), StoreError> {
+    batch.insert(keys::LOG_SEQ, &(seq + 1).to_le_bytes()[..]);
+    batch.insert(keys::LOG_PENDING, encode(&Pending::Snapshot)?);
+    Ok(())
+}
+
+/// Where a replica stands.
+#[derive(Clone, Debug, Default)]
+pub struct Following {
+    /// The place it follows.
+    pub url: String,
+    /// The newest commit it applied.
+    pub applied: u64,
+    /// The newest commit it has seen published.
+    pub published: u64,
+    /// How long ago the oldest commit it has not applied yet was published; zero when it has
+    /// applied all it saw.
+    pub lag: Duration,
+    /// When it last asked the object store, as Unix milliseconds.
+    pub polled_ms: u64,
+}
+
+/// The replica's side: the database it keeps is the writer's, as of the newest commit it
+/// applied.
+pub(super) struct Follower {
+    pack: Arc<ObjectPack>,
+    state: Mutex<Following>,
+}
+
+impl Follower {
+    /// Starts a replica's database `db` from the newest snapshot at `pack` and applies the
+    /// logs after it. `db` must be empty or a replica's of the same place: a replica never
+    /// writes over a database that is a store's own.
+    pub(super) fn start(
+        pack: Arc<ObjectPack>,
+        db: &sled::Db,
+        dir: &Path,
+    ) -> Result<Follower, StoreError> {
+        match db.get(keys::FOLLOWS)? {
+            Some(url) if url.as_ref() == pack.url().as_bytes() => {}
+            Some(url) => {
+                return Err(StoreError::Invalid(format!(
+                    "{} is a replica of {}, not of {}: give each replica a directory of its own",
+                    dir.display(),
+                    String::from_utf8_lossy(&url),
+                    pack.url()
+                )))
+            }
+            None if db.iter().next().is_some() => {
+                return Err(StoreError::Invalid(format!(
+                    "{} holds a store of its own: a replica needs an empty data_dir, which it \
+                     fills from {}",
+                    dir.display(),
+                    pack.url()
+                )))
+            }
+            None => {}
+        }
+        let f = Follower {
+            state: Mutex::new(Following {
+                url: pack.url().to_string(),
+                ..Following::default()
+            }),
+            pack,
+        };
+        let Some(newest) = f.newest_snapshot()? else {
+            return Err(StoreError::Io(std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                format!(
+                    "{} has no snapshot yet: its writer writes one when it first opens",
+                    f.pack.url()
+                ),
+            )));
+        };
+        let at = seq_of(db)?;
+        if db.get(keys::FOLLOWS)?.is_none() || at < newest {
+            f.reset(db, newest)?;
+        }
+        lock(&f.state).applied = seq_of(db)?;
+        f.catch_up(db)?;
+        Ok(f)
+    }
+
+    pub(super) fn following(&self) -> Following {
+        lock(&self.state).clone()
+    }
+
+    fn newest_snapshot(&self) -> Result<Option<u64>, StoreError> {
+        let names = self.pack.list_names(SNAPSHOTS).map_err(io)?;
+        Ok(numbers(&names, ".snap").last().map(|(s, _)| *s))
+    }
+
+    /// Makes `db` the snapshot of commit `seq`, in one batch.
+    fn reset(&self, db: &sled::Db, seq: u64) -> Result<(), StoreError> {
+        let name = snapshot_name(seq);
+        let bytes = self.pack.get(&name).map_err(io)?.ok_or_else(|| {
+            StoreError::Io(std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                format!("{}/{name} went while it was being read", self.pack.url()),
+            ))
+        })?;
+        let what = format!("{}/{name}", self.pack.url());
+        let raw = unseal(&bytes, LIMIT).map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))?;
+        let snap: Snapshot = decode(&raw, &what)?;
+        let mut batch = sled::Batch::default();
+        let fresh: std::collections::HashSet<&[u8]> =
+            snap.keys.iter().map(|(k, _)| k.as_slice()).collect();
+        for kv in db.iter() {
+            let (k, _) = kv?;
+            if !fresh.contains(k.as_ref()) {
+                batch.remove(k);
+            }
+        }
+        for (k, v) in &snap.keys {
+            batch.insert(k.as_slice(), v.as_slice());
+        }
+        batch.insert(keys::FOLLOWS, self.pack.url().as_bytes());
+        batch.insert(keys::LOG_SEQ, &snap.seq.to_le_bytes()[..]);
+        batch.remove(keys::LOG_PENDING);
+        db.apply_batch(batch)?;
+        db.flush()?;
+        lock(&self.state).applied = snap.seq;
+        Ok(())
+    }
+
+    /// Applies, in order, the commits published since the last call. Returns how many.
+    /// Stops at a commit not yet published: the logs are numbered without gaps, so one that
+    /// is missing while later ones are there was deleted behind a newer snapshot, which the
+    /// replica then starts again from.
+    pub(super) fn catch_up(&self, db: &sled::Db) -> Result<u64, StoreError> {
+        let polled_ms = now_ms();
+        let logs = numbers(&self.pack.list_names(LOGS).map_err(io)?, ".log");
+        let start = lock(&self.state).applied;
+        let mut applied = start;
+        let published = logs.last().map_or(applied, |(s, _)| (*s).max(applied));
+        // The segments the new commits name were written before their logs.
+        if published > applied {
+            self.pack.refresh().map_err(io)?;
+        }
+        for &(seq, _) in logs.iter().filter(|(s, _)| *s > start) {
+            if seq != applied + 1 {
+                match self.newest_snapshot()? {
+                    Some(s) if s > applied => {
+                        self.reset(db, s)?;
+                        applied = s;
+                        if seq <= applied {
+                            continue;
+                        }
+                        if seq != applied + 1 {
+                            break;
+                        }
+                    }
+                    _ => break,
+                }
+            }
+            let name = log_name(seq);
+            let what = format!("{}/{name}", self.pack.url());
+            let Some(bytes) = self.pack.get(&name).map_err(io)? else {
+                break;
+            };
+            let raw =
+                unseal(&bytes, LIMIT).map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))?;
+            let (n, entry): (u64, Entry) = decode(&raw, &what)?;
+            if n != seq {
+                return Err(StoreError::Corrupt(format!("{what} holds commit {n}")));
+            }
+            match entry {
+                Entry::Batch(writes) => {
+                    let mut batch = sled::Batch::default();
+                    for (k, v) in writes {
+                        match v {
+                            Some(v) => batch.insert(k, v),
+                            None => batch.remove(k),
+                        }
+                    }
+                    batch.insert(keys::LOG_SEQ, &seq.to_le_bytes()[..]);
+                    db.apply_batch(batch)?;
+                    db.flush()?;
+                }
+                Entry::Snapshot => self.reset(db, seq)?,
+            }
+            applied = seq;
+            lock(&self.state).applied = seq;
+        }
+        let lag = logs
+            .iter()
+            .find(|(s, _)| *s > applied)
+            .map_or(Duration::ZERO, |(_, at)| {
+                Duration::from_millis(polled_ms.saturating_sub(*at))
+            });
+        let mut st = lock(&self.state);
+        st.published = published;
+        st.lag = lag;
+        st.polled_ms = polled_ms;
+        Ok(applied - start)
+    }
+
+    /// The error that refuses a write, naming the writer that holds the lease now.
+    pub(super) fn refusal(&self) -> StoreError {
+        StoreError::Replica {
+            url: self.pack.url().to_string(),
+            writer: self.pack.writer().map(|h| h.holder),
+        }
+    }
+
+    pub(super) fn pack(&self) -> Arc<ObjectPack> {
+        self.pack.clone()
+    }
+}
+
+fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+impl Store {
+    /// Where this replica stands; `None` unless the store is one.
+    pub fn following(&self) -> Option<Following> {
+        match &self.replication {
+            Replication::Follower(f) => Some(f.following()),
+            _ => None,
+        }
+    }
+
+    /// The newest commit of the journal replicas follow; `None` on the local pack.
+    pub fn commit_seq(&self) -> Option<u64> {
+        match &self.replication {
+            Replication::Writer(j) => Some(j.seq()),
+            Replication::Follower(f) => Some(f.following().applied),
+            Replication::None => None,
+        }
+    }
+
+    /// On a replica, applies the commits published since the last call and, if there were
+    /// any, reads back what the index is restored from. `None` when nothing changed.
+    pub fn catch_up(&mut self) -> Result<Option<Contents>, StoreError> {
+        let Replication::Follower(f) = &self.replication else {
+            return Ok(None);
+        };
+        if f.catch_up(&self.db)? == 0 {
+            return Ok(None);
+        }
+        *write(&self.crs) = (
+            self.db
+                .get(keys::CRS)?
+                .map(|v| decode_crs(&v, "meta/crs", Crs::parse))
+                .transpose()?,
+            self.db
+                .get(keys::VERTICAL_CRS)?
+                .map(|v| decode_crs(&v, "meta/vertical_crs", VerticalCrs::parse))
+                .transpose()?,
+        );
+        self.load().map(Some)
+    }
+
+    /// Whether this store is a replica, which writes nothing.
+    pub fn is_replica(&self) -> bool {
+        matches!(self.replication, Replication::Follower(_))
+    }
+
+    /// The error a replica refuses writes with; `None` on a writer.
+    pub fn refusal(&self) -> Option<StoreError> {
+        match &self.replication {
+            Replication::Follower(f) => Some(f.refusal()),
+            _ => None,
+        }
+    }
+}

@@ -1,0 +1,246 @@
+//! Where chunk bytes live: an append-only pack file beside the database, behind a small trait
+//! so that another backend, an object store ([`super::objects`]), can take its place.
+//!
+//! sled keeps, for every chunk, where its bytes are ([`Loc`]), and how far the pack is
+//! committed (`meta/pack_len`). A commit appends its chunks and syncs them before the sled
+//! batch that points at them is applied, so a crash between the two leaves only bytes past the
+//! committed length, which the next open cuts off. Chunks of retired surveys stay in the pack
+//! until compaction writes a new one with the live chunks alone.
+//!
+//! Why not in sled: sled 0.34 keeps values of this size at two to three times their bytes on
+//! disk, and compacting it grows it further (docs/BENCHMARKS.md, "Store size"); a pack holds
+//! each chunk once.
+
+use patchwork_core::sync::lock;
+use std::fs::{File, OpenOptions};
+use std::io;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+/// The pack's file name inside the store's directory.
+pub const PACK_FILE: &str = "chunks.pack";
+
+/// Where a chunk's bytes are in the pack.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Loc {
+    pub offset: u64,
+    pub len: u32,
+}
+
+impl Loc {
+    pub const BYTES: usize = 12;
+
+    pub fn to_bytes(self) -> [u8; Self::BYTES] {
+        let mut b = [0u8; Self::BYTES];
+        b[..8].copy_from_slice(&self.offset.to_le_bytes());
+        b[8..].copy_from_slice(&self.len.to_le_bytes());
+        b
+    }
+
+    pub fn from_bytes(b: &[u8]) -> Option<Loc> {
+        (b.len() == Self::BYTES).then(|| Loc {
+            offset: u64::from_le_bytes(b[..8].try_into().expect("8 bytes")),
+            len: u32::from_le_bytes(b[8..].try_into().expect("4 bytes")),
+        })
+    }
+
+    pub fn end(&self) -> u64 {
+        self.offset + self.len as u64
+    }
+}
+
+/// A place to keep chunk bytes: appended in commits, read by location.
+pub trait ChunkStore: Send + Sync + std::fmt::Debug {
+    /// The bytes at `loc`.
+    fn read(&self, loc: Loc) -> io::Result<Vec<u8>>;
+    /// Appends chunks and makes them durable; returns where each went.
+    fn append(&self, chunks: &[Vec<u8>]) -> io::Result<Vec<Loc>>;
+    /// Bytes written so far, committed or not.
+    fn len(&self) -> u64;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// The bytes at each of `locs`, in order. An object store fetches the neighbouring ones
+    /// of a segment together.
+    fn read_many(&self, locs: &[Loc]) -> Vec<io::Result<Vec<u8>>> {
+        locs.iter().map(|&l| self.read(l)).collect()
+    }
+    /// Where the bytes are, for messages: a file's path, or an object store's URL.
+    fn describe(&self) -> String;
+    /// Committed bytes the backend found missing when it opened.
+    fn lost(&self) -> u64 {
+        0
+    }
+    /// Whether reading every chunk back is cheap, as from a local disk: an open then checks
+    /// every chunk's checksum. Over a network it checks that each location is held
+    /// ([`ChunkStore::holds`]), and leaves the checksums to each read and to `verify`.
+    fn local(&self) -> bool {
+        true
+    }
+    /// Whether the bytes at `loc` are there to read, as far as the backend knows without
+    /// reading them.
+    fn holds(&self, loc: Loc) -> bool {
+        loc.end() <= self.len()
+    }
+}
+
+/// Bytes of chunks an append writes at a time.
+const RUN_BYTES: usize = 1 << 20;
+
+/// The pack file.
+#[derive(Debug)]
+pub struct PackFile {
+    file: File,
+    path: PathBuf,
+    /// The end of the file: where the next append goes. Appends take it in turn.
+    end: Mutex<u64>,
+    /// Committed bytes missing from the end of the file when it was opened.
+    lost: u64,
+}
+
+impl PackFile {
+    /// Opens the pack in `dir`, made if missing, cut back to `committed` bytes: anything past
+    /// that was appended by a commit that never reached the database.
+    ///
+    /// A pack shorter than `committed` has lost bytes that records point at (a truncated copy,
+    /// a damaged disk): it opens all the same, so that the surveys whose bytes are still there
+    /// are served, and appends go on at `committed`, past a hole, so that the lost locations
+    /// never hold another survey's bytes. [`PackFile::lost`] says how much is gone.
+    pub fn open(dir: &Path, committed: u64) -> io::Result<PackFile> {
+        let path = dir.join(PACK_FILE);
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)?;
+        let len = file.metadata()?.len();
+        if len > committed {
+            file.set_len(committed)?;
+            file.sync_all()?;
+        }
+        Ok(PackFile {
+            file,
+            path,
+            end: Mutex::new(committed),
+            lost: committed.saturating_sub(len),
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl ChunkStore for PackFile {
+    fn read(&self, loc: Loc) -> io::Result<Vec<u8>> {
+        let mut buf = vec![0u8; loc.len as usize];
+        self.file.read_exact_at(&mut buf, loc.offset)?;
+        Ok(buf)
+    }
+
+    fn append(&self, chunks: &[Vec<u8>]) -> io::Result<Vec<Loc>> {
+        let mut end = lock(&self.end);
+        let mut at = *end;
+        let mut locs = Vec::with_capacity(chunks.len());
+        // Chunks go out in runs of about a megabyte through one buffer: a survey's whole pack
+        // (44 MB for a 3600² tile) gathered into one buffer first cost its allocation, its
+        // pages faulted in and a copy, for one write call.
+        let mut buf = Vec::with_capacity(RUN_BYTES);
+        let mut written = Ok(());
+        let mut run = at;
+        for c in chunks {
+            locs.push(Loc {
+                offset: at,
+                len: c.len() as u32,
+            });
+            at += c.len() as u64;
+            if !buf.is_empty() && buf.len() + c.len() > RUN_BYTES {
+                written = written.and_then(|()| self.file.write_all_at(&buf, run));
+                run += buf.len() as u64;
+                buf.clear();
+            }
+            buf.extend_from_slice(c);
+        }
+        let written = written
+            .and_then(|()| self.file.write_all_at(&buf, run))
+            .and_then(|()| self.file.sync_data());
+        if let Err(e) = written {
+            // Whatever part landed is past the committed length, and is cut at the next open.
+            let _ = self.file.set_len(*end);
+            return Err(e);
+        }
+        *end = at;
+        Ok(locs)
+    }
+
+    fn len(&self) -> u64 {
+        *lock(&self.end)
+    }
+
+    fn describe(&self) -> String {
+        self.path.display().to_string()
+    }
+
+    /// Bytes the database says were committed that the file no longer holds.
+    fn lost(&self) -> u64 {
+        self.lost
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_append_larger_than_a_run_reads_back_chunk_by_chunk() {
+        let tmp = tempfile::tempdir().unwrap();
+        let p = PackFile::open(tmp.path(), 0).unwrap();
+        // Chunks of many sizes, one larger than a run by itself, spanning several runs.
+        let chunks: Vec<Vec<u8>> = (0..40u32)
+            .map(|k| {
+                let n = if k == 7 {
+                    RUN_BYTES + 3
+                } else {
+                    (k as usize * 7919) % 200_000
+                };
+                (0..n).map(|i| (i as u32 ^ k) as u8).collect()
+            })
+            .collect();
+        let locs = p.append(&chunks).unwrap();
+        let total: usize = chunks.iter().map(Vec::len).sum();
+        assert!(total > 3 * RUN_BYTES);
+        assert_eq!(p.len(), total as u64);
+        for (c, l) in chunks.iter().zip(&locs) {
+            assert_eq!(&p.read(*l).unwrap(), c);
+        }
+    }
+
+    #[test]
+    fn appends_read_back_and_an_uncommitted_tail_is_cut() {
+        let tmp = tempfile::tempdir().unwrap();
+        let p = PackFile::open(tmp.path(), 0).unwrap();
+        let locs = p.append(&[b"abc".to_vec(), b"defgh".to_vec()]).unwrap();
+        assert_eq!(locs[1], Loc { offset: 3, len: 5 });
+        assert_eq!(p.read(locs[1]).unwrap(), b"defgh");
+        assert_eq!(Loc::from_bytes(&locs[1].to_bytes()), Some(locs[1]));
+        drop(p);
+        // Only the first chunk was committed.
+        let p = PackFile::open(tmp.path(), 3).unwrap();
+        assert_eq!(p.len(), 3);
+        assert_eq!(std::fs::metadata(p.path()).unwrap().len(), 3);
+        let locs = p.append(&[b"xy".to_vec()]).unwrap();
+        assert_eq!(locs[0].offset, 3);
+        // A pack shorter than what was committed opens, says how much is gone, and appends
+        // past the hole, so that no lost location is ever reused.
+        drop(p);
+        let p = PackFile::open(tmp.path(), 100).unwrap();
+        assert_eq!(p.lost(), 95);
+        assert!(p.read(Loc { offset: 90, len: 4 }).is_err());
+        let locs = p.append(&[b"z".to_vec()]).unwrap();
+        assert_eq!(locs[0].offset, 100);
+        assert_eq!(p.read(locs[0]).unwrap(), b"z");
+        assert_eq!(p.read(Loc { offset: 3, len: 2 }).unwrap(), b"xy");
+    }
+}
