@@ -3,7 +3,8 @@
 use super::client::{call, collect, Client};
 use super::json::{PatchJson, QueryJson, SampleJson};
 use super::{achieved, numbers, rect, CutArgs, Fail, MeshArgs, QueryArgs, SampleArgs, TileArgs};
-use patchwork::engine::Engine;
+use patchwork::engine::{Engine, SampleRequest, TileRequest};
+use patchwork::serve::door::MeshAsk;
 use patchwork::serve::proto as pb;
 use patchwork::serve::{api, convert};
 use patchwork_core::mesh::encode;
@@ -92,6 +93,7 @@ pub async fn tile(args: TileArgs) -> Result<(), Fail> {
             let engine = engine.clone();
             tokio::task::spawn_blocking(move || {
                 let mut bands = Vec::new();
+                let req = TileRequest::try_from(&req)?;
                 api::tile_bands(&engine, &req, &Default::default(), &mut |b| {
                     bands.push(b);
                     true
@@ -159,7 +161,7 @@ pub async fn sample(args: SampleArgs) -> Result<(), Fail> {
     };
     let local = req.clone();
     let r = call!(&mut c, terrain.sample_heights(req), move |e: &Engine| {
-        api::sample_heights(e, &local, &Default::default())
+        api::sample_heights(e, &SampleRequest::try_from(&local)?, &Default::default())
     })?;
     let height = |k: usize| (r.valid.get(k) == Some(&1)).then(|| r.heights[k]);
     if json {
@@ -223,7 +225,7 @@ pub async fn mesh(args: MeshArgs) -> Result<(), Fail> {
     };
     let local = req.clone();
     let m = call!(&mut c, terrain.mesh_tile(req), move |e: &Engine| {
-        api::mesh_tile(e, &local, &Default::default())
+        api::mesh_tile(e, &MeshAsk::try_from(&local)?, &Default::default())
     })?;
     let (mesh, tile) = convert::mesh_of(&m)?;
     let bytes = match kind {

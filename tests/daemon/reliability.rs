@@ -7,7 +7,9 @@ use crate::common;
 
 use common::daemon::crop;
 use patchwork::config::{Config, OnDelete};
-use patchwork::engine::{Cut, Engine, EngineError, Origin, Outcome, REFUSED_PATH};
+use patchwork::engine::{
+    Ctx, Cut, Engine, EngineError, Origin, Outcome, TileRequest, REFUSED_PATH,
+};
 use patchwork::serve::status::to_status;
 use patchwork::store::{DiskSpace, Status, StoreError};
 use patchwork::watch::Reconciler;
@@ -201,8 +203,13 @@ impl DiskSpace for FakeDisk {
 }
 
 fn tile(e: &Engine, roi: Aabb) -> Vec<u32> {
-    let cut = Cut::Uniform { roi, error: 0.0 };
-    let (t, _) = e.tile(&cut, 64, 64, Backend::Cpu).unwrap();
+    let cut = Cut::new(None, roi, 0.0).unwrap();
+    let (t, _) = e
+        .tile(
+            &TileRequest::new(cut.clone(), 64, 64, Backend::Cpu).unwrap(),
+            Ctx::default(),
+        )
+        .unwrap();
     t.heights.iter().map(|h| h.to_bits()).collect()
 }
 
@@ -387,7 +394,10 @@ fn rewrite_keeping_mtime(p: &Path, bytes: &[u8], mtime: std::time::SystemTime) {
 fn height_at_centre(e: &Engine) -> f64 {
     let roi = Aabb::new(650_000.0, 4_900_000.0, 651_200.0, 4_901_200.0);
     let t = e
-        .tile(&Cut::Uniform { roi, error: 0.0 }, 1, 1, Backend::Cpu)
+        .tile(
+            &TileRequest::new(Cut::new(None, roi, 0.0).unwrap(), 1, 1, Backend::Cpu).unwrap(),
+            Ctx::default(),
+        )
         .unwrap();
     t.0.heights[0] as f64
 }

@@ -7,7 +7,7 @@
 use crate::common;
 
 use patchwork::config::Config;
-use patchwork::engine::{Cut, Engine, Origin};
+use patchwork::engine::{Ctx, Cut, Engine, Origin, SampleRequest, TileRequest};
 use patchwork_core::crs::{Crs, Reprojection, Transform};
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::IndexConfig;
@@ -122,7 +122,8 @@ fn engine(tmp: &Path, crs: &str, crops: &[(&str, Option<f64>)]) -> Arc<Engine> {
 
 /// The tile of `cut`, and the largest error of the patches blended.
 fn engine_tile(e: &Engine, cut: &Cut, width: u32, height: u32) -> (Vec<f32>, f64) {
-    let (t, _) = e.tile(cut, width, height, Backend::Cpu).unwrap();
+    let req = TileRequest::new(cut.clone(), width, height, Backend::Cpu).unwrap();
+    let (t, _) = e.tile(&req, Ctx::default()).unwrap();
     let max = t.patches.iter().map(|p| p.span.min_z).fold(0.0, f64::max);
     (t.heights, max)
 }
@@ -154,11 +155,7 @@ fn surveys_in_their_own_crs_come_back_as_their_samples_from_a_geographic_store()
         let (samples, cols, rows, roi, crs) = source(name);
         // A tile in the survey's own CRS whose pixels are the survey's: its samples sit on the
         // survey's, carried into the store and back.
-        let cut = Cut::UniformIn {
-            crs: crs.clone(),
-            roi,
-            error: 0.0,
-        };
+        let cut = Cut::new(Some(crs.clone()), roi, 0.0).unwrap();
         let (heights, _) = engine_tile(&e, &cut, cols as u32, rows as u32);
         let (mut worst, mut lost, mut valid) = (0.0f32, 0, 0);
         for (z, s) in heights.iter().zip(&samples) {
@@ -185,9 +182,8 @@ fn surveys_in_their_own_crs_come_back_as_their_samples_from_a_geographic_store()
                 ]
             })
             .collect();
-        let at = e
-            .sample_in(&pts, Some(&crs), 0.0, &Default::default())
-            .unwrap();
+        let at = SampleRequest::new(pts, Some(crs.clone()), 0.0).unwrap();
+        let at = e.sample(&at, Ctx::default()).unwrap();
         for (k, z) in (0..cols * rows).step_by(97).zip(&at) {
             assert_eq!(z.to_bits(), heights[k].to_bits(), "{name}: point {k}");
         }
@@ -290,7 +286,7 @@ fn tiles_across_crss_agree_with_gdal_within_their_error() {
         // (docs/MODEL.md, "Resampling"); below, within the error of what serves each point.
         let eps = t.surveys().map(|s| s.accuracy).fold(0.0, f64::max);
         for err in [eps, 2.0 * eps + 20.0] {
-            let cut = Cut::Uniform { roi, error: err };
+            let cut = Cut::new(None, roi, err).unwrap();
             let (ours, max_error) = engine_tile(&e, &cut, 120, 120);
             let gdal: Vec<_> = [geo, utm]
                 .iter()
@@ -324,11 +320,7 @@ fn a_web_mercator_tile_agrees_with_gdalwarp() {
     // The middle third, finer than the surveys (see above).
     let roi = middle(&Aabb::new(a[0], a[1], b[0], b[1]), 0.35);
     let eps = t.surveys().map(|s| s.accuracy).fold(0.0, f64::max);
-    let cut = Cut::UniformIn {
-        crs: merc,
-        roi,
-        error: eps,
-    };
+    let cut = Cut::new(Some(merc), roi, eps).unwrap();
     let (ours, max_error) = engine_tile(&e, &cut, 160, 160);
     let gdal: Vec<_> = [cop, nasa]
         .iter()
@@ -433,7 +425,7 @@ fn a_survey_taken_as_exact_is_gdals_warp_of_it_to_a_millimetre() {
             c[0] + cell * w as f64 / 2.0,
             c[1] + cell * h as f64 / 2.0,
         );
-        let cut = Cut::Uniform { roi, error: 0.0 };
+        let cut = Cut::new(None, roi, 0.0).unwrap();
         let (ours, _) = engine_tile(&e, &cut, w as u32, h as u32);
         let (gdal, plain) = gdal_warp(name, store, &roi, w, h);
         let (mut worst, mut n) = (0.0f64, 0);

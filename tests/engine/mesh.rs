@@ -5,7 +5,7 @@
 use crate::common;
 
 use patchwork::config::Config;
-use patchwork::engine::{Engine, Origin};
+use patchwork::engine::{Backend, Ctx, Cut, Engine, Origin, TileRequest};
 use patchwork::serve::{api, convert, proto as pb};
 use patchwork_core::geom::Aabb;
 use patchwork_core::mesh::{edges, encode, Mesh};
@@ -85,24 +85,21 @@ fn shared(
 
 /// The mesh a request gets, as the message and as a mesh read back from it.
 fn run(engine: &Engine, req: &pb::MeshRequest) -> (Mesh, pb::Mesh) {
-    let m = api::mesh_tile(engine, req, &Default::default()).unwrap();
+    let ask = patchwork::serve::door::MeshAsk::try_from(req).unwrap();
+    let m = api::mesh_tile(engine, &ask, &Default::default()).unwrap();
     (convert::mesh_of(&m).unwrap().0, m)
 }
 
 /// The resampled heights the mesh was made from: the same tile `MeshTile` resamples.
 fn grid_heights(engine: &Engine, roi: &Aabb, error: f64, cols: usize, rows: usize) -> Vec<f32> {
-    let cut = patchwork::engine::Cut::Uniform {
-        roi: patchwork_core::mesh::pixel_roi(roi, cols, rows),
+    let cut = Cut::new(
+        None,
+        patchwork_core::mesh::pixel_roi(roi, cols, rows),
         error,
-    };
-    let (t, _) = engine
-        .tile(
-            &cut,
-            cols as u32,
-            rows as u32,
-            patchwork_core::resample::Backend::Cpu,
-        )
-        .unwrap();
+    )
+    .unwrap();
+    let req = TileRequest::new(cut, cols as u32, rows as u32, Backend::Cpu).unwrap();
+    let (t, _) = engine.tile(&req, Ctx::default()).unwrap();
     t.heights
 }
 

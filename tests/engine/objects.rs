@@ -3,7 +3,7 @@
 //! over, with the terrain unchanged; a store keeps the backend it was made with.
 
 use patchwork::config::{BackendKind, Config, Storage};
-use patchwork::engine::{Cut, Engine, Origin};
+use patchwork::engine::{Ctx, Cut, Engine, Origin, TileRequest};
 use patchwork_core::geom::Aabb;
 use patchwork_core::resample::Backend;
 use std::path::{Path, PathBuf};
@@ -46,13 +46,16 @@ fn compaction_on_an_object_store_moves_the_live_chunks_and_lets_the_old_segments
         max: [-118.90, 34.53],
     };
     let heights = |e: &Engine| {
-        e.tile(&Cut::Uniform { roi, error: 0.0 }, 64, 48, Backend::Cpu)
-            .unwrap()
-            .0
-            .heights
-            .iter()
-            .map(|h| h.to_bits())
-            .collect::<Vec<u32>>()
+        e.tile(
+            &TileRequest::new(Cut::new(None, roi, 0.0).unwrap(), 64, 48, Backend::Cpu).unwrap(),
+            Ctx::default(),
+        )
+        .unwrap()
+        .0
+        .heights
+        .iter()
+        .map(|h| h.to_bits())
+        .collect::<Vec<u32>>()
     };
     let e = Engine::open(cfg.clone()).unwrap();
     let mut ids = Vec::new();
@@ -110,7 +113,7 @@ fn answers(e: &Engine) -> Answers {
     };
     let mut patches = Vec::new();
     for error in [0.0, 8.0] {
-        let (_, ps) = e.query(&Cut::Uniform { roi, error }).unwrap();
+        let (_, ps) = e.query(&Cut::new(None, roi, error).unwrap()).unwrap();
         patches.extend(ps.iter().map(|p| {
             (
                 p.id.0,
@@ -121,7 +124,10 @@ fn answers(e: &Engine) -> Answers {
         }));
     }
     let heights = e
-        .tile(&Cut::Uniform { roi, error: 0.0 }, 64, 48, Backend::Cpu)
+        .tile(
+            &TileRequest::new(Cut::new(None, roi, 0.0).unwrap(), 64, 48, Backend::Cpu).unwrap(),
+            Ctx::default(),
+        )
         .unwrap()
         .0
         .heights

@@ -68,7 +68,7 @@ fn main() {
                 {
                     continue;
                 }
-                let cut = Cut::Uniform { roi, error: e };
+                let cut = Cut::new(None, roi, e).expect("a valid cut");
                 let reps = if only.is_some() {
                     60
                 } else if n == 2048 {

@@ -19,7 +19,7 @@ use patchwork_core::model::survey::Survey;
 use patchwork_core::resample::SampleGrid;
 use patchwork_core::terrain::Terrain;
 use patchwork_engine::config::Config;
-use patchwork_engine::{Backend, Cut, Engine, Origin};
+use patchwork_engine::{Backend, Ctx, Cut, Engine, Origin, TileRequest};
 use patchwork_read::{read_raster, write_npy, ReadLimits};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -385,22 +385,21 @@ pub fn run(out: &Path, smoke: bool, gdal: &mut Vec<GdalTile>) -> Result<Report, 
         // Below the surveys' ε (about 10 m), and above it where coarser levels serve.
         for err in [0.0, 20.0, 50.0] {
             let cut = if *to == store {
-                Cut::Uniform {
-                    roi: area,
-                    error: err,
-                }
+                Cut::new(None, area, err)?
             } else {
-                Cut::UniformIn {
-                    crs: to.clone(),
-                    roi: area,
-                    error: err,
-                }
+                Cut::new(Some(to.clone()), area, err).unwrap()
             };
             let mut times = Vec::new();
             let mut last = None;
             for _ in 0..repeats.max(1) + 2 {
                 let t0 = Instant::now();
-                last = Some(e.tile(&cut, size as u32, size as u32, Backend::Cpu)?.0);
+                last = Some(
+                    e.tile(
+                        &TileRequest::new(cut.clone(), size as u32, size as u32, Backend::Cpu)?,
+                        Ctx::default(),
+                    )?
+                    .0,
+                );
                 times.push(t0.elapsed().as_secs_f64() * 1e3);
             }
             let tile = last.expect("ran once");

@@ -2,7 +2,7 @@
 //! server sends beside the whole cut that a stateless client would fetch, at two speeds.
 
 use patchwork_core::geom::Aabb;
-use patchwork_engine::Engine;
+use patchwork_engine::{Camera, Cut, Engine};
 use patchwork_server::api::ViewSession;
 use patchwork_server::convert;
 use patchwork_server::proto as pb;
@@ -56,7 +56,7 @@ pub fn fly(engine: &Engine, over: &Aabb, frames: usize) -> Result<Vec<FlightRow>
                 pixel_error: 1.0,
             };
             let deltas = session.step(engine, &v).map_err(|e| e.to_string())?;
-            let cut = convert::view_cut(engine, &v).map_err(|e| e.to_string())?;
+            let cut = Cut::View(Camera::try_from(&v).map_err(|e| e.to_string())?);
             let (_, ps) = engine.query(&cut).map_err(|e| e.to_string())?;
             let patches: Vec<pb::Patch> = ps
                 .iter()

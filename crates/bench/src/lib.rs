@@ -224,10 +224,7 @@ pub fn run(opts: &Options) -> Result<Report, Fail> {
         let grid = SampleGrid::uniform(roi, tile_side, tile_side);
         let (lo, hi) = reference(&t, &grid);
         for &e in &errors_used {
-            let cut = Cut::Uniform {
-                roi: *roi,
-                error: e,
-            };
+            let cut = Cut::new(None, *roi, e)?;
             let (query_ms, (_, ps)) = timed(repeats, || engine.query(&cut).expect("query"));
             let wire_bytes = ps
                 .iter()
@@ -267,13 +264,9 @@ pub fn run(opts: &Options) -> Result<Report, Fail> {
                 write_npy(&opts.out.join(format!("tiles/{stem}_lo.npy")), n, n, &lo)?;
                 write_npy(&opts.out.join(format!("tiles/{stem}_hi.npy")), n, n, &hi)?;
                 for e in [0.0, 5.0, 20.0] {
+                    let cut = Cut::new(None, *roi, e)?;
                     let (ms, tile) = timed(repeats.min(3), || {
-                        let (_, ps) = engine
-                            .query(&Cut::Uniform {
-                                roi: *roi,
-                                error: e,
-                            })
-                            .expect("query");
+                        let (_, ps) = engine.query(&cut).expect("query");
                         t.resample(ps, &grid)
                     });
                     let file = format!("{stem}_e{e}.npy");

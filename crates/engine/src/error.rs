@@ -3,6 +3,7 @@
 //! status code in one place (`serve::status`).
 
 use crate::ingest::IngestError;
+use crate::request::BadRequest;
 use patchwork_core::model::survey::SurveyError;
 use patchwork_read::ReadError;
 use patchwork_store::StoreError;
@@ -31,6 +32,9 @@ pub enum EngineError {
     StoreFailed(String),
     #[error("{0}")]
     Store(#[from] StoreError),
+    /// The request is malformed: refused before any work (see [`crate::request`]).
+    #[error(transparent)]
+    Request(#[from] BadRequest),
     /// The caller gave up (its deadline passed) and the work stopped.
     #[error("the request was cancelled: its deadline passed")]
     Cancelled,
@@ -167,7 +171,7 @@ impl EngineError {
     /// What kind of failure this is, for clients to branch on.
     pub fn reason(&self) -> Reason {
         match self {
-            EngineError::Invalid(_) => Reason::InvalidRequest,
+            EngineError::Invalid(_) | EngineError::Request(_) => Reason::InvalidRequest,
             EngineError::TooLarge(_) => Reason::TooLarge,
             EngineError::NotFound(_) => Reason::NotFound,
             EngineError::Unavailable(_) => Reason::Unavailable,

@@ -16,6 +16,7 @@ pub mod config;
 pub mod gpu;
 pub mod ingest;
 pub mod paths;
+pub mod request;
 pub mod restore;
 pub mod watch;
 
@@ -35,6 +36,9 @@ pub use listing::{
 pub use patchwork_core::resample::Backend;
 pub use patchwork_read::REFUSED_PATH;
 pub use read::{Cut, MeshSpec, MeshTile, TileHead, MAX_MESH_SIZE};
+pub use request::{
+    BadRequest, Camera, Ctx, Made, Metres, Points, Region, SampleRequest, TileRequest, TileSize,
+};
 pub use route::Used;
 pub use write::{Event, Ingested, Origin, Outcome};
 
@@ -510,7 +514,8 @@ mod tests {
         assert!(matches!(e.compact(), Err(EngineError::StoreFailed(_))));
         assert!(e.read_only().unwrap().contains("Input/output error"));
         assert_eq!(e.stats().surveys, 0);
-        assert!(e.sample(&[[0.0, 0.0]], 0.0).is_ok());
+        let at = SampleRequest::new(vec![[0.0, 0.0]], None, 0.0).unwrap();
+        assert!(e.sample(&at, Ctx::default()).is_ok());
     }
 
     /// Engine over a fresh store whose inbox is `inbox`.
@@ -621,12 +626,9 @@ mod tests {
         let tile = {
             let e = e.clone();
             std::thread::spawn(move || {
-                let cut = Cut::Uniform {
-                    roi: bounds,
-                    error: 0.0,
-                };
-                e.tile(&cut, 64, 64, Backend::Auto)
-                    .map(|(t, _)| t.heights.len())
+                let cut = Cut::new(None, bounds, 0.0).unwrap();
+                let req = TileRequest::new(cut, 64, 64, Backend::Auto).unwrap();
+                e.tile(&req, Ctx::default()).map(|(t, _)| t.heights.len())
             })
         };
         let t0 = std::time::Instant::now();

@@ -2,8 +2,9 @@
 //! writer. Requests are checked here (regions, errors, sizes against the limits) before any
 //! work starts, and long work stops once its [`Cancel`] is set.
 
+use super::request::{Camera, Ctx, Made, Metres, Region, SampleRequest, TileRequest};
 use super::route::Used;
-use super::{Engine, EngineError};
+use super::{BadRequest, Engine, EngineError};
 use patchwork_core::crs::{Crs, Reprojection};
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Extracted, Metric, Shortfall, ViewQuery};
@@ -14,35 +15,55 @@ use patchwork_core::terrain::{tile_shortfall, view_grid, Terrain, Tile};
 use patchwork_store::StoreError;
 use std::sync::Arc;
 
-/// A query's cut through LOD space.
+/// A query's cut through LOD space, made of checked parts.
 #[derive(Clone, Debug)]
 pub enum Cut {
     /// Over a rectangle of the store's CRS.
     Uniform {
-        roi: Aabb,
-        error: f64,
+        /// The rectangle.
+        roi: Region,
+        /// The largest error allowed.
+        error: Metres,
     },
     /// Over a rectangle of another CRS: a tile of it is resampled at its own sample
     /// positions, carried into the store's.
     UniformIn {
+        /// The rectangle's CRS.
         crs: Crs,
-        roi: Aabb,
-        error: f64,
+        /// The rectangle.
+        roi: Region,
+        /// The largest error allowed.
+        error: Metres,
     },
-    View(ViewQuery),
+    /// Through a camera, in the store's CRS: the error allowed grows with the distance.
+    View(Camera),
 }
 
 impl Cut {
+    /// A uniform cut over `roi` of `crs` (None for the store's).
+    pub fn uniform(crs: Option<Crs>, roi: Region, error: Metres) -> Cut {
+        match crs {
+            Some(crs) => Cut::UniformIn { crs, roi, error },
+            None => Cut::Uniform { roi, error },
+        }
+    }
+
+    /// A uniform cut over `roi` of `crs` (None for the store's) at `error` metres, or why
+    /// not.
+    pub fn new(crs: Option<Crs>, roi: Aabb, error: f64) -> Result<Cut, BadRequest> {
+        Ok(Cut::uniform(crs, Region::new(roi)?, Metres::error(error)?))
+    }
+
     /// The error a uniform cut is made at; None for a view's, which varies over it.
     pub fn error(&self) -> Option<f64> {
         match self {
-            Cut::Uniform { error, .. } | Cut::UniformIn { error, .. } => Some(*error),
+            Cut::Uniform { error, .. } | Cut::UniformIn { error, .. } => Some(error.get()),
             Cut::View(_) => None,
         }
     }
 
     /// The same cut at another error; a view's is kept as it is.
-    fn at_error(&self, e: f64) -> Cut {
+    fn at_error(&self, e: Metres) -> Cut {
         let mut c = self.clone();
         if let Cut::Uniform { error, .. } | Cut::UniformIn { error, .. } = &mut c {
             *error = e;
@@ -69,21 +90,25 @@ pub const FILL_STEPS: usize = 5;
 /// A mesh asked of a uniform cut.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MeshSpec {
-    /// The tile the grid spans, and the cut's error in metres.
-    pub roi: Aabb,
-    pub error: f64,
-    /// Grid vertices a row, and rows: 2 to [`MAX_MESH_SIZE`] each.
+    /// The tile the grid spans.
+    pub roi: Region,
+    /// The cut's error.
+    pub error: Metres,
+    /// Grid vertices a row: 2 to [`MAX_MESH_SIZE`].
     pub cols: usize,
+    /// Rows of vertices: 2 to [`MAX_MESH_SIZE`].
     pub rows: usize,
     /// How far the triangles may depart from the resampled heights at the grid's vertices.
-    pub mesh_error: f64,
+    pub mesh_error: Metres,
     /// Depth of the skirts under the border; 0 leaves them out.
-    pub skirt_m: f64,
+    pub skirt_m: Metres,
+    /// How the border's vertices are chosen.
     pub border: mesh::Border,
+    /// The triangulation.
     pub method: mesh::Method,
     /// How far the surface may be drawn over a void from the nearest measured vertex,
     /// metres (seed 004's horizontal error); 0 keeps holes exact.
-    pub hole_reach_m: f64,
+    pub hole_reach_m: Metres,
     /// The CRS of the ROI and of the vertices; None for the store's.
     pub crs: Option<Crs>,
     /// Whether void vertices are given heights (see [`Engine::fill_voids`], and 0 m where
@@ -128,25 +153,9 @@ impl Engine {
         }
     }
 
-    /// A view query as a client describes it, with the store's metric.
-    pub fn view_query(
-        &self,
-        eye: [f64; 3],
-        look: [f64; 3],
-        fov_deg: f64,
-        viewport_px: u32,
-        pixel_error: f64,
-    ) -> Result<ViewQuery, EngineError> {
-        let v = ViewQuery {
-            eye,
-            look,
-            fov_deg,
-            viewport_px,
-            pixel_error,
-            metric: self.metric_at(eye[1]),
-        };
-        v.validate().map_err(EngineError::Invalid)?;
-        Ok(v)
+    /// The view query of a camera, with the store's metric.
+    fn view_of(&self, c: &Camera) -> ViewQuery {
+        c.query(self.metric_at(c.eye()[1]))
     }
 
     /// The map from a CRS to the store's, None for the store's own: one per CRS, kept, so
@@ -175,15 +184,6 @@ impl Engine {
         }
         cache.insert(crs.clone(), r.clone());
         Ok(Some(r))
-    }
-
-    /// A CRS a request names: None for the store's own (or no CRS named).
-    pub fn request_crs(&self, text: &str) -> Result<Option<Crs>, EngineError> {
-        if text.trim().is_empty() {
-            return Ok(None);
-        }
-        let c = Crs::parse(text).map_err(|e| EngineError::Invalid(format!("crs: {e}")))?;
-        Ok((Some(&c) != self.crs().as_ref()).then_some(c))
     }
 
     /// The store-plane bounds of a rectangle of another CRS: its border carried over.
@@ -246,7 +246,7 @@ impl Engine {
             let (t, ps) = self.patches_of(&cut)?;
             match cut.error() {
                 Some(e) if ps.len() as u64 > most && e < top => {
-                    cut = cut.at_error((e * 4.0).clamp(0.01, top));
+                    cut = cut.at_error(Metres::error((e * 4.0).clamp(0.01, top))?);
                 }
                 _ => {
                     self.within_max_patches(ps.len())?;
@@ -270,106 +270,63 @@ impl Engine {
     fn patches_of(&self, cut: &Cut) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
         let t = self.snapshot();
         let ps = match cut {
-            Cut::Uniform { roi, error } => {
-                check_roi(roi)?;
-                check_error(*error)?;
-                t.uniform(roi, *error)
-            }
+            Cut::Uniform { roi, error } => t.uniform(roi.aabb(), error.get()),
             Cut::UniformIn { crs, roi, error } => {
-                check_roi(roi)?;
-                check_error(*error)?;
-                t.uniform(&self.store_roi(crs, roi)?, *error)
+                t.uniform(&self.store_roi(crs, roi.aabb())?, error.get())
             }
-            Cut::View(v) => {
-                v.validate().map_err(EngineError::Invalid)?;
-                t.view(v)
-            }
+            Cut::View(c) => t.view(&self.view_of(c)),
         };
         Ok((t, ps))
     }
 
     /// A resampled tile.
-    pub fn tile(
-        &self,
-        cut: &Cut,
-        width: u32,
-        height: u32,
-        backend: Backend,
-    ) -> Result<(Tile, Used), EngineError> {
-        self.tile_until(cut, width, height, backend, &Cancel::default())
+    pub fn tile(&self, req: &TileRequest, ctx: Ctx) -> Result<(Tile, Used), EngineError> {
+        let (mut heights, mut shortfall) = (Vec::new(), None);
+        let rows = req.size.height() as usize;
+        let (patches, used) = self.bands(req, ctx, rows, &mut |head, _, band| {
+            heights = band;
+            shortfall = head.shortfall;
+            true
+        })?;
+        let tile = Tile {
+            width: req.size.width() as usize,
+            height: req.size.height() as usize,
+            heights,
+            patches,
+            shortfall,
+        };
+        Ok((tile, used))
     }
 
     /// A mesh of a uniform cut: the resampled heights at the corners of a `cols × rows` grid
     /// of vertices over the ROI (a tile over the ROI grown by half a cell, whose pixel
-    /// centres fall on them), triangulated as `spec` says.
-    pub fn mesh_until(
+    /// centres fall on them), triangulated as `spec` says. A cut made already in `ctx` is
+    /// [`Engine::query`] of [`Engine::mesh_cut`]`(spec)`.
+    pub fn mesh(
         &self,
         spec: &MeshSpec,
         backend: Backend,
-        cancel: &Cancel,
+        ctx: Ctx,
     ) -> Result<MeshTile, EngineError> {
-        self.mesh_from(spec, None, backend, cancel)
-    }
-
-    /// [`Engine::mesh_until`] of a cut already made: [`Engine::query`] of
-    /// [`Engine::mesh_cut`]`(spec)`.
-    pub fn mesh_of(
-        &self,
-        spec: &MeshSpec,
-        made: (Arc<Terrain>, Vec<Extracted>),
-        backend: Backend,
-        cancel: &Cancel,
-    ) -> Result<MeshTile, EngineError> {
-        self.mesh_from(spec, Some(made), backend, cancel)
-    }
-
-    /// The cut a mesh resamples: over the ROI grown by half a cell, whose pixel centres fall
-    /// on the grid's vertices.
-    pub fn mesh_cut(spec: &MeshSpec) -> Cut {
-        let pixels = mesh::pixel_roi(&spec.roi, spec.cols, spec.rows);
-        match &spec.crs {
-            Some(crs) => Cut::UniformIn {
-                crs: crs.clone(),
-                roi: pixels,
-                error: spec.error,
-            },
-            None => Cut::Uniform {
-                roi: pixels,
-                error: spec.error,
-            },
-        }
-    }
-
-    fn mesh_from(
-        &self,
-        spec: &MeshSpec,
-        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
-        backend: Backend,
-        cancel: &Cancel,
-    ) -> Result<MeshTile, EngineError> {
-        let (roi, cols, rows) = (spec.roi, spec.cols, spec.rows);
-        for (name, n) in [("columns", cols), ("rows", rows)] {
+        let (roi, cols, rows) = (*spec.roi.aabb(), spec.cols, spec.rows);
+        for (side, n) in [("columns", cols), ("rows", rows)] {
             if !(2..=MAX_MESH_SIZE).contains(&n) {
-                return Err(EngineError::Invalid(format!(
-                    "a mesh has 2 to {MAX_MESH_SIZE} {name}: got {n}"
-                )));
-            }
-        }
-        for (name, v) in [
-            ("mesh_error", spec.mesh_error),
-            ("skirt_m", spec.skirt_m),
-            ("hole_reach_m", spec.hole_reach_m),
-        ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(EngineError::Invalid(format!(
-                    "{name} must be a finite number of metres ≥ 0, got {v}"
-                )));
+                return Err(BadRequest::MeshSize {
+                    side,
+                    got: n,
+                    most: MAX_MESH_SIZE,
+                }
+                .into());
             }
         }
         let pixels = mesh::pixel_roi(&roi, cols, rows);
-        let cut = Self::mesh_cut(spec);
-        let (mut tile, used) =
-            self.tile_from(&cut, made, cols as u32, rows as u32, backend, cancel)?;
+        let cancel = ctx.cancel.clone();
+        let req = TileRequest {
+            cut: Self::mesh_cut(spec)?,
+            size: super::TileSize::new(cols as u32, rows as u32)?,
+            backend,
+        };
+        let (mut tile, used) = self.tile(&req, ctx)?;
         let mut voids = Vec::new();
         if spec.fill_voids {
             let grid = SampleGrid::uniform(&pixels, cols, rows);
@@ -377,8 +334,8 @@ impl Engine {
                 &mut tile.heights,
                 &grid,
                 spec.crs.as_ref(),
-                spec.error,
-                cancel,
+                spec.error.get(),
+                &cancel,
             )?;
             // Nothing near enough to fill from: no survey is there, and a globe shows its
             // ellipsoid.
@@ -386,7 +343,7 @@ impl Engine {
                 *h = 0.0;
             }
         }
-        let holes = if spec.hole_reach_m > 0.0 {
+        let holes = if spec.hole_reach_m.get() > 0.0 {
             let mid = (roi.min[1] + roi.max[1]) / 2.0;
             let scale = match &spec.crs {
                 Some(c) => match c.unit_m() {
@@ -396,7 +353,7 @@ impl Engine {
                 None => self.metric_at(mid).scale,
             };
             mesh::Holes::Reach {
-                reach: spec.hole_reach_m,
+                reach: spec.hole_reach_m.get(),
                 cell: [
                     roi.width() / (cols - 1) as f64 * scale[0],
                     roi.height() / (rows - 1) as f64 * scale[1],
@@ -406,7 +363,7 @@ impl Engine {
             mesh::Holes::Exact
         };
         let options = mesh::Options {
-            max_error: spec.mesh_error,
+            max_error: spec.mesh_error.get(),
             border: spec.border,
             method: spec.method,
             holes,
@@ -415,8 +372,8 @@ impl Engine {
             cancel.is_cancelled()
         })
         .ok_or(EngineError::Cancelled)?;
-        if spec.skirt_m > 0.0 {
-            mesh::add_skirts(&mut mesh, spec.skirt_m as f32);
+        if spec.skirt_m.get() > 0.0 {
+            mesh::add_skirts(&mut mesh, spec.skirt_m.get() as f32);
         }
         Ok(MeshTile {
             mesh,
@@ -426,6 +383,17 @@ impl Engine {
             shortfall: tile.shortfall,
             voids,
         })
+    }
+
+    /// The cut a mesh resamples: over the ROI grown by half a cell, whose pixel centres fall
+    /// on the grid's vertices.
+    pub fn mesh_cut(spec: &MeshSpec) -> Result<Cut, EngineError> {
+        let pixels = mesh::pixel_roi(spec.roi.aabb(), spec.cols, spec.rows);
+        Ok(Cut::uniform(
+            spec.crs.clone(),
+            Region::new(pixels)?,
+            spec.error,
+        ))
     }
 
     /// Fills the voids (NaN) of `heights`, a tile at `grid`'s positions (of `crs`, None for
@@ -477,7 +445,7 @@ impl Engine {
                 break;
             }
             coarser = (coarser * 8.0).min(top);
-            let found = self.sample_in(&points, None, coarser, cancel)?;
+            let found = self.sample_points(&points, None, coarser, cancel)?;
             let (mut left, mut at) = (Vec::new(), Vec::new());
             for ((&k, p), h) in todo.iter().zip(&points).zip(found) {
                 if h.is_nan() {
@@ -492,125 +460,53 @@ impl Engine {
         Ok(voids)
     }
 
-    /// A resampled tile of a cut already made (by [`Engine::query`] of the same `cut`), given
-    /// up once `cancel` is set: for a caller that looks at the patches first, to see whether
-    /// it has the tile already.
-    pub fn tile_of(
-        &self,
-        cut: &Cut,
-        made: (Arc<Terrain>, Vec<Extracted>),
-        width: u32,
-        height: u32,
-        backend: Backend,
-        cancel: &Cancel,
-    ) -> Result<(Tile, Used), EngineError> {
-        self.tile_from(cut, Some(made), width, height, backend, cancel)
-    }
-
-    /// A resampled tile, given up once `cancel` is set.
-    pub fn tile_until(
-        &self,
-        cut: &Cut,
-        width: u32,
-        height: u32,
-        backend: Backend,
-        cancel: &Cancel,
-    ) -> Result<(Tile, Used), EngineError> {
-        self.tile_from(cut, None, width, height, backend, cancel)
-    }
-
-    fn tile_from(
-        &self,
-        cut: &Cut,
-        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
-        width: u32,
-        height: u32,
-        backend: Backend,
-        cancel: &Cancel,
-    ) -> Result<(Tile, Used), EngineError> {
-        let (mut heights, mut shortfall) = (Vec::new(), None);
-        let (patches, used) = self.bands(
-            cut,
-            made,
-            width,
-            height,
-            backend,
-            height as usize,
-            cancel,
-            &mut |head, _, band| {
-                heights = band;
-                shortfall = head.shortfall;
-                true
-            },
-        )?;
-        let tile = Tile {
-            width: width as usize,
-            height: height as usize,
-            heights,
-            patches,
-            shortfall,
-        };
-        Ok((tile, used))
-    }
-
     /// A resampled tile in bands of about `rows` rows, top first: `sink` gets what the tile
     /// is, each band's first row and its heights, and says whether to go on. On the CPU a band
     /// goes to `sink` as soon as it is done, so that it can be sent while the next is worked
     /// out. Returns the patches blended and the backend that ran.
-    #[allow(clippy::too_many_arguments)]
-    pub fn tile_bands_until(
+    pub fn tile_bands(
         &self,
-        cut: &Cut,
-        width: u32,
-        height: u32,
-        backend: Backend,
+        req: &TileRequest,
+        ctx: Ctx,
         rows: usize,
-        cancel: &Cancel,
         sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
     ) -> Result<(Vec<Extracted>, Used), EngineError> {
-        self.bands(cut, None, width, height, backend, rows, cancel, sink)
+        self.bands(req, ctx, rows, sink)
     }
 
-    /// [`Engine::tile_bands_until`] of a cut made already, or made here when `made` is None.
-    #[allow(clippy::too_many_arguments)]
     fn bands(
         &self,
-        cut: &Cut,
-        made: Option<(Arc<Terrain>, Vec<Extracted>)>,
-        width: u32,
-        height: u32,
-        backend: Backend,
+        req: &TileRequest,
+        ctx: Ctx,
         rows: usize,
-        cancel: &Cancel,
         sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
     ) -> Result<(Vec<Extracted>, Used), EngineError> {
-        let n = width as u64 * height as u64;
-        if width == 0 || height == 0 {
-            return Err(EngineError::Invalid(
-                "tile width and height must be at least 1".into(),
-            ));
-        }
+        let (cut, backend, cancel) = (&req.cut, req.backend, &ctx.cancel);
+        let (width, height) = (req.size.width(), req.size.height());
+        let n = req.size.samples();
         let max = self.cfg.limits.max_tile_samples;
         if n > max {
             return Err(EngineError::TooLarge(format!(
                 "a {width}×{height} tile has {n} samples, more than the limit of {max}: ask for a smaller tile"
             )));
         }
-        let (t, ps) = match made {
+        let (t, ps): Made = match ctx.made {
             Some(m) => m,
             None => self.query(cut)?,
         };
         let grid = match cut {
-            Cut::Uniform { roi, .. } => SampleGrid::uniform(roi, width as usize, height as usize),
+            Cut::Uniform { roi, .. } => {
+                SampleGrid::uniform(roi.aabb(), width as usize, height as usize)
+            }
             Cut::UniformIn { crs, roi, .. } => {
                 // The tile's own positions, carried into the store's plane.
-                let own = SampleGrid::uniform(roi, width as usize, height as usize);
+                let own = SampleGrid::uniform(roi.aabb(), width as usize, height as usize);
                 match self.to_store(crs)? {
                     Some(r) => carried(&own, &r, self.reach()),
                     None => own,
                 }
             }
-            Cut::View(v) => view_grid(v, width as usize, height as usize),
+            Cut::View(c) => view_grid(&self.view_of(c), width as usize, height as usize),
         };
         let shortfall = tile_shortfall(&ps, &grid);
         let head = |backend| TileHead {
@@ -670,19 +566,18 @@ impl Engine {
         Ok((ps, Used::Cpu))
     }
 
-    /// Heights at points, at error `e`: what any tile holding the same points gives there.
-    pub fn sample(&self, points: &[[f64; 2]], e: f64) -> Result<Vec<f32>, EngineError> {
-        self.sample_until(points, e, &Cancel::default())
-    }
-
-    /// Heights at points, given up once `cancel` is set.
-    pub fn sample_until(
-        &self,
-        points: &[[f64; 2]],
-        e: f64,
-        cancel: &Cancel,
-    ) -> Result<Vec<f32>, EngineError> {
-        self.sample_in(points, None, e, cancel)
+    /// Heights at points of a CRS: the points are carried into the store's plane as a tile's
+    /// positions are, so a point has the height any tile of that CRS holding it gives.
+    pub fn sample(&self, req: &SampleRequest, ctx: Ctx) -> Result<Vec<f32>, EngineError> {
+        let points = req.points.get();
+        if points.len() as u64 > self.cfg.limits.max_points {
+            return Err(EngineError::TooLarge(format!(
+                "{} points, more than the limit of {}: send them in smaller requests",
+                points.len(),
+                self.cfg.limits.max_points
+            )));
+        }
+        self.sample_points(points, req.crs.as_ref(), req.error.get(), &ctx.cancel)
     }
 
     /// Whether a point of the store's plane is where any survey can give a height (within
@@ -697,30 +592,15 @@ impl Engine {
         move |p| areas.iter().any(|a| a.contains_point(p))
     }
 
-    /// Heights at points of `crs` (None for the store's), given up once `cancel` is set: the
-    /// points are carried into the store's plane as a tile's positions are, so a point has
-    /// the height any tile of that CRS holding it gives.
-    pub fn sample_in(
+    /// Heights at points of `crs` (None for the store's) at error `e`, given up once
+    /// `cancel` is set.
+    fn sample_points(
         &self,
         points: &[[f64; 2]],
         crs: Option<&Crs>,
         e: f64,
         cancel: &Cancel,
     ) -> Result<Vec<f32>, EngineError> {
-        if points.len() as u64 > self.cfg.limits.max_points {
-            return Err(EngineError::TooLarge(format!(
-                "{} points, more than the limit of {}: send them in smaller requests",
-                points.len(),
-                self.cfg.limits.max_points
-            )));
-        }
-        if points
-            .iter()
-            .any(|p| !(p[0].is_finite() && p[1].is_finite()))
-        {
-            return Err(EngineError::Invalid("points must be finite".into()));
-        }
-        check_error(e)?;
         let carried;
         let points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
             Some(r) => {
@@ -779,23 +659,4 @@ fn carried(
     }
     let pts: Vec<[f64; 2]> = own.points().collect();
     SampleGrid::of_points(own.width, own.height, r.map_where(&pts, near))
-}
-
-fn check_error(e: f64) -> Result<(), EngineError> {
-    if !(e.is_finite() && e >= 0.0) {
-        return Err(EngineError::Invalid(format!(
-            "error must be a number of metres ≥ 0, got {e}"
-        )));
-    }
-    Ok(())
-}
-
-fn check_roi(roi: &Aabb) -> Result<(), EngineError> {
-    if !roi.is_valid() || roi.width() <= 0.0 || roi.height() <= 0.0 {
-        return Err(EngineError::Invalid(format!(
-            "the region must have xmin < xmax and ymin < ymax, got [{}, {}, {}, {}]",
-            roi.min[0], roi.min[1], roi.max[0], roi.max[1]
-        )));
-    }
-    Ok(())
 }

@@ -2,52 +2,34 @@
 //! these on a blocking thread; the CLI's `--data-dir` mode calls them directly.
 
 use super::convert;
+use super::door::{self, MeshAsk};
 use super::proto as pb;
 use patchwork_core::index::query::Extracted;
 use patchwork_core::resample::{Cancel, BLOCK};
 use patchwork_core::terrain::Terrain;
-use patchwork_engine::{Backend, Cut, Engine, EngineError, MeshSpec, Origin};
+use patchwork_engine::{
+    BadRequest, Camera, Ctx, Cut, Engine, EngineError, Origin, SampleRequest, TileRequest,
+};
 use patchwork_store::StoreError;
 use std::path::Path;
 use std::sync::Arc;
 
-fn cut_of(
-    engine: &Engine,
-    u: Option<&pb::UniformCut>,
-    v: Option<&pb::ViewCut>,
-    crs: &str,
-) -> Result<Cut, EngineError> {
-    match (u, v) {
-        (Some(u), None) => convert::uniform_cut(engine, u, crs),
-        (None, Some(_)) if !crs.trim().is_empty() => Err(EngineError::Invalid(
-            "a view cut is in the store's CRS: leave crs empty".into(),
-        )),
-        (None, Some(v)) => convert::view_cut(engine, v),
-        _ => Err(EngineError::Invalid(
-            "give exactly one cut: uniform (roi + error) or view".into(),
-        )),
-    }
-}
-
-/// A patch query's cut: the snapshot it was taken from, its patches, and how many go in a
-/// batch. The batches are made one at a time as the client takes them ([`patch_batch`]).
+/// A patch query's cut: the snapshot it was taken from and its patches. The batches are
+/// made one at a time as the client takes them ([`patch_batch`]).
 pub fn patch_cut(
     engine: &Engine,
-    r: &pb::PatchQuery,
-) -> Result<(Arc<Terrain>, Vec<Extracted>, usize), EngineError> {
-    let (u, v) = match &r.cut {
-        Some(pb::patch_query::Cut::Uniform(u)) => (Some(u), None),
-        Some(pb::patch_query::Cut::View(v)) => (None, Some(v)),
-        None => (None, None),
-    };
-    let cut = cut_of(engine, u, v, &r.crs)?;
-    let (t, ps) = engine.query(&cut)?;
-    let size = if r.batch_size == 0 {
+    cut: &Cut,
+) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
+    engine.query(cut)
+}
+
+/// How many patches go in a batch: as the client asks, else [`BATCH`].
+pub fn batch_size(asked: u32) -> usize {
+    if asked == 0 {
         BATCH
     } else {
-        r.batch_size as usize
-    };
-    Ok((t, ps, size))
+        asked as usize
+    }
 }
 
 /// Patches in a batch when the client does not say.
@@ -88,8 +70,8 @@ impl ViewSession {
         engine: &Engine,
         v: &pb::ViewCut,
     ) -> Result<Vec<pb::ViewDelta>, EngineError> {
-        let cut = convert::view_cut(engine, v)?;
-        let (t, ps) = engine.query(&cut)?;
+        let camera = Camera::try_from(v)?;
+        let (t, ps) = engine.query(&Cut::View(camera))?;
         let next: std::collections::HashMap<_, _> =
             ps.iter().map(|x| (x.id, Held::of(x))).collect();
         let mut removed: Vec<u64> = self
@@ -142,50 +124,47 @@ pub fn query_patches(
     engine: &Engine,
     r: &pb::PatchQuery,
 ) -> Result<Vec<pb::PatchBatch>, EngineError> {
-    let (t, ps, size) = patch_cut(engine, r)?;
-    ps.chunks(size).map(|c| patch_batch(&t, c)).collect()
+    let (t, ps) = patch_cut(engine, &door::patch_cut(r)?)?;
+    ps.chunks(batch_size(r.batch_size))
+        .map(|c| patch_batch(&t, c))
+        .collect()
 }
 
+/// A resampled tile.
 pub fn resample_tile(
     engine: &Engine,
-    r: &pb::TileRequest,
+    r: &TileRequest,
     cancel: &Cancel,
 ) -> Result<pb::Tile, EngineError> {
-    let (cut, backend) = tile_cut(engine, r)?;
-    let (tile, used) = engine.tile_until(&cut, r.width, r.height, backend, cancel)?;
-    Ok(convert::tile(&tile, used, tile_crs(engine, &cut).as_ref()))
+    let (tile, used) = engine.tile(r, Ctx::until(cancel))?;
+    Ok(convert::tile(
+        &tile,
+        used,
+        tile_crs(engine, &r.cut).as_ref(),
+    ))
 }
 
 /// The tile of [`resample_tile`] as bands of f32 bytes, each handed to `send` as soon as it
 /// is resampled; `send` says whether to go on.
 pub fn tile_bands(
     engine: &Engine,
-    r: &pb::TileRequest,
+    r: &TileRequest,
     cancel: &Cancel,
     send: &mut dyn FnMut(pb::TileBand) -> bool,
 ) -> Result<(), EngineError> {
-    let (cut, backend) = tile_cut(engine, r)?;
-    let crs = tile_crs(engine, &cut);
+    let crs = tile_crs(engine, &r.cut);
     // Whole blocks of the resampler in a band where a band holds that many rows.
-    let rows = convert::band_rows(r.width as usize);
+    let rows = convert::band_rows(r.size.width() as usize);
     let rows = if rows >= BLOCK {
         rows / BLOCK * BLOCK
     } else {
         rows
     };
-    engine.tile_bands_until(
-        &cut,
-        r.width,
-        r.height,
-        backend,
-        rows,
-        cancel,
-        &mut |head, row, heights| {
-            convert::tile_bands(head, row, &heights, crs.as_ref())
-                .into_iter()
-                .all(&mut *send)
-        },
-    )?;
+    engine.tile_bands(r, Ctx::until(cancel), rows, &mut |head, row, heights| {
+        convert::tile_bands(head, row, &heights, crs.as_ref())
+            .into_iter()
+            .all(&mut *send)
+    })?;
     Ok(())
 }
 
@@ -194,55 +173,20 @@ fn tile_crs(engine: &Engine, cut: &Cut) -> Option<patchwork_core::crs::Crs> {
     cut.crs().cloned().or_else(|| engine.crs())
 }
 
-/// The cut and backend a tile request asks for.
-fn tile_cut(engine: &Engine, r: &pb::TileRequest) -> Result<(Cut, Backend), EngineError> {
-    let (u, v) = match &r.cut {
-        Some(pb::tile_request::Cut::Uniform(u)) => (Some(u), None),
-        Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
-        None => (None, None),
-    };
-    Ok((cut_of(engine, u, v, &r.crs)?, convert::backend(r.backend)?))
-}
-
-/// Vertices a side of a mesh when the request does not say.
-pub const MESH_SIZE: u32 = 257;
-
-pub fn mesh_tile(
-    engine: &Engine,
-    r: &pb::MeshRequest,
-    cancel: &Cancel,
-) -> Result<pb::Mesh, EngineError> {
-    let u = r
-        .cut
-        .as_ref()
-        .ok_or_else(|| EngineError::Invalid("a mesh needs a uniform cut (roi + error)".into()))?;
-    let cols = if r.size == 0 { MESH_SIZE } else { r.size } as usize;
-    let spec = MeshSpec {
-        roi: convert::aabb(&u.roi)?,
-        error: u.error,
-        cols,
-        rows: if r.rows == 0 { cols } else { r.rows as usize },
-        mesh_error: r.mesh_error,
-        skirt_m: r.skirt_m,
-        border: convert::mesh_border(r.border)?,
-        method: convert::mesh_method(r.method)?,
-        hole_reach_m: r.hole_reach_m,
-        crs: engine.request_crs(&r.crs)?,
-        fill_voids: false,
-    };
-    let m = engine.mesh_until(&spec, convert::backend(r.backend)?, cancel)?;
-    let crs = spec.crs.clone().or_else(|| engine.crs());
+/// A mesh of a uniform cut.
+pub fn mesh_tile(engine: &Engine, r: &MeshAsk, cancel: &Cancel) -> Result<pb::Mesh, EngineError> {
+    let m = engine.mesh(&r.spec, r.backend, Ctx::until(cancel))?;
+    let crs = r.spec.crs.clone().or_else(|| engine.crs());
     Ok(convert::mesh(&m, crs.as_ref()))
 }
 
+/// Heights at points.
 pub fn sample_heights(
     engine: &Engine,
-    r: &pb::SampleRequest,
+    r: &SampleRequest,
     cancel: &Cancel,
 ) -> Result<pb::Samples, EngineError> {
-    let pts: Vec<[f64; 2]> = r.points.iter().map(|p| [p.x, p.y]).collect();
-    let crs = engine.request_crs(&r.crs)?;
-    let heights = engine.sample_in(&pts, crs.as_ref(), r.error, cancel)?;
+    let heights = engine.sample(r, Ctx::until(cancel))?;
     Ok(pb::Samples {
         valid: heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
         heights,
@@ -252,17 +196,12 @@ pub fn sample_heights(
 /// Longest path or id a request may carry: PATH_MAX on Linux.
 const MAX_PATH_BYTES: usize = 4096;
 
-fn check_path(what: &str, p: &str) -> Result<(), EngineError> {
-    if p.len() > MAX_PATH_BYTES {
-        return Err(EngineError::Invalid(format!(
-            "{what} is {} bytes long, more than the {MAX_PATH_BYTES} a path may have",
-            p.len()
-        )));
-    }
-    if p.is_empty() || p.contains('\0') {
-        return Err(EngineError::Invalid(format!(
-            "{what} must be a non-empty path without NUL characters"
-        )));
+fn check_path(what: &'static str, p: &str) -> Result<(), BadRequest> {
+    if p.is_empty() || p.len() > MAX_PATH_BYTES || p.contains('\0') {
+        return Err(BadRequest::Path {
+            what,
+            most: MAX_PATH_BYTES,
+        });
     }
     Ok(())
 }
@@ -271,11 +210,7 @@ fn check_path(what: &str, p: &str) -> Result<(), EngineError> {
 /// disk) fails the call, and the files before it stay ingested.
 pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply, EngineError> {
     if let Some(a) = r.accuracy_m {
-        if !(a.is_finite() && a >= 0.0) {
-            return Err(EngineError::Invalid(format!(
-                "accuracy must be ≥ 0 m, got {a}"
-            )));
-        }
+        patchwork_engine::Metres::new("accuracy", a)?;
     }
     let most = engine.config().limits.max_ingest_paths;
     if r.paths.len() as u64 > most {

@@ -14,8 +14,8 @@ use patchwork_core::model::patch::{CellRect, PatchKind};
 use patchwork_core::model::source::SampleError;
 use patchwork_core::terrain::{PatchRef, Terrain, Tile};
 use patchwork_engine::{
-    Backend, Conflict, Cut, Distrusted, Engine, EngineError, Event, Held, Ingested, MeshTile,
-    Outcome, Phase, Reason, Stats, SurveyListing, TileHead, Used,
+    Conflict, Distrusted, Event, Held, Ingested, MeshTile, Outcome, Phase, Reason, Stats,
+    SurveyListing, TileHead, Used,
 };
 use patchwork_store::Status;
 
@@ -28,68 +28,11 @@ pub fn rect(b: &Aabb) -> pb::Rect {
     }
 }
 
-pub fn aabb(r: &Option<pb::Rect>) -> Result<Aabb, EngineError> {
-    let r = r
-        .as_ref()
-        .ok_or_else(|| EngineError::Invalid("the request needs a region (roi)".into()))?;
-    Ok(Aabb::new(r.xmin, r.ymin, r.xmax, r.ymax))
-}
-
-/// A uniform cut over a region of the CRS a request names (`crs`, empty for the store's).
-pub fn uniform_cut(engine: &Engine, c: &pb::UniformCut, crs: &str) -> Result<Cut, EngineError> {
-    let (roi, error) = (aabb(&c.roi)?, c.error);
-    Ok(match engine.request_crs(crs)? {
-        Some(crs) => Cut::UniformIn { crs, roi, error },
-        None => Cut::Uniform { roi, error },
-    })
-}
-
 /// A CRS's EPSG code for the wire (0 for none) and its key (empty for none).
 pub fn crs_fields(crs: Option<&Crs>) -> (u32, String) {
     match crs {
         Some(c) => (c.epsg_code().unwrap_or(0), c.key().to_string()),
         None => (0, String::new()),
-    }
-}
-
-pub fn view_cut(engine: &Engine, v: &pb::ViewCut) -> Result<Cut, EngineError> {
-    Ok(Cut::View(engine.view_query(
-        [v.eye_x, v.eye_y, v.eye_z],
-        [v.look_x, v.look_y, v.look_z],
-        v.fov_deg,
-        v.viewport_px,
-        v.pixel_error,
-    )?))
-}
-
-pub fn mesh_border(b: i32) -> Result<patchwork_core::mesh::Border, EngineError> {
-    match pb::MeshBorder::try_from(b) {
-        Ok(pb::MeshBorder::Shared) => Ok(patchwork_core::mesh::Border::Shared),
-        Ok(pb::MeshBorder::Adaptive) => Ok(patchwork_core::mesh::Border::Adaptive),
-        Err(_) => Err(EngineError::Invalid(format!(
-            "unknown mesh border {b}: use shared or adaptive"
-        ))),
-    }
-}
-
-pub fn mesh_method(m: i32) -> Result<patchwork_core::mesh::Method, EngineError> {
-    match pb::MeshMethod::try_from(m) {
-        Ok(pb::MeshMethod::Rtin) => Ok(patchwork_core::mesh::Method::Rtin),
-        Ok(pb::MeshMethod::Quadtree) => Ok(patchwork_core::mesh::Method::Quadtree),
-        Err(_) => Err(EngineError::Invalid(format!(
-            "unknown mesh method {m}: use rtin or quadtree"
-        ))),
-    }
-}
-
-pub fn backend(b: i32) -> Result<Backend, EngineError> {
-    match pb::Backend::try_from(b) {
-        Ok(pb::Backend::Auto) => Ok(Backend::Auto),
-        Ok(pb::Backend::Cpu) => Ok(Backend::Cpu),
-        Ok(pb::Backend::Gpu) => Ok(Backend::Gpu),
-        Err(_) => Err(EngineError::Invalid(format!(
-            "unknown backend {b}: use auto, cpu or gpu"
-        ))),
     }
 }
 
@@ -361,7 +304,8 @@ pub fn mesh_of(m: &pb::Mesh) -> Result<(Mesh, Aabb), String> {
     {
         return Err("the mesh's grid positions or indices are out of range".into());
     }
-    let roi = aabb(&m.roi).map_err(|e| e.to_string())?;
+    let r = m.roi.as_ref().ok_or("the mesh has no region")?;
+    let roi = Aabb::new(r.xmin, r.ymin, r.xmax, r.ymax);
     let mesh = Mesh {
         cols: m.size as usize,
         rows: m.grid_rows as usize,

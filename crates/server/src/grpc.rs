@@ -5,10 +5,10 @@ use super::auth::Gate;
 use super::conns::{self, Conns};
 use super::proto::{self as pb, admin_server, terrain_server};
 use super::turns::Turns;
-use super::{api, convert, status};
+use super::{api, convert, door, status};
 use patchwork_core::resample::Cancel;
 use patchwork_core::sync::lock;
-use patchwork_engine::{Engine, EngineError};
+use patchwork_engine::{BadRequest, Engine, EngineError, SampleRequest, TileRequest};
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -268,6 +268,11 @@ impl Service {
     }
 }
 
+/// A request's checked form, or the status that refuses it before it takes a turn.
+fn checked<T>(r: Result<T, BadRequest>) -> Result<T, Status> {
+    r.map_err(|e| status::to_status(EngineError::from(e)))
+}
+
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
 #[tonic::async_trait]
@@ -282,7 +287,9 @@ impl terrain_server::Terrain for Service {
         let r = r.into_inner();
         let ms = self.engine.config().limits.deadline_ms;
         let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
-        let (t, ps, size) = self.run(move |e, _| api::patch_cut(e, &r)).await?;
+        let cut = checked(door::patch_cut(&r))?;
+        let size = api::batch_size(r.batch_size);
+        let (t, ps) = self.run(move |e, _| api::patch_cut(e, &cut)).await?;
         // Batches are made as the client takes them, two ahead at most: a client that stops
         // reading holds two batches, not the whole cut, and only until the deadline.
         let (tx, rx) = tokio::sync::mpsc::channel(2);
@@ -387,14 +394,14 @@ impl terrain_server::Terrain for Service {
         &self,
         r: Request<pb::TileRequest>,
     ) -> Result<Response<pb::Tile>, Status> {
-        let r = r.into_inner();
+        let r = checked(TileRequest::try_from(&r.into_inner()))?;
         self.run(move |e, c| api::resample_tile(e, &r, c))
             .await
             .map(Response::new)
     }
 
     async fn mesh_tile(&self, r: Request<pb::MeshRequest>) -> Result<Response<pb::Mesh>, Status> {
-        let r = r.into_inner();
+        let r = checked(door::MeshAsk::try_from(&r.into_inner()))?;
         self.run(move |e, c| api::mesh_tile(e, &r, c))
             .await
             .map(Response::new)
@@ -406,7 +413,7 @@ impl terrain_server::Terrain for Service {
         &self,
         r: Request<pb::TileRequest>,
     ) -> Result<Response<Self::TileBandsStream>, Status> {
-        let r = r.into_inner();
+        let r = checked(TileRequest::try_from(&r.into_inner()))?;
         let ms = self.engine.config().limits.deadline_ms;
         let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
         // Bands go out as the resampler finishes them, two ahead at most: sending overlaps
@@ -444,7 +451,7 @@ impl terrain_server::Terrain for Service {
         &self,
         r: Request<pb::SampleRequest>,
     ) -> Result<Response<pb::Samples>, Status> {
-        let r = r.into_inner();
+        let r = checked(SampleRequest::try_from(&r.into_inner()))?;
         self.run(move |e, c| api::sample_heights(e, &r, c))
             .await
             .map(Response::new)

@@ -5,6 +5,7 @@ pub mod api;
 pub mod auth;
 pub mod conns;
 pub mod convert;
+pub mod door;
 pub mod grpc;
 pub mod proto;
 pub mod status;

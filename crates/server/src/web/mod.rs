@@ -15,8 +15,6 @@ mod terrain;
 
 use super::auth::Gate;
 use super::grpc::Service;
-use patchwork_engine::{Engine, EngineError, Reason};
-use patchwork_core::sync::lock;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
@@ -26,7 +24,12 @@ use axum::routing::get;
 use axum::Router;
 use patchwork_core::geom::tiles::{geographic, mercator};
 use patchwork_core::index::query::Extracted;
+use patchwork_core::sync::lock;
 use patchwork_core::terrain::Terrain;
+use patchwork_engine::request::parse_crs;
+use patchwork_engine::{
+    BadRequest, Ctx, Engine, EngineError, Metres, Points, Reason, SampleRequest,
+};
 use pyramid::Pyramid;
 use serde::Deserialize;
 use std::sync::{Arc, Mutex, Weak};
@@ -545,13 +548,11 @@ impl TileParams {
         }
     }
 
-    fn error(&self) -> Result<Option<f64>, String> {
-        match self.error {
-            Some(e) if !(e.is_finite() && e >= 0.0) => {
-                Err(format!("error must be a number of metres ≥ 0, got {e}"))
-            }
-            e => Ok(e),
-        }
+    fn error(&self) -> Result<Option<Metres>, String> {
+        self.error
+            .map(Metres::error)
+            .transpose()
+            .map_err(|e| e.to_string())
     }
 }
 
@@ -671,7 +672,7 @@ async fn raster_tile(
         y,
         size,
         format,
-        error: error.unwrap_or_else(|| mercator::error(z, size)),
+        error: error.map_or_else(|| mercator::error(z, size), Metres::get),
     };
     let inm = if_none_match(&headers);
     let w = web.clone();
@@ -767,11 +768,19 @@ async fn heights(State(web): State<Arc<Web>>, Query(p): Query<HeightParams>) -> 
     let points: Vec<[f64; 2]> = coords.chunks(2).map(|c| [c[0], c[1]]).collect();
     let error = p.error.unwrap_or(0.0);
     let crs = p.crs.unwrap_or_else(|| "EPSG:4326".into());
-    let r = web
-        .run(move |e, cancel| {
-            let crs = e.request_crs(&crs)?;
-            e.sample_in(&points, crs.as_ref(), error, cancel)
+    let req = (|| {
+        Ok::<_, BadRequest>(SampleRequest {
+            points: Points::new(points)?,
+            crs: parse_crs(&crs)?,
+            error: Metres::error(error)?,
         })
+    })();
+    let req = match req {
+        Ok(r) => r,
+        Err(e) => return bad_request(e.to_string()),
+    };
+    let r = web
+        .run(move |e, cancel| e.sample(&req, Ctx::until(cancel)))
         .await;
     match r {
         Ok(h) => {

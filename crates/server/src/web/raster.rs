@@ -7,7 +7,9 @@
 use super::{Encoding, Produced, Web};
 use patchwork_core::geom::tiles::mercator;
 use patchwork_core::resample::{Cancel, SampleGrid};
-use patchwork_engine::{Backend, Cut, Engine, EngineError};
+use patchwork_engine::{
+    Backend, Ctx, Cut, Engine, EngineError, Metres, Region, TileRequest, TileSize,
+};
 
 /// What a raster tile is encoded as.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -41,17 +43,11 @@ pub fn tile(
 ) -> Result<Produced, EngineError> {
     let roi = mercator::bounds(r.z, r.x, r.y);
     let crs = web.mercator.clone();
-    let cut = match web.unless_store(engine, &crs) {
-        Some(c) => Cut::UniformIn {
-            crs: c,
-            roi,
-            error: r.error,
-        },
-        None => Cut::Uniform {
-            roi,
-            error: r.error,
-        },
-    };
+    let cut = Cut::uniform(
+        web.unless_store(engine, &crs),
+        Region::new(roi)?,
+        Metres::error(r.error)?,
+    );
     let most = engine.config().limits.max_web_tile_patches;
     let (cut, t, ps) = match engine.crs() {
         Some(_) => engine.query_within(&cut, most)?,
@@ -79,8 +75,13 @@ pub fn tile(
         let mut heights = if empty {
             vec![f32::NAN; size * size]
         } else {
+            let req = TileRequest {
+                cut: cut.clone(),
+                size: TileSize::new(r.size, r.size)?,
+                backend: Backend::Auto,
+            };
             engine
-                .tile_of(&cut, (t, ps), r.size, r.size, Backend::Auto, cancel)?
+                .tile(&req, Ctx::until(cancel).with_cut((t, ps)))?
                 .0
                 .heights
         };

@@ -8,7 +8,7 @@ use super::{Produced, Web};
 use patchwork_core::geom::tiles::geographic;
 use patchwork_core::mesh::{self, encode, Border, Method};
 use patchwork_core::resample::Cancel;
-use patchwork_engine::{Backend, Engine, EngineError, MeshSpec};
+use patchwork_engine::{Backend, Ctx, Engine, EngineError, MeshSpec, Metres, Region};
 use serde_json::json;
 
 /// The extensions a client asked for in its `Accept` header.
@@ -68,20 +68,20 @@ pub fn tile(
     let n = TERRAIN_GRID;
     let crs = web.unless_store(engine, &web.geographic);
     let spec = MeshSpec {
-        roi,
-        error: cut_error,
+        roi: Region::new(roi)?,
+        error: Metres::error(cut_error)?,
         cols: n,
         rows: n,
-        mesh_error,
-        skirt_m: 0.0,
+        mesh_error: Metres::new("mesh_error", mesh_error)?,
+        skirt_m: Metres::ZERO,
         border: Border::Shared,
         method: Method::Rtin,
-        hole_reach_m: 0.0,
+        hole_reach_m: Metres::ZERO,
         crs,
         fill_voids: true,
     };
     let (t, ps) = match engine.crs() {
-        Some(_) => engine.query(&Engine::mesh_cut(&spec))?,
+        Some(_) => engine.query(&Engine::mesh_cut(&spec)?)?,
         // A store with no survey yet has nothing anywhere.
         None => (engine.snapshot(), Vec::new()),
     };
@@ -114,7 +114,7 @@ pub fn tile(
                 );
                 (flat, vec![true; n * n])
             } else {
-                let m = engine.mesh_of(&spec, (t, ps), Backend::Auto, cancel)?;
+                let m = engine.mesh(&spec, Backend::Auto, Ctx::until(cancel).with_cut((t, ps)))?;
                 (m.mesh, m.voids)
             };
             let ext = encode::Extensions {
