@@ -153,6 +153,7 @@ fn both(out: &Path, name: &str, c: &Chart) -> Result<(), Fail> {
     Ok(())
 }
 
+/// Draws every chart of `r` under `out`, and the patch map of `t` over `map_roi`.
 pub fn draw(out: &Path, r: &Report, t: &Terrain, map_roi: &Aabb, smoke: bool) -> Result<(), Fail> {
     fonts();
     let by_roi = |f: &dyn Fn(&super::UniformRow) -> f64| -> Vec<(String, Vec<(f64, f64)>)> {

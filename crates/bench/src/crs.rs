@@ -25,10 +25,14 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+/// One file's ingest into a store of one CRS.
 #[derive(Clone, Debug)]
 pub struct IngestRow {
+    /// The file's name.
     pub file: String,
+    /// The store's CRS, as its key.
     pub store: String,
+    /// Samples ingested.
     pub samples: u64,
     /// Median over the repeats, each into a fresh store.
     pub seconds: f64,
@@ -40,63 +44,98 @@ pub struct IngestRow {
 /// What the reprojection adds to one level's patch errors.
 #[derive(Clone, Debug)]
 pub struct LevelRow {
+    /// The file's name.
     pub file: String,
+    /// The CRS the survey is placed in, as its key.
     pub store: String,
+    /// The mipmap level, 0 the finest.
     pub level: u8,
+    /// Patches at the level.
     pub patches: usize,
     /// The patch error in the survey's own CRS: median.
     pub native_median_m: f64,
     /// The error added: median and largest.
     pub added_median_m: f64,
+    /// The largest error added, metres.
     pub added_max_m: f64,
     /// The added error's share of the placed patch's error: median and largest.
     pub share_median: f64,
+    /// The largest share of the placed patch's error that is added.
     pub share_max: f64,
 }
 
 /// The lattice against the exact transformation on one tile's points.
 #[derive(Clone, Debug)]
 pub struct LatticeRow {
+    /// The store's CRS, as its key.
     pub from: String,
+    /// The CRS the points are carried into, as its key.
     pub to: String,
+    /// Points carried: the tile's samples.
     pub points: usize,
+    /// Median time of the lattice, milliseconds.
     pub lattice_ms: f64,
+    /// Median time of PROJ's exact transformation, milliseconds.
     pub exact_ms: f64,
     /// The largest distance between the two answers, metres.
     pub max_diff_m: f64,
 }
 
+/// One tile over the overlap in one CRS at one error.
 #[derive(Clone, Debug)]
 pub struct TileRow {
+    /// The tile's CRS, as its key.
     pub crs: String,
+    /// The requested error e, metres.
     pub error: f64,
+    /// The tile's side, samples.
     pub size: usize,
+    /// Median time of the tile request, milliseconds.
     pub ms: f64,
+    /// Patches the tile is made from.
     pub patches: usize,
+    /// The tile's samples with a height.
     pub samples: usize,
+    /// Largest distance of the tile's heights outside the reference range, metres.
     pub max_err: f64,
+    /// RMS distance of the tile's heights outside the reference range, metres.
     pub rms_err: f64,
+    /// Samples more than e (and 1 mm) outside the reference range.
     pub over: usize,
 }
 
+/// Everything this part of the bench measures, as [`run`] returns it.
 #[derive(Clone, Debug, Default)]
 pub struct Report {
+    /// Each file into a store of its own CRS and one of the other's (`crs_ingest.csv`).
     pub ingest: Vec<IngestRow>,
+    /// What placing each file in the other's plane adds, level by level (`crs_levels.csv`).
     pub levels: Vec<LevelRow>,
+    /// The lattice against the exact transformation (`crs_lattice.csv`).
     pub lattice: Vec<LatticeRow>,
+    /// Tiles in the store's CRS, in Web Mercator and in UTM (`crs_tiles.csv`).
     pub tiles: Vec<TileRow>,
 }
 
 /// A tile GDAL is compared on (`tiles/manifest.json`): in its own CRS, of its own sources.
 pub struct GdalTile {
+    /// The tile's CRS, as its key.
     pub crs: String,
+    /// The surveys it is made from, as absolute paths.
     pub sources: Vec<PathBuf>,
+    /// The tile's side, samples.
     pub size: usize,
+    /// The requested error e, metres.
     pub error: f64,
+    /// Our tile: an .npy file beside the manifest.
     pub ours: String,
+    /// Median time of our tile, milliseconds.
     pub ours_ms: f64,
+    /// The low reference: an .npy file beside the manifest.
     pub lo: String,
+    /// The high reference: an .npy file beside the manifest.
     pub hi: String,
+    /// The tile's bounds in its CRS: min x, min y, max x, max y.
     pub roi: [f64; 4],
 }
 
@@ -208,6 +247,7 @@ fn bounds_in(from: &Crs, crs: &Crs, roi: &Aabb) -> Aabb {
     Aabb::of_points(&pts)
 }
 
+/// Measures the pair, writes `crs_*.csv` and the tiles under `out`, and lists the tiles in `gdal`.
 pub fn run(out: &Path, smoke: bool, gdal: &mut Vec<GdalTile>) -> Result<Report, Fail> {
     let files = inputs(smoke);
     let crss = [crs_of(&files[0])?, crs_of(&files[1])?];

@@ -29,38 +29,56 @@ pub const ERRORS: [f64; 2] = [0.0, 10.0];
 /// offset found less the truth, in metres, and the time it took.
 #[derive(Clone, Debug)]
 pub struct Found {
+    /// The method's name.
     pub method: &'static str,
+    /// Distance of the shift found from the true one, cells.
     pub shift_error_px: f64,
+    /// The offset found less the true one, metres.
     pub dz_error_m: f64,
+    /// Time the method took, milliseconds.
     pub ms: f64,
 }
 
 /// One tile over the original at one error, before and after.
 #[derive(Clone, Copy, Debug)]
 pub struct TileError {
+    /// The requested error e, metres.
     pub error: f64,
+    /// RMS difference from the original with claims kept as made, metres.
     pub before_rms: f64,
+    /// Largest difference from the original with claims kept as made, metres.
     pub before_max: f64,
+    /// RMS difference from the original with contradicted claims distrusted, metres.
     pub after_rms: f64,
+    /// Largest difference from the original with contradicted claims distrusted, metres.
     pub after_max: f64,
     /// The store without the copy, distrusting: what the copy should leave as it is.
     pub without_rms: f64,
+    /// Largest difference from the original in the store without the copy, metres.
     pub without_max: f64,
 }
 
+/// One copy beside its original, with claims kept and distrusted.
 #[derive(Clone, Debug)]
 pub struct Case {
+    /// The original's file name, and whether a third survey is in the store.
     pub scene: String,
+    /// The copy's label.
     pub copy: &'static str,
+    /// What each coregistration method finds.
     pub found: Vec<Found>,
     /// Whose claim the store distrusts: "copy", "original" or "both"; "none" where no pair
     /// finds a claim false.
     pub verdict: &'static str,
     /// Median kernel ε, metres: the original's and the copy's as estimated, then as served.
     pub orig_claimed: f64,
+    /// The original's median kernel ε as served, metres.
     pub orig_served: f64,
+    /// The copy's median kernel ε as estimated, metres.
     pub copy_claimed: f64,
+    /// The copy's median kernel ε as served, metres.
     pub copy_served: f64,
+    /// A tile over the original at each of [`ERRORS`].
     pub tiles: Vec<TileError>,
 }
 
@@ -217,6 +235,7 @@ fn off_original(t: &Terrain, g: &Grid, roi: &Aabb, e: f64) -> (f64, f64) {
     ((ss / k.max(1) as f64).sqrt(), max)
 }
 
+/// Writes `copies.csv` and `coreg.csv` under `out`.
 pub fn write_csv(out: &Path, cases: &[Case]) -> std::io::Result<()> {
     let mut s = String::from(
         "scene,copy,verdict,original_eps_median_m,original_served_median_m,copy_eps_median_m,copy_served_median_m,error_m,before_rms_m,before_max_m,after_rms_m,after_max_m,without_rms_m,without_max_m\n",

@@ -13,10 +13,15 @@ use std::path::Path;
 /// One frame of a flight.
 #[derive(Clone, Debug)]
 pub struct FlightRow {
+    /// `slow` or `fast`, as named in [`SPEEDS`].
     pub speed: &'static str,
+    /// The frame's number in its flight, from 0.
     pub frame: usize,
+    /// Patches of the frame's cut.
     pub patches: usize,
+    /// Patches the step's messages add.
     pub added: usize,
+    /// Patches the step's first message removes.
     pub removed: usize,
     /// The step's messages, as encoded on the wire.
     pub delta_bytes: usize,
@@ -114,6 +119,7 @@ fn print_sizes(patches: &[pb::Patch]) {
     }
 }
 
+/// Writes the rows to `view_session.csv` under `out`.
 pub fn write_csv(out: &Path, rows: &[FlightRow]) -> std::io::Result<()> {
     let mut s = String::from("speed,frame,patches,added,removed,delta_bytes,full_bytes\n");
     for r in rows {

@@ -34,56 +34,92 @@ use std::time::Instant;
 /// An error of the bench, said to whoever runs it.
 pub type Fail = Box<dyn std::error::Error>;
 
+/// Errors, in metres, the uniform cuts are asked at (three of them in a smoke run).
 pub const ERRORS: [f64; 9] = [0.0, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0];
+/// Screen errors, in pixels, the view-dependent cuts are asked at.
 pub const PIXEL_ERRORS: [f64; 4] = [0.5, 1.0, 2.0, 4.0];
 
+/// What the bench runs on, where it writes, and how long it takes.
 #[derive(Clone, Debug)]
 pub struct Options {
+    /// The surveys to ingest.
     pub files: Vec<PathBuf>,
+    /// Where the CSV, charts and tiles go.
     pub out: PathBuf,
     /// A few seconds' worth: small tiles, one repeat, fewer errors.
     pub smoke: bool,
 }
 
+/// One uniform cut over one ROI at one error, and the tile resampled from it.
 #[derive(Clone, Debug)]
 pub struct UniformRow {
+    /// The ROI: `small`, `medium` or `large`, a square about the largest survey's centre.
     pub roi: &'static str,
+    /// The requested error e, metres.
     pub error: f64,
+    /// Median time of the cut's query, milliseconds.
     pub query_ms: f64,
+    /// Patches the cut returns.
     pub patches: usize,
+    /// The cut's patches as encoded on the wire, bytes.
     pub wire_bytes: usize,
+    /// The tile's side, samples.
     pub tile: usize,
+    /// Median time of resampling the patches into the tile, milliseconds.
     pub resample_ms: f64,
+    /// The tile's samples with a height.
     pub samples: usize,
+    /// Largest distance of the tile's heights outside the reference range, metres.
     pub max_err: f64,
+    /// RMS distance of the tile's heights outside the reference range, metres.
     pub rms_err: f64,
+    /// Samples more than e (and 1 mm) outside the reference range.
     pub over: usize,
 }
 
+/// View-dependent cuts along a flight at one screen error.
 #[derive(Clone, Debug)]
 pub struct ViewRow {
+    /// The screen error asked for, pixels.
     pub pixel_error: f64,
+    /// Median query time over the flight's stops, milliseconds.
     pub query_ms: f64,
+    /// Patches per view, the mean over the flight's stops.
     pub patches: f64,
 }
 
+/// The ingest of one file.
 #[derive(Clone, Debug)]
 pub struct IngestRow {
+    /// The file's name.
     pub file: String,
+    /// Samples ingested.
     pub samples: u64,
+    /// Time the ingest took, seconds.
     pub seconds: f64,
+    /// The file's size, bytes.
     pub input_bytes: u64,
 }
 
+/// Everything the bench measures, as [`run`] returns it.
 pub struct Report {
+    /// Uniform cuts over the three ROIs (`uniform.csv`).
     pub uniform: Vec<UniformRow>,
+    /// Frames of the view-session flights (`view_session.csv`).
     pub flight: Vec<flight::FlightRow>,
+    /// The recipes side by side (`variants.csv`).
     pub variants: Vec<variants::VariantRow>,
+    /// View-dependent cuts at each screen error (`view.csv`).
     pub view: Vec<ViewRow>,
+    /// The ingest of each file (`ingest.csv`).
     pub ingest: Vec<IngestRow>,
+    /// The store's size on disk once every file is in, bytes.
     pub disk_bytes: u64,
+    /// Where surveys meet, and the estimator's check (`mixed.csv`, `estimator.csv`).
     pub scenes: meet::Scenes,
+    /// Where methods break (`stability.csv`).
     pub stability: Vec<stability::StabilityRow>,
+    /// Surveys of two CRSs in one store (`crs_*.csv`).
     pub across: crs::Report,
 }
 
@@ -153,6 +189,7 @@ pub fn run_meshes(opts: &Options) -> Result<(), Fail> {
     Ok(())
 }
 
+/// The whole bench: measures every part and writes its CSV, charts and tiles under `opts.out`.
 pub fn run(opts: &Options) -> Result<Report, Fail> {
     std::fs::create_dir_all(opts.out.join("tiles"))?;
     let tmp = tempfile::tempdir()?;

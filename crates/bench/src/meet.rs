@@ -31,39 +31,55 @@ use crate::Fail;
 /// One tile of a mixed scene at one error.
 #[derive(Clone, Debug)]
 pub struct MixedRow {
+    /// The scene: `copies` or `nested`.
     pub scene: &'static str,
+    /// The requested error e, metres.
     pub error: f64,
+    /// Patches of the tile.
     pub patches: usize,
     /// Patches of the finer survey among them.
     pub finer: usize,
+    /// Largest |tile − the finer survey's surface| where it has data, metres.
     pub max_err: f64,
+    /// RMS of |tile − the finer survey's surface| where it has data, metres.
     pub rms_err: f64,
     /// Largest |tile − sub-tile| at shared samples (nested scene only).
     pub split_diff: f64,
+    /// Samples of the tile without a height.
     pub nodata: usize,
 }
 
 /// One kernel of one decimated copy.
 #[derive(Clone, Debug)]
 pub struct EstimateRow {
+    /// The copy's decimation factor.
     pub factor: usize,
+    /// The kernel's estimated ε, metres.
     pub estimated: f64,
+    /// Largest |copy − original| at the original's samples in the kernel, metres.
     pub measured: f64,
 }
 
 /// One decimated copy as a whole: its estimated ε beside its measured deviation.
 #[derive(Clone, Debug)]
 pub struct CopyRow {
+    /// The decimation factor.
     pub factor: usize,
     /// The survey's ε: the largest of its kernels'.
     pub estimated: f64,
+    /// Largest deviation of the copy from the original, metres.
     pub measured_max: f64,
+    /// RMS deviation of the copy from the original, metres.
     pub measured_rms: f64,
 }
 
+/// What the scenes measure, as [`run`] returns it.
 pub struct Scenes {
+    /// Tiles of the copies and nested scenes (`mixed.csv`).
     pub mixed: Vec<MixedRow>,
+    /// Every kernel of every decimated copy (`estimator.csv`).
     pub estimator: Vec<EstimateRow>,
+    /// Every decimated copy as a whole.
     pub copies: Vec<CopyRow>,
     /// ε of the finer survey and of its 90 m copy in the copies scene (their largest kernels').
     pub copies_accuracy: (f64, f64),
@@ -290,6 +306,7 @@ fn estimator(g: &Grid) -> (Vec<EstimateRow>, Vec<CopyRow>) {
     (rows, copies)
 }
 
+/// Writes `mixed.csv` and `estimator.csv` under `out`.
 pub fn write_csv(out: &Path, s: &Scenes) -> std::io::Result<()> {
     let mut text = String::from(
         "scene,error_m,patches,finer_patches,max_error_m,rms_error_m,split_diff_m,nodata\n",

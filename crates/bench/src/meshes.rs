@@ -9,18 +9,28 @@ use patchwork_core::mesh::{Border, Holes, Method, Options};
 use std::fmt::Write as _;
 use std::path::Path;
 
+/// One crop triangulated by one method within one error.
 #[derive(Clone, Debug)]
 pub struct MeshRow {
+    /// The file's name.
     pub dataset: String,
     /// The crop: its first column and row in the survey, and its side.
     pub c0: usize,
+    /// The crop's first row in the survey.
     pub r0: usize,
+    /// The crop's side, samples.
     pub size: usize,
+    /// The triangulation method.
     pub method: Method,
+    /// The error the mesh is made within, metres.
     pub error: f64,
+    /// Vertices of the mesh.
     pub vertices: usize,
+    /// Triangles of the mesh.
     pub triangles: usize,
+    /// Median time of the triangulation over three runs, milliseconds.
     pub ms: f64,
+    /// Largest deviation of the mesh from the crop's samples, metres.
     pub max_deviation: f64,
     /// Void samples in the crop, which the mesh leaves open.
     pub voids: usize,
@@ -89,6 +99,7 @@ pub fn run(
     Ok(rows)
 }
 
+/// Writes the rows to `rtin.csv` under `out`.
 pub fn write_csv(out: &Path, rows: &[MeshRow]) -> std::io::Result<()> {
     let mut s = String::from(
         "dataset,c0,r0,size,method,error_m,vertices,triangles,ms,max_deviation_m,void_samples\n",

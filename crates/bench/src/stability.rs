@@ -28,10 +28,15 @@ pub const ERRORS: [f64; 3] = [2.0, 10.0, 50.0];
 /// One case under one recipe at one error.
 #[derive(Clone, Debug)]
 pub struct StabilityRow {
+    /// The case: `cliff`, `spikes`, `voids` or `rotated`.
     pub case: &'static str,
+    /// The mipmap filter and patch kind.
     pub recipe: Recipe,
+    /// The requested error e, metres.
     pub error: f64,
+    /// Patches of the cut.
     pub patches: usize,
+    /// Fallback patches among them.
     pub fallback: usize,
     /// The largest deviation from the survey's own surface at the points.
     pub measured: f64,
@@ -116,6 +121,7 @@ pub fn run(
     Ok(rows)
 }
 
+/// Writes the rows to `stability.csv` under `out`.
 pub fn write_csv(out: &Path, rows: &[StabilityRow]) -> std::io::Result<()> {
     let mut s =
         String::from("case,filter,kind,error_m,patches,fallback_patches,measured_max_m,bound_m\n");

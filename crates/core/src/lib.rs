@@ -14,8 +14,6 @@
 //! - [`mesh`]: triangle meshes of resampled tiles, and their encodings;
 //! - [`terrain`]: all of it together in memory, the state the daemon publishes.
 
-#![warn(missing_docs)]
-
 pub use patchwork_crs as crs;
 pub use patchwork_geom as geom;
 pub use patchwork_index as index;

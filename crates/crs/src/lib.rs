@@ -13,8 +13,6 @@
 //! Coordinates are always easting (or longitude) first, as GeoTIFF, GDAL's traditional order
 //! and every DEM format place them, whatever axis order a WKT declares.
 
-#![warn(missing_docs)]
-
 mod lattice;
 pub mod vertical;
 

@@ -3,41 +3,147 @@
 //! status code in one place (`serve::status`).
 
 use crate::ingest::IngestError;
+use crate::paths::quote_short;
 use crate::request::BadRequest;
+use patchwork_core::crs::CrsError;
 use patchwork_core::model::survey::SurveyError;
 use patchwork_read::ReadError;
 use patchwork_store::StoreError;
+use std::path::PathBuf;
 use thiserror::Error;
 
-/// Everything that can go wrong in a request, by what the caller should do about it. The
-/// server maps these to status codes in one place.
+/// Everything that can go wrong in a request, one variant a kind of failure with what it
+/// needs to say, grouped by what the caller should do about it ([`EngineError::reason`]). The
+/// server maps each [`Reason`] to a status code in one place.
+#[non_exhaustive]
 #[derive(Debug, Error)]
 pub enum EngineError {
-    /// The request itself is wrong: fix the request.
-    #[error("{0}")]
-    Invalid(String),
-    /// The request is too big: ask for less.
-    #[error("{0}")]
-    TooLarge(String),
-    #[error("{0}")]
-    NotFound(String),
-    /// The request is fine but cannot be served in this state (no GPU, say).
-    #[error("{0}")]
-    Unavailable(String),
+    /// The request is malformed: refused before any work (see [`crate::request`]).
+    #[error(transparent)]
+    Request(#[from] BadRequest),
+    /// The request asks for more than a limit allows: ask for less.
+    #[error(transparent)]
+    TooLarge(#[from] TooLarge),
+    /// The request's CRS has no map to the store's.
+    #[error("crs: {0}")]
+    Reprojection(#[from] CrsError),
+    /// Part of a region of another CRS lies where the map to the store's does not reach.
+    #[error("part of the region lies where {from} cannot be carried into the store's {to}")]
+    Unreachable {
+        /// The request's CRS.
+        from: String,
+        /// The store's.
+        to: String,
+    },
+    /// The settings disagree with the store they open.
+    #[error("the config says {key} = {config} but the store at {} is in {store}", dir.display())]
+    ConfigMismatch {
+        /// The setting: `crs` or `vertical.crs`.
+        key: &'static str,
+        /// What the setting says.
+        config: String,
+        /// What the store is in.
+        store: String,
+        /// Where the store is.
+        dir: PathBuf,
+    },
+    /// The object store `[storage]` names cannot be reached as configured.
+    #[error("storage: {what}: {source}")]
+    Storage {
+        /// Which part: `s3`, `folder`, …
+        what: String,
+        /// Why.
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// No active survey has this id or source.
+    #[error("no active survey has id or source {}; `patchwork surveys` lists them", quote_short(.0))]
+    NoSurvey(String),
+    /// No failure is recorded for this source.
+    #[error("no failure is recorded for {}; `patchwork surveys` lists them", quote_short(.0))]
+    NoFailure(String),
+    /// The store has no CRS yet, so a request in another CRS cannot be placed in it.
+    #[error(
+        "the store has no CRS yet (no survey and none in the config): ask in its own \
+         coordinates once it has one"
+    )]
+    NoCrs,
+    /// The GPU backend was asked for and this daemon has none.
+    #[error("backend gpu was asked for, but this daemon has no GPU device; use auto or cpu")]
+    NoGpu,
+    /// The GPU failed under the request.
+    #[error("GPU resampling failed: {0}")]
+    Gpu(String),
+    /// The store could not be reopened after a compaction: nothing can be written.
+    #[error(
+        "the store is not open: it could not be reopened after compaction; restart the daemon"
+    )]
+    NotOpen,
     /// The store failed under a write and takes no more until the daemon restarts.
     #[error(
         "the store failed on a disk error and takes no writes until the daemon restarts \
          (reads go on): {0}"
     )]
     StoreFailed(String),
+    /// The store failed under a read or a write; its error says how (see [`Reason`]).
     #[error("{0}")]
     Store(#[from] StoreError),
-    /// The request is malformed: refused before any work (see [`crate::request`]).
-    #[error(transparent)]
-    Request(#[from] BadRequest),
+    /// An answer could not be encoded (a GeoTIFF tile, say): a bug, not the request's.
+    #[error("the answer cannot be encoded: {0}")]
+    Encode(String),
     /// The caller gave up (its deadline passed) and the work stopped.
     #[error("the request was cancelled: its deadline passed")]
     Cancelled,
+}
+
+/// A request over a limit of `[limits]`, with the figures.
+#[non_exhaustive]
+#[derive(Clone, Debug, Error, PartialEq, Eq)]
+pub enum TooLarge {
+    /// A cut with more patches than `limits.max_patches`.
+    #[error(
+        "the query needs {n} patches, more than the limit of {max}: ask for a smaller region or \
+         a larger error"
+    )]
+    Patches {
+        /// Patches the cut holds.
+        n: u64,
+        /// The limit.
+        max: u64,
+    },
+    /// A tile with more samples than `limits.max_tile_samples`.
+    #[error(
+        "a {width}×{height} tile has {n} samples, more than the limit of {max}: ask for a \
+         smaller tile"
+    )]
+    TileSamples {
+        /// Samples a row.
+        width: u32,
+        /// Rows.
+        height: u32,
+        /// Samples in all.
+        n: u64,
+        /// The limit.
+        max: u64,
+    },
+    /// More points than `limits.max_points`.
+    #[error("{n} points, more than the limit of {max}: send them in smaller requests")]
+    Points {
+        /// Points asked for.
+        n: u64,
+        /// The limit.
+        max: u64,
+    },
+    /// More paths in one ingest request than `limits.max_ingest_paths`.
+    #[error(
+        "{n} paths in one request, more than the limit of {max} (limits.max_ingest_paths): \
+         send them in smaller requests"
+    )]
+    IngestPaths {
+        /// Paths asked for.
+        n: u64,
+        /// The limit.
+        max: u64,
+    },
 }
 
 /// Why a request or a file failed, as clients branch on it: carried in a gRPC status's
@@ -52,12 +158,15 @@ pub enum Reason {
     InvalidRequest,
     /// The request asks for more than the limits allow.
     TooLarge,
+    /// What the request names does not exist.
     NotFound,
     /// The request cannot be served in this state (no GPU, no CRS yet).
     Unavailable,
     /// The request ran past its deadline, or its caller gave up.
     Deadline,
+    /// The call carries no token this service takes: none, or a wrong one.
     Unauthenticated,
+    /// The token is valid but does not open this call: the read token on an Admin call.
     PermissionDenied,
     /// The store failed on a disk error and takes no writes until a restart.
     StoreFailed,
@@ -73,6 +182,8 @@ pub enum Reason {
     DataLoss,
     /// The store is corrupt, newer than this binary, or failed to migrate.
     StoreCorrupt,
+    /// The daemon failed in a way no request could cause: a bug, or the store refusing its own
+    /// writer.
     Internal,
     /// A file outside the folders the daemon ingests from.
     OutsideIngestFolders,
@@ -171,11 +282,19 @@ impl EngineError {
     /// What kind of failure this is, for clients to branch on.
     pub fn reason(&self) -> Reason {
         match self {
-            EngineError::Invalid(_) | EngineError::Request(_) => Reason::InvalidRequest,
+            EngineError::Request(_)
+            | EngineError::Reprojection(_)
+            | EngineError::Unreachable { .. }
+            | EngineError::ConfigMismatch { .. }
+            | EngineError::Storage { .. } => Reason::InvalidRequest,
             EngineError::TooLarge(_) => Reason::TooLarge,
-            EngineError::NotFound(_) => Reason::NotFound,
-            EngineError::Unavailable(_) => Reason::Unavailable,
+            EngineError::NoSurvey(_) | EngineError::NoFailure(_) => Reason::NotFound,
+            EngineError::NoCrs
+            | EngineError::NoGpu
+            | EngineError::Gpu(_)
+            | EngineError::NotOpen => Reason::Unavailable,
             EngineError::StoreFailed(_) => Reason::StoreFailed,
+            EngineError::Encode(_) => Reason::Internal,
             EngineError::Cancelled => Reason::Deadline,
             EngineError::Store(e) => store_reason(e),
         }

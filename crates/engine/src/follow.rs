@@ -37,6 +37,8 @@ impl Engine {
         }
     }
 
+    /// Where the store stands in replication now: its newest commit, and a replica's progress and
+    /// lag.
     pub fn replication(&self) -> Replication {
         read(&self.replication).clone()
     }

@@ -19,91 +19,153 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use thiserror::Error;
 
+/// Why a file could not be ingested; each message says what to do about it.
 #[derive(Debug, Error)]
 pub enum IngestError {
+    /// The file could not be read as a DEM.
     #[error("{0}")]
     Read(#[from] ReadError),
+    /// The sidecar could not be read, or says something that cannot be used.
     #[error("sidecar {path}: {message}")]
-    Sidecar { path: PathBuf, message: String },
+    Sidecar {
+        /// The sidecar, `<file>.toml`.
+        path: PathBuf,
+        /// What is wrong, without quoting the file.
+        message: String,
+    },
+    /// Neither the file nor a sidecar names a CRS.
     #[error("the file has no CRS: add a sidecar {sidecar} with crs = \"EPSG:…\"")]
-    NoCrs { sidecar: PathBuf },
+    NoCrs {
+        /// Where the sidecar that would name it goes.
+        sidecar: PathBuf,
+    },
+    /// The file names a CRS this build cannot read, and no sidecar names one instead.
     #[error(
         "the file's CRS cannot be used ({found}): add a sidecar {sidecar} with crs = \
          \"EPSG:…\" (or a WKT or PROJ string) naming it"
     )]
-    UnknownCrs { found: String, sidecar: PathBuf },
+    UnknownCrs {
+        /// What the file names, as it names it.
+        found: String,
+        /// Where the sidecar that would name it goes.
+        sidecar: PathBuf,
+    },
+    /// The sidecar's `crs` and the file's own differ.
     #[error(
         "sidecar {sidecar} says crs = {sidecar_crs}, but the file itself is in {file_crs}; \
          remove the sidecar's crs or fix the file"
     )]
     CrsConflict {
+        /// The sidecar.
         sidecar: PathBuf,
+        /// The CRS the sidecar names.
         sidecar_crs: String,
+        /// The CRS the file names.
         file_crs: String,
     },
+    /// The sidecar's `vertical_crs` and the file's own differ in reference or unit.
     #[error(
         "sidecar {sidecar} says vertical_crs = {sidecar_crs}, but the file itself names \
          {file_crs}; remove the sidecar's vertical_crs or fix the file"
     )]
     VerticalConflict {
+        /// The sidecar.
         sidecar: PathBuf,
+        /// The vertical CRS the sidecar names.
         sidecar_crs: String,
+        /// The vertical CRS the file names.
         file_crs: String,
     },
+    /// Converting the heights into the store's vertical CRS needs a geoid grid the config
+    /// does not name.
     #[error(
         "the heights are in {from} but the store's are in {to}, and converting them needs a \
          geoid grid for {missing}: name one in the config, [vertical.geoids] \"{key}\" = \
          \"<grid>.tif\" (PROJ's grids, from https://cdn.proj.org, are such GeoTIFFs)"
     )]
     NoGeoid {
+        /// The survey's vertical CRS.
         from: String,
+        /// The store's vertical CRS.
         to: String,
+        /// The vertical CRS whose grid is missing: `from` or `to`.
         missing: String,
+        /// The `[vertical.geoids]` key that would name its grid.
         key: String,
     },
+    /// A geoid grid the config names could not be read or used.
     #[error("the geoid grid {path} for {vertical}: {message}")]
     Geoid {
+        /// The grid file.
         path: PathBuf,
+        /// The vertical CRS it is named for.
         vertical: String,
+        /// What went wrong.
         message: String,
     },
+    /// The heights could not be converted between vertical CRSs.
     #[error("converting the heights between vertical CRSs: {0}")]
     Convert(#[from] patchwork_core::model::geoid::GeoidError),
+    /// ε, given or estimated, is not below the top of LOD space.
     #[error(
         "accuracy {value} m ({given_by}) is refused: it must be a number of metres in \
          [0, {max}), the top of LOD space (index.max_error); a survey that inaccurate would \
          never serve any answer"
     )]
     BadAccuracy {
+        /// ε, in metres.
         value: f64,
+        /// Where ε came from: the sidecar, the caller, the config or the estimate.
         given_by: &'static str,
+        /// `index.max_error`, which ε must stay below.
         max: f64,
     },
+    /// The file's georeference cannot make a grid.
     #[error("georeference: {0}")]
     Grid(#[from] patchwork_core::model::grid::GridError),
+    /// The survey could not be modelled.
     #[error("{0}")]
     Survey(#[from] SurveyError),
+    /// Valid samples lie outside the plausible heights of `[limits]`.
     #[error(
         "{outside} of the valid samples lie outside the plausible heights [{lo}, {hi}] m (they \
          range from {min} to {max} m): the file is not elevation in metres, or its nodata \
          value is not declared; limits.min_height_m and limits.max_height_m set the range"
     )]
     Implausible {
+        /// How many samples lie outside.
         outside: u64,
+        /// `limits.min_height_m`.
         lo: f64,
+        /// `limits.max_height_m`.
         hi: f64,
+        /// The lowest valid sample.
         min: f32,
+        /// The highest valid sample.
         max: f32,
     },
+    /// The path is not where the daemon may read: outside the inbox and the ingest roots, or
+    /// led out of them by a symlink. The message says nothing about what is there.
     #[error("{}", REFUSED_PATH)]
     Refused,
+    /// The path is a directory.
     #[error("{path} is a directory, not a DEM file")]
-    Directory { path: PathBuf },
+    Directory {
+        /// The path named.
+        path: PathBuf,
+    },
+    /// The path names something other than a regular file (a device, a socket, a pipe).
     #[error("{path} is not a regular file")]
-    NotAFile { path: PathBuf },
+    NotAFile {
+        /// The path named.
+        path: PathBuf,
+    },
+    /// The file could not be opened.
     #[error("cannot read {path}: {source}")]
     Unreadable {
+        /// The path named.
         path: PathBuf,
+        /// Why it could not be opened.
         source: std::io::Error,
     },
 }
@@ -112,8 +174,12 @@ pub enum IngestError {
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Sidecar {
+    /// ε of the survey, in metres; overrides `--accuracy` and the config.
     pub accuracy_m: Option<f64>,
+    /// The file's horizontal CRS: an EPSG code, a WKT or a PROJ string. Must agree with the file's
+    /// own where it names one.
     pub crs: Option<String>,
+    /// The vertical CRS of the file's heights, "EPSG:n" or "ellipsoidal".
     pub vertical_crs: Option<String>,
     /// A correction of where the survey lies: moved east, north and up by these metres (the
     /// negation of a conflict's `shift_m` puts it where the other survey lies).
@@ -142,13 +208,18 @@ pub fn parse_sidecar(bytes: &[u8]) -> Result<Sidecar, String> {
 /// engine reports the others.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Phase {
+    /// Reading the file and its sidecar.
     Reading,
+    /// Building the survey's mipmap and patches.
     Modelling,
+    /// Placing the survey's patches in the index.
     Indexing,
+    /// Writing the survey to the store.
     Committing,
 }
 
 impl Phase {
+    /// The phase as progress displays and the API name it.
     pub fn as_str(&self) -> &'static str {
         match self {
             Phase::Reading => "reading",
@@ -162,10 +233,13 @@ impl Phase {
 /// How a survey was made, for its record.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Timings {
+    /// Reading and decoding the file, in ms.
     pub read_ms: u64,
+    /// Building the survey from the raster, in ms.
     pub build_ms: u64,
 }
 
+/// The sidecar of a DEM: its path with `.toml` added, so that `a.tif` has `a.tif.toml`.
 pub fn sidecar_path(path: &Path) -> PathBuf {
     let mut s = path.as_os_str().to_owned();
     s.push(".toml");
@@ -248,6 +322,7 @@ fn toml_error(text: &str, e: &toml::de::Error) -> String {
 pub struct IngestSettings {
     /// `--accuracy` from the caller, which a sidecar overrides.
     pub accuracy: Option<f64>,
+    /// The config's `accuracy_m`, for files with neither a sidecar's ε nor the caller's.
     pub default_accuracy: DefaultAccuracy,
     /// Accuracies must stay below this: the top of LOD space.
     pub max_accuracy: f64,
@@ -255,8 +330,11 @@ pub struct IngestSettings {
     pub store_vertical: Option<VerticalCrs>,
     /// The geoid grids the config names.
     pub geoids: Arc<Geoids>,
+    /// Kernel and margin of the store's patches.
     pub layout: PatchLayout,
+    /// How the store builds a survey's mipmap and patches.
     pub recipe: Recipe,
+    /// The largest raster one file may decode to, and the folders it may be read from.
     pub read_limits: ReadLimits,
     /// Plausible heights, in metres: a file with a valid sample outside is refused.
     pub heights: (f64, f64),
@@ -265,10 +343,13 @@ pub struct IngestSettings {
 /// A file read and modelled.
 #[derive(Clone, Debug)]
 pub struct Prepared {
+    /// The survey built from the file.
     pub survey: Survey,
     /// Hex BLAKE3 of the file's bytes as they were read to build the survey.
     pub content_id: String,
+    /// Where ε came from: the sidecar, the caller, the config or the estimate.
     pub source: AccuracySource,
+    /// How long reading and building took.
     pub timings: Timings,
     /// The vertical CRS the file or its sidecar named.
     pub vertical_source: Option<VerticalCrs>,

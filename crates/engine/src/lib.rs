@@ -28,7 +28,7 @@ mod route;
 mod write;
 
 pub use crate::ingest::Phase;
-pub use error::{EngineError, Reason};
+pub use error::{EngineError, Reason, TooLarge};
 pub use follow::{rounds, Replication};
 pub use listing::{
     conflicts_of, Conflict, Distrusted, Footprint, Held, Progress, Stats, SurveyListing,
@@ -125,6 +125,8 @@ pub struct Engine {
 }
 
 impl Engine {
+    /// Opens the store of `cfg.data_dir` (making it if there is none) and publishes its terrain;
+    /// refuses a store whose CRSs differ from the ones the config sets.
     pub fn open(cfg: Config) -> Result<Engine, EngineError> {
         Self::open_on(cfg, Arc::new(SystemDisk))
     }
@@ -147,23 +149,22 @@ impl Engine {
         }
         if let (Some(want), Some(have)) = (cfg.crs_def(), opened.store.crs()) {
             if want != have {
-                return Err(EngineError::Invalid(format!(
-                    "the config says crs = {} but the store at {} is in {}",
-                    want.label(),
-                    cfg.data_dir.display(),
-                    have.label()
-                )));
+                return Err(EngineError::ConfigMismatch {
+                    key: "crs",
+                    config: want.label(),
+                    store: have.label(),
+                    dir: cfg.data_dir.clone(),
+                });
             }
         }
         if let (Some(want), Some(have)) = (cfg.vertical_crs(), opened.store.vertical_crs()) {
             if !want.same_reference(&have) {
-                return Err(EngineError::Invalid(format!(
-                    "the config says vertical.crs = {} but the heights of the store at {} are \
-                     in {}",
-                    want.label(),
-                    cfg.data_dir.display(),
-                    have.label()
-                )));
+                return Err(EngineError::ConfigMismatch {
+                    key: "vertical.crs",
+                    config: want.label(),
+                    store: have.label(),
+                    dir: cfg.data_dir.clone(),
+                });
             }
         }
         let mut opened = opened;
@@ -210,6 +211,7 @@ impl Engine {
         })
     }
 
+    /// The configuration the engine was opened with.
     pub fn config(&self) -> &Config {
         &self.cfg
     }
@@ -230,6 +232,8 @@ impl Engine {
         (p.terrain.clone(), p.catalog.clone())
     }
 
+    /// A receiver of every event from now on: ingests, failures, retirements. A receiver that falls
+    /// more than 1024 behind loses the oldest.
     pub fn subscribe(&self) -> broadcast::Receiver<Event> {
         self.events.subscribe()
     }
@@ -360,6 +364,8 @@ impl Engine {
         self.guard.check(&self.dir, 0).err().map(|e| e.to_string())
     }
 
+    /// Figures for `patchwork stats`, all from the published state and the caches, without the
+    /// writer.
     pub fn stats(&self) -> Stats {
         let (t, c) = self.published();
         let active: Vec<_> = c.active().collect();
@@ -424,8 +430,10 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
         retry_timeout: timeout,
         ..RetryConfig::default()
     };
-    let bad =
-        |what: &str, e: object_store::Error| EngineError::Invalid(format!("storage: {what}: {e}"));
+    let bad = |what: &str, e: object_store::Error| EngineError::Storage {
+        what: what.to_string(),
+        source: Box::new(e),
+    };
     let (store, prefix, url): (Arc<dyn object_store::ObjectStore>, _, _) = match st.backend {
         BackendKind::Local => return Ok(ChunkBackend::Local),
         BackendKind::S3 => {
@@ -450,8 +458,9 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
         }
         BackendKind::Folder => {
             let dir = st.folder.as_ref().expect("validated: folder is set");
-            std::fs::create_dir_all(dir).map_err(|e| {
-                EngineError::Invalid(format!("storage.folder {}: {e}", dir.display()))
+            std::fs::create_dir_all(dir).map_err(|e| EngineError::Storage {
+                what: format!("folder {}", dir.display()),
+                source: Box::new(e),
             })?;
             let store = object_store::local::LocalFileSystem::new_with_prefix(dir)
                 .map_err(|e| bad("folder", e))?;

@@ -18,10 +18,12 @@ pub struct Conflict {
     pub survey: SurveyId,
     /// How far they differ where they overlap, measured at the finer one's samples.
     pub max_m: f64,
+    /// Their root-mean-square difference there.
     pub rms_m: f64,
     /// Where the other lies against this one, metres east, north and up, and how far they
     /// differ once it is moved back; None where they could not be coregistered.
     pub shift_m: Option<[f64; 3]>,
+    /// Their root-mean-square difference once the other is moved back by `shift_m`.
     pub rms_after_m: Option<f64>,
     /// Whose claim the evidence finds false.
     pub distrusted: Distrusted,
@@ -39,12 +41,14 @@ pub enum Distrusted {
     /// This survey's: a degraded copy of the other, or the one shifted from where a third
     /// survey lies.
     This,
+    /// The other survey's, for the same reasons.
     Other,
     /// Either could be: nothing tells them apart.
     Both,
 }
 
 impl Distrusted {
+    /// The verdict as listings and the API name it.
     pub fn as_str(&self) -> &'static str {
         match self {
             Distrusted::This => "this",
@@ -91,7 +95,9 @@ pub fn conflicts_of(t: &Terrain, id: SurveyId) -> Vec<Conflict> {
 /// The store's surveys with their failures and conflicts.
 #[derive(Clone, Debug, Default)]
 pub struct SurveyListing {
+    /// Every survey record, active, retired or damaged.
     pub records: Vec<SurveyRecord>,
+    /// The files that failed, as remembered (at most `limits.max_failures`).
     pub failures: Vec<FailedRecord>,
     /// Active surveys out of the terrain because they are damaged.
     pub damaged: BTreeMap<SurveyId, Damaged>,
@@ -114,22 +120,33 @@ pub enum Held {
 /// A store and the figures `stats` reports.
 #[derive(Clone, Debug, Default)]
 pub struct Stats {
+    /// Active surveys.
     pub surveys: u32,
+    /// Retired surveys the store still holds, until a compaction removes them.
     pub retired: u32,
+    /// Failed files remembered.
     pub failed: u32,
     /// Active surveys out of the terrain because they are damaged.
     pub damaged: u32,
+    /// Boxes in the index, active or not.
     pub patches: u64,
+    /// Boxes in the index not cut to nothing: those whose span is non-empty.
     pub active_boxes: u64,
+    /// Valid level-0 samples of the active surveys.
     pub samples: u64,
+    /// Bytes of the files under the store's directory: its size on disk.
     pub disk_bytes: u64,
+    /// The store's horizontal CRS: the config's, else the store's own.
     pub crs: Option<Crs>,
+    /// The store's vertical CRS: the config's, else the store's own.
     pub vertical_crs: Option<VerticalCrs>,
     /// "cpu", or "gpu (adapter)".
     pub backend: String,
+    /// Nodes of the index's quadtree.
     pub quadtree_nodes: u32,
     /// Why writes are refused now (a full disk, a failed store); None when they are not.
     pub read_only: Option<String>,
+    /// How the chunk cache is doing: its size, hits and misses.
     pub cache: CacheStats,
     /// The ingest under way, if any.
     pub ingesting: Option<Progress>,
@@ -142,18 +159,26 @@ pub struct Stats {
 /// Where a verification stands: what it checks now, how many of how many, since when.
 #[derive(Clone, Debug)]
 pub struct Verifying {
+    /// What it checks now: `"surveys"`, then `"index"`.
     pub step: &'static str,
+    /// How many of `total` it has checked.
     pub done: u64,
+    /// How many there are to check in this step.
     pub total: u64,
+    /// When the verification started.
     pub started: Instant,
 }
 
 /// The ingest under way: which file, how big, where it is and since when.
 #[derive(Clone, Debug)]
 pub struct Progress {
+    /// The file's source: its absolute path (see [`crate::paths::source_name`]).
     pub source: String,
+    /// The file's size when the ingest started.
     pub bytes: u64,
+    /// The step it is at.
     pub phase: Phase,
+    /// When the ingest started, its wait for a slot excluded.
     pub started: Instant,
 }
 
@@ -161,6 +186,7 @@ pub struct Progress {
 /// made over.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Footprint {
+    /// The survey's id.
     pub id: SurveyId,
     /// ε, metres: the largest over its kernels.
     pub accuracy_m: f64,

@@ -42,6 +42,8 @@ pub fn escaped(path: &Path) -> String {
     out
 }
 
+/// The size of the file at `path` and its mtime in seconds since the epoch; `None` when it cannot
+/// be read. A failed file's record keeps them, to tell when the file has changed.
 pub fn size_mtime(path: &Path) -> Option<(u64, u64)> {
     let m = std::fs::metadata(path).ok()?;
     let mtime = m

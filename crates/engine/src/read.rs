@@ -4,7 +4,7 @@
 
 use super::request::{Camera, Ctx, Made, Metres, Region, SampleRequest, TileRequest};
 use super::route::Used;
-use super::{BadRequest, Engine, EngineError};
+use super::{BadRequest, Engine, EngineError, TooLarge};
 use patchwork_core::crs::{Crs, Reprojection};
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Extracted, Metric, Shortfall, ViewQuery};
@@ -119,11 +119,13 @@ pub struct MeshSpec {
 /// A mesh of a uniform cut and what it was made from.
 #[derive(Clone, Debug)]
 pub struct MeshTile {
+    /// The triangles, their vertices in the spec's CRS.
     pub mesh: mesh::Mesh,
     /// The tile its grid spans.
     pub roi: Aabb,
     /// The patches blended, in id order.
     pub patches: Vec<Extracted>,
+    /// The backend that resampled the grid.
     pub backend: Used,
     /// Where no data is as accurate as the cut asked.
     pub shortfall: Option<Shortfall>,
@@ -135,7 +137,9 @@ pub struct MeshTile {
 /// What a tile is, told with each of its bands.
 #[derive(Clone, Copy, Debug)]
 pub struct TileHead<'a> {
+    /// Samples a row of the tile.
     pub width: usize,
+    /// Rows of the whole tile, not of one band.
     pub height: usize,
     /// The patches the heights are blended from, in id order.
     pub patches: &'a [Extracted],
@@ -162,11 +166,7 @@ impl Engine {
     /// that its lattice's nodes are worked out once for every request in it.
     pub fn to_store(&self, crs: &Crs) -> Result<Option<Arc<Reprojection>>, EngineError> {
         let Some(store) = self.crs() else {
-            return Err(EngineError::Unavailable(
-                "the store has no CRS yet (no survey and none in the config): ask in its own \
-                 coordinates once it has one"
-                    .into(),
-            ));
+            return Err(EngineError::NoCrs);
         };
         if *crs == store {
             return Ok(None);
@@ -175,9 +175,7 @@ impl Engine {
         if let Some(r) = cache.get(crs).filter(|r| *r.to() == store) {
             return Ok(Some(r.clone()));
         }
-        let r = Arc::new(
-            Reprojection::new(crs, &store).map_err(|e| EngineError::Invalid(e.to_string()))?,
-        );
+        let r = Arc::new(Reprojection::new(crs, &store)?);
         // Clients name few CRSs; a bound keeps a client naming many from holding memory.
         if cache.len() >= 64 {
             cache.clear();
@@ -205,12 +203,9 @@ impl Engine {
             ]);
         }
         let mapped: Option<Vec<[f64; 2]>> = pts.iter().map(|&p| r.at(p)).collect();
-        let mapped = mapped.ok_or_else(|| {
-            EngineError::Invalid(format!(
-                "part of the region lies where {} cannot be carried into the store's {}",
-                crs.label(),
-                r.to().label()
-            ))
+        let mapped = mapped.ok_or_else(|| EngineError::Unreachable {
+            from: crs.label(),
+            to: r.to().label(),
         })?;
         // A side bows between the points by far less than a thousandth of the extent.
         let b = Aabb::of_points(&mapped);
@@ -259,9 +254,7 @@ impl Engine {
     fn within_max_patches(&self, n: usize) -> Result<(), EngineError> {
         let max = self.cfg.limits.max_patches;
         if n as u64 > max {
-            return Err(EngineError::TooLarge(format!(
-                "the query needs {n} patches, more than the limit of {max}: ask for a smaller region or a larger error"
-            )));
+            return Err(TooLarge::Patches { n: n as u64, max }.into());
         }
         Ok(())
     }
@@ -486,9 +479,13 @@ impl Engine {
         let n = req.size.samples();
         let max = self.cfg.limits.max_tile_samples;
         if n > max {
-            return Err(EngineError::TooLarge(format!(
-                "a {width}×{height} tile has {n} samples, more than the limit of {max}: ask for a smaller tile"
-            )));
+            return Err(TooLarge::TileSamples {
+                width,
+                height,
+                n,
+                max,
+            }
+            .into());
         }
         let (t, ps): Made = match ctx.made {
             Some(m) => m,
@@ -571,11 +568,11 @@ impl Engine {
     pub fn sample(&self, req: &SampleRequest, ctx: Ctx) -> Result<Vec<f32>, EngineError> {
         let points = req.points.get();
         if points.len() as u64 > self.cfg.limits.max_points {
-            return Err(EngineError::TooLarge(format!(
-                "{} points, more than the limit of {}: send them in smaller requests",
-                points.len(),
-                self.cfg.limits.max_points
-            )));
+            return Err(TooLarge::Points {
+                n: points.len() as u64,
+                max: self.cfg.limits.max_points,
+            }
+            .into());
         }
         self.sample_points(points, req.crs.as_ref(), req.error.get(), &ctx.cancel)
     }

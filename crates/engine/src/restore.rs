@@ -26,7 +26,9 @@ pub fn terrain_error(e: TerrainError) -> StoreError {
 
 /// A store opened, and the terrain it holds.
 pub struct Opened {
+    /// The store, open for writing (or following, on a replica).
     pub store: Store,
+    /// The terrain its surveys make, indexed.
     pub terrain: Terrain,
     /// Problems met while opening that did not stop it (missing or orphaned tops, a disk too
     /// full for the reserve file): `verify` tells more.

@@ -237,9 +237,7 @@ impl Engine {
                             *patchwork_core::sync::lock(&self.gpu.adapter) = None;
                         }
                         if backend == Backend::Gpu {
-                            return Err(EngineError::Unavailable(format!(
-                                "GPU resampling failed: {e}"
-                            )));
+                            return Err(EngineError::Gpu(e.to_string()));
                         }
                         return Ok(None);
                     }
@@ -249,10 +247,7 @@ impl Engine {
         #[cfg(not(feature = "gpu"))]
         let _ = (set, grid, release_free_memory);
         if backend == Backend::Gpu {
-            return Err(EngineError::Unavailable(
-                "backend gpu was asked for, but this daemon has no GPU device; use auto or cpu"
-                    .into(),
-            ));
+            return Err(EngineError::NoGpu);
         }
         Ok(None)
     }

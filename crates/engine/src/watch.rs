@@ -34,6 +34,8 @@ use tokio::sync::mpsc;
 
 /// Where the reconciler's decisions go: the engine, or a fake in tests.
 pub trait Sink: Send + Sync + 'static {
+    /// The records, failures and pins as the store holds them now: what the inbox is matched
+    /// against.
     fn catalog(&self) -> Arc<Catalog>;
     /// Ingests a file found in the inbox. An error is the store's: try again later.
     fn ingest(&self, path: &Path) -> Result<Ingested, EngineError>;
@@ -136,6 +138,7 @@ type Stamp = Option<FileStamp>;
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub(crate) struct FileStamp {
+    /// The file's length in bytes.
     pub size: u64,
     mtime: (i64, i64),
     ctime: (i64, i64),
@@ -283,6 +286,8 @@ struct Pending {
     renamed: bool,
 }
 
+/// Decides, from what the inbox folders hold and what the store has, which files to ingest and
+/// which surveys to retire; the trigger only says when to look.
 pub struct Reconciler<S: Sink> {
     sink: Arc<S>,
     roots: Vec<Root>,
@@ -301,6 +306,9 @@ pub struct Reconciler<S: Sink> {
 }
 
 impl<S: Sink> Reconciler<S> {
+    /// A reconciler of the folders `inbox` into `sink`, ingesting a file once its stamp has been
+    /// stable for `settle`, and doing `on_delete` with surveys whose files are gone. Nothing is
+    /// listed until [`Reconciler::startup`].
     pub fn new(sink: Arc<S>, inbox: &[PathBuf], settle: Duration, on_delete: OnDelete) -> Self {
         Reconciler {
             sink,

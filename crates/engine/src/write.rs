@@ -6,7 +6,7 @@ use super::error::{ingest_reason, Reason};
 use super::listing::{conflicts_of, Conflict};
 use super::{release_free_memory, store_options, Engine, EngineError, Phase, Progress};
 use crate::ingest::{open_file, prepare_with, IngestError, IngestSettings};
-use crate::paths::{quote_short, size_mtime, source_name};
+use crate::paths::{size_mtime, source_name};
 use crate::restore;
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::ChangeStats;
@@ -27,16 +27,20 @@ use std::time::Instant;
 /// What happened to a file or a survey.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Outcome {
+    /// A new survey was inserted.
     Inserted,
     /// The same path held another survey, which this one replaced in one commit.
     Replaced,
     /// The content is already served, or was retired by hand; nothing changed.
     Unchanged,
+    /// A survey was retired: by hand, or because its file was deleted from the inbox.
     Retired,
+    /// The file could not be ingested; its `error` says why.
     Failed,
 }
 
 impl Outcome {
+    /// The outcome as events, logs and the API name it.
     pub fn as_str(&self) -> &'static str {
         match self {
             Outcome::Inserted => "inserted",
@@ -60,10 +64,15 @@ pub enum Origin {
 /// A change to the store, for subscribers.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Event {
+    /// What happened.
     pub kind: Outcome,
+    /// The survey inserted, replacing another or retired; `None` for a failure.
     pub survey: Option<SurveyId>,
+    /// The survey's source: the absolute path of its file.
     pub source: String,
+    /// Why the file failed; empty unless it did.
     pub error: String,
+    /// When, in seconds since the Unix epoch.
     pub at_unix: u64,
     /// For an inserted or replacing survey, the surveys it conflicts with.
     pub conflicts: Vec<Conflict>,
@@ -88,14 +97,21 @@ pub(super) fn changed_area(s: &SurveyMeta) -> Aabb {
 /// The outcome of ingesting one file.
 #[derive(Clone, Debug)]
 pub struct Ingested {
+    /// The absolute path the survey is known by (see [`crate::paths::source_name`]).
     pub source: String,
+    /// What became of the file.
     pub outcome: Outcome,
+    /// The survey that serves the file's content; `None` for a failure.
     pub survey: Option<SurveyId>,
+    /// Why the file failed, in words; empty unless it did.
     pub error: String,
     /// Why the file failed; None unless it did.
     pub reason: Option<Reason>,
+    /// The survey's valid samples at level 0; 0 for a failure.
     pub samples: u64,
+    /// How long the ingest took, its wait for a slot included.
     pub seconds: f64,
+    /// For an inserted or replacing survey, the surveys it conflicts with.
     pub conflicts: Vec<Conflict>,
 }
 
@@ -143,11 +159,7 @@ impl Engine {
         }
         self.refuse_on_replica()?;
         let mut guard = lock(&self.writer);
-        let store = guard.as_mut().ok_or_else(|| {
-            EngineError::Unavailable(
-                "the store could not be reopened after compaction; restart the daemon".into(),
-            )
-        })?;
+        let store = guard.as_mut().ok_or_else(|| EngineError::NotOpen)?;
         let current = self.snapshot();
         let done = f(store, &current);
         write(&self.replication).commit = store.commit_seq();
@@ -546,12 +558,7 @@ impl Engine {
             .active()
             .find(|r| Some(r.id) == wanted || r.source == id_or_source || r.source == absolute)
             .cloned()
-            .ok_or_else(|| {
-                EngineError::NotFound(format!(
-                    "no active survey has id or source {}; `patchwork surveys` lists them",
-                    quote_short(id_or_source)
-                ))
-            })?;
+            .ok_or_else(|| EngineError::NoSurvey(id_or_source.to_string()))?;
         // Only the inbox brings a file back by itself: a file there with the same content is
         // pinned, so that it stays retired.
         let inbox: Vec<PathBuf> = self
@@ -632,11 +639,11 @@ impl Engine {
         })
     }
 
+    /// Re-checks the whole store against what inserting its surveys again derives (see
+    /// [`restore::verify`]), holding the writer meanwhile; `stats` shows how far it has got.
     pub fn verify(&self) -> Result<patchwork_store::VerifyReport, EngineError> {
         let guard = lock(&self.writer);
-        let store = guard
-            .as_ref()
-            .ok_or_else(|| EngineError::Unavailable("the store is not open".into()))?;
+        let store = guard.as_ref().ok_or(EngineError::NotOpen)?;
         let started = std::time::Instant::now();
         let report = restore::verify_with(store, &|step, done, total| {
             *lock(&self.verifying) = Some(super::listing::Verifying {
@@ -657,9 +664,7 @@ impl Engine {
         }
         self.refuse_on_replica()?;
         let mut guard = lock(&self.writer);
-        let store = guard
-            .take()
-            .ok_or_else(|| EngineError::Unavailable("the store is not open".into()))?;
+        let store = guard.take().ok_or(EngineError::NotOpen)?;
         let live = self.snapshot().index().state().into_keys().collect();
         let result = restore::compact(store, &live);
         let (opened, report) = match result {

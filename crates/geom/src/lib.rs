@@ -4,8 +4,6 @@
 //! and the bench spread points with. Pure computation, no I/O, and no other crate of the
 //! workspace below it.
 
-#![warn(missing_docs)]
-
 use serde::{Deserialize, Serialize};
 
 pub mod rng;

@@ -3,8 +3,6 @@
 //! view-dependent cuts. Pure computation, no I/O; it imports the model and the geometry below
 //! it, and nothing above.
 
-#![warn(missing_docs)]
-
 pub mod cover;
 pub mod lod;
 pub mod quadtree;

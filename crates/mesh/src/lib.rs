@@ -19,8 +19,6 @@
 //! descendants, so that two triangles that share a hypotenuse always split together: the mesh
 //! has no T-junction inside the tile.
 
-#![warn(missing_docs)]
-
 pub mod encode;
 pub mod quadtree;
 

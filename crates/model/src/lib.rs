@@ -1,7 +1,5 @@
 //! The model: grids, mipmaps and patches. Pure computation, no I/O.
 
-#![warn(missing_docs)]
-
 pub mod accuracy;
 pub mod coreg;
 pub mod detail;

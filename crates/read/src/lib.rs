@@ -1,8 +1,6 @@
 //! Readers that turn elevation files (GeoTIFF/COG, SRTM `.hgt`, ESRI ASCII grid) into a
 //! [`Raster`], plus a small GeoTIFF writer used for exports and test fixtures.
 
-#![warn(missing_docs)]
-
 pub mod ascii;
 pub mod crs;
 pub mod geotiff;

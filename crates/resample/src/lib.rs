@@ -3,8 +3,6 @@
 //! this one, is the daemon's (it needs a device). Pure computation: it blends whatever
 //! patches it is given, and imports neither the index nor anything above.
 
-#![warn(missing_docs)]
-
 pub mod cpu;
 
 use patchwork_crs::Reprojection;

@@ -8,7 +8,7 @@ use patchwork_core::index::query::Extracted;
 use patchwork_core::resample::{Cancel, BLOCK};
 use patchwork_core::terrain::Terrain;
 use patchwork_engine::{
-    BadRequest, Camera, Ctx, Cut, Engine, EngineError, Origin, SampleRequest, TileRequest,
+    BadRequest, Camera, Ctx, Cut, Engine, EngineError, Origin, SampleRequest, TileRequest, TooLarge,
 };
 use patchwork_store::StoreError;
 use std::path::Path;
@@ -214,10 +214,11 @@ pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply,
     }
     let most = engine.config().limits.max_ingest_paths;
     if r.paths.len() as u64 > most {
-        return Err(EngineError::TooLarge(format!(
-            "{} paths in one request, more than the limit of {most} (limits.max_ingest_paths): send them in smaller requests",
-            r.paths.len()
-        )));
+        return Err(TooLarge::IngestPaths {
+            n: r.paths.len() as u64,
+            max: most,
+        }
+        .into());
     }
     for p in &r.paths {
         check_path("a path", p)?;
@@ -234,22 +235,23 @@ pub fn ingest(engine: &Engine, r: &pb::IngestRequest) -> Result<pb::IngestReply,
     Ok(pb::IngestReply { results })
 }
 
+/// Every survey, failed file and held file, all of one commit.
 pub fn list_surveys(engine: &Engine) -> Result<pb::SurveyList, EngineError> {
     let (terrain, listing) = engine.surveys();
     Ok(convert::surveys(&terrain, &listing))
 }
 
+/// Removes the failure recorded for a source, so that the inbox tries its file again;
+/// NOT_FOUND when none is recorded.
 pub fn forget(engine: &Engine, r: &pb::ForgetRequest) -> Result<pb::ForgetReply, EngineError> {
     check_path("the source", &r.source)?;
     if !engine.forget(&r.source)? {
-        return Err(EngineError::NotFound(format!(
-            "no failure is recorded for {}; `patchwork surveys` lists them",
-            patchwork_engine::paths::quote_short(&r.source)
-        )));
+        return Err(EngineError::NoFailure(r.source.clone()));
     }
     Ok(pb::ForgetReply {})
 }
 
+/// Retires a survey named by id or source; its id and how many patches went with it.
 pub fn retire(engine: &Engine, r: &pb::RetireRequest) -> Result<pb::RetireReply, EngineError> {
     check_path("the id or source", &r.id_or_source)?;
     let (id, patches) = engine.retire(&r.id_or_source)?;
@@ -259,10 +261,12 @@ pub fn retire(engine: &Engine, r: &pb::RetireRequest) -> Result<pb::RetireReply,
     })
 }
 
+/// The store's and the engine's counts; the server adds its own of the requests.
 pub fn stats(engine: &Engine) -> Result<pb::StatsReply, EngineError> {
     Ok(convert::stats(&engine.stats()))
 }
 
+/// Re-checks the whole store; the problems found go in the reply, not in an error.
 pub fn verify(engine: &Engine) -> Result<pb::VerifyReply, EngineError> {
     let v = engine.verify()?;
     Ok(pb::VerifyReply {
@@ -273,6 +277,8 @@ pub fn verify(engine: &Engine) -> Result<pb::VerifyReply, EngineError> {
     })
 }
 
+/// Drops every damaged survey for good, so that the inbox ingests their files afresh; the
+/// surveys dropped.
 pub fn repair(engine: &Engine) -> Result<pb::RepairReply, EngineError> {
     let dropped = engine.repair()?;
     Ok(pb::RepairReply {
@@ -287,6 +293,8 @@ pub fn repair(engine: &Engine) -> Result<pb::RepairReply, EngineError> {
     })
 }
 
+/// Removes retired surveys for good and rewrites the store's files; the sizes before and
+/// after.
 pub fn compact(engine: &Engine) -> Result<pb::CompactReply, EngineError> {
     let c = engine.compact()?;
     Ok(pb::CompactReply {

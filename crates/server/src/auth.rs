@@ -52,6 +52,7 @@ impl Gate {
         }
     }
 
+    /// Whether every call gets in: no token is set for this service.
     pub fn is_open(&self) -> bool {
         self.accept.is_empty()
     }

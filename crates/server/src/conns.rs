@@ -55,6 +55,7 @@ pub struct Conns {
 
 /// One open connection.
 pub struct Conn {
+    /// The client's address, which tells this connection from the others.
     pub peer: SocketAddr,
     /// When bytes last moved (at first, when it was accepted), in ms since [`Conns::epoch`].
     last: AtomicU64,
@@ -271,6 +272,7 @@ pub struct Tracked<S> {
 }
 
 impl<S> Tracked<S> {
+    /// The connection this socket carries.
     pub fn conn(&self) -> &Arc<Conn> {
         &self.conn
     }
@@ -421,6 +423,8 @@ impl<S> tower::Layer<S> for TrackLayer {
     }
 }
 
+/// The service [`TrackLayer`] wraps around the server's: it finds each request's connection
+/// by its peer address and runs the request under it.
 #[derive(Clone)]
 pub struct Track<S> {
     inner: S,

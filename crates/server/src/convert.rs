@@ -19,6 +19,7 @@ use patchwork_engine::{
 };
 use patchwork_store::Status;
 
+/// A box on the wire, in the coordinates it was given in.
 pub fn rect(b: &Aabb) -> pb::Rect {
     pb::Rect {
         xmin: b.min[0],
@@ -157,9 +158,13 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
 /// nothing, else f32.
 #[derive(Debug, PartialEq)]
 pub struct Packed {
+    /// How `data` holds the samples: i16 or f32.
     pub encoding: pb::SampleEncoding,
+    /// The height of one i16 step, a power of two; 0 with f32.
     pub scale: f64,
+    /// The height the i16 value 0 stands for; 0 with f32.
     pub offset: f64,
+    /// The samples in order, little-endian; [`I16_VOID`] or NaN marks a void.
     pub data: Vec<u8>,
 }
 
@@ -172,6 +177,7 @@ impl Packed {
     /// serves their first six.
     const MAX_SHIFT: i32 = 12;
 
+    /// `samples` as i16 where that is exact, else as f32.
     pub fn of(samples: &[f32]) -> Self {
         Self::as_i16(samples).unwrap_or_else(|| Packed {
             encoding: pb::SampleEncoding::F32,
@@ -234,6 +240,8 @@ impl Packed {
     }
 }
 
+/// A resampled tile on the wire, with the backend that made it and its CRS; `valid` marks
+/// the samples that are not void.
 pub fn tile(t: &Tile, backend: Used, crs: Option<&Crs>) -> pb::Tile {
     let (code, key) = crs_fields(crs);
     pb::Tile {
@@ -258,6 +266,7 @@ fn shortfall(s: Shortfall) -> pb::Shortfall {
     }
 }
 
+/// A meshed tile on the wire, with its CRS: what [`mesh_of`] reads back.
 pub fn mesh(m: &MeshTile, crs: Option<&Crs>) -> pb::Mesh {
     let mesh = &m.mesh;
     let (code, key) = crs_fields(crs);
@@ -388,6 +397,8 @@ fn le_bytes(v: &[f32]) -> Vec<u8> {
     }
 }
 
+/// Conflicts with other surveys on the wire: by how much they disagree, the shift that would
+/// reconcile them, which survey is distrusted and the test that decided it.
 pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
     cs.iter()
         .map(|c| pb::Conflict {
@@ -414,6 +425,7 @@ pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
         .collect()
 }
 
+/// One file's ingest result on the wire.
 pub fn ingested(i: &Ingested) -> pb::IngestResult {
     pb::IngestResult {
         source: i.source.clone(),
@@ -433,6 +445,8 @@ pub fn reason(r: Reason) -> pb::ErrorReason {
         .unwrap_or(pb::ErrorReason::Unspecified)
 }
 
+/// The survey listing on the wire, by source: the surveys with their accuracy as the
+/// terrain takes it, then the unreadable records, the failed files and the files held back.
 pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
     let mut out: Vec<pb::SurveyInfo> = l
         .records
@@ -518,6 +532,7 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
     pb::SurveyList { surveys: out }
 }
 
+/// The engine's stats on the wire; the request counts are the server's to fill in.
 pub fn stats(s: &Stats) -> pb::StatsReply {
     let f = s.replication.following.as_ref();
     pb::StatsReply {

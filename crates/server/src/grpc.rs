@@ -17,6 +17,8 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 
+/// The Terrain and Admin services over one engine, with the limits both ports share: the turns
+/// to run requests, the open streams and the connections. Clones share all of it.
 #[derive(Clone)]
 pub struct Service {
     engine: Arc<Engine>,
@@ -137,6 +139,8 @@ impl Drop for CancelOnDrop {
 }
 
 impl Service {
+    /// A service over `engine` with the limits of its config; `stopping` turns true once the
+    /// daemon is told to stop.
     pub fn new(engine: Arc<Engine>, stopping: tokio::sync::watch::Receiver<bool>) -> Self {
         let limits = &engine.config().limits;
         let n = limits.max_running_requests as usize;

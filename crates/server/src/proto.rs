@@ -1,4 +1,5 @@
 //! Code generated from `proto/patchwork/v1`.
+// Generated code carries no docs of its own: the messages are documented in the .proto files.
 #![allow(clippy::all, missing_docs)]
 
 tonic::include_proto!("patchwork.v1");

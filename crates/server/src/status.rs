@@ -130,10 +130,10 @@ mod tests {
         assert_eq!(reason_of(&deadline(5)), Some(Reason::Deadline));
         let s = to_status(EngineError::StoreFailed("Input/output error".into()));
         assert_eq!(s.code(), Code::Unavailable);
-        let s = to_status(EngineError::NotFound("x".repeat(1 << 20)));
+        let s = to_status(EngineError::NoSurvey("x".repeat(1 << 20)));
         assert_eq!(s.code(), Code::NotFound);
         assert!(s.message().len() <= MAX_MESSAGE + 3);
-        let s = to_status(EngineError::Invalid("é".repeat(1000)));
+        let s = to_status(EngineError::StoreFailed("é".repeat(1000)));
         assert!(s.message().ends_with('…'));
     }
 }

@@ -68,6 +68,7 @@ fn release(s: &mut State, ip: Option<IpAddr>) {
 }
 
 impl Turns {
+    /// `total` turns, all free.
     pub fn new(total: usize) -> Arc<Turns> {
         Arc::new(Turns {
             total,

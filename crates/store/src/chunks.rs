@@ -306,14 +306,21 @@ impl std::fmt::Debug for ChunkReader {
 /// How the cache is doing.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct CacheStats {
+    /// Bytes the cached chunks take, as the cache weighs them: 4 a sample and 64 a chunk.
     pub bytes: u64,
+    /// The most bytes the cache holds.
     pub capacity: u64,
+    /// Decoded chunks in the cache.
     pub chunks: usize,
+    /// Reads the cache answered since the reader was made.
     pub hits: u64,
+    /// Reads that had to go to the pack since the reader was made.
     pub misses: u64,
 }
 
 impl ChunkReader {
+    /// A reader of the chunks whose locations are in `tree` and whose bytes are in `pack`,
+    /// caching at most `capacity_bytes` of decoded samples.
     pub fn new(tree: sled::Tree, pack: Arc<dyn ChunkStore>, capacity_bytes: u64) -> Self {
         let items = (capacity_bytes / (4 * (CHUNK * CHUNK) as u64)).max(16) as usize;
         ChunkReader {
@@ -327,6 +334,7 @@ impl ChunkReader {
         *write(&self.open) = None;
     }
 
+    /// The cache's size and hit counts now.
     pub fn stats(&self) -> CacheStats {
         CacheStats {
             bytes: self.cache.weight(),

@@ -445,6 +445,7 @@ impl Store {
         Ok(true)
     }
 
+    /// Removes the failure recorded for `source`, if there is one.
     pub fn clear_failure(&mut self, source: &str) -> Result<(), StoreError> {
         if self.db.get(keys::failure(source))?.is_some() {
             self.forget_failure(source)?;

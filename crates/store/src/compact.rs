@@ -22,16 +22,21 @@ use std::collections::HashSet;
 use std::path::Path;
 use std::sync::Arc;
 
+/// What a compaction ([`Store::compact`]) did.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct CompactReport {
+    /// Bytes of the store's directory before the compaction.
     pub bytes_before: u64,
+    /// Bytes of the store's directory after it.
     pub bytes_after: u64,
     /// Retired surveys whose samples and patches were removed (their records stay).
     pub surveys_purged: usize,
+    /// Keys dropped because they belong to no active survey or live patch.
     pub keys_removed: u64,
     /// Whether the compacted copy replaced the store: not when nothing was removed and the
     /// copy was no smaller.
     pub swapped: bool,
+    /// Keys the store keeps.
     pub keys_kept: u64,
 }
 

@@ -4,10 +4,15 @@
 
 use patchwork_core::model::ids::{PatchId, SurveyId};
 
+/// `u32` LE: the schema version the store is written in (see `migrate`).
 pub const SCHEMA: &[u8] = b"meta/schema";
+/// The store's horizontal CRS as its `Crs::key` (UTF-8).
 pub const CRS: &[u8] = b"meta/crs";
+/// The store's vertical CRS as its `VerticalCrs::key` (UTF-8), once it has one.
 pub const VERTICAL_CRS: &[u8] = b"meta/vertical_crs";
+/// The `PatchLayout` every survey of the store is cut with (bincode).
 pub const LAYOUT: &[u8] = b"meta/layout";
+/// The `IndexConfig` the stored box tops were computed with (bincode).
 pub const INDEX: &[u8] = b"meta/index";
 /// The name of the mipmap filter every survey of the store is built with; absent in stores
 /// made before there was a choice, whose surveys are all `smooth`.
@@ -15,6 +20,7 @@ pub const MIPMAP: &[u8] = b"meta/mipmap";
 /// The name of the patch kind every survey of the store is made of; absent in stores made
 /// before there was a choice, whose patches are all `bilinear`.
 pub const PATCHES: &[u8] = b"meta/patches";
+/// `distrust` or `keep`: what the store does with a claim other surveys find false.
 pub const CONTRADICTED: &[u8] = b"meta/contradicted";
 /// `u64` LE: how many bytes of the chunk pack are committed (see [`super::pack`]).
 pub const PACK_LEN: &[u8] = b"meta/pack_len";
@@ -37,29 +43,41 @@ pub const REBUILD: &[u8] = b"meta/rebuild";
 /// damaged (bincode `Vec<SurveyId>`, in id order); absent when there are none.
 pub const QUARANTINED: &[u8] = b"meta/quarantined";
 
+/// Every store-wide setting and counter.
 pub const META_PREFIX: &[u8] = b"meta/";
+/// Survey records, by survey id.
 pub const SURVEY_PREFIX: &[u8] = b"s/";
+/// Where each survey's patch list is in the pack, by survey id.
 pub const PATCHES_PREFIX: &[u8] = b"p/";
+/// Where each chunk of samples is in the pack, by survey, level and chunk.
 pub const CHUNK_PREFIX: &[u8] = b"c/";
 /// One key a patch, holding its box's state: schema 6 and before, read only by the step to 7.
 pub const TOP_PREFIX: &[u8] = b"t/";
 /// One key a unit (a survey, with the edge patches it owns), holding the states of all its
 /// boxes: a key a patch kept a node entry of the database in memory for every patch.
 pub const BOXES_PREFIX: &[u8] = b"b/";
+/// Files that failed to ingest, by source path.
 pub const FAILURE_PREFIX: &[u8] = b"f/";
+/// What overlapping surveys say of each other's claims, by pair.
 pub const OVERLAP_PREFIX: &[u8] = b"o/";
+/// The estimated accuracy of a survey whose ε was estimated, by survey id.
 pub const ACCURACY_PREFIX: &[u8] = b"a/";
+/// Content ids of files whose surveys were retired by hand, by source path.
 pub const PIN_PREFIX: &[u8] = b"r/";
+/// Edge patches the active surveys call for, by patch id.
 pub const EDGE_PREFIX: &[u8] = b"e/";
 
+/// A survey's record.
 pub fn survey(id: SurveyId) -> Vec<u8> {
     format!("s/{id}").into_bytes()
 }
 
+/// Where a survey's patches and edge tiles are in the pack.
 pub fn patches(id: SurveyId) -> Vec<u8> {
     format!("p/{id}").into_bytes()
 }
 
+/// A survey's estimated accuracy.
 pub fn accuracy(id: SurveyId) -> Vec<u8> {
     format!("a/{id}").into_bytes()
 }
@@ -84,6 +102,7 @@ pub fn edge(id: PatchId) -> Vec<u8> {
     format!("e/{id}").into_bytes()
 }
 
+/// `e/<patch>` → the patch id.
 pub fn parse_edge(k: &[u8]) -> Option<PatchId> {
     hex_id(k.strip_prefix(EDGE_PREFIX)?).map(PatchId)
 }
@@ -93,6 +112,7 @@ pub fn boxes(unit: SurveyId) -> Vec<u8> {
     format!("b/{unit}").into_bytes()
 }
 
+/// `b/<unit>` → the unit.
 pub fn parse_boxes(k: &[u8]) -> Option<SurveyId> {
     hex_id(k.strip_prefix(BOXES_PREFIX)?).map(SurveyId)
 }
@@ -107,6 +127,7 @@ pub fn overlaps_of(a: SurveyId) -> Vec<u8> {
     format!("o/{a}/").into_bytes()
 }
 
+/// The failure recorded for a source path.
 pub fn failure(source: &str) -> Vec<u8> {
     let mut k = FAILURE_PREFIX.to_vec();
     k.extend_from_slice(source.as_bytes());
@@ -132,14 +153,17 @@ fn hex_id(s: &[u8]) -> Option<u64> {
     u64::from_str_radix(std::str::from_utf8(s).ok()?, 16).ok()
 }
 
+/// `s/<survey>` → the survey id.
 pub fn parse_survey(k: &[u8]) -> Option<SurveyId> {
     hex_id(k.strip_prefix(SURVEY_PREFIX)?).map(SurveyId)
 }
 
+/// `a/<survey>` → the survey id.
 pub fn parse_accuracy(k: &[u8]) -> Option<SurveyId> {
     hex_id(k.strip_prefix(ACCURACY_PREFIX)?).map(SurveyId)
 }
 
+/// `p/<survey>` → the survey id.
 pub fn parse_patches(k: &[u8]) -> Option<SurveyId> {
     hex_id(k.strip_prefix(PATCHES_PREFIX)?).map(SurveyId)
 }
@@ -156,6 +180,7 @@ pub fn parse_overlap(k: &[u8]) -> Option<(SurveyId, SurveyId)> {
     ))
 }
 
+/// `t/<patch>` (schema 6 and before) → the patch id.
 pub fn parse_top(k: &[u8]) -> Option<PatchId> {
     hex_id(k.strip_prefix(TOP_PREFIX)?).map(PatchId)
 }

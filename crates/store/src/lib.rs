@@ -116,6 +116,7 @@ pub const DEFAULT_CACHE_BYTES: u64 = 512 << 20;
 /// How a store is opened: its space rules and how much memory its caches may take.
 #[derive(Clone, Debug)]
 pub struct StoreOptions {
+    /// The free-space rules every write is checked against.
     pub guard: SpaceGuard,
     /// Bytes of decoded chunks kept in memory; sled's own page cache takes a quarter of it
     /// more (see [`StoreOptions::sled_cache_bytes`]).
@@ -174,66 +175,113 @@ impl From<SpaceGuard> for StoreOptions {
     }
 }
 
+/// Why a store could not be opened, read or written.
 #[derive(Debug, Error)]
 pub enum StoreError {
+    /// The store was written by a newer patchwork, in a schema this one cannot read.
     #[error(
         "the store's schema is version {found}, but this binary supports versions up to \
          {supported}: open it with a newer patchwork"
     )]
-    Newer { found: u32, supported: u32 },
+    Newer {
+        /// The store's schema version.
+        found: u32,
+        /// The newest schema version this binary reads.
+        supported: u32,
+    },
+    /// Another process holds the store's lock.
     #[error("the store at {} is in use by another process (is the daemon running?)", dir.display())]
-    Locked { dir: PathBuf },
+    Locked {
+        /// The store's directory.
+        dir: PathBuf,
+    },
+    /// The store's files are not as the store leaves them; the text says what is wrong.
     #[error("the store is corrupt: {0}")]
     Corrupt(String),
+    /// A migration step failed; the store is left at the schema it had before the step.
     #[error("migration of the store from schema {from} to {to} failed: {msg}")]
-    Migration { from: u32, to: u32, msg: String },
+    Migration {
+        /// The schema version the step starts from.
+        from: u32,
+        /// The schema version the step goes to.
+        to: u32,
+        /// What went wrong.
+        msg: String,
+    },
+    /// A survey placed in another horizontal CRS than the store's was committed.
     #[error(
         "survey {survey} was placed in {placed_in}, but the store's CRS is {store_crs}; the \
          engine places a survey in the store's CRS before committing it"
     )]
     CrsMismatch {
+        /// The survey committed.
         survey: SurveyId,
+        /// The CRS it was placed in, as its label.
         placed_in: String,
+        /// The store's CRS, as its label.
         store_crs: String,
     },
+    /// A survey's heights are in another vertical CRS than the store's.
     #[error(
         "survey {survey}'s heights are in {survey_vertical}, but the store's are in \
          {store_vertical}: the store took that vertical CRS while the file was read; it will \
          be ingested again"
     )]
     VerticalMismatch {
+        /// The survey committed.
         survey: SurveyId,
+        /// The survey's vertical CRS, as its label.
         survey_vertical: String,
+        /// The store's vertical CRS, as its label.
         store_vertical: String,
     },
+    /// The survey inserted is already an active survey of the store.
     #[error("survey {0} is already stored and active")]
     Duplicate(SurveyId),
+    /// The survey retired or replaced is not an active survey of the store.
     #[error("survey {0} is not an active survey of the store")]
     NotActive(SurveyId),
+    /// A request the store cannot carry out as asked; the text says why.
     #[error("invalid request: {0}")]
     Invalid(String),
+    /// The write would leave less free disk space than the store keeps; nothing was written.
     #[error(
         "the disk holding the store has {available_mb} MiB free, and this write needs \
          {needed_mb} MiB with the space kept free (storage.min_free_mb): free some space or \
          compact the store; nothing was written"
     )]
-    Full { available_mb: u64, needed_mb: u64 },
+    Full {
+        /// MiB free on the disk.
+        available_mb: u64,
+        /// MiB the write needs, the space kept free included.
+        needed_mb: u64,
+    },
+    /// The database (sled) failed.
     #[error("storage engine: {0}")]
     Sled(sled::Error),
+    /// A file or the object store the store uses could not be read or written.
     #[error("store I/O: {0}")]
     Io(#[from] std::io::Error),
+    /// A record could not be encoded.
     #[error("could not encode {0}")]
     Encode(String),
+    /// A record does not decode as what the store wrote under its key.
     #[error("could not decode {0}")]
     Decode(String),
     /// Samples a read or an index change needed could not be read back.
     #[error(transparent)]
     Samples(#[from] patchwork_core::model::source::SampleError),
+    /// A survey could not be placed in the store's CRS.
     #[error("{0}")]
     Place(#[from] patchwork_core::model::place::PlaceError),
     /// A read replica refuses writes: they go to the writer it follows.
     #[error("this is a read replica of {url}: writes go to its writer{}", writer.as_ref().map(|w| format!(", {w}")).unwrap_or_default())]
-    Replica { url: String, writer: Option<String> },
+    Replica {
+        /// The URL of the place the replica follows.
+        url: String,
+        /// Who holds the writer's lease there now, if anyone does and it could be read.
+        writer: Option<String>,
+    },
 }
 
 impl From<sled::Error> for StoreError {
@@ -259,6 +307,7 @@ pub fn open_error(e: sled::Error, dir: &Path) -> StoreError {
     }
 }
 
+/// Seconds since the Unix epoch now; 0 on a clock set before it.
 pub fn now_unix() -> u64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -376,6 +425,7 @@ impl Drop for CloseReader {
     }
 }
 
+/// An open store: its database, its chunk pack and its settings, under its lock.
 pub struct Store {
     db: sled::Db,
     pack: Arc<dyn ChunkStore>,
@@ -411,10 +461,13 @@ enum Replication {
 /// patches and the box states. Building the terrain from it is the caller's (see
 /// the engine's `restore`); the store reads and writes, and builds nothing.
 pub struct Contents {
+    /// The active surveys, damaged ones aside, without their samples.
     pub surveys: Vec<Arc<SurveyMeta>>,
     /// What each overlapping pair says of the other's claims.
     pub pairs: Vec<Arc<PairEvidence>>,
+    /// The edge patches the surveys call for.
     pub edges: Vec<Arc<EdgePatch>>,
+    /// The stored state of every box of the index, by patch id.
     pub tops: HashMap<PatchId, BoxState>,
     /// The index must be derived again from the surveys (a migration asked for it, or a
     /// survey is damaged that the stored index holds).
@@ -425,7 +478,9 @@ pub struct Contents {
 
 /// A store just opened, with what it holds for the index.
 pub struct Loaded {
+    /// The store, open.
     pub store: Store,
+    /// What the index is rebuilt from.
     pub contents: Contents,
     /// Problems met while opening that did not stop it.
     pub warnings: Vec<String>,
@@ -434,6 +489,7 @@ pub struct Loaded {
 }
 
 impl Store {
+    /// The store's directory.
     pub fn path(&self) -> &Path {
         &self.dir
     }

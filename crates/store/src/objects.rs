@@ -52,7 +52,9 @@ const SEGMENTS: &str = "segments";
 /// An object store and where in it one Patchwork store keeps its segments.
 #[derive(Clone)]
 pub struct Objects {
+    /// The object store's client.
     pub store: Arc<dyn ObjectStore>,
+    /// The path in it under which this store's objects lie.
     pub prefix: ObjectPath,
     /// The place as a URL (`s3://bucket/prefix`), for messages and for the database's record
     /// of where its chunks are.

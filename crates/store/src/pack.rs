@@ -24,13 +24,17 @@ pub const PACK_FILE: &str = "chunks.pack";
 /// Where a chunk's bytes are in the pack.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Loc {
+    /// Where the chunk's first byte is in the pack's address space.
     pub offset: u64,
+    /// The chunk's length in bytes.
     pub len: u32,
 }
 
 impl Loc {
+    /// Bytes of a location as a record stores it: the offset, then the length.
     pub const BYTES: usize = 12;
 
+    /// The location as a record stores it: the offset (`u64` LE), then the length (`u32` LE).
     pub fn to_bytes(self) -> [u8; Self::BYTES] {
         let mut b = [0u8; Self::BYTES];
         b[..8].copy_from_slice(&self.offset.to_le_bytes());
@@ -38,6 +42,7 @@ impl Loc {
         b
     }
 
+    /// [`Loc::to_bytes`] read back; `None` when `b` is not [`Loc::BYTES`] long.
     pub fn from_bytes(b: &[u8]) -> Option<Loc> {
         (b.len() == Self::BYTES).then(|| Loc {
             offset: u64::from_le_bytes(b[..8].try_into().expect("8 bytes")),
@@ -45,6 +50,7 @@ impl Loc {
         })
     }
 
+    /// The offset just past the chunk's last byte.
     pub fn end(&self) -> u64 {
         self.offset + self.len as u64
     }
@@ -58,6 +64,7 @@ pub trait ChunkStore: Send + Sync + std::fmt::Debug {
     fn append(&self, chunks: &[Vec<u8>]) -> io::Result<Vec<Loc>>;
     /// Bytes written so far, committed or not.
     fn len(&self) -> u64;
+    /// Whether nothing was written yet.
     fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -128,6 +135,7 @@ impl PackFile {
         })
     }
 
+    /// The pack file's path.
     pub fn path(&self) -> &Path {
         &self.path
     }

@@ -6,21 +6,29 @@ use super::*;
 /// A survey's patches and the edge tiles its samples reach, stored together under `p/`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StoredPatches {
+    /// The survey's patches, of every level.
     pub patches: Vec<Patch>,
+    /// The lattice tiles whose edge patches the survey's samples can reach.
     pub edge_tiles: Vec<[i64; 2]>,
 }
 
+/// Whether a survey is part of the terrain.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Status {
+    /// In the index and served.
     Active,
     /// Out of the index; its samples stay until the next compaction.
     Retired,
 }
 
+/// A level's size and georeference, as a survey's record keeps it.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LevelHeader {
+    /// Samples in a row.
     pub cols: u64,
+    /// Rows of samples.
     pub rows: u64,
+    /// Where the level's samples are in the survey's plane.
     pub georef: Georef,
 }
 
@@ -33,6 +41,7 @@ impl LevelHeader {
         }
     }
 
+    /// The level's size and georeference as a [`Shape`].
     pub fn shape(&self) -> Shape {
         Shape {
             cols: self.cols as usize,
@@ -45,15 +54,20 @@ impl LevelHeader {
 /// Where the time of one ingestion went, in milliseconds.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct IngestTimings {
+    /// Reading and decoding the file.
     pub read_ms: f64,
+    /// Building the survey from the raster.
     pub build_ms: f64,
+    /// Working out what the survey changes in the index.
     pub index_ms: f64,
     /// Filled in by the store: encoding, the atomic batch and its flush.
     pub commit_ms: f64,
 }
 
+/// What the store keeps of a survey besides its samples and patches, under `s/`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SurveyRecord {
+    /// The survey's id.
     pub id: SurveyId,
     /// The file it was read from.
     pub source: String,
@@ -61,6 +75,7 @@ pub struct SurveyRecord {
     pub content_id: String,
     /// ε in metres: the largest of the survey's kernels'.
     pub accuracy: f64,
+    /// Where ε came from.
     pub accuracy_source: AccuracySource,
     /// Its horizontal CRS: the plane its grid is in, which may not be the store's.
     pub crs: Option<Crs>,
@@ -71,9 +86,13 @@ pub struct SurveyRecord {
     pub vertical: Option<VerticalCrs>,
     /// What converting its heights between vertical CRSs added to ε, in metres.
     pub vertical_error_m: f64,
+    /// Whether it is in the terrain or retired.
     pub status: Status,
+    /// Level 0's samples in a row.
     pub cols: u64,
+    /// Level 0's rows of samples.
     pub rows: u64,
+    /// Level 0's georeference.
     pub georef: Georef,
     /// Valid level-0 samples.
     pub samples: u64,
@@ -81,7 +100,9 @@ pub struct SurveyRecord {
     pub levels: Vec<LevelHeader>,
     /// Where level 0's kernel boundaries fall (see [`Tiling`]).
     pub tiling_offset: [i64; 2],
+    /// Where the time of its ingestion went.
     pub ingest: IngestTimings,
+    /// When the record was made, in Unix seconds.
     pub created_unix: u64,
 }
 
@@ -134,6 +155,7 @@ impl SurveyRecord {
 /// terrain until its file is ingested again or [`Store::repair`] drops it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Damaged {
+    /// The survey's id.
     pub id: SurveyId,
     /// Its file; empty when its record itself is what is damaged.
     pub source: String,
@@ -170,9 +192,13 @@ pub struct Catalog {
     pub pins: HashMap<String, String>,
     /// Active surveys left out of the terrain because they are damaged, by id.
     pub damaged: BTreeMap<SurveyId, Damaged>,
+    /// The store's horizontal CRS, once it has one.
     pub crs: Option<Crs>,
+    /// The store's vertical CRS, once it has one.
     pub vertical: Option<VerticalCrs>,
+    /// The layout every survey of the store is cut with.
     pub layout: PatchLayout,
+    /// The mipmap filter and patch kind every survey of the store is built with.
     pub recipe: Recipe,
 }
 
@@ -195,10 +221,15 @@ impl Catalog {
 /// size and mtime are what it had, for listings.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FailedRecord {
+    /// The file's path, as the inbox names it.
     pub source: String,
+    /// Why it could not be ingested.
     pub error: String,
+    /// The file's size in bytes; 0 when unknown.
     pub size: u64,
+    /// The file's modification time, in Unix seconds; 0 when unknown.
     pub mtime_unix: u64,
+    /// When the failure was recorded, in Unix seconds.
     pub at_unix: u64,
     /// Hex blake3 of the bytes that failed; empty when they could not be read (or the
     /// failure was recorded before the store kept it), which matches no file.

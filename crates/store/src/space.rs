@@ -49,6 +49,7 @@ const OVERHEAD: u64 = 4 << 20;
 /// The space rules of one store.
 #[derive(Clone)]
 pub struct SpaceGuard {
+    /// Where the free space is asked for.
     pub disk: Arc<dyn DiskSpace>,
     /// Bytes every write leaves free.
     pub min_free: u64,

@@ -19,22 +19,31 @@ use patchwork_core::model::survey::Survey;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
+/// What `verify` found: counts of what the store holds, and every problem.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct VerifyReport {
+    /// Active surveys.
     pub active: usize,
+    /// Retired surveys whose records are still kept.
     pub retired: usize,
+    /// Patches of the active surveys.
     pub patches: usize,
+    /// Stored box states.
     pub tops: usize,
+    /// Chunk locations, of active and retired surveys.
     pub chunks: usize,
+    /// Recorded failures.
     pub failures: usize,
     /// Active surveys left out of the terrain because they are damaged.
     pub damaged: usize,
+    /// Keys in the database.
     pub keys: u64,
     /// Everything found wrong, one line each; empty for a sound store.
     pub problems: Vec<String>,
 }
 
 impl VerifyReport {
+    /// Whether nothing was found wrong.
     pub fn is_ok(&self) -> bool {
         self.problems.is_empty()
     }

@@ -3,8 +3,6 @@
 //! voids, a rotation). Kept out of the daemon and of the core: they make test data, and serve
 //! no request.
 
-#![warn(missing_docs)]
-
 pub mod copies;
 pub mod degrade;
 pub mod fixtures;

@@ -15,6 +15,7 @@ impl std::fmt::Debug for Secret {
 }
 
 impl Secret {
+    /// The token itself, for comparing with what a client sent; never for logs.
     pub fn expose(&self) -> &str {
         &self.0
     }

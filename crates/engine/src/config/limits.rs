@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+/// The `[limits]` section: bounds on what one request, one file and one connection may take.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Limits {
@@ -27,6 +28,7 @@ pub struct Limits {
     /// Heights outside [min_height_m, max_height_m] are not terrain in metres: a file holding
     /// any is refused.
     pub min_height_m: f64,
+    /// Top of the plausible heights, in metres; see `min_height_m`.
     pub max_height_m: f64,
     /// Most paths in one Ingest request.
     pub max_ingest_paths: u64,
@@ -35,6 +37,7 @@ pub struct Limits {
     /// Most streams that stay open (view sessions and subscriptions) at once, and on one
     /// connection; more are refused with RESOURCE_EXHAUSTED.
     pub max_streams: u64,
+    /// Most of those streams open on one connection.
     pub max_streams_per_connection: u64,
     /// Most connections held open on both ports together; the daemon takes fewer where its
     /// file limit leaves less after what the store and the inbox need. A connection past it

@@ -22,13 +22,17 @@ pub use limits::Limits;
 pub use storage::{BackendKind, Storage, S3};
 pub use surveys::{Accuracy, DefaultAccuracy, OnDelete, Patches, Vertical};
 
+/// The daemon's whole configuration, one field a key of `config/patchwork.toml`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
+    /// Where the store lives.
     pub data_dir: PathBuf,
+    /// Folders watched for DEM files (GeoTIFF/COG, SRTM `.hgt`, ESRI ASCII `.asc`).
     pub inbox: Vec<PathBuf>,
     /// Folders besides the inbox that Ingest requests may name files in.
     pub ingest_roots: Vec<PathBuf>,
+    /// The gRPC address; an address other than loopback needs `admin_token`.
     pub listen: String,
     /// Where the HTTP server for web map clients listens; empty serves no HTTP.
     pub http_listen: String,
@@ -38,6 +42,7 @@ pub struct Config {
     pub read_token: Option<Secret>,
     /// PEM certificate chain and private key: both set serves TLS.
     pub tls_cert: Option<PathBuf>,
+    /// See `tls_cert`.
     pub tls_key: Option<PathBuf>,
     /// ε for files with no sidecar and no `--accuracy`.
     pub accuracy_m: DefaultAccuracy,
@@ -48,20 +53,28 @@ pub struct Config {
     pub settle_ms: u64,
     /// Memory for decoded samples, in MiB; the store's page cache takes a quarter more.
     pub cache_mb: u64,
+    /// What a file deleted from the inbox does to its survey: retire it, or keep it.
     pub on_delete: OnDelete,
     /// Log filter, e.g. "info" or "patchwork=debug".
     pub log: String,
     /// Whether a software GPU adapter (llvmpipe, lavapipe, WARP) may resample when no real
     /// one is present; it is slower than the CPU path.
     pub allow_emulated_gpu: bool,
+    /// The `[limits]` section.
     pub limits: Limits,
+    /// The `[storage]` section.
     pub storage: Storage,
+    /// The `[index]` section: the top of LOD space and the boxes per quadtree node.
     pub index: IndexConfig,
+    /// The `[patches]` section.
     pub patches: Patches,
     /// How a new store makes its surveys' coarser levels; an existing store keeps its own.
     pub mipmap: Filter,
+    /// The `[vertical]` section.
     pub vertical: Vertical,
+    /// The `[accuracy]` section.
     pub accuracy: Accuracy,
+    /// The `[http]` section.
     pub http: Http,
 }
 
@@ -106,17 +119,34 @@ impl Default for Config {
     }
 }
 
+/// Why a config could not be loaded.
 #[derive(Debug, Error)]
 pub enum ConfigError {
+    /// The config file could not be read.
     #[error("cannot read config {path}: {source}")]
     Read {
+        /// The file named.
         path: PathBuf,
+        /// Why it could not be read.
         source: std::io::Error,
     },
+    /// The config file is not valid TOML, or holds a key or value the config does not know.
     #[error("config {path}: {message}")]
-    Parse { path: PathBuf, message: String },
+    Parse {
+        /// The file named.
+        path: PathBuf,
+        /// The parser's message, naming the key or line at fault.
+        message: String,
+    },
+    /// An environment override holds a value its key cannot take.
     #[error("environment variable {var}: {message}")]
-    Env { var: String, message: String },
+    Env {
+        /// The variable, `PATCHWORK_<KEY>`.
+        var: String,
+        /// What is wrong with its value.
+        message: String,
+    },
+    /// The config parsed but breaks a rule, such as a limit of 0 or a token too short.
     #[error("{0}")]
     Invalid(String),
 }
@@ -303,6 +333,8 @@ impl Config {
         Ok(())
     }
 
+    /// Checks the rules no single key can: ranges, limits of at least 1, what needs what else (a
+    /// read token an admin token, an S3 backend a bucket), and that the CRSs parse.
     pub fn validate(&self) -> Result<(), ConfigError> {
         if let DefaultAccuracy::Metres(m) = self.accuracy_m {
             if !(m.is_finite() && m >= 0.0 && m < self.index.max_error) {

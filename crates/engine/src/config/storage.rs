@@ -122,9 +122,11 @@ impl std::str::FromStr for BackendKind {
 pub struct S3 {
     /// The server's URL; empty for AWS itself.
     pub endpoint: String,
+    /// The bucket the segments go in.
     pub bucket: String,
     /// The folder inside the bucket that this store's objects go under.
     pub prefix: String,
+    /// The bucket's region, as the S3 API names it.
     pub region: String,
     /// Whether a plain `http://` endpoint is allowed.
     pub allow_http: bool,

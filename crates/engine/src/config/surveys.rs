@@ -6,6 +6,7 @@ use patchwork_core::model::patch::{PatchKind, PatchLayout};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
+/// What a file deleted from the inbox does to its survey.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum OnDelete {
@@ -19,7 +20,10 @@ pub enum OnDelete {
 /// to estimate it from each survey's own samples.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum DefaultAccuracy {
+    /// Estimate ε per patch from each survey's own samples, by how far its bilinear surface is from
+    /// coarser copies of itself.
     Auto,
+    /// Give every such survey this ε, in metres.
     Metres(f64),
 }
 
@@ -65,6 +69,9 @@ impl<'de> Deserialize<'de> for DefaultAccuracy {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Accuracy {
+    /// What a claim that another survey's evidence finds false gets: `distrust` holds it to no
+    /// better than the other's claim plus how far it departs from it; `keep` only reports the
+    /// verdicts.
     pub contradicted: Contradicted,
 }
 
@@ -103,6 +110,7 @@ impl Default for Patches {
 }
 
 impl Patches {
+    /// The kernel and margin of every patch, as the store lays them out.
     pub fn layout(&self) -> PatchLayout {
         PatchLayout {
             kernel: self.kernel,

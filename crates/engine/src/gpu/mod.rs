@@ -120,23 +120,36 @@ const VOID: f32 = f32::MAX;
 
 /// The patch kinds the shader evaluates.
 pub const KIND_BILINEAR: u32 = 0;
+/// An edge patch: its filled samples, weighted by a ramp that falls to 0 at the edge of its
+/// survey's pixels.
 pub const KIND_EDGE: u32 = 1;
+/// A bicubic patch: the spline fitted to its window's samples, wherever the bilinear surface is
+/// defined.
 pub const KIND_BICUBIC: u32 = 2;
 
 /// Byte budget of the patches on the device (samples and records) before they are emptied
 /// and refilled.
 pub const DEFAULT_ARENA_BYTES: u64 = 256 << 20;
 
+/// Why the GPU could not resample: the daemon then resamples on the CPU, unless the request asked
+/// for the GPU.
 #[derive(Debug, Error)]
 pub enum GpuError {
+    /// No adapter runs compute shaders, or only a software one that is not allowed; the message
+    /// says which adapters there are.
     #[error("no GPU adapter with compute shaders: {0}")]
     NoAdapter(String),
+    /// The adapter would not give a device.
     #[error("the GPU device could not be created: {0}")]
     Device(String),
+    /// The device was lost (a driver reset, a GPU gone); a daemon drops it and resamples on the CPU
+    /// from then on.
     #[error("the GPU device was lost: {0}")]
     Lost(String),
+    /// The device reported an error, or the heights never came back.
     #[error("the GPU failed: {0}")]
     Failed(String),
+    /// The request needs more than the device binds or dispatches at once.
     #[error("{0}")]
     TooLarge(String),
 }
@@ -246,11 +259,14 @@ pub struct GpuTimings {
     pub device: Duration,
     /// Copying the heights out of the readback buffer.
     pub readback: Duration,
+    /// Bytes uploaded: the new patches' samples and records, lattice nodes, and the request's own
+    /// buffers.
     pub uploaded_bytes: u64,
     /// Bytes read back: 4 a sample.
     pub read_bytes: u64,
     /// Patches whose samples were uploaded, and those found already on the device.
     pub uploaded_patches: usize,
+    /// Patches whose samples were on the device already.
     pub cached_patches: usize,
 }
 
@@ -686,11 +702,15 @@ fn split(x: f64) -> [f32; 2] {
 /// of the GPU code allow it where it is the only adapter.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Emulated {
+    /// Only a real GPU is taken.
     Refuse,
+    /// A software adapter is taken where no real GPU is.
     Allow,
 }
 
 impl GpuResampler {
+    /// A resampler on the best adapter `emulated` allows, keeping at most [`DEFAULT_ARENA_BYTES`]
+    /// of patches on the device.
     pub fn new(emulated: Emulated) -> Result<Self, GpuError> {
         Self::with_budget(DEFAULT_ARENA_BYTES, emulated)
     }
@@ -802,6 +822,7 @@ impl GpuResampler {
         self.resample_timed(set, grid).map(|(h, _)| h)
     }
 
+    /// [`GpuResampler::resample`], and where the request's time went.
     pub fn resample_timed(
         &mut self,
         set: &PatchSet,

@@ -86,6 +86,8 @@ pub struct Produced {
 }
 
 impl Web {
+    /// The handlers' state over `svc`: the Terrain service's gate, the `[http]` config, and a
+    /// tile cache of `http.tile_cache_mb` (none at 0).
     pub fn new(svc: Service) -> Web {
         let cfg = svc.engine().config();
         let mb = cfg.http.tile_cache_mb;
@@ -236,8 +238,6 @@ impl Web {
     }
 }
 
-/// An ETag as sent: weak, since the same tile goes out gzipped or not (RFC 9110 §8.8.3 keeps
-/// strong validators for one representation's bytes).
 /// The configured `Cache-Control`, made `private` where reads need a token: a shared cache
 /// may not keep what one client's token opened for the next (RFC 9111 §3.5).
 fn cache_control(configured: &str, open: bool) -> HeaderValue {
@@ -249,6 +249,8 @@ fn cache_control(configured: &str, open: bool) -> HeaderValue {
     HeaderValue::from_str(&v).unwrap_or(HeaderValue::from_static("no-cache"))
 }
 
+/// An ETag as sent: weak, since the same tile goes out gzipped or not (RFC 9110 §8.8.3 keeps
+/// strong validators for one representation's bytes).
 fn quote_etag(e: &[u8; 16]) -> String {
     let mut s = String::with_capacity(36);
     s.push_str("W/\"");

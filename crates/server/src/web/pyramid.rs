@@ -14,11 +14,13 @@ pub const TERRAIN_GRID: usize = 257;
 /// The store's extent and depth, from the footprints of its surveys.
 #[derive(Clone, Debug)]
 pub struct Pyramid {
+    /// Where each survey lies, in longitude and latitude.
     pub footprints: Vec<Footprint>,
     /// The union of the footprints, degrees; None for an empty store.
     pub bounds: Option<Aabb>,
     /// The deepest level worth asking for: past it a client only magnifies what it has.
     pub web_max: u32,
+    /// The same for the quantized-mesh pyramid (257-sample tiles, geographic TMS).
     pub terrain_max: u32,
 }
 
@@ -52,6 +54,8 @@ impl Pyramid {
         h.finalize().to_hex()[..16].to_string()
     }
 
+    /// The pyramids over the surveys in `engine`'s store now, each as deep as its finest
+    /// survey's cells call for.
     pub fn of(engine: &Engine) -> Pyramid {
         let footprints = engine.footprints();
         let bounds = footprints
@@ -193,6 +197,7 @@ pub struct Changed {
     /// Web Mercator XYZ ranges, one a level from 0 to [`tiles::MAX_LEVEL`], and the
     /// geographic TMS ranges of the quantized-mesh tiles likewise.
     pub web: Vec<TileRange>,
+    /// The geographic TMS ranges of the quantized-mesh tiles, one a level likewise.
     pub terrain: Vec<TileRange>,
 }
 

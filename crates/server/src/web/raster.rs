@@ -14,17 +14,24 @@ use patchwork_engine::{
 /// What a raster tile is encoded as.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Format {
+    /// A raster-DEM PNG: heights in the RGB of an encoding MapLibre decodes.
     Png(Encoding),
+    /// A float32 GeoTIFF in EPSG:3857, voids as its nodata value.
     Tiff,
 }
 
 /// A raster tile asked for.
 #[derive(Clone, Copy, Debug)]
 pub struct Request {
+    /// The zoom level.
     pub z: u32,
+    /// The column, from the west.
     pub x: u32,
+    /// The row, from the north.
     pub y: u32,
+    /// Pixels on a side: 256 or 512.
     pub size: u32,
+    /// What the tile is encoded as.
     pub format: Format,
     /// The cut's error, metres.
     pub error: f64,
@@ -116,7 +123,7 @@ pub fn tile(
                     Some(&crs),
                     Some(TIFF_NODATA),
                 )
-                .map_err(|e| EngineError::Invalid(format!("the tile cannot be written: {e}")))
+                .map_err(|e| EngineError::Encode(format!("a GeoTIFF tile: {e}")))
             }
         }
     })?;

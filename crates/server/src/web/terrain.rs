@@ -14,8 +14,11 @@ use serde_json::json;
 /// The extensions a client asked for in its `Accept` header.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Asked {
+    /// Octahedron-encoded vertex normals, for lighting.
     pub normals: bool,
+    /// The water mask: where the tile had no data.
     pub watermask: bool,
+    /// Which tiles of the levels below exist.
     pub metadata: bool,
 }
 
@@ -52,6 +55,9 @@ pub fn errors(z: u32) -> (f64, f64) {
     (g / 2.0, g / 2.0)
 }
 
+/// The quantized-mesh tile (z, x, y) with the extensions `asked`: its ETag from the cut, then
+/// its bytes unless the client has them. A tile with no data under it is the ellipsoid, all
+/// water.
 #[allow(clippy::too_many_arguments)]
 pub fn tile(
     engine: &Engine,

@@ -36,8 +36,11 @@ pub const CURRENT: u32 = 8;
 /// What a step may need beyond the tree: the settings `open` was called with, which a fresh
 /// store adopts, and the pack that chunk bytes go to.
 pub struct Ctx<'a> {
+    /// The patch layout `open` was called with.
     pub layout: PatchLayout,
+    /// The index settings `open` was called with.
     pub index: IndexConfig,
+    /// The pack that chunk bytes go to.
     pub pack: &'a dyn super::pack::ChunkStore,
 }
 
