@@ -7,8 +7,8 @@ use crate::common;
 use common::*;
 use patchwork::restore::{self, Opened};
 use patchwork::store::{
-    open_error, Change, DiskSpace, FailedRecord, IngestTimings, Insertion, Packed, Retirement,
-    SpaceGuard, Status, Store, StoreError, StoreOptions, SurveyRecord, SCHEMA_VERSION,
+    open_error, Change, Corruption, DiskSpace, FailedRecord, IngestTimings, Insertion, Packed,
+    Retirement, SpaceGuard, Status, Store, StoreError, StoreOptions, SurveyRecord, SCHEMA_VERSION,
 };
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::ChangeStats;
@@ -661,7 +661,7 @@ fn a_failed_commit_changes_nothing() {
     let change = nb.insert(b.clone());
     assert!(matches!(
         commit_survey(&mut store, &b, &rec, &change, &nb.edges_of(&[&change]), &[]),
-        Err(StoreError::Invalid(_))
+        Err(StoreError::Inconsistent { survey, .. }) if survey == b.id
     ));
     assert_eq!(store.surveys().unwrap().len(), 1);
     assert_verified(&store);
@@ -1006,7 +1006,10 @@ fn open_recovers_from_a_crash_at_any_step_of_compaction() {
     // Only the copy: not ours to guess.
     std::fs::rename(&dir, &compact).unwrap();
     let err = refused(&dir);
-    assert!(matches!(err, StoreError::Corrupt(_)), "{err}");
+    assert!(
+        matches!(err, StoreError::Corrupt(Corruption::Swapped { .. })),
+        "{err}"
+    );
     std::fs::rename(&compact, &dir).unwrap();
     check("copy renamed back");
 }

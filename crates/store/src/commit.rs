@@ -190,26 +190,26 @@ impl Store {
             &insertion.packed,
         );
         if rec.id != s.id {
-            return Err(StoreError::Invalid(format!(
-                "the record is of survey {}, the survey is {}",
-                rec.id, s.id
-            )));
+            return Err(StoreError::Inconsistent {
+                survey: s.id,
+                what: "the record given is another survey's",
+            });
         }
         let headers: Vec<LevelHeader> = s.levels.iter().map(|g| LevelHeader::of(g)).collect();
         if rec.levels != headers
             || rec.accuracy.to_bits() != s.accuracy.to_bits()
             || rec.crs != s.crs
         {
-            return Err(StoreError::Invalid(format!(
-                "the record of survey {} does not describe it (levels, accuracy or CRS differ)",
-                s.id
-            )));
+            return Err(StoreError::Inconsistent {
+                survey: s.id,
+                what: "the record does not describe it (levels, accuracy or CRS differ)",
+            });
         }
         if s.layout != self.layout {
-            return Err(StoreError::Invalid(format!(
-                "survey {} is cut with {:?}, the store with {:?}",
-                s.id, s.layout, self.layout
-            )));
+            return Err(StoreError::Inconsistent {
+                survey: s.id,
+                what: "it is cut with another patch layout than the store's",
+            });
         }
         if replacing != Some(s.id) {
             if let Some(old) = self.record(s.id)? {
@@ -253,10 +253,10 @@ impl Store {
         let key = keys::survey(s.id);
         batch.insert(key.clone(), encode(&rec)?);
         if packed.survey != s.id {
-            return Err(StoreError::Invalid(format!(
-                "the chunks packed are survey {}'s, the survey is {}",
-                packed.survey, s.id
-            )));
+            return Err(StoreError::Inconsistent {
+                survey: s.id,
+                what: "the chunks packed are another survey's",
+            });
         }
         for (k, loc) in &packed.entries {
             batch.insert(k.clone(), &loc.to_bytes()[..]);

@@ -14,8 +14,8 @@
 use super::chunks::read_packed;
 use super::pack::{ChunkStore, PackFile};
 use super::{
-    decode_states, dir_bytes, keys, open_sled, sibling, ChunkBackend, Loaded, Replication, Status,
-    Store, StoreError,
+    decode_states, dir_bytes, keys, open_sled, sibling, ChunkBackend, Corruption, Loaded,
+    Replication, Status, Store, StoreError,
 };
 use patchwork_core::model::ids::{PatchId, SurveyId};
 use std::collections::HashSet;
@@ -73,11 +73,11 @@ pub(super) fn recover(dir: &Path) -> Result<(), StoreError> {
         (false, false) if tmp.exists() => {
             // Compaction never leaves this state, so someone moved things by hand: the copy
             // may be all there is, and deleting it is not ours to decide.
-            return Err(StoreError::Corrupt(format!(
-                "{} is missing but {} exists; if that is the store, rename it back",
-                dir.display(),
-                tmp.display()
-            )));
+            return Err(Corruption::Swapped {
+                dir: dir.to_path_buf(),
+                copy: tmp.clone(),
+            }
+            .into());
         }
         _ => {}
     }
@@ -136,11 +136,10 @@ impl Store {
             Replication::None => {}
         }
         if let Some(d) = self.damaged().into_values().next() {
-            return Err(StoreError::Invalid(format!(
-                "survey {} is damaged ({}): ingest its file again or run `patchwork repair` \
-                 before compacting",
-                d.id, d.reason
-            )));
+            return Err(StoreError::Damaged {
+                survey: d.id,
+                reason: d.reason,
+            });
         }
         let records = self.surveys()?;
         let active: HashSet<SurveyId> = records
@@ -253,7 +252,10 @@ impl Store {
                 kept += 1;
                 if keys::in_pack(&k) {
                     let b = read_packed(&self.db, self.pack.as_ref(), &k).map_err(|e| {
-                        StoreError::Corrupt(format!("{}: {e}", String::from_utf8_lossy(&k)))
+                        StoreError::from(Corruption::Unreadable {
+                            what: String::from_utf8_lossy(&k).into_owned(),
+                            why: e.to_string(),
+                        })
                     })?;
                     bytes += k.len() + b.len();
                     chunks.push((k, b));

@@ -82,7 +82,11 @@ fn seq_of(db: &sled::Db) -> Result<u64, StoreError> {
     match db.get(keys::LOG_SEQ)? {
         None => Ok(0),
         Some(v) => Ok(u64::from_le_bytes(v.as_ref().try_into().map_err(|_| {
-            StoreError::Corrupt(format!("meta/log_seq holds {} bytes, not 8", v.len()))
+            StoreError::from(Corruption::Length {
+                key: "meta/log_seq",
+                len: v.len(),
+                expected: 8,
+            })
         })?)),
     }
 }
@@ -145,10 +149,10 @@ impl Journal {
         self.pack.check_lease().map_err(io)?;
         let (seq, up) = *lock(&self.state);
         if !up {
-            return Err(StoreError::Invalid(format!(
-                "commit {seq} is not yet published to {}",
-                self.pack.url()
-            )));
+            return Err(StoreError::Unpublished {
+                seq,
+                url: self.pack.url().to_string(),
+            });
         }
         let keys: Vec<Vec<u8>> = touched.iter().map(|k| k.to_vec()).collect();
         batch.insert(keys::LOG_SEQ, &(seq + 1).to_le_bytes()[..]);
@@ -171,7 +175,7 @@ impl Journal {
         }
         let pending: Pending = match db.get(keys::LOG_PENDING)? {
             Some(v) => decode(&v, "meta/log_pending")?,
-            None => return Err(StoreError::Corrupt("meta/log_pending is missing".into())),
+            None => return Err(Corruption::Missing("meta/log_pending".into()).into()),
         };
         let whole = matches!(pending, Pending::Snapshot);
         let entry = match pending {
@@ -281,20 +285,18 @@ impl Follower {
         match db.get(keys::FOLLOWS)? {
             Some(url) if url.as_ref() == pack.url().as_bytes() => {}
             Some(url) => {
-                return Err(StoreError::Invalid(format!(
-                    "{} is a replica of {}, not of {}: give each replica a directory of its own",
-                    dir.display(),
-                    String::from_utf8_lossy(&url),
-                    pack.url()
-                )))
+                return Err(StoreError::NotAReplica {
+                    dir: dir.to_path_buf(),
+                    holds: format!("is a replica of {}", String::from_utf8_lossy(&url)),
+                    url: pack.url().to_string(),
+                })
             }
             None if db.iter().next().is_some() => {
-                return Err(StoreError::Invalid(format!(
-                    "{} holds a store of its own: a replica needs an empty data_dir, which it \
-                     fills from {}",
-                    dir.display(),
-                    pack.url()
-                )))
+                return Err(StoreError::NotAReplica {
+                    dir: dir.to_path_buf(),
+                    holds: "holds a store of its own".into(),
+                    url: pack.url().to_string(),
+                })
             }
             None => {}
         }
@@ -342,7 +344,10 @@ impl Follower {
             ))
         })?;
         let what = format!("{}/{name}", self.pack.url());
-        let raw = unseal(&bytes, LIMIT).map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))?;
+        let raw = unseal(&bytes, LIMIT).map_err(|why| Corruption::Unreadable {
+            what: what.clone(),
+            why,
+        })?;
         let snap: Snapshot = decode(&raw, &what)?;
         let mut batch = sled::Batch::default();
         let fresh: std::collections::HashSet<&[u8]> =
@@ -400,11 +405,13 @@ impl Follower {
             let Some(bytes) = self.pack.get(&name).map_err(io)? else {
                 break;
             };
-            let raw =
-                unseal(&bytes, LIMIT).map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))?;
+            let raw = unseal(&bytes, LIMIT).map_err(|why| Corruption::Unreadable {
+                what: what.clone(),
+                why,
+            })?;
             let (n, entry): (u64, Entry) = decode(&raw, &what)?;
             if n != seq {
-                return Err(StoreError::Corrupt(format!("{what} holds commit {n}")));
+                return Err(Corruption::Commit { what, found: n }.into());
             }
             match entry {
                 Entry::Batch(writes) => {

@@ -176,6 +176,7 @@ impl From<SpaceGuard> for StoreOptions {
 }
 
 /// Why a store could not be opened, read or written.
+#[non_exhaustive]
 #[derive(Debug, Error)]
 pub enum StoreError {
     /// The store was written by a newer patchwork, in a schema this one cannot read.
@@ -195,9 +196,61 @@ pub enum StoreError {
         /// The store's directory.
         dir: PathBuf,
     },
-    /// The store's files are not as the store leaves them; the text says what is wrong.
+    /// The store's files are not as the store leaves them.
     #[error("the store is corrupt: {0}")]
-    Corrupt(String),
+    Corrupt(#[from] Corruption),
+    /// The store is kept elsewhere than `[storage]` says: a store keeps the backend it was
+    /// made with.
+    #[error(
+        "the store's chunks are in {stored}, but [storage] names {configured}: a store keeps \
+         the backend it was made with"
+    )]
+    Backend {
+        /// Where its chunks are.
+        stored: String,
+        /// Where the settings say they are.
+        configured: String,
+    },
+    /// A replica's writer is at another schema than this binary.
+    #[error(
+        "the store {url} follows is at schema {found}, this build's is {supported}: a replica \
+         runs the writer's version"
+    )]
+    ReplicaSchema {
+        /// The place the replica follows.
+        url: String,
+        /// The writer's schema.
+        found: u32,
+        /// This binary's.
+        supported: u32,
+    },
+    /// A replica's directory follows another place, or holds a store of its own.
+    #[error("{} {}: a replica needs a directory of its own, which it fills from {url}", dir.display(), holds)]
+    NotAReplica {
+        /// The directory.
+        dir: PathBuf,
+        /// What it holds instead: `holds a store of its own`, `is a replica of …`.
+        holds: String,
+        /// The place asked to follow.
+        url: String,
+    },
+    /// A commit a replica was asked to read is not published yet.
+    #[error("commit {seq} is not yet published to {url}")]
+    Unpublished {
+        /// The commit.
+        seq: u64,
+        /// Where it would be.
+        url: String,
+    },
+    /// The writer asked the store to commit something that does not hold together (a bug of
+    /// the caller's, refused before anything is written).
+    #[error("survey {survey}: {what}; nothing was written")]
+    Inconsistent {
+        /// The survey committed.
+        survey: SurveyId,
+        /// What does not match.
+        what: &'static str,
+    },
     /// A migration step failed; the store is left at the schema it had before the step.
     #[error("migration of the store from schema {from} to {to} failed: {msg}")]
     Migration {
@@ -241,9 +294,20 @@ pub enum StoreError {
     /// The survey retired or replaced is not an active survey of the store.
     #[error("survey {0} is not an active survey of the store")]
     NotActive(SurveyId),
-    /// A request the store cannot carry out as asked; the text says why.
-    #[error("invalid request: {0}")]
-    Invalid(String),
+    /// A compaction asked of a store with a damaged survey, which it would lose.
+    #[error(
+        "survey {survey} is damaged ({reason}): ingest its file again or run `patchwork repair` \
+         before compacting"
+    )]
+    Damaged {
+        /// The damaged survey.
+        survey: SurveyId,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A store directory whose path has no last component (`/`, `..`).
+    #[error("the store path {} has no name", .0.display())]
+    Unnamed(PathBuf),
     /// The write would leave less free disk space than the store keeps; nothing was written.
     #[error(
         "the disk holding the store has {available_mb} MiB free, and this write needs \
@@ -263,11 +327,16 @@ pub enum StoreError {
     #[error("store I/O: {0}")]
     Io(#[from] std::io::Error),
     /// A record could not be encoded.
-    #[error("could not encode {0}")]
+    #[error("could not encode a record: {0}")]
     Encode(String),
     /// A record does not decode as what the store wrote under its key.
-    #[error("could not decode {0}")]
-    Decode(String),
+    #[error("could not decode {what}: {why}")]
+    Decode {
+        /// The record.
+        what: String,
+        /// Why not.
+        why: String,
+    },
     /// Samples a read or an index change needed could not be read back.
     #[error(transparent)]
     Samples(#[from] patchwork_core::model::source::SampleError),
@@ -282,6 +351,108 @@ pub enum StoreError {
         /// Who holds the writer's lease there now, if anyone does and it could be read.
         writer: Option<String>,
     },
+}
+
+/// What is wrong with a store's files: the part that does not read back as written.
+#[non_exhaustive]
+#[derive(Debug, Error)]
+pub enum Corruption {
+    /// sled's own files are damaged; `advice` says how to recover.
+    #[error("the database files in {} are damaged ({what}): {advice}", dir.display())]
+    Files {
+        /// The store's directory.
+        dir: PathBuf,
+        /// sled's first line about it.
+        what: String,
+        /// What to do: move a snapshot aside, or restore from a backup.
+        advice: String,
+    },
+    /// A fixed-size value of another size.
+    #[error("{key} holds {len} bytes, not {expected}")]
+    Length {
+        /// The key.
+        key: &'static str,
+        /// Its length.
+        len: usize,
+        /// The length it must have.
+        expected: usize,
+    },
+    /// A record the store must have is not there.
+    #[error("{0} is missing")]
+    Missing(String),
+    /// A key of a prefix that does not parse.
+    #[error("bad {kind} key {key:?}")]
+    Key {
+        /// The prefix's records: `boxes`, `edge`, `overlap`.
+        kind: &'static str,
+        /// The key, lossily as text.
+        key: String,
+    },
+    /// A record that does not read back: a bad checksum, bytes past the end, not text.
+    #[error("{what}: {why}")]
+    Unreadable {
+        /// The record.
+        what: String,
+        /// Why not.
+        why: String,
+    },
+    /// A level with too few samples to be one.
+    #[error("level {level} of survey {survey} is {cols}×{rows} samples")]
+    LevelShape {
+        /// The survey.
+        survey: SurveyId,
+        /// The level.
+        level: usize,
+        /// Its columns.
+        cols: usize,
+        /// Its rows.
+        rows: usize,
+    },
+    /// A survey without levels.
+    #[error("survey {0} has no levels")]
+    NoLevels(SurveyId),
+    /// A survey's patch list names a patch of another survey, or a level it does not have.
+    #[error("survey {survey} lists patch {patch} of survey {of} at level {level}, which it does not have")]
+    ForeignPatch {
+        /// The survey.
+        survey: SurveyId,
+        /// The patch.
+        patch: PatchId,
+        /// The survey the patch says it is of.
+        of: SurveyId,
+        /// The level the patch says it is at.
+        level: usize,
+    },
+    /// A survey's kernel accuracies do not match its kernels.
+    #[error("survey {survey} has {have:?} kernel accuracies for {want:?} kernels")]
+    Accuracies {
+        /// The survey.
+        survey: SurveyId,
+        /// The accuracies stored.
+        have: [usize; 2],
+        /// The kernels it has.
+        want: [usize; 2],
+    },
+    /// A replica's log holds another commit than its name says.
+    #[error("{what} holds commit {found}")]
+    Commit {
+        /// The log.
+        what: String,
+        /// The commit it holds.
+        found: u64,
+    },
+    /// A compaction's copy is there and the store is not: moved by hand, since compaction
+    /// never leaves that state.
+    #[error("{} is missing but {} exists; if that is the store, rename it back", dir.display(), copy.display())]
+    Swapped {
+        /// The store's directory.
+        dir: PathBuf,
+        /// The copy found beside it.
+        copy: PathBuf,
+    },
+    /// A schema version no migration starts from.
+    #[error("no migration leads from schema version {0}")]
+    NoMigration(u32),
 }
 
 impl From<sled::Error> for StoreError {
@@ -339,15 +510,24 @@ pub(crate) fn setting_problem<T: Setting>(v: &[u8], open: T) -> Option<String> {
     }
 }
 
+/// The error of a record `what` that does not decode, and why.
+pub fn decode_error(what: &str, why: impl std::fmt::Display) -> StoreError {
+    StoreError::Decode {
+        what: what.to_string(),
+        why: why.to_string(),
+    }
+}
+
 /// A record as the store reads it: the whole of `b`, or an error naming `what`.
 pub fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, StoreError> {
     let (v, n) = bincode::serde::decode_from_slice(b, bincode::config::standard())
-        .map_err(|e| StoreError::Decode(format!("{what}: {e}")))?;
+        .map_err(|e| decode_error(what, e))?;
     if n != b.len() {
-        return Err(StoreError::Decode(format!(
-            "{what}: {} bytes left over after the value",
-            b.len() - n
-        )));
+        let left = b.len() - n;
+        return Err(decode_error(
+            what,
+            format!("{left} bytes left over after the value"),
+        ));
     }
     Ok(v)
 }
@@ -362,7 +542,7 @@ pub fn encode_state(s: &BoxState) -> [u8; 9] {
 
 /// [`encode_state`] read back.
 pub fn decode_state(b: &[u8], what: &str) -> Result<BoxState, StoreError> {
-    let bad = || StoreError::Decode(format!("{what}: {} bytes, not a top and a flag", b.len()));
+    let bad = || decode_error(what, format!("{} bytes, not a top and a flag", b.len()));
     let a: [u8; 9] = b.try_into().map_err(|_| bad())?;
     if a[8] > 1 {
         return Err(bad());
@@ -388,18 +568,16 @@ pub(crate) fn encode_states(states: &[(PatchId, BoxState)]) -> Vec<u8> {
 
 pub(crate) fn decode_states(b: &[u8], what: &str) -> Result<Vec<(PatchId, BoxState)>, StoreError> {
     if !b.len().is_multiple_of(BOX_BYTES) {
-        return Err(StoreError::Decode(format!(
-            "{what}: {} bytes, not a whole number of box states",
-            b.len()
-        )));
+        return Err(decode_error(
+            what,
+            format!("{} bytes, not a whole number of box states", b.len()),
+        ));
     }
     let mut out: Vec<(PatchId, BoxState)> = Vec::with_capacity(b.len() / BOX_BYTES);
     for e in b.chunks_exact(BOX_BYTES) {
         let id = PatchId(u64::from_le_bytes(e[..8].try_into().expect("8 bytes")));
         if out.last().is_some_and(|(last, _)| *last >= id) {
-            return Err(StoreError::Decode(format!(
-                "{what}: patch {id} out of order"
-            )));
+            return Err(decode_error(what, format!("patch {id} out of order")));
         }
         out.push((id, decode_state(&e[8..], what)?));
     }
@@ -408,9 +586,9 @@ pub(crate) fn decode_states(b: &[u8], what: &str) -> Result<Vec<(PatchId, BoxSta
 
 /// A store's path to a sibling of its directory: `<dir><suffix>`.
 fn sibling(dir: &Path, suffix: &str) -> Result<PathBuf, StoreError> {
-    let name = dir.file_name().ok_or_else(|| {
-        StoreError::Invalid(format!("the store path {} has no name", dir.display()))
-    })?;
+    let name = dir
+        .file_name()
+        .ok_or_else(|| StoreError::Unnamed(dir.to_path_buf()))?;
     let mut n = name.to_os_string();
     n.push(suffix);
     Ok(dir.with_file_name(n))

@@ -50,11 +50,12 @@ pub(super) fn damaged_database(dir: &Path, what: &str) -> StoreError {
             dir.display()
         )
     };
-    StoreError::Corrupt(format!(
-        "the database files in {} are damaged ({}): {advice}",
-        dir.display(),
-        what.lines().next().unwrap_or(what)
-    ))
+    Corruption::Files {
+        dir: dir.to_path_buf(),
+        what: what.lines().next().unwrap_or(what).to_string(),
+        advice,
+    }
+    .into()
 }
 
 /// Opens sled's database in `dir`, once this process holds `<dir>.lock`. Holding it means no
@@ -169,12 +170,11 @@ impl Store {
                 let f = journal::Follower::start(pack, &db, &dir)?;
                 let v = migrate::version(&db)?;
                 if v != migrate::CURRENT {
-                    return Err(StoreError::Invalid(format!(
-                        "the store {} follows is at schema {v}, this build's is {}: a replica \
-                         runs the writer's version",
-                        o.url,
-                        migrate::CURRENT
-                    )));
+                    return Err(StoreError::ReplicaSchema {
+                        url: o.url.clone(),
+                        found: v,
+                        supported: migrate::CURRENT,
+                    });
                 }
                 Some(f)
             }
@@ -188,7 +188,11 @@ impl Store {
         let committed = match db.get(keys::PACK_LEN)? {
             None => 0,
             Some(v) => u64::from_le_bytes(v.as_ref().try_into().map_err(|_| {
-                StoreError::Corrupt(format!("meta/pack_len holds {} bytes, not 8", v.len()))
+                StoreError::from(Corruption::Length {
+                    key: "meta/pack_len",
+                    len: v.len(),
+                    expected: 8,
+                })
             })?),
         };
         let (pack, objects): (Arc<dyn ChunkStore>, _) = match &follower {
@@ -216,7 +220,7 @@ impl Store {
         }
         let get = |k: &[u8]| -> Result<sled::IVec, StoreError> {
             db.get(k)?.ok_or_else(|| {
-                StoreError::Corrupt(format!("{} is missing", String::from_utf8_lossy(k)))
+                StoreError::from(Corruption::Missing(String::from_utf8_lossy(k).into_owned()))
             })
         };
         let layout: PatchLayout = decode(&get(keys::LAYOUT)?, "meta/layout")?;
@@ -349,7 +353,7 @@ impl Store {
     ) -> Result<Result<SurveyMeta, String>, StoreError> {
         let meta = match self.load_meta(r) {
             Ok(m) => m,
-            Err(e @ (StoreError::Corrupt(_) | StoreError::Decode(_))) => {
+            Err(e @ (StoreError::Corrupt(_) | StoreError::Decode { .. })) => {
                 return Ok(Err(e.to_string()))
             }
             Err(e) => return Err(e),
@@ -439,7 +443,10 @@ impl Store {
         for kv in self.db.scan_prefix(keys::BOXES_PREFIX) {
             let (k, v) = kv?;
             let unit = keys::parse_boxes(&k).ok_or_else(|| {
-                StoreError::Corrupt(format!("bad boxes key {:?}", String::from_utf8_lossy(&k)))
+                StoreError::from(Corruption::Key {
+                    kind: "boxes",
+                    key: String::from_utf8_lossy(&k).into_owned(),
+                })
             })?;
             out.extend(decode_states(&v, &format!("the boxes of unit {unit}"))?);
         }
@@ -452,7 +459,10 @@ impl Store {
         for kv in self.db.scan_prefix(keys::EDGE_PREFIX) {
             let (k, v) = kv?;
             let id = keys::parse_edge(&k).ok_or_else(|| {
-                StoreError::Corrupt(format!("bad edge key {:?}", String::from_utf8_lossy(&k)))
+                StoreError::from(Corruption::Key {
+                    kind: "edge",
+                    key: String::from_utf8_lossy(&k).into_owned(),
+                })
             })?;
             let e: EdgePatch = decode(&v, &format!("edge patch {id}"))?;
             out.push(Arc::new(e));
@@ -464,10 +474,13 @@ impl Store {
     #[doc(hidden)]
     pub fn load_patches(&self, id: SurveyId) -> Result<StoredPatches, StoreError> {
         let what = format!("the patches of survey {id}");
+        let unreadable = |why: String| Corruption::Unreadable {
+            what: what.clone(),
+            why,
+        };
         let sealed = chunks::read_packed(&self.db, self.pack.as_ref(), &keys::patches(id))
-            .map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))?;
-        let v = chunks::unseal(&sealed, MAX_RECORD_BYTES)
-            .map_err(|e| StoreError::Corrupt(format!("{what}: {e}")))?;
+            .map_err(|e| unreadable(e.to_string()))?;
+        let v = chunks::unseal(&sealed, MAX_RECORD_BYTES).map_err(unreadable)?;
         decode(&v, &what)
     }
 
@@ -480,14 +493,23 @@ impl Store {
     ) -> Result<Grid, StoreError> {
         let shape = h.shape();
         if shape.cols < 2 || shape.rows < 2 {
-            return Err(StoreError::Corrupt(format!(
-                "level {level} of survey {id} is {}×{} samples",
-                shape.cols, shape.rows
-            )));
+            return Err(Corruption::LevelShape {
+                survey: id,
+                level,
+                cols: shape.cols,
+                rows: shape.rows,
+            }
+            .into());
         }
         self.reader
             .read(id, level, &shape, shape.all())
-            .map_err(|e| StoreError::Corrupt(e.to_string()))
+            .map_err(|e| {
+                Corruption::Unreadable {
+                    what: format!("level {level} of survey {id}"),
+                    why: e.to_string(),
+                }
+                .into()
+            })
     }
 
     /// A survey without its samples, from its record, patches and accuracies.
@@ -498,39 +520,45 @@ impl Store {
             .iter()
             .find(|p| p.survey != r.id || p.level as usize >= r.levels.len())
         {
-            return Err(StoreError::Corrupt(format!(
-                "survey {} lists patch {} of survey {} at level {}, which it does not have",
-                r.id, p.id, p.survey, p.level
-            )));
+            return Err(Corruption::ForeignPatch {
+                survey: r.id,
+                patch: p.id,
+                of: p.survey,
+                level: p.level as usize,
+            }
+            .into());
         }
         let Some(l0) = r.levels.first() else {
-            return Err(StoreError::Corrupt(format!(
-                "survey {} has no levels",
-                r.id
-            )));
+            return Err(Corruption::NoLevels(r.id).into());
         };
         let shape0 = l0.shape();
         if shape0.cols < 2 || shape0.rows < 2 {
-            return Err(StoreError::Corrupt(format!(
-                "level 0 of survey {} is {}×{} samples",
-                r.id, shape0.cols, shape0.rows
-            )));
+            return Err(Corruption::LevelShape {
+                survey: r.id,
+                level: 0,
+                cols: shape0.cols,
+                rows: shape0.rows,
+            }
+            .into());
         }
         let tiling = Tiling::new(shape0.cells(), self.layout.kernel, r.tiling_offset);
         let kernel_accuracy = match r.spec() {
             AccuracySpec::Fixed(a) => KernelAccuracy::constant(&tiling, a),
             AccuracySpec::Auto => {
                 let v = self.db.get(keys::accuracy(r.id))?.ok_or_else(|| {
-                    StoreError::Corrupt(format!("the accuracies of survey {} are missing", r.id))
+                    StoreError::from(Corruption::Missing(format!(
+                        "the accuracies of survey {}",
+                        r.id
+                    )))
                 })?;
                 let k: KernelAccuracy = decode(&v, &format!("accuracies of survey {}", r.id))?;
                 if k.dims != tiling.counts() {
-                    return Err(StoreError::Corrupt(format!(
-                        "survey {} has {:?} kernel accuracies for {:?} kernels",
-                        r.id,
-                        k.dims,
-                        tiling.counts()
-                    )));
+                    return Err(Corruption::Accuracies {
+                        survey: r.id,
+                        have: k.dims,
+                        want: tiling.counts(),
+                    }
+                    .into());
                 }
                 k
             }
@@ -590,24 +618,22 @@ fn open_pack(
         }
         (ChunkBackend::Follow(_), _) => unreachable!("a replica's pack is its follower's"),
         (ChunkBackend::Local, Some(url)) => {
-            return Err(StoreError::Invalid(format!(
-                "the store's chunks are in {url}, but the storage backend is \"local\": \
-                 configure [storage] with the object store the store was made with"
-            )))
+            return Err(StoreError::Backend {
+                stored: url.to_string(),
+                configured: "the local pack (backend \"local\")".into(),
+            })
         }
         (ChunkBackend::Objects(o), Some(url)) if url != o.url => {
-            return Err(StoreError::Invalid(format!(
-                "the store's chunks are in {url}, but [storage] names {}",
-                o.url
-            )))
+            return Err(StoreError::Backend {
+                stored: url.to_string(),
+                configured: o.url.clone(),
+            })
         }
         (ChunkBackend::Objects(o), None) if committed > 0 => {
-            return Err(StoreError::Invalid(format!(
-                "the store's chunks are in {}, but [storage] names {}: a store keeps the \
-                 backend it was made with",
-                dir.join(pack::PACK_FILE).display(),
-                o.url
-            )))
+            return Err(StoreError::Backend {
+                stored: dir.join(pack::PACK_FILE).display().to_string(),
+                configured: o.url.clone(),
+            })
         }
         (ChunkBackend::Objects(o), _) => o,
     };
@@ -632,7 +658,11 @@ pub(super) fn encode_base(base: u64) -> Vec<u8> {
 /// `meta/pack_base`: where the address space compaction left behind ends, and when.
 pub(super) fn decode_base(v: &[u8]) -> Result<(u64, u64), StoreError> {
     let b: [u8; 16] = v.try_into().map_err(|_| {
-        StoreError::Corrupt(format!("meta/pack_base holds {} bytes, not 16", v.len()))
+        StoreError::from(Corruption::Length {
+            key: "meta/pack_base",
+            len: v.len(),
+            expected: 16,
+        })
     })?;
     Ok((
         u64::from_le_bytes(b[..8].try_into().expect("8 bytes")),

@@ -245,7 +245,10 @@ impl Store {
                 let (k, v) = kv?;
                 let source = String::from_utf8_lossy(&k[keys::PIN_PREFIX.len()..]).into_owned();
                 let content = String::from_utf8(v.to_vec()).map_err(|_| {
-                    StoreError::Corrupt(format!("the pin of {source:?} is not text"))
+                    StoreError::from(Corruption::Unreadable {
+                        what: format!("the pin of {source:?}"),
+                        why: "not text".into(),
+                    })
                 })?;
                 Ok((source, content))
             })
@@ -258,7 +261,10 @@ impl Store {
         for kv in self.db.scan_prefix(keys::OVERLAP_PREFIX) {
             let (k, v) = kv?;
             let (a, b) = keys::parse_overlap(&k).ok_or_else(|| {
-                StoreError::Corrupt(format!("bad overlap key {:?}", String::from_utf8_lossy(&k)))
+                StoreError::from(Corruption::Key {
+                    kind: "overlap",
+                    key: String::from_utf8_lossy(&k).into_owned(),
+                })
             })?;
             if a < b {
                 let p = decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?;

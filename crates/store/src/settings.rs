@@ -65,8 +65,12 @@ pub(super) fn setting_of<T: Setting>(
     let key = String::from_utf8_lossy(T::KEY);
     if let Some(v) = db.get(T::KEY)? {
         let name = String::from_utf8_lossy(&v);
-        return T::from_name(&name)
-            .ok_or_else(|| StoreError::Corrupt(format!("{key} names no choice: {name:?}")));
+        return T::from_name(&name).ok_or_else(|| {
+            StoreError::from(Corruption::Unreadable {
+                what: key.into_owned(),
+                why: format!("names no choice: {name:?}"),
+            })
+        });
     }
     let legacy = db.scan_prefix(keys::SURVEY_PREFIX).next().is_some();
     let v = if legacy { T::LEGACY } else { configured };
@@ -95,14 +99,13 @@ pub(super) fn decode_crs<T>(
     what: &str,
     parse: impl Fn(&str) -> Result<T, patchwork_core::crs::CrsError>,
 ) -> Result<T, StoreError> {
-    let text = std::str::from_utf8(b)
-        .map_err(|_| StoreError::Decode(format!("{what}: not UTF-8 text")))?;
-    parse(text).map_err(|e| StoreError::Decode(format!("{what}: {e}")))
+    let text = std::str::from_utf8(b).map_err(|_| crate::decode_error(what, "not UTF-8 text"))?;
+    parse(text).map_err(|e| crate::decode_error(what, e))
 }
 
 pub(super) fn decode_u32(b: &[u8], what: &str) -> Result<u32, StoreError> {
     let a: [u8; 4] = b
         .try_into()
-        .map_err(|_| StoreError::Decode(format!("{what}: {} bytes, not 4", b.len())))?;
+        .map_err(|_| crate::decode_error(what, format!("{} bytes, not 4", b.len())))?;
     Ok(u32::from_le_bytes(a))
 }

@@ -262,7 +262,7 @@ impl Store {
                         }
                         whole.push(Arc::new(s));
                     }
-                    Err(StoreError::Corrupt(m)) => pr.add("level", m),
+                    Err(StoreError::Corrupt(m)) => pr.add("level", m.to_string()),
                     Err(e) => return Err(e),
                 }
             }

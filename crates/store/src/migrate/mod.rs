@@ -3,7 +3,7 @@
 //! top-level `migrations/README.md`.
 
 use super::keys;
-use super::StoreError;
+use super::{Corruption, StoreError};
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::patch::PatchLayout;
 
@@ -59,7 +59,11 @@ pub fn version(tree: &sled::Tree) -> Result<u32, StoreError> {
         None => Ok(0),
         Some(v) => {
             let b: [u8; 4] = v.as_ref().try_into().map_err(|_| {
-                StoreError::Corrupt(format!("meta/schema holds {} bytes, not 4", v.len()))
+                StoreError::from(Corruption::Length {
+                    key: "meta/schema",
+                    len: v.len(),
+                    expected: 4,
+                })
             })?;
             Ok(u32::from_le_bytes(b))
         }
@@ -80,9 +84,7 @@ pub fn migrate(tree: &sled::Tree, ctx: &Ctx) -> Result<Vec<(u32, u32)>, StoreErr
         let &(from, to, step) = steps()
             .iter()
             .find(|(from, to, _)| *from == v && *to > v && *to <= CURRENT)
-            .ok_or_else(|| {
-                StoreError::Corrupt(format!("no migration leads from schema version {v}"))
-            })?;
+            .ok_or_else(|| StoreError::from(Corruption::NoMigration(v)))?;
         let mut batch = step(tree, ctx).map_err(|msg| StoreError::Migration { from, to, msg })?;
         batch.insert(keys::SCHEMA, &to.to_le_bytes());
         tree.apply_batch(batch)?;
