@@ -3,7 +3,8 @@
 //! over, with the terrain unchanged; a store keeps the backend it was made with.
 
 use patchwork::config::{BackendKind, Config, Storage};
-use patchwork::engine::{Ctx, Cut, Engine, Origin, TileRequest};
+use patchwork::engine::{Ctx, Cut, Engine, EngineError, Origin, TileRequest};
+use patchwork::store::StoreError;
 use patchwork_core::geom::Aabb;
 use patchwork_core::resample::Backend;
 use std::path::{Path, PathBuf};
@@ -251,6 +252,13 @@ fn replicas_follow_the_writer_through_inserts_a_replacement_a_retirement_and_a_c
     drop(w);
     let mut taken = replica_cfg("writer");
     taken.data_dir = tmp.path().join("writer");
-    let e = Engine::open(taken).err().expect("refused").to_string();
-    assert!(e.contains("holds a store of its own"), "{e}");
+    let e = Engine::open(taken).err().expect("refused");
+    assert!(
+        matches!(
+            &e,
+            EngineError::Store(StoreError::NotAReplica { holds, .. })
+                if holds == "holds a store of its own"
+        ),
+        "{e}"
+    );
 }
