@@ -2,8 +2,9 @@
 //! `cargo run --example format_fixture`): one of every schema version from 8, the first
 //! committed, on. Each must open (migrated to the current version where it is older), verify
 //! clean and give back its surveys' samples as their files hold them; and every record of
-//! the current version's must decode and encode back to its very bytes. A change to what the
-//! store writes that comes without a migration and a new committed store fails here.
+//! the current version's must decode into its stored form (`patchwork_store::form`) and encode
+//! back to its very bytes. A change to what the store writes that comes without a migration
+//! and a new committed store fails here.
 
 use crate::common;
 
@@ -11,13 +12,10 @@ use common::copy_dir;
 use common::daemon::crop;
 use patchwork::store::pack::{Loc, PackFile, PACK_FILE};
 use patchwork::store::{
-    chunks, decode, decode_state, encode, encode_state, keys, FailedRecord, Store, StoreOptions,
-    StoredPatches, SurveyRecord, SCHEMA_VERSION,
+    chunks, decode, decode_state, encode, encode_state, form, keys, FailedRecord, Store,
+    StoreOptions, StoredPatches, SurveyRecord, SCHEMA_VERSION,
 };
 use patchwork_core::index::lod::IndexConfig;
-use patchwork_core::model::accuracy::KernelAccuracy;
-use patchwork_core::model::edge::EdgePatch;
-use patchwork_core::model::evidence::PairEvidence;
 use patchwork_core::model::ids::SurveyId;
 use patchwork_core::model::patch::PatchLayout;
 use patchwork_read::{read_raster, ReadLimits};
@@ -103,10 +101,10 @@ fn every_record_of_the_current_schema_decodes_and_encodes_back_to_its_bytes() {
                 )
             }
             "meta/layout" => {
-                same_bytes::<PatchLayout>(&v, &what);
+                same_bytes::<form::Layout>(&v, &what);
             }
             "meta/index" => {
-                same_bytes::<IndexConfig>(&v, &what);
+                same_bytes::<form::Index>(&v, &what);
             }
             "meta/crs" => {
                 patchwork_core::crs::Crs::parse(std::str::from_utf8(&v).unwrap()).unwrap();
@@ -116,20 +114,23 @@ fn every_record_of_the_current_schema_decodes_and_encodes_back_to_its_bytes() {
             }
             "meta/pack_len" => assert_eq!(v.len(), 8),
             "meta/quarantined" => {
-                same_bytes::<Vec<SurveyId>>(&v, &what);
+                same_bytes::<Vec<u64>>(&v, &what);
             }
             "s/" => {
-                let r: SurveyRecord = same_bytes(&v, &what);
-                assert_eq!(key, format!("s/{}", r.id));
+                let r: form::Survey = same_bytes(&v, &what);
+                assert_eq!(key, format!("s/{}", SurveyId(r.id)));
+                // The record the daemon works with is made of it, and encodes as it.
+                let record = SurveyRecord::try_from(r).unwrap();
+                assert_eq!(encode(&record).unwrap(), v.to_vec(), "{what}");
             }
             "a/" => {
-                same_bytes::<KernelAccuracy>(&v, &what);
+                same_bytes::<form::Accuracies>(&v, &what);
             }
             "e/" => {
-                same_bytes::<EdgePatch>(&v, &what);
+                same_bytes::<form::Edge>(&v, &what);
             }
             "o/" => {
-                same_bytes::<PairEvidence>(&v, &what);
+                same_bytes::<form::Pair>(&v, &what);
             }
             "f/" => {
                 same_bytes::<FailedRecord>(&v, &what);
@@ -149,7 +150,7 @@ fn every_record_of_the_current_schema_decodes_and_encodes_back_to_its_bytes() {
             "p/" => {
                 let sealed = chunks::read_packed(tree, &pack, &k).unwrap();
                 let bytes = chunks::unseal(&sealed, 1 << 30).unwrap();
-                let p: StoredPatches = same_bytes(&bytes, &what);
+                let p: StoredPatches = form::Patches::into(same_bytes(&bytes, &what));
                 assert!(!p.patches.is_empty(), "{what}: no patches");
             }
             other => panic!(

@@ -7,8 +7,9 @@ use crate::common;
 use common::*;
 use patchwork::restore::{self, Opened};
 use patchwork::store::{
-    open_error, Change, Corruption, DiskSpace, FailedRecord, IngestTimings, Insertion, Packed,
-    Retirement, SpaceGuard, Status, Store, StoreError, StoreOptions, SurveyRecord, SCHEMA_VERSION,
+    form, open_error, Change, Corruption, DiskSpace, FailedRecord, IngestTimings, Insertion,
+    Packed, Retirement, SpaceGuard, Status, Store, StoreError, StoreOptions, SurveyRecord,
+    SCHEMA_VERSION,
 };
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::ChangeStats;
@@ -1202,8 +1203,9 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
                 // Versions 1 and 2 kept the patches alone, in the database.
                 let id: SurveyId = id.parse().unwrap();
                 let p = store.load_patches(id).unwrap();
+                let patches: Vec<form::Patch> = p.patches.iter().map(form::Patch::from).collect();
                 let bytes =
-                    bincode::serde::encode_to_vec(&p.patches, bincode::config::standard()).unwrap();
+                    bincode::serde::encode_to_vec(&patches, bincode::config::standard()).unwrap();
                 db.insert(k, bytes).unwrap();
             }
         }

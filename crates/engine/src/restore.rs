@@ -223,10 +223,15 @@ pub fn verify_with(
             match edges.remove(&e.id) {
                 None => problems.add("missing edge", format!("edge patch {} is missing", e.id)),
                 // Compared as stored: heights hold NaN where nothing is near.
-                Some(stored) if encode(&stored)? != encode(e.as_ref())? => problems.add(
-                    "edge",
-                    format!("edge patch {} differs from the one derived", e.id),
-                ),
+                Some(stored)
+                    if encode(&patchwork_store::form::Edge::from(&stored))?
+                        != encode(&patchwork_store::form::Edge::from(e.as_ref()))? =>
+                {
+                    problems.add(
+                        "edge",
+                        format!("edge patch {} differs from the one derived", e.id),
+                    )
+                }
                 Some(_) => {}
             }
         }

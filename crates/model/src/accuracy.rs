@@ -66,7 +66,7 @@ impl From<f64> for AccuracySpec {
 }
 
 /// ε for every kernel of a level-0 tiling, row-major over the tiling's kernels.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct KernelAccuracy {
     /// Kernels per row and per column.
     pub dims: [usize; 2],
@@ -294,7 +294,7 @@ fn largest_step(g: &Grid) -> f64 {
 /// How far one grid's surface is from another's samples: the largest and RMS difference
 /// between `other`'s bilinear surface and every valid sample of `grid` where that surface is
 /// defined, and how many samples that was.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Deviation {
     /// The largest difference, in metres.
     pub max_m: f64,

@@ -44,7 +44,7 @@ const SEARCH_POINTS: usize = 3_000;
 const SEARCH_CELLS: i32 = 13;
 
 /// How one survey lies against another.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Coregistration {
     /// `other(p + shift) ≈ reference(p) + dz`: where the other's content lies relative to the
     /// reference's, in the reference plane's units.
@@ -327,7 +327,7 @@ pub const SIGMAS: [f64; 8] = [0.0, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0];
 
 /// How well one survey is predicted from a low-pass of the other: the residual's RMS and the
 /// filter width that gives it.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Prediction {
     /// RMS of the residual about its median, in metres.
     pub rms: f64,
@@ -336,7 +336,7 @@ pub struct Prediction {
 }
 
 /// Which of two surveys is a degraded version of the other.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Degradation {
     /// The other predicted from the reference.
     pub other_from_reference: Prediction,

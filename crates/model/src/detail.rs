@@ -56,7 +56,7 @@ pub const NOISY_ABOVE: f64 = 1.0;
 pub const SHARED: [f64; 2] = [0.95, 1.1];
 
 /// One band's figures.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Band {
     /// The band's finer edge, σ in the reference plane's units.
     pub sigma: f64,
@@ -90,7 +90,7 @@ impl Band {
 }
 
 /// The bands of a pair, finest first.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Detail {
     /// One per band both surveys resolve.
     pub bands: Vec<Band>,

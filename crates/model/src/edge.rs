@@ -60,7 +60,7 @@ pub const EDGE_CELL: u8 = 2;
 
 /// The samples an edge patch evaluates: its window on the lattice, voids filled where a valid
 /// sample is near, with a flag byte per sample.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct EdgeGrid {
     /// Samples per row.
     pub cols: usize,
@@ -218,7 +218,7 @@ pub fn nearest_valid(v: [bool; 4], f: [f64; 2]) -> bool {
 
 /// One edge patch: a tile of a lattice where some cell has data at a corner but no survey of
 /// the lattice has the whole cell.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct EdgePatch {
     /// The unit the index inserts and retires; derived from the tile and the surveys used.
     pub owner: SurveyId,

@@ -38,7 +38,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 
 /// How two overlapping surveys compare, and where their claims contradict each other.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct PairEvidence {
     /// The survey whose samples the figures are measured at: the finer.
     pub finer: SurveyId,

@@ -66,7 +66,7 @@ impl CellRect {
 }
 
 /// One patch of one level. Samples are not copied: a bilinear patch is a window of its level.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Patch {
     /// Derived from the survey, level and index.
     pub id: PatchId,

@@ -99,7 +99,7 @@ impl Store {
         if left.is_empty() {
             batch.remove(keys::QUARANTINED);
         } else {
-            batch.insert(keys::QUARANTINED, encode(&left)?);
+            batch.insert(keys::QUARANTINED, encode(&form::ids(&left))?);
         }
         Ok(())
     }
@@ -166,7 +166,7 @@ impl Store {
         if left_out.is_empty() {
             batch.remove(keys::QUARANTINED);
         } else {
-            batch.insert(keys::QUARANTINED, encode(&left_out)?);
+            batch.insert(keys::QUARANTINED, encode(&form::ids(&left_out))?);
         }
         self.apply(batch)
     }
@@ -263,7 +263,10 @@ impl Store {
         }
         batch.insert(keys::PACK_LEN, &self.pack.len().to_le_bytes()[..]);
         if s.spec == AccuracySpec::Auto {
-            batch.insert(keys::accuracy(s.id), encode(&s.kernel_accuracy)?);
+            batch.insert(
+                keys::accuracy(s.id),
+                encode(&form::Accuracies::from(&s.kernel_accuracy))?,
+            );
         }
         stage_change(batch, change);
         stage_pairs(batch, pairs)?;
@@ -481,7 +484,7 @@ pub(super) fn stage_pairs(
     pairs: &[Arc<PairEvidence>],
 ) -> Result<(), StoreError> {
     for p in pairs {
-        let v = encode(p.as_ref())?;
+        let v = encode(&form::Pair::from(p.as_ref()))?;
         batch.insert(keys::overlap(p.finer, p.coarser), v.clone());
         batch.insert(keys::overlap(p.coarser, p.finer), v);
     }
@@ -492,7 +495,7 @@ pub(super) fn stage_pairs(
 /// that a retirement removed and an insertion brought back is there.
 pub(super) fn stage_edges(batch: &mut Writes, edges: &[Arc<EdgePatch>]) -> Result<(), StoreError> {
     for e in edges {
-        batch.insert(keys::edge(e.id), encode(e.as_ref())?);
+        batch.insert(keys::edge(e.id), encode(&form::Edge::from(e.as_ref()))?);
     }
     Ok(())
 }

@@ -54,6 +54,7 @@
 pub mod chunks;
 mod commit;
 mod compact;
+pub mod form;
 mod journal;
 pub mod keys;
 mod lease;

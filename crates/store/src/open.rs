@@ -223,8 +223,9 @@ impl Store {
                 StoreError::from(Corruption::Missing(String::from_utf8_lossy(k).into_owned()))
             })
         };
-        let layout: PatchLayout = decode(&get(keys::LAYOUT)?, "meta/layout")?;
-        let index: IndexConfig = decode(&get(keys::INDEX)?, "meta/index")?;
+        let layout: PatchLayout =
+            decode::<form::Layout>(&get(keys::LAYOUT)?, "meta/layout")?.into();
+        let index: IndexConfig = decode::<form::Index>(&get(keys::INDEX)?, "meta/index")?.into();
         let recipe = recipe_of(&db, &dir, &guard, opts.recipe)?;
         let contradicted = setting_of(&db, &dir, &guard, opts.contradicted)?;
         let crs = (
@@ -417,7 +418,10 @@ impl Store {
     pub(super) fn quarantined(&self) -> Result<Vec<SurveyId>, StoreError> {
         match self.db.get(keys::QUARANTINED)? {
             None => Ok(Vec::new()),
-            Some(v) => decode(&v, "meta/quarantined"),
+            Some(v) => Ok(decode::<Vec<u64>>(&v, "meta/quarantined")?
+                .into_iter()
+                .map(SurveyId)
+                .collect()),
         }
     }
 
@@ -464,7 +468,7 @@ impl Store {
                     key: String::from_utf8_lossy(&k).into_owned(),
                 })
             })?;
-            let e: EdgePatch = decode(&v, &format!("edge patch {id}"))?;
+            let e: EdgePatch = decode::<form::Edge>(&v, &format!("edge patch {id}"))?.into();
             out.push(Arc::new(e));
         }
         Ok(out)
@@ -551,7 +555,9 @@ impl Store {
                         r.id
                     )))
                 })?;
-                let k: KernelAccuracy = decode(&v, &format!("accuracies of survey {}", r.id))?;
+                let k: KernelAccuracy =
+                    decode::<form::Accuracies>(&v, &format!("accuracies of survey {}", r.id))?
+                        .into();
                 if k.dims != tiling.counts() {
                     return Err(Corruption::Accuracies {
                         survey: r.id,

@@ -3,8 +3,10 @@
 
 use super::*;
 
-/// A survey's patches and the edge tiles its samples reach, stored together under `p/`.
+/// A survey's patches and the edge tiles its samples reach, stored together under `p/` in
+/// their [`form::Patches`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(from = "form::Patches", into = "form::Patches")]
 pub struct StoredPatches {
     /// The survey's patches, of every level.
     pub patches: Vec<Patch>,
@@ -64,8 +66,10 @@ pub struct IngestTimings {
     pub commit_ms: f64,
 }
 
-/// What the store keeps of a survey besides its samples and patches, under `s/`.
+/// What the store keeps of a survey besides its samples and patches, under `s/` in its
+/// [`form::Survey`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "form::Survey", into = "form::Survey")]
 pub struct SurveyRecord {
     /// The survey's id.
     pub id: SurveyId,
@@ -267,8 +271,9 @@ impl Store {
                 })
             })?;
             if a < b {
-                let p = decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?;
-                out.push(Arc::new(p));
+                let p: form::Pair =
+                    decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))?;
+                out.push(Arc::new(p.into()));
             }
         }
         Ok(out)
@@ -327,7 +332,8 @@ impl Store {
             .scan_prefix(keys::overlaps_of(id))
             .map(|kv| {
                 let (k, v) = kv?;
-                decode(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))
+                decode::<form::Pair>(&v, &format!("overlap {}", String::from_utf8_lossy(&k)))
+                    .map(PairEvidence::from)
             })
             .collect()
     }

@@ -152,7 +152,7 @@ impl Store {
             } else if let Some((id, level, k)) = keys::parse_chunk(&k) {
                 chunks.insert((id, level, k), v);
             } else if let Some(id) = keys::parse_edge(&k) {
-                match decode::<EdgePatch>(&v, &key_str(&k)) {
+                match decode::<crate::form::Edge>(&v, &key_str(&k)).map(EdgePatch::from) {
                     Ok(e) if e.id != id => {
                         pr.add("edge", format!("{} holds edge patch {}", key_str(&k), e.id))
                     }
@@ -169,7 +169,7 @@ impl Store {
             } else if let Some(id) = keys::parse_accuracy(&k) {
                 accuracies.push(id);
             } else if let Some((a, b)) = keys::parse_overlap(&k) {
-                match decode::<PairEvidence>(&v, &key_str(&k)) {
+                match decode::<crate::form::Pair>(&v, &key_str(&k)).map(PairEvidence::from) {
                     Ok(p)
                         if !(p.finer == a && p.coarser == b || p.finer == b && p.coarser == a) =>
                     {

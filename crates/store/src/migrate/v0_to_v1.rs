@@ -4,8 +4,8 @@
 //! version are something else's data, and adopting them would hide the mistake.
 
 use super::Ctx;
-use crate::encode;
 use crate::keys;
+use crate::{encode, form};
 
 pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
     if let Some(kv) = tree.iter().next() {
@@ -18,8 +18,11 @@ pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
     let mut b = sled::Batch::default();
     b.insert(
         keys::LAYOUT,
-        encode(&ctx.layout).map_err(|e| e.to_string())?,
+        encode(&form::Layout::from(ctx.layout)).map_err(|e| e.to_string())?,
     );
-    b.insert(keys::INDEX, encode(&ctx.index).map_err(|e| e.to_string())?);
+    b.insert(
+        keys::INDEX,
+        encode(&form::Index::from(ctx.index)).map_err(|e| e.to_string())?,
+    );
     Ok(b)
 }

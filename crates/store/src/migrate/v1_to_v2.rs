@@ -8,8 +8,8 @@
 
 use super::v3::{GeorefV3, LevelV3, RecordV3};
 use super::Ctx;
+use crate::form::AccuracySource;
 use crate::{decode, encode, keys, IngestTimings, Status};
-use patchwork_core::model::accuracy::AccuracySource;
 use serde::Deserialize;
 
 #[derive(Deserialize)]

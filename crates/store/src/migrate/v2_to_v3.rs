@@ -11,7 +11,7 @@
 
 use super::v3::RecordV3;
 use super::Ctx;
-use crate::{chunks, decode, encode, keys, StoredPatches};
+use crate::{chunks, decode, encode, form, keys, StoredPatches};
 use patchwork_core::model::edge;
 use patchwork_core::model::grid::Grid;
 use patchwork_core::model::lattice::Lattice;
@@ -83,7 +83,8 @@ pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
             return Err(format!("survey {id} has no levels"));
         };
         if let Some(v) = tree.get(keys::patches(id)).map_err(|e| e.to_string())? {
-            let patches: Vec<Patch> = decode(&v, "patches").map_err(|e| e.to_string())?;
+            let patches: Vec<form::Patch> = decode(&v, "patches").map_err(|e| e.to_string())?;
+            let patches: Vec<Patch> = patches.into_iter().map(Patch::from).collect();
             let index = Lattice::of(&g.georef).index_of(&g.georef);
             let stored = StoredPatches {
                 patches,

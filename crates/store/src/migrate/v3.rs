@@ -1,8 +1,8 @@
 //! The survey record as versions 2 and 3 wrote it: a frozen copy, so that the steps that
 //! write it (1 → 2) and read it (2 → 3, 3 → 4) keep doing so whatever the record becomes.
 
+use crate::form::AccuracySource;
 use crate::{IngestTimings, Status};
-use patchwork_core::model::accuracy::AccuracySource;
 use patchwork_core::model::grid::Georef;
 use patchwork_core::model::ids::SurveyId;
 use serde::{Deserialize, Serialize};

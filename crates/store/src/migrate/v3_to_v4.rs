@@ -31,7 +31,7 @@ pub(super) fn run(tree: &sled::Tree, _: &Ctx) -> Result<sled::Batch, String> {
             source: old.source,
             content_id: old.content_id,
             accuracy: old.accuracy,
-            accuracy_source: old.accuracy_source,
+            accuracy_source: old.accuracy_source.into(),
             crs: old.crs.map(crs).transpose()?,
             vertical_source: None,
             vertical: None,
