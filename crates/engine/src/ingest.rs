@@ -20,6 +20,7 @@ use std::time::Instant;
 use thiserror::Error;
 
 /// Why a file could not be ingested; each message says what to do about it.
+#[non_exhaustive]
 #[derive(Debug, Error)]
 pub enum IngestError {
     /// The file could not be read as a DEM.
@@ -668,6 +669,8 @@ pub fn is_temporary(path: &Path) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::ingest_reason;
+    use crate::Reason;
 
     fn settings() -> IngestSettings {
         IngestSettings {
@@ -728,7 +731,9 @@ mod tests {
             "offset_error_m = -1.0",
         ] {
             std::fs::write(sidecar_path(&p), format!("{bad}\n")).unwrap();
-            let e = prepare(&p, &s).unwrap_err().to_string();
+            let err = prepare(&p, &s).unwrap_err();
+            assert_eq!(ingest_reason(&err), Reason::Sidecar, "{bad}: {err}");
+            let e = err.to_string();
             assert!(e.contains("offset"), "{bad}: {e}");
         }
     }
@@ -762,7 +767,9 @@ mod tests {
         );
         for bad in ["1e308", "10000.0", "-1.0", "nan"] {
             std::fs::write(sidecar_path(&p), format!("accuracy_m = {bad}\n")).unwrap();
-            let e = prepare(&p, &s).unwrap_err().to_string();
+            let err = prepare(&p, &s).unwrap_err();
+            assert_eq!(ingest_reason(&err), Reason::BadAccuracy, "{bad}: {err}");
+            let e = err.to_string();
             assert!(e.contains("refused") && e.contains("sidecar"), "{bad}: {e}");
         }
     }
@@ -782,7 +789,9 @@ mod tests {
             })
             .collect();
         std::fs::write(&hgt, bytes).unwrap();
-        let e = prepare(&hgt, &settings()).unwrap_err().to_string();
+        let err = prepare(&hgt, &settings()).unwrap_err();
+        assert_eq!(ingest_reason(&err), Reason::Implausible, "{err}");
+        let e = err.to_string();
         assert!(e.contains("plausible heights [-12000, 9000] m"), "{e}");
         let mut wide = settings();
         wide.heights = (-40_000.0, 40_000.0);
@@ -805,15 +814,18 @@ mod tests {
             "crs = \"secret\"\n",
         ] {
             std::fs::write(sidecar_path(&p), text).unwrap();
-            let e = prepare(&p, &settings()).unwrap_err().to_string();
+            let err = prepare(&p, &settings()).unwrap_err();
+            assert_eq!(ingest_reason(&err), Reason::Sidecar, "{text:?}: {err}");
+            let e = err.to_string();
             assert!(
                 e.contains("sidecar") && !e.contains("secret"),
                 "{text:?}: {e}"
             );
         }
         std::fs::write(sidecar_path(&p), vec![b'#'; 100_000]).unwrap();
-        let e = prepare(&p, &settings()).unwrap_err().to_string();
-        assert!(e.contains("not a sidecar"), "{e}");
+        let err = prepare(&p, &settings()).unwrap_err();
+        assert_eq!(ingest_reason(&err), Reason::Sidecar, "{err}");
+        assert!(err.to_string().contains("not a sidecar"), "{err}");
     }
 
     #[test]
@@ -822,7 +834,9 @@ mod tests {
         // A projection this build does not have.
         let bonne = r#"PROJCS["Bonne_Custom",GEOGCS["GCS_RGF_1993",DATUM["D_RGF_1993",SPHEROID["GRS_1980",6378137.0,298.257222101]]],PROJECTION["Bonne"],PARAMETER["Standard_Parallel_1",45.0]]"#;
         let p = grid(dir.path(), "l.asc", Some(bonne));
-        let e = prepare(&p, &settings()).unwrap_err().to_string();
+        let err = prepare(&p, &settings()).unwrap_err();
+        assert_eq!(ingest_reason(&err), Reason::Crs, "{err}");
+        let e = err.to_string();
         assert!(e.contains("Bonne_Custom") && e.contains("crs"), "{e}");
         // A sidecar may name the code for a CRS the file only describes...
         std::fs::write(sidecar_path(&p), "crs = \"EPSG:2154\"\n").unwrap();
@@ -842,10 +856,13 @@ mod tests {
             Some(r#"GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]]"#),
         );
         std::fs::write(sidecar_path(&q), "crs = \"EPSG:32630\"\n").unwrap();
-        let e = prepare(&q, &settings()).unwrap_err().to_string();
+        let err = prepare(&q, &settings()).unwrap_err();
+        assert_eq!(ingest_reason(&err), Reason::CrsConflict, "{err}");
+        let e = err.to_string();
         assert!(e.contains("EPSG:32630") && e.contains("EPSG:4326"), "{e}");
         let none = grid(dir.path(), "n.asc", None);
-        let e = prepare(&none, &settings()).unwrap_err().to_string();
-        assert!(e.contains("has no CRS"), "{e}");
+        let err = prepare(&none, &settings()).unwrap_err();
+        assert_eq!(ingest_reason(&err), Reason::Crs, "{err}");
+        assert!(err.to_string().contains("has no CRS"), "{err}");
     }
 }

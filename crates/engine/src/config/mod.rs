@@ -120,6 +120,7 @@ impl Default for Config {
 }
 
 /// Why a config could not be loaded.
+#[non_exhaustive]
 #[derive(Debug, Error)]
 pub enum ConfigError {
     /// The config file could not be read.

@@ -133,6 +133,7 @@ pub const DEFAULT_ARENA_BYTES: u64 = 256 << 20;
 
 /// Why the GPU could not resample: the daemon then resamples on the CPU, unless the request asked
 /// for the GPU.
+#[non_exhaustive]
 #[derive(Debug, Error)]
 pub enum GpuError {
     /// No adapter runs compute shaders, or only a software one that is not allowed; the message
