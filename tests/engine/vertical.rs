@@ -5,7 +5,7 @@
 //! or at the wrong place, shows.
 
 use patchwork::config::Config;
-use patchwork::engine::{Engine, Origin, Outcome};
+use patchwork::engine::{Ctx, Engine, Origin, Outcome, SampleRequest};
 use patchwork_core::crs::{Crs, Transform};
 use patchwork_read::write_tiff::write_geotiff_f32;
 use patchwork_read::{read_raster, ReadLimits};
@@ -268,4 +268,105 @@ fn a_geoid_that_bends_between_its_nodes_adds_its_interpolation_error_to_the_accu
         r.accuracy,
         r.vertical_error_m
     );
+}
+
+/// The grid of [`geoid`] as a GTX file, the format of the geoid grids PROJ ships
+/// (`egm96_15.gtx` in Debian's `proj-data`): a big-endian header, then the nodes from the
+/// southernmost row.
+fn geoid_gtx(path: &Path, n: impl Fn(f64, f64) -> f64) {
+    let (lon0, lat0, step, size) = (4.5f64, 43.5f64, 0.05f64, 41i32);
+    let mut b = Vec::new();
+    for x in [lat0, lon0, step, step] {
+        b.extend_from_slice(&x.to_be_bytes());
+    }
+    b.extend_from_slice(&size.to_be_bytes());
+    b.extend_from_slice(&size.to_be_bytes());
+    for r in 0..size {
+        for c in 0..size {
+            let z = n(lon0 + c as f64 * step, lat0 + r as f64 * step) as f32;
+            b.extend_from_slice(&z.to_be_bytes());
+        }
+    }
+    std::fs::write(path, b).unwrap();
+}
+
+#[test]
+fn a_gtx_geoid_grid_converts_heights_as_the_same_grid_in_geotiff_does() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let (tif, gtx) = (dir.join("egm08.tif"), dir.join("egm08.gtx"));
+    geoid(&tif, n08);
+    geoid_gtx(&gtx, n08);
+    let b = copy(
+        dir,
+        "ventoux_utm31.tif",
+        Some("EPSG:3855"),
+        |z, lon, lat| z + n96(lon, lat) - n08(lon, lat),
+    );
+    let g96 = dir.join("egm96.tif");
+    geoid(&g96, n96);
+    let heights = |grid: &Path, name: &str| {
+        let sub = dir.join(name);
+        std::fs::create_dir_all(&sub).unwrap();
+        // The survey and its sidecar inside this engine's ingest root.
+        let file = sub.join("b.tif");
+        std::fs::copy(&b, &file).unwrap();
+        std::fs::copy(
+            format!("{}.toml", b.display()),
+            format!("{}.toml", file.display()),
+        )
+        .unwrap();
+        let e = engine(&sub, &[("EPSG:5773", &g96), ("EPSG:3855", grid)]);
+        let done = e.ingest(&file, None, Origin::Request).unwrap();
+        assert_eq!(done.outcome, Outcome::Inserted, "{name}: {}", done.error);
+        // Points around the middle of the crop, in the store's longitude and latitude.
+        let r = read_raster(&b, &ReadLimits::default()).unwrap();
+        let to_geo = Transform::new(r.crs.crs.as_ref().unwrap(), &Crs::wgs84()).unwrap();
+        let (x, y) = r.pixel_centre(r.cols / 2, r.rows / 2);
+        let c = to_geo.apply([x, y]).unwrap();
+        let pts: Vec<[f64; 2]> = (0..400)
+            .map(|k| {
+                let (i, j) = ((k % 20) as f64 / 20.0 - 0.5, (k / 20) as f64 / 20.0 - 0.5);
+                [c[0] + i * 0.02, c[1] + j * 0.02]
+            })
+            .collect();
+        let req = SampleRequest::new(pts, None, 0.0).unwrap();
+        let (_, listing) = e.surveys();
+        (
+            e.sample(&req, Ctx::default()).unwrap(),
+            listing.records[0].accuracy,
+        )
+    };
+    let (from_tif, eps_tif) = heights(&tif, "tif");
+    let (from_gtx, eps_gtx) = heights(&gtx, "gtx");
+    assert!(from_tif.iter().filter(|z| !z.is_nan()).count() > 300);
+    for (a, b) in from_tif.iter().zip(&from_gtx) {
+        assert_eq!(
+            a.to_bits(),
+            b.to_bits(),
+            "the GTX grid converts as the GeoTIFF one"
+        );
+    }
+    assert_eq!(eps_tif, eps_gtx);
+}
+
+#[test]
+fn a_geoid_grid_that_cannot_be_used_stops_the_start_naming_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let bad = dir.join("egm96_15.gtx");
+    std::fs::write(&bad, [0u8; 64]).unwrap();
+    let cfg = Config {
+        data_dir: dir.join("data"),
+        vertical: patchwork::config::Vertical {
+            crs: Some("EPSG:5773".into()),
+            geoids: [("EPSG:5773".to_string(), bad.clone())]
+                .into_iter()
+                .collect(),
+        },
+        ..Config::default()
+    };
+    let err = Engine::open(cfg).err().expect("refused at start");
+    assert_eq!(err.reason(), patchwork::engine::Reason::Geoid, "{err}");
+    assert!(err.to_string().contains("egm96_15.gtx"), "{err}");
 }

@@ -55,6 +55,9 @@ pub enum EngineError {
         /// Why.
         source: Box<dyn std::error::Error + Send + Sync>,
     },
+    /// A geoid grid the config names cannot be read or used; found at start.
+    #[error("{0}")]
+    GeoidGrid(IngestError),
     /// No active survey has this id or source.
     #[error("no active survey has id or source {}; `patchwork surveys` lists them", quote_short(.0))]
     NoSurvey(String),
@@ -295,6 +298,7 @@ impl EngineError {
             | EngineError::NotOpen => Reason::Unavailable,
             EngineError::StoreFailed(_) => Reason::StoreFailed,
             EngineError::Encode(_) => Reason::Internal,
+            EngineError::GeoidGrid(_) => Reason::Geoid,
             EngineError::Cancelled => Reason::Deadline,
             EngineError::Store(e) => store_reason(e),
         }

@@ -10,7 +10,7 @@ use patchwork_core::model::patch::PatchLayout;
 use patchwork_core::model::survey::{Recipe, Survey, SurveyError};
 use patchwork_core::sync::lock;
 use patchwork_read::{
-    open_untrusted, read_raster, read_raster_hashed, OpenError, ReadError, ReadLimits, REFUSED_PATH,
+    open_untrusted, read_raster_hashed, OpenError, ReadError, ReadLimits, REFUSED_PATH,
 };
 use serde::Deserialize;
 use std::collections::{BTreeMap, HashMap};
@@ -586,6 +586,17 @@ impl Geoids {
         }
     }
 
+    /// Reads every grid the config names, so that one that cannot be used is found when the
+    /// daemon starts rather than at the first survey that needs it.
+    pub fn load_all(&self) -> Result<(), IngestError> {
+        for key in self.paths.keys() {
+            if let Ok(v) = VerticalCrs::parse(key) {
+                self.for_conversion(&v, &v, &v)?;
+            }
+        }
+        Ok(())
+    }
+
     /// The geoid of `v` for a conversion from `from` to `to`: None for ellipsoidal heights, an
     /// error naming the config key when no grid is configured.
     fn for_conversion(
@@ -614,7 +625,8 @@ impl Geoids {
             vertical: v.label(),
             message,
         };
-        let raster = read_raster(path, &self.limits).map_err(|e| bad(e.to_string()))?;
+        let raster = patchwork_read::gtx::read_geoid_grid(path, &self.limits)
+            .map_err(|e| bad(e.to_string()))?;
         let crs = raster.crs.crs.clone().unwrap_or_else(Crs::wgs84);
         let grid = raster.into_grid().map_err(|e| bad(e.to_string()))?;
         let g = Arc::new(

@@ -186,6 +186,8 @@ impl Engine {
             commit: opened.store.commit_seq(),
             following: opened.store.following(),
         };
+        let geoids = Arc::new(Geoids::new(&cfg.vertical.geoids));
+        geoids.load_all().map_err(EngineError::GeoidGrid)?;
         release_free_memory();
         let (events, _) = broadcast::channel(1024);
         Ok(Engine {
@@ -200,7 +202,7 @@ impl Engine {
             writer: Mutex::new(Some(opened.store)),
             broken: OnceLock::new(),
             ingest_slots: (Mutex::new(0), std::sync::Condvar::new()),
-            geoids: Arc::new(Geoids::new(&cfg.vertical.geoids)),
+            geoids,
             request_crs: Mutex::new(HashMap::new()),
             replication: RwLock::new(replication),
             held: Mutex::new(Default::default()),

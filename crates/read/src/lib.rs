@@ -4,6 +4,7 @@
 pub mod ascii;
 pub mod crs;
 pub mod geotiff;
+pub mod gtx;
 pub mod hgt;
 pub mod write_npy;
 pub mod write_tiff;
