@@ -37,6 +37,11 @@ fn raster_tiles_are_the_stores_heights_and_change_exactly_with_its_data() {
     let tj = get(&format!("{}/tiles.json", d.http), &[]).json();
     assert_eq!(tj["tileSize"], 256);
     assert_eq!(tj["encoding"], "terrarium");
+    // The heights are the store's, measured from its vertical CRS, and both documents say so.
+    assert_eq!(tj["heights"], "store");
+    let layer = get(&format!("{}/terrain/layer.json", d.http), &[]).json();
+    assert_eq!(layer["heights"], "store");
+    assert_eq!(layer["vertical_crs"], tj["vertical_crs"]);
     let b: Vec<f64> = serde_json::from_value(tj["bounds"].clone()).unwrap();
     assert!(
         b[0] <= -118.999 && b[2] >= -118.917 && b[1] <= 34.459 && b[3] >= 34.541,

@@ -22,6 +22,9 @@ pub struct Pyramid {
     pub web_max: u32,
     /// The same for the quantized-mesh pyramid (257-sample tiles, geographic TMS).
     pub terrain_max: u32,
+    /// What the tiles' heights are measured from: the store's vertical CRS, as its key and
+    /// its name; None where no survey or setting has named one.
+    pub vertical: Option<(String, String)>,
 }
 
 impl Pyramid {
@@ -32,7 +35,19 @@ impl Pyramid {
             bounds: None,
             web_max: 0,
             terrain_max: 0,
+            vertical: None,
         }
+    }
+
+    /// The frame the tiles' heights are in, as both documents say it: every height is the
+    /// store's, measured from its vertical CRS (a geoid's heights are not the ellipsoidal
+    /// heights a globe such as Cesium places them at).
+    fn heights(&self) -> (Value, Value) {
+        let vertical = match &self.vertical {
+            Some((key, name)) => json!({"key": key, "name": name}),
+            None => Value::Null,
+        };
+        (json!("store"), vertical)
     }
 
     /// The ids of the surveys whose samples, edge patches or coarser levels can reach into
@@ -80,6 +95,9 @@ impl Pyramid {
             bounds,
             web_max,
             terrain_max,
+            vertical: engine
+                .vertical_crs()
+                .map(|v| (v.key().to_string(), v.label())),
         }
     }
 
@@ -114,6 +132,7 @@ impl Pyramid {
     pub fn tilejson(&self, tiles: String, size: u32, encoding: &str) -> Value {
         let b = self.bounds.unwrap_or(Aabb::new(-180.0, -85.0, 180.0, 85.0));
         let c = [(b.min[0] + b.max[0]) / 2.0, (b.min[1] + b.max[1]) / 2.0];
+        let (heights, vertical) = self.heights();
         // 512-pixel tiles hold a level's detail one level up.
         let max = if size == 512 {
             self.web_max.saturating_sub(1)
@@ -132,6 +151,8 @@ impl Pyramid {
             "center": [c[0], c[1], max.min(10)],
             "tileSize": size,
             "encoding": encoding,
+            "heights": heights,
+            "vertical_crs": vertical,
         })
     }
 
@@ -150,6 +171,7 @@ impl Pyramid {
             })
             .collect();
         let sep = if query.is_empty() { "" } else { "&" };
+        let (heights, vertical) = self.heights();
         json!({
             "tilejson": "2.1.0",
             "name": "patchwork",
@@ -169,6 +191,8 @@ impl Pyramid {
             // the metadata extension only where this is set.
             "metadataAvailability": super::terrain::METADATA_LEVELS,
             "attribution": "",
+            "heights": heights,
+            "vertical_crs": vertical,
         })
     }
 
