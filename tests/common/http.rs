@@ -144,6 +144,21 @@ pub fn rgba(png_bytes: &[u8]) -> (u32, u32, Vec<u8>) {
     (info.width, info.height, buf)
 }
 
+/// A WebP's size and RGBA pixels (alpha 255 where the image has none).
+pub fn webp_rgba(bytes: &[u8]) -> (u32, u32, Vec<u8>) {
+    let mut d = image_webp::WebPDecoder::new(std::io::Cursor::new(bytes)).unwrap();
+    let (w, h) = d.dimensions();
+    let mut buf = vec![0; d.output_buffer_size().unwrap()];
+    d.read_image(&mut buf).unwrap();
+    if !d.has_alpha() {
+        buf = buf
+            .chunks(3)
+            .flat_map(|p| [p[0], p[1], p[2], 255])
+            .collect();
+    }
+    (w, h, buf)
+}
+
 /// Terrarium's height of a pixel.
 pub fn terrarium(p: &[u8]) -> f64 {
     p[0] as f64 * 256.0 + p[1] as f64 + p[2] as f64 / 256.0 - 32768.0

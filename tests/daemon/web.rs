@@ -8,7 +8,7 @@
 use crate::common;
 
 use common::daemon::*;
-use common::http::{get, get_tls, rgba, terrarium};
+use common::http::{get, get_tls, rgba, terrarium, webp_rgba};
 use patchwork_core::geom::tiles::{geographic, mercator};
 use std::io::Read;
 
@@ -71,6 +71,22 @@ fn raster_tiles_are_the_stores_heights_and_change_exactly_with_its_data() {
     let tag = r.header("etag").unwrap().to_string();
     let (w, h, px) = rgba(&r.body);
     assert_eq!((w, h), (256, 256));
+    // The same tile as a lossless WebP: the same pixels, under a tag of its own.
+    let webp = get(&format!("{}/tiles/{z}/{x}/{y}.webp", d.http), &[]);
+    assert_eq!(webp.status, 200, "{}", webp.text());
+    assert_eq!(webp.header("content-type"), Some("image/webp"));
+    assert_ne!(webp.header("etag"), Some(tag.as_str()));
+    assert_eq!(webp_rgba(&webp.body), (256, 256, px.clone()));
+    println!(
+        "the tile is {} bytes as PNG, {} as WebP",
+        r.body.len(),
+        webp.body.len()
+    );
+    let tj_webp = get(&format!("{}/tiles.json?image=webp", d.http), &[]).json();
+    assert!(tj_webp["tiles"][0]
+        .as_str()
+        .unwrap()
+        .contains("/tiles/{z}/{x}/{y}.webp?"));
     let roi = mercator::bounds(z, x, y);
     let picks: Vec<(usize, usize)> = (0..16).map(|k| (k * 16 + 3, (k * 37) % 256)).collect();
     let pts: Vec<String> = picks

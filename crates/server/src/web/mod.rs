@@ -535,9 +535,19 @@ impl Encoding {
     }
 }
 
+/// The image a raster-DEM tile comes as: the same pixels either way, WebP losslessly.
+#[derive(Clone, Copy, Debug, Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum Image {
+    Png,
+    Webp,
+}
+
 #[derive(Debug, Deserialize)]
 struct TileParams {
     encoding: Option<Encoding>,
+    /// TileJSON's tile image: `png` (the default) or `webp`.
+    image: Option<Image>,
     size: Option<u32>,
     error: Option<f64>,
 }
@@ -618,7 +628,11 @@ async fn tilejson(
         }
         None => base_url(&headers),
     };
-    let url = format!("{base}/tiles/{{z}}/{{x}}/{{y}}.png?{query}");
+    let ext = match p.image.unwrap_or(Image::Png) {
+        Image::Png => "png",
+        Image::Webp => "webp",
+    };
+    let url = format!("{base}/tiles/{{z}}/{{x}}/{{y}}.{ext}?{query}");
     let engine = web.engine().clone();
     let doc = web.pyramid(&engine).tilejson(url, size, encoding.name());
     document(&web, doc)
@@ -645,7 +659,7 @@ async fn raster_tile(
 ) -> Response {
     let Some((y, ext)) = tile_file(&file) else {
         return bad_request(format!(
-            "{file:?} is not a tile: ask for {{y}}.png or {{y}}.tif"
+            "{file:?} is not a tile: ask for {{y}}.png, {{y}}.webp or {{y}}.tif"
         ));
     };
     if !mercator::valid(z, x, y) {
@@ -659,11 +673,12 @@ async fn raster_tile(
     };
     let format = match ext {
         "png" => raster::Format::Png(p.encoding.unwrap_or(Encoding::Terrarium)),
+        "webp" => raster::Format::Webp(p.encoding.unwrap_or(Encoding::Terrarium)),
         "tif" | "tiff" => raster::Format::Tiff,
         other => {
             return (
                 StatusCode::NOT_FOUND,
-                format!("tiles come as .png or .tif, not .{other}"),
+                format!("tiles come as .png, .webp or .tif, not .{other}"),
             )
                 .into_response()
         }

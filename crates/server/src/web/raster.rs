@@ -16,6 +16,8 @@ use patchwork_engine::{
 pub enum Format {
     /// A raster-DEM PNG: heights in the RGB of an encoding MapLibre decodes.
     Png(Encoding),
+    /// The same pixels as a lossless WebP, as Mapterhorn publishes terrain.
+    Webp(Encoding),
     /// A float32 GeoTIFF in EPSG:3857, voids as its nodata value.
     Tiff,
 }
@@ -65,10 +67,12 @@ pub fn tile(
     let error = cut.error().unwrap_or(r.error);
     let (kind, content_type) = match r.format {
         Format::Png(e) => (e.name(), "image/png"),
+        Format::Webp(e) => (e.name(), "image/webp"),
         Format::Tiff => ("tiff", "image/tiff"),
     };
+    // The media type is in it: a PNG's tag must not answer for the WebP of the same tile.
     let what = format!(
-        "raster/{kind}/{}/{}/{}/{}/{:e}",
+        "raster/{kind}/{content_type}/{}/{}/{}/{}/{:e}",
         r.z, r.x, r.y, r.size, r.error
     );
     let near = web
@@ -93,7 +97,7 @@ pub fn tile(
                 .heights
         };
         match r.format {
-            Format::Png(encoding) => {
+            Format::Png(encoding) | Format::Webp(encoding) => {
                 // MapLibre reads every pixel as a height, whatever its alpha: voids are
                 // filled from coarser levels for it (alpha still says they hold no data),
                 // so that hillshade draws no cliff into a hole.
@@ -104,7 +108,11 @@ pub fn tile(
                     let own = cut.crs();
                     engine.fill_voids(&mut heights, &grid, own, error, cancel)?
                 };
-                Ok(png(&heights, &voids, r.size, encoding))
+                let pixels = rgba(&heights, &voids, encoding);
+                Ok(match r.format {
+                    Format::Webp(_) => webp(&pixels, r.size),
+                    _ => png(&pixels, r.size),
+                })
             }
             Format::Tiff => {
                 let gt = [
@@ -142,9 +150,9 @@ fn code(h: f64, encoding: Encoding) -> u32 {
     n.round().clamp(0.0, (1 << 24) as f64 - 1.0) as u32
 }
 
-/// An RGBA PNG of heights in `encoding`: alpha 0 where `voids` says the cut had no data
+/// The RGBA pixels of heights in `encoding`: alpha 0 where `voids` says the cut had no data
 /// (empty: none), and 0 m in the colour where no height could be found at all.
-pub fn png(heights: &[f32], voids: &[bool], size: u32, encoding: Encoding) -> Vec<u8> {
+pub fn rgba(heights: &[f32], voids: &[bool], encoding: Encoding) -> Vec<u8> {
     let mut rgba = Vec::with_capacity(heights.len() * 4);
     for (k, &h) in heights.iter().enumerate() {
         let void = voids.get(k).copied().unwrap_or(false) || h.is_nan();
@@ -156,6 +164,11 @@ pub fn png(heights: &[f32], voids: &[bool], size: u32, encoding: Encoding) -> Ve
             if void { 0 } else { 255 },
         ]);
     }
+    rgba
+}
+
+/// A `size²` RGBA PNG of `rgba`.
+pub fn png(rgba: &[u8], size: u32) -> Vec<u8> {
     let mut out = Vec::with_capacity(rgba.len() / 3);
     let mut e = png::Encoder::new(&mut out, size, size);
     e.set_color(png::ColorType::Rgba);
@@ -164,9 +177,18 @@ pub fn png(heights: &[f32], voids: &[bool], size: u32, encoding: Encoding) -> Ve
     // (docs/BENCHMARKS.md, "Web tiles").
     e.set_compression(png::Compression::Fast);
     let mut w = e.write_header().expect("a PNG header in memory");
-    w.write_image_data(&rgba)
+    w.write_image_data(rgba)
         .expect("as many pixels as the header says, in memory");
     drop(w);
+    out
+}
+
+/// A `size²` lossless WebP of `rgba`: the same pixels as [`png`]'s, decoded.
+pub fn webp(rgba: &[u8], size: u32) -> Vec<u8> {
+    let mut out = Vec::with_capacity(rgba.len() / 4);
+    image_webp::WebPEncoder::new(&mut out)
+        .encode(rgba, size, size, image_webp::ColorType::Rgba8)
+        .expect("as many pixels as the size says, in memory");
     out
 }
 
@@ -196,12 +218,12 @@ mod tests {
 
     #[test]
     fn voids_are_transparent() {
-        let bytes = png(
+        let pixels = rgba(
             &[100.0, f32::NAN, 200.0, 300.0],
             &[false, true, true, false],
-            2,
             Encoding::Terrarium,
         );
+        let bytes = png(&pixels, 2);
         let d = png::Decoder::new(std::io::Cursor::new(bytes));
         let mut r = d.read_info().unwrap();
         let mut buf = vec![0; r.output_buffer_size()];
