@@ -217,6 +217,22 @@ mod tests {
     }
 
     #[test]
+    fn webp_tiles_hold_their_pixels_exactly() {
+        let heights: Vec<f32> = (0..64 * 64)
+            .map(|k| (k % 97) as f32 * 13.7 - 400.0)
+            .collect();
+        let voids: Vec<bool> = (0..64 * 64).map(|k| k % 11 == 0).collect();
+        let pixels = rgba(&heights, &voids, Encoding::Terrarium);
+        let bytes = webp(&pixels, 64);
+        let mut d = image_webp::WebPDecoder::new(std::io::Cursor::new(bytes)).unwrap();
+        assert!(d.has_alpha());
+        let mut back = vec![0; d.output_buffer_size().unwrap()];
+        d.read_image(&mut back).unwrap();
+        // Transparent pixels keep their colour too: MapLibre reads it whatever the alpha.
+        assert_eq!(back, pixels);
+    }
+
+    #[test]
     fn voids_are_transparent() {
         let pixels = rgba(
             &[100.0, f32::NAN, 200.0, 300.0],
