@@ -276,7 +276,7 @@ impl Engine {
     pub fn tile(&self, req: &TileRequest, ctx: Ctx) -> Result<(Tile, Used), EngineError> {
         let (mut heights, mut shortfall) = (Vec::new(), None);
         let rows = req.size.height() as usize;
-        let (patches, used) = self.bands(req, ctx, rows, &mut |head, _, band| {
+        let (patches, used) = self.tile_bands(req, ctx, rows, &mut |head, _, band| {
             heights = band;
             shortfall = head.shortfall;
             true
@@ -458,16 +458,6 @@ impl Engine {
     /// goes to `sink` as soon as it is done, so that it can be sent while the next is worked
     /// out. Returns the patches blended and the backend that ran.
     pub fn tile_bands(
-        &self,
-        req: &TileRequest,
-        ctx: Ctx,
-        rows: usize,
-        sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
-    ) -> Result<(Vec<Extracted>, Used), EngineError> {
-        self.bands(req, ctx, rows, sink)
-    }
-
-    fn bands(
         &self,
         req: &TileRequest,
         ctx: Ctx,

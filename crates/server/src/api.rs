@@ -12,16 +12,6 @@ use patchwork_engine::{
 };
 use patchwork_store::StoreError;
 use std::path::Path;
-use std::sync::Arc;
-
-/// A patch query's cut: the snapshot it was taken from and its patches. The batches are
-/// made one at a time as the client takes them ([`patch_batch`]).
-pub fn patch_cut(
-    engine: &Engine,
-    cut: &Cut,
-) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
-    engine.query(cut)
-}
 
 /// How many patches go in a batch: as the client asks, else [`BATCH`].
 pub fn batch_size(asked: u32) -> usize {
@@ -124,7 +114,7 @@ pub fn query_patches(
     engine: &Engine,
     r: &pb::PatchQuery,
 ) -> Result<Vec<pb::PatchBatch>, EngineError> {
-    let (t, ps) = patch_cut(engine, &door::patch_cut(r)?)?;
+    let (t, ps) = engine.query(&door::patch_cut(r)?)?;
     ps.chunks(batch_size(r.batch_size))
         .map(|c| patch_batch(&t, c))
         .collect()

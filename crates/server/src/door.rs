@@ -6,8 +6,7 @@ use super::proto as pb;
 use patchwork_core::mesh::{Border, Method};
 use patchwork_engine::request::parse_crs;
 use patchwork_engine::{
-    Backend, BadRequest, Camera, Cut, MeshSpec, Metres, Points, Region, SampleRequest, TileRequest,
-    TileSize,
+    Backend, BadRequest, Camera, Cut, MeshSpec, Metres, Region, SampleRequest, TileRequest,
 };
 
 /// Vertices a side of a mesh when the request does not say.
@@ -114,22 +113,15 @@ impl TryFrom<&pb::TileRequest> for TileRequest {
             Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
             None => (None, None),
         };
-        Ok(TileRequest {
-            cut: cut(u, v, &r.crs)?,
-            size: TileSize::new(r.width, r.height)?,
-            backend: backend(r.backend)?,
-        })
+        TileRequest::new(cut(u, v, &r.crs)?, r.width, r.height, backend(r.backend)?)
     }
 }
 
 impl TryFrom<&pb::SampleRequest> for SampleRequest {
     type Error = BadRequest;
     fn try_from(r: &pb::SampleRequest) -> Result<SampleRequest, BadRequest> {
-        Ok(SampleRequest {
-            points: Points::new(r.points.iter().map(|p| [p.x, p.y]).collect())?,
-            crs: parse_crs(&r.crs)?,
-            error: Metres::error(r.error)?,
-        })
+        let points = r.points.iter().map(|p| [p.x, p.y]).collect();
+        SampleRequest::new(points, parse_crs(&r.crs)?, r.error)
     }
 }
 

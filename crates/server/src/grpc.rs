@@ -293,7 +293,7 @@ impl terrain_server::Terrain for Service {
         let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
         let cut = checked(door::patch_cut(&r))?;
         let size = api::batch_size(r.batch_size);
-        let (t, ps) = self.run(move |e, _| api::patch_cut(e, &cut)).await?;
+        let (t, ps) = self.run(move |e, _| e.query(&cut)).await?;
         // Batches are made as the client takes them, two ahead at most: a client that stops
         // reading holds two batches, not the whole cut, and only until the deadline.
         let (tx, rx) = tokio::sync::mpsc::channel(2);

@@ -27,9 +27,7 @@ use patchwork_core::index::query::Extracted;
 use patchwork_core::sync::lock;
 use patchwork_core::terrain::Terrain;
 use patchwork_engine::request::parse_crs;
-use patchwork_engine::{
-    BadRequest, Ctx, Engine, EngineError, Metres, Points, Reason, SampleRequest,
-};
+use patchwork_engine::{Ctx, Engine, EngineError, Metres, Reason, SampleRequest};
 use pyramid::Pyramid;
 use serde::Deserialize;
 use std::sync::{Arc, Mutex, Weak};
@@ -785,13 +783,7 @@ async fn heights(State(web): State<Arc<Web>>, Query(p): Query<HeightParams>) -> 
     let points: Vec<[f64; 2]> = coords.chunks(2).map(|c| [c[0], c[1]]).collect();
     let error = p.error.unwrap_or(0.0);
     let crs = p.crs.unwrap_or_else(|| "EPSG:4326".into());
-    let req = (|| {
-        Ok::<_, BadRequest>(SampleRequest {
-            points: Points::new(points)?,
-            crs: parse_crs(&crs)?,
-            error: Metres::error(error)?,
-        })
-    })();
+    let req = parse_crs(&crs).and_then(|crs| SampleRequest::new(points, crs, error));
     let req = match req {
         Ok(r) => r,
         Err(e) => return bad_request(e.to_string()),
