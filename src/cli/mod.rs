@@ -166,6 +166,10 @@ pub struct TileArgs {
     pub crs: Option<String>,
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
+    /// What the heights are measured from: store (the store's vertical CRS), ellipsoid
+    /// (WGS 84's, as GPS and Cesium take them) or a vertical CRS as EPSG:n.
+    #[arg(long, value_name = "FRAME", default_value = "store")]
+    pub heights: String,
     #[command(flatten)]
     pub target: Target,
 }
@@ -188,6 +192,10 @@ pub struct SampleArgs {
     pub crs: Option<String>,
     #[arg(long)]
     pub json: bool,
+    /// What the heights are measured from: store (the store's vertical CRS), ellipsoid
+    /// (WGS 84's, as GPS and Cesium take them) or a vertical CRS as EPSG:n.
+    #[arg(long, value_name = "FRAME", default_value = "store")]
+    pub heights: String,
     #[command(flatten)]
     pub target: Target,
 }
@@ -231,6 +239,10 @@ pub struct MeshArgs {
     pub crs: Option<String>,
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
+    /// What the heights are measured from: store (the store's vertical CRS), ellipsoid
+    /// (WGS 84's, as GPS and Cesium take them) or a vertical CRS as EPSG:n.
+    #[arg(long, value_name = "FRAME", default_value = "store")]
+    pub heights: String,
     #[command(flatten)]
     pub target: Target,
 }

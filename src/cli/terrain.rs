@@ -67,6 +67,7 @@ pub async fn tile(args: TileArgs) -> Result<(), Fail> {
         backend,
         crs,
         out,
+        heights,
         target,
     } = args;
     let mut c = Client::connect(&target).await?;
@@ -86,6 +87,7 @@ pub async fn tile(args: TileArgs) -> Result<(), Fail> {
         height: h,
         backend: backend as i32,
         crs: crs.unwrap_or_default(),
+        heights,
     };
     let bands = match &mut c {
         Client::Remote { terrain, .. } => collect(terrain.tile_bands(req).await).await?,
@@ -127,6 +129,7 @@ pub async fn sample(args: SampleArgs) -> Result<(), Fail> {
         error,
         crs,
         json,
+        heights,
         target,
     } = args;
     let pts: Vec<[f64; 2]> = match (&points, &line) {
@@ -158,6 +161,7 @@ pub async fn sample(args: SampleArgs) -> Result<(), Fail> {
         points: pts.iter().map(|p| pb::Point { x: p[0], y: p[1] }).collect(),
         error,
         crs: crs.unwrap_or_default(),
+        heights,
     };
     let local = req.clone();
     let r = call!(&mut c, terrain.sample_heights(req), move |e: &Engine| {
@@ -200,6 +204,7 @@ pub async fn mesh(args: MeshArgs) -> Result<(), Fail> {
         backend,
         crs,
         out,
+        heights,
         target,
     } = args;
     let kind = out.extension().and_then(|e| e.to_str()).unwrap_or("");
@@ -222,6 +227,7 @@ pub async fn mesh(args: MeshArgs) -> Result<(), Fail> {
         border: pb::MeshBorder::from(border) as i32,
         method: pb::MeshMethod::from(method) as i32,
         crs: crs.unwrap_or_default(),
+        heights,
     };
     let local = req.clone();
     let m = call!(&mut c, terrain.mesh_tile(req), move |e: &Engine| {
@@ -308,6 +314,8 @@ fn assemble(bands: Vec<pb::TileBand>) -> Result<pb::Tile, Fail> {
         shortfall: first.shortfall,
         heights: Vec::with_capacity(width * height),
         valid: Vec::new(),
+        vertical_crs: first.vertical_crs.clone(),
+        frame_error_m: 0.0,
     };
     for b in &bands {
         let row = t.heights.len() / width.max(1);

@@ -320,5 +320,6 @@ pub fn crop_tile(w: u32, h: u32) -> patchwork::serve::proto::TileRequest {
         width: w,
         height: h,
         backend: pb::Backend::Cpu as i32,
+        ..Default::default()
     }
 }

@@ -463,6 +463,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
             crs: String::new(),
             points: pts.iter().map(|p| pb::Point { x: p[0], y: p[1] }).collect(),
             error: 0.0,
+            ..Default::default()
         };
         let s = t.sample_heights(req).await.unwrap().into_inner();
         for (p, (z, v)) in pts.iter().zip(s.heights.iter().zip(&s.valid)) {
@@ -485,6 +486,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
                 crs: String::new(),
                 points: pts.iter().map(|p| pb::Point { x: p[0], y: p[1] }).collect(),
                 error: 0.0,
+                ..Default::default()
             };
             let s = t.sample_heights(req).await.unwrap().into_inner();
             for (p, z) in pts.iter().zip(&s.heights) {
@@ -626,6 +628,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
             width: w,
             height: w,
             backend: backend as i32,
+            ..Default::default()
         };
         let roi = pb::Rect {
             xmin: -119.0,
@@ -663,6 +666,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
                 width: 8,
                 height: 8,
                 backend: 0,
+                ..Default::default()
             })
             .await
             .unwrap_err();

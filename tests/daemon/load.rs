@@ -80,6 +80,7 @@ async fn ask(
                     width: 48,
                     height: 48,
                     backend: pb::Backend::Cpu as i32,
+                    ..Default::default()
                 })
                 .await?
                 .into_inner();
@@ -91,6 +92,7 @@ async fn ask(
                     crs: String::new(),
                     points: points(),
                     error: 2.0,
+                    ..Default::default()
                 })
                 .await?
                 .into_inner();

@@ -204,7 +204,7 @@ impl DiskSpace for FakeDisk {
 
 fn tile(e: &Engine, roi: Aabb) -> Vec<u32> {
     let cut = Cut::new(None, roi, 0.0).unwrap();
-    let (t, _) = e
+    let (t, _, _) = e
         .tile(
             &TileRequest::new(cut.clone(), 64, 64, Backend::Cpu).unwrap(),
             Ctx::default(),

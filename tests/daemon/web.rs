@@ -353,6 +353,33 @@ fn terrain_tiles_are_gzipped_once_and_layer_json_says_where_they_are() {
         304
     );
 
+    // Cesium places heights above the ellipsoid; this crop names no vertical CRS, so its
+    // heights cannot be carried there: they come as they are, and every tile says so.
+    assert_eq!(layer["heights"], "store");
+    let warning = gz.header("warning").expect("a Warning header");
+    assert!(
+        warning.starts_with("299 patchwork \"") && warning.contains("no vertical CRS"),
+        "{warning}"
+    );
+    let store = get(&format!("{url}&heights=store"), &[("Accept", all)]);
+    assert_eq!(store.status, 200);
+    assert_eq!(store.header("warning"), None);
+    assert_eq!(store.body, body, "the same heights, asked for as they are");
+    for bad in ["heights=ellipsoid", "heights=EPSG:4326"] {
+        let r = get(&format!("{url}&{bad}"), &[]);
+        assert_eq!(r.status, 400, "{bad}");
+    }
+    let at = format!("points={},{}", BOTH[0], BOTH[1]);
+    let h = get(&format!("{}/heights?{at}&heights=ellipsoid", d.http), &[]);
+    assert_eq!(h.status, 400);
+    assert_eq!(h.json()["reason"], "GEOID", "{}", h.text());
+    let h = get(&format!("{}/heights?{at}", d.http), &[]).json();
+    assert_eq!(h["vertical_crs"], serde_json::Value::Null);
+    assert_eq!(h["frame_error"], 0.0);
+    let png = |q: &str| get(&format!("{}/tiles/12/700/1620.png{q}", d.http), &[]);
+    assert_eq!(png("?heights=store").header("etag"), png("").header("etag"));
+    assert_eq!(png("?heights=feet").status, 400);
+
     // Both roots exist, whatever the data; out of range is refused.
     for root in ["/terrain/0/0/0.terrain", "/terrain/0/1/0.terrain"] {
         assert_eq!(get(&format!("{}{root}", d.http), &[]).status, 200, "{root}");

@@ -123,7 +123,7 @@ fn engine(tmp: &Path, crs: &str, crops: &[(&str, Option<f64>)]) -> Arc<Engine> {
 /// The tile of `cut`, and the largest error of the patches blended.
 fn engine_tile(e: &Engine, cut: &Cut, width: u32, height: u32) -> (Vec<f32>, f64) {
     let req = TileRequest::new(cut.clone(), width, height, Backend::Cpu).unwrap();
-    let (t, _) = e.tile(&req, Ctx::default()).unwrap();
+    let (t, _, _) = e.tile(&req, Ctx::default()).unwrap();
     let max = t.patches.iter().map(|p| p.span.min_z).fold(0.0, f64::max);
     (t.heights, max)
 }
@@ -183,7 +183,7 @@ fn surveys_in_their_own_crs_come_back_as_their_samples_from_a_geographic_store()
             })
             .collect();
         let at = SampleRequest::new(pts, Some(crs.clone()), 0.0).unwrap();
-        let at = e.sample(&at, Ctx::default()).unwrap();
+        let at = e.sample(&at, Ctx::default()).unwrap().heights;
         for (k, z) in (0..cols * rows).step_by(97).zip(&at) {
             assert_eq!(z.to_bits(), heights[k].to_bits(), "{name}: point {k}");
         }

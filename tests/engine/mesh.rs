@@ -58,6 +58,7 @@ fn request(
         border: border as i32,
         method: method as i32,
         hole_reach_m: 0.0,
+        ..Default::default()
     }
 }
 
@@ -99,7 +100,7 @@ fn grid_heights(engine: &Engine, roi: &Aabb, error: f64, cols: usize, rows: usiz
     )
     .unwrap();
     let req = TileRequest::new(cut, cols as u32, rows as u32, Backend::Cpu).unwrap();
-    let (t, _) = engine.tile(&req, Ctx::default()).unwrap();
+    let (t, _, _) = engine.tile(&req, Ctx::default()).unwrap();
     t.heights
 }
 

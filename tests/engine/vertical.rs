@@ -5,8 +5,12 @@
 //! or at the wrong place, shows.
 
 use patchwork::config::Config;
-use patchwork::engine::{Ctx, Engine, Origin, Outcome, SampleRequest};
+use patchwork::engine::{
+    Backend, Ctx, Cut, Engine, EngineError, Heights, HeightsError, MeshSpec, Metres, Origin,
+    Outcome, Reason, Region, SampleRequest, TileRequest,
+};
 use patchwork_core::crs::{Crs, Transform};
+use patchwork_core::geom::Aabb;
 use patchwork_read::write_tiff::write_geotiff_f32;
 use patchwork_read::{read_raster, ReadLimits};
 use std::collections::BTreeMap;
@@ -90,6 +94,8 @@ fn engine(dir: &Path, geoids: &[(&str, &Path)]) -> Arc<Engine> {
                 .iter()
                 .map(|(k, p)| (k.to_string(), p.to_path_buf()))
                 .collect::<BTreeMap<_, _>>(),
+            // These tests' own grids only, whatever PROJ's directories hold.
+            proj_data: false,
         },
         ..Config::default()
     };
@@ -333,7 +339,7 @@ fn a_gtx_geoid_grid_converts_heights_as_the_same_grid_in_geotiff_does() {
         let req = SampleRequest::new(pts, None, 0.0).unwrap();
         let (_, listing) = e.surveys();
         (
-            e.sample(&req, Ctx::default()).unwrap(),
+            e.sample(&req, Ctx::default()).unwrap().heights,
             listing.records[0].accuracy,
         )
     };
@@ -363,10 +369,225 @@ fn a_geoid_grid_that_cannot_be_used_stops_the_start_naming_it() {
             geoids: [("EPSG:5773".to_string(), bad.clone())]
                 .into_iter()
                 .collect(),
+            proj_data: false,
         },
         ..Config::default()
     };
     let err = Engine::open(cfg).err().expect("refused at start");
     assert_eq!(err.reason(), patchwork::engine::Reason::Geoid, "{err}");
     assert!(err.to_string().contains("egm96_15.gtx"), "{err}");
+}
+
+/// A store in EGM96 heights holding the geographic crop, with the EGM96 grid `n` and the
+/// EGM2008 plane, and points over the crop in longitude and latitude.
+fn ventoux_in_egm96(dir: &Path, n: fn(f64, f64) -> f64) -> (Arc<Engine>, Vec<[f64; 2]>) {
+    let (g96, g08) = (dir.join("egm96.tif"), dir.join("egm08.tif"));
+    geoid(&g96, n);
+    geoid(&g08, n08);
+    let a = copy(
+        dir,
+        "ventoux_geographic.tif",
+        Some("EPSG:5773"),
+        |z, _, _| z,
+    );
+    let e = engine(dir, &[("EPSG:5773", &g96), ("EPSG:3855", &g08)]);
+    let done = e.ingest(&a, None, Origin::Request).unwrap();
+    assert_eq!(done.outcome, Outcome::Inserted, "{}", done.error);
+    let r = read_raster(&a, &ReadLimits::default()).unwrap();
+    let (x, y) = r.pixel_centre(r.cols / 2, r.rows / 2);
+    let pts = (0..400)
+        .map(|k| {
+            let (i, j) = ((k % 20) as f64 - 10.0, (k / 20) as f64 - 10.0);
+            [x + i * 0.003, y + j * 0.003]
+        })
+        .collect();
+    (e, pts)
+}
+
+#[test]
+fn heights_are_given_above_the_ellipsoid_or_another_geoid_as_asked() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (e, pts) = ventoux_in_egm96(tmp.path(), n96);
+    let at = |h: Heights| {
+        let req = SampleRequest::new(pts.clone(), None, 0.0)
+            .unwrap()
+            .with_heights(h);
+        e.sample(&req, Ctx::default()).unwrap()
+    };
+    let store = at(Heights::Store);
+    assert_eq!(
+        store.frame.vertical.as_ref().map(|v| v.key()),
+        Some("EPSG:5773")
+    );
+    assert_eq!(store.frame.error_m, 0.0);
+    let ell = at(Heights::ellipsoid());
+    let h08 = at(Heights::parse("EPSG:3855").unwrap());
+    assert_eq!(
+        ell.frame.vertical.as_ref().map(|v| v.key()),
+        Some("ellipsoidal")
+    );
+    // Planes: bilinear interpolation reproduces them, so the conversion adds only the
+    // rounding of the grids' f32 nodes.
+    assert!(ell.frame.error_m < 1e-5, "{}", ell.frame.error_m);
+    let mut seen = 0;
+    for (k, p) in pts.iter().enumerate() {
+        let (s, el, e8) = (store.heights[k], ell.heights[k], h08.heights[k]);
+        if s.is_nan() {
+            assert!(el.is_nan() && e8.is_nan());
+            continue;
+        }
+        seen += 1;
+        // h = H96 + N96; H08 = H96 + N96 − N08.
+        let n = n96(p[0], p[1]);
+        assert!(
+            ((el - s) as f64 - n).abs() < 1e-3,
+            "point {k}: {el} − {s} ≠ {n}"
+        );
+        let d = n - n08(p[0], p[1]);
+        assert!(((e8 - s) as f64 - d).abs() < 1e-3, "point {k}");
+    }
+    assert!(seen > 300, "{seen} points with data");
+
+    // A tile and a mesh carry the same heights: each sample is the store's plus N there.
+    let roi = Aabb::new(
+        pts[0][0],
+        pts[0][1],
+        pts[pts.len() - 1][0],
+        pts[pts.len() - 1][1],
+    );
+    let cut = Cut::new(None, roi, 0.0).unwrap();
+    let (w, h) = (40usize, 30usize);
+    let tile = |hs: Heights| {
+        let req = TileRequest::new(cut.clone(), w as u32, h as u32, Backend::Cpu)
+            .unwrap()
+            .with_heights(hs);
+        e.tile(&req, Ctx::default()).unwrap()
+    };
+    let (ts, _, _) = tile(Heights::Store);
+    let (te, _, frame) = tile(Heights::ellipsoid());
+    assert_eq!(
+        frame.vertical.as_ref().map(|v| v.key()),
+        Some("ellipsoidal")
+    );
+    let grid = patchwork_core::resample::SampleGrid::uniform(&roi, w, h);
+    let mut checked = 0;
+    for (k, p) in grid.points().enumerate() {
+        if ts.heights[k].is_nan() {
+            continue;
+        }
+        checked += 1;
+        let d = (te.heights[k] - ts.heights[k]) as f64 - n96(p[0], p[1]);
+        assert!(d.abs() < 1e-3, "tile sample {k}: {d}");
+    }
+    assert!(checked > w * h / 2, "{checked}");
+    let mesh = |hs: Heights| {
+        let spec = MeshSpec {
+            roi: Region::new(roi).unwrap(),
+            error: Metres::ZERO,
+            cols: 33,
+            rows: 33,
+            mesh_error: Metres::new("mesh_error", 0.5).unwrap(),
+            skirt_m: Metres::ZERO,
+            border: patchwork_core::mesh::Border::Shared,
+            method: patchwork_core::mesh::Method::Rtin,
+            hole_reach_m: Metres::ZERO,
+            crs: None,
+            fill_voids: true,
+            heights: hs,
+        };
+        e.mesh(&spec, Backend::Cpu, Ctx::default()).unwrap()
+    };
+    let (ms, me) = (mesh(Heights::Store), mesh(Heights::ellipsoid()));
+    assert_eq!(
+        me.frame.vertical.as_ref().map(|v| v.key()),
+        Some("ellipsoidal")
+    );
+    let at_store: std::collections::HashMap<[u32; 2], f32> = ms
+        .mesh
+        .grid
+        .iter()
+        .zip(&ms.mesh.heights)
+        .map(|(g, z)| (*g, *z))
+        .collect();
+    let mut shared = 0;
+    for (g, z) in me.mesh.grid.iter().zip(&me.mesh.heights) {
+        let Some(s) = at_store.get(g) else { continue };
+        shared += 1;
+        let lon = roi.min[0] + g[0] as f64 * roi.width() / 32.0;
+        let lat = roi.max[1] - g[1] as f64 * roi.height() / 32.0;
+        let d = (z - s) as f64 - n96(lon, lat);
+        assert!(d.abs() < 1e-3, "vertex {g:?}: {d}");
+    }
+    // Adding a plane changes no triangle's error: the two meshes share their vertices.
+    assert!(shared * 10 >= me.mesh.grid.len() * 9, "{shared}");
+}
+
+#[test]
+fn a_bending_geoid_counts_its_interpolation_error_in_the_heights_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Curved between nodes 0.05° apart: bilinear interpolation misses some of it.
+    let bent =
+        |lon: f64, lat: f64| 47.0 + 300.0 * (lon - 5.0).powi(2) + 200.0 * (lat - 44.0).powi(2);
+    let (e, pts) = ventoux_in_egm96(tmp.path(), bent);
+    let req = SampleRequest::new(pts, None, 0.0)
+        .unwrap()
+        .with_heights(Heights::ellipsoid());
+    let s = e.sample(&req, Ctx::default()).unwrap();
+    // An eighth of the second differences, 300·0.05² and 200·0.05² m, along each axis.
+    let expected = (2.0 * 300.0 + 2.0 * 200.0) * 0.05f64.powi(2) / 8.0;
+    assert!(
+        (s.frame.error_m - expected).abs() < 1e-3,
+        "{} against {expected}",
+        s.frame.error_m
+    );
+}
+
+#[test]
+fn without_a_grid_or_a_vertical_crs_heights_stay_in_the_stores_frame_and_say_why() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let a = copy(
+        dir,
+        "ventoux_geographic.tif",
+        Some("EPSG:5773"),
+        |z, _, _| z,
+    );
+    let e = engine(dir, &[]);
+    e.ingest(&a, None, Origin::Request).unwrap();
+    let req = SampleRequest::new(vec![[5.27, 44.17]], None, 0.0)
+        .unwrap()
+        .with_heights(Heights::ellipsoid());
+    let err = e.sample(&req, Ctx::default()).unwrap_err();
+    assert_eq!(err.reason(), Reason::Geoid, "{err}");
+    assert!(
+        matches!(&err, EngineError::Heights(HeightsError::NoGrid { key, .. }) if key == "EPSG:5773"),
+        "{err:?}"
+    );
+    assert!(err.to_string().contains("[vertical.geoids]"), "{err}");
+    assert!(e.can_give(&Heights::Store).is_ok());
+
+    // A store whose surveys name no vertical CRS: nothing says what its heights are from.
+    let tmp2 = tempfile::tempdir().unwrap();
+    let dir2 = tmp2.path();
+    let b = copy(dir2, "ventoux_geographic.tif", None, |z, _, _| z);
+    let cfg = Config {
+        data_dir: dir2.join("data"),
+        ingest_roots: vec![dir2.to_path_buf()],
+        crs: Some("EPSG:4326".into()),
+        ..Config::default()
+    };
+    let e2 = Engine::open(cfg).unwrap();
+    e2.ingest(&b, None, Origin::Request).unwrap();
+    let err = e2.can_give(&Heights::ellipsoid()).unwrap_err();
+    assert!(
+        matches!(err, EngineError::Heights(HeightsError::Unknown { .. })),
+        "{err:?}"
+    );
+    let s = e2
+        .sample(
+            &SampleRequest::new(vec![[5.27, 44.17]], None, 0.0).unwrap(),
+            Ctx::default(),
+        )
+        .unwrap();
+    assert_eq!(s.frame.vertical, None);
 }

@@ -149,6 +149,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         width: 512,
         height: 512,
         backend: pb::Backend::Cpu as i32,
+        ..Default::default()
     };
     let mut ms = Vec::with_capacity(n);
     let mut last = None;
@@ -229,6 +230,7 @@ async fn load(
         width: 16,
         height: 16,
         backend: backend as i32,
+        ..Default::default()
     };
     if let Err(e) = terrain.clone().resample_tile(probe).await {
         println!("load on {backend:?}: refused ({})", e.message());
@@ -263,6 +265,7 @@ async fn load(
                         width: size,
                         height: size,
                         backend: backend as i32,
+                        ..Default::default()
                     };
                     let t0 = Instant::now();
                     // A request the daemon gives up (past its deadline) is counted, not fatal.

@@ -357,6 +357,7 @@ async fn run(root: &Path, s3: Option<&S3Server>) -> Result<Figures, Box<dyn std:
                 width: 512,
                 height: 512,
                 backend: pb::Backend::Cpu as i32,
+                ..Default::default()
             };
             let (t, b) = (Instant::now(), fetched());
             let tile = terrain.resample_tile(req.clone()).await?.into_inner();

@@ -96,6 +96,51 @@ pub enum EngineError {
     /// The caller gave up (its deadline passed) and the work stopped.
     #[error("the request was cancelled: its deadline passed")]
     Cancelled,
+    /// The heights cannot be given from the vertical CRS asked.
+    #[error(transparent)]
+    Heights(#[from] HeightsError),
+}
+
+/// Why the store's heights cannot be carried into the frame a request asked for.
+#[non_exhaustive]
+#[derive(Debug, Error)]
+pub enum HeightsError {
+    /// Nothing says what the store's heights are measured from.
+    #[error(
+        "the store's heights name no vertical CRS (no survey and no vertical.crs say what \
+         they are measured from), so they cannot be given as {asked}: ask for heights=store, \
+         or set vertical.crs"
+    )]
+    Unknown {
+        /// The frame asked for.
+        asked: String,
+    },
+    /// A geoid grid the conversion needs is neither configured nor installed.
+    #[error(
+        "heights as {asked} from a store whose heights are {store} need a geoid grid for \
+         {missing}: name one in the config, [vertical.geoids] \"{key}\" = \"<grid>\"{}",
+        if .files.is_empty() { String::new() } else {
+            format!(", or install PROJ's {} (Debian's proj-data)", .files)
+        }
+    )]
+    NoGrid {
+        /// The frame asked for.
+        asked: String,
+        /// The store's vertical CRS.
+        store: String,
+        /// The vertical CRS whose grid is missing.
+        missing: String,
+        /// The `[vertical.geoids]` key that would name it.
+        key: String,
+        /// The files of PROJ's directories that would be taken for it, if any.
+        files: String,
+    },
+    /// A grid the conversion needs cannot be read or used.
+    #[error("{0}")]
+    Grid(IngestError),
+    /// A height lies where a grid has no undulation.
+    #[error("{0}")]
+    Convert(#[from] patchwork_core::model::geoid::GeoidError),
 }
 
 /// A request over a limit of `[limits]`, with the figures.
@@ -281,6 +326,12 @@ impl Reason {
     }
 }
 
+impl From<patchwork_core::model::geoid::GeoidError> for EngineError {
+    fn from(e: patchwork_core::model::geoid::GeoidError) -> Self {
+        EngineError::Heights(HeightsError::Convert(e))
+    }
+}
+
 impl EngineError {
     /// What kind of failure this is, for clients to branch on.
     pub fn reason(&self) -> Reason {
@@ -298,7 +349,7 @@ impl EngineError {
             | EngineError::NotOpen => Reason::Unavailable,
             EngineError::StoreFailed(_) => Reason::StoreFailed,
             EngineError::Encode(_) => Reason::Internal,
-            EngineError::GeoidGrid(_) => Reason::Geoid,
+            EngineError::GeoidGrid(_) | EngineError::Heights(_) => Reason::Geoid,
             EngineError::Cancelled => Reason::Deadline,
             EngineError::Store(e) => store_reason(e),
         }

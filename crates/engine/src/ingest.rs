@@ -4,18 +4,16 @@ use crate::config::DefaultAccuracy;
 use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::Crs;
 use patchwork_core::model::accuracy::{AccuracySource, AccuracySpec};
-use patchwork_core::model::geoid::{self, Geoid};
+use patchwork_core::model::geoid;
 use patchwork_core::model::grid::Grid;
 use patchwork_core::model::patch::PatchLayout;
 use patchwork_core::model::survey::{Recipe, Survey, SurveyError};
-use patchwork_core::sync::lock;
 use patchwork_read::{
     open_untrusted, read_raster_hashed, OpenError, ReadError, ReadLimits, REFUSED_PATH,
 };
 use serde::Deserialize;
-use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 use thiserror::Error;
 
@@ -330,7 +328,7 @@ pub struct IngestSettings {
     /// The store's vertical CRS, once it has one: heights in another are converted to it.
     pub store_vertical: Option<VerticalCrs>,
     /// The geoid grids the config names.
-    pub geoids: Arc<Geoids>,
+    pub geoids: Arc<crate::geoids::Geoids>,
     /// Kernel and margin of the store's patches.
     pub layout: PatchLayout,
     /// How the store builds a survey's mipmap and patches.
@@ -559,83 +557,6 @@ fn correct(grid: &mut Grid, crs: &Crs, side: &Sidecar) -> Result<f64, String> {
         *z += dz as f32;
     }
     Ok(error)
-}
-
-/// The geoid grids the config names, read on first use and kept.
-#[derive(Debug, Default)]
-pub struct Geoids {
-    /// Grid files by the key of the vertical CRS they relate to the ellipsoid.
-    paths: BTreeMap<String, PathBuf>,
-    loaded: Mutex<HashMap<String, Arc<Geoid>>>,
-    limits: ReadLimits,
-}
-
-impl Geoids {
-    /// The grids of the config's `[vertical.geoids]`; keys that do not parse are left out
-    /// (the config's validation refuses them).
-    pub fn new(paths: &BTreeMap<String, PathBuf>) -> Geoids {
-        Geoids {
-            paths: paths
-                .iter()
-                .filter_map(|(k, p)| {
-                    Some((VerticalCrs::parse(k).ok()?.key().to_string(), p.clone()))
-                })
-                .collect(),
-            loaded: Mutex::new(HashMap::new()),
-            limits: ReadLimits::mb(4096),
-        }
-    }
-
-    /// Reads every grid the config names, so that one that cannot be used is found when the
-    /// daemon starts rather than at the first survey that needs it.
-    pub fn load_all(&self) -> Result<(), IngestError> {
-        for key in self.paths.keys() {
-            if let Ok(v) = VerticalCrs::parse(key) {
-                self.for_conversion(&v, &v, &v)?;
-            }
-        }
-        Ok(())
-    }
-
-    /// The geoid of `v` for a conversion from `from` to `to`: None for ellipsoidal heights, an
-    /// error naming the config key when no grid is configured.
-    fn for_conversion(
-        &self,
-        v: &VerticalCrs,
-        from: &VerticalCrs,
-        to: &VerticalCrs,
-    ) -> Result<Option<Arc<Geoid>>, IngestError> {
-        if v.is_ellipsoidal() {
-            return Ok(None);
-        }
-        let key = v.key().to_string();
-        if let Some(g) = lock(&self.loaded).get(&key) {
-            return Ok(Some(g.clone()));
-        }
-        let Some(path) = self.paths.get(&key) else {
-            return Err(IngestError::NoGeoid {
-                from: from.label(),
-                to: to.label(),
-                missing: v.label(),
-                key,
-            });
-        };
-        let bad = |message: String| IngestError::Geoid {
-            path: path.clone(),
-            vertical: v.label(),
-            message,
-        };
-        let raster = patchwork_read::gtx::read_geoid_grid(path, &self.limits)
-            .map_err(|e| bad(e.to_string()))?;
-        let crs = raster.crs.crs.clone().unwrap_or_else(Crs::wgs84);
-        let grid = raster.into_grid().map_err(|e| bad(e.to_string()))?;
-        let g = Arc::new(
-            Geoid::new(v.clone(), grid, crs, path.display().to_string())
-                .map_err(|e| bad(e.to_string()))?,
-        );
-        lock(&self.loaded).insert(key, g.clone());
-        Ok(Some(g))
-    }
 }
 
 /// Refuses samples that cannot be heights on Earth in metres: random bytes, feet, or an

@@ -12,6 +12,7 @@
 //! writing, says why, and keeps serving reads from what it has published.
 
 pub mod config;
+pub mod geoids;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 pub mod ingest;
@@ -28,22 +29,23 @@ mod route;
 mod write;
 
 pub use crate::ingest::Phase;
-pub use error::{EngineError, Reason, TooLarge};
+pub use error::{EngineError, HeightsError, Reason, TooLarge};
 pub use follow::{rounds, Replication};
 pub use listing::{
     conflicts_of, Conflict, Distrusted, Footprint, Held, Progress, Stats, SurveyListing,
 };
 pub use patchwork_core::resample::Backend;
 pub use patchwork_read::REFUSED_PATH;
-pub use read::{Cut, MeshSpec, MeshTile, TileHead, MAX_MESH_SIZE};
+pub use read::{Bands, Cut, Frame, MeshSpec, MeshTile, Sampled, TileHead, MAX_MESH_SIZE};
 pub use request::{
-    BadRequest, Camera, Ctx, Made, Metres, Points, Region, SampleRequest, TileRequest, TileSize,
+    BadRequest, Camera, Ctx, Heights, Made, Metres, Points, Region, SampleRequest, TileRequest,
+    TileSize,
 };
 pub use route::Used;
 pub use write::{Event, Ingested, Origin, Outcome};
 
 use crate::config::{BackendKind, Config, Storage};
-use crate::ingest::Geoids;
+use crate::geoids::Geoids;
 use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::{Crs, Reprojection};
 use patchwork_core::model::ids::SurveyId;
@@ -186,8 +188,31 @@ impl Engine {
             commit: opened.store.commit_seq(),
             following: opened.store.following(),
         };
-        let geoids = Arc::new(Geoids::new(&cfg.vertical.geoids));
+        let geoids = Arc::new(Geoids::new(&cfg.vertical.geoids, cfg.vertical.proj_data));
         geoids.load_all().map_err(EngineError::GeoidGrid)?;
+        // Cesium and GPS take heights above the ellipsoid: a store that cannot give them says
+        // so now, rather than at the first tile.
+        let vertical = cfg.vertical_crs().or_else(|| catalog.vertical.clone());
+        match &vertical {
+            Some(v) if !geoids.has(v) => {
+                let files = geoids::known_files(v);
+                tracing::warn!(
+                    vertical = %v.label(),
+                    missing = if files.is_empty() { "a grid" } else { files[0] },
+                    "no geoid grid for the store's heights: quantized-mesh tiles carry them \
+                     as they are, not above the ellipsoid, with a Warning header; name one \
+                     in [vertical.geoids] \"{}\"{}",
+                    v.key(),
+                    if files.is_empty() { "" } else { " or install proj-data" }
+                );
+            }
+            Some(v) => {
+                if let Some(p) = geoids.path(v) {
+                    tracing::info!(vertical = %v.label(), grid = %p.display(), "geoid grid");
+                }
+            }
+            None => {}
+        }
         release_free_memory();
         let (events, _) = broadcast::channel(1024);
         Ok(Engine {
@@ -639,7 +664,8 @@ mod tests {
             std::thread::spawn(move || {
                 let cut = Cut::new(None, bounds, 0.0).unwrap();
                 let req = TileRequest::new(cut, 64, 64, Backend::Auto).unwrap();
-                e.tile(&req, Ctx::default()).map(|(t, _)| t.heights.len())
+                e.tile(&req, Ctx::default())
+                    .map(|(t, _, _)| t.heights.len())
             })
         };
         let t0 = std::time::Instant::now();

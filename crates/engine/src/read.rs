@@ -2,13 +2,15 @@
 //! writer. Requests are checked here (regions, errors, sizes against the limits) before any
 //! work starts, and long work stops once its [`Cancel`] is set.
 
-use super::request::{Camera, Ctx, Made, Metres, Region, SampleRequest, TileRequest};
+use super::request::{Camera, Ctx, Heights, Made, Metres, Region, SampleRequest, TileRequest};
 use super::route::Used;
-use super::{BadRequest, Engine, EngineError, TooLarge};
+use super::{BadRequest, Engine, EngineError, HeightsError, TooLarge};
+use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::{Crs, Reprojection};
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Extracted, Metric, Shortfall, ViewQuery};
 use patchwork_core::mesh;
+use patchwork_core::model::geoid::Shift;
 use patchwork_core::resample::{cpu, Backend, Cancel, SampleGrid};
 use patchwork_core::sync::lock;
 use patchwork_core::terrain::{tile_shortfall, view_grid, Terrain, Tile};
@@ -114,6 +116,8 @@ pub struct MeshSpec {
     /// Whether void vertices are given heights (see [`Engine::fill_voids`], and 0 m where
     /// no survey is near) so that the mesh covers the whole tile, as a globe's terrain must.
     pub fill_voids: bool,
+    /// What the vertices' heights are measured from.
+    pub heights: Heights,
 }
 
 /// A mesh of a uniform cut and what it was made from.
@@ -132,6 +136,38 @@ pub struct MeshTile {
     /// With [`MeshSpec::fill_voids`], which grid vertices (row by row) had no data at the
     /// cut's error and were filled; empty when none were.
     pub voids: Vec<bool>,
+    /// What the heights are measured from.
+    pub frame: Frame,
+}
+
+/// What a reply's heights are measured from, and what carrying them there may have added.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Frame {
+    /// The vertical CRS they are from; None where nothing says what the store's are from.
+    pub vertical: Option<VerticalCrs>,
+    /// The largest error the geoid grids' interpolation may have added to a height, metres
+    /// (0 for heights left in the store's frame): add it to the cut's error.
+    pub error_m: f64,
+}
+
+/// A tile resampled in bands: what it was blended from and what resampled it.
+#[derive(Clone, Debug)]
+pub struct Bands {
+    /// The patches blended, in id order.
+    pub patches: Vec<Extracted>,
+    /// The backend that resampled.
+    pub backend: Used,
+    /// What the heights are measured from.
+    pub frame: Frame,
+}
+
+/// Heights at points, and what they are measured from.
+#[derive(Clone, Debug)]
+pub struct Sampled {
+    /// A height a point, NaN where there is no data.
+    pub heights: Vec<f32>,
+    /// What they are measured from.
+    pub frame: Frame,
 }
 
 /// What a tile is, told with each of its bands.
@@ -272,11 +308,11 @@ impl Engine {
         Ok((t, ps))
     }
 
-    /// A resampled tile.
-    pub fn tile(&self, req: &TileRequest, ctx: Ctx) -> Result<(Tile, Used), EngineError> {
+    /// A resampled tile, the backend that resampled it, and what its heights are from.
+    pub fn tile(&self, req: &TileRequest, ctx: Ctx) -> Result<(Tile, Used, Frame), EngineError> {
         let (mut heights, mut shortfall) = (Vec::new(), None);
         let rows = req.size.height() as usize;
-        let (patches, used) = self.tile_bands(req, ctx, rows, &mut |head, _, band| {
+        let bands = self.tile_bands(req, ctx, rows, &mut |head, _, band| {
             heights = band;
             shortfall = head.shortfall;
             true
@@ -285,10 +321,84 @@ impl Engine {
             width: req.size.width() as usize,
             height: req.size.height() as usize,
             heights,
-            patches,
+            patches: bands.patches,
             shortfall,
         };
-        Ok((tile, used))
+        Ok((tile, bands.backend, bands.frame))
+    }
+
+    /// How to carry the store's heights into `heights`: None where they stay as they are.
+    fn shift_to(&self, heights: &Heights) -> Result<Option<Shift>, EngineError> {
+        let Heights::In(to) = heights else {
+            return Ok(None);
+        };
+        let Some(store) = self.vertical_crs() else {
+            return Err(HeightsError::Unknown { asked: to.label() }.into());
+        };
+        if store.same_reference(to) {
+            return Ok(None);
+        }
+        for v in [&store, to] {
+            if !self.geoids.has(v) {
+                return Err(HeightsError::NoGrid {
+                    asked: to.label(),
+                    store: store.label(),
+                    missing: v.label(),
+                    key: v.key().into(),
+                    files: crate::geoids::known_files(v).join(" or "),
+                }
+                .into());
+            }
+        }
+        let shift = self.geoids.shift(&store, to).map_err(HeightsError::Grid)?;
+        Ok(Some(shift))
+    }
+
+    /// Carries `heights`, resampled at `grid`'s positions in `crs` (None: the store's) from
+    /// the store's frame into the one asked: for a tile whose voids were filled first, which
+    /// is resampled in the store's frame and converted after.
+    pub fn carry_heights(
+        &self,
+        heights: &mut [f32],
+        grid: &SampleGrid,
+        crs: Option<&Crs>,
+        to: &Heights,
+    ) -> Result<Frame, EngineError> {
+        let shift = self.shift_to(to)?;
+        self.carry(shift, heights, grid, crs, to)
+    }
+
+    fn carry(
+        &self,
+        shift: Option<Shift>,
+        heights: &mut [f32],
+        grid: &SampleGrid,
+        crs: Option<&Crs>,
+        to: &Heights,
+    ) -> Result<Frame, EngineError> {
+        let mut frame = self.frame_of(to);
+        if let (Some(s), Some(crs)) = (shift, crs.cloned().or_else(|| self.crs())) {
+            let at: Vec<[f64; 2]> = grid.points().collect();
+            frame.error_m = s.apply(heights, &at, &crs)?.error_m;
+        }
+        Ok(frame)
+    }
+
+    /// Whether the store's heights can be given as `heights`, or why not: for a client that
+    /// would rather have them in the store's frame than none.
+    pub fn can_give(&self, heights: &Heights) -> Result<(), EngineError> {
+        self.shift_to(heights).map(|_| ())
+    }
+
+    /// The frame heights asked as `heights` are in, before any conversion's error.
+    pub fn frame_of(&self, heights: &Heights) -> Frame {
+        Frame {
+            vertical: match heights {
+                Heights::Store => self.vertical_crs(),
+                Heights::In(v) => Some(v.clone()),
+            },
+            error_m: 0.0,
+        }
     }
 
     /// A mesh of a uniform cut: the resampled heights at the corners of a `cols × rows` grid
@@ -314,15 +424,12 @@ impl Engine {
         }
         let pixels = mesh::pixel_roi(&roi, cols, rows);
         let cancel = ctx.cancel.clone();
-        let req = TileRequest {
-            cut: Self::mesh_cut(spec)?,
-            size: super::TileSize::new(cols as u32, rows as u32)?,
-            backend,
-        };
-        let (mut tile, used) = self.tile(&req, ctx)?;
+        let shift = self.shift_to(&spec.heights)?;
+        let req = TileRequest::new(Self::mesh_cut(spec)?, cols as u32, rows as u32, backend)?;
+        let (mut tile, used, _) = self.tile(&req, ctx)?;
+        let grid = SampleGrid::uniform(&pixels, cols, rows);
         let mut voids = Vec::new();
         if spec.fill_voids {
-            let grid = SampleGrid::uniform(&pixels, cols, rows);
             voids = self.fill_voids(
                 &mut tile.heights,
                 &grid,
@@ -330,6 +437,17 @@ impl Engine {
                 spec.error.get(),
                 &cancel,
             )?;
+        }
+        // Converted once the voids are filled (in the store's frame, as the surveys are),
+        // and before a void far from any survey is put on the ellipsoid.
+        let frame = self.carry(
+            shift,
+            &mut tile.heights,
+            &grid,
+            spec.crs.as_ref(),
+            &spec.heights,
+        )?;
+        if spec.fill_voids {
             // Nothing near enough to fill from: no survey is there, and a globe shows its
             // ellipsoid.
             for h in tile.heights.iter_mut().filter(|h| h.is_nan()) {
@@ -375,6 +493,7 @@ impl Engine {
             backend: used,
             shortfall: tile.shortfall,
             voids,
+            frame,
         })
     }
 
@@ -463,8 +582,9 @@ impl Engine {
         ctx: Ctx,
         rows: usize,
         sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
-    ) -> Result<(Vec<Extracted>, Used), EngineError> {
+    ) -> Result<Bands, EngineError> {
         let (cut, backend, cancel) = (&req.cut, req.backend, &ctx.cancel);
+        let shift = self.shift_to(&req.heights)?;
         let (width, height) = (req.size.width(), req.size.height());
         let n = req.size.samples();
         let max = self.cfg.limits.max_tile_samples;
@@ -495,18 +615,74 @@ impl Engine {
             }
             Cut::View(c) => view_grid(&self.view_of(c), width as usize, height as usize),
         };
-        let shortfall = tile_shortfall(&ps, &grid);
+        // Heights asked from another vertical CRS are carried there band by band, at the
+        // tile's own positions: a tile in another CRS than the store's has them in its own.
+        let mut frame = self.frame_of(&req.heights);
+        let mut failed = None;
+        let placed = match (&shift, cut) {
+            (None, _) => None,
+            (Some(_), Cut::UniformIn { crs, roi, .. }) => Some((
+                Some(SampleGrid::uniform(
+                    roi.aabb(),
+                    width as usize,
+                    height as usize,
+                )),
+                crs.clone(),
+            )),
+            (Some(_), _) => self.crs().map(|c| (None, c)),
+        };
+        let outer = sink;
+        let sink = &mut |head: &TileHead, j0: usize, mut band: Vec<f32>| -> bool {
+            if let (Some(s), Some((own, crs))) = (&shift, &placed) {
+                let at = own.as_ref().unwrap_or(&grid);
+                let k0 = j0 * at.width;
+                let points: Vec<[f64; 2]> = (k0..k0 + band.len()).map(|k| at.point(k)).collect();
+                match s.apply(&mut band, &points, crs) {
+                    Ok(c) => frame.error_m = frame.error_m.max(c.error_m),
+                    Err(e) => {
+                        failed = Some(e);
+                        return false;
+                    }
+                }
+            }
+            outer(head, j0, band)
+        };
+        let done = self.resample(&t, &ps, &grid, backend, rows, cancel, sink);
+        if let Some(e) = failed {
+            return Err(HeightsError::Convert(e).into());
+        }
+        let backend = done?;
+        Ok(Bands {
+            patches: ps,
+            backend,
+            frame,
+        })
+    }
+
+    /// [`Self::tile_bands`]'s work: `grid` resampled from the patches `ps` of `t`.
+    #[allow(clippy::too_many_arguments)]
+    fn resample(
+        &self,
+        t: &Terrain,
+        ps: &[Extracted],
+        grid: &SampleGrid,
+        backend: Backend,
+        rows: usize,
+        cancel: &Cancel,
+        sink: &mut dyn FnMut(&TileHead, usize, Vec<f32>) -> bool,
+    ) -> Result<Used, EngineError> {
+        let shortfall = tile_shortfall(ps, grid);
         let head = |backend| TileHead {
             width: grid.width,
             height: grid.height,
-            patches: &ps,
+            patches: ps,
             backend,
             shortfall,
         };
         // The samples are read (from the pack, or the chunk cache) before the GPU is asked
         // for, so that the device's lock is never held across disk I/O.
         let set = t
-            .try_resolve_until(&ps, &|| cancel.is_cancelled())
+            .try_resolve_until(ps, &|| cancel.is_cancelled())
             .map_err(StoreError::from)?
             .ok_or(EngineError::Cancelled)?;
         // `auto` goes to whichever backend is expected to finish the tile first.
@@ -519,7 +695,7 @@ impl Engine {
             backend
         };
         let on_gpu = (backend != Backend::Cpu && has_gpu).then(|| router.start(Used::Gpu, samples));
-        if let Some(heights) = self.gpu_heights(&set, &grid, backend)? {
+        if let Some(heights) = self.gpu_heights(&set, grid, backend)? {
             if let Some(run) = on_gpu {
                 run.finish();
             }
@@ -536,12 +712,12 @@ impl Engine {
                     }
                 }
             }
-            return Ok((ps, Used::Gpu));
+            return Ok(Used::Gpu);
         }
         drop(on_gpu);
         let head = head(Used::Cpu);
         let mut run = router.start(Used::Cpu, samples);
-        cpu::resample_bands(&set, &grid, rows, cancel, &mut |j0, band| {
+        cpu::resample_bands(&set, grid, rows, cancel, &mut |j0, band| {
             // Handing a band to a slow client is not the CPU's time.
             let t = std::time::Instant::now();
             let more = sink(&head, j0, band);
@@ -550,12 +726,13 @@ impl Engine {
         })
         .ok_or(EngineError::Cancelled)?;
         run.finish();
-        Ok((ps, Used::Cpu))
+        Ok(Used::Cpu)
     }
 
     /// Heights at points of a CRS: the points are carried into the store's plane as a tile's
     /// positions are, so a point has the height any tile of that CRS holding it gives.
-    pub fn sample(&self, req: &SampleRequest, ctx: Ctx) -> Result<Vec<f32>, EngineError> {
+    pub fn sample(&self, req: &SampleRequest, ctx: Ctx) -> Result<Sampled, EngineError> {
+        let shift = self.shift_to(&req.heights)?;
         let points = req.points.get();
         if points.len() as u64 > self.cfg.limits.max_points {
             return Err(TooLarge::Points {
@@ -564,7 +741,13 @@ impl Engine {
             }
             .into());
         }
-        self.sample_points(points, req.crs.as_ref(), req.error.get(), &ctx.cancel)
+        let mut heights =
+            self.sample_points(points, req.crs.as_ref(), req.error.get(), &ctx.cancel)?;
+        let mut frame = self.frame_of(&req.heights);
+        if let (Some(s), Some(crs)) = (&shift, req.crs.clone().or_else(|| self.crs())) {
+            frame.error_m = s.apply(&mut heights, points, &crs)?.error_m;
+        }
+        Ok(Sampled { heights, frame })
     }
 
     /// Whether a point of the store's plane is where any survey can give a height (within

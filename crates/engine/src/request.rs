@@ -10,6 +10,7 @@
 //! gives up on it (its deadline, or a client gone), and a cut it made already.
 
 use crate::Cut;
+use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::Crs;
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Extracted, Metric, ViewQuery};
@@ -97,6 +98,17 @@ pub enum BadRequest {
         what: &'static str,
         /// The longest path allowed.
         most: usize,
+    },
+    /// A frame of heights that cannot be parsed.
+    #[error(
+        "heights must be \"store\", \"ellipsoid\" or a vertical CRS as \"EPSG:n\", got \
+         {got:?}: {why}"
+    )]
+    Heights {
+        /// What the request gave.
+        got: String,
+        /// Why it is not one.
+        why: String,
     },
 }
 
@@ -282,6 +294,50 @@ pub fn parse_crs(text: &str) -> Result<Option<Crs>, BadRequest> {
         .map_err(|e| BadRequest::Crs(e.to_string()))
 }
 
+/// What the heights of a reply are measured from. Heights are always in metres.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub enum Heights {
+    /// As the store keeps them, from its vertical CRS (which TileJSON and layer.json name).
+    #[default]
+    Store,
+    /// From a vertical CRS: the WGS 84 ellipsoid (what Cesium and GPS take), or a geoid's
+    /// or levelling datum's, carried there through the geoid grids of both.
+    In(VerticalCrs),
+}
+
+impl Heights {
+    /// Heights above the WGS 84 ellipsoid.
+    pub fn ellipsoid() -> Heights {
+        Heights::In(VerticalCrs::ellipsoidal())
+    }
+
+    /// `store` (or nothing), `ellipsoid` (or `ellipsoidal`, `EPSG:4979`), or a vertical CRS
+    /// of the registry as `EPSG:n`.
+    pub fn parse(text: &str) -> Result<Heights, BadRequest> {
+        let t = text.trim();
+        if t.is_empty() || t.eq_ignore_ascii_case("store") {
+            return Ok(Heights::Store);
+        }
+        if t.eq_ignore_ascii_case("ellipsoid") {
+            return Ok(Heights::ellipsoid());
+        }
+        VerticalCrs::parse(t)
+            .map(Heights::In)
+            .map_err(|e| BadRequest::Heights {
+                got: t.into(),
+                why: e.to_string(),
+            })
+    }
+
+    /// How a reply names it: `store`, `ellipsoidal` or `EPSG:n`.
+    pub fn key(&self) -> &str {
+        match self {
+            Heights::Store => "store",
+            Heights::In(v) => v.key(),
+        }
+    }
+}
+
 /// A cut already made: the snapshot it was made from, and its patches.
 pub type Made = (Arc<Terrain>, Vec<Extracted>);
 
@@ -322,6 +378,8 @@ pub struct TileRequest {
     pub size: TileSize,
     /// Which backend resamples: `Auto` lets the engine choose.
     pub backend: Backend,
+    /// What the heights are measured from.
+    pub heights: Heights,
 }
 
 impl TileRequest {
@@ -336,7 +394,14 @@ impl TileRequest {
             cut,
             size: TileSize::new(width, height)?,
             backend,
+            heights: Heights::Store,
         })
+    }
+
+    /// This request with its heights measured from `heights`.
+    pub fn with_heights(mut self, heights: Heights) -> TileRequest {
+        self.heights = heights;
+        self
     }
 }
 
@@ -349,6 +414,8 @@ pub struct SampleRequest {
     pub crs: Option<Crs>,
     /// The error of the cut they are sampled from.
     pub error: Metres,
+    /// What the heights are measured from.
+    pub heights: Heights,
 }
 
 impl SampleRequest {
@@ -362,7 +429,14 @@ impl SampleRequest {
             points: Points::new(points)?,
             crs,
             error: Metres::error(error)?,
+            heights: Heights::Store,
         })
+    }
+
+    /// This request with its heights measured from `heights`.
+    pub fn with_heights(mut self, heights: Heights) -> SampleRequest {
+        self.heights = heights;
+        self
     }
 }
 
@@ -411,5 +485,12 @@ mod tests {
         ));
         assert!(matches!(parse_crs("EPSG:nope"), Err(BadRequest::Crs(_))));
         assert_eq!(parse_crs("  "), Ok(None));
+        assert_eq!(Heights::parse(""), Ok(Heights::Store));
+        assert_eq!(Heights::parse("ellipsoid").unwrap().key(), "ellipsoidal");
+        assert_eq!(Heights::parse("EPSG:5773").unwrap().key(), "EPSG:5773");
+        assert!(matches!(
+            Heights::parse("EPSG:4326"),
+            Err(BadRequest::Heights { .. })
+        ));
     }
 }

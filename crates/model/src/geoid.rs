@@ -121,6 +121,79 @@ pub struct Converted {
     pub error_m: f64,
 }
 
+/// Heights in metres carried from one vertical CRS to another: H_to = H_from + N_from − N_to,
+/// with N of an ellipsoidal CRS 0 and that of a gravity-related one from its geoid model.
+#[derive(Clone, Debug)]
+pub struct Shift {
+    /// The CRS heights are in.
+    pub from: VerticalCrs,
+    /// The CRS they are carried to.
+    pub to: VerticalCrs,
+    /// The model of `from`, None when it is ellipsoidal or the same surface as `to`.
+    pub geoid_from: Option<Arc<Geoid>>,
+    /// The model of `to`, None when it is ellipsoidal or the same surface as `from`.
+    pub geoid_to: Option<Arc<Geoid>>,
+}
+
+impl Shift {
+    /// Whether it leaves every height as it is: both CRSs measure from the same surface.
+    pub fn is_identity(&self) -> bool {
+        self.from.same_reference(&self.to)
+    }
+
+    /// Carries `heights` (metres; NaN stays NaN) at `positions` of `crs` from `from` to `to`,
+    /// in place. Returns the largest interpolation error the geoids may add to one of them.
+    pub fn apply(
+        &self,
+        heights: &mut [f32],
+        positions: &[[f64; 2]],
+        crs: &Crs,
+    ) -> Result<Converted, GeoidError> {
+        assert_eq!(heights.len(), positions.len(), "a position a height");
+        if self.is_identity() {
+            return Ok(Converted { error_m: 0.0 });
+        }
+        // Every geoid is geographic; one lattice from the positions' CRS to each geoid's
+        // carries them there (its error, a few micrometres, is nothing beside a geoid's).
+        let undulation = |geoid: Option<&Arc<Geoid>>| -> Result<Vec<(f64, f64)>, GeoidError> {
+            let Some(geoid) = geoid else {
+                return Ok(vec![(0.0, 0.0); positions.len()]);
+            };
+            let to_geo = Reprojection::new(crs, &geoid.crs)?;
+            let lonlat = to_geo.map(positions);
+            let uncovered = || GeoidError::Uncovered {
+                grid: geoid.source.clone(),
+            };
+            lonlat
+                .par_iter()
+                .zip(&*heights)
+                .map(|(p, z)| {
+                    if z.is_nan() {
+                        return Ok((0.0, 0.0));
+                    }
+                    geoid.at(*p).ok_or_else(uncovered)
+                })
+                .collect()
+        };
+        let (nf, nt) = (
+            undulation(self.geoid_from.as_ref())?,
+            undulation(self.geoid_to.as_ref())?,
+        );
+        let error_m = heights
+            .par_iter_mut()
+            .zip(nf.par_iter().zip(&nt))
+            .map(|(z, (a, b))| {
+                if z.is_nan() {
+                    return 0.0;
+                }
+                *z = (*z as f64 + a.0 - b.0) as f32;
+                a.1 + b.1
+            })
+            .reduce(|| 0.0, f64::max);
+        Ok(Converted { error_m })
+    }
+}
+
 /// Converts heights from `from` to `to` in place, for a grid in `crs`: H_to = H_from·unit +
 /// N_from − N_to, with N of an ellipsoidal CRS 0 and `geoid(v)` the model of a
 /// gravity-related one. Returns the largest interpolation error the geoids may add.
@@ -133,54 +206,25 @@ pub fn convert(
     geoid_to: Option<&Arc<Geoid>>,
 ) -> Result<Converted, GeoidError> {
     let unit = from.unit_m();
-    if from.same_reference(to) {
-        if unit != 1.0 {
-            grid.samples.par_iter_mut().for_each(|z| {
-                *z = (*z as f64 * unit) as f32;
-            });
-        }
+    if unit != 1.0 {
+        grid.samples.par_iter_mut().for_each(|z| {
+            *z = (*z as f64 * unit) as f32;
+        });
+    }
+    let shift = Shift {
+        from: from.clone(),
+        to: to.clone(),
+        geoid_from: geoid_from.cloned(),
+        geoid_to: geoid_to.cloned(),
+    };
+    if shift.is_identity() {
         return Ok(Converted { error_m: 0.0 });
     }
-    // Every geoid is geographic; one lattice from the survey's CRS to each geoid's carries the
-    // samples there (its error, a few micrometres, is nothing beside a geoid's).
     let g = grid.georef;
     let cols = grid.cols;
     let positions: Vec<[f64; 2]> = (0..grid.rows)
         .into_par_iter()
         .flat_map_iter(|r| (0..cols).map(move |c| g.to_world(c as f64, r as f64)))
         .collect();
-    let undulation = |geoid: Option<&Arc<Geoid>>| -> Result<Vec<(f64, f64)>, GeoidError> {
-        let Some(geoid) = geoid else {
-            return Ok(vec![(0.0, 0.0); positions.len()]);
-        };
-        let to_geo = Reprojection::new(crs, &geoid.crs)?;
-        let lonlat = to_geo.map(&positions);
-        let uncovered = || GeoidError::Uncovered {
-            grid: geoid.source.clone(),
-        };
-        lonlat
-            .par_iter()
-            .zip(&grid.samples)
-            .map(|(p, z)| {
-                if z.is_nan() {
-                    return Ok((0.0, 0.0));
-                }
-                geoid.at(*p).ok_or_else(uncovered)
-            })
-            .collect()
-    };
-    let (nf, nt) = (undulation(geoid_from)?, undulation(geoid_to)?);
-    let error_m = grid
-        .samples
-        .par_iter_mut()
-        .zip(nf.par_iter().zip(&nt))
-        .map(|(z, (a, b))| {
-            if z.is_nan() {
-                return 0.0;
-            }
-            *z = (*z as f64 * unit + a.0 - b.0) as f32;
-            a.1 + b.1
-        })
-        .reduce(|| 0.0, f64::max);
-    Ok(Converted { error_m })
+    shift.apply(&mut grid.samples, &positions, crs)
 }

@@ -126,10 +126,11 @@ pub fn resample_tile(
     r: &TileRequest,
     cancel: &Cancel,
 ) -> Result<pb::Tile, EngineError> {
-    let (tile, used) = engine.tile(r, Ctx::until(cancel))?;
+    let (tile, used, frame) = engine.tile(r, Ctx::until(cancel))?;
     Ok(convert::tile(
         &tile,
         used,
+        &frame,
         tile_crs(engine, &r.cut).as_ref(),
     ))
 }
@@ -150,8 +151,9 @@ pub fn tile_bands(
     } else {
         rows
     };
+    let frame = engine.frame_of(&r.heights);
     engine.tile_bands(r, Ctx::until(cancel), rows, &mut |head, row, heights| {
-        convert::tile_bands(head, row, &heights, crs.as_ref())
+        convert::tile_bands(head, row, &heights, crs.as_ref(), &frame)
             .into_iter()
             .all(&mut *send)
     })?;
@@ -176,10 +178,12 @@ pub fn sample_heights(
     r: &SampleRequest,
     cancel: &Cancel,
 ) -> Result<pb::Samples, EngineError> {
-    let heights = engine.sample(r, Ctx::until(cancel))?;
+    let s = engine.sample(r, Ctx::until(cancel))?;
     Ok(pb::Samples {
-        valid: heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
-        heights,
+        valid: s.heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
+        vertical_crs: convert::vertical_key(&s.frame),
+        frame_error_m: s.frame.error_m,
+        heights: s.heights,
     })
 }
 

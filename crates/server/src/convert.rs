@@ -14,7 +14,7 @@ use patchwork_core::model::patch::{CellRect, PatchKind};
 use patchwork_core::model::source::SampleError;
 use patchwork_core::terrain::{PatchRef, Terrain, Tile};
 use patchwork_engine::{
-    Conflict, Distrusted, Event, Held, Ingested, MeshTile, Outcome, Phase, Reason, Stats,
+    Conflict, Distrusted, Event, Frame, Held, Ingested, MeshTile, Outcome, Phase, Reason, Stats,
     SurveyListing, TileHead, Used,
 };
 use patchwork_store::Status;
@@ -242,7 +242,7 @@ impl Packed {
 
 /// A resampled tile on the wire, with the backend that made it and its CRS; `valid` marks
 /// the samples that are not void.
-pub fn tile(t: &Tile, backend: Used, crs: Option<&Crs>) -> pb::Tile {
+pub fn tile(t: &Tile, backend: Used, frame: &Frame, crs: Option<&Crs>) -> pb::Tile {
     let (code, key) = crs_fields(crs);
     pb::Tile {
         width: t.width as u32,
@@ -255,7 +255,18 @@ pub fn tile(t: &Tile, backend: Used, crs: Option<&Crs>) -> pb::Tile {
         crs_key: key,
         max_error: max_error(&t.patches),
         shortfall: t.shortfall.map(shortfall),
+        vertical_crs: vertical_key(frame),
+        frame_error_m: frame.error_m,
     }
+}
+
+/// The key of the vertical CRS heights are measured from, empty where none is known.
+pub fn vertical_key(frame: &Frame) -> String {
+    frame
+        .vertical
+        .as_ref()
+        .map(|v| v.key().to_string())
+        .unwrap_or_default()
 }
 
 fn shortfall(s: Shortfall) -> pb::Shortfall {
@@ -288,6 +299,8 @@ pub fn mesh(m: &MeshTile, crs: Option<&Crs>) -> pb::Mesh {
         crs: code,
         crs_key: key,
         shortfall: m.shortfall.map(shortfall),
+        vertical_crs: vertical_key(&m.frame),
+        frame_error_m: m.frame.error_m,
     }
 }
 
@@ -358,6 +371,7 @@ pub fn tile_bands(
     row: usize,
     heights: &[f32],
     crs: Option<&Crs>,
+    frame: &Frame,
 ) -> Vec<pb::TileBand> {
     let width = head.width.max(1);
     let (code, key) = crs_fields(crs);
@@ -383,6 +397,11 @@ pub fn tile_bands(
                 crs_key: if first { key.clone() } else { String::new() },
                 max_error: if first { max_error(head.patches) } else { 0.0 },
                 shortfall: head.shortfall.filter(|_| first).map(shortfall),
+                vertical_crs: if first {
+                    vertical_key(frame)
+                } else {
+                    String::new()
+                },
             }
         })
         .collect()

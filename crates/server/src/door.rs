@@ -6,7 +6,7 @@ use super::proto as pb;
 use patchwork_core::mesh::{Border, Method};
 use patchwork_engine::request::parse_crs;
 use patchwork_engine::{
-    Backend, BadRequest, Camera, Cut, MeshSpec, Metres, Region, SampleRequest, TileRequest,
+    Backend, BadRequest, Camera, Cut, Heights, MeshSpec, Metres, Region, SampleRequest, TileRequest,
 };
 
 /// Vertices a side of a mesh when the request does not say.
@@ -113,7 +113,9 @@ impl TryFrom<&pb::TileRequest> for TileRequest {
             Some(pb::tile_request::Cut::View(v)) => (None, Some(v)),
             None => (None, None),
         };
+        let heights = Heights::parse(&r.heights)?;
         TileRequest::new(cut(u, v, &r.crs)?, r.width, r.height, backend(r.backend)?)
+            .map(|t| t.with_heights(heights))
     }
 }
 
@@ -121,7 +123,8 @@ impl TryFrom<&pb::SampleRequest> for SampleRequest {
     type Error = BadRequest;
     fn try_from(r: &pb::SampleRequest) -> Result<SampleRequest, BadRequest> {
         let points = r.points.iter().map(|p| [p.x, p.y]).collect();
-        SampleRequest::new(points, parse_crs(&r.crs)?, r.error)
+        let heights = Heights::parse(&r.heights)?;
+        SampleRequest::new(points, parse_crs(&r.crs)?, r.error).map(|s| s.with_heights(heights))
     }
 }
 
@@ -150,6 +153,7 @@ impl TryFrom<&pb::MeshRequest> for MeshAsk {
             hole_reach_m: Metres::new("hole_reach_m", r.hole_reach_m)?,
             crs: parse_crs(&r.crs)?,
             fill_voids: false,
+            heights: Heights::parse(&r.heights)?,
         };
         Ok(MeshAsk {
             spec,

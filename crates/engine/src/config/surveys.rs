@@ -77,13 +77,26 @@ pub struct Accuracy {
 
 /// The `[vertical]` section: the store's vertical CRS and the geoid grids that carry heights
 /// into it.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Vertical {
     /// "EPSG:n" or "ellipsoidal"; unset adopts the first survey's that names one.
     pub crs: Option<String>,
     /// Geoid undulation grids, by the vertical CRS ("EPSG:n") they relate to the ellipsoid.
     pub geoids: std::collections::BTreeMap<String, PathBuf>,
+    /// Whether EGM96's and EGM2008's grids are looked for in PROJ's data directories
+    /// (`PROJ_DATA`, `/usr/share/proj`) when `geoids` names none for them.
+    pub proj_data: bool,
+}
+
+impl Default for Vertical {
+    fn default() -> Self {
+        Vertical {
+            crs: None,
+            geoids: Default::default(),
+            proj_data: true,
+        }
+    }
 }
 
 /// The `[patches]` section: the layout every store keeps, and the kind of a new store.

@@ -27,7 +27,7 @@ use patchwork_core::index::query::Extracted;
 use patchwork_core::sync::lock;
 use patchwork_core::terrain::Terrain;
 use patchwork_engine::request::parse_crs;
-use patchwork_engine::{Ctx, Engine, EngineError, Metres, Reason, SampleRequest};
+use patchwork_engine::{Ctx, Engine, EngineError, Heights, Metres, Reason, SampleRequest};
 use pyramid::Pyramid;
 use serde::Deserialize;
 use std::sync::{Arc, Mutex, Weak};
@@ -81,6 +81,9 @@ pub struct Produced {
     /// The error the tile was made at where it is not the one asked (see
     /// `limits.max_web_tile_patches`): sent as `X-Patchwork-Error`.
     error: Option<f64>,
+    /// Why the tile's heights are not in the frame the client expects: sent as a
+    /// `Warning` header (code 299, a persistent warning).
+    warning: Option<String>,
 }
 
 impl Web {
@@ -177,6 +180,7 @@ impl Web {
                 body: None,
                 content_type,
                 error: None,
+                warning: None,
             });
         }
         let body = match self.tiles.as_ref().and_then(|c| c.get(&etag)) {
@@ -194,6 +198,7 @@ impl Web {
             body: Some(body),
             content_type,
             error: None,
+            warning: None,
         })
     }
 
@@ -219,6 +224,20 @@ impl Web {
                 "x-patchwork-error",
                 HeaderValue::from_str(&e.to_string()).expect("a number is a header value"),
             );
+        }
+        if let Some(w) = p.warning {
+            // A quoted string of visible ASCII: anything else in the text is left out.
+            let text: String = w
+                .chars()
+                .map(|c| match c {
+                    '"' | '\\' => '\'',
+                    c if c.is_ascii_graphic() || c == ' ' => c,
+                    _ => '?',
+                })
+                .collect();
+            if let Ok(v) = HeaderValue::from_str(&format!("299 patchwork \"{text}\"")) {
+                h.insert(header::WARNING, v);
+            }
         }
         r
     }
@@ -422,6 +441,7 @@ pub fn router(svc: Service) -> Router {
         .expose_headers([
             header::ETAG,
             header::HeaderName::from_static("x-patchwork-error"),
+            header::WARNING,
         ]);
     app.layer(middleware::from_fn_with_state(web.clone(), admit))
         .layer(middleware::map_response(json_errors))
@@ -548,6 +568,8 @@ struct TileParams {
     image: Option<Image>,
     size: Option<u32>,
     error: Option<f64>,
+    /// What the heights are measured from: `store` (the default), `ellipsoid`, `EPSG:n`.
+    heights: Option<String>,
 }
 
 impl TileParams {
@@ -681,6 +703,10 @@ async fn raster_tile(
                 .into_response()
         }
     };
+    let heights = match Heights::parse(p.heights.as_deref().unwrap_or("")) {
+        Ok(h) => h,
+        Err(e) => return bad_request(e.to_string()),
+    };
     let req = raster::Request {
         z,
         x,
@@ -688,6 +714,7 @@ async fn raster_tile(
         size,
         format,
         error: error.map_or_else(|| mercator::error(z, size), Metres::get),
+        heights,
     };
     let inm = if_none_match(&headers);
     let w = web.clone();
@@ -713,9 +740,17 @@ async fn layer_json(State(web): State<Arc<Web>>, uri: axum::http::Uri) -> Respon
     document(&web, doc)
 }
 
+#[derive(Debug, Deserialize)]
+struct TerrainParams {
+    /// What the heights are measured from: `ellipsoid` (the default, Cesium's), `store`,
+    /// `EPSG:n`.
+    heights: Option<String>,
+}
+
 async fn terrain_tile(
     State(web): State<Arc<Web>>,
     Path((z, x, file)): Path<(u32, u32, String)>,
+    Query(p): Query<TerrainParams>,
     headers: HeaderMap,
 ) -> Response {
     let Some((y, "terrain")) = tile_file(&file) else {
@@ -735,10 +770,24 @@ async fn terrain_tile(
             .and_then(|v| v.to_str().ok())
             .unwrap_or(""),
     );
+    let heights = match p.heights.as_deref() {
+        None => None,
+        Some(h) => match Heights::parse(h) {
+            Ok(h) => Some(h),
+            Err(e) => return bad_request(e.to_string()),
+        },
+    };
     let inm = if_none_match(&headers);
     let w = web.clone();
+    let tile = terrain::Tile {
+        z,
+        x,
+        y,
+        asked,
+        heights,
+    };
     match web
-        .run(move |e, cancel| terrain::tile(e, &w, z, x, y, asked, inm.as_deref(), cancel))
+        .run(move |e, cancel| terrain::tile(e, &w, &tile, inm.as_deref(), cancel))
         .await
     {
         Ok(p) => {
@@ -767,6 +816,8 @@ struct HeightParams {
     points: String,
     error: Option<f64>,
     crs: Option<String>,
+    /// What the heights are measured from: `store` (the default), `ellipsoid`, `EPSG:n`.
+    heights: Option<String>,
 }
 
 /// Heights at points: what SampleHeights answers, as JSON, null where there is no data.
@@ -783,7 +834,10 @@ async fn heights(State(web): State<Arc<Web>>, Query(p): Query<HeightParams>) -> 
     let points: Vec<[f64; 2]> = coords.chunks(2).map(|c| [c[0], c[1]]).collect();
     let error = p.error.unwrap_or(0.0);
     let crs = p.crs.unwrap_or_else(|| "EPSG:4326".into());
-    let req = parse_crs(&crs).and_then(|crs| SampleRequest::new(points, crs, error));
+    let req = parse_crs(&crs).and_then(|crs| {
+        let heights = Heights::parse(p.heights.as_deref().unwrap_or(""))?;
+        Ok(SampleRequest::new(points, crs, error)?.with_heights(heights))
+    });
     let req = match req {
         Ok(r) => r,
         Err(e) => return bad_request(e.to_string()),
@@ -792,9 +846,20 @@ async fn heights(State(web): State<Arc<Web>>, Query(p): Query<HeightParams>) -> 
         .run(move |e, cancel| e.sample(&req, Ctx::until(cancel)))
         .await;
     match r {
-        Ok(h) => {
-            let hs: Vec<Option<f32>> = h.iter().map(|v| (!v.is_nan()).then_some(*v)).collect();
-            axum::Json(serde_json::json!({"heights": hs, "error": error})).into_response()
+        Ok(s) => {
+            let hs: Vec<Option<f32>> = s
+                .heights
+                .iter()
+                .map(|v| (!v.is_nan()).then_some(*v))
+                .collect();
+            let vertical = s.frame.vertical.as_ref().map(|v| v.key().to_string());
+            axum::Json(serde_json::json!({
+                "heights": hs,
+                "error": error,
+                "vertical_crs": vertical,
+                "frame_error": s.frame.error_m,
+            }))
+            .into_response()
         }
         Err(r) => r,
     }

@@ -25,6 +25,9 @@ pub struct Pyramid {
     /// What the tiles' heights are measured from: the store's vertical CRS, as its key and
     /// its name; None where no survey or setting has named one.
     pub vertical: Option<(String, String)>,
+    /// Whether the store's heights can be carried above the ellipsoid, as quantized-mesh
+    /// tiles carry them then.
+    pub ellipsoid: bool,
 }
 
 impl Pyramid {
@@ -36,12 +39,12 @@ impl Pyramid {
             web_max: 0,
             terrain_max: 0,
             vertical: None,
+            ellipsoid: false,
         }
     }
 
-    /// The frame the tiles' heights are in, as both documents say it: every height is the
-    /// store's, measured from its vertical CRS (a geoid's heights are not the ellipsoidal
-    /// heights a globe such as Cesium places them at).
+    /// The frame the raster tiles' heights are in, as TileJSON says it: the store's,
+    /// measured from its vertical CRS (named beside it), unless a tile URL asks otherwise.
     fn heights(&self) -> (Value, Value) {
         let vertical = match &self.vertical {
             Some((key, name)) => json!({"key": key, "name": name}),
@@ -98,6 +101,9 @@ impl Pyramid {
             vertical: engine
                 .vertical_crs()
                 .map(|v| (v.key().to_string(), v.label())),
+            ellipsoid: engine
+                .can_give(&patchwork_engine::Heights::ellipsoid())
+                .is_ok(),
         }
     }
 
@@ -171,7 +177,12 @@ impl Pyramid {
             })
             .collect();
         let sep = if query.is_empty() { "" } else { "&" };
-        let (heights, vertical) = self.heights();
+        // Cesium's frame where the store's heights can be carried there; the tiles say so
+        // in a Warning header where they cannot.
+        let (heights, vertical) = match self.ellipsoid {
+            true => (json!("ellipsoid"), self.heights().1),
+            false => self.heights(),
+        };
         json!({
             "tilejson": "2.1.0",
             "name": "patchwork",

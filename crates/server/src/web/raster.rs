@@ -8,7 +8,7 @@ use super::{Encoding, Produced, Web};
 use patchwork_core::geom::tiles::mercator;
 use patchwork_core::resample::{Cancel, SampleGrid};
 use patchwork_engine::{
-    Backend, Ctx, Cut, Engine, EngineError, Metres, Region, TileRequest, TileSize,
+    Backend, Ctx, Cut, Engine, EngineError, Heights, Metres, Region, TileRequest,
 };
 
 /// What a raster tile is encoded as.
@@ -23,7 +23,7 @@ pub enum Format {
 }
 
 /// A raster tile asked for.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct Request {
     /// The zoom level.
     pub z: u32,
@@ -37,6 +37,8 @@ pub struct Request {
     pub format: Format,
     /// The cut's error, metres.
     pub error: f64,
+    /// What the heights are measured from.
+    pub heights: Heights,
 }
 
 /// What a GeoTIFF tile says of pixels without data.
@@ -71,10 +73,16 @@ pub fn tile(
         Format::Tiff => ("tiff", "image/tiff"),
     };
     // The media type is in it: a PNG's tag must not answer for the WebP of the same tile.
-    let what = format!(
+    let mut what = format!(
         "raster/{kind}/{content_type}/{}/{}/{}/{}/{:e}",
         r.z, r.x, r.y, r.size, r.error
     );
+    if r.heights != Heights::Store {
+        // Only then, so that the tags of tiles in the store's frame stay as they were.
+        what = format!("{what}/{}", r.heights.key());
+    }
+    // Refused before any work where the heights cannot be given as asked.
+    engine.can_give(&r.heights)?;
     let near = web
         .pyramid(engine)
         .near(&mercator::lonlat_bounds(r.z, r.x, r.y));
@@ -86,15 +94,20 @@ pub fn tile(
         let mut heights = if empty {
             vec![f32::NAN; size * size]
         } else {
-            let req = TileRequest {
-                cut: cut.clone(),
-                size: TileSize::new(r.size, r.size)?,
-                backend: Backend::Auto,
-            };
+            let req = TileRequest::new(cut.clone(), r.size, r.size, Backend::Auto)?;
             engine
                 .tile(&req, Ctx::until(cancel).with_cut((t, ps)))?
                 .0
                 .heights
+        };
+        let grid = SampleGrid::uniform(&roi, size, size);
+        let own = cut.crs();
+        // Heights in another frame are carried there once the voids are filled, in the
+        // store's frame as the surveys are.
+        let carry = |heights: &mut Vec<f32>| {
+            engine
+                .carry_heights(heights, &grid, own, &r.heights)
+                .map(|_| ())
         };
         match r.format {
             Format::Png(encoding) | Format::Webp(encoding) => {
@@ -104,10 +117,9 @@ pub fn tile(
                 let voids = if empty {
                     vec![true; size * size]
                 } else {
-                    let grid = SampleGrid::uniform(&roi, size, size);
-                    let own = cut.crs();
                     engine.fill_voids(&mut heights, &grid, own, error, cancel)?
                 };
+                carry(&mut heights)?;
                 let pixels = rgba(&heights, &voids, encoding);
                 Ok(match r.format {
                     Format::Webp(_) => webp(&pixels, r.size),
@@ -115,6 +127,7 @@ pub fn tile(
                 })
             }
             Format::Tiff => {
+                carry(&mut heights)?;
                 let gt = [
                     roi.min[0],
                     roi.width() / r.size as f64,

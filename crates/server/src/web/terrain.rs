@@ -8,7 +8,7 @@ use super::{Produced, Web};
 use patchwork_core::geom::tiles::geographic;
 use patchwork_core::mesh::{self, encode, Border, Method};
 use patchwork_core::resample::Cancel;
-use patchwork_engine::{Backend, Ctx, Engine, EngineError, MeshSpec, Metres, Region};
+use patchwork_engine::{Backend, Ctx, Engine, EngineError, Heights, MeshSpec, Metres, Region};
 use serde_json::json;
 
 /// The extensions a client asked for in its `Accept` header.
@@ -55,20 +55,50 @@ pub fn errors(z: u32) -> (f64, f64) {
     (g / 2.0, g / 2.0)
 }
 
-/// The quantized-mesh tile (z, x, y) with the extensions `asked`: its ETag from the cut, then
-/// its bytes unless the client has them. A tile with no data under it is the ellipsoid, all
-/// water.
-#[allow(clippy::too_many_arguments)]
+/// A quantized-mesh tile asked for.
+#[derive(Clone, Debug)]
+pub struct Tile {
+    /// The zoom level.
+    pub z: u32,
+    /// The column, from the west.
+    pub x: u32,
+    /// The row, from the south (TMS).
+    pub y: u32,
+    /// The extensions.
+    pub asked: Asked,
+    /// What the heights are measured from; None for Cesium's own, the ellipsoid's, where
+    /// the store's heights can be carried there.
+    pub heights: Option<Heights>,
+}
+
+/// The quantized-mesh tile `tile`: its ETag from the cut, then its bytes unless the client
+/// has them. A tile with no data under it is the ellipsoid, all water.
+///
+/// Cesium places vertices above the WGS 84 ellipsoid, so that is what a tile's heights are
+/// measured from unless the client asks otherwise. A store whose heights cannot be carried
+/// there (nothing says what they are from, or a geoid grid is missing) serves them as they
+/// are, with a `Warning` header saying why, rather than no terrain at all.
 pub fn tile(
     engine: &Engine,
     web: &Web,
-    z: u32,
-    x: u32,
-    y: u32,
-    asked: Asked,
+    tile: &Tile,
     if_none_match: Option<&str>,
     cancel: &Cancel,
 ) -> Result<Produced, EngineError> {
+    let Tile { z, x, y, asked, .. } = *tile;
+    let (heights, warning) = match &tile.heights {
+        Some(h) => (h.clone(), None),
+        None => match engine.can_give(&Heights::ellipsoid()) {
+            Ok(()) => (Heights::ellipsoid(), None),
+            Err(e) => (
+                Heights::Store,
+                Some(format!(
+                    "heights are the store's, not above the ellipsoid: {e}"
+                )),
+            ),
+        },
+    };
+    engine.can_give(&heights)?;
     let roi = geographic::bounds(z, x, y);
     let (cut_error, mesh_error) = errors(z);
     let n = TERRAIN_GRID;
@@ -85,6 +115,7 @@ pub fn tile(
         hole_reach_m: Metres::ZERO,
         crs,
         fill_voids: true,
+        heights: heights.clone(),
     };
     let (t, ps) = match engine.crs() {
         Some(_) => engine.query(&Engine::mesh_cut(&spec)?)?,
@@ -98,10 +129,10 @@ pub fn tile(
     } else {
         0
     };
-    let what = format!("terrain/{z}/{x}/{y}/{asked:?}/{depth}");
+    let what = format!("terrain/{z}/{x}/{y}/{asked:?}/{depth}/{}", heights.key());
     let near = pyramid.near(&roi);
     let etag = web.etag(&what, &ps, &near);
-    web.produce(
+    let made = web.produce(
         etag,
         if_none_match,
         "application/vnd.quantized-mesh",
@@ -130,7 +161,8 @@ pub fn tile(
             };
             Ok(encode::quantized_mesh(&mesh, &roi, &ext))
         },
-    )
+    )?;
+    Ok(Produced { warning, ..made })
 }
 
 /// The water mask of a tile whose grid (`n` = 257 vertices a side) had no data at the
