@@ -475,6 +475,33 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
                 None => assert_eq!(*v, 0),
             }
         }
+        // This crop names no vertical CRS: its heights are the store's, which say nothing of
+        // their frame, and cannot be carried above the ellipsoid; a frame that is not a
+        // vertical CRS is refused at the door.
+        assert_eq!(s.vertical_crs, "");
+        assert_eq!(s.frame_error_m, 0.0);
+        for (heights, code) in [
+            ("ellipsoid", tonic::Code::InvalidArgument),
+            ("EPSG:4326", tonic::Code::InvalidArgument),
+        ] {
+            let req = pb::SampleRequest {
+                points: vec![pb::Point {
+                    x: pts[0][0],
+                    y: pts[0][1],
+                }],
+                heights: heights.into(),
+                ..Default::default()
+            };
+            let e = t.sample_heights(req).await.unwrap_err();
+            assert_eq!(e.code(), code, "{heights}: {e:?}");
+            let reason = patchwork::serve::status::reason_of(&e);
+            let want = if heights == "ellipsoid" {
+                "GEOID"
+            } else {
+                "INVALID_REQUEST"
+            };
+            assert_eq!(reason.map(|r| r.as_str()), Some(want), "{heights}: {e:?}");
+        }
 
         // One point, and points sharing an x or a y, are answered like any others.
         let along: Vec<[f64; 2]> = (0..12)

@@ -111,6 +111,9 @@ class TileInfo:
     #: and its key ("EPSG:n", or a WKT 2 definition).
     crs: int
     crs_key: str = ""
+    #: What its heights are measured from: "EPSG:n", "ellipsoidal", or "" where the store
+    #: names nothing.
+    vertical_crs: str = ""
 
 
 @dataclass(frozen=True)
@@ -340,18 +343,20 @@ class Client:
         return out
 
     def tile(self, roi: Rect, width: int, height: int, error: float, backend: str = "auto",
-             crs: str = "") -> np.ndarray:
+             crs: str = "", heights: str = "store") -> np.ndarray:
         """A height × width float32 tile over ``roi``, north row first, NaN for nodata. With
         ``crs`` ("EPSG:3857", a UTM zone, a WKT or a PROJ string), the ROI and the tile are in
-        that CRS; the store's by default."""
-        return self.tile_with_info(roi, width, height, error, backend, crs)[0]
+        that CRS; the store's by default. ``heights`` says what they are measured from:
+        "store" (its vertical CRS), "ellipsoid" (WGS 84's) or a vertical CRS as "EPSG:n"."""
+        return self.tile_with_info(roi, width, height, error, backend, crs, heights)[0]
 
     def tile_with_info(self, roi: Rect, width: int, height: int, error: float, backend: str = "auto",
-                       crs: str = ""):
+                       crs: str = "", heights: str = "store"):
         """:meth:`tile`, with what the daemon says of it (:class:`TileInfo`)."""
         cut = terrain_pb2.UniformCut(roi=_rect(roi), error=error)
         return self._bands(terrain_pb2.TileRequest(uniform=cut, width=width, height=height,
-                                                   backend=BACKENDS[backend], crs=crs))
+                                                   backend=BACKENDS[backend], crs=crs,
+                                                   heights=heights))
 
     def view_tile(self, camera: Camera, width: int, height: int, backend: str = "auto") -> np.ndarray:
         """The view-dependent tile a camera sees: its screen grid projected onto the ground."""
@@ -360,17 +365,17 @@ class Client:
 
     def mesh(self, roi: Rect, error: float, size: int = 257, rows: int = 0, mesh_error: float = 1.0,
              skirt: float = 0.0, border: str = "shared", method: str = "rtin", hole_reach: float = 0.0,
-             backend: str = "auto", crs: str = "") -> Mesh:
+             backend: str = "auto", crs: str = "", heights: str = "store") -> Mesh:
         """A triangle mesh of the cut's surface over ``roi`` within ``mesh_error`` metres of
         it, on a ``size`` × ``rows`` grid of vertices (``rows`` 0: square) whose corners are
         the ROI's; ``border`` "shared" keeps every border vertex, ``method`` "rtin" or
         "quadtree", skirts ``skirt`` metres deep, voids within ``hole_reach`` metres of data
         drawn over. ``crs`` names the CRS of the ROI and the vertices (the store's by
-        default)."""
+        default), ``heights`` what their heights are measured from (see :meth:`tile`)."""
         req = terrain_pb2.MeshRequest(
             cut=terrain_pb2.UniformCut(roi=_rect(roi), error=error), size=size, rows=rows,
             mesh_error=mesh_error, skirt_m=skirt, border=MESH_BORDERS[border], method=MESH_METHODS[method],
-            hole_reach_m=hole_reach, backend=BACKENDS[backend], crs=crs,
+            hole_reach_m=hole_reach, backend=BACKENDS[backend], crs=crs, heights=heights,
         )
         m = self._call(self.terrain.MeshTile, req)
         r = m.roi
@@ -395,19 +400,21 @@ class Client:
             if out is None:
                 out = np.empty((band.height, band.width), dtype=np.float32)
                 info = TileInfo(backend=band.backend, patches=band.patches, max_error=band.max_error,
-                                crs=band.crs, crs_key=band.crs_key)
+                                crs=band.crs, crs_key=band.crs_key, vertical_crs=band.vertical_crs)
             rows = np.frombuffer(band.heights, dtype="<f4").reshape(band.rows, band.width)
             out[band.row:band.row + band.rows] = rows
         if out is None:
             raise RuntimeError("the tile came back empty")
         return out, info
 
-    def sample(self, points, error: float, crs: str = "") -> np.ndarray:
+    def sample(self, points, error: float, crs: str = "", heights: str = "store") -> np.ndarray:
         """Heights at points, an n × 2 array (or a sequence of (x, y)) in ``crs`` (the
-        store's by default); float32, NaN where there is no data."""
+        store's by default), measured from ``heights`` (see :meth:`tile`); float32, NaN where
+        there is no data."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         req = terrain_pb2.SampleRequest(
-            points=[terrain_pb2.Point(x=x, y=y) for x, y in pts], error=error, crs=crs
+            points=[terrain_pb2.Point(x=x, y=y) for x, y in pts], error=error, crs=crs,
+            heights=heights,
         )
         r = self._call(self.terrain.SampleHeights, req)
         z = np.asarray(r.heights, dtype=np.float32)
