@@ -8,7 +8,8 @@
 //! The store holds every kind of record: the overlapping Copernicus and NASADEM crops (the
 //! pair's evidence), an SRTM crop of Mont Ventoux with voids (edge patches) whose accuracy is
 //! estimated (its kernels' accuracies), a file that is not a DEM (a failure), and a survey
-//! retired by hand while its file stays in the inbox (its content id, pinned).
+//! retired by hand while its file stays in the inbox (its content id, pinned). From version
+//! 9 the Copernicus crop has a sidecar saying where it came from (its record's `about`).
 
 use patchwork::config::Config;
 use patchwork::engine::{Engine, Origin};
@@ -28,6 +29,18 @@ fn main() {
     let bad = inbox.join("not_a_dem.tif");
     std::fs::write(&bad, b"this is not a GeoTIFF").expect("bad file");
     let data = tmp.path().join("store");
+    // With a sidecar that says where it came from.
+    let copernicus = inbox.join("copernicus_n34w119_crop.tif");
+    std::fs::copy(crops.join("copernicus_n34w119_crop.tif"), &copernicus).expect("copied");
+    std::fs::write(
+        inbox.join("copernicus_n34w119_crop.tif.toml"),
+        "title = \"Copernicus DEM GLO-30, N34 W119\"\n\
+         license = \"Copernicus DEM licence\"\n\
+         attribution = \"© DLR e.V. 2010-2014 and © Airbus Defence and Space GmbH 2014-2018 \
+         provided under COPERNICUS by the European Union and ESA\"\n\
+         acquired = \"2011-01/2015-01\"\n",
+    )
+    .expect("sidecar");
     // Retired by hand while its file stays in the inbox: pinned there.
     let pinned = inbox.join("srtm_n44e005_big_hole_crop.tif");
     std::fs::copy(crops.join("srtm_n44e005_big_hole_crop.tif"), &pinned).expect("copied");
@@ -42,7 +55,7 @@ fn main() {
         let e = Engine::open(cfg).expect("engine");
         for (file, accuracy) in [
             (crops.join("srtm_n44e005_voids_crop.tif"), None),
-            (crops.join("copernicus_n34w119_crop.tif"), Some(3.0)),
+            (copernicus.clone(), Some(3.0)),
             (crops.join("nasadem_n34w119_crop.tif"), Some(8.0)),
             (pinned.clone(), Some(5.0)),
         ] {

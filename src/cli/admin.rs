@@ -159,6 +159,9 @@ pub async fn surveys(args: SurveysArgs) -> Result<(), Fail> {
                             s.samples,
                             s.patches
                         );
+                    if let Some(line) = about_line(s.about.as_ref()) {
+                        println!("{:<16}  {}", "", printable(&line));
+                    }
                     for c in &s.conflicts {
                         println!("{:<16}  {}", "", conflict_line(c));
                     }
@@ -167,6 +170,23 @@ pub async fn surveys(args: SurveysArgs) -> Result<(), Fail> {
         }
     }
     Ok(())
+}
+
+/// What a survey's sidecar says of it, on a line: title, acquisition, licence, attribution,
+/// those it gives; None where it gives none.
+fn about_line(a: Option<&pb::About>) -> Option<String> {
+    let a = a?;
+    let parts: Vec<String> = [
+        (&a.title, ""),
+        (&a.acquired, "acquired "),
+        (&a.license, "licence "),
+        (&a.attribution, "© "),
+    ]
+    .iter()
+    .filter(|(v, _)| !v.is_empty())
+    .map(|(v, label)| format!("{label}{v}"))
+    .collect();
+    (!parts.is_empty()).then(|| parts.join("  "))
 }
 
 pub async fn retire(args: RetireArgs) -> Result<(), Fail> {

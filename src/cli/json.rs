@@ -64,6 +64,16 @@ pub struct SurveyJson<'a> {
     samples: u64,
     patches: u32,
     conflicts: Vec<ConflictJson<'a>>,
+    /// What its sidecar says of where it came from; null for each field it does not give.
+    title: Option<&'a str>,
+    license: Option<&'a str>,
+    attribution: Option<&'a str>,
+    acquired: Option<&'a str>,
+}
+
+/// A field of an `About`, null where it is empty.
+fn given(v: &str) -> Option<&str> {
+    (!v.is_empty()).then_some(v)
 }
 
 #[derive(Serialize)]
@@ -121,6 +131,10 @@ impl<'a> SurveyJson<'a> {
             vertical_error_m: s.vertical_error_m,
             samples: s.samples,
             patches: s.patches,
+            title: s.about.as_ref().and_then(|a| given(&a.title)),
+            license: s.about.as_ref().and_then(|a| given(&a.license)),
+            attribution: s.about.as_ref().and_then(|a| given(&a.attribution)),
+            acquired: s.about.as_ref().and_then(|a| given(&a.acquired)),
             conflicts: s
                 .conflicts
                 .iter()
@@ -144,10 +158,48 @@ impl<'a> SurveyJson<'a> {
 
 /// `sample --json`: a point and its height, null where there is no data.
 #[derive(Serialize)]
-pub struct SampleJson {
+pub struct SampleJson<'a> {
     pub x: f64,
     pub y: f64,
     pub height: Option<f32>,
+    /// With `--sources`: what served the height (null where there is none).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub source: Option<Option<SourceJson<'a>>>,
+}
+
+/// What served a height.
+#[derive(Serialize)]
+pub struct SourceJson<'a> {
+    survey: &'a str,
+    file: &'a str,
+    title: Option<&'a str>,
+    license: Option<&'a str>,
+    attribution: Option<&'a str>,
+    acquired: Option<&'a str>,
+    level: u32,
+    cell_m: f64,
+    error_m: f64,
+}
+
+impl<'a> SourceJson<'a> {
+    /// None where the point has no height.
+    pub fn of(s: &'a pb::Source) -> Option<Self> {
+        if s.survey.is_empty() {
+            return None;
+        }
+        let a = s.about.as_ref();
+        Some(SourceJson {
+            survey: &s.survey,
+            file: &s.file,
+            title: a.and_then(|a| given(&a.title)),
+            license: a.and_then(|a| given(&a.license)),
+            attribution: a.and_then(|a| given(&a.attribution)),
+            acquired: a.and_then(|a| given(&a.acquired)),
+            level: s.level,
+            cell_m: s.cell_m,
+            error_m: s.error_m,
+        })
+    }
 }
 
 /// `stats --json`.

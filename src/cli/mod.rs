@@ -196,6 +196,9 @@ pub struct SampleArgs {
     /// (WGS 84's, as GPS and Cesium take them) or a vertical CRS as EPSG:n.
     #[arg(long, value_name = "FRAME", default_value = "store")]
     pub heights: String,
+    /// Say what served each height: the survey, its file, level, cell and error.
+    #[arg(long)]
+    pub sources: bool,
     #[command(flatten)]
     pub target: Target,
 }

@@ -1,7 +1,7 @@
 //! The Terrain service's commands: patches of a cut, tiles, heights at points, and meshes.
 
 use super::client::{call, collect, Client};
-use super::json::{PatchJson, QueryJson, SampleJson};
+use super::json::{PatchJson, QueryJson, SampleJson, SourceJson};
 use super::{achieved, numbers, rect, CutArgs, Fail, MeshArgs, QueryArgs, SampleArgs, TileArgs};
 use patchwork::engine::{Engine, SampleRequest, TileRequest};
 use patchwork::serve::door::MeshAsk;
@@ -130,6 +130,7 @@ pub async fn sample(args: SampleArgs) -> Result<(), Fail> {
         crs,
         json,
         heights,
+        sources,
         target,
     } = args;
     let pts: Vec<[f64; 2]> = match (&points, &line) {
@@ -162,6 +163,7 @@ pub async fn sample(args: SampleArgs) -> Result<(), Fail> {
         error,
         crs: crs.unwrap_or_default(),
         heights,
+        sources,
     };
     let local = req.clone();
     let r = call!(&mut c, terrain.sample_heights(req), move |e: &Engine| {
@@ -176,13 +178,24 @@ pub async fn sample(args: SampleArgs) -> Result<(), Fail> {
                 x: p[0],
                 y: p[1],
                 height: height(k),
+                source: sources.then(|| r.sources.get(k).and_then(SourceJson::of)),
             })
             .collect();
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         for (k, p) in pts.iter().enumerate() {
+            let from = match r.sources.get(k).and_then(SourceJson::of) {
+                Some(_) => {
+                    let s = &r.sources[k];
+                    format!(
+                        "  from {} ({}, level {}, cell {:.1} m, error {:.2} m)",
+                        s.survey, s.file, s.level, s.cell_m, s.error_m
+                    )
+                }
+                None => String::new(),
+            };
             match height(k) {
-                Some(z) => println!("{} {} {z}", p[0], p[1]),
+                Some(z) => println!("{} {} {z}{from}", p[0], p[1]),
                 None => println!("{} {} nodata", p[0], p[1]),
             }
         }

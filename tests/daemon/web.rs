@@ -516,3 +516,94 @@ fn a_daemon_with_a_certificate_serves_web_clients_over_tls_only() {
     let _ = plain.read_to_end(&mut back);
     assert!(!back.starts_with(b"HTTP/1.1 200"), "plain HTTP was served");
 }
+
+#[test]
+fn heights_tiles_and_documents_name_the_surveys_that_served_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    // The sidecar first, so that the survey is read with it.
+    std::fs::write(
+        d.inbox().join("cop.tif.toml"),
+        "title = \"Copernicus DEM GLO-30\"\nlicense = \"Copernicus DEM licence\"\n\
+         attribution = \"© DLR, © Airbus, Copernicus\"\nacquired = \"2011-01/2015-01\"\n",
+    )
+    .unwrap();
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "cop.tif");
+    drop_by_rename(&crop("nasadem_n34w119_crop.tif"), &d.inbox(), "nas.tif");
+    d.wait("both surveys", |s| count(s, "active") == 2);
+
+    let listed = d.surveys();
+    let cop = listed
+        .iter()
+        .find(|s| s["source"].as_str().unwrap().ends_with("cop.tif"))
+        .unwrap();
+    assert_eq!(cop["title"], "Copernicus DEM GLO-30");
+    assert_eq!(cop["acquired"], "2011-01/2015-01");
+    let nas = listed
+        .iter()
+        .find(|s| s["source"].as_str().unwrap().ends_with("nas.tif"))
+        .unwrap();
+    assert_eq!(nas["title"], serde_json::Value::Null);
+
+    let at = format!(
+        "points={},{},{},{},0,0",
+        COPERNICUS_ONLY[0], COPERNICUS_ONLY[1], BOTH[0], BOTH[1]
+    );
+    let h = get(&format!("{}/heights?{at}&sources=true", d.http), &[]).json();
+    let sources = h["sources"].as_array().unwrap();
+    assert_eq!(sources.len(), 3);
+    assert_eq!(sources[0]["file"], "cop.tif");
+    assert_eq!(sources[0]["title"], "Copernicus DEM GLO-30");
+    assert_eq!(sources[0]["license"], "Copernicus DEM licence");
+    assert_eq!(sources[0]["id"], cop["id"]);
+    assert!(sources[0]["cell_m"].as_f64().unwrap() > 20.0);
+    assert!(sources[1].is_object());
+    assert_eq!(sources[2], serde_json::Value::Null, "no height, no source");
+    let plain = get(&format!("{}/heights?{at}", d.http), &[]).json();
+    assert_eq!(plain["heights"], h["heights"]);
+    assert!(plain.get("sources").is_none());
+
+    // A tile over both crops: each survey with its share of the samples.
+    let (x, y) = tile_at(12, BOTH);
+    let s = get(&format!("{}/tiles/12/{x}/{y}/sources.json", d.http), &[]);
+    assert_eq!(s.status, 200, "{}", s.text());
+    let s = s.json();
+    let list = s["sources"].as_array().unwrap();
+    assert_eq!(list.len(), 2, "{s:#}");
+    let total: f64 = list.iter().map(|v| v["share"].as_f64().unwrap()).sum();
+    assert!((total - 1.0).abs() < 1e-9, "{s:#}");
+    let samples: u64 = list.iter().map(|v| v["samples"].as_u64().unwrap()).sum();
+    assert_eq!(samples, s["samples"].as_u64().unwrap());
+    assert!(samples > 0 && samples <= 256 * 256);
+    assert_eq!(
+        get(&format!("{}/tiles/12/{x}/{y}/other.json", d.http), &[]).status,
+        404
+    );
+
+    // The documents credit what their area shows.
+    let tj = get(&format!("{}/tiles.json", d.http), &[]).json();
+    assert_eq!(tj["attribution"], "© DLR, © Airbus, Copernicus");
+    let away = get(&format!("{}/tiles.json?bounds=10,10,11,11", d.http), &[]).json();
+    assert_eq!(away["attribution"], "");
+    let bad = get(&format!("{}/tiles.json?bounds=10,10,11", d.http), &[]);
+    assert_eq!(bad.status, 400);
+    let layer = get(&format!("{}/terrain/layer.json", d.http), &[]).json();
+    assert_eq!(layer["attribution"], "© DLR, © Airbus, Copernicus");
+    let fp = get(&format!("{}/surveys.geojson", d.http), &[]).json();
+    let files: Vec<&str> = fp["features"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["properties"]["file"].as_str().unwrap())
+        .collect();
+    assert!(
+        files.contains(&"cop.tif") && files.contains(&"nas.tif"),
+        "{files:?}"
+    );
+
+    // The CLI says the same.
+    let p = format!("{},{}", COPERNICUS_ONLY[0], COPERNICUS_ONLY[1]);
+    let v = d.json(&["sample", "--points", &p, "--sources", "--json"]);
+    assert_eq!(v[0]["source"]["title"], "Copernicus DEM GLO-30");
+    assert_eq!(v[0]["source"]["survey"], cop["id"]);
+}

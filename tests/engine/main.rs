@@ -14,5 +14,6 @@ mod fuzz;
 mod gpu;
 mod mesh;
 mod objects;
+mod sources;
 mod store;
 mod vertical;

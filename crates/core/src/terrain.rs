@@ -17,7 +17,7 @@ use patchwork_model::place::{
 };
 use patchwork_model::source::{SampleError, SampleSource};
 use patchwork_model::survey::{Survey, SurveyMeta};
-use patchwork_resample::{cpu, Cancel, PatchSet, ResolvedPatch, SampleGrid};
+use patchwork_resample::{cpu, Cancel, PatchSet, ResolvedPatch, SampleGrid, BLOCK};
 use rayon::prelude::*;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
@@ -1398,35 +1398,234 @@ impl Terrain {
         e: f64,
         cancel: &Cancel,
     ) -> Result<Option<Vec<f32>>, SampleError> {
-        // A point that is nowhere (outside where its CRS reaches the store's) has no height.
+        let Some((_, set, grid, slots)) = self.point_set(points, e)? else {
+            return Ok(Some(vec![f32::NAN; points.len()]));
+        };
+        Ok(cpu::resample_until(&set, &grid, cancel).map(|h| unsort(&h, &slots)))
+    }
+
+    /// [`Terrain::try_sample_until`], with what served each point: the patch of the cut that
+    /// weighs most in its height ([`cpu::resample_serving`]), None where it has none.
+    #[allow(clippy::type_complexity)]
+    pub fn try_sample_sources_until(
+        &self,
+        points: &[[f64; 2]],
+        e: f64,
+        cancel: &Cancel,
+    ) -> Result<Option<(Vec<f32>, Vec<Option<Extracted>>)>, SampleError> {
+        let Some((ps, set, grid, slots)) = self.point_set(points, e)? else {
+            return Ok(Some((
+                vec![f32::NAN; points.len()],
+                vec![None; points.len()],
+            )));
+        };
+        let Some((heights, served)) = cpu::resample_serving(&set, &grid, cancel) else {
+            return Ok(None);
+        };
+        let served = self.patches_served(&ps, &set, &grid, served);
+        Ok(Some((unsort(&heights, &slots), unsort(&served, &slots))))
+    }
+
+    /// What served each sample of `grid` from the patches `ps`: the patch that weighs most
+    /// in its height ([`cpu::resample_serving`]), None where it has none.
+    pub fn try_sources(
+        &self,
+        ps: &[Extracted],
+        grid: &SampleGrid,
+    ) -> Result<Vec<Option<Extracted>>, SampleError> {
+        let set = self.try_resolve(ps)?;
+        let (_, served) =
+            cpu::resample_serving(&set, grid, &Cancel::default()).expect("never cancelled");
+        Ok(self.patches_served(ps, &set, grid, served))
+    }
+
+    /// What [`cpu::resample_serving`] found served each sample of `grid`, an index into
+    /// `set` (resolved from `ps`), as the patch of `ps` (by id: the set holds those of the cut
+    /// that could be read and reach a point). An edge patch, which
+    /// stitches the samples of several surveys across their seam, is told as the member
+    /// whose footprint holds the point, the most accurate where several do (the first
+    /// member where none does): its `survey` is that member's id, not the patch's owner.
+    fn patches_served(
+        &self,
+        ps: &[Extracted],
+        set: &PatchSet,
+        grid: &SampleGrid,
+        served: Vec<Option<u32>>,
+    ) -> Vec<Option<Extracted>> {
+        let by_id: std::collections::HashMap<_, &Extracted> =
+            ps.iter().map(|x| (x.id, x)).collect();
+        served
+            .into_iter()
+            .enumerate()
+            .map(|(at, k)| {
+                let id = set.patches[k? as usize].id;
+                let mut x = (*by_id.get(&id)?).clone();
+                if let Some(e) = self.edges.get(&x.survey) {
+                    let p = grid.point(at);
+                    let holds = |s: &&Arc<SurveyMeta>| s.footprint().contains_point(p);
+                    let member = e
+                        .members
+                        .iter()
+                        .filter_map(|m| self.surveys.get(m))
+                        .filter(holds)
+                        .min_by(|a, b| a.accuracy.total_cmp(&b.accuracy).then(a.id.cmp(&b.id)))
+                        .map(|s| s.id);
+                    x.survey = member.or(e.members.first().copied())?;
+                }
+                Some(x)
+            })
+            .collect()
+    }
+
+    /// The patches points are sampled from at error `e`, resolved; the points as a grid; and
+    /// where each point went in it (its sample's index). Each point's height depends on the point alone, so they
+    /// may be laid out in any order: in Z order, [`BLOCK`] to a row, so that each block of
+    /// the resampler (`BLOCK` × `BLOCK` samples, binned together) holds points close to each
+    /// other and visits only the patches near them, whereas scattered points in the order
+    /// given would each visit every patch of the cut. The rows resample on every core and a
+    /// cancel is seen between them; the last is padded with points that are nowhere. None
+    /// where no point is anywhere (outside where its CRS reaches the store's).
+    #[allow(clippy::type_complexity)]
+    fn point_set(
+        &self,
+        points: &[[f64; 2]],
+        e: f64,
+    ) -> Result<Option<(Vec<Extracted>, PatchSet, SampleGrid, Vec<usize>)>, SampleError> {
         let finite: Vec<[f64; 2]> = points
             .iter()
             .copied()
             .filter(|p| p[0].is_finite() && p[1].is_finite())
             .collect();
         if finite.is_empty() {
-            return Ok(Some(vec![f32::NAN; points.len()]));
+            return Ok(None);
         }
-        let ps = self.uniform(&Aabb::of_points(&finite), e);
-        let set = self.try_resolve(&ps)?;
-        // Rows of points, so that they resample on every core and a cancel is seen between
-        // rows; each point's height depends on the point alone. The last row is padded with
-        // points that are nowhere.
-        const ROW: usize = 1024;
-        let width = points.len().min(ROW);
-        let height = points.len().div_ceil(width);
-        let mut padded = points.to_vec();
-        padded.resize(width * height, [f64::NAN, f64::NAN]);
-        let grid = SampleGrid::of_points(width, height, padded);
-        Ok(cpu::resample_until(&set, &grid, cancel).map(|mut h| {
-            h.truncate(points.len());
-            h
-        }))
+        let bounds = Aabb::of_points(&finite);
+        let ps = self.uniform(&bounds, e);
+        let mut set = self.try_resolve(&ps)?;
+        // Only the patches that reach a point are blended: scattered points leave most of the
+        // cut over their bounds unused, and a block of the resampler visits every patch
+        // binned with it. A patch reaches exactly where it is binned (its `reach`).
+        let near = Bucketed::new(&finite, &bounds);
+        set.patches.retain(|p| near.any_in(&p.reach()));
+        let order = z_order(points, &bounds);
+        // `BLOCK` points in the first row of each band of `BLOCK` rows, the others nowhere:
+        // a block then bins only the patches near its few points (nowhere costs a test).
+        let width = points.len().min(BLOCK);
+        let bands = points.len().div_ceil(width);
+        let height = (bands - 1) * BLOCK + 1;
+        let mut laid = vec![[f64::NAN, f64::NAN]; width * height];
+        let mut slots = vec![0; points.len()];
+        for (i, &k) in order.iter().enumerate() {
+            let at = (i / width) * BLOCK * width + i % width;
+            laid[at] = points[k];
+            slots[k] = at;
+        }
+        Ok(Some((
+            ps,
+            set,
+            SampleGrid::of_points(width, height, laid),
+            slots,
+        )))
     }
 
     /// A view-dependent sample grid of `width × height` screen pixels.
     pub fn view_tile(&self, v: &ViewQuery, width: usize, height: usize) -> Tile {
         let ps = self.view(v);
         self.resample(ps, &view_grid(v, width, height))
+    }
+}
+
+/// The indices of `points` in Z (Morton) order over `bounds`, points that are nowhere last.
+fn z_order(points: &[[f64; 2]], bounds: &Aabb) -> Vec<usize> {
+    let span = [
+        bounds.width().max(f64::MIN_POSITIVE),
+        bounds.height().max(f64::MIN_POSITIVE),
+    ];
+    let key = |p: &[f64; 2]| -> u64 {
+        if !(p[0].is_finite() && p[1].is_finite()) {
+            return u64::MAX;
+        }
+        let q = |v: f64, lo: f64, s: f64| (((v - lo) / s).clamp(0.0, 1.0) * 65535.0) as u32;
+        let (x, y) = (
+            q(p[0], bounds.min[0], span[0]),
+            q(p[1], bounds.min[1], span[1]),
+        );
+        (0..16).fold(0u64, |k, b| {
+            k | (((x >> b) & 1) as u64) << (2 * b) | (((y >> b) & 1) as u64) << (2 * b + 1)
+        })
+    };
+    let keys: Vec<u64> = points.iter().map(key).collect();
+    let mut order: Vec<usize> = (0..points.len()).collect();
+    order.sort_by_key(|&k| (keys[k], k));
+    order
+}
+
+/// Values of a layout back in the points' own order: point k's is at `slots[k]`.
+fn unsort<T: Clone>(laid: &[T], slots: &[usize]) -> Vec<T> {
+    slots.iter().map(|&at| laid[at].clone()).collect()
+}
+
+/// Points bucketed on a grid over their bounds, to ask whether any lies in a rectangle.
+struct Bucketed<'a> {
+    points: &'a [[f64; 2]],
+    bounds: Aabb,
+    n: usize,
+    /// Point indices by bucket, row-major, laid end to end: bucket b holds
+    /// `entries[offsets[b]..offsets[b + 1]]`.
+    offsets: Vec<u32>,
+    entries: Vec<u32>,
+}
+
+impl<'a> Bucketed<'a> {
+    fn new(points: &'a [[f64; 2]], bounds: &Aabb) -> Self {
+        // About four points a bucket.
+        let n = ((points.len() as f64 / 4.0).sqrt().ceil() as usize).clamp(1, 1024);
+        let mut b = Bucketed {
+            points,
+            bounds: *bounds,
+            n,
+            offsets: vec![0; n * n + 1],
+            entries: vec![0; points.len()],
+        };
+        let cells: Vec<usize> = points.iter().map(|p| b.cell(*p)).collect();
+        for &c in &cells {
+            b.offsets[c + 1] += 1;
+        }
+        for k in 0..n * n {
+            b.offsets[k + 1] += b.offsets[k];
+        }
+        let mut fill = b.offsets.clone();
+        for (i, &c) in cells.iter().enumerate() {
+            b.entries[fill[c] as usize] = i as u32;
+            fill[c] += 1;
+        }
+        b
+    }
+
+    fn index(&self, v: f64, axis: usize) -> usize {
+        let span = (self.bounds.max[axis] - self.bounds.min[axis]).max(f64::MIN_POSITIVE);
+        let t = ((v - self.bounds.min[axis]) / span * self.n as f64).floor();
+        t.clamp(0.0, (self.n - 1) as f64) as usize
+    }
+
+    fn cell(&self, p: [f64; 2]) -> usize {
+        self.index(p[1], 1) * self.n + self.index(p[0], 0)
+    }
+
+    /// Whether a point lies in `r` (bounds included).
+    fn any_in(&self, r: &Aabb) -> bool {
+        if !r.intersects(&self.bounds) {
+            return false;
+        }
+        let (c0, c1) = (self.index(r.min[0], 0), self.index(r.max[0], 0));
+        let (r0, r1) = (self.index(r.min[1], 1), self.index(r.max[1], 1));
+        (r0..=r1).any(|row| {
+            (c0..=c1).any(|col| {
+                let b = row * self.n + col;
+                self.entries[self.offsets[b] as usize..self.offsets[b + 1] as usize]
+                    .iter()
+                    .any(|&i| r.contains_point(self.points[i as usize]))
+            })
+        })
     }
 }

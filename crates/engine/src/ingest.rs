@@ -186,6 +186,41 @@ pub struct Sidecar {
     /// What the correction leaves uncertain, metres of height, added to ε (default 0; a
     /// conflict's `rms_after_m` is a safe figure).
     pub offset_error_m: Option<f64>,
+    /// The survey's title, for the provenance of its heights.
+    pub title: Option<String>,
+    /// Its licence ("CC-BY-4.0", a URL, ...).
+    pub license: Option<String>,
+    /// The attribution its licence asks for, as a map shows it.
+    pub attribution: Option<String>,
+    /// When it was acquired, as its producer gives it: "2011-02", "2000-02-11/2000-02-22".
+    pub acquired: Option<String>,
+}
+
+/// The longest text a sidecar's provenance field may hold.
+const ABOUT_MOST: usize = 1000;
+
+impl Sidecar {
+    /// What it says of where the survey came from, checked: each field a line of at most
+    /// [`ABOUT_MOST`] characters.
+    pub fn about(&self) -> Result<patchwork_store::form::About, String> {
+        let field = |name: &str, v: &Option<String>| -> Result<Option<String>, String> {
+            let Some(v) = v else { return Ok(None) };
+            let v = v.trim();
+            if v.chars().count() > ABOUT_MOST {
+                return Err(format!("{name} is longer than {ABOUT_MOST} characters"));
+            }
+            if v.chars().any(char::is_control) {
+                return Err(format!("{name} holds a control character (a line break?)"));
+            }
+            Ok((!v.is_empty()).then(|| v.to_string()))
+        };
+        Ok(patchwork_store::form::About {
+            title: field("title", &self.title)?,
+            license: field("license", &self.license)?,
+            attribution: field("attribution", &self.attribution)?,
+            acquired: field("acquired", &self.acquired)?,
+        })
+    }
 }
 
 /// A sidecar is a line or two; anything far larger is not one.
@@ -354,6 +389,8 @@ pub struct Prepared {
     pub vertical_source: Option<VerticalCrs>,
     /// What converting the heights into the store's vertical CRS added to ε, metres.
     pub vertical_error_m: f64,
+    /// What the sidecar says of where the survey came from.
+    pub about: patchwork_store::form::About,
 }
 
 /// ε as the sidecar, the caller and the config decide it, in that order.
@@ -489,6 +526,10 @@ pub fn prepare_with(
         }
         (None, to) => (to.clone(), 0.0),
     };
+    let about = side.about().map_err(|message| IngestError::Sidecar {
+        path: sidecar_path(path),
+        message,
+    })?;
     let offset_error_m =
         correct(&mut grid, &crs, &side).map_err(|message| IngestError::Sidecar {
             path: sidecar_path(path),
@@ -524,6 +565,7 @@ pub fn prepare_with(
         },
         vertical_source: named,
         vertical_error_m,
+        about,
     })
 }
 

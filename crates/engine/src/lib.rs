@@ -26,6 +26,7 @@ mod follow;
 mod listing;
 mod read;
 mod route;
+pub mod sources;
 mod write;
 
 pub use crate::ingest::Phase;

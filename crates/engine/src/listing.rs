@@ -200,13 +200,17 @@ pub struct Footprint {
     /// Where its arrival or departure can change heights, degrees: its footprint grown by
     /// the cells that edge patches and the fill of voids reach across.
     pub reach: Aabb,
+    /// The file it was read from.
+    pub file: String,
+    /// What its sidecar says of where it came from.
+    pub about: crate::sources::About,
 }
 
 impl super::Engine {
     /// Every survey's footprint in longitude and latitude, in id order; empty until the store
     /// has a CRS.
     pub fn footprints(&self) -> Vec<Footprint> {
-        let t = self.snapshot();
+        let (t, catalog) = self.published();
         let Some(to) = self.lonlat_transform() else {
             return Vec::new();
         };
@@ -230,7 +234,14 @@ impl super::Engine {
                 let bounds = Aabb::of_points(&ring);
                 let reach = Aabb::of_points(&outline(&to, &super::write::changed_area(s))?);
                 let rows = g.rows.max(2) - 1;
+                let record = catalog
+                    .records
+                    .binary_search_by_key(&s.id, |r| r.id)
+                    .ok()
+                    .map(|k| &catalog.records[k]);
                 Some(Footprint {
+                    file: record.map(|r| r.source.clone()).unwrap_or_default(),
+                    about: record.map(|r| r.about.clone()).unwrap_or_default(),
                     id: s.id,
                     accuracy_m: s.accuracy,
                     ring,

@@ -4,6 +4,7 @@
 
 use super::request::{Camera, Ctx, Heights, Made, Metres, Region, SampleRequest, TileRequest};
 use super::route::Used;
+use super::sources::{self, Share, Source};
 use super::{BadRequest, Engine, EngineError, HeightsError, TooLarge};
 use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::{Crs, Reprojection};
@@ -168,6 +169,8 @@ pub struct Sampled {
     pub heights: Vec<f32>,
     /// What they are measured from.
     pub frame: Frame,
+    /// Where asked, what served each height (None where there is none); else empty.
+    pub sources: Vec<Option<Source>>,
 }
 
 /// What a tile is, told with each of its bands.
@@ -601,20 +604,7 @@ impl Engine {
             Some(m) => m,
             None => self.query(cut)?,
         };
-        let grid = match cut {
-            Cut::Uniform { roi, .. } => {
-                SampleGrid::uniform(roi.aabb(), width as usize, height as usize)
-            }
-            Cut::UniformIn { crs, roi, .. } => {
-                // The tile's own positions, carried into the store's plane.
-                let own = SampleGrid::uniform(roi.aabb(), width as usize, height as usize);
-                match self.to_store(crs)? {
-                    Some(r) => carried(&own, &r, self.reach()),
-                    None => own,
-                }
-            }
-            Cut::View(c) => view_grid(&self.view_of(c), width as usize, height as usize),
-        };
+        let grid = self.grid_of(cut, width as usize, height as usize)?;
         // Heights asked from another vertical CRS are carried there band by band, at the
         // tile's own positions: a tile in another CRS than the store's has them in its own.
         let mut frame = self.frame_of(&req.heights);
@@ -656,6 +646,22 @@ impl Engine {
             patches: ps,
             backend,
             frame,
+        })
+    }
+
+    /// The positions in the store's plane of a `width × height` tile of `cut`.
+    fn grid_of(&self, cut: &Cut, width: usize, height: usize) -> Result<SampleGrid, EngineError> {
+        Ok(match cut {
+            Cut::Uniform { roi, .. } => SampleGrid::uniform(roi.aabb(), width, height),
+            Cut::UniformIn { crs, roi, .. } => {
+                // The tile's own positions, carried into the store's plane.
+                let own = SampleGrid::uniform(roi.aabb(), width, height);
+                match self.to_store(crs)? {
+                    Some(r) => carried(&own, &r, self.reach()),
+                    None => own,
+                }
+            }
+            Cut::View(c) => view_grid(&self.view_of(c), width, height),
         })
     }
 
@@ -741,13 +747,48 @@ impl Engine {
             }
             .into());
         }
-        let mut heights =
-            self.sample_points(points, req.crs.as_ref(), req.error.get(), &ctx.cancel)?;
+        let (mut heights, sources) = if req.sources {
+            // The terrain and the records of one commit, so that every patch's survey is
+            // in the catalog.
+            let (t, catalog) = self.published();
+            let at = self.in_store(points, req.crs.as_ref())?;
+            let (heights, served) = t
+                .try_sample_sources_until(&at, req.error.get(), &ctx.cancel)
+                .map_err(StoreError::from)?
+                .ok_or(EngineError::Cancelled)?;
+            let sources = served
+                .iter()
+                .map(|x| x.as_ref().map(|x| sources::source_of(&t, &catalog, x)))
+                .collect();
+            (heights, sources)
+        } else {
+            let h = self.sample_points(points, req.crs.as_ref(), req.error.get(), &ctx.cancel)?;
+            (h, Vec::new())
+        };
         let mut frame = self.frame_of(&req.heights);
         if let (Some(s), Some(crs)) = (&shift, req.crs.clone().or_else(|| self.crs())) {
             frame.error_m = s.apply(&mut heights, points, &crs)?.error_m;
         }
-        Ok(Sampled { heights, frame })
+        Ok(Sampled {
+            heights,
+            frame,
+            sources,
+        })
+    }
+
+    /// The surveys that served a tile, each with the share of the tile's samples it served,
+    /// most first: the tile `req` asks for, blended from the same cut.
+    pub fn tile_sources(&self, req: &TileRequest, ctx: Ctx) -> Result<Vec<Share>, EngineError> {
+        let (width, height) = (req.size.width() as usize, req.size.height() as usize);
+        let (t, ps): Made = match ctx.made {
+            Some(m) => m,
+            None => self.query(&req.cut)?,
+        };
+        // Read after the cut: a record, once written, stays until its survey is forgotten.
+        let catalog = self.catalog();
+        let grid = self.grid_of(&req.cut, width, height)?;
+        let served = t.try_sources(&ps, &grid).map_err(StoreError::from)?;
+        Ok(sources::shares(&t, &catalog, &served))
     }
 
     /// Whether a point of the store's plane is where any survey can give a height (within
@@ -762,6 +803,19 @@ impl Engine {
         move |p| areas.iter().any(|a| a.contains_point(p))
     }
 
+    /// Points of `crs` (None for the store's) in the store's plane, NaN where the map does
+    /// not reach.
+    fn in_store<'a>(
+        &self,
+        points: &'a [[f64; 2]],
+        crs: Option<&Crs>,
+    ) -> Result<std::borrow::Cow<'a, [[f64; 2]]>, EngineError> {
+        Ok(match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
+            Some(r) => std::borrow::Cow::Owned(r.map_where(points, self.reach())),
+            None => std::borrow::Cow::Borrowed(points),
+        })
+    }
+
     /// Heights at points of `crs` (None for the store's) at error `e`, given up once
     /// `cancel` is set.
     fn sample_points(
@@ -771,16 +825,9 @@ impl Engine {
         e: f64,
         cancel: &Cancel,
     ) -> Result<Vec<f32>, EngineError> {
-        let carried;
-        let points = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
-            Some(r) => {
-                carried = r.map_where(points, self.reach());
-                &carried
-            }
-            None => points,
-        };
+        let points = self.in_store(points, crs)?;
         self.snapshot()
-            .try_sample_until(points, e, cancel)
+            .try_sample_until(&points, e, cancel)
             .map_err(StoreError::from)?
             .ok_or(EngineError::Cancelled)
     }

@@ -416,6 +416,8 @@ pub struct SampleRequest {
     pub error: Metres,
     /// What the heights are measured from.
     pub heights: Heights,
+    /// Whether to say what served each height.
+    pub sources: bool,
 }
 
 impl SampleRequest {
@@ -430,12 +432,19 @@ impl SampleRequest {
             crs,
             error: Metres::error(error)?,
             heights: Heights::Store,
+            sources: false,
         })
     }
 
     /// This request with its heights measured from `heights`.
     pub fn with_heights(mut self, heights: Heights) -> SampleRequest {
         self.heights = heights;
+        self
+    }
+
+    /// This request asking what served each height.
+    pub fn with_sources(mut self, sources: bool) -> SampleRequest {
+        self.sources = sources;
         self
     }
 }

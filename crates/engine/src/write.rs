@@ -458,11 +458,17 @@ impl Engine {
                     if current.survey(survey.id).is_some() {
                         // The content is already served (from this path or a copy elsewhere);
                         // what this path held before, if anything else, is gone.
+                        let same = previous.as_ref().is_some_and(|o| o.id == survey.id);
                         let next = match previous.filter(|o| o.id != survey.id) {
                             Some(old) => Some(retire_in(store, current, &old, false)?),
                             None => None,
                         };
                         store.clear_failure(source)?;
+                        if same {
+                            // This file's samples are the same; what its sidecar says of them
+                            // may not be.
+                            store.set_about(survey.id, &prepared.about, &prepared.content_id)?;
+                        }
                         return Ok(((Outcome::Unchanged, Vec::new()), next));
                     }
                     let mut next = (**current).clone();
@@ -757,5 +763,6 @@ fn record(
     );
     rec.vertical_source = prepared.vertical_source.clone();
     rec.vertical_error_m = prepared.vertical_error_m;
+    rec.about = prepared.about.clone();
     rec
 }

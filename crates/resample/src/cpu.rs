@@ -699,6 +699,81 @@ impl Tier {
     }
 }
 
+/// [`resample_until`] of `grid`, and for each sample the patch that weighs most in its height:
+/// of the patches [`blend_by`] counts there (the cut's where one of them covers it, else the
+/// cut's and the fallback ranks up to the best that covers it), the one of the largest
+/// weight; None where the height is nodata. What a client asking "where does this height come
+/// from" is told. The heights are those of [`resample_until`], bit for bit: each sample's
+/// patches are asked once, in bin order, and their answers blended by the same [`blend_by`].
+/// None once `cancel` is set.
+pub fn resample_serving(
+    set: &PatchSet,
+    grid: &SampleGrid,
+    cancel: &Cancel,
+) -> Option<(Vec<f32>, Vec<Option<u32>>)> {
+    let bins = bin(&set.patches, grid);
+    let planes = set.positions(grid);
+    let bx = grid.width.div_ceil(BLOCK);
+    let list = grid.list();
+    type Scratch = (Vec<Option<(f64, Hit)>>, Vec<(u32, Tier)>);
+    let out: Vec<(f32, Option<u32>)> = (0..grid.width * grid.height)
+        .into_par_iter()
+        .map_init(
+            || -> Scratch { (Vec::new(), Vec::with_capacity(8)) },
+            |(answers, tiers), at| {
+                let p = list[at];
+                if p[0].is_nan() || cancel.is_cancelled() {
+                    return (f32::NAN, None);
+                }
+                let (i, j) = (at % grid.width, at / grid.width);
+                let bin = &bins[(j / BLOCK) * bx + i / BLOCK];
+                answers.clear();
+                answers.extend(bin.iter().map(|&k| {
+                    let q = &set.patches[k as usize];
+                    q.at(in_plane(q, p, &planes, at))
+                }));
+                // `blend_by` asks each patch of the bin once, in order.
+                let next = std::cell::Cell::new(0);
+                let z = blend_by(set, bin, tiers, |_| {
+                    let n = next.get();
+                    next.set(n + 1);
+                    answers[n]
+                });
+                if z.is_nan() {
+                    return (z, None);
+                }
+                let hits = || {
+                    bin.iter().zip(answers.iter()).filter_map(|(&k, a)| {
+                        let (w, h) = (*a)?;
+                        let q = &set.patches[k as usize];
+                        Some((k, w, h.covered, q.fallback.then_some(q.rank)))
+                    })
+                };
+                let cut_covers = hits().any(|h| h.3.is_none() && h.2);
+                let best = if cut_covers {
+                    None
+                } else {
+                    hits().filter(|h| h.2).filter_map(|h| h.3).min()
+                };
+                let served = hits()
+                    .filter(|h| match (h.3, best) {
+                        (None, _) => true,
+                        (Some(r), Some(b)) => r <= b,
+                        (Some(_), None) => false,
+                    })
+                    .filter(|h| h.1 > 0.0)
+                    .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
+                    .map(|h| h.0);
+                (z, served)
+            },
+        )
+        .collect();
+    if cancel.is_cancelled() {
+        return None;
+    }
+    Some(out.into_iter().unzip())
+}
+
 /// Formula 1 at one point of the store's plane.
 pub fn blend(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
     let planes: Vec<Vec<[f64; 2]>> = set

@@ -183,7 +183,32 @@ pub fn sample_heights(
         valid: s.heights.iter().map(|z| u8::from(!z.is_nan())).collect(),
         vertical_crs: convert::vertical_key(&s.frame),
         frame_error_m: s.frame.error_m,
+        sources: s
+            .sources
+            .iter()
+            .map(|x| x.as_ref().map(convert::source).unwrap_or_default())
+            .collect(),
         heights: s.heights,
+    })
+}
+
+/// The surveys a tile's cut used, with their shares.
+pub fn tile_sources(
+    engine: &Engine,
+    r: &TileRequest,
+    cancel: &Cancel,
+) -> Result<pb::TileSourceList, EngineError> {
+    let shares = engine.tile_sources(r, Ctx::until(cancel))?;
+    Ok(pb::TileSourceList {
+        samples: shares.iter().map(|s| s.samples).sum(),
+        sources: shares
+            .iter()
+            .map(|s| pb::SourceShare {
+                source: Some(convert::source(&s.source)),
+                samples: s.samples,
+                share: s.share,
+            })
+            .collect(),
     })
 }
 

@@ -13,6 +13,7 @@ use patchwork_core::model::grid::{Georef, SampleRect};
 use patchwork_core::model::patch::{CellRect, PatchKind};
 use patchwork_core::model::source::SampleError;
 use patchwork_core::terrain::{PatchRef, Terrain, Tile};
+use patchwork_engine::sources::{About, Source};
 use patchwork_engine::{
     Conflict, Distrusted, Event, Frame, Held, Ingested, MeshTile, Outcome, Phase, Reason, Stats,
     SurveyListing, TileHead, Used,
@@ -257,6 +258,29 @@ pub fn tile(t: &Tile, backend: Used, frame: &Frame, crs: Option<&Crs>) -> pb::Ti
         shortfall: t.shortfall.map(shortfall),
         vertical_crs: vertical_key(frame),
         frame_error_m: frame.error_m,
+    }
+}
+
+/// What served a height, on the wire.
+pub fn source(s: &Source) -> pb::Source {
+    pb::Source {
+        survey: s.survey.to_string(),
+        file: s.file.clone(),
+        about: Some(about(&s.about)),
+        level: s.level as u32,
+        cell_m: s.cell_m,
+        error_m: s.error_m,
+    }
+}
+
+/// What a sidecar says of a survey, on the wire: empty where it says nothing.
+pub fn about(a: &About) -> pb::About {
+    let f = |v: &Option<String>| v.clone().unwrap_or_default();
+    pb::About {
+        title: f(&a.title),
+        license: f(&a.license),
+        attribution: f(&a.attribution),
+        acquired: f(&a.acquired),
     }
 }
 
@@ -506,6 +530,7 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
                     .as_ref()
                     .map_or("unknown".into(), |v| v.key().to_string()),
                 vertical_error_m: r.vertical_error_m,
+                about: Some(about(&r.about)),
                 patches: t.index().survey_patches(r.id).map_or(0, |p| p.len() as u32),
                 conflicts: l
                     .conflicts

@@ -124,7 +124,8 @@ impl TryFrom<&pb::SampleRequest> for SampleRequest {
     fn try_from(r: &pb::SampleRequest) -> Result<SampleRequest, BadRequest> {
         let points = r.points.iter().map(|p| [p.x, p.y]).collect();
         let heights = Heights::parse(&r.heights)?;
-        SampleRequest::new(points, parse_crs(&r.crs)?, r.error).map(|s| s.with_heights(heights))
+        SampleRequest::new(points, parse_crs(&r.crs)?, r.error)
+            .map(|s| s.with_heights(heights).with_sources(r.sources))
     }
 }
 

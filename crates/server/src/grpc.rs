@@ -461,6 +461,16 @@ impl terrain_server::Terrain for Service {
             .map(Response::new)
     }
 
+    async fn tile_sources(
+        &self,
+        r: Request<pb::TileRequest>,
+    ) -> Result<Response<pb::TileSourceList>, Status> {
+        let r = checked(TileRequest::try_from(&r.into_inner()))?;
+        self.run(move |e, c| api::tile_sources(e, &r, c))
+            .await
+            .map(Response::new)
+    }
+
     async fn subscribe(
         &self,
         r: Request<pb::SubscribeRequest>,

@@ -448,6 +448,29 @@ impl Store {
         Ok(true)
     }
 
+    /// Rewrites what an active survey's record says of where it came from, and the content
+    /// id its file and sidecar now hash to: a sidecar whose title or licence changed leaves
+    /// the samples, and so the survey, as they were.
+    pub fn set_about(
+        &mut self,
+        id: SurveyId,
+        about: &crate::form::About,
+        content_id: &str,
+    ) -> Result<(), StoreError> {
+        let mut rec = match self.record(id)? {
+            Some(r) if r.status == Status::Active => r,
+            _ => return Err(StoreError::NotActive(id)),
+        };
+        if rec.about == *about && rec.content_id == content_id {
+            return Ok(());
+        }
+        rec.about = about.clone();
+        rec.content_id = content_id.to_string();
+        let mut batch = Writes::default();
+        batch.insert(keys::survey(id), encode(&rec)?);
+        self.apply(batch)
+    }
+
     /// Removes the failure recorded for `source`, if there is one.
     pub fn clear_failure(&mut self, source: &str) -> Result<(), StoreError> {
         if self.db.get(keys::failure(source))?.is_some() {

@@ -282,6 +282,22 @@ pub struct Survey {
     pub ingest: IngestTimings,
     /// When the record was made, Unix seconds.
     pub created_unix: u64,
+    /// What its sidecar says of where it came from (from version 9).
+    pub about: About,
+}
+
+/// What a survey's sidecar says of where it came from, for attribution: each field as the
+/// sidecar gives it, None where it says nothing.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct About {
+    /// Its title.
+    pub title: Option<String>,
+    /// Its licence.
+    pub license: Option<String>,
+    /// The attribution its licence asks for.
+    pub attribution: Option<String>,
+    /// When it was acquired, as its producer gives it (a date, or a range of them).
+    pub acquired: Option<String>,
 }
 
 impl From<SurveyRecord> for Survey {
@@ -313,6 +329,7 @@ impl From<SurveyRecord> for Survey {
             tiling_offset: r.tiling_offset,
             ingest: r.ingest,
             created_unix: r.created_unix,
+            about: r.about,
         }
     }
 }
@@ -349,6 +366,7 @@ impl TryFrom<Survey> for SurveyRecord {
             tiling_offset: r.tiling_offset,
             ingest: r.ingest,
             created_unix: r.created_unix,
+            about: r.about,
         })
     }
 }

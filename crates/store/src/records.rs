@@ -108,6 +108,8 @@ pub struct SurveyRecord {
     pub ingest: IngestTimings,
     /// When the record was made, in Unix seconds.
     pub created_unix: u64,
+    /// What its sidecar says of where it came from: title, licence, attribution, when.
+    pub about: form::About,
 }
 
 impl SurveyRecord {
@@ -143,6 +145,7 @@ impl SurveyRecord {
             tiling_offset: s.tiling.offset,
             ingest,
             created_unix: now_unix(),
+            about: form::About::default(),
         }
     }
 

@@ -60,6 +60,11 @@ class TerrainStub:
                 request_serializer=patchwork_dot_v1_dot_terrain__pb2.SampleRequest.SerializeToString,
                 response_deserializer=patchwork_dot_v1_dot_terrain__pb2.Samples.FromString,
                 _registered_method=True)
+        self.TileSources = channel.unary_unary(
+                '/patchwork.v1.Terrain/TileSources',
+                request_serializer=patchwork_dot_v1_dot_terrain__pb2.TileRequest.SerializeToString,
+                response_deserializer=patchwork_dot_v1_dot_terrain__pb2.TileSourceList.FromString,
+                _registered_method=True)
         self.MeshTile = channel.unary_unary(
                 '/patchwork.v1.Terrain/MeshTile',
                 request_serializer=patchwork_dot_v1_dot_terrain__pb2.MeshRequest.SerializeToString,
@@ -109,6 +114,13 @@ class TerrainServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def TileSources(self, request, context):
+        """The surveys a tile's cut used, with the share of its samples each served.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def MeshTile(self, request, context):
         """A triangle mesh of a uniform cut: the resampled heights on a grid over the ROI,
         triangulated (a right-triangulated irregular network or a restricted quadtree) within
@@ -154,6 +166,11 @@ def add_TerrainServicer_to_server(servicer, server):
                     servicer.SampleHeights,
                     request_deserializer=patchwork_dot_v1_dot_terrain__pb2.SampleRequest.FromString,
                     response_serializer=patchwork_dot_v1_dot_terrain__pb2.Samples.SerializeToString,
+            ),
+            'TileSources': grpc.unary_unary_rpc_method_handler(
+                    servicer.TileSources,
+                    request_deserializer=patchwork_dot_v1_dot_terrain__pb2.TileRequest.FromString,
+                    response_serializer=patchwork_dot_v1_dot_terrain__pb2.TileSourceList.SerializeToString,
             ),
             'MeshTile': grpc.unary_unary_rpc_method_handler(
                     servicer.MeshTile,
@@ -301,6 +318,33 @@ class Terrain:
             '/patchwork.v1.Terrain/SampleHeights',
             patchwork_dot_v1_dot_terrain__pb2.SampleRequest.SerializeToString,
             patchwork_dot_v1_dot_terrain__pb2.Samples.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def TileSources(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/patchwork.v1.Terrain/TileSources',
+            patchwork_dot_v1_dot_terrain__pb2.TileRequest.SerializeToString,
+            patchwork_dot_v1_dot_terrain__pb2.TileSourceList.FromString,
             options,
             channel_credentials,
             insecure,

@@ -23,6 +23,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 use patchwork_core::geom::tiles::{geographic, mercator};
+use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::Extracted;
 use patchwork_core::sync::lock;
 use patchwork_core::terrain::Terrain;
@@ -427,6 +428,7 @@ pub fn router(svc: Service) -> Router {
         .route("/", get(viewer))
         .route("/tiles.json", get(tilejson))
         .route("/tiles/{z}/{x}/{file}", get(raster_tile))
+        .route("/tiles/{z}/{x}/{y}/{file}", get(tile_sources))
         .route("/terrain/layer.json", get(layer_json))
         .route("/terrain/{z}/{x}/{file}", get(terrain_tile))
         .route("/surveys.geojson", get(geojson))
@@ -570,9 +572,35 @@ struct TileParams {
     error: Option<f64>,
     /// What the heights are measured from: `store` (the default), `ellipsoid`, `EPSG:n`.
     heights: Option<String>,
+    /// TileJSON's: the area, `west,south,east,north` in degrees, whose surveys its
+    /// attribution names (every survey's by default).
+    bounds: Option<String>,
 }
 
 impl TileParams {
+    fn heights(&self) -> Result<Heights, String> {
+        Heights::parse(self.heights.as_deref().unwrap_or("")).map_err(|e| e.to_string())
+    }
+
+    fn bounds(&self) -> Result<Option<Aabb>, String> {
+        let Some(b) = &self.bounds else {
+            return Ok(None);
+        };
+        let v: Vec<f64> = b
+            .split(',')
+            .map(|v| v.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| format!("bounds must be west,south,east,north in degrees, got {b:?}"))?;
+        match v[..] {
+            [w, s, e, n] if w <= e && s <= n && v.iter().all(|x| x.is_finite()) => {
+                Ok(Some(Aabb::new(w, s, e, n)))
+            }
+            _ => Err(format!(
+                "bounds must be west,south,east,north in degrees, got {b:?}"
+            )),
+        }
+    }
+
     fn size(&self) -> Result<u32, String> {
         match self.size.unwrap_or(256) {
             s @ (256 | 512) => Ok(s),
@@ -624,14 +652,21 @@ async fn tilejson(
     headers: HeaderMap,
     uri: axum::http::Uri,
 ) -> Response {
-    let size = match p.size().and_then(|s| p.error().map(|_| s)) {
-        Ok(s) => s,
+    let checked = p.size().and_then(|s| {
+        p.error()?;
+        Ok((s, p.heights()?, p.bounds()?))
+    });
+    let (size, frame, within) = match checked {
+        Ok(c) => c,
         Err(m) => return bad_request(m),
     };
     let encoding = p.encoding.unwrap_or(Encoding::Terrarium);
     let mut query = format!("encoding={}&size={size}", encoding.name());
     if let Some(e) = p.error {
         query.push_str(&format!("&error={e}"));
+    }
+    if frame != Heights::Store {
+        query.push_str(&format!("&heights={}", frame.key()));
     }
     // TileJSON's tile URLs must be absolute. They name the configured public URL, with the
     // request's token where tokens travel in URLs; else the Host the request came to, never
@@ -654,7 +689,9 @@ async fn tilejson(
     };
     let url = format!("{base}/tiles/{{z}}/{{x}}/{{y}}.{ext}?{query}");
     let engine = web.engine().clone();
-    let doc = web.pyramid(&engine).tilejson(url, size, encoding.name());
+    let doc = web
+        .pyramid(&engine)
+        .tilejson(url, size, encoding.name(), within.as_ref(), &frame);
     document(&web, doc)
 }
 
@@ -703,9 +740,9 @@ async fn raster_tile(
                 .into_response()
         }
     };
-    let heights = match Heights::parse(p.heights.as_deref().unwrap_or("")) {
+    let heights = match p.heights() {
         Ok(h) => h,
-        Err(e) => return bad_request(e.to_string()),
+        Err(e) => return bad_request(e),
     };
     let req = raster::Request {
         z,
@@ -738,6 +775,44 @@ async fn layer_json(State(web): State<Arc<Web>>, uri: axum::http::Uri) -> Respon
     let p = web.pyramid(&engine);
     let doc = p.layer_json(&p.version(), token_param(&web, uri.query()).unwrap_or(""));
     document(&web, doc)
+}
+
+/// The surveys that served a raster tile, with their shares: what its `.png` holds, at the
+/// same size and error.
+async fn tile_sources(
+    State(web): State<Arc<Web>>,
+    Path((z, x, y, file)): Path<(u32, u32, u32, String)>,
+    Query(p): Query<TileParams>,
+) -> Response {
+    if file != "sources.json" {
+        return (StatusCode::NOT_FOUND, "ask for sources.json").into_response();
+    }
+    if !mercator::valid(z, x, y) {
+        return bad_request(format!(
+            "tile {z}/{x}/{y} does not exist: z is 0 to 24, x and y 0 to 2^z − 1"
+        ));
+    }
+    let (size, error) = match (p.size(), p.error()) {
+        (Ok(s), Ok(e)) => (s, e),
+        (Err(m), _) | (_, Err(m)) => return bad_request(m),
+    };
+    let req = raster::Request {
+        z,
+        x,
+        y,
+        size,
+        format: raster::Format::Tiff,
+        error: error.map_or_else(|| mercator::error(z, size), Metres::get),
+        heights: Heights::Store,
+    };
+    let w = web.clone();
+    match web
+        .run(move |e, cancel| raster::sources(e, &w, &req, cancel))
+        .await
+    {
+        Ok(doc) => document(&web, doc),
+        Err(r) => r,
+    }
 }
 
 #[derive(Debug, Deserialize)]
@@ -818,6 +893,26 @@ struct HeightParams {
     crs: Option<String>,
     /// What the heights are measured from: `store` (the default), `ellipsoid`, `EPSG:n`.
     heights: Option<String>,
+    /// Whether to say what served each height.
+    sources: Option<bool>,
+}
+
+/// What served a height, as `/heights` and `sources.json` say it: the survey's id, its file
+/// (the name, without the daemon's folders), what its sidecar says of it, and the patch's
+/// level, cell and error.
+fn source_json(s: &patchwork_engine::sources::Source) -> serde_json::Value {
+    let a = &s.about;
+    serde_json::json!({
+        "id": s.survey.to_string(),
+        "file": pyramid::file_name(&s.file),
+        "title": a.title,
+        "license": a.license,
+        "attribution": a.attribution,
+        "acquired": a.acquired,
+        "level": s.level,
+        "cell_m": s.cell_m,
+        "error_m": s.error_m,
+    })
 }
 
 /// Heights at points: what SampleHeights answers, as JSON, null where there is no data.
@@ -833,10 +928,13 @@ async fn heights(State(web): State<Arc<Web>>, Query(p): Query<HeightParams>) -> 
     };
     let points: Vec<[f64; 2]> = coords.chunks(2).map(|c| [c[0], c[1]]).collect();
     let error = p.error.unwrap_or(0.0);
-    let crs = p.crs.unwrap_or_else(|| "EPSG:4326".into());
+    let asked_sources = p.sources.unwrap_or(false);
+    let crs = p.crs.clone().unwrap_or_else(|| "EPSG:4326".into());
     let req = parse_crs(&crs).and_then(|crs| {
         let heights = Heights::parse(p.heights.as_deref().unwrap_or(""))?;
-        Ok(SampleRequest::new(points, crs, error)?.with_heights(heights))
+        Ok(SampleRequest::new(points, crs, error)?
+            .with_heights(heights)
+            .with_sources(p.sources.unwrap_or(false)))
     });
     let req = match req {
         Ok(r) => r,
@@ -853,13 +951,21 @@ async fn heights(State(web): State<Arc<Web>>, Query(p): Query<HeightParams>) -> 
                 .map(|v| (!v.is_nan()).then_some(*v))
                 .collect();
             let vertical = s.frame.vertical.as_ref().map(|v| v.key().to_string());
-            axum::Json(serde_json::json!({
+            let mut doc = serde_json::json!({
                 "heights": hs,
                 "error": error,
                 "vertical_crs": vertical,
                 "frame_error": s.frame.error_m,
-            }))
-            .into_response()
+            });
+            if asked_sources {
+                let sources: Vec<serde_json::Value> = s
+                    .sources
+                    .iter()
+                    .map(|x| x.as_ref().map_or(serde_json::Value::Null, source_json))
+                    .collect();
+                doc["sources"] = sources.into();
+            }
+            axum::Json(doc).into_response()
         }
         Err(r) => r,
     }

@@ -135,10 +135,21 @@ impl Pyramid {
     }
 
     /// The TileJSON of the raster-DEM tiles, whose template is `tiles`.
-    pub fn tilejson(&self, tiles: String, size: u32, encoding: &str) -> Value {
+    pub fn tilejson(
+        &self,
+        tiles: String,
+        size: u32,
+        encoding: &str,
+        within: Option<&Aabb>,
+        frame: &patchwork_engine::Heights,
+    ) -> Value {
         let b = self.bounds.unwrap_or(Aabb::new(-180.0, -85.0, 180.0, 85.0));
         let c = [(b.min[0] + b.max[0]) / 2.0, (b.min[1] + b.max[1]) / 2.0];
-        let (heights, vertical) = self.heights();
+        let (mut heights, vertical) = self.heights();
+        if *frame != patchwork_engine::Heights::Store {
+            // The tile URLs ask for another frame.
+            heights = json!(frame.key());
+        }
         // 512-pixel tiles hold a level's detail one level up.
         let max = if size == 512 {
             self.web_max.saturating_sub(1)
@@ -159,6 +170,7 @@ impl Pyramid {
             "encoding": encoding,
             "heights": heights,
             "vertical_crs": vertical,
+            "attribution": self.attribution(within),
         })
     }
 
@@ -201,27 +213,64 @@ impl Pyramid {
             // levels exist (`available` above says the same for every level); Cesium asks for
             // the metadata extension only where this is set.
             "metadataAvailability": super::terrain::METADATA_LEVELS,
-            "attribution": "",
+            "attribution": self.attribution(None),
             "heights": heights,
             "vertical_crs": vertical,
         })
     }
 
-    /// The footprints as GeoJSON.
+    /// What a map credits for the surveys whose footprints meet `within` (every survey where
+    /// None): each one's attribution, else its title, once each, in id order, joined by
+    /// "; ". Empty where no sidecar says anything.
+    pub fn attribution(&self, within: Option<&Aabb>) -> String {
+        let mut credits: Vec<&str> = Vec::new();
+        for f in &self.footprints {
+            if within.is_some_and(|w| !w.intersects(&f.bounds)) {
+                continue;
+            }
+            let credit = f.about.attribution.as_deref().or(f.about.title.as_deref());
+            if let Some(c) = credit {
+                if !credits.contains(&c) {
+                    credits.push(c);
+                }
+            }
+        }
+        credits.join("; ")
+    }
+
+    /// The footprints as GeoJSON, each with its survey's file and what its sidecar says.
     pub fn geojson(&self) -> Value {
         let features: Vec<Value> = self
             .footprints
             .iter()
             .map(|f| {
+                let a = &f.about;
                 json!({
                     "type": "Feature",
-                    "properties": {"id": f.id.to_string(), "accuracy_m": f.accuracy_m},
+                    "properties": {
+                        "id": f.id.to_string(),
+                        "accuracy_m": f.accuracy_m,
+                        "file": file_name(&f.file),
+                        "title": a.title,
+                        "license": a.license,
+                        "attribution": a.attribution,
+                        "acquired": a.acquired,
+                    },
                     "geometry": {"type": "Polygon", "coordinates": [f.ring]},
                 })
             })
             .collect();
         json!({"type": "FeatureCollection", "features": features})
     }
+}
+
+/// A source's file name without its folders: where the daemon's inbox is is not a web
+/// client's business.
+pub fn file_name(source: &str) -> &str {
+    std::path::Path::new(source)
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or(source)
 }
 
 /// Where a change to the store changed the terrain, and the tiles it invalidated.

@@ -6,10 +6,13 @@
 
 use super::{Encoding, Produced, Web};
 use patchwork_core::geom::tiles::mercator;
+use patchwork_core::index::query::Extracted;
 use patchwork_core::resample::{Cancel, SampleGrid};
+use patchwork_core::terrain::Terrain;
 use patchwork_engine::{
     Backend, Ctx, Cut, Engine, EngineError, Heights, Metres, Region, TileRequest,
 };
+use std::sync::Arc;
 
 /// What a raster tile is encoded as.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -54,17 +57,7 @@ pub fn tile(
 ) -> Result<Produced, EngineError> {
     let roi = mercator::bounds(r.z, r.x, r.y);
     let crs = web.mercator.clone();
-    let cut = Cut::uniform(
-        web.unless_store(engine, &crs),
-        Region::new(roi)?,
-        Metres::error(r.error)?,
-    );
-    let most = engine.config().limits.max_web_tile_patches;
-    let (cut, t, ps) = match engine.crs() {
-        Some(_) => engine.query_within(&cut, most)?,
-        // A store with no survey yet has nothing anywhere.
-        None => (cut, engine.snapshot(), Vec::new()),
-    };
+    let (cut, t, ps) = cut_of(engine, web, r)?;
     // The error the tile is made at: the one asked, or a coarser one within the limit.
     let error = cut.error().unwrap_or(r.error);
     let (kind, content_type) = match r.format {
@@ -152,6 +145,57 @@ pub fn tile(
         error: (error != r.error).then_some(error),
         ..made
     })
+}
+
+/// The cut of tile `r`, and its patches: at the error asked, or a coarser one where that
+/// would take more than `limits.max_web_tile_patches`.
+fn cut_of(
+    engine: &Engine,
+    web: &Web,
+    r: &Request,
+) -> Result<(Cut, Arc<Terrain>, Vec<Extracted>), EngineError> {
+    let cut = Cut::uniform(
+        web.unless_store(engine, &web.mercator),
+        Region::new(mercator::bounds(r.z, r.x, r.y))?,
+        Metres::error(r.error)?,
+    );
+    let most = engine.config().limits.max_web_tile_patches;
+    Ok(match engine.crs() {
+        Some(_) => engine.query_within(&cut, most)?,
+        // A store with no survey yet has nothing anywhere.
+        None => (cut, engine.snapshot(), Vec::new()),
+    })
+}
+
+/// The surveys that served tile `r`, each with the share of the tile's samples it served:
+/// `/tiles/{z}/{x}/{y}/sources.json`.
+pub fn sources(
+    engine: &Engine,
+    web: &Web,
+    r: &Request,
+    cancel: &Cancel,
+) -> Result<serde_json::Value, EngineError> {
+    let (cut, t, ps) = cut_of(engine, web, r)?;
+    let error = cut.error().unwrap_or(r.error);
+    let req = TileRequest::new(cut, r.size, r.size, Backend::Auto)?;
+    let shares = engine.tile_sources(&req, Ctx::until(cancel).with_cut((t, ps)))?;
+    let samples: u64 = shares.iter().map(|s| s.samples).sum();
+    let list: Vec<serde_json::Value> = shares
+        .iter()
+        .map(|s| {
+            let mut v = super::source_json(&s.source);
+            v["samples"] = s.samples.into();
+            v["share"] = s.share.into();
+            v
+        })
+        .collect();
+    Ok(serde_json::json!({
+        "tile": [r.z, r.x, r.y],
+        "size": r.size,
+        "error": error,
+        "samples": samples,
+        "sources": list,
+    }))
 }
 
 /// The number a height is stored as in an encoding's 24 bits of RGB.

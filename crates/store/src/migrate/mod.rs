@@ -16,6 +16,8 @@ mod v4_to_v5;
 mod v5_to_v6;
 mod v6_to_v7;
 mod v7_to_v8;
+mod v8;
+mod v8_to_v9;
 
 /// Every step, as (from version, to version, step). `migrate` follows them from the version a
 /// store records up to `migrate::CURRENT`.
@@ -28,10 +30,11 @@ const STEPS: &[(u32, u32, Step)] = &[
     (5, 6, v5_to_v6::run),
     (6, 7, v6_to_v7::run),
     (7, 8, v7_to_v8::run),
+    (8, 9, v8_to_v9::run),
 ];
 
 /// The schema this binary writes.
-pub const CURRENT: u32 = 8;
+pub const CURRENT: u32 = 9;
 
 /// What a step may need beyond the tree: the settings `open` was called with, which a fresh
 /// store adopts, and the pack that chunk bytes go to.

@@ -7,8 +7,10 @@
 //! for a rebuild, which derives them, and every box state, again.
 
 use super::v3::RecordV3;
+use super::v8::SurveyV8;
 use super::Ctx;
-use crate::{decode, encode, keys, LevelHeader, SurveyRecord};
+use crate::form::Level;
+use crate::{decode, encode, keys};
 use patchwork_core::crs::Crs;
 
 pub(super) fn run(tree: &sled::Tree, _: &Ctx) -> Result<sled::Batch, String> {
@@ -26,28 +28,29 @@ pub(super) fn run(tree: &sled::Tree, _: &Ctx) -> Result<sled::Batch, String> {
         let (k, v) = kv.map_err(|e| e.to_string())?;
         any = true;
         let old: RecordV3 = decode(&v, &String::from_utf8_lossy(&k)).map_err(|e| e.to_string())?;
-        let rec = SurveyRecord {
-            id: old.id,
+        // In the form of versions 4 to 8, which the later steps read.
+        let rec = SurveyV8 {
+            id: old.id.0,
             source: old.source,
             content_id: old.content_id,
             accuracy: old.accuracy,
-            accuracy_source: old.accuracy_source.into(),
-            crs: old.crs.map(crs).transpose()?,
+            accuracy_source: old.accuracy_source,
+            crs: old.crs.map(crs).transpose()?.map(|c| c.key().to_string()),
             vertical_source: None,
             vertical: None,
             vertical_error_m: 0.0,
             status: old.status,
             cols: old.cols,
             rows: old.rows,
-            georef: old.georef.now(),
+            georef: (&old.georef.now()).into(),
             samples: old.samples,
             levels: old
                 .levels
                 .into_iter()
-                .map(|l| LevelHeader {
+                .map(|l| Level {
                     cols: l.cols,
                     rows: l.rows,
-                    georef: l.georef.now(),
+                    georef: (&l.georef.now()).into(),
                 })
                 .collect(),
             tiling_offset: old.tiling_offset,
