@@ -259,7 +259,8 @@ fn committed_surveys_come_back_as_the_same_terrain() {
                 (4, 5),
                 (5, 6),
                 (6, 7),
-                (7, 8)
+                (7, 8),
+                (8, 9)
             ]
         );
         assert_eq!(terrain.index().len(), 0);
@@ -1227,7 +1228,16 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(
         store.migrations_run(),
-        &[(1, 2), (2, 3), (3, 4), (4, 5), (5, 6), (6, 7), (7, 8)]
+        &[
+            (1, 2),
+            (2, 3),
+            (3, 4),
+            (4, 5),
+            (5, 6),
+            (6, 7),
+            (7, 8),
+            (8, 9)
+        ]
     );
     let roi = bounds_of(&[a.clone(), b.clone()]);
     assert_same(&terrain, &t, &roi);
@@ -1305,7 +1315,7 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8)]);
+    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8), (8, 9)]);
     let migrated: Vec<(sled::IVec, sled::IVec)> =
         store.raw().scan_prefix("b/").map(Result::unwrap).collect();
     assert_eq!(migrated, records);
@@ -1331,7 +1341,7 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8)]);
+    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8), (8, 9)]);
     assert_eq!(store.raw().scan_prefix("t/").count(), 0);
     assert_eq!(terrain.index().state(), t.index().state());
     assert_verified(&store);
@@ -1638,7 +1648,7 @@ fn a_version_5_store_keeps_its_failures_with_no_content_known() {
         store.raw().flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(5, 6), (6, 7), (7, 8)]);
+    assert_eq!(store.migrations_run(), &[(5, 6), (6, 7), (7, 8), (8, 9)]);
     assert_eq!(
         store.failures().unwrap(),
         vec![FailedRecord {
@@ -1799,7 +1809,7 @@ fn a_version_7_store_measures_its_overlaps_again() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(7, 8)]);
+    assert_eq!(store.migrations_run(), &[(7, 8), (8, 9)]);
     let pairs: Vec<PairEvidence> = store
         .all_pairs()
         .unwrap()

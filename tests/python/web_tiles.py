@@ -685,9 +685,14 @@ def check_documents(h):
     for f in feats:
         g = f.get("geometry", {})
         require(g.get("type") == "Polygon", f"/surveys.geojson: a {g.get('type')!r} footprint, want Polygon")
-        # No file paths: what files the surveys came from is the Admin listing's to tell.
-        require(set(f.get("properties", {})) == {"id", "accuracy_m"},
-                f"/surveys.geojson: properties {sorted(f.get('properties', {}))}, want id and accuracy_m")
+        # The file's name and what its sidecar says, but no path: where the daemon's inbox is
+        # is the Admin listing's to tell.
+        props = f.get("properties", {})
+        want = {"id", "accuracy_m", "file", "title", "license", "attribution", "acquired"}
+        require(set(props) == want,
+                f"/surveys.geojson: properties {sorted(props)}, want {sorted(want)}")
+        require(props["file"].endswith(".tif") and "/" not in props["file"],
+                f"/surveys.geojson: file {props['file']!r}, want a file name")
         ring = np.array(g["coordinates"][0], dtype=np.float64)
         xs += ring[:, 0].tolist()
         ys += ring[:, 1].tolist()
