@@ -528,3 +528,38 @@ fn a_shifted_copy_in_another_crs_conflicts_by_as_much_as_proj_says() {
         u.conflicts
     );
 }
+
+/// A survey's footprint, as web maps draw it, is its own grid's pixels carried into
+/// longitude and latitude: a UTM crop in a geographic store is the tilted quadrilateral it
+/// covers, not the bounding box of where it lies in the store's plane.
+#[test]
+fn a_footprint_is_the_surveys_own_pixels_carried_into_longitude_and_latitude() {
+    let tmp = tempfile::tempdir().unwrap();
+    let e = engine(tmp.path(), "EPSG:4326", &[("real/ventoux_utm31.tif", Some(2.0))]);
+    let r = read_raster(&crop("real/ventoux_utm31.tif"), &ReadLimits::default()).unwrap();
+    let utm = r.crs.crs.clone().unwrap();
+    let to = Transform::new(&utm, &Crs::wgs84()).unwrap();
+    let gt = r.geotransform;
+    // The outer corners of the pixels, clockwise from the north-west as the ring runs.
+    let corner = |c: f64, r: f64| {
+        to.apply([gt[0] + c * gt[1] + r * gt[2], gt[3] + c * gt[4] + r * gt[5]])
+            .unwrap()
+    };
+    let (w, h) = (r.cols as f64, r.rows as f64);
+    let want = [
+        corner(0.0, 0.0),
+        corner(w, 0.0),
+        corner(w, h),
+        corner(0.0, h),
+    ];
+    let f = &e.footprints()[0];
+    assert_eq!(f.ring.len(), 4 * 16 + 1);
+    for (k, p) in want.iter().enumerate() {
+        let got = f.ring[16 * k];
+        let d = (got[0] - p[0]).abs().max((got[1] - p[1]).abs());
+        assert!(d < 1e-7, "corner {k}: {got:?} against PROJ's {p:?}");
+    }
+    // Tilted: UTM's grid north is not true north away from the central meridian.
+    assert!((want[0][0] - want[3][0]).abs() > 1e-4, "{want:?}");
+    assert!(f.file.ends_with("ventoux_utm31.tif"), "{}", f.file);
+}

@@ -190,8 +190,9 @@ pub struct Footprint {
     pub id: SurveyId,
     /// ε, metres: the largest over its kernels.
     pub accuracy_m: f64,
-    /// Its footprint's outline (the store-plane bounds of its pixels carried into longitude
-    /// and latitude, 16 points a side), closed.
+    /// Its footprint's outline: the edges of its pixels in its own grid and CRS (a UTM
+    /// survey's is the rotated quadrilateral it really covers), carried into longitude and
+    /// latitude, 16 points a side, closed.
     pub ring: Vec<[f64; 2]>,
     /// The outline's bounds, degrees.
     pub bounds: Aabb,
@@ -217,20 +218,17 @@ impl super::Engine {
         let mut out: Vec<Footprint> = t
             .surveys()
             .filter_map(|s| {
-                // Out to the edges of its pixels, as far as its data is served.
-                let f = s.footprint();
+                // Out to the edges of its pixels, as far as its data is served, in its own
+                // grid and CRS.
                 let g = &s.shapes[0];
-                let half = [
-                    f.width() / (g.cols.max(2) - 1) as f64 / 2.0,
-                    f.height() / (g.rows.max(2) - 1) as f64 / 2.0,
-                ];
-                let f = Aabb::new(
-                    f.min[0] - half[0],
-                    f.min[1] - half[1],
-                    f.max[0] + half[0],
-                    f.max[1] + half[1],
-                );
-                let ring = outline(&to, &f)?;
+                let (c, r) = (g.cols as f64 - 0.5, g.rows as f64 - 0.5);
+                let corners = [[-0.5, -0.5], [c, -0.5], [c, r], [-0.5, r]]
+                    .map(|[i, j]| g.georef.to_world(i, j));
+                let own = match &s.crs {
+                    Some(c) => Some(Transform::new(c, &Crs::wgs84()).ok()?),
+                    None => None,
+                };
+                let ring = outline_of(own.as_ref().unwrap_or(&to), corners)?;
                 let bounds = Aabb::of_points(&ring);
                 let reach = Aabb::of_points(&outline(&to, &super::write::changed_area(s))?);
                 let rows = g.rows.max(2) - 1;
@@ -268,13 +266,20 @@ impl super::Engine {
 
 /// A rectangle's outline carried by `to`, 16 points a side, closed.
 fn outline(to: &Transform, r: &Aabb) -> Option<Vec<[f64; 2]>> {
+    outline_of(
+        to,
+        [
+            [r.min[0], r.min[1]],
+            [r.max[0], r.min[1]],
+            [r.max[0], r.max[1]],
+            [r.min[0], r.max[1]],
+        ],
+    )
+}
+
+/// A quadrilateral's outline carried by `to`, 16 points a side, closed.
+fn outline_of(to: &Transform, corners: [[f64; 2]; 4]) -> Option<Vec<[f64; 2]>> {
     let n = 16;
-    let corners = [
-        [r.min[0], r.min[1]],
-        [r.max[0], r.min[1]],
-        [r.max[0], r.max[1]],
-        [r.min[0], r.max[1]],
-    ];
     let mut ring = Vec::with_capacity(4 * n + 1);
     for k in 0..4 {
         let (a, b) = (corners[k], corners[(k + 1) % 4]);
