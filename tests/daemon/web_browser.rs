@@ -116,6 +116,18 @@ fn the_viewer_page_shows_the_store_in_maplibre_and_cesium() {
         assert_eq!(v["exaggeration"], 1.0, "{view}: terrain exaggerated");
     }
 
+    // These crops name no vertical CRS, so their heights cannot be carried above the
+    // ellipsoid: Cesium gets the store's, and every terrain tile it received said so.
+    let t = &r["terrain_responses"];
+    let n = num(&t["responses"], "terrain responses");
+    assert!(n > 0.0, "Cesium asked for no terrain tile: {t}");
+    assert_eq!(num(&t["warned"], "warned"), n, "a terrain tile without its Warning: {t}");
+    let warning = t["warning"].as_str().unwrap_or("");
+    assert!(
+        warning.starts_with("299 patchwork") && warning.contains("no vertical CRS"),
+        "{warning}"
+    );
+
     // The heights gRPC gives at the points, and HTTP's /heights the same.
     let points: Vec<[f64; 2]> = list(&r["points"])
         .iter()

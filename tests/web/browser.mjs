@@ -183,6 +183,15 @@ async function runView(browser, view, points, log) {
     const status = r.status();
     log.by_status[status] = (log.by_status[status] || 0) + 1;
     if (![200, 204, 304].includes(status)) log.bad_responses.push(tag({ url, status }));
+    // What the quantized-mesh tiles say of their heights' frame, as Cesium received them.
+    if (/\.terrain(\?|$)/.test(new URL(url).pathname + new URL(url).search)) {
+      const warning = r.headers()['warning'] || null;
+      log.terrain.responses++;
+      if (warning) {
+        log.terrain.warned++;
+        log.terrain.warning = warning;
+      }
+    }
   });
   page.on('request', (r) => {
     const url = r.url();
@@ -561,7 +570,7 @@ async function main() {
   }
   timings.browser_start_ms = Date.now() - t0;
 
-  const log = { console_errors: [], console_warnings: [], bad_responses: [], external_requests: [], responses: 0, by_status: {}, aborted_requests: 0 };
+  const log = { console_errors: [], console_warnings: [], bad_responses: [], external_requests: [], responses: 0, by_status: {}, aborted_requests: 0, terrain: { responses: 0, warned: 0, warning: null } };
   const result = {};
   try {
     const probe = await browser.newPage();
@@ -603,6 +612,7 @@ async function main() {
     bad_responses: log.bad_responses,
     external_requests: log.external_requests,
     responses: { count: log.responses, by_status: log.by_status, aborted: log.aborted_requests },
+    terrain_responses: log.terrain,
     points,
     bbox,
     reference_heights: reference,
