@@ -607,3 +607,110 @@ fn heights_tiles_and_documents_name_the_surveys_that_served_them() {
     assert_eq!(v[0]["source"]["title"], "Copernicus DEM GLO-30");
     assert_eq!(v[0]["source"]["survey"], cop["id"]);
 }
+
+/// A quantized-mesh tile's vertices (u, v in 0..=32767) and, where the tile has them, its
+/// oct-encoded normals, one a vertex.
+fn quantized_vertices(body: &[u8]) -> (Vec<[u32; 2]>, Option<Vec<[u8; 2]>>) {
+    let u32_at = |o: usize| u32::from_le_bytes(body[o..o + 4].try_into().unwrap());
+    let u16_at = |o: usize| u16::from_le_bytes(body[o..o + 2].try_into().unwrap());
+    let n = u32_at(88) as usize;
+    let mut o = 92;
+    let mut axes = [vec![0u32; n], vec![0u32; n]];
+    for axis in &mut axes {
+        let mut v = 0i32;
+        for x in axis.iter_mut() {
+            let z = u16_at(o) as i32;
+            o += 2;
+            v += (z >> 1) ^ -(z & 1);
+            *x = v as u32;
+        }
+    }
+    o += 2 * n; // heights
+    let wide = n > 65_536;
+    let size = if wide { 4 } else { 2 };
+    o = o.div_ceil(size) * size;
+    let triangles = u32_at(o) as usize;
+    o += 4 + 3 * triangles * size;
+    for _ in 0..4 {
+        let k = u32_at(o) as usize;
+        o += 4 + k * size;
+    }
+    let mut normals = None;
+    while o + 5 <= body.len() {
+        let (id, len) = (body[o], u32_at(o + 1) as usize);
+        let data = &body[o + 5..o + 5 + len];
+        if id == 1 {
+            normals = Some(data.chunks(2).map(|c| [c[0], c[1]]).collect());
+        }
+        o += 5 + len;
+    }
+    let vertices = (0..n).map(|k| [axes[0][k], axes[1][k]]).collect();
+    (vertices, normals)
+}
+
+/// An oct-encoded normal as a unit vector.
+fn oct_decode([a, b]: [u8; 2]) -> [f64; 3] {
+    let f = |v: u8| v as f64 / 255.0 * 2.0 - 1.0;
+    let (x, y) = (f(a), f(b));
+    let z = 1.0 - x.abs() - y.abs();
+    let (x, y) = if z < 0.0 {
+        ((1.0 - y.abs()) * x.signum(), (1.0 - x.abs()) * y.signum())
+    } else {
+        (x, y)
+    };
+    let l = (x * x + y * y + z * z).sqrt();
+    [x / l, y / l, z / l]
+}
+
+#[test]
+fn terrain_normals_agree_across_tile_edges() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = Daemon::start(tmp.path());
+    drop_by_rename(&crop("copernicus_n34w119_crop.tif"), &d.inbox(), "cop.tif");
+    d.wait("the survey", |s| count(s, "active") == 1);
+    let all = "application/vnd.quantized-mesh;extensions=octvertexnormals-watermask-metadata";
+    let r = geographic::over(
+        13,
+        &patchwork_core::geom::Aabb::new(BOTH[0], BOTH[1], BOTH[0], BOTH[1]),
+    );
+    let (x, y) = (r.x0, r.y0);
+    let tile = |x: u32, y: u32| {
+        let t = get(
+            &format!("{}/terrain/13/{x}/{y}.terrain", d.http),
+            &[("Accept", all)],
+        );
+        assert_eq!(t.status, 200);
+        quantized_vertices(&t.body)
+    };
+    // West–east and south–north neighbours: the shared edge's vertices, and their normals.
+    let mut worst = 0.0f64;
+    let mut shared = 0;
+    for ((ax, ay), (bx, by), vertical) in [((x, y), (x + 1, y), true), ((x, y), (x, y + 1), false)]
+    {
+        let (va, na) = tile(ax, ay);
+        let (vb, nb) = tile(bx, by);
+        let (na, nb) = (na.expect("normals"), nb.expect("normals"));
+        for (i, p) in va.iter().enumerate() {
+            // On a's east (or north) edge, the vertex of b's west (or south) edge.
+            let (edge, along) = if vertical { (p[0], p[1]) } else { (p[1], p[0]) };
+            if edge != 32767 {
+                continue;
+            }
+            let Some(j) = vb.iter().position(|q| {
+                let (e, a) = if vertical { (q[0], q[1]) } else { (q[1], q[0]) };
+                e == 0 && a == along
+            }) else {
+                continue;
+            };
+            shared += 1;
+            let (a, b) = (oct_decode(na[i]), oct_decode(nb[j]));
+            let cos = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0);
+            worst = worst.max(cos.acos().to_degrees());
+        }
+    }
+    println!("{shared} shared edge vertices, normals at most {worst:.2}° apart");
+    assert!(shared > 100, "{shared}");
+    // Both tiles work the normal out from the same heights around the vertex; what is left
+    // is the 8-bit oct encoding's rounding.
+    assert!(worst < 1.5, "normals {worst:.2}° apart across an edge");
+}

@@ -121,7 +121,11 @@ fn the_viewer_page_shows_the_store_in_maplibre_and_cesium() {
     let t = &r["terrain_responses"];
     let n = num(&t["responses"], "terrain responses");
     assert!(n > 0.0, "Cesium asked for no terrain tile: {t}");
-    assert_eq!(num(&t["warned"], "warned"), n, "a terrain tile without its Warning: {t}");
+    assert_eq!(
+        num(&t["warned"], "warned"),
+        n,
+        "a terrain tile without its Warning: {t}"
+    );
     let warning = t["warning"].as_str().unwrap_or("");
     assert!(
         warning.starts_with("299 patchwork") && warning.contains("no vertical CRS"),

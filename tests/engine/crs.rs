@@ -535,7 +535,11 @@ fn a_shifted_copy_in_another_crs_conflicts_by_as_much_as_proj_says() {
 #[test]
 fn a_footprint_is_the_surveys_own_pixels_carried_into_longitude_and_latitude() {
     let tmp = tempfile::tempdir().unwrap();
-    let e = engine(tmp.path(), "EPSG:4326", &[("real/ventoux_utm31.tif", Some(2.0))]);
+    let e = engine(
+        tmp.path(),
+        "EPSG:4326",
+        &[("real/ventoux_utm31.tif", Some(2.0))],
+    );
     let r = read_raster(&crop("real/ventoux_utm31.tif"), &ReadLimits::default()).unwrap();
     let utm = r.crs.crs.clone().unwrap();
     let to = Transform::new(&utm, &Crs::wgs84()).unwrap();

@@ -494,6 +494,7 @@ fn heights_are_given_above_the_ellipsoid_or_another_geoid_as_asked() {
             crs: None,
             fill_voids: true,
             heights: hs,
+            rim: false,
         };
         e.mesh(&spec, Backend::Cpu, Ctx::default()).unwrap()
     };

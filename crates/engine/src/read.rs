@@ -119,6 +119,29 @@ pub struct MeshSpec {
     pub fill_voids: bool,
     /// What the vertices' heights are measured from.
     pub heights: Heights,
+    /// Whether to resample a vertex more all round, beyond the tile's edges
+    /// ([`MeshTile::rim`]), for normals that agree across them.
+    pub rim: bool,
+}
+
+impl MeshSpec {
+    /// The grid resampled for the mesh: its ROI and vertices each way, grown by a vertex
+    /// all round with [`MeshSpec::rim`].
+    fn resampled(&self) -> (Aabb, usize, usize) {
+        let (roi, cols, rows) = (*self.roi.aabb(), self.cols, self.rows);
+        if !self.rim {
+            return (roi, cols, rows);
+        }
+        let dx = roi.width() / (cols - 1) as f64;
+        let dy = roi.height() / (rows - 1) as f64;
+        let grown = Aabb::new(
+            roi.min[0] - dx,
+            roi.min[1] - dy,
+            roi.max[0] + dx,
+            roi.max[1] + dy,
+        );
+        (grown, cols + 2, rows + 2)
+    }
 }
 
 /// A mesh of a uniform cut and what it was made from.
@@ -139,6 +162,9 @@ pub struct MeshTile {
     pub voids: Vec<bool>,
     /// What the heights are measured from.
     pub frame: Frame,
+    /// With [`MeshSpec::rim`], the heights of the grid with a vertex more all round,
+    /// `(cols + 2) × (rows + 2)` row by row: the mesh's grid is its inside.
+    pub rim: Option<Vec<f32>>,
 }
 
 /// What a reply's heights are measured from, and what carrying them there may have added.
@@ -425,12 +451,14 @@ impl Engine {
                 .into());
             }
         }
-        let pixels = mesh::pixel_roi(&roi, cols, rows);
         let cancel = ctx.cancel.clone();
         let shift = self.shift_to(&spec.heights)?;
-        let req = TileRequest::new(Self::mesh_cut(spec)?, cols as u32, rows as u32, backend)?;
+        // The grid resampled: the mesh's, or with a vertex more all round.
+        let (groi, gcols, grows) = spec.resampled();
+        let pixels = mesh::pixel_roi(&groi, gcols, grows);
+        let req = TileRequest::new(Self::mesh_cut(spec)?, gcols as u32, grows as u32, backend)?;
         let (mut tile, used, _) = self.tile(&req, ctx)?;
-        let grid = SampleGrid::uniform(&pixels, cols, rows);
+        let grid = SampleGrid::uniform(&pixels, gcols, grows);
         let mut voids = Vec::new();
         if spec.fill_voids {
             voids = self.fill_voids(
@@ -457,6 +485,22 @@ impl Engine {
                 *h = 0.0;
             }
         }
+        let rim = spec.rim.then(|| {
+            // The mesh's grid is the inside of the one resampled.
+            let inside = |v: &[f32]| -> Vec<f32> {
+                (1..=rows)
+                    .flat_map(|j| v[j * gcols + 1..j * gcols + 1 + cols].to_vec())
+                    .collect()
+            };
+            let all = std::mem::take(&mut tile.heights);
+            tile.heights = inside(&all);
+            if !voids.is_empty() {
+                voids = (1..=rows)
+                    .flat_map(|j| voids[j * gcols + 1..j * gcols + 1 + cols].to_vec())
+                    .collect();
+            }
+            all
+        });
         let holes = if spec.hole_reach_m.get() > 0.0 {
             let mid = (roi.min[1] + roi.max[1]) / 2.0;
             let scale = match &spec.crs {
@@ -497,13 +541,15 @@ impl Engine {
             shortfall: tile.shortfall,
             voids,
             frame,
+            rim,
         })
     }
 
     /// The cut a mesh resamples: over the ROI grown by half a cell, whose pixel centres fall
     /// on the grid's vertices.
     pub fn mesh_cut(spec: &MeshSpec) -> Result<Cut, EngineError> {
-        let pixels = mesh::pixel_roi(spec.roi.aabb(), spec.cols, spec.rows);
+        let (roi, cols, rows) = spec.resampled();
+        let pixels = mesh::pixel_roi(&roi, cols, rows);
         Ok(Cut::uniform(
             spec.crs.clone(),
             Region::new(pixels)?,

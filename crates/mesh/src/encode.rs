@@ -239,8 +239,14 @@ fn occlusion_point(centre: [f64; 3], points: &[[f64; 3]]) -> [f64; 3] {
 /// (Cesium names them in its `Accept` header).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Extensions {
-    /// Oct-encoded vertex normals (extension 1), area-weighted over the tile's faces.
+    /// Oct-encoded vertex normals (extension 1): from the surface around each vertex where
+    /// `rim` gives it, else area-weighted over the tile's faces.
     pub normals: bool,
+    /// The heights of the mesh's grid with one more vertex all round, beyond the tile's
+    /// edges, `(cols + 2) × (rows + 2)` row by row: each vertex's normal is then the
+    /// surface's there, across the edge as inside, so that two tiles sharing an edge give its
+    /// vertices the same normal and shading shows no seam along it.
+    pub rim: Option<Vec<f32>>,
     /// The water mask (extension 2): one byte for a tile all land (0) or all water (255), or
     /// 256 × 256 bytes, north row first and west to east.
     pub watermask: Option<Vec<u8>>,
@@ -348,7 +354,16 @@ pub fn quantized_mesh(m: &Mesh, roi: &Aabb, ext: &Extensions) -> Vec<u8> {
         }
     }
     if ext.normals {
-        normals(&mut out, &triangles, &world);
+        match &ext.rim {
+            Some(rim) if rim.len() == (m.cols + 2) * (m.rows + 2) => {
+                let data: Vec<u8> = order
+                    .iter()
+                    .flat_map(|&v| oct(rim_normal(m, roi, rim, m.grid[v])))
+                    .collect();
+                extension(&mut out, 1, &data);
+            }
+            _ => normals(&mut out, &triangles, &world),
+        }
     }
     if let Some(mask) = &ext.watermask {
         extension(&mut out, 2, mask);
@@ -367,6 +382,34 @@ fn extension(out: &mut Vec<u8>, id: u8, data: &[u8]) {
     out.push(id);
     out.extend((data.len() as u32).to_le_bytes());
     out.extend(data);
+}
+
+/// The unit normal, earth-fixed, of the surface at grid vertex `g` of `m`: across the
+/// vertices on either side of it east–west and north–south in `rim` (the grid with a vertex
+/// more all round), so that a vertex on the tile's edge has the normal its neighbour tile
+/// gives it too.
+fn rim_normal(m: &Mesh, roi: &Aabb, rim: &[f32], g: [u32; 2]) -> [f64; 3] {
+    let w = m.cols + 2;
+    let dx = roi.width() / (m.cols - 1) as f64;
+    let dy = roi.height() / (m.rows - 1) as f64;
+    // Rim vertex (i, j) is grid vertex (i − 1, j − 1).
+    let at = |i: usize, j: usize| {
+        let lon = roi.min[0] + (i as f64 - 1.0) * dx;
+        let lat = roi.max[1] - (j as f64 - 1.0) * dy;
+        ecef(lon, lat, rim[j * w + i] as f64)
+    };
+    let (i, j) = (g[0] as usize + 1, g[1] as usize + 1);
+    let east = sub(at(i + 1, j), at(i - 1, j));
+    let north = sub(at(i, j - 1), at(i, j + 1));
+    let n = cross(east, north);
+    let l = norm(n);
+    let p = at(i, j);
+    if l > 0.0 && n.iter().all(|v| v.is_finite()) {
+        [n[0] / l, n[1] / l, n[2] / l]
+    } else {
+        let l = norm(p);
+        [p[0] / l, p[1] / l, p[2] / l]
+    }
 }
 
 /// The normals extension: vertex normals in the earth-fixed frame, area-weighted over the

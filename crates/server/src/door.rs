@@ -155,6 +155,7 @@ impl TryFrom<&pb::MeshRequest> for MeshAsk {
             crs: parse_crs(&r.crs)?,
             fill_voids: false,
             heights: Heights::parse(&r.heights)?,
+            rim: false,
         };
         Ok(MeshAsk {
             spec,

@@ -116,6 +116,8 @@ pub fn tile(
         crs,
         fill_voids: true,
         heights: heights.clone(),
+        // Normals from the surface across the tile's edges, where Cesium shades with them.
+        rim: asked.normals,
     };
     let (t, ps) = match engine.crs() {
         Some(_) => engine.query(&Engine::mesh_cut(&spec)?)?,
@@ -138,7 +140,7 @@ pub fn tile(
         "application/vnd.quantized-mesh",
         || {
             // Nothing in the cut may still leave voids a survey just beyond the tile fills.
-            let (mesh, voids) = if ps.is_empty() && near.is_empty() {
+            let (mesh, voids, rim) = if ps.is_empty() && near.is_empty() {
                 // No data under the tile: the ellipsoid, all water.
                 let flat = mesh::triangulate(
                     &vec![0.0; n * n],
@@ -149,13 +151,14 @@ pub fn tile(
                         ..Default::default()
                     },
                 );
-                (flat, vec![true; n * n])
+                (flat, vec![true; n * n], None)
             } else {
                 let m = engine.mesh(&spec, Backend::Auto, Ctx::until(cancel).with_cut((t, ps)))?;
-                (m.mesh, m.voids)
+                (m.mesh, m.voids, m.rim)
             };
             let ext = encode::Extensions {
                 normals: asked.normals,
+                rim,
                 watermask: asked.watermask.then(|| watermask(&voids, n)),
                 metadata: asked.metadata.then(|| metadata(&pyramid, z, x, y)),
             };
