@@ -714,3 +714,63 @@ fn terrain_normals_agree_across_tile_edges() {
     // is the 8-bit oct encoding's rounding.
     assert!(worst < 1.5, "normals {worst:.2}° apart across an edge");
 }
+
+#[test]
+fn a_projected_store_serves_the_whole_web_pyramid_and_both_cesium_roots() {
+    let tmp = tempfile::tempdir().unwrap();
+    let setup = Setup {
+        env: vec![("PATCHWORK_CRS".into(), "EPSG:32631".into())],
+        ..Setup::default()
+    };
+    let d = Daemon::start_with(tmp.path(), setup);
+    drop_by_rename(&crop("real/ventoux_utm31.tif"), &d.inbox(), "ventoux.tif");
+    d.wait("the survey", |s| count(s, "active") == 1);
+    // Mont Ventoux, inside the UTM crop.
+    let p = [5.2786, 44.174];
+    // Every zoom's tile over it, though a UTM zone's CRS reaches only part of the low ones:
+    // the rest of those tiles is nodata, not a refusal of the whole tile.
+    for z in 0..=14 {
+        let (x, y) = tile_at(z, p);
+        let r = get(&format!("{}/tiles/{z}/{x}/{y}.png", d.http), &[]);
+        assert_eq!(r.status, 200, "zoom {z}: {}", r.text());
+    }
+    for root in ["/terrain/0/0/0.terrain", "/terrain/0/1/0.terrain"] {
+        let r = get(&format!("{}{root}", d.http), &[]);
+        assert_eq!(r.status, 200, "{root}: {}", r.text());
+    }
+    for z in 1..=12 {
+        let r = geographic::over(z, &patchwork_core::geom::Aabb::new(p[0], p[1], p[0], p[1]));
+        let url = format!("{}/terrain/{z}/{}/{}.terrain", d.http, r.x0, r.y0);
+        assert_eq!(get(&url, &[]).status, 200, "{url}");
+    }
+    // Where the data is, a tile's pixel is its height: the pixel holding the summit against
+    // /heights at the pixel's centre.
+    let z = 13;
+    let (x, y) = tile_at(z, p);
+    let (w, _, px) = rgba(&get(&format!("{}/tiles/{z}/{x}/{y}.png", d.http), &[]).body);
+    let b = mercator::bounds(z, x, y);
+    let [mx, my] = mercator::project(p[0], p[1]);
+    let (i, j) = (
+        ((mx - b.min[0]) / b.width() * w as f64) as usize,
+        ((b.max[1] - my) / b.height() * w as f64) as usize,
+    );
+    let k = 4 * (j * w as usize + i);
+    assert_eq!(px[k + 3], 255, "no data at the summit's pixel");
+    let centre = mercator::unproject(
+        b.min[0] + (i as f64 + 0.5) / w as f64 * b.width(),
+        b.max[1] - (j as f64 + 0.5) / w as f64 * b.height(),
+    );
+    let e = mercator::error(z, 256);
+    let h = get(
+        &format!(
+            "{}/heights?points={},{}&error={e}",
+            d.http, centre[0], centre[1]
+        ),
+        &[],
+    )
+    .json();
+    let want = h["heights"][0].as_f64().unwrap();
+    let got = terrarium(&px[k..k + 4]);
+    assert!((got - want).abs() < 0.01, "{got} against /heights' {want}");
+    assert!(want > 1500.0, "{want}: not the summit");
+}

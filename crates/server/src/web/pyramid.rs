@@ -53,6 +53,15 @@ impl Pyramid {
         (json!("store"), vertical)
     }
 
+    /// Where any survey's data can reach, degrees: the union of the footprints' reaches; None
+    /// for an empty store.
+    pub fn reach(&self) -> Option<Aabb> {
+        self.footprints
+            .iter()
+            .map(|f| f.reach)
+            .reduce(|a, b| a.union(&b))
+    }
+
     /// The ids of the surveys whose samples, edge patches or coarser levels can reach into
     /// `lonlat`.
     pub fn near(&self, lonlat: &Aabb) -> Vec<u64> {

@@ -154,17 +154,46 @@ fn cut_of(
     web: &Web,
     r: &Request,
 ) -> Result<(Cut, Arc<Terrain>, Vec<Extracted>), EngineError> {
+    let crs = web.unless_store(engine, &web.mercator);
     let cut = Cut::uniform(
-        web.unless_store(engine, &web.mercator),
+        crs.clone(),
         Region::new(mercator::bounds(r.z, r.x, r.y))?,
         Metres::error(r.error)?,
     );
     let most = engine.config().limits.max_web_tile_patches;
-    Ok(match engine.crs() {
-        Some(_) => engine.query_within(&cut, most)?,
+    if engine.crs().is_none() {
         // A store with no survey yet has nothing anywhere.
-        None => (cut, engine.snapshot(), Vec::new()),
-    })
+        return Ok((cut, engine.snapshot(), Vec::new()));
+    }
+    match engine.query_within(&cut, most) {
+        Err(EngineError::Unreachable { .. }) => {}
+        done => return done,
+    }
+    // A projected store's CRS reaches only part of the tile (a UTM zone's, of a low zoom's
+    // tile): the cut is made where the surveys can reach, and the rest of the tile is
+    // nodata, as it would be anyway.
+    let within = web
+        .pyramid(engine)
+        .reach()
+        .and_then(|b| b.intersection(&mercator::lonlat_bounds(r.z, r.x, r.y)))
+        .filter(|b| b.width() > 0.0 && b.height() > 0.0);
+    let Some(within) = within else {
+        return Ok((cut, engine.snapshot(), Vec::new()));
+    };
+    let (lo, hi) = (
+        mercator::project(within.min[0], within.min[1]),
+        mercator::project(within.max[0], within.max[1]),
+    );
+    let part = Cut::uniform(
+        crs.clone(),
+        Region::of(lo[0], lo[1], hi[0], hi[1])?,
+        Metres::error(r.error)?,
+    );
+    let (part, t, ps) = engine.query_within(&part, most)?;
+    // The tile's cut at the error the part was made at: its samples are the whole tile's.
+    let error = Metres::error(part.error().unwrap_or(r.error))?;
+    let whole = Cut::uniform(crs, Region::new(mercator::bounds(r.z, r.x, r.y))?, error);
+    Ok((whole, t, ps))
 }
 
 /// The surveys that served tile `r`, each with the share of the tile's samples it served:

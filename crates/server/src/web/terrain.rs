@@ -8,7 +8,9 @@ use super::{Produced, Web};
 use patchwork_core::geom::tiles::geographic;
 use patchwork_core::mesh::{self, encode, Border, Method};
 use patchwork_core::resample::Cancel;
-use patchwork_engine::{Backend, Ctx, Engine, EngineError, Heights, MeshSpec, Metres, Region};
+use patchwork_engine::{
+    Backend, Ctx, Cut, Engine, EngineError, Heights, Made, MeshSpec, Metres, Region,
+};
 use serde_json::json;
 
 /// The extensions a client asked for in its `Accept` header.
@@ -120,7 +122,10 @@ pub fn tile(
         rim: asked.normals,
     };
     let (t, ps) = match engine.crs() {
-        Some(_) => engine.query(&Engine::mesh_cut(&spec)?)?,
+        Some(_) => match engine.query(&Engine::mesh_cut(&spec)?) {
+            Err(EngineError::Unreachable { .. }) => part_cut(engine, web, &spec)?,
+            done => done?,
+        },
         // A store with no survey yet has nothing anywhere.
         None => (engine.snapshot(), Vec::new()),
     };
@@ -166,6 +171,25 @@ pub fn tile(
         },
     )?;
     Ok(Produced { warning, ..made })
+}
+
+/// The cut of the part of a tile where the surveys can reach, for a projected store whose
+/// CRS reaches only part of it (a UTM zone's, of a root tile): the rest is nodata, and the
+/// globe shows the ellipsoid there, as it would anyway.
+fn part_cut(engine: &Engine, web: &Web, spec: &MeshSpec) -> Result<Made, EngineError> {
+    let tile = Engine::mesh_cut(spec)?;
+    let Cut::UniformIn { roi, .. } = &tile else {
+        return engine.query(&tile);
+    };
+    let within = web
+        .pyramid(engine)
+        .reach()
+        .and_then(|b| b.intersection(roi.aabb()))
+        .filter(|b| b.width() > 0.0 && b.height() > 0.0);
+    match within {
+        Some(w) => engine.query(&Cut::uniform(spec.crs.clone(), Region::new(w)?, spec.error)),
+        None => Ok((engine.snapshot(), Vec::new())),
+    }
 }
 
 /// The water mask of a tile whose grid (`n` = 257 vertices a side) had no data at the
