@@ -271,11 +271,18 @@ pub fn png(rgba: &[u8], size: u32) -> Vec<u8> {
 
 /// A `size²` lossless WebP of `rgba`: the same pixels as [`png`]'s, decoded.
 pub fn webp(rgba: &[u8], size: u32) -> Vec<u8> {
-    let mut out = Vec::with_capacity(rgba.len() / 4);
-    image_webp::WebPEncoder::new(&mut out)
-        .encode(rgba, size, size, image_webp::ColorType::Rgba8)
-        .expect("as many pixels as the size says, in memory");
-    out
+    let mut cfg = webp::WebPConfig::new().expect("libwebp's default configuration");
+    cfg.lossless = 1;
+    // Keep the colour of transparent pixels: a void's holds the height filled in for it.
+    cfg.exact = 1;
+    // In lossless mode, quality is effort: at method 1 and 25 the bytes are within 2% of the
+    // most libwebp gets (method 6, 100) in a hundredth of its time.
+    cfg.method = 1;
+    cfg.quality = 25.0;
+    webp::Encoder::from_rgba(rgba, size, size)
+        .encode_advanced(&cfg)
+        .expect("as many pixels as the size says, in memory")
+        .to_vec()
 }
 
 #[cfg(test)]
