@@ -163,6 +163,14 @@ def run_crs(address):
         require(ok.sum() > 150 and np.array_equal(ok, ~np.isnan(utm)), f"{ok.sum()} of 200 points have heights")
         point_diff = float(np.max(np.abs(geo[ok] - utm[ok])))
         require(point_diff <= 1e-3, f"points asked in UTM are {point_diff:.4g} m off the same ground asked in degrees")
+        # Each height names the survey that served it, one of the store's; none where no height.
+        ids = {s.id for s in c.surveys()}
+        served = c.sources(np.column_stack([lon, lat]), 0.0)
+        require(len(served) == 200, f"{len(served)} sources for 200 points")
+        for k, s in enumerate(served):
+            require((s is None) == (not ok[k]), f"point {k}: a source {s} with height {geo[k]}")
+            if s is not None:
+                require(s["survey"] in ids and s["cell_m"] > 0.0 and s["error_m"] >= 0.0, f"point {k}: {s}")
 
         # A UTM tile is in UTM: its info names the CRS, and its heights are the store's at
         # its pixels' centres carried back to degrees.

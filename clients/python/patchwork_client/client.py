@@ -421,6 +421,29 @@ class Client:
         z[np.frombuffer(r.valid, dtype=np.uint8) == 0] = np.nan
         return z
 
+    def sources(self, points, error: float, crs: str = "") -> List[Optional[dict]]:
+        """What served the height at each point (see :meth:`sample`): a dict with the
+        survey's ``survey`` id, its ``file``, what its sidecar says (``title``, ``license``,
+        ``attribution``, ``acquired``, None where it says nothing), and the patch's ``level``,
+        ``cell_m`` and ``error_m``; None where the point has no height."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        req = terrain_pb2.SampleRequest(
+            points=[terrain_pb2.Point(x=x, y=y) for x, y in pts], error=error, crs=crs,
+            sources=True,
+        )
+        r = self._call(self.terrain.SampleHeights, req)
+        given = lambda v: v or None  # noqa: E731
+        out: List[Optional[dict]] = []
+        for s in r.sources:
+            if not s.survey:
+                out.append(None)
+                continue
+            a = s.about
+            out.append(dict(survey=s.survey, file=s.file, title=given(a.title), license=given(a.license),
+                            attribution=given(a.attribution), acquired=given(a.acquired), level=s.level,
+                            cell_m=s.cell_m, error_m=s.error_m))
+        return out
+
     def view_session(self) -> "ViewSession":
         """A view session: send cameras with :meth:`ViewSession.update`, and the session's
         ``patches`` follow the view cut, by the difference from one camera to the next."""
