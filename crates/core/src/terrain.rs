@@ -1443,8 +1443,8 @@ impl Terrain {
     /// `set` (resolved from `ps`), as the patch of `ps` (by id: the set holds those of the cut
     /// that could be read and reach a point). An edge patch, which
     /// stitches the samples of several surveys across their seam, is told as the member
-    /// whose footprint holds the point, the most accurate where several do (the first
-    /// member where none does): its `survey` is that member's id, not the patch's owner.
+    /// whose footprint holds the point, the most accurate where several do (the nearest
+    /// where none does): its `survey` is that member's id, not the patch's owner.
     fn patches_served(
         &self,
         ps: &[Extracted],
@@ -1462,15 +1462,23 @@ impl Terrain {
                 let mut x = (*by_id.get(&id)?).clone();
                 if let Some(e) = self.edges.get(&x.survey) {
                     let p = grid.point(at);
-                    let holds = |s: &&Arc<SurveyMeta>| s.footprint().contains_point(p);
-                    let member = e
+                    // How far the point lies outside a member's footprint: 0 inside.
+                    let off = |s: &SurveyMeta| {
+                        let f = s.footprint();
+                        let d = |lo: f64, v: f64, hi: f64| (lo - v).max(v - hi).max(0.0);
+                        d(f.min[0], p[0], f.max[0]).hypot(d(f.min[1], p[1], f.max[1]))
+                    };
+                    x.survey = e
                         .members
                         .iter()
                         .filter_map(|m| self.surveys.get(m))
-                        .filter(holds)
-                        .min_by(|a, b| a.accuracy.total_cmp(&b.accuracy).then(a.id.cmp(&b.id)))
-                        .map(|s| s.id);
-                    x.survey = member.or(e.members.first().copied())?;
+                        .min_by(|a, b| {
+                            off(a)
+                                .total_cmp(&off(b))
+                                .then(a.accuracy.total_cmp(&b.accuracy))
+                                .then(a.id.cmp(&b.id))
+                        })
+                        .map(|s| s.id)?;
                 }
                 Some(x)
             })

@@ -232,11 +232,7 @@ impl super::Engine {
                 let bounds = Aabb::of_points(&ring);
                 let reach = Aabb::of_points(&outline(&to, &super::write::changed_area(s))?);
                 let rows = g.rows.max(2) - 1;
-                let record = catalog
-                    .records
-                    .binary_search_by_key(&s.id, |r| r.id)
-                    .ok()
-                    .map(|k| &catalog.records[k]);
+                let record = catalog.record(s.id);
                 Some(Footprint {
                     file: record.map(|r| r.source.clone()).unwrap_or_default(),
                     about: record.map(|r| r.about.clone()).unwrap_or_default(),

@@ -45,11 +45,7 @@ pub struct Share {
 
 /// The source of a height that patch `x` served, from the terrain and catalog of one commit.
 pub fn source_of(t: &Terrain, catalog: &Catalog, x: &Extracted) -> Source {
-    let record = catalog
-        .records
-        .binary_search_by_key(&x.survey, |r| r.id)
-        .ok()
-        .map(|k| &catalog.records[k]);
+    let record = catalog.record(x.survey);
     Source {
         survey: x.survey,
         file: record.map(|r| r.source.clone()).unwrap_or_default(),

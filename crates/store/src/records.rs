@@ -210,6 +210,13 @@ pub struct Catalog {
 }
 
 impl Catalog {
+    /// The record of survey `id`, active or retired.
+    pub fn record(&self, id: SurveyId) -> Option<&SurveyRecord> {
+        // The records are in id order.
+        let k = self.records.binary_search_by_key(&id, |r| r.id).ok()?;
+        Some(&self.records[k])
+    }
+
     /// The record of the active survey read from `source`, if any.
     /// Not a damaged one: its file is to be ingested again.
     pub fn active_from(&self, source: &str) -> Option<&SurveyRecord> {

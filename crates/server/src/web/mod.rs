@@ -578,6 +578,32 @@ struct TileParams {
 }
 
 impl TileParams {
+    /// Tile (z, x, y) in `format`, at the size, error and heights these ask for: checked.
+    fn request(
+        &self,
+        z: u32,
+        x: u32,
+        y: u32,
+        format: raster::Format,
+    ) -> Result<raster::Request, String> {
+        if !mercator::valid(z, x, y) {
+            return Err(format!(
+                "tile {z}/{x}/{y} does not exist: z is 0 to 24, x and y 0 to 2^z − 1"
+            ));
+        }
+        let size = self.size()?;
+        let error = self.error()?;
+        Ok(raster::Request {
+            z,
+            x,
+            y,
+            size,
+            format,
+            error: error.map_or_else(|| mercator::error(z, size), Metres::get),
+            heights: self.heights()?,
+        })
+    }
+
     fn heights(&self) -> Result<Heights, String> {
         Heights::parse(self.heights.as_deref().unwrap_or("")).map_err(|e| e.to_string())
     }
@@ -719,16 +745,11 @@ async fn raster_tile(
             "{file:?} is not a tile: ask for {{y}}.png, {{y}}.webp or {{y}}.tif"
         ));
     };
-    if !mercator::valid(z, x, y) {
-        return bad_request(format!(
-            "tile {z}/{x}/{y} does not exist: z is 0 to 24, x and y 0 to 2^z − 1"
-        ));
-    }
-    let (size, error) = match (p.size(), p.error()) {
-        (Ok(s), Ok(e)) => (s, e),
-        (Err(m), _) | (_, Err(m)) => return bad_request(m),
+    let mut req = match p.request(z, x, y, raster::Format::Tiff) {
+        Ok(r) => r,
+        Err(m) => return bad_request(m),
     };
-    let format = match ext {
+    req.format = match ext {
         "png" => raster::Format::Png(p.encoding.unwrap_or(Encoding::Terrarium)),
         "webp" => raster::Format::Webp(p.encoding.unwrap_or(Encoding::Terrarium)),
         "tif" | "tiff" => raster::Format::Tiff,
@@ -739,19 +760,6 @@ async fn raster_tile(
             )
                 .into_response()
         }
-    };
-    let heights = match p.heights() {
-        Ok(h) => h,
-        Err(e) => return bad_request(e),
-    };
-    let req = raster::Request {
-        z,
-        x,
-        y,
-        size,
-        format,
-        error: error.map_or_else(|| mercator::error(z, size), Metres::get),
-        heights,
     };
     let inm = if_none_match(&headers);
     let w = web.clone();
@@ -787,23 +795,10 @@ async fn tile_sources(
     if file != "sources.json" {
         return (StatusCode::NOT_FOUND, "ask for sources.json").into_response();
     }
-    if !mercator::valid(z, x, y) {
-        return bad_request(format!(
-            "tile {z}/{x}/{y} does not exist: z is 0 to 24, x and y 0 to 2^z − 1"
-        ));
-    }
-    let (size, error) = match (p.size(), p.error()) {
-        (Ok(s), Ok(e)) => (s, e),
-        (Err(m), _) | (_, Err(m)) => return bad_request(m),
-    };
-    let req = raster::Request {
-        z,
-        x,
-        y,
-        size,
-        format: raster::Format::Tiff,
-        error: error.map_or_else(|| mercator::error(z, size), Metres::get),
-        heights: Heights::Store,
+    // The tile whose cut it tells of: its format and heights' frame change nothing of that.
+    let req = match p.request(z, x, y, raster::Format::Tiff) {
+        Ok(r) => r,
+        Err(m) => return bad_request(m),
     };
     let w = web.clone();
     match web

@@ -53,13 +53,15 @@ impl Pyramid {
         (json!("store"), vertical)
     }
 
-    /// Where any survey's data can reach, degrees: the union of the footprints' reaches; None
-    /// for an empty store.
-    pub fn reach(&self) -> Option<Aabb> {
+    /// The part of `lonlat` where any survey's data can reach (the union of the footprints'
+    /// reaches), degrees; None where it holds none, or no area.
+    pub fn reach_within(&self, lonlat: &Aabb) -> Option<Aabb> {
         self.footprints
             .iter()
             .map(|f| f.reach)
-            .reduce(|a, b| a.union(&b))
+            .reduce(|a, b| a.union(&b))?
+            .intersection(lonlat)
+            .filter(|b| b.width() > 0.0 && b.height() > 0.0)
     }
 
     /// The ids of the surveys whose samples, edge patches or coarser levels can reach into

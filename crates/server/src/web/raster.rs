@@ -174,9 +174,7 @@ fn cut_of(
     // nodata, as it would be anyway.
     let within = web
         .pyramid(engine)
-        .reach()
-        .and_then(|b| b.intersection(&mercator::lonlat_bounds(r.z, r.x, r.y)))
-        .filter(|b| b.width() > 0.0 && b.height() > 0.0);
+        .reach_within(&mercator::lonlat_bounds(r.z, r.x, r.y));
     let Some(within) = within else {
         return Ok((cut, engine.snapshot(), Vec::new()));
     };

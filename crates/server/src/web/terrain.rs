@@ -181,12 +181,7 @@ fn part_cut(engine: &Engine, web: &Web, spec: &MeshSpec) -> Result<Made, EngineE
     let Cut::UniformIn { roi, .. } = &tile else {
         return engine.query(&tile);
     };
-    let within = web
-        .pyramid(engine)
-        .reach()
-        .and_then(|b| b.intersection(roi.aabb()))
-        .filter(|b| b.width() > 0.0 && b.height() > 0.0);
-    match within {
+    match web.pyramid(engine).reach_within(roi.aabb()) {
         Some(w) => engine.query(&Cut::uniform(spec.crs.clone(), Region::new(w)?, spec.error)),
         None => Ok((engine.snapshot(), Vec::new())),
     }
