@@ -4,6 +4,7 @@
 
 mod admin;
 mod client;
+mod export;
 mod json;
 mod serve;
 mod terrain;
@@ -58,6 +59,9 @@ pub enum Cmd {
     /// Triangulate a uniform cut's surface and write it as OBJ (.obj), binary glTF (.glb) or
     /// Cesium quantized-mesh (.terrain; a geographic store only).
     Mesh(MeshArgs),
+    /// Write the web pyramid's raster-DEM tiles as one file to host without a server:
+    /// PMTiles or MBTiles, the same tiles the HTTP server serves.
+    Export(export::ExportArgs),
 }
 
 // The arguments of `patchwork serve`.
@@ -389,5 +393,6 @@ pub async fn run(cli: Cli) -> Result<(), Fail> {
         Cmd::Tile(a) => terrain::tile(a).await,
         Cmd::Sample(a) => terrain::sample(a).await,
         Cmd::Mesh(a) => terrain::mesh(a).await,
+        Cmd::Export(a) => export::export(a).await,
     }
 }

@@ -5,6 +5,7 @@
 mod common;
 
 mod daemon;
+mod exports;
 mod exposure;
 mod hostile;
 mod load;

@@ -6,6 +6,7 @@ pub mod auth;
 pub mod conns;
 pub mod convert;
 pub mod door;
+pub mod export;
 pub mod grpc;
 pub mod proto;
 pub mod status;

@@ -10,7 +10,7 @@
 //! map its status to an HTTP code in one place ([`status_response`]).
 
 pub mod pyramid;
-mod raster;
+pub(crate) mod raster;
 mod terrain;
 
 use super::auth::Gate;
@@ -75,16 +75,16 @@ impl quick_cache::Weighter<[u8; 16], Bytes> for TileBytes {
 
 /// A tile as it goes out: its ETag, and its bytes unless the client has them.
 pub struct Produced {
-    etag: [u8; 16],
+    pub(crate) etag: [u8; 16],
     /// Shared with the cache: a response takes no copy.
-    body: Option<Bytes>,
+    pub(crate) body: Option<Bytes>,
     content_type: &'static str,
     /// The error the tile was made at where it is not the one asked (see
     /// `limits.max_web_tile_patches`): sent as `X-Patchwork-Error`.
-    error: Option<f64>,
+    pub(crate) error: Option<f64>,
     /// Why the tile's heights are not in the frame the client expects: sent as a
     /// `Warning` header (code 299, a persistent warning).
-    warning: Option<String>,
+    pub(crate) warning: Option<String>,
 }
 
 impl Web {
@@ -114,7 +114,7 @@ impl Web {
         }
     }
 
-    fn engine(&self) -> &Arc<Engine> {
+    pub(crate) fn engine(&self) -> &Arc<Engine> {
         self.svc.engine()
     }
 
@@ -269,7 +269,7 @@ fn cache_control(configured: &str, open: bool) -> HeaderValue {
 
 /// An ETag as sent: weak, since the same tile goes out gzipped or not (RFC 9110 §8.8.3 keeps
 /// strong validators for one representation's bytes).
-fn quote_etag(e: &[u8; 16]) -> String {
+pub(crate) fn quote_etag(e: &[u8; 16]) -> String {
     let mut s = String::with_capacity(36);
     s.push_str("W/\"");
     for b in e {
@@ -547,7 +547,7 @@ pub enum Encoding {
 }
 
 impl Encoding {
-    fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Encoding::Terrarium => "terrarium",
             Encoding::Mapbox => "mapbox",

@@ -1,0 +1,159 @@
+//! `patchwork export`: PMTiles and MBTiles of the Copernicus and NASADEM crops, read by the
+//! pmtiles package and sqlite3 and held tile by tile to the daemon's HTTP tiles
+//! (tests/python/exports.py); an export killed part way carried on to the same bytes.
+
+use crate::common;
+
+use common::daemon::*;
+use common::python::python;
+use std::path::Path;
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+fn export(data: &Path, args: &[&str], out: &Path) -> Command {
+    let mut c = Command::new(BIN);
+    c.arg("export")
+        .arg("--data-dir")
+        .arg(data)
+        .args(args)
+        .arg(out);
+    c
+}
+
+fn ok(o: Output, what: &str) -> String {
+    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        o.status.success(),
+        "{what} failed ({})\n{stdout}{}",
+        o.status,
+        String::from_utf8_lossy(&o.stderr)
+    );
+    stdout
+}
+
+/// The `N tiles (D distinct, K kept from before)` of an export's last line.
+fn counts(stdout: &str) -> (u64, u64) {
+    let line = stdout
+        .lines()
+        .find(|l| l.starts_with("wrote "))
+        .expect(stdout);
+    let num = |after: &str| -> u64 {
+        let i = line.find(after).expect(line);
+        line[..i].rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    (num(" tiles ("), num(" kept from before"))
+}
+
+#[test]
+fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let mut d = Daemon::start(root);
+    // A sidecar's attribution, which the archives' metadata must carry as TileJSON does.
+    std::fs::write(
+        d.inbox().join("copernicus_n34w119_crop.tif.toml"),
+        "attribution = \"© DLR, © Airbus, Copernicus\"\n",
+    )
+    .unwrap();
+    for name in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif"] {
+        drop_by_rename(&crop(name), &d.inbox(), name);
+    }
+    d.wait("both surveys to be active", |s| count(s, "active") == 2);
+    // One process opens a store at a time: the export runs with the daemon stopped.
+    d.stop();
+    let data = root.join("data");
+    let pm_args = ["--zooms", "9-15", "--size", "256"];
+
+    let a = root.join("a.pmtiles");
+    let whole = ok(export(&data, &pm_args, &a).output().unwrap(), "the export");
+    let (tiles, kept) = counts(&whole);
+    assert_eq!(kept, 0);
+    assert!(tiles > 50, "{whole}");
+    assert!(!root.join("a.pmtiles.part").exists());
+
+    // The same export killed once its first tiles are durable, then run again.
+    let b = root.join("b.pmtiles");
+    let index = root.join("b.pmtiles.part/index");
+    let mut child = export(&data, &pm_args, &b)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while std::fs::metadata(&index).map_or(0, |m| m.len()) == 0 {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the export finished before any tile was durable: the test needs a longer export"
+        );
+        assert!(
+            t0.elapsed() < Duration::from_secs(120),
+            "no tile was staged"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(!b.exists(), "a killed export left an archive");
+    let again = ok(export(&data, &pm_args, &b).output().unwrap(), "the rerun");
+    let (tiles_b, kept_b) = counts(&again);
+    assert_eq!(tiles_b, tiles);
+    assert!(kept_b > 0 && kept_b < tiles, "{again}");
+    assert!(
+        std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(),
+        "the carried-on archive differs from the one made at once"
+    );
+    assert!(!root.join("b.pmtiles.part").exists());
+
+    let c = root.join("c.mbtiles");
+    let mb = ok(
+        export(
+            &data,
+            &[
+                "--zooms",
+                "10-14",
+                "--size",
+                "256",
+                "--image",
+                "png",
+                "--encoding",
+                "mapbox",
+            ],
+            &c,
+        )
+        .output()
+        .unwrap(),
+        "the MBTiles export",
+    );
+    let (tiles_c, _) = counts(&mb);
+
+    // Options that make no export are refused before any work.
+    for bad in [
+        &["--zooms", "12-3"][..],
+        &["--size", "300"],
+        &["--roi", "1,2,3"],
+        &["--heights", "EPSG:1"],
+    ] {
+        let o = export(&data, bad, &root.join("bad.pmtiles"))
+            .output()
+            .unwrap();
+        assert!(!o.status.success(), "{bad:?} was taken");
+        assert!(!root.join("bad.pmtiles").exists());
+    }
+
+    let d = Daemon::start(root);
+    let out = Command::new(python())
+        .current_dir(repo)
+        .arg("tests/python/exports.py")
+        .args(["--http", &d.http])
+        .arg("--pmtiles")
+        .arg(&a)
+        .args(["--pmtiles-count", &tiles.to_string()])
+        .arg("--mbtiles")
+        .arg(&c)
+        .args(["--mbtiles-count", &tiles_c.to_string()])
+        .output()
+        .unwrap();
+    let stdout = ok(out, "tests/python/exports.py");
+    println!("{}{whole}{again}{mb}", stdout);
+}
