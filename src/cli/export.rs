@@ -1,10 +1,12 @@
 //! `patchwork export`: the web pyramid as one file to host without a server (PMTiles,
-//! MBTiles), made in this process from the store, as the daemon's HTTP server makes its tiles.
+//! MBTiles), made in this process from the store as the daemon's HTTP server makes its tiles;
+//! or a region at a resolution as a cloud-optimized GeoTIFF.
 
 use super::Fail;
 use clap::{Args, ValueEnum};
 use patchwork::config::Config;
 use patchwork::engine::{Engine, Heights};
+use patchwork::serve::export::cog::CogPlan;
 use patchwork::serve::export::{self, Area, Container, Image, Plan, Progress};
 use patchwork::serve::grpc::Service;
 use patchwork::serve::web::{Encoding, Web};
@@ -18,7 +20,7 @@ pub struct ExportArgs {
     /// The file to write. A partial export of the same options beside it (OUT.part) is
     /// carried on from where it stopped.
     pub out: PathBuf,
-    /// The kind of file; by default, from OUT's extension (.pmtiles, .mbtiles).
+    /// The kind of file; by default, from OUT's extension (.pmtiles, .mbtiles, .tif).
     #[arg(long, value_enum)]
     pub format: Option<FormatArg>,
     /// How heights are coded in the tiles' colours.
@@ -33,7 +35,8 @@ pub struct ExportArgs {
     /// The zooms, as A-B (or one zoom); by default 0 to the deepest worth having.
     #[arg(long, value_name = "A-B")]
     pub zooms: Option<String>,
-    /// West,south,east,north in degrees: only the tiles touching it.
+    /// West,south,east,north in degrees: only the tiles touching it. For a COG, the
+    /// region XMIN,YMIN,XMAX,YMAX in --crs (required).
     #[arg(
         long,
         value_name = "W,S,E,N",
@@ -41,11 +44,19 @@ pub struct ExportArgs {
         conflicts_with = "geojson"
     )]
     pub roi: Option<String>,
+    /// A COG's pixel size, in --crs's units (required for a COG).
+    #[arg(long, value_name = "R")]
+    pub resolution: Option<f64>,
+    /// A COG's CRS (an EPSG code, a WKT or a PROJ string): --roi is in it, and so is the
+    /// raster. The store's by default.
+    #[arg(long, value_name = "CRS")]
+    pub crs: Option<String>,
     /// A GeoJSON file of polygons (a Polygon, a MultiPolygon, features of them): only the
     /// tiles touching them. By default, the surveys' footprints.
     #[arg(long, value_name = "FILE")]
     pub geojson: Option<PathBuf>,
-    /// The cut's error, metres; by default each zoom's own, as the HTTP server's.
+    /// The cut's error, metres; by default each zoom's own, as the HTTP server's (0 for a
+    /// COG: the most accurate the store holds).
     #[arg(long, value_name = "M")]
     pub error: Option<f64>,
     /// What the heights are measured from: store (the store's vertical CRS), ellipsoid, or
@@ -64,6 +75,7 @@ pub struct ExportArgs {
 pub enum FormatArg {
     Pmtiles,
     Mbtiles,
+    Cog,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -88,20 +100,26 @@ fn zooms(s: &str) -> Result<(u32, u32), Fail> {
 }
 
 pub async fn export(args: ExportArgs) -> Result<(), Fail> {
-    let container = match args.format {
-        Some(FormatArg::Pmtiles) => Container::Pmtiles,
-        Some(FormatArg::Mbtiles) => Container::Mbtiles,
+    let format = match args.format {
+        Some(f) => f,
         None => match args.out.extension().and_then(|e| e.to_str()) {
-            Some("pmtiles") => Container::Pmtiles,
-            Some("mbtiles") => Container::Mbtiles,
+            Some("pmtiles") => FormatArg::Pmtiles,
+            Some("mbtiles") => FormatArg::Mbtiles,
+            Some("tif" | "tiff") => FormatArg::Cog,
             _ => {
                 return Err(format!(
-                    "{}: say --format pmtiles or mbtiles, or name the file .pmtiles or .mbtiles",
+                    "{}: say --format pmtiles, mbtiles or cog, or name the file .pmtiles, \
+                     .mbtiles or .tif",
                     args.out.display()
                 )
                 .into())
             }
         },
+    };
+    let container = match format {
+        FormatArg::Pmtiles => Container::Pmtiles,
+        FormatArg::Mbtiles => Container::Mbtiles,
+        FormatArg::Cog => return cog(args).await,
     };
     let area = match (&args.roi, &args.geojson) {
         (Some(r), _) => {
@@ -129,15 +147,7 @@ pub async fn export(args: ExportArgs) -> Result<(), Fail> {
         (None, None) => None,
     };
     let heights = Heights::parse(&args.heights).map_err(|e| format!("--heights: {e}"))?;
-    let mut cfg = Config::load(args.config.as_deref())?;
-    if let Some(d) = args.data_dir {
-        cfg.data_dir = d;
-    }
-    let dir = cfg.data_dir.clone();
-    let engine = tokio::task::spawn_blocking(move || Engine::open(cfg))
-        .await?
-        .map_err(|e| format!("cannot open the store in {}: {e}", dir.display()))?;
-    let engine = Arc::new(engine);
+    let engine = open(&args).await?;
     let (_stopping, watch) = tokio::sync::watch::channel(false);
     let web = Web::new(Service::new(engine.clone(), watch));
     let zooms = match &args.zooms {
@@ -171,16 +181,8 @@ pub async fn export(args: ExportArgs) -> Result<(), Fail> {
         error: args.error,
         heights,
     };
-    let cancel = Cancel::default();
-    {
-        // Ctrl-C stops between batches, keeping every tile made for the next run.
-        let cancel = cancel.clone();
-        tokio::spawn(async move {
-            if tokio::signal::ctrl_c().await.is_ok() {
-                cancel.cancel();
-            }
-        });
-    }
+    // Ctrl-C stops between batches, keeping every tile made for the next run.
+    let cancel = stop_on_ctrl_c();
     let out = args.out.clone();
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
@@ -228,5 +230,88 @@ pub async fn export(args: ExportArgs) -> Result<(), Fail> {
     if let Some(w) = s.warning {
         println!("warning: {w}");
     }
+    Ok(())
+}
+
+/// The store, opened in this process.
+async fn open(args: &ExportArgs) -> Result<Arc<Engine>, Fail> {
+    let mut cfg = Config::load(args.config.as_deref())?;
+    if let Some(d) = &args.data_dir {
+        cfg.data_dir = d.clone();
+    }
+    let dir = cfg.data_dir.clone();
+    let engine = tokio::task::spawn_blocking(move || Engine::open(cfg))
+        .await?
+        .map_err(|e| format!("cannot open the store in {}: {e}", dir.display()))?;
+    Ok(Arc::new(engine))
+}
+
+/// A cancel that Ctrl-C sets.
+fn stop_on_ctrl_c() -> Cancel {
+    let cancel = Cancel::default();
+    let c = cancel.clone();
+    tokio::spawn(async move {
+        if tokio::signal::ctrl_c().await.is_ok() {
+            c.cancel();
+        }
+    });
+    cancel
+}
+
+/// `--format cog`.
+async fn cog(args: ExportArgs) -> Result<(), Fail> {
+    let roi = args
+        .roi
+        .as_deref()
+        .ok_or("a COG needs its region: --roi XMIN,YMIN,XMAX,YMAX in --crs")?;
+    let [xmin, ymin, xmax, ymax] = super::numbers::<4>(roi, "--roi")?;
+    let resolution = args
+        .resolution
+        .ok_or("a COG needs its pixel size: --resolution R in --crs's units")?;
+    let crs = match &args.crs {
+        Some(c) => Some(patchwork_core::crs::Crs::parse(c).map_err(|e| format!("--crs: {e}"))?),
+        None => None,
+    };
+    let plan = CogPlan {
+        roi: Aabb::new(xmin, ymin, xmax, ymax),
+        crs,
+        resolution,
+        error: args.error.unwrap_or(0.0),
+        heights: Heights::parse(&args.heights).map_err(|e| format!("--heights: {e}"))?,
+    };
+    let engine = open(&args).await?;
+    let cancel = stop_on_ctrl_c();
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} blocks {elapsed}<{eta}")
+            .expect("template"),
+    );
+    let shown = bar.clone();
+    let out = args.out.clone();
+    let started = std::time::Instant::now();
+    let s = tokio::task::spawn_blocking(move || {
+        export::cog::write(&engine, &plan, &out, &cancel, &mut |p: Progress| {
+            shown.set_length(p.total);
+            shown.set_position(p.done);
+        })
+    })
+    .await?;
+    bar.finish_and_clear();
+    let s = s?;
+    println!(
+        "wrote {}: {} x {} samples and {} overviews, {} voids, {} bytes, in {:.1} s{}",
+        args.out.display(),
+        s.size.0,
+        s.size.1,
+        s.levels - 1,
+        s.voids,
+        s.file_bytes,
+        started.elapsed().as_secs_f64(),
+        if s.frame_error_m > 0.0 {
+            format!(", heights' frame within {:.3} m", s.frame_error_m)
+        } else {
+            String::new()
+        }
+    );
     Ok(())
 }

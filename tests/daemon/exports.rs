@@ -1,6 +1,7 @@
 //! `patchwork export`: PMTiles and MBTiles of the Copernicus and NASADEM crops, read by the
-//! pmtiles package and sqlite3 and held tile by tile to the daemon's HTTP tiles
-//! (tests/python/exports.py); an export killed part way carried on to the same bytes.
+//! pmtiles package and sqlite3 and held tile by tile to the daemon's HTTP tiles, and a COG
+//! validated by rio-cogeo and read by rasterio (tests/python/exports.py); an export killed
+//! part way carried on to the same bytes.
 
 use crate::common;
 
@@ -63,7 +64,7 @@ fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
     // One process opens a store at a time: the export runs with the daemon stopped.
     d.stop();
     let data = root.join("data");
-    let pm_args = ["--zooms", "9-15", "--size", "256"];
+    let pm_args = ["--zooms", "9-16", "--size", "256"];
 
     let a = root.join("a.pmtiles");
     let whole = ok(export(&data, &pm_args, &a).output().unwrap(), "the export");
@@ -141,6 +142,49 @@ fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
         assert!(!root.join("bad.pmtiles").exists());
     }
 
+    // A COG at half the crops' cells over both, and the same region as `patchwork tile`
+    // writes it, for the heights to be held to.
+    let roi = "-119.0,34.43625,-118.88347222222222,34.541805555555555";
+    let res = 1.0 / 7200.0;
+    let cog = root.join("crops.tif");
+    let wrote = ok(
+        export(
+            &data,
+            &["--roi", roi, "--resolution", &res.to_string()],
+            &cog,
+        )
+        .output()
+        .unwrap(),
+        "the COG export",
+    );
+    let reference = root.join("reference.tif");
+    let (w, h) = (
+        ((-118.88347222222222f64 + 119.0) / res - 1e-9).ceil(),
+        ((34.541805555555555f64 - 34.43625) / res - 1e-9).ceil(),
+    );
+    let cut_ymin = 34.541805555555555 - h * res;
+    let cut_xmax = -119.0 + w * res;
+    ok(
+        Command::new(BIN)
+            .args(["tile", "--data-dir"])
+            .arg(&data)
+            .args([
+                "--roi",
+                &format!("-119.0,{cut_ymin},{cut_xmax},34.541805555555555"),
+                "--size",
+                &format!("{w}x{h}"),
+                "--error",
+                "0",
+                "--backend",
+                "cpu",
+                "--out",
+            ])
+            .arg(&reference)
+            .output()
+            .unwrap(),
+        "patchwork tile",
+    );
+
     let d = Daemon::start(root);
     let out = Command::new(python())
         .current_dir(repo)
@@ -152,8 +196,12 @@ fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
         .arg("--mbtiles")
         .arg(&c)
         .args(["--mbtiles-count", &tiles_c.to_string()])
+        .arg("--cog")
+        .arg(&cog)
+        .arg("--cog-reference")
+        .arg(&reference)
         .output()
         .unwrap();
     let stdout = ok(out, "tests/python/exports.py");
-    println!("{}{whole}{again}{mb}", stdout);
+    println!("{}{whole}{again}{mb}{wrote}", stdout);
 }

@@ -56,6 +56,8 @@ def main():
     p.add_argument("--pmtiles-count", type=int, required=True)
     p.add_argument("--mbtiles", required=True)
     p.add_argument("--mbtiles-count", type=int, required=True)
+    p.add_argument("--cog", required=True)
+    p.add_argument("--cog-reference", required=True)
     a = p.parse_args()
 
     with open(a.pmtiles, "rb") as f:
@@ -97,7 +99,30 @@ def main():
     assert n == a.mbtiles_count, (n, a.mbtiles_count)
     assert {z for (z, _, _), _ in tiles} == set(range(int(meta["minzoom"]), int(meta["maxzoom"]) + 1))
     print(f"mbtiles: {n} tiles as served, {px} pixels of data")
-    print("ok: both archives hold the server's tiles")
+
+    # The COG: valid by rio-cogeo's rules (strict: its warnings fail too), and as GDAL reads
+    # it, the heights of `patchwork tile` over the same pixels, with overviews halving down.
+    import rasterio
+    from rio_cogeo.cogeo import cog_validate
+
+    valid, errors, warnings = cog_validate(a.cog, strict=True)
+    assert valid, (errors, warnings)
+    with rasterio.open(a.cog) as c, rasterio.open(a.cog_reference) as r:
+        assert c.is_tiled and c.block_shapes[0] == (512, 512), c.block_shapes
+        assert c.crs.to_epsg() == 4326 and c.transform.almost_equals(r.transform), (c.transform, r.transform)
+        assert c.overviews(1) == [2], c.overviews(1)
+        ours = c.read(1, masked=True).filled(np.nan).astype(np.float64)
+        theirs = r.read(1, masked=True).filled(np.nan).astype(np.float64)
+        assert ours.shape == theirs.shape, (ours.shape, theirs.shape)
+        assert np.array_equal(np.isnan(ours), np.isnan(theirs)), "the voids differ"
+        # Each block's pixel centres are worked out from its own corner: the same points to
+        # within 1e-15°, and heights to within float32's rounding.
+        gap = float(np.nanmax(np.abs(ours - theirs)))
+        assert gap <= 1e-3, gap
+        half = c.read(1, out_shape=(c.height // 2, c.width // 2), masked=True)
+        assert half.count() > 0
+        print(f"cog: {c.width} x {c.height}, overviews {c.overviews(1)}, valid, heights as `patchwork tile` within {gap} m")
+    print("ok: the archives hold the server's tiles, and the COG is valid")
 
 
 if __name__ == "__main__":

@@ -135,7 +135,18 @@ impl Reprojection {
             return Some(p);
         }
         let ([i, j], f) = self.locate(p)?;
-        let q = interpolate(f, |a, b| self.node(i + a - 1, j + b - 1));
+        let s = SIDE as i64;
+        let (bx, by) = ((i - 1).div_euclid(s), (j - 1).div_euclid(s));
+        // The 4 × 4 nodes around a point lie in one block for 13 cells of 16: that block is
+        // looked up once, not sixteen times. Each lookup clones the block's Arc, whose count
+        // threads mapping points of one region at once fight over.
+        let q = if (i + 2).div_euclid(s) == bx && (j + 2).div_euclid(s) == by {
+            let block = self.block([bx, by]);
+            let (i0, j0) = ((i - 1).rem_euclid(s), (j - 1).rem_euclid(s));
+            interpolate(f, |a, b| block[((j0 + b) * s + i0 + a) as usize])
+        } else {
+            interpolate(f, |a, b| self.node(i + a - 1, j + b - 1))
+        };
         (q[0].is_finite() && q[1].is_finite()).then_some(q)
     }
 
@@ -166,11 +177,32 @@ impl Reprojection {
                 .map(|&p| self.at(p).unwrap_or(none))
                 .collect();
         }
-        let grid: Vec<[f64; 2]> = (0..h)
-            .into_par_iter()
-            .flat_map_iter(|b| (0..w).map(move |a| (lo[0] + a as i64, lo[1] + b as i64)))
-            .map(|(i, j)| self.node(i, j))
+        // Gathered block by block: a lookup a block rather than one a node (see `at`).
+        let mut grid = vec![[f64::NAN; 2]; w * h];
+        let s = SIDE as i64;
+        let (b0, b1) = (
+            [lo[0].div_euclid(s), lo[1].div_euclid(s)],
+            [hi[0].div_euclid(s), hi[1].div_euclid(s)],
+        );
+        let blocks: Vec<[i64; 2]> = (b0[1]..=b1[1])
+            .flat_map(|by| (b0[0]..=b1[0]).map(move |bx| [bx, by]))
             .collect();
+        let made: Vec<Arc<Block>> = blocks.par_iter().map(|&b| self.block(b)).collect();
+        for (b, block) in blocks.iter().zip(&made) {
+            for jj in 0..s {
+                let j = b[1] * s + jj;
+                if j < lo[1] || j > hi[1] {
+                    continue;
+                }
+                for ii in 0..s {
+                    let i = b[0] * s + ii;
+                    if i >= lo[0] && i <= hi[0] {
+                        grid[(j - lo[1]) as usize * w + (i - lo[0]) as usize] =
+                            block[(jj * s + ii) as usize];
+                    }
+                }
+            }
+        }
         cells
             .par_iter()
             .map(|c| {

@@ -6,6 +6,7 @@ pub mod crs;
 pub mod geotiff;
 pub mod gtx;
 pub mod hgt;
+pub mod write_cog;
 pub mod write_npy;
 pub mod write_tiff;
 

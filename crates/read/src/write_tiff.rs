@@ -218,7 +218,7 @@ where
 }
 
 /// GDAL's spelling, which every GeoTIFF reader parses.
-fn format_nodata(v: f64) -> String {
+pub(crate) fn format_nodata(v: f64) -> String {
     if v.is_nan() {
         "nan".to_string()
     } else if v.is_infinite() {
@@ -232,7 +232,7 @@ fn format_nodata(v: f64) -> String {
 /// The GeoKeyDirectory of a CRS, and its ASCII parameters. An EPSG CRS is its code; one
 /// without a code is user-defined, its WKT in the citation as GDAL writes it ("ESRI PE String
 /// = …"), which GDAL and this crate's reader both read back.
-fn geo_key_directory(crs: Option<&Crs>) -> Result<(Vec<u16>, String), ReadError> {
+pub(crate) fn geo_key_directory(crs: Option<&Crs>) -> Result<(Vec<u16>, String), ReadError> {
     const PIXEL_IS_AREA: u16 = 1;
     const USER_DEFINED: u16 = 32767;
     let mut keys: Vec<[u16; 4]> = Vec::new();

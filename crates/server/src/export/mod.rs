@@ -14,6 +14,7 @@
 //! renamed into place, so that `OUT` is either absent or whole.
 
 mod area;
+pub mod cog;
 mod mbtiles;
 mod pmtiles;
 
