@@ -479,3 +479,120 @@ fn node_modules(tools: &Tools) -> PathBuf {
     std::fs::write(&stamp, wanted).unwrap();
     modules
 }
+
+#[test]
+fn maplibre_draws_an_exported_pmtiles_archive_from_a_static_file_server() {
+    let Some(tools) = tools() else { return };
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let modules = node_modules(&tools);
+    let tmp = tempfile::tempdir().unwrap();
+    let mut d = Daemon::start(tmp.path());
+    for name in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif"] {
+        drop_by_rename(&crop(name), &d.inbox(), name);
+    }
+    d.wait("both surveys to be active", |s| count(s, "active") == 2);
+    // One process opens a store at a time.
+    d.stop();
+    let site = tmp.path().join("site");
+    std::fs::create_dir_all(&site).unwrap();
+    let archive = site.join("crops.pmtiles");
+    let out = Command::new(BIN)
+        .args(["export", "--data-dir"])
+        .arg(tmp.path().join("data"))
+        .args(["--zooms", "8-14", "--size", "256", "--image", "webp"])
+        .arg(&archive)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "export: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // Inside both crops, and the overlap's corners.
+    let points = [
+        [-118.95, 34.49],
+        [-118.93, 34.47],
+        [-118.98, 34.525],
+        [-118.90, 34.45],
+    ];
+    let run = Command::new(&tools.node)
+        .current_dir(repo)
+        .arg("tests/web/pmtiles.mjs")
+        .arg("--dir")
+        .arg(&site)
+        .args(["--archive", "crops.pmtiles", "--modules"])
+        .arg(&modules)
+        .args([
+            "--points",
+            &points
+                .iter()
+                .flatten()
+                .map(|v| v.to_string())
+                .collect::<Vec<_>>()
+                .join(","),
+        ])
+        .env("CHROMIUM", &tools.chromium)
+        .output()
+        .expect("run node tests/web/pmtiles.mjs");
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "tests/web/pmtiles.mjs failed ({})\n{}{stdout}",
+        run.status,
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let r: Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(r["ready"], true, "MapLibre never got ready: {r:#}");
+    assert!(list(&r["console_errors"]).is_empty(), "{r:#}");
+    assert!(list(&r["bad"]).is_empty(), "{r:#}");
+    // The tiles came by byte ranges of the one file.
+    assert!(num(&r["ranges"], "ranges") >= 2.0, "{r:#}");
+
+    // Each DEM pixel MapLibre drew is the daemon's own tile's, decoded as MapLibre decodes it.
+    let d = Daemon::start(tmp.path());
+    let samples = list(&r["samples"]);
+    assert_eq!(samples.len(), points.len(), "{r:#}");
+    for s in samples {
+        let t: Vec<u64> = list(&s["tile"])
+            .iter()
+            .map(|v| v.as_u64().unwrap())
+            .collect();
+        // MapLibre draws terrain from a level under the view's; close up, the deepest two.
+        assert!(t[0] >= 13, "drawn from zoom {} only: {s:#}", t[0]);
+        let url = format!(
+            "{}/tiles/{}/{}/{}.webp?encoding=terrarium&size=256",
+            d.http, t[0], t[1], t[2]
+        );
+        let reply = common::http::get(&url, &[]);
+        assert_eq!(reply.status, 200, "{url}");
+        let (w, _, px) = common::http::webp_rgba(&reply.body);
+        let dem: Vec<f64> = list(&s["dem"]).iter().map(|v| num(v, "dem")).collect();
+        for (k, p) in list(&s["pixels"]).iter().enumerate() {
+            let (i, j) = (p[0].as_i64().unwrap(), p[1].as_i64().unwrap());
+            if i < 0 || j < 0 || i >= w as i64 || j >= w as i64 {
+                // MapLibre's border, copied from the neighbouring tile.
+                continue;
+            }
+            let at = (j as usize * w as usize + i as usize) * 4;
+            let served = common::http::terrarium(&px[at..at + 4]);
+            assert!(
+                (served - dem[k]).abs() <= TERRARIUM_STEP,
+                "pixel {i},{j} of {url}: MapLibre drew {} m from the archive, the daemon serves {served} m",
+                dem[k]
+            );
+        }
+        // Drawn between the pixels around the point.
+        let e = num(&s["elevation"], "elevation");
+        let (lo, hi) = dem
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+        assert!(
+            e >= lo - TERRARIUM_STEP && e <= hi + TERRARIUM_STEP,
+            "terrain height {e} m outside its pixels' {lo}..{hi} m: {s:#}"
+        );
+    }
+    println!(
+        "pmtiles in the browser: ready in {} ms, {} requests, {} of them ranges",
+        r["ready_ms"], r["requests"], r["ranges"]
+    );
+}

@@ -21,7 +21,9 @@ mod pmtiles;
 pub use area::Area;
 
 use crate::web::{raster, Encoding, Web};
+use axum::body::Bytes;
 use patchwork_core::geom::tiles::mercator;
+use patchwork_core::geom::Aabb;
 use patchwork_core::resample::Cancel;
 use patchwork_engine::{EngineError, Heights};
 use rayon::prelude::*;
@@ -216,13 +218,30 @@ pub fn export(
                 .collect(),
         ),
     };
-    let mut tiles: Vec<(u64, u32, u32, u32)> = (z0..=z1)
-        .flat_map(|z| {
-            area.tiles(z)
-                .into_iter()
-                .map(move |(x, y)| (tile_id(z, x, y), z, x, y))
-        })
-        .collect();
+    // Every tile of the rectangle the archive's header names, at every zoom: a web map asks
+    // for any tile inside a source's bounds, and MapLibre (5.24) stalls on a raster-DEM tile
+    // an archive lacks. Those that touch the area are made; the others are the tile the
+    // server gives where there is no data, stored once.
+    let Some(bounds) = meta_bounds(&area, &pyramid) else {
+        return Err(ExportError::Options(
+            "the area holds none of the store's surveys: nothing to export".into(),
+        ));
+    };
+    let mut tiles: Vec<(u64, u32, u32, u32, bool)> = Vec::new();
+    for z in z0..=z1 {
+        let r = mercator::over(z, &bounds);
+        for y in r.y0..=r.y1 {
+            for x in r.x0..=r.x1 {
+                let inside = area.touches(&mercator::lonlat_bounds(z, x, y));
+                tiles.push((tile_id(z, x, y), z, x, y, inside));
+            }
+        }
+    }
+    let void = Bytes::from(raster::void_image(
+        plan.encoding,
+        plan.image == Image::Webp,
+        plan.size,
+    ));
     // In the archive's order, so that tiles near each other on the map are near in the file.
     tiles.sort_unstable();
     let mut stage = Stage::open(&stage_path(out), &plan.key())?;
@@ -243,7 +262,11 @@ pub fn export(
         }
         let made: Result<Vec<_>, _> = batch
             .par_iter()
-            .map(|&(id, z, x, y)| {
+            .map(|&(id, z, x, y, inside)| {
+                if !inside {
+                    let kept = stage.tiles.get(&id).is_some_and(|s| s.etag == VOID);
+                    return Ok((id, Made::void((!kept).then(|| void.clone()))));
+                }
                 let size = plan.size;
                 let r = raster::Request {
                     z,
@@ -256,7 +279,7 @@ pub fn export(
                 };
                 let had = stage.tiles.get(&id).map(|s| quote(&s.etag));
                 raster::tile(&engine, web, &r, had.as_deref(), cancel)
-                    .map(|t| (id, t))
+                    .map(|t| (id, Made::from(t)))
                     .map_err(|source| match source {
                         EngineError::Cancelled => ExportError::Cancelled,
                         source => ExportError::Tile {
@@ -324,6 +347,57 @@ pub fn export(
     })
 }
 
+/// The stage's ETag of a tile outside the area: no tile the server makes has it.
+const VOID: [u8; 16] = [0; 16];
+
+/// A tile made, or found unchanged.
+struct Made {
+    etag: [u8; 16],
+    body: Option<Bytes>,
+    error: Option<f64>,
+    warning: Option<String>,
+}
+
+impl Made {
+    /// A tile outside the area: `body`, or None where the stage has it already.
+    fn void(body: Option<Bytes>) -> Made {
+        Made {
+            etag: VOID,
+            body,
+            error: None,
+            warning: None,
+        }
+    }
+}
+
+impl From<crate::web::Produced> for Made {
+    fn from(p: crate::web::Produced) -> Made {
+        Made {
+            etag: p.etag,
+            body: p.body,
+            error: p.error,
+            warning: p.warning,
+        }
+    }
+}
+
+/// The rectangle an export's header names: the area's, within the surveys' union; None where
+/// they do not meet.
+fn meta_bounds(area: &Area, pyramid: &crate::web::pyramid::Pyramid) -> Option<Aabb> {
+    let a = area.bounds()?;
+    let b = match pyramid.bounds {
+        Some(p) => a.intersection(&p)?,
+        None => a,
+    };
+    let lat = patchwork_core::geom::tiles::MERCATOR_MAX_LAT;
+    Some(Aabb::new(
+        b.min[0],
+        b.min[1].max(-lat),
+        b.max[0],
+        b.max[1].min(lat),
+    ))
+}
+
 /// The PMTiles id of tile (z, x, y): its place on the Hilbert curve of its zoom, after every
 /// tile of the zooms above it.
 pub fn tile_id(z: u32, x: u32, y: u32) -> u64 {
@@ -359,15 +433,8 @@ pub(crate) struct Meta {
 impl Meta {
     fn of(web: &Web, plan: &Plan, area: &Area, engine: &patchwork_engine::Engine) -> Meta {
         let pyramid = web.pyramid(engine);
-        let b = area
-            .bounds()
-            .and_then(|a| match pyramid.bounds {
-                Some(p) => a.intersection(&p),
-                None => Some(a),
-            })
-            .unwrap_or(patchwork_core::geom::Aabb::new(-180.0, -85.0, 180.0, 85.0));
-        let lat = patchwork_core::geom::tiles::MERCATOR_MAX_LAT;
-        let bounds = [b.min[0], b.min[1].max(-lat), b.max[0], b.max[1].min(lat)];
+        let b = meta_bounds(area, &pyramid).unwrap_or(Aabb::new(-180.0, -85.0, 180.0, 85.0));
+        let bounds = [b.min[0], b.min[1], b.max[0], b.max[1]];
         let center = [(bounds[0] + bounds[2]) / 2.0, (bounds[1] + bounds[3]) / 2.0];
         let mut tilejson = pyramid.tilejson(
             String::new(),

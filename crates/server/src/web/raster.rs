@@ -147,6 +147,17 @@ pub fn tile(
     })
 }
 
+/// The raster-DEM image the server gives where no survey reaches: every pixel void, as PNG
+/// or (`webp`) WebP.
+pub fn void_image(encoding: Encoding, webp: bool, size: u32) -> Vec<u8> {
+    let n = (size * size) as usize;
+    let pixels = rgba(&vec![f32::NAN; n], &vec![true; n], encoding);
+    match webp {
+        true => self::webp(&pixels, size),
+        false => png(&pixels, size),
+    }
+}
+
 /// The cut of tile `r`, and its patches: at the error asked, or a coarser one where that
 /// would take more than `limits.max_web_tile_patches`.
 fn cut_of(
