@@ -255,7 +255,7 @@ pub fn export(
     let mut synced = std::time::Instant::now();
     // Batches of a few tiles a thread: enough to keep every core busy, few enough that the
     // progress moves and a stop is quick.
-    for batch in tiles.chunks(rayon::current_num_threads() * 8) {
+    for batch in tiles.chunks(rayon::current_num_threads() * 32) {
         if cancel.is_cancelled() {
             stage.sync()?;
             return Err(ExportError::Cancelled);
