@@ -616,3 +616,54 @@ pub fn draws(out: &Path, rows: &[(String, f64)]) -> Result<(), Fail> {
         },
     )
 }
+
+/// Windows underestimated and M/N_T by level, a series a survey and share.
+pub fn wavelet(out: &Path, rows: &[super::wavelet::Row]) -> Result<(), Fail> {
+    fonts();
+    let mut keys: Vec<(String, f64)> = Vec::new();
+    for r in rows {
+        if !keys.iter().any(|k| k.0 == r.survey && k.1 == r.share) {
+            keys.push((r.survey.clone(), r.share));
+        }
+    }
+    let series = |y: &dyn Fn(&super::wavelet::Row) -> f64| -> Vec<(String, Vec<(f64, f64)>)> {
+        keys.iter()
+            .map(|(s, q)| {
+                let short = s.split(['_', '.']).next().unwrap_or(s);
+                (
+                    format!("{short}, q = 1/{:.0}", 1.0 / q),
+                    rows.iter()
+                        .filter(|r| &r.survey == s && r.share == *q)
+                        .map(|r| (r.level as f64, y(r)))
+                        .collect(),
+                )
+            })
+            .collect()
+    };
+    both(
+        out,
+        "wavelet_under",
+        &Chart {
+            title: "Haar estimate of a patch's δ: windows where it falls below δ",
+            x: "mipmap level",
+            y: "% of windows underestimated",
+            series: series(&|r| 100.0 * r.under as f64 / r.windows.max(1) as f64),
+            log_y: false,
+            diagonal: false,
+            scatter: false,
+        },
+    )?;
+    both(
+        out,
+        "wavelet_mnt",
+        &Chart {
+            title: "Haar estimate of a patch's δ: the paper's estimation error M/N_T (mean)",
+            x: "mipmap level",
+            y: "M/N_T, % of a window's samples",
+            series: series(&|r| 100.0 * r.mnt_mean),
+            log_y: false,
+            diagonal: false,
+            scatter: false,
+        },
+    )
+}

@@ -16,6 +16,7 @@ pub mod meet;
 pub mod meshes;
 pub mod stability;
 pub mod variants;
+pub mod wavelet;
 
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Metric, ViewQuery};

@@ -41,6 +41,11 @@ struct Cli {
     /// The seed of the draws; by default the clock's, printed.
     #[arg(long, requires = "draws")]
     seed: Option<u64>,
+    /// Only seed 001's Haar-wavelet estimate of each patch's δ beside the exact δ, on the
+    /// surveys (the crops with --smoke): how often and by how much it falls short, its M/N_T,
+    /// and its time.
+    #[arg(long, conflicts_with_all = ["meshes_only", "crs_only", "copies_only", "draws"])]
+    wavelet: bool,
 }
 
 fn main() -> ExitCode {
@@ -66,6 +71,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         copies_only,
         draws,
         seed,
+        wavelet,
     } = cli;
     if let Some(n) = draws {
         let seed = seed.unwrap_or_else(|| {
@@ -101,6 +107,11 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         .map(|f| shared.join(f))
         .collect()
     };
+    if wavelet {
+        patchwork_bench::wavelet::run(&files, &out)?;
+        println!("wrote {}", out.join("wavelet.csv").display());
+        return Ok(());
+    }
     let opts = patchwork_bench::Options {
         files,
         out: out.clone(),
