@@ -303,6 +303,7 @@ fn view_of(c: &CutArgs) -> Result<Option<pb::ViewCut>, Fail> {
                 fov_deg: c.fov,
                 viewport_px: c.viewport,
                 pixel_error: c.pixel_error,
+                ..Default::default()
             }))
         }
         (None, None) => Ok(None),

@@ -623,6 +623,7 @@ fn the_api_serves_views_points_and_change_events_and_says_what_is_wrong() {
                 fov_deg: 60.0,
                 viewport_px: 1024,
                 pixel_error: px,
+                ..Default::default()
             })),
             batch_size: 16,
         };

@@ -27,6 +27,7 @@ fn camera(k: usize, frames: usize) -> pb::ViewCut {
         fov_deg: 60.0,
         viewport_px: 800,
         pixel_error: 2.0,
+        ..Default::default()
     }
 }
 
@@ -258,5 +259,121 @@ fn unread_sessions_past_the_limits_are_refused_and_never_stall_a_tile() {
         let mut ids = BTreeMap::new();
         let step = apply(&mut deltas.1, &mut ids, 0).await;
         assert!(!step.is_empty() && !ids.is_empty());
+    });
+}
+
+/// A camera flying out and back over the crop, then turning on the spot: patches leave the
+/// cut and come back into it.
+fn out_and_back(k: usize, frames: usize) -> pb::ViewCut {
+    let third = frames / 3;
+    if k >= 2 * third {
+        // Turning on the spot, 6° a frame.
+        let a = (k - 2 * third) as f64 * 6f64.to_radians();
+        let (x, y) = (-118.98, 34.48);
+        return pb::ViewCut {
+            look_x: x + 0.06 * a.cos(),
+            look_y: y + 0.06 * a.sin(),
+            ..camera_at(x, y)
+        };
+    }
+    let s = if k < third { k } else { 2 * third - k } as f64 / third as f64;
+    camera_at(-119.03 + 0.1 * s, 34.43 + 0.1 * s)
+}
+
+fn camera_at(x: f64, y: f64) -> pb::ViewCut {
+    pb::ViewCut {
+        eye_x: x,
+        eye_y: y,
+        eye_z: 1500.0,
+        look_x: x + 0.05,
+        look_y: y + 0.06,
+        look_z: 400.0,
+        fov_deg: 60.0,
+        viewport_px: 800,
+        pixel_error: 2.0,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn a_client_cache_and_prefetch_keep_every_cut_exact_and_send_less() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let cfg = Config {
+        data_dir: tmp.path().join("data"),
+        ingest_roots: vec![data.clone()],
+        ..Config::default()
+    };
+    let engine = Arc::new(Engine::open(cfg).unwrap());
+    for name in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif"] {
+        let done = engine
+            .ingest(&data.join(name), None, Origin::Request)
+            .unwrap();
+        assert!(done.error.is_empty(), "{}", done.error);
+    }
+    const FRAMES: usize = 60;
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let url = serve(&engine).await;
+        let mut t = TerrainClient::connect(url).await.unwrap();
+        // (cache, prefetch) → (bytes sent, patches restored, frames complete before asked)
+        let mut runs = Vec::new();
+        for (cache, prefetch) in [(0u64, 0u64), (4 << 20, 0), (4 << 20, 96 << 10), (48 << 10, 32 << 10)] {
+            let (tx, rx) = tokio::sync::mpsc::channel(4);
+            let mut deltas = t
+                .view_session(tokio_stream::wrappers::ReceiverStream::new(rx))
+                .await
+                .unwrap()
+                .into_inner();
+            let mut client = patchwork::serve::api::ViewClient::new(cache);
+            let (mut bytes, mut restored, mut complete) = (0usize, 0usize, 0usize);
+            for k in 0..FRAMES {
+                let v = pb::ViewCut {
+                    cache_bytes: cache,
+                    prefetch_bytes: prefetch,
+                    ..out_and_back(k, FRAMES)
+                };
+                let full = full_cut(&mut t, &v).await;
+                if k > 0 && full.keys().all(|id| client.has(*id)) {
+                    complete += 1;
+                }
+                tx.send(v).await.unwrap();
+                let mut first = true;
+                loop {
+                    let d = deltas.message().await.unwrap().expect("a whole step");
+                    assert_eq!(d.frame, k as u64);
+                    bytes += d.encoded_len();
+                    restored += d.restored.len();
+                    client.apply(&d, first).unwrap_or_else(|e| panic!("frame {k}: {e}"));
+                    first = false;
+                    if d.last {
+                        assert_eq!(d.patches as usize, full.len());
+                        break;
+                    }
+                }
+                // The cut is exact, patch for patch, and the cache within its bytes.
+                let held: BTreeMap<u64, Vec<u8>> = client
+                    .cut
+                    .iter()
+                    .map(|(id, p)| (*id, p.encode_to_vec()))
+                    .collect();
+                assert!(held == full, "frame {k} with cache {cache}, prefetch {prefetch}");
+                assert!(client.cached_bytes() <= cache);
+            }
+            eprintln!(
+                "cache {cache} B, prefetch {prefetch} B a frame: {:.1} kB a frame, {restored} patches restored, {complete} of {} frames complete before asked",
+                bytes as f64 / FRAMES as f64 / 1e3,
+                FRAMES - 1
+            );
+            runs.push((bytes, restored, complete));
+        }
+        let [none, cached, ahead, small] = runs[..] else { unreachable!() };
+        // Coming back over the same ground, the cache saves sending it again.
+        assert_eq!(none.1, 0);
+        assert!(cached.1 > 0 && cached.0 < none.0, "{runs:?}");
+        // Prefetching makes more frames whole before they are asked for.
+        assert!(ahead.2 > cached.2, "{runs:?}");
+        // A small cache evicts, and stays exact.
+        assert!(small.0 > 0);
     });
 }

@@ -268,6 +268,24 @@ def run(address):
         require(all(s.frame == k for k, s in enumerate(steps)), "frames out of order")
         require(sum(len(s.added) for s in steps[1:]) < sum(s.patches for s in steps[1:]), "deltas resend the whole cut")
 
+        # A session with a cache and prefetch, out and back: the cut stays exact, patches come
+        # back from the cache, and the cache stays within its bytes.
+        with c.view_session(cache_bytes=2 << 20, prefetch_bytes=64 << 10) as session:
+            restored = prefetched = 0
+            for k in list(range(8)) + list(range(7, -1, -1)):
+                x, y = -119.02 + 0.01 * k, 34.44 + 0.01 * k
+                cam = pc.Camera(eye=(x, y, 1500.0), look=(x + 0.05, y + 0.06, 400.0), fov_deg=60, viewport_px=800, pixel_error=2.0)
+                step = session.update(cam)
+                full = {p.id: p for p in c.query_view(cam)}
+                require(set(session.patches) == set(full), f"cached frame {k}: the session's cut differs from the view cut")
+                require(all(np.array_equal(session.patches[i].samples, full[i].samples, equal_nan=True) for i in full),
+                        f"cached frame {k}: a patch's samples differ")
+                require(session._cached <= session.cache_bytes, "the cache outgrew its bytes")
+                restored += len(step.restored)
+                prefetched += len(step.prefetched)
+            require(restored > 0, "nothing came back from the cache on the way back")
+            require(prefetched > 0, "nothing was prefetched")
+
         # 6. Admin calls.
         stats = c.stats()
         require(stats.surveys == 4 and stats.patches > 0, f"stats: {stats}")

@@ -1,6 +1,7 @@
 """The gRPC client: a method per RPC of the Terrain and Admin services, numpy arrays out."""
 
 import queue
+from collections import OrderedDict
 from dataclasses import dataclass, field, fields, make_dataclass, replace
 from enum import Enum
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
@@ -237,6 +238,10 @@ class ViewStep:
     patches: int
     #: The step's messages as they crossed the wire, bytes.
     wire_bytes: int
+    #: Patches the cut took back from the session's cache, by id: not sent again.
+    restored: List[int] = field(default_factory=list)
+    #: Patches sent ahead for the cameras the daemon predicts next, now in the cache.
+    prefetched: List[Patch] = field(default_factory=list)
 
 
 def _message_dataclass(name: str, message) -> type:
@@ -444,10 +449,15 @@ class Client:
                             cell_m=s.cell_m, error_m=s.error_m))
         return out
 
-    def view_session(self) -> "ViewSession":
+    def view_session(self, cache_bytes: int = 0, prefetch_bytes: int = 0) -> "ViewSession":
         """A view session: send cameras with :meth:`ViewSession.update`, and the session's
-        ``patches`` follow the view cut, by the difference from one camera to the next."""
-        return ViewSession(self)
+        ``patches`` follow the view cut, by the difference from one camera to the next.
+
+        ``cache_bytes`` keeps that many bytes of patches beyond the cut (those that left it,
+        and those prefetched), so that the daemon need not send them again when they come back
+        into view; ``prefetch_bytes`` lets each step send that many bytes more of the patches
+        the daemon predicts the next cameras will need (constant velocity and turn rate)."""
+        return ViewSession(self, cache_bytes, prefetch_bytes)
 
     def subscribe(self) -> Iterator[ChangeEvent]:
         """Change events as they happen (needs the admin token where the daemon has one).
@@ -504,12 +514,21 @@ class Client:
 
 class ViewSession:
     """One bidirectional ViewSession stream. ``patches`` maps id to :class:`Patch`: after
-    each :meth:`update` it is the view cut for that camera."""
+    each :meth:`update` it is the view cut for that camera. ``cache`` holds the patches kept
+    beyond it, evicted by the rule the daemon follows (proto ``ViewDelta``): a patch leaving
+    the cut, then each prefetched one, goes in last; a patch taken back into the cut leaves;
+    the first in go until the rest fit in ``cache_bytes``, each counted at its message's
+    encoded size."""
 
-    def __init__(self, client: Client):
+    def __init__(self, client: Client, cache_bytes: int = 0, prefetch_bytes: int = 0):
         self._cameras: "queue.Queue" = queue.Queue()
         self._replies = client.terrain.ViewSession(self._requests(), metadata=client._metadata)
         self.patches: Dict[int, Patch] = {}
+        self.cache: "OrderedDict[int, Tuple[Patch, int]]" = OrderedDict()
+        self.cache_bytes = cache_bytes
+        self.prefetch_bytes = prefetch_bytes
+        self._cached = 0
+        self._sizes: Dict[int, int] = {}
         self.frame = -1
 
     def _requests(self):
@@ -519,23 +538,58 @@ class ViewSession:
                 return
             yield cam
 
+    def _put(self, p: Patch, size: int):
+        self._take(p.id)
+        self.cache[p.id] = (p, size)
+        self._cached += size
+
+    def _take(self, i: int):
+        kept = self.cache.pop(i, None)
+        if kept is not None:
+            self._cached -= kept[1]
+        return kept
+
     def update(self, camera: Camera) -> ViewStep:
         """Sends a camera and applies what the daemon says changed."""
-        self._cameras.put(camera.to_proto())
-        added, removed, wire = [], [], 0
+        cut = camera.to_proto()
+        cut.cache_bytes = self.cache_bytes
+        cut.prefetch_bytes = self.prefetch_bytes
+        self._cameras.put(cut)
+        added, removed, restored, prefetched, wire, first = [], [], [], [], 0, True
         while True:
             d = next(self._replies)
             wire += d.ByteSize()
-            for i in d.removed:
-                self.patches.pop(i, None)
-                removed.append(i)
+            if first:
+                for i in d.removed:
+                    p = self.patches.pop(i, None)
+                    size = self._sizes.pop(i, 0)
+                    if p is not None and self.cache_bytes > 0:
+                        self._put(p, size)
+                    removed.append(i)
+                for i in d.restored:
+                    kept = self._take(i)
+                    if kept is None:
+                        raise RuntimeError(f"patch {i:016x} restored but not in the cache")
+                    self.patches[i], self._sizes[i] = kept
+                    restored.append(i)
+                first = False
             for p in d.added:
                 q = Patch.from_proto(p)
+                self._take(q.id)
                 self.patches[q.id] = q
+                self._sizes[q.id] = p.ByteSize()
                 added.append(q)
+            for p in d.prefetched:
+                q = Patch.from_proto(p)
+                self._put(q, p.ByteSize())
+                prefetched.append(q)
             if d.last:
+                while self._cached > self.cache_bytes and self.cache:
+                    _, (_, size) = self.cache.popitem(last=False)
+                    self._cached -= size
                 self.frame = d.frame
-                return ViewStep(frame=d.frame, added=added, removed=removed, patches=d.patches, wire_bytes=wire)
+                return ViewStep(frame=d.frame, added=added, removed=removed, patches=d.patches,
+                                wire_bytes=wire, restored=restored, prefetched=prefetched)
 
     def close(self):
         self._cameras.put(None)

@@ -3,7 +3,7 @@
 
 use patchwork_core::geom::Aabb;
 use patchwork_engine::{Camera, Cut, Engine};
-use patchwork_server::api::ViewSession;
+use patchwork_server::api::{ViewClient, ViewSession};
 use patchwork_server::convert;
 use patchwork_server::proto as pb;
 use prost::Message;
@@ -59,6 +59,7 @@ pub fn fly(engine: &Engine, over: &Aabb, frames: usize) -> Result<Vec<FlightRow>
                 fov_deg: 60.0,
                 viewport_px: 1024,
                 pixel_error: 1.0,
+                ..Default::default()
             };
             let deltas = session.step(engine, &v).map_err(|e| e.to_string())?;
             let cut = Cut::View(Camera::try_from(&v).map_err(|e| e.to_string())?);
@@ -130,4 +131,150 @@ pub fn write_csv(out: &Path, rows: &[FlightRow]) -> std::io::Result<()> {
         );
     }
     std::fs::write(out.join("view_session.csv"), s)
+}
+
+/// A client's cache and the server's prefetch (issue: view sessions that prefetch and
+/// remember), for each flight: what a frame costs and how many frames were whole before they
+/// were asked for.
+#[derive(Clone, Debug)]
+pub struct PrefetchRow {
+    /// `slow`, `fast` or `turn` (on the spot, 3° a frame).
+    pub flight: &'static str,
+    /// The client's cache, bytes (0: none).
+    pub cache_bytes: u64,
+    /// The prefetch budget a frame, bytes (0: none).
+    pub prefetch_bytes: u64,
+    /// Bytes a frame after the first: median and mean.
+    pub median_bytes: f64,
+    /// See `median_bytes`.
+    pub mean_bytes: f64,
+    /// Frames after the first whose whole cut the client held before asking.
+    pub complete: f64,
+}
+
+/// A flight: the camera of each frame.
+type Flight<'a> = Box<dyn Fn(usize) -> pb::ViewCut + 'a>;
+
+/// The modes flown: none, a cache, a cache and prefetch.
+const MODES: [(u64, u64); 3] = [(0, 0), (8 << 20, 0), (8 << 20, 128 << 10)];
+
+/// Flies each flight in each mode of [`MODES`] through a session and a [`ViewClient`], as
+/// [`fly`] does, checking each frame's cut against the client's.
+pub fn fly_prefetch(
+    engine: &Engine,
+    over: &Aabb,
+    frames: usize,
+) -> Result<Vec<PrefetchRow>, String> {
+    let at = |g: f64| {
+        [
+            over.min[0] + g * over.width(),
+            over.min[1] + g * over.height(),
+        ]
+    };
+    let camera = |e: [f64; 2], l: [f64; 2]| pb::ViewCut {
+        eye_x: e[0],
+        eye_y: e[1],
+        eye_z: 1500.0,
+        look_x: l[0],
+        look_y: l[1],
+        look_z: 300.0,
+        fov_deg: 60.0,
+        viewport_px: 1024,
+        pixel_error: 1.0,
+        ..Default::default()
+    };
+    let flights: [(&'static str, Flight<'_>); 3] = [
+        (
+            "slow",
+            Box::new(|k| {
+                let f = 0.15 + SPEEDS[0].1 * k as f64;
+                camera(at(f), at(f + 0.3))
+            }),
+        ),
+        (
+            "fast",
+            Box::new(|k| {
+                let f = 0.15 + SPEEDS[1].1 * k as f64;
+                camera(at(f), at(f + 0.3))
+            }),
+        ),
+        (
+            "turn",
+            Box::new(|k| {
+                let e = at(0.5);
+                let a = (k as f64 * 3.0).to_radians();
+                let r = 0.3 * over.width().min(over.height());
+                camera(e, [e[0] + r * a.cos(), e[1] + r * a.sin()])
+            }),
+        ),
+    ];
+    let mut rows = Vec::new();
+    for (flight, cam) in &flights {
+        for (cache, prefetch) in MODES {
+            let mut session = ViewSession::default();
+            let mut client = ViewClient::new(cache);
+            let (mut sizes, mut complete) = (Vec::new(), 0usize);
+            for k in 0..frames {
+                let v = pb::ViewCut {
+                    cache_bytes: cache,
+                    prefetch_bytes: prefetch,
+                    ..cam(k)
+                };
+                let cut = Cut::View(Camera::try_from(&v).map_err(|e| e.to_string())?);
+                let (_, ps) = engine.query(&cut).map_err(|e| e.to_string())?;
+                if k > 0 && ps.iter().all(|x| client.has(x.id.0)) {
+                    complete += 1;
+                }
+                let deltas = session.step(engine, &v).map_err(|e| e.to_string())?;
+                for (i, d) in deltas.iter().enumerate() {
+                    client.apply(d, i == 0)?;
+                }
+                if client.cut.len() != ps.len()
+                    || ps.iter().any(|x| !client.cut.contains_key(&x.id.0))
+                {
+                    return Err(format!(
+                        "{flight} frame {k}: the client's cut is not the view cut"
+                    ));
+                }
+                if k > 0 {
+                    sizes.push(deltas.iter().map(|d| d.encoded_len()).sum::<usize>() as f64);
+                }
+            }
+            let n = sizes.len().max(1) as f64;
+            let mean = sizes.iter().sum::<f64>() / n;
+            sizes.sort_by(f64::total_cmp);
+            let row = PrefetchRow {
+                flight,
+                cache_bytes: cache,
+                prefetch_bytes: prefetch,
+                median_bytes: sizes.get(sizes.len() / 2).copied().unwrap_or(0.0),
+                mean_bytes: mean,
+                complete: complete as f64 / n,
+            };
+            println!(
+                "view session, {flight}, cache {} kB, prefetch {} kB a frame: median {:.1} kB, mean {:.1} kB a frame, {:.0}% of frames whole before asked",
+                cache >> 10,
+                prefetch >> 10,
+                row.median_bytes / 1e3,
+                row.mean_bytes / 1e3,
+                100.0 * row.complete
+            );
+            rows.push(row);
+        }
+    }
+    Ok(rows)
+}
+
+/// Writes the rows to `view_prefetch.csv` under `out`.
+pub fn write_prefetch_csv(out: &Path, rows: &[PrefetchRow]) -> std::io::Result<()> {
+    let mut s =
+        String::from("flight,cache_bytes,prefetch_bytes,median_bytes,mean_bytes,complete\n");
+    for r in rows {
+        let _ = writeln!(
+            s,
+            "{},{},{},{:.0},{:.0},{:.4}",
+            r.flight, r.cache_bytes, r.prefetch_bytes, r.median_bytes, r.mean_bytes, r.complete
+        );
+    }
+    std::fs::write(out.join("view_prefetch.csv"), s)
 }

@@ -193,52 +193,15 @@ pub fn run_meshes(opts: &Options) -> Result<(), Fail> {
 /// The whole bench: measures every part and writes its CSV, charts and tiles under `opts.out`.
 pub fn run(opts: &Options) -> Result<Report, Fail> {
     std::fs::create_dir_all(opts.out.join("tiles"))?;
-    let tmp = tempfile::tempdir()?;
-    let cfg = Config {
-        data_dir: tmp.path().join("data"),
-        inbox: vec![],
-        // The bench names its files itself: wherever they are may be ingested.
-        ingest_roots: opts
-            .files
-            .iter()
-            .filter_map(|f| Some(std::path::absolute(f).ok()?.parent()?.to_path_buf()))
-            .collect(),
-        ..Config::default()
-    };
-    let engine = Engine::open(cfg)?;
-    let mut ingest = Vec::new();
-    let mut first_survey = None;
-    for f in &opts.files {
-        let r = engine.ingest(f, None, patchwork_engine::Origin::Request)?;
-        first_survey = first_survey.or(r.survey);
-        if r.outcome == patchwork_engine::Outcome::Failed {
-            return Err(format!("{}: {}", f.display(), r.error).into());
-        }
-        println!(
-            "ingested {} ({} samples, {:.2} s)",
-            f.display(),
-            r.samples,
-            r.seconds
-        );
-        ingest.push(IngestRow {
-            file: f
-                .file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default(),
-            samples: r.samples,
-            seconds: r.seconds,
-            input_bytes: std::fs::metadata(f)?.len(),
-        });
-    }
+    let Store {
+        _dir,
+        engine,
+        ingest,
+        first,
+        first_survey,
+    } = store_of(opts)?;
     let disk_bytes = engine.stats().disk_bytes;
     let t = engine.snapshot();
-    let first = t
-        .surveys()
-        // Ties broken by id: the surveys come in hash order.
-        .max_by_key(|s| (s.shapes[0].cols * s.shapes[0].rows, s.id))
-        .ok_or("no survey was ingested")?
-        .shapes[0]
-        .world_bounds();
     let c = [
         (first.min[0] + first.max[0]) / 2.0,
         (first.min[1] + first.max[1]) / 2.0,
@@ -377,6 +340,8 @@ pub fn run(opts: &Options) -> Result<Report, Fail> {
     }
     let flight = flight::fly(&engine, &first, if opts.smoke { 12 } else { 200 })?;
     flight::write_csv(&opts.out, &flight)?;
+    let prefetch = flight::fly_prefetch(&engine, &first, if opts.smoke { 12 } else { 200 })?;
+    flight::write_prefetch_csv(&opts.out, &prefetch)?;
     let variants = variants::run(&opts.files, &errors_used, tile_side)?;
     variants::write_csv(&opts.out, &variants)?;
     run_meshes(opts)?;
@@ -444,6 +409,89 @@ pub fn run(opts: &Options) -> Result<Report, Fail> {
     write_csv(&opts.out, &report)?;
     charts::draw(&opts.out, &report, &t, &rois[1].1, opts.smoke)?;
     Ok(report)
+}
+
+/// A fresh store of the bench's files, as [`store_of`] makes it.
+struct Store {
+    /// The store's folder, removed when dropped.
+    _dir: tempfile::TempDir,
+    engine: Engine,
+    /// What each ingest took.
+    ingest: Vec<IngestRow>,
+    /// The bounds of the largest survey: the flights' and the ROIs' ground.
+    first: Aabb,
+    /// The first file's survey.
+    first_survey: Option<patchwork_core::model::ids::SurveyId>,
+}
+
+/// A fresh store of the bench's files.
+fn store_of(opts: &Options) -> Result<Store, Fail> {
+    let tmp = tempfile::tempdir()?;
+    let cfg = Config {
+        data_dir: tmp.path().join("data"),
+        inbox: vec![],
+        // The bench names its files itself: wherever they are may be ingested.
+        ingest_roots: opts
+            .files
+            .iter()
+            .filter_map(|f| Some(std::path::absolute(f).ok()?.parent()?.to_path_buf()))
+            .collect(),
+        ..Config::default()
+    };
+    let engine = Engine::open(cfg)?;
+    let mut ingest = Vec::new();
+    let mut first_survey = None;
+    for f in &opts.files {
+        let r = engine.ingest(f, None, patchwork_engine::Origin::Request)?;
+        first_survey = first_survey.or(r.survey);
+        if r.outcome == patchwork_engine::Outcome::Failed {
+            return Err(format!("{}: {}", f.display(), r.error).into());
+        }
+        println!(
+            "ingested {} ({} samples, {:.2} s)",
+            f.display(),
+            r.samples,
+            r.seconds
+        );
+        ingest.push(IngestRow {
+            file: f
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            samples: r.samples,
+            seconds: r.seconds,
+            input_bytes: std::fs::metadata(f)?.len(),
+        });
+    }
+    let first = engine
+        .snapshot()
+        .surveys()
+        // Ties broken by id: the surveys come in hash order.
+        .max_by_key(|s| (s.shapes[0].cols * s.shapes[0].rows, s.id))
+        .ok_or("no survey was ingested")?
+        .shapes[0]
+        .world_bounds();
+    Ok(Store {
+        _dir: tmp,
+        engine,
+        ingest,
+        first,
+        first_survey,
+    })
+}
+
+/// Only the view sessions' flights: [`flight::fly`] and [`flight::fly_prefetch`] over a store
+/// of the bench's files (`patchwork-bench --sessions`).
+pub fn run_sessions(opts: &Options) -> Result<(), Fail> {
+    std::fs::create_dir_all(&opts.out)?;
+    let s = store_of(opts)?;
+    let frames = if opts.smoke { 12 } else { 200 };
+    flight::write_csv(&opts.out, &flight::fly(&s.engine, &s.first, frames)?)?;
+    flight::write_prefetch_csv(
+        &opts.out,
+        &flight::fly_prefetch(&s.engine, &s.first, frames)?,
+    )?;
+    Ok(())
 }
 
 /// Copies of the surveys beside their originals (`copies.csv`, `coreg.csv`, the `copies`

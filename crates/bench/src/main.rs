@@ -46,6 +46,10 @@ struct Cli {
     /// and its time.
     #[arg(long, conflicts_with_all = ["meshes_only", "crs_only", "copies_only", "draws"])]
     wavelet: bool,
+    /// Only the view sessions' flights: bytes a frame, and with a client cache and the
+    /// server's prefetch, the frames whole before they are asked for.
+    #[arg(long, conflicts_with_all = ["meshes_only", "crs_only", "copies_only", "draws", "wavelet"])]
+    sessions: bool,
 }
 
 fn main() -> ExitCode {
@@ -72,6 +76,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         draws,
         seed,
         wavelet,
+        sessions,
     } = cli;
     if let Some(n) = draws {
         let seed = seed.unwrap_or_else(|| {
@@ -117,6 +122,11 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         out: out.clone(),
         smoke,
     };
+    if sessions {
+        patchwork_bench::run_sessions(&opts)?;
+        println!("wrote {}", out.display());
+        return Ok(());
+    }
     if copies_only {
         patchwork_bench::run_copies(&opts)?;
         println!("wrote {}", out.display());

@@ -11,6 +11,7 @@ use patchwork_engine::{
     BadRequest, Camera, Ctx, Cut, Engine, EngineError, Origin, SampleRequest, TileRequest, TooLarge,
 };
 use patchwork_store::StoreError;
+use prost::Message;
 use std::path::Path;
 
 /// How many patches go in a batch: as the client asks, else [`BATCH`].
@@ -25,12 +26,18 @@ pub fn batch_size(asked: u32) -> usize {
 /// Patches in a batch when the client does not say.
 pub const BATCH: usize = 256;
 
-/// What the client of a view session holds: the patches it was sent, each with what of it
-/// can change while its id stays. At most one cut's worth, so `limits.max_patches` bounds it.
+/// What the client of a view session holds: the patches of its cut, each with what of it can
+/// change while its id stays and its size on the wire; the patches it keeps beyond the cut
+/// (`ViewCut.cache_bytes`), evicted by the rule both sides follow; and the last cameras, from
+/// which the next are predicted. The cut is at most one cut's worth, so `limits.max_patches`
+/// bounds it; the cache is bounded by the client's own bytes.
 #[derive(Debug, Default)]
 pub struct ViewSession {
-    held: std::collections::HashMap<patchwork_core::model::ids::PatchId, Held>,
+    held: std::collections::HashMap<patchwork_core::model::ids::PatchId, (Held, u64)>,
+    cache: Kept,
     frame: u64,
+    /// The last two cameras, eye and look, the latest last.
+    cameras: Vec<([f64; 3], [f64; 3])>,
 }
 
 /// The parts of a sent patch that are the cut's rather than the patch's: whether it is a
@@ -51,10 +58,55 @@ impl Held {
     }
 }
 
+/// The client's cache as the server follows it: patches in the order they were put in, the
+/// least recent evicted first until the rest fit (the rule `ViewDelta` states for clients).
+#[derive(Debug, Default)]
+struct Kept {
+    by_id: std::collections::HashMap<patchwork_core::model::ids::PatchId, (u64, Held, u64)>,
+    order: std::collections::BTreeMap<u64, patchwork_core::model::ids::PatchId>,
+    bytes: u64,
+    next: u64,
+}
+
+impl Kept {
+    fn put(&mut self, id: patchwork_core::model::ids::PatchId, held: Held, bytes: u64) {
+        self.take(id);
+        self.by_id.insert(id, (self.next, held, bytes));
+        self.order.insert(self.next, id);
+        self.next += 1;
+        self.bytes += bytes;
+    }
+
+    fn take(&mut self, id: patchwork_core::model::ids::PatchId) -> Option<(Held, u64)> {
+        let (seq, held, bytes) = self.by_id.remove(&id)?;
+        self.order.remove(&seq);
+        self.bytes -= bytes;
+        Some((held, bytes))
+    }
+
+    fn holds(&self, id: patchwork_core::model::ids::PatchId, held: Held) -> bool {
+        self.by_id.get(&id).is_some_and(|k| k.1 == held)
+    }
+
+    fn fit(&mut self, most: u64) {
+        while self.bytes > most {
+            let Some((_, id)) = self.order.pop_first() else {
+                break;
+            };
+            let (_, _, bytes) = self.by_id.remove(&id).expect("kept in both");
+            self.bytes -= bytes;
+        }
+    }
+}
+
+/// Frames ahead the cameras are predicted.
+const AHEAD: usize = 3;
+
 impl ViewSession {
-    /// The messages that take the client from what it holds to the cut for `v`. What the
-    /// session holds changes only once the step is made whole, so a step that fails leaves it
-    /// as the client has it.
+    /// The messages that take the client from what it holds to the cut for `v`, with what it
+    /// can take back from its cache named, not sent, and the patches of the cameras predicted
+    /// next within `v.prefetch_bytes`. What the session holds changes only once the step is
+    /// made whole, so a step that fails leaves it as the client has it.
     pub fn step(
         &mut self,
         engine: &Engine,
@@ -64,38 +116,262 @@ impl ViewSession {
         let (t, ps) = engine.query(&Cut::View(camera))?;
         let next: std::collections::HashMap<_, _> =
             ps.iter().map(|x| (x.id, Held::of(x))).collect();
-        let mut removed: Vec<u64> = self
+        let mut removed: Vec<_> = self
             .held
             .iter()
-            .filter(|(id, f)| next.get(id) != Some(f))
-            .map(|(id, _)| id.0)
+            .filter(|(id, f)| next.get(id) != Some(&f.0))
+            .map(|(id, f)| (*id, *f))
             .collect();
-        removed.sort_unstable();
-        let added: Vec<Extracted> = ps
-            .into_iter()
-            .filter(|x| self.held.get(&x.id) != next.get(&x.id))
-            .collect();
-        let mut deltas = Vec::with_capacity(added.len().div_ceil(BATCH).max(1));
-        for chunk in added.chunks(BATCH) {
-            deltas.push(pb::ViewDelta {
-                frame: self.frame,
-                added: patch_batch(&t, chunk)?.patches,
-                ..Default::default()
-            });
+        removed.sort_unstable_by_key(|r| r.0 .0);
+        // The client's cache after the removed patches join it, as the client keeps it.
+        let mut cache = std::mem::take(&mut self.cache);
+        let undo = |cache: Kept, this: &mut ViewSession| this.cache = cache;
+        let most = v.cache_bytes;
+        if most > 0 {
+            for (id, (held, bytes)) in &removed {
+                cache.put(*id, *held, *bytes);
+            }
         }
+        let mut held = std::collections::HashMap::with_capacity(next.len());
+        let mut restored = Vec::new();
+        let mut added: Vec<Extracted> = Vec::new();
+        for x in ps {
+            let h = next[&x.id];
+            if let Some(&(had, bytes)) = self.held.get(&x.id) {
+                if had == h {
+                    held.insert(x.id, (h, bytes));
+                    continue;
+                }
+            }
+            if cache.holds(x.id, h) {
+                let (_, bytes) = cache.take(x.id).expect("held");
+                restored.push(x.id.0);
+                held.insert(x.id, (h, bytes));
+            } else {
+                cache.take(x.id);
+                added.push(x);
+            }
+        }
+        // Each added patch as sent, with its size. One the snapshot no longer has (never,
+        // the cut being of that snapshot) is not held, and so asked for again.
+        let mut sent = Vec::with_capacity(added.len());
+        for x in &added {
+            match convert::patch(&t, x) {
+                Ok(Some(p)) => {
+                    held.insert(x.id, (Held::of(x), p.encoded_len() as u64));
+                    sent.push(p);
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    undo(cache, self);
+                    return Err(StoreError::from(e).into());
+                }
+            }
+        }
+        let cameras = {
+            let mut c = self.cameras.clone();
+            c.push(([v.eye_x, v.eye_y, v.eye_z], [v.look_x, v.look_y, v.look_z]));
+            let n = c.len();
+            c.split_off(n.saturating_sub(2))
+        };
+        let mut prefetched = Vec::new();
+        if most > 0 && v.prefetch_bytes > 0 {
+            match prefetch(engine, v, &cameras, &held, &cache) {
+                Ok(p) => prefetched = p,
+                Err(e) => {
+                    undo(cache, self);
+                    return Err(e);
+                }
+            }
+        }
+        for (id, h, p) in &prefetched {
+            cache.put(*id, *h, p.encoded_len() as u64);
+        }
+        cache.fit(most);
+
+        let mut deltas: Vec<pb::ViewDelta> = sent
+            .chunks(BATCH)
+            .map(|chunk| pb::ViewDelta {
+                frame: self.frame,
+                added: chunk.to_vec(),
+                ..Default::default()
+            })
+            .collect();
+        let prefetched: Vec<pb::Patch> = prefetched.into_iter().map(|p| p.2).collect();
+        deltas.extend(prefetched.chunks(BATCH).map(|chunk| pb::ViewDelta {
+            frame: self.frame,
+            prefetched: chunk.to_vec(),
+            ..Default::default()
+        }));
         if deltas.is_empty() {
             deltas.push(pb::ViewDelta {
                 frame: self.frame,
                 ..Default::default()
             });
         }
-        deltas[0].removed = removed;
+        deltas[0].removed = removed.iter().map(|r| r.0 .0).collect();
+        deltas[0].restored = restored;
         let last = deltas.last_mut().expect("one message at least");
         last.last = true;
-        last.patches = next.len() as u32;
-        self.held = next;
+        last.patches = held.len() as u32;
+        self.held = held;
+        self.cache = cache;
+        self.cameras = cameras;
         self.frame += 1;
         Ok(deltas)
+    }
+}
+
+/// The patches the cameras predicted after `cameras` (the last two, the latest last) will
+/// need that the client has neither in its cut nor in its cache, nearest frame first, within
+/// `v.prefetch_bytes`. The motion from one camera to the next goes on: the eye at the same
+/// velocity, the view turning about the vertical at the same rate.
+fn prefetch(
+    engine: &Engine,
+    v: &pb::ViewCut,
+    cameras: &[([f64; 3], [f64; 3])],
+    held: &std::collections::HashMap<patchwork_core::model::ids::PatchId, (Held, u64)>,
+    cache: &Kept,
+) -> Result<Vec<(patchwork_core::model::ids::PatchId, Held, pb::Patch)>, EngineError> {
+    let [(e1, l1), (e2, l2)] = match cameras {
+        [a, b] => [*a, *b],
+        _ => return Ok(Vec::new()),
+    };
+    let vel = [e2[0] - e1[0], e2[1] - e1[1], e2[2] - e1[2]];
+    let (d1, d2) = (
+        [l1[0] - e1[0], l1[1] - e1[1], l1[2] - e1[2]],
+        [l2[0] - e2[0], l2[1] - e2[1], l2[2] - e2[2]],
+    );
+    let turn = {
+        let w = d2[1].atan2(d2[0]) - d1[1].atan2(d1[0]);
+        (w + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI
+    };
+    let mut seen = std::collections::HashSet::new();
+    let mut out = Vec::new();
+    let mut bytes = 0u64;
+    for k in 1..=AHEAD {
+        let kf = k as f64;
+        let (s, c) = (kf * turn).sin_cos();
+        let eye = [
+            e2[0] + kf * vel[0],
+            e2[1] + kf * vel[1],
+            e2[2] + kf * vel[2],
+        ];
+        let d = [d2[0] * c - d2[1] * s, d2[0] * s + d2[1] * c, d2[2]];
+        let look = [eye[0] + d[0], eye[1] + d[1], eye[2] + d[2]];
+        let Ok(camera) = Camera::new(eye, look, v.fov_deg, v.viewport_px, v.pixel_error) else {
+            continue;
+        };
+        let (t, ps) = engine.query(&Cut::View(camera))?;
+        let want: Vec<Extracted> = ps
+            .into_iter()
+            .filter(|x| {
+                let h = Held::of(x);
+                held.get(&x.id).is_none_or(|k| k.0 != h)
+                    && !cache.holds(x.id, h)
+                    && seen.insert(x.id)
+            })
+            .collect();
+        for x in &want {
+            let Some(p) = convert::patch(&t, x).map_err(StoreError::from)? else {
+                continue;
+            };
+            let n = p.encoded_len() as u64;
+            if bytes + n > v.prefetch_bytes {
+                return Ok(out);
+            }
+            bytes += n;
+            out.push((x.id, Held::of(x), p));
+        }
+    }
+    Ok(out)
+}
+
+/// The client's side of a view session: its cut and its cache, kept by the rule `ViewDelta`
+/// states, from the messages alone. What a Rust client runs, and what the tests and the bench
+/// hold the server's bookkeeping to.
+#[derive(Debug, Default)]
+pub struct ViewClient {
+    /// The patches of the cut, by id.
+    pub cut: std::collections::HashMap<u64, pb::Patch>,
+    cache: std::collections::HashMap<u64, (u64, pb::Patch)>,
+    order: std::collections::BTreeMap<u64, u64>,
+    bytes: u64,
+    next: u64,
+    /// The cache's size, bytes: `ViewCut.cache_bytes` as sent.
+    pub cache_bytes: u64,
+}
+
+impl ViewClient {
+    /// A client keeping `cache_bytes` of patches beyond its cut.
+    pub fn new(cache_bytes: u64) -> ViewClient {
+        ViewClient {
+            cache_bytes,
+            ..ViewClient::default()
+        }
+    }
+
+    fn put(&mut self, p: pb::Patch) {
+        self.take(p.id);
+        self.bytes += p.encoded_len() as u64;
+        self.order.insert(self.next, p.id);
+        self.cache.insert(p.id, (self.next, p));
+        self.next += 1;
+    }
+
+    fn take(&mut self, id: u64) -> Option<pb::Patch> {
+        let (seq, p) = self.cache.remove(&id)?;
+        self.order.remove(&seq);
+        self.bytes -= p.encoded_len() as u64;
+        Some(p)
+    }
+
+    /// Whether the patch is here, in the cut or the cache.
+    pub fn has(&self, id: u64) -> bool {
+        self.cut.contains_key(&id) || self.cache.contains_key(&id)
+    }
+
+    /// Bytes of patches in the cache.
+    pub fn cached_bytes(&self) -> u64 {
+        self.bytes
+    }
+
+    /// Applies one message of a step (`first` for the step's first).
+    pub fn apply(&mut self, d: &pb::ViewDelta, first: bool) -> Result<(), String> {
+        if first {
+            for id in &d.removed {
+                let p = self
+                    .cut
+                    .remove(id)
+                    .ok_or_else(|| format!("patch {id:016x} removed but never held"))?;
+                if self.cache_bytes > 0 {
+                    self.put(p);
+                }
+            }
+            for id in &d.restored {
+                let p = self
+                    .take(*id)
+                    .ok_or_else(|| format!("patch {id:016x} restored but not in the cache"))?;
+                self.cut.insert(*id, p);
+            }
+        }
+        for p in &d.added {
+            self.take(p.id);
+            self.cut.insert(p.id, p.clone());
+        }
+        for p in &d.prefetched {
+            self.put(p.clone());
+        }
+        if d.last {
+            while self.bytes > self.cache_bytes {
+                let Some((_, id)) = self.order.pop_first() else {
+                    break;
+                };
+                let (_, p) = self.cache.remove(&id).expect("kept in both");
+                self.bytes -= p.encoded_len() as u64;
+            }
+        }
+        Ok(())
     }
 }
 
