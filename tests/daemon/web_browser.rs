@@ -486,7 +486,12 @@ fn maplibre_draws_an_exported_pmtiles_archive_from_a_static_file_server() {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
     let modules = node_modules(&tools);
     let tmp = tempfile::tempdir().unwrap();
-    let mut d = Daemon::start(tmp.path());
+    // On the CPU, as the export resamples (see tests/daemon/exports.rs).
+    let cpu = Setup {
+        unset: vec!["PATCHWORK_ALLOW_EMULATED_GPU".into()],
+        ..Setup::default()
+    };
+    let mut d = Daemon::start_with(tmp.path(), cpu.clone());
     for name in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif"] {
         drop_by_rename(&crop(name), &d.inbox(), name);
     }
@@ -549,7 +554,7 @@ fn maplibre_draws_an_exported_pmtiles_archive_from_a_static_file_server() {
     assert!(num(&r["ranges"], "ranges") >= 2.0, "{r:#}");
 
     // Each DEM pixel MapLibre drew is the daemon's own tile's, decoded as MapLibre decodes it.
-    let d = Daemon::start(tmp.path());
+    let d = Daemon::start_with(tmp.path(), cpu);
     let samples = list(&r["samples"]);
     assert_eq!(samples.len(), points.len(), "{r:#}");
     for s in samples {

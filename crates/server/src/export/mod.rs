@@ -12,6 +12,11 @@
 //! data under the tile is unchanged the tile is kept without being made, and where a survey
 //! came or went since, it is made afresh. The archive is written last, to a temporary name
 //! renamed into place, so that `OUT` is either absent or whole.
+//!
+//! Tiles are resampled on the CPU, whose arithmetic gives the same bytes on every run: a
+//! tile kept from a run before is then the tile this run would make. A GPU's float32
+//! rounding differs in the last bits of a few heights, so a daemon resampling on a GPU
+//! serves tiles that may differ from the archive's by a terrarium step at a few pixels.
 
 mod area;
 pub mod cog;
