@@ -85,7 +85,11 @@ def main():
     out_dir = a.out or (tempfile.mkdtemp() if a.smoke else os.path.join(REPO, "docs/bench"))
     os.makedirs(out_dir, exist_ok=True)
     work = tempfile.mkdtemp()
+    # rasterio's command line, beside this interpreter (a virtual environment) or on PATH (a
+    # system-wide pip install puts it in /usr/local/bin).
     rio = os.path.join(os.path.dirname(sys.executable), "rio")
+    if not os.path.exists(rio):
+        rio = shutil.which("rio") or sys.exit("no `rio` command: python3 -m pip install -r bench/requirements.txt")
     try:
         # Both tools read one file: the comparison is of a store of the Copernicus tile alone.
         # The store of both surveys is exported too, ours alone, as a user of several surveys
