@@ -334,16 +334,16 @@ fn a_client_cache_and_prefetch_keep_every_cut_exact_and_send_less() {
                     ..out_and_back(k, FRAMES)
                 };
                 let full = full_cut(&mut t, &v).await;
-                if k > 0 && full.keys().all(|id| client.has(*id)) {
-                    complete += 1;
-                }
+                let ahead = k > 0 && full.keys().all(|id| client.has(*id));
                 tx.send(v).await.unwrap();
                 let mut first = true;
+                let mut added = 0;
                 loop {
                     let d = deltas.message().await.unwrap().expect("a whole step");
                     assert_eq!(d.frame, k as u64);
                     bytes += d.encoded_len();
                     restored += d.restored.len();
+                    added += d.added.len();
                     client.apply(&d, first).unwrap_or_else(|e| panic!("frame {k}: {e}"));
                     first = false;
                     if d.last {
@@ -358,6 +358,11 @@ fn a_client_cache_and_prefetch_keep_every_cut_exact_and_send_less() {
                     .map(|(id, p)| (*id, p.encode_to_vec()))
                     .collect();
                 assert!(held == full, "frame {k} with cache {cache}, prefetch {prefetch}");
+                // A step that adds nothing finds every patch already here.
+                assert!(added > 0 || k == 0 || ahead, "frame {k}: nothing sent, yet a patch lacked");
+                if ahead {
+                    complete += 1;
+                }
                 assert!(client.cached_bytes() <= cache);
             }
             eprintln!(

@@ -148,8 +148,10 @@ pub struct PrefetchRow {
     pub median_bytes: f64,
     /// See `median_bytes`.
     pub mean_bytes: f64,
-    /// Frames after the first whose whole cut the client held before asking.
+    /// Frames after the first whose cut's patches the client all held, by id, before asking.
     pub complete: f64,
+    /// Frames after the first whose step added no patch.
+    pub quiet: f64,
 }
 
 /// A flight: the camera of each frame.
@@ -213,7 +215,7 @@ pub fn fly_prefetch(
         for (cache, prefetch) in MODES {
             let mut session = ViewSession::default();
             let mut client = ViewClient::new(cache);
-            let (mut sizes, mut complete) = (Vec::new(), 0usize);
+            let (mut sizes, mut complete, mut quiet) = (Vec::new(), 0usize, 0usize);
             for k in 0..frames {
                 let v = pb::ViewCut {
                     cache_bytes: cache,
@@ -222,10 +224,16 @@ pub fn fly_prefetch(
                 };
                 let cut = Cut::View(Camera::try_from(&v).map_err(|e| e.to_string())?);
                 let (_, ps) = engine.query(&cut).map_err(|e| e.to_string())?;
+                // Whole before asked: every patch of the cut already at the client, by id (its
+                // samples and geometry); quiet: the step added nothing at all, not even a
+                // patch held whose box in LOD space or fallback flag changed.
                 if k > 0 && ps.iter().all(|x| client.has(x.id.0)) {
                     complete += 1;
                 }
                 let deltas = session.step(engine, &v).map_err(|e| e.to_string())?;
+                if k > 0 && deltas.iter().all(|d| d.added.is_empty()) {
+                    quiet += 1;
+                }
                 for (i, d) in deltas.iter().enumerate() {
                     client.apply(d, i == 0)?;
                 }
@@ -250,14 +258,16 @@ pub fn fly_prefetch(
                 median_bytes: sizes.get(sizes.len() / 2).copied().unwrap_or(0.0),
                 mean_bytes: mean,
                 complete: complete as f64 / n,
+                quiet: quiet as f64 / n,
             };
             println!(
-                "view session, {flight}, cache {} kB, prefetch {} kB a frame: median {:.1} kB, mean {:.1} kB a frame, {:.0}% of frames whole before asked",
+                "view session, {flight}, cache {} kB, prefetch {} kB a frame: median {:.1} kB, mean {:.1} kB a frame, {:.0}% of frames whole before asked, {:.0}% adding nothing",
                 cache >> 10,
                 prefetch >> 10,
                 row.median_bytes / 1e3,
                 row.mean_bytes / 1e3,
-                100.0 * row.complete
+                100.0 * row.complete,
+                100.0 * row.quiet
             );
             rows.push(row);
         }
@@ -268,12 +278,18 @@ pub fn fly_prefetch(
 /// Writes the rows to `view_prefetch.csv` under `out`.
 pub fn write_prefetch_csv(out: &Path, rows: &[PrefetchRow]) -> std::io::Result<()> {
     let mut s =
-        String::from("flight,cache_bytes,prefetch_bytes,median_bytes,mean_bytes,complete\n");
+        String::from("flight,cache_bytes,prefetch_bytes,median_bytes,mean_bytes,complete,quiet\n");
     for r in rows {
         let _ = writeln!(
             s,
-            "{},{},{},{:.0},{:.0},{:.4}",
-            r.flight, r.cache_bytes, r.prefetch_bytes, r.median_bytes, r.mean_bytes, r.complete
+            "{},{},{},{:.0},{:.0},{:.4},{:.4}",
+            r.flight,
+            r.cache_bytes,
+            r.prefetch_bytes,
+            r.median_bytes,
+            r.mean_bytes,
+            r.complete,
+            r.quiet
         );
     }
     std::fs::write(out.join("view_prefetch.csv"), s)

@@ -177,7 +177,9 @@ impl Reprojection {
                 .map(|&p| self.at(p).unwrap_or(none))
                 .collect();
         }
-        // Gathered block by block: a lookup a block rather than one a node (see `at`).
+        // Gathered block by block: a lookup a block rather than one a node (see `at`). The
+        // batch's blocks are held until copied: at most the nodes the batch gathers, as many
+        // as `grid` holds, beside the cache's own.
         let mut grid = vec![[f64::NAN; 2]; w * h];
         let s = SIDE as i64;
         let (b0, b1) = (

@@ -60,7 +60,7 @@ impl Held {
 
 /// The client's cache as the server follows it: patches in the order they were put in, the
 /// least recent evicted first until the rest fit (the rule `ViewDelta` states for clients).
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default)]
 struct Kept {
     by_id: std::collections::HashMap<patchwork_core::model::ids::PatchId, (u64, Held, u64)>,
     order: std::collections::BTreeMap<u64, patchwork_core::model::ids::PatchId>,
@@ -123,9 +123,9 @@ impl ViewSession {
             .map(|(id, f)| (*id, *f))
             .collect();
         removed.sort_unstable_by_key(|r| r.0 .0);
-        // The client's cache after the removed patches join it, as the client keeps it.
-        let mut cache = std::mem::take(&mut self.cache);
-        let undo = |cache: Kept, this: &mut ViewSession| this.cache = cache;
+        // The client's cache after the removed patches join it, as the client keeps it: a
+        // copy, kept only once the step is whole.
+        let mut cache = self.cache.clone();
         let most = v.cache_bytes;
         if most > 0 {
             for (id, (held, bytes)) in &removed {
@@ -148,7 +148,6 @@ impl ViewSession {
                 restored.push(x.id.0);
                 held.insert(x.id, (h, bytes));
             } else {
-                cache.take(x.id);
                 added.push(x);
             }
         }
@@ -158,14 +157,13 @@ impl ViewSession {
         for x in &added {
             match convert::patch(&t, x) {
                 Ok(Some(p)) => {
+                    // An older copy in the client's cache leaves it, as the client drops it.
+                    cache.take(x.id);
                     held.insert(x.id, (Held::of(x), p.encoded_len() as u64));
                     sent.push(p);
                 }
                 Ok(None) => {}
-                Err(e) => {
-                    undo(cache, self);
-                    return Err(StoreError::from(e).into());
-                }
+                Err(e) => return Err(StoreError::from(e).into()),
             }
         }
         let cameras = {
@@ -176,13 +174,7 @@ impl ViewSession {
         };
         let mut prefetched = Vec::new();
         if most > 0 && v.prefetch_bytes > 0 {
-            match prefetch(engine, v, &cameras, &held, &cache) {
-                Ok(p) => prefetched = p,
-                Err(e) => {
-                    undo(cache, self);
-                    return Err(e);
-                }
-            }
+            prefetched = prefetch(engine, v, &cameras, &held, &cache)?;
         }
         for (id, h, p) in &prefetched {
             cache.put(*id, *h, p.encoded_len() as u64);

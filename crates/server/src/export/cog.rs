@@ -162,7 +162,14 @@ pub fn write(
             why: e.to_string(),
         }
     })?;
-    std::fs::rename(&tmp, out).map_err(io(out))?;
+    std::fs::rename(&tmp, out).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        io(out)(e)
+    })?;
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        // The rename itself is durable only once the folder is.
+        let _ = std::fs::File::open(dir).and_then(|d| d.sync_all());
+    }
     let file_bytes = std::fs::metadata(out).map_err(io(out))?.len();
     Ok(CogSummary {
         size: (w, h),

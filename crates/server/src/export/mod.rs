@@ -6,8 +6,8 @@
 //!
 //! An export is resumable. Tiles are kept as they are made in a folder beside the archive
 //! (`OUT.part`): their bytes appended to one file, then a record of each (its tile id, where
-//! its bytes are, and its ETag) appended to another, each batch made durable before the next
-//! starts. A rerun with the same options reads the records back, drops whatever a crash left
+//! its bytes are, and its ETag) appended to another once the bytes are durable, every second
+//! (and when the export stops). A rerun with the same options reads the records back, drops whatever a crash left
 //! past the last whole record, and asks for each kept tile again with its ETag: where the
 //! data under the tile is unchanged the tile is kept without being made, and where a survey
 //! came or went since, it is made afresh. The archive is written last, to a temporary name
@@ -81,7 +81,8 @@ impl Plan {
     /// What a staged tile was made for: a rerun with other options starts afresh.
     fn key(&self) -> String {
         format!(
-            "patchwork export 1\n{:?} {:?} {:?} {} {:?} {:?} {:?} {}\n",
+            "patchwork export 1 {}\n{:?} {:?} {:?} {} {:?} {:?} {:?} {}\n",
+            env!("CARGO_PKG_VERSION"),
             self.container,
             self.encoding,
             self.image,
@@ -325,6 +326,10 @@ pub fn export(
         progress(p);
     }
     stage.sync()?;
+    // Only this plan's tiles go in: a stage carried on after a survey went may hold tiles of
+    // a rectangle that has since shrunk.
+    let planned: std::collections::HashSet<u64> = tiles.iter().map(|t| t.0).collect();
+    stage.tiles.retain(|id, _| planned.contains(id));
     let meta = Meta::of(web, plan, &area, &engine);
     let tmp = out.with_file_name(format!(
         ".{}.tmp",
@@ -395,12 +400,9 @@ fn meta_bounds(area: &Area, pyramid: &crate::web::pyramid::Pyramid) -> Option<Aa
         None => a,
     };
     let lat = patchwork_core::geom::tiles::MERCATOR_MAX_LAT;
-    Some(Aabb::new(
-        b.min[0],
-        b.min[1].max(-lat),
-        b.max[0],
-        b.max[1].min(lat),
-    ))
+    let (s, n) = (b.min[1].max(-lat), b.max[1].min(lat));
+    // Wholly poleward of Web Mercator's reach: no tile holds it.
+    (s < n).then(|| Aabb::new(b.min[0], s, b.max[0], n))
 }
 
 /// The PMTiles id of tile (z, x, y): its place on the Hilbert curve of its zoom, after every
