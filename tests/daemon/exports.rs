@@ -191,7 +191,7 @@ fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
         "patchwork tile",
     );
 
-    let d = Daemon::start_with(root, cpu);
+    let mut d = Daemon::start_with(root, cpu);
     let out = Command::new(python())
         .current_dir(repo)
         .arg("tests/python/exports.py")
@@ -210,4 +210,50 @@ fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
         .unwrap();
     let stdout = ok(out, "tests/python/exports.py");
     println!("{}{whole}{again}{mb}{wrote}", stdout);
+    d.stop();
+
+    // A survey retired between a killed export and its rerun: the rectangle shrinks, and the
+    // archive holds the tiles an export of the store as it is now makes, none of the stage's
+    // tiles beyond it.
+    let e = root.join("e.pmtiles");
+    let index = root.join("e.pmtiles.part/index");
+    let mut child = export(&data, &pm_args, &e)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    while std::fs::metadata(&index).map_or(0, |m| m.len()) == 0 {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the export finished first"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let nasadem = d.inbox().join("nasadem_n34w119_crop.tif");
+    ok(
+        Command::new(BIN)
+            .args(["retire", "--data-dir"])
+            .arg(&data)
+            .arg(&nasadem)
+            .output()
+            .unwrap(),
+        "retire",
+    );
+    let carried = ok(export(&data, &pm_args, &e).output().unwrap(), "the rerun");
+    let fresh = root.join("f.pmtiles");
+    let made = ok(
+        export(&data, &pm_args, &fresh).output().unwrap(),
+        "the export",
+    );
+    assert!(
+        counts(&carried).0 < tiles,
+        "the rectangle did not shrink: {carried}"
+    );
+    assert_eq!(counts(&carried).0, counts(&made).0);
+    assert!(
+        std::fs::read(&e).unwrap() == std::fs::read(&fresh).unwrap(),
+        "the archive carried on across a retirement differs from one made after it"
+    );
 }
