@@ -45,6 +45,32 @@ fn counts(stdout: &str) -> (u64, u64) {
     (num(" tiles ("), num(" kept from before"))
 }
 
+/// Runs the export of `args` into `out` and kills it once its first tiles are durable.
+fn kill_once_staged(data: &Path, args: &[&str], out: &Path) {
+    let mut index = out.as_os_str().to_owned();
+    index.push(".part/index");
+    let index = std::path::PathBuf::from(index);
+    let mut child = export(data, args, out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while std::fs::metadata(&index).map_or(0, |m| m.len()) == 0 {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the export finished before any tile was durable: the test needs a longer export"
+        );
+        assert!(
+            t0.elapsed() < Duration::from_secs(120),
+            "no tile was staged"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+}
+
 #[test]
 fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
@@ -81,26 +107,7 @@ fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
 
     // The same export killed once its first tiles are durable, then run again.
     let b = root.join("b.pmtiles");
-    let index = root.join("b.pmtiles.part/index");
-    let mut child = export(&data, &pm_args, &b)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    let t0 = Instant::now();
-    while std::fs::metadata(&index).map_or(0, |m| m.len()) == 0 {
-        assert!(
-            child.try_wait().unwrap().is_none(),
-            "the export finished before any tile was durable: the test needs a longer export"
-        );
-        assert!(
-            t0.elapsed() < Duration::from_secs(120),
-            "no tile was staged"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.kill().unwrap();
-    child.wait().unwrap();
+    kill_once_staged(&data, &pm_args, &b);
     assert!(!b.exists(), "a killed export left an archive");
     let again = ok(export(&data, &pm_args, &b).output().unwrap(), "the rerun");
     let (tiles_b, kept_b) = counts(&again);
@@ -216,21 +223,7 @@ fn exports_hold_the_http_tiles_and_carry_on_where_they_stopped() {
     // archive holds the tiles an export of the store as it is now makes, none of the stage's
     // tiles beyond it.
     let e = root.join("e.pmtiles");
-    let index = root.join("e.pmtiles.part/index");
-    let mut child = export(&data, &pm_args, &e)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    while std::fs::metadata(&index).map_or(0, |m| m.len()) == 0 {
-        assert!(
-            child.try_wait().unwrap().is_none(),
-            "the export finished first"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.kill().unwrap();
-    child.wait().unwrap();
+    kill_once_staged(&data, &pm_args, &e);
     let nasadem = d.inbox().join("nasadem_n34w119_crop.tif");
     ok(
         Command::new(BIN)

@@ -16,19 +16,7 @@ use std::sync::Arc;
 fn camera(k: usize, frames: usize) -> pb::ViewCut {
     // Low over the Copernicus crop, flying north-east and looking ahead.
     let s = k as f64 / frames as f64;
-    let (x, y) = (-119.03 + 0.1 * s, 34.43 + 0.1 * s);
-    pb::ViewCut {
-        eye_x: x,
-        eye_y: y,
-        eye_z: 1500.0,
-        look_x: x + 0.05,
-        look_y: y + 0.06,
-        look_z: 400.0,
-        fov_deg: 60.0,
-        viewport_px: 800,
-        pixel_error: 2.0,
-        ..Default::default()
-    }
+    camera_at(-119.03 + 0.1 * s, 34.43 + 0.1 * s)
 }
 
 /// Serves `engine` on a loopback port for as long as the runtime runs; its URL.
@@ -280,6 +268,7 @@ fn out_and_back(k: usize, frames: usize) -> pb::ViewCut {
     camera_at(-119.03 + 0.1 * s, 34.43 + 0.1 * s)
 }
 
+/// At (x, y), 1,500 m up, looking north-east and down.
 fn camera_at(x: f64, y: f64) -> pb::ViewCut {
     pb::ViewCut {
         eye_x: x,

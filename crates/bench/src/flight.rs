@@ -42,25 +42,7 @@ pub fn fly(engine: &Engine, over: &Aabb, frames: usize) -> Result<Vec<FlightRow>
         let mut session = ViewSession::default();
         for k in 0..frames {
             let f = 0.15 + step * k as f64;
-            let at = |g: f64| {
-                [
-                    over.min[0] + g * over.width(),
-                    over.min[1] + g * over.height(),
-                ]
-            };
-            let (e, l) = (at(f), at(f + 0.3));
-            let v = pb::ViewCut {
-                eye_x: e[0],
-                eye_y: e[1],
-                eye_z: 1500.0,
-                look_x: l[0],
-                look_y: l[1],
-                look_z: 300.0,
-                fov_deg: 60.0,
-                viewport_px: 1024,
-                pixel_error: 1.0,
-                ..Default::default()
-            };
+            let v = camera(along(over, f), along(over, f + 0.3));
             let deltas = session.step(engine, &v).map_err(|e| e.to_string())?;
             let cut = Cut::View(Camera::try_from(&v).map_err(|e| e.to_string())?);
             let (_, ps) = engine.query(&cut).map_err(|e| e.to_string())?;
@@ -98,6 +80,30 @@ pub fn fly(engine: &Engine, over: &Aabb, frames: usize) -> Result<Vec<FlightRow>
         );
     }
     Ok(rows)
+}
+
+/// The point a fraction `g` along the diagonal of `over`.
+fn along(over: &Aabb, g: f64) -> [f64; 2] {
+    [
+        over.min[0] + g * over.width(),
+        over.min[1] + g * over.height(),
+    ]
+}
+
+/// A camera at `e`, 1,500 m up, looking at `l` at 300 m (60°, 1024 px, 1 px of screen error).
+fn camera(e: [f64; 2], l: [f64; 2]) -> pb::ViewCut {
+    pb::ViewCut {
+        eye_x: e[0],
+        eye_y: e[1],
+        eye_z: 1500.0,
+        look_x: l[0],
+        look_y: l[1],
+        look_z: 300.0,
+        fov_deg: 60.0,
+        viewport_px: 1024,
+        pixel_error: 1.0,
+        ..Default::default()
+    }
 }
 
 /// Median bytes a patch takes on the wire, by kind and sample encoding.
@@ -167,24 +173,7 @@ pub fn fly_prefetch(
     over: &Aabb,
     frames: usize,
 ) -> Result<Vec<PrefetchRow>, String> {
-    let at = |g: f64| {
-        [
-            over.min[0] + g * over.width(),
-            over.min[1] + g * over.height(),
-        ]
-    };
-    let camera = |e: [f64; 2], l: [f64; 2]| pb::ViewCut {
-        eye_x: e[0],
-        eye_y: e[1],
-        eye_z: 1500.0,
-        look_x: l[0],
-        look_y: l[1],
-        look_z: 300.0,
-        fov_deg: 60.0,
-        viewport_px: 1024,
-        pixel_error: 1.0,
-        ..Default::default()
-    };
+    let at = |g: f64| along(over, g);
     let flights: [(&'static str, Flight<'_>); 3] = [
         (
             "slow",
