@@ -83,22 +83,34 @@ async fn apply(
     }
 }
 
+/// The committed crops' folder.
+fn crops() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data")
+}
+
+/// An empty store under `root`, open to the crops.
+fn store(root: &Path) -> Arc<Engine> {
+    let cfg = Config {
+        data_dir: root.join("data"),
+        ingest_roots: vec![crops()],
+        ..Config::default()
+    };
+    Arc::new(Engine::open(cfg).unwrap())
+}
+
+/// Ingests the crop `name`, which must succeed.
+fn ingest(engine: &Engine, name: &str) {
+    let done = engine
+        .ingest(&crops().join(name), None, Origin::Request)
+        .unwrap();
+    assert!(done.error.is_empty(), "{}", done.error);
+}
+
 #[test]
 fn a_client_applying_the_deltas_holds_every_view_cut_along_a_flight() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
-    let cfg = Config {
-        data_dir: tmp.path().join("data"),
-        ingest_roots: vec![data.clone()],
-        ..Config::default()
-    };
-    let engine = Arc::new(Engine::open(cfg).unwrap());
-    let ingest = |name: &str| {
-        let done = engine
-            .ingest(&data.join(name), None, Origin::Request)
-            .unwrap();
-        assert!(done.error.is_empty(), "{}", done.error);
-    };
+    let engine = store(tmp.path());
+    let ingest = |name: &str| ingest(&engine, name);
     ingest("copernicus_n34w119_crop.tif");
     let rt = tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
@@ -287,18 +299,9 @@ fn camera_at(x: f64, y: f64) -> pb::ViewCut {
 #[test]
 fn a_client_cache_and_prefetch_keep_every_cut_exact_and_send_less() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
-    let cfg = Config {
-        data_dir: tmp.path().join("data"),
-        ingest_roots: vec![data.clone()],
-        ..Config::default()
-    };
-    let engine = Arc::new(Engine::open(cfg).unwrap());
+    let engine = store(tmp.path());
     for name in ["copernicus_n34w119_crop.tif", "nasadem_n34w119_crop.tif"] {
-        let done = engine
-            .ingest(&data.join(name), None, Origin::Request)
-            .unwrap();
-        assert!(done.error.is_empty(), "{}", done.error);
+        ingest(&engine, name);
     }
     const FRAMES: usize = 60;
     let rt = tokio::runtime::Runtime::new().unwrap();

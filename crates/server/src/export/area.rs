@@ -39,18 +39,14 @@ impl Area {
         }
     }
 
-    /// The tiles of zoom `z` that the area touches, row by row.
-    pub fn tiles(&self, z: u32) -> Vec<(u32, u32)> {
-        let Some(b) = self.bounds() else {
-            return Vec::new();
-        };
-        let range = mercator::over(z, &b);
+    /// Every tile of zoom `z` over the rectangle `within` (degrees), row by row, each with
+    /// whether the area touches it.
+    pub fn tiles(&self, z: u32, within: &Aabb) -> Vec<(u32, u32, bool)> {
+        let range = mercator::over(z, within);
         let mut out = Vec::new();
         for y in range.y0..=range.y1 {
             for x in range.x0..=range.x1 {
-                if self.touches(&mercator::lonlat_bounds(z, x, y)) {
-                    out.push((x, y));
-                }
+                out.push((x, y, self.touches(&mercator::lonlat_bounds(z, x, y))));
             }
         }
         out
@@ -213,7 +209,11 @@ mod tests {
         let a = Area::from_geojson(fc).unwrap();
         assert_eq!(a.bounds(), Some(Aabb::new(5.0, 44.0, 6.0, 45.0)));
         // Zoom 8 tiles are 1.4° wide: the degree touches two to four columns and rows.
-        let n = a.tiles(8).len();
+        let n = a
+            .tiles(8, &a.bounds().unwrap())
+            .iter()
+            .filter(|t| t.2)
+            .count();
         assert!((2..=16).contains(&n), "{n}");
         assert!(Area::from_geojson(r#"{"type":"Point","coordinates":[1,2]}"#).is_err());
         assert!(Area::from_geojson(

@@ -235,12 +235,8 @@ pub fn export(
     };
     let mut tiles: Vec<(u64, u32, u32, u32, bool)> = Vec::new();
     for z in z0..=z1 {
-        let r = mercator::over(z, &bounds);
-        for y in r.y0..=r.y1 {
-            for x in r.x0..=r.x1 {
-                let inside = area.touches(&mercator::lonlat_bounds(z, x, y));
-                tiles.push((tile_id(z, x, y), z, x, y, inside));
-            }
+        for (x, y, inside) in area.tiles(z, &bounds) {
+            tiles.push((tile_id(z, x, y), z, x, y, inside));
         }
     }
     let void = Bytes::from(raster::void_image(

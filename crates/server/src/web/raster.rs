@@ -104,14 +104,14 @@ pub fn tile(
         };
         match r.format {
             Format::Png(encoding) | Format::Webp(encoding) => {
+                if empty {
+                    let webp = matches!(r.format, Format::Webp(_));
+                    return Ok(void_image(encoding, webp, r.size));
+                }
                 // MapLibre reads every pixel as a height, whatever its alpha: voids are
                 // filled from coarser levels for it (alpha still says they hold no data),
                 // so that hillshade draws no cliff into a hole.
-                let voids = if empty {
-                    vec![true; size * size]
-                } else {
-                    engine.fill_voids(&mut heights, &grid, own, error, cancel)?
-                };
+                let voids = engine.fill_voids(&mut heights, &grid, own, error, cancel)?;
                 carry(&mut heights)?;
                 let pixels = rgba(&heights, &voids, encoding);
                 Ok(match r.format {
