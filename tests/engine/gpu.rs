@@ -4,7 +4,7 @@
 //! edge blends surveys hundreds of metres apart, the f32 weight's rounding shows), on synthetic
 //! rotated grids with voids, on the committed real crops, where surveys meet, and with surveys
 //! of other CRSs read through the store-to-survey lattice, for uniform
-//! and view-dependent sample grids.
+//! and view-dependent sample grids, each with Formula 1 and with the accurate blend.
 //!
 //! Without a GPU adapter these tests say so and pass, unless PATCHWORK_REQUIRE_GPU=1 (as CI
 //! sets it, with a software Vulkan driver installed), where they fail.
@@ -15,6 +15,7 @@ use common::*;
 use patchwork::gpu::{Emulated, GpuResampler};
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::query::{Metric, ViewQuery};
+use patchwork_core::model::patch::Blend;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::resample::{cpu, PatchSet, SampleGrid};
 use patchwork_core::terrain::Terrain;
@@ -38,7 +39,8 @@ fn gpu() -> Option<GpuResampler> {
     }
 }
 
-/// Resamples on both and checks the masks are identical; returns the largest difference.
+/// Resamples on both, with each blend, and checks the masks are identical; returns the
+/// largest difference.
 fn compare(
     g: &mut GpuResampler,
     t: &Terrain,
@@ -47,6 +49,14 @@ fn compare(
     what: &str,
 ) -> f64 {
     let set = t.resolve(&ps);
+    assert_eq!(set.blend, Blend::Formula1, "a terrain blends by Formula 1 by default");
+    let accurate = set.clone().with_blend(Blend::Accurate);
+    let f1 = compare_set(g, set, grid, &format!("{what}, formula1"));
+    f1.max(compare_set(g, accurate, grid, &format!("{what}, accurate")))
+}
+
+/// [`compare`] of one set.
+fn compare_set(g: &mut GpuResampler, set: PatchSet, grid: &SampleGrid, what: &str) -> f64 {
     let want = cpu::resample(&set, grid);
     let got = g
         .resample(&set, grid)

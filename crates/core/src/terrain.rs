@@ -11,7 +11,7 @@ use patchwork_model::evidence::{self, Blame, Contradicted, PairEvidence};
 use patchwork_model::grid::{Grid, SampleRect, Window};
 use patchwork_model::ids::{PatchId, SurveyId};
 use patchwork_model::lattice::{tile_of, Lattice};
-use patchwork_model::patch::Patch;
+use patchwork_model::patch::{Blend, Patch};
 use patchwork_model::place::{
     self, Frame, PlaceError, Plane, PlaneId, Planes, Residuals, STORE_PLANE,
 };
@@ -273,6 +273,8 @@ pub struct Terrain {
     /// The raise of each survey's claims now in force (kernel, least ε); absent for none.
     raises: HashMap<SurveyId, Raise>,
     contradicted: Contradicted,
+    /// How resolved patches are blended (see [`PatchSet::with_blend`]).
+    blend: Blend,
 }
 
 /// Edge patches to take out of the index and to put in.
@@ -295,6 +297,7 @@ impl Terrain {
             neighbours: HashMap::new(),
             raises: HashMap::new(),
             contradicted: Contradicted::default(),
+            blend: Blend::default(),
         }
     }
 
@@ -1113,6 +1116,16 @@ impl Terrain {
         self.contradicted
     }
 
+    /// Sets how the patches this terrain resolves are blended: its store's choice.
+    pub fn set_blend(&mut self, b: Blend) {
+        self.blend = b;
+    }
+
+    /// How the patches this terrain resolves are blended.
+    pub fn blend(&self) -> Blend {
+        self.blend
+    }
+
     /// What `s` and every survey of the terrain it overlaps say of each other (see
     /// [`evidence::compare`]), measured at the samples of the finer of the two against the
     /// other's surface (see [`SurveyMeta::finer_than`]), each read over the other's bounds, so
@@ -1323,9 +1336,11 @@ impl Terrain {
         if gave_up.into_inner() {
             return Ok(None);
         }
-        Ok(Some(PatchSet::new(patches).with_planes(
-            planes.iter().map(|p| p.to_native.clone()).collect(),
-        )))
+        Ok(Some(
+            PatchSet::new(patches)
+                .with_planes(planes.iter().map(|p| p.to_native.clone()).collect())
+                .with_blend(self.blend),
+        ))
     }
 
     /// Asks the store for the samples of every survey patch of `ps` at once, which an object

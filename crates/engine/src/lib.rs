@@ -443,6 +443,7 @@ fn store_options(cfg: &Config, guard: &SpaceGuard) -> Result<StoreOptions, Engin
         cache_bytes: cfg.cache_mb << 20,
         recipe: cfg.recipe(),
         contradicted: cfg.accuracy.contradicted,
+        blend: cfg.patches.blend,
         backend: backend(&cfg.storage)?,
         snapshot_every: cfg.storage.snapshot_every,
     })

@@ -90,7 +90,7 @@ fn terrain_of(
         rebuild,
         damaged: _,
     } = contents;
-    Ok(if rebuild {
+    let mut terrain = if rebuild {
         derive(store, warnings)?
     } else {
         let source: Arc<dyn SampleSource> = store.reader();
@@ -125,7 +125,9 @@ fn terrain_of(
             }
             terrain
         }
-    })
+    };
+    terrain.set_blend(store.blend());
+    Ok(terrain)
 }
 
 /// Every active survey inserted again, in id order (each measured against those before it),

@@ -144,6 +144,40 @@ impl PatchKind {
     }
 }
 
+/// How the patches that reach a point are blended into its height. A store blends one way,
+/// chosen when it is made (`[patches] blend` in the config; `meta/blend` in the store).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Blend {
+    /// The paper's Formula 1: the weighted mean of every patch that reaches the point, each
+    /// weighted by its kind's weight over its window divided by the window's area.
+    #[default]
+    Formula1,
+    /// The paper's proposed blend (§7.3): patches in order of error, each weighing 1 over its
+    /// kernel and falling to 0 across its extension zone, laid over one another, so that inside
+    /// the most accurate kernel that holds a point that patch alone counts, and blending happens
+    /// only where a more accurate patch's extension zone meets a less accurate kernel.
+    Accurate,
+}
+
+impl Blend {
+    /// Every blend.
+    pub const ALL: [Blend; 2] = [Blend::Formula1, Blend::Accurate];
+
+    /// The name in the config and the store, as serialised.
+    pub fn name(self) -> &'static str {
+        match self {
+            Blend::Formula1 => "formula1",
+            Blend::Accurate => "accurate",
+        }
+    }
+
+    /// The blend called `name`, if any.
+    pub fn from_name(name: &str) -> Option<Blend> {
+        Blend::ALL.into_iter().find(|k| k.name() == name)
+    }
+}
+
 /// The function a patch evaluates, and its δ: the largest distance from the *reference
 /// surface*, the bilinear surface of the survey's level-0 samples on its valid cells (the
 /// surface GDAL interpolates and edge patches continue), anywhere in the patch's window where

@@ -10,7 +10,14 @@
 //! only on the point and the patches that reach it, never on the ROI, and it is within the
 //! error of the most accurate data that covers it.
 
+//!
+//! The accurate blend ([`Blend::Accurate`]) lays the patches that reach a point over one
+//! another in the set's order (tier, error, id): each takes its weight ω (1 over its kernel)
+//! of what the better ones left, so the first whose kernel holds the point ends the sum, and
+//! the same tiers hold. Every path below forms its sums in that order, term for term.
+
 use super::{AxisHit, Cancel, Hit, PatchSet, ResolvedPatch, SampleGrid, Surface, BLOCK};
+use patchwork_model::patch::Blend;
 use rayon::prelude::*;
 
 /// Patch indices per block of output samples, so each sample visits only patches near it:
@@ -436,6 +443,44 @@ fn by_axes(
                     ranks.sort_unstable();
                     ranks.dedup();
                     let i0 = ib * BLOCK;
+                    if set.blend == Blend::Accurate {
+                        // A patch at a time in the set's order, each sample laid over as
+                        // `over_by` lays it; the block stops at the first patch no sample
+                        // of it can take any more.
+                        let mut over = [Over::default(); BLOCK];
+                        let over = &mut over[..cells.len()];
+                        for &k in &live {
+                            let p = &set.patches[k as usize];
+                            let tier = p.tier();
+                            if !over.iter().any(|o| o.open(tier)) {
+                                break;
+                            }
+                            let samples = over.iter_mut().zip(i0..i0 + cells.len());
+                            match &columns[k as usize] {
+                                Some(c) => {
+                                    let yh = &rows[slot[k as usize] as usize];
+                                    for (o, i) in samples.filter(|(o, _)| o.open(tier)) {
+                                        if let Some((w, h)) = p.at_axes(&c.at(i), yh) {
+                                            o.add(tier, w, h.z, h.covered);
+                                        }
+                                    }
+                                }
+                                None => {
+                                    for (o, i) in samples.filter(|(o, _)| o.open(tier)) {
+                                        let at = row_j * width + i;
+                                        let q = in_plane(p, [axes.xs[i], y], planes, at);
+                                        if let Some((w, h)) = p.at(q) {
+                                            o.add(tier, w, h.z, h.covered);
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                        for (c, o) in cells.iter_mut().zip(over.iter()) {
+                            *c = o.height();
+                        }
+                        continue;
+                    }
                     let add = |k: u32, sums: &mut [Tier; BLOCK]| {
                         let p = &set.patches[k as usize];
                         let sums = sums.iter_mut().zip(i0..i0 + cells.len());
@@ -497,6 +542,10 @@ fn by_axes(
 /// fallback patch of the best rank: the other fallback patches are of worse rank, and a
 /// point covered by a better tier never adds a worse one. The sums are then w·z and w,
 /// divided as the blend divides them, so the height is the blend's to the bit.
+///
+/// The accurate blend gives k's height alone wherever k's kernel holds the point and k is
+/// first of the block's patches in the set's order: its weight is exactly 1 there, so it
+/// takes the whole point, w = 1 and (0 + 1·z) / (0 + 1) = z as `Over` forms it.
 struct Alone {
     /// The patch.
     k: usize,
@@ -597,6 +646,9 @@ const LEFT_MOST: usize = 4;
 /// The patch that serves a block alone wherever it covers it (see [`Alone`]): the bin's one
 /// patch of the cut, or with none, its one fallback patch of the best rank.
 fn alone_in(set: &PatchSet, bin: &[u32]) -> Option<usize> {
+    if set.blend == Blend::Accurate {
+        return bin.first().map(|&k| k as usize);
+    }
     let mut cut = bin.iter().filter(|&&k| !set.patches[k as usize].fallback);
     if let Some(&k) = cut.next() {
         return cut.next().is_none().then_some(k as usize);
@@ -699,13 +751,95 @@ impl Tier {
     }
 }
 
+/// The accurate blend's sums at one point: patches laid over one another in the set's order,
+/// each taking its weight's share of what the better ones left (`rest`).
+#[derive(Clone, Copy)]
+struct Over {
+    /// Σ a·z and Σ a, a the share each patch took.
+    sum: f64,
+    asum: f64,
+    /// What is left for the patches after: 1 − Σ a.
+    rest: f64,
+    /// The tier of the first patch whose kernel holds the point, u32::MAX until one does:
+    /// worse tiers no longer count, as in Formula 1's tiers.
+    stop: u32,
+}
+
+impl Default for Over {
+    fn default() -> Self {
+        Over {
+            sum: 0.0,
+            asum: 0.0,
+            rest: 1.0,
+            stop: u32::MAX,
+        }
+    }
+}
+
+impl Over {
+    /// Whether a patch of `tier` can still add anything. Patches come in ascending tier, and
+    /// `rest` only falls, so once this is false it is false for every later patch.
+    #[inline(always)]
+    fn open(&self, tier: u32) -> bool {
+        self.rest > 0.0 && tier <= self.stop
+    }
+
+    /// Lays a patch of weight `w` and height `z` under those before it; its share.
+    #[inline(always)]
+    fn add(&mut self, tier: u32, w: f64, z: f64, covered: bool) -> f64 {
+        let a = w * self.rest;
+        self.sum += a * z;
+        self.asum += a;
+        self.rest -= a;
+        if covered {
+            self.stop = self.stop.min(tier);
+        }
+        a
+    }
+
+    fn height(&self) -> f32 {
+        if self.stop != u32::MAX && self.asum > 0.0 {
+            (self.sum / self.asum) as f32
+        } else {
+            f32::NAN
+        }
+    }
+}
+
+/// The accurate blend at one point, where `at(k)` is patch k's weight and answer there; with
+/// the index of the patch that took the largest share, the first of equals.
+#[inline(always)]
+fn over_by(
+    set: &PatchSet,
+    bin: &[u32],
+    at: impl Fn(usize) -> Option<(f64, Hit)>,
+) -> (f32, Option<u32>) {
+    let mut o = Over::default();
+    let mut most = (0.0, None);
+    for &k in bin {
+        let tier = set.patches[k as usize].tier();
+        if !o.open(tier) {
+            break;
+        }
+        if let Some((w, h)) = at(k as usize) {
+            let a = o.add(tier, w, h.z, h.covered);
+            if a > most.0 {
+                most = (a, Some(k));
+            }
+        }
+    }
+    let z = o.height();
+    (z, if z.is_nan() { None } else { most.1 })
+}
+
 /// [`resample_until`] of `grid`, and for each sample the patch that weighs most in its height:
 /// of the patches [`blend_by`] counts there (the cut's where one of them covers it, else the
 /// cut's and the fallback ranks up to the best that covers it), the one of the largest
 /// weight; None where the height is nodata. What a client asking "where does this height come
 /// from" is told. The heights are those of [`resample_until`], bit for bit: each sample's
 /// patches are asked once, in bin order, and their answers blended by the same [`blend_by`].
-/// None once `cancel` is set.
+/// For the accurate blend, the patch that took the largest share ([`over_by`]). None once
+/// `cancel` is set.
 pub fn resample_serving(
     set: &PatchSet,
     grid: &SampleGrid,
@@ -727,6 +861,12 @@ pub fn resample_serving(
                 }
                 let (i, j) = (at % grid.width, at / grid.width);
                 let bin = &bins[(j / BLOCK) * bx + i / BLOCK];
+                if set.blend == Blend::Accurate {
+                    return over_by(set, bin, |k| {
+                        let q = &set.patches[k];
+                        q.at(in_plane(q, p, &planes, at))
+                    });
+                }
                 answers.clear();
                 answers.extend(bin.iter().map(|&k| {
                     let q = &set.patches[k as usize];
@@ -774,7 +914,7 @@ pub fn resample_serving(
     Some(out.into_iter().unzip())
 }
 
-/// Formula 1 at one point of the store's plane.
+/// The set's blend at one point of the store's plane.
 pub fn blend(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
     let planes: Vec<Vec<[f64; 2]>> = set
         .planes
@@ -787,7 +927,8 @@ pub fn blend(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> f32 {
     })
 }
 
-/// Formula 1 at one point, where `at(k)` is patch k's weight and answer there, with `tiers`
+/// The set's blend at one point (Formula 1, or [`over_by`]), where `at(k)` is patch k's weight
+/// and answer there, with `tiers`
 /// as scratch space for the fallback ranks that reach it. Always inlined: `at` is the inner
 /// loop of every tile, and called through a function it cost a third of a tile's time.
 #[inline(always)]
@@ -797,6 +938,9 @@ fn blend_by(
     tiers: &mut Vec<(u32, Tier)>,
     at: impl Fn(usize) -> Option<(f64, Hit)>,
 ) -> f32 {
+    if set.blend == Blend::Accurate {
+        return over_by(set, bin, at).0;
+    }
     let mut cut = Tier::default();
     if !set.has_fallback {
         for &k in bin {

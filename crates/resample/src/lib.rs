@@ -11,7 +11,7 @@ use patchwork_geom::{Aabb, ORect};
 use patchwork_model::edge::{EdgeGrid, EdgePatch};
 use patchwork_model::grid::{Georef, SampleRect, Shape, Window};
 use patchwork_model::ids::PatchId;
-use patchwork_model::patch::{Bicubic, CellRect, Patch, PatchKind};
+use patchwork_model::patch::{Bicubic, Blend, CellRect, Patch, PatchKind};
 use patchwork_model::spline::Spline;
 use std::sync::Arc;
 
@@ -389,7 +389,7 @@ pub struct ResolvedPatch {
     /// The window's world bounds, clipped to the unclipped window's (beyond which the weight
     /// is 0): what [`cpu::bin`] tests blocks against, widened a little ([`Self::reach`]).
     pub window_aabb: Aabb,
-    /// The patch's error, for the fallback's tiers.
+    /// The patch's error: the fallback's tiers, and the accurate blend's order.
     pub error: f64,
     /// See [`patchwork_index::query::Extracted::fallback`].
     pub fallback: bool,
@@ -397,6 +397,9 @@ pub struct ResolvedPatch {
     /// at a point no cut patch covers, the fallback patches of the best rank covering it are
     /// blended, with any of better rank that reach it.
     pub rank: u32,
+    /// Weighed as the accurate blend weighs it ([`PatchSet::with_blend`]): 1 over its kernel,
+    /// falling to 0 across the extension zone, with `norm` 1.
+    pub accurate: bool,
     /// Which positions of a sample the patch reads: 0 for the grid's own (the store's
     /// plane), k for those [`PatchSet::planes`]`[k − 1]` carries them to, in the CRS of a
     /// survey of another plane.
@@ -449,6 +452,7 @@ impl ResolvedPatch {
             error,
             fallback,
             rank: 0,
+            accurate: false,
             plane: 0,
             origin: g.origin,
             axes: [u, v],
@@ -514,6 +518,55 @@ impl ResolvedPatch {
             (w * self.flat).min(1.0)
         } else {
             w
+        }
+    }
+
+    /// The 1-D weight along `axis` at grid coordinate `g`, where t is g's offset from the
+    /// window's centre over its half-size: Formula 1's [`Self::weight`], or for the accurate
+    /// blend 1 over the kernel and, outside it, a ramp from 1 at the kernel's edge on g's side
+    /// to 0 at the unclipped window's. The ramp is s (a C0 join) for bilinear and edge patches
+    /// and 6s⁵ − 15s⁴ + 10s³ (a C2 join at both ends) for bicubic ones, so the surface keeps
+    /// the continuity its patches have. Exactly 1 on the kernel, so a point there that no
+    /// more accurate patch reaches gets the patch's height to the bit.
+    #[inline(always)]
+    fn axis_weight(&self, axis: usize, g: f64, t: f64) -> f64 {
+        if !self.accurate {
+            return self.weight(t);
+        }
+        let (k0, k1) = if axis == 0 {
+            (self.kernel.c0 as f64, self.kernel.c1 as f64)
+        } else {
+            (self.kernel.r0 as f64, self.kernel.r1 as f64)
+        };
+        if g >= k0 && g <= k1 {
+            return 1.0;
+        }
+        let edge = if g < k0 { k0 } else { k1 };
+        // The kernel's edge on g's side, as a t: the ramp runs from there to |t| = 1.
+        let tk = (edge - self.centre[axis]).abs() * self.inv_half[axis];
+        let s = ((1.0 - t.abs()) / (1.0 - tk)).clamp(0.0, 1.0);
+        if s.is_nan() || s <= 0.0 {
+            // Also a kernel that fills its window (no extension zone): NaN from 0 / 0.
+            return 0.0;
+        }
+        let w = match self.surface {
+            Surface::Bicubic(..) => s * s * s * (s * (6.0 * s - 15.0) + 10.0),
+            _ => s,
+        };
+        // Off the kernel a patch never takes a whole point: the C2 ramp is so flat near the
+        // kernel's edge that it rounds to 1 there, and the point would then end at a patch
+        // that does not cover it, nodata where the next patch's kernel holds it.
+        w.min(BELOW_ONE)
+    }
+
+    /// Where the accurate blend puts the patch among those that reach a point: the cut's
+    /// patches (0) before the fallback's, each fallback rank a tier of its own.
+    #[inline]
+    pub fn tier(&self) -> u32 {
+        if self.fallback {
+            1 + self.rank
+        } else {
+            0
         }
     }
 
@@ -593,7 +646,7 @@ impl ResolvedPatch {
         };
         AxisHit {
             reaches: t.abs() < 1.0 && g >= lo as f64 && g <= hi as f64 && located,
-            weight: self.weight(t),
+            weight: self.axis_weight(axis, g, t),
             covered: g >= klo as f64 && g <= khi as f64,
             local,
             cell: cell as u32,
@@ -664,10 +717,13 @@ impl ResolvedPatch {
                 }
             }
         };
-        let w = self.weight(tx) * self.weight(ty) * self.norm * hit.weight;
+        let w = self.axis_weight(0, g[0], tx) * self.axis_weight(1, g[1], ty) * self.norm * hit.weight;
         Some((w, hit))
     }
 }
+
+/// The largest f64 below 1: the most weight a patch has off its kernel.
+const BELOW_ONE: f64 = 1.0 - f64::EPSILON / 2.0;
 
 /// What a separable patch makes of one coordinate of a point (see [`ResolvedPatch::along`]).
 #[derive(Clone, Copy, Debug, Default)]
@@ -693,6 +749,8 @@ pub struct PatchSet {
     pub patches: Vec<ResolvedPatch>,
     /// Whether any patch is a fallback, so that blending must mind tiers.
     pub has_fallback: bool,
+    /// How the patches are blended.
+    pub blend: Blend,
     /// The maps from the store's plane to the planes of the set's surveys of other CRSs: a
     /// patch of plane k reads a sample's position carried by `planes[k − 1]`.
     pub planes: Vec<Arc<Reprojection>>,
@@ -703,6 +761,7 @@ impl std::fmt::Debug for PatchSet {
         f.debug_struct("PatchSet")
             .field("patches", &self.patches.len())
             .field("has_fallback", &self.has_fallback)
+            .field("blend", &self.blend)
             .field("planes", &self.planes.len())
             .finish()
     }
@@ -725,7 +784,30 @@ impl PatchSet {
             has_fallback: !errors.is_empty(),
             patches,
             planes: Vec::new(),
+            blend: Blend::Formula1,
         }
+    }
+
+    /// The set blended by `b`. For the accurate blend the patches are put in the order it
+    /// lays them over one another: by tier (the cut's, then each fallback rank), then error,
+    /// then id. Bins list patches in ascending index, so every bin, on the CPU and on the
+    /// device, is then in that order, and a point stops at the first patch whose kernel holds
+    /// it. The order compares two patches by their own tier, error and id alone, so a point
+    /// gets the same answer from any set that holds the patches reaching it.
+    pub fn with_blend(mut self, b: Blend) -> Self {
+        self.blend = b;
+        if b == Blend::Accurate {
+            for p in &mut self.patches {
+                p.accurate = true;
+                p.norm = 1.0;
+            }
+            self.patches.sort_by(|a, b| {
+                (a.tier().cmp(&b.tier()))
+                    .then(a.error.total_cmp(&b.error))
+                    .then(a.id.cmp(&b.id))
+            });
+        }
+        self
     }
 
     /// The set with patches of other planes: `planes[k − 1]` carries a sample to plane k.

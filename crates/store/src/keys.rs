@@ -22,6 +22,9 @@ pub const MIPMAP: &[u8] = b"meta/mipmap";
 pub const PATCHES: &[u8] = b"meta/patches";
 /// `distrust` or `keep`: what the store does with a claim other surveys find false.
 pub const CONTRADICTED: &[u8] = b"meta/contradicted";
+/// The name of the blend the store's patches are resampled with; absent in stores made
+/// before there was a choice, which blend with `formula1`.
+pub const BLEND: &[u8] = b"meta/blend";
 /// `u64` LE: how many bytes of the chunk pack are committed (see [`super::pack`]).
 pub const PACK_LEN: &[u8] = b"meta/pack_len";
 /// The URL of the object store that holds the chunks (UTF-8); absent for the local pack.

@@ -13,6 +13,7 @@
 //! | `meta/mipmap` | the name of the mipmap [`Filter`] its surveys are built with, set when the store is made (absent: `smooth`, a store from before the choice) |
 //! | `meta/patches` | the name of the [`PatchKind`] its surveys' patches are, set when the store is made (absent: `bilinear`, a store from before the choice) |
 //! | `meta/contradicted` | `distrust` or `keep`: what the store does with a claim other surveys find false, set when the store is made |
+//! | `meta/blend` | the name of the [`Blend`] its patches are resampled with, set when the store is made (absent: `formula1`, a store from before the choice) |
 //! | `s/<survey>` | [`SurveyRecord`] (bincode) |
 //! | `p/<survey>` | where the survey's [`StoredPatches`] are in the pack: its patches and the edge tiles it reaches (bincode, sealed with [`chunks::seal`]) |
 //! | `a/<survey>` | the [`KernelAccuracy`] of a survey whose ε was estimated (bincode) |
@@ -93,6 +94,7 @@ use patchwork_core::model::evidence::{Contradicted, PairEvidence};
 use patchwork_core::model::grid::{Georef, Grid, Shape};
 use patchwork_core::model::ids::{PatchId, SurveyId};
 use patchwork_core::model::mipmap::Filter;
+use patchwork_core::model::patch::Blend;
 use patchwork_core::model::patch::{Patch, PatchKind, PatchLayout, Tiling};
 use patchwork_core::model::source::SampleSource;
 use patchwork_core::model::survey::Recipe;
@@ -126,6 +128,8 @@ pub struct StoreOptions {
     pub recipe: Recipe,
     /// What a new store does with contradicted claims; an existing one keeps its own.
     pub contradicted: Contradicted,
+    /// How a new store blends its patches; an existing one keeps its own.
+    pub blend: Blend,
     /// Where the chunk bytes go. A store keeps the backend it was made with.
     pub backend: ChunkBackend,
     /// On an object store, a snapshot of the database for replicas every this many commits.
@@ -161,6 +165,7 @@ impl Default for StoreOptions {
             cache_bytes: DEFAULT_CACHE_BYTES,
             recipe: Recipe::default(),
             contradicted: Contradicted::default(),
+            blend: Blend::default(),
             backend: ChunkBackend::Local,
             snapshot_every: 64,
         }
@@ -617,6 +622,7 @@ pub struct Store {
     index: IndexConfig,
     recipe: Recipe,
     contradicted: Contradicted,
+    blend: Blend,
     /// The horizontal and vertical CRSs, once set.
     crs: RwLock<(Option<Crs>, Option<VerticalCrs>)>,
     migrated: Vec<(u32, u32)>,
@@ -687,6 +693,11 @@ impl Store {
     /// [`patchwork_core::model::evidence`]).
     pub fn contradicted(&self) -> Contradicted {
         self.contradicted
+    }
+
+    /// How this store's patches are blended into heights.
+    pub fn blend(&self) -> Blend {
+        self.blend
     }
 
     /// The index settings the stored tops were computed with.

@@ -228,6 +228,7 @@ impl Store {
         let index: IndexConfig = decode::<form::Index>(&get(keys::INDEX)?, "meta/index")?.into();
         let recipe = recipe_of(&db, &dir, &guard, opts.recipe)?;
         let contradicted = setting_of(&db, &dir, &guard, opts.contradicted)?;
+        let blend = setting_of(&db, &dir, &guard, opts.blend)?;
         let crs = (
             db.get(keys::CRS)?
                 .map(|v| decode_crs(&v, "meta/crs", Crs::parse))
@@ -261,6 +262,7 @@ impl Store {
             index,
             recipe,
             contradicted,
+            blend,
             crs: RwLock::new(crs),
             migrated,
             damaged: RwLock::new(BTreeMap::new()),

@@ -1,5 +1,5 @@
 //! The settings a store is made with and keeps (mipmap filter, patch kind, the policy for
-//! contradicted claims, its CRSs), as their names under `meta/`.
+//! contradicted claims, the blend, its CRSs), as their names under `meta/`.
 
 use super::*;
 
@@ -37,6 +37,20 @@ impl Setting for Contradicted {
     }
     fn from_name(name: &str) -> Option<Self> {
         Contradicted::from_name(name)
+    }
+}
+
+impl Setting for Blend {
+    const KEY: &'static [u8] = keys::BLEND;
+    const WHAT: &'static str = "blend";
+    // Blending reads the stored patches and writes nothing, so a store from before the choice
+    // could take either; it keeps the heights it served.
+    const LEGACY: Self = Blend::Formula1;
+    fn name(self) -> &'static str {
+        Blend::name(self)
+    }
+    fn from_name(name: &str) -> Option<Self> {
+        Blend::from_name(name)
     }
 }
 

@@ -355,6 +355,7 @@ impl Store {
             keys::MIPMAP => Ok(setting_problem(v, self.recipe.mipmap)),
             keys::PATCHES => Ok(setting_problem(v, self.recipe.patches)),
             keys::CONTRADICTED => Ok(setting_problem(v, self.contradicted)),
+            keys::BLEND => Ok(setting_problem(v, self.blend)),
             // Bytes past the committed length are a commit that did not happen (or has not
             // yet): an open cuts them. Fewer bytes than committed would be lost chunks.
             keys::PACK_LEN => match <[u8; 8]>::try_from(v) {

@@ -9,6 +9,7 @@ use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::accuracy::AccuracySpec::Auto;
 use patchwork_core::model::grid::Grid;
+use patchwork_core::model::patch::Blend;
 use patchwork_core::resample::{cpu, SampleGrid, BLOCK};
 use patchwork_core::terrain::Terrain;
 
@@ -90,7 +91,7 @@ fn a_height_does_not_depend_on_the_region_that_holds_it() {
     // ε = 2 over the middle of the crop, overlapped by a coarser ε = 20 copy of all of it.
     let fine = survey_with(window(&cop(), 60, 50, 180, 200), 2.0);
     let coarse = survey_with(decimate(&cop(), 2), 20.0);
-    let t = terrain_of(&[fine.clone(), coarse.clone()]);
+    let mut t = terrain_of(&[fine.clone(), coarse.clone()]);
     let g = &cop();
     let (w, h) = (120usize, 90usize);
     let (c0, r0, c1, r1) = (10.0, 20.0, 290.0, 290.0);
@@ -100,7 +101,12 @@ fn a_height_does_not_depend_on_the_region_that_holds_it() {
     let cuts_y = [0usize, 50, h];
     let dx = (c1 - c0) / w as f64;
     let dy = (r1 - r0) / h as f64;
-    for e in [0.0, 2.0, 10.0, 25.0] {
+    for (blend, e) in Blend::ALL
+        .into_iter()
+        .flat_map(|b| [0.0, 2.0, 10.0, 25.0].map(|e| (b, e)))
+    {
+        println!("{} blend, e = {e}", blend.name());
+        t.set_blend(blend);
         let big = t.tile(&whole, w, h, e);
         for jy in 0..cuts_y.len() - 1 {
             for ix in 0..cuts_x.len() - 1 {
@@ -162,23 +168,25 @@ fn tiles_of_one_mosaic_join_as_one_survey() {
         .iter()
         .map(|&(c, r)| survey_with(window(&whole, c, r, half, half), 1.0))
         .collect();
-    let one = terrain_of(&[survey_with(whole.clone(), 1.0)]);
-    let mosaic = terrain_of(&pieces);
+    let mut one = terrain_of(&[survey_with(whole.clone(), 1.0)]);
+    let mut mosaic = terrain_of(&pieces);
     // Across the whole footprint, out to the outer pixel edges, at sizes that put samples on
     // and between the seams.
     let roi = pixels(&whole, 0.0, 0.0, 300.0, 300.0);
-    for (w, h) in [(300, 300), (347, 311), (600, 600)] {
-        for e in [0.0, 1.0, 8.0] {
-            let a = one.tile(&roi, w, h, e).heights;
-            let b = mosaic.tile(&roi, w, h, e).heights;
-            assert!(a.iter().all(|z| !z.is_nan()), "nodata in the whole survey");
-            let d = max_diff(&a, &b, &format!("{w}×{h}, e = {e}"));
-            // At e = 0 the seams are interpolated exactly as across the whole grid.
-            let tol = if e <= 1.0 { 1e-3 } else { e };
-            assert!(
-                d <= tol,
-                "{w}×{h}, e = {e}: mosaic {d} m off the whole survey"
-            );
+    for blend in Blend::ALL {
+        one.set_blend(blend);
+        mosaic.set_blend(blend);
+        for (w, h) in [(300, 300), (347, 311), (600, 600)] {
+            for e in [0.0, 1.0, 8.0] {
+                let a = one.tile(&roi, w, h, e).heights;
+                let b = mosaic.tile(&roi, w, h, e).heights;
+                assert!(a.iter().all(|z| !z.is_nan()), "nodata in the whole survey");
+                let what = format!("{} blend, {w}×{h}, e = {e}", blend.name());
+                let d = max_diff(&a, &b, &what);
+                // At e = 0 the seams are interpolated exactly as across the whole grid.
+                let tol = if e <= 1.0 { 1e-3 } else { e };
+                assert!(d <= tol, "{what}: mosaic {d} m off the whole survey");
+            }
         }
     }
     // The seam between the pieces is served by edge patches made from both sides.
@@ -203,7 +211,18 @@ fn tiles_of_one_mosaic_join_as_one_survey() {
 /// corners is the plane through them. Returns how many valid samples are in no whole cell.
 fn nothing_lost_nothing_invented(g: Grid) -> usize {
     let s = survey_with(g.clone(), Auto);
-    let t = terrain_of(std::slice::from_ref(&s));
+    let mut t = terrain_of(std::slice::from_ref(&s));
+    let mut loose = 0;
+    for blend in Blend::ALL {
+        println!("{} blend", blend.name());
+        t.set_blend(blend);
+        loose = nothing_lost_nothing_invented_by(&g, &t);
+    }
+    loose
+}
+
+/// [`nothing_lost_nothing_invented`] of `g` with its terrain `t`, blended as `t` blends.
+fn nothing_lost_nothing_invented_by(g: &Grid, t: &Terrain) -> usize {
     let mut pts = Vec::new();
     let mut want = Vec::new();
     let mut loose = 0;
@@ -241,17 +260,17 @@ fn nothing_lost_nothing_invented(g: Grid) -> usize {
     }
     // A tile at three samples per pixel: data exactly in the pixels of valid samples, and
     // the plane through three valid corners inside their triangle.
-    let roi = pixel_bounds(&g);
+    let roi = pixel_bounds(g);
     let (w, h) = (3 * g.cols, 3 * g.rows);
     let tile = t.tile(&roi, w, h, 0.0);
     let grid = SampleGrid::uniform(&roi, w, h);
     let mut triangles = 0;
     for (p, z) in grid.points().zip(&tile.heights) {
         assert_eq!(
-            pixel_valid(&g, p),
+            pixel_valid(g, p),
             !z.is_nan(),
             "at {p:?}: {z} where the pixel is {}",
-            if pixel_valid(&g, p) { "data" } else { "void" }
+            if pixel_valid(g, p) { "data" } else { "void" }
         );
         let q = g.georef.to_grid(p);
         let (c, r) = (q[0].floor(), q[1].floor());
@@ -360,10 +379,14 @@ fn surveys_on_different_lattices_with_less_than_a_cell_between_them_leave_no_gap
     for spec in [1.0, 5.0] {
         let w = survey_with(west.clone(), spec);
         let e = survey_with(east.clone(), 3.0 * spec);
-        let t = terrain_of(&[w.clone(), e.clone()]);
+        let mut t = terrain_of(&[w.clone(), e.clone()]);
         // A band across the join, finer than either survey, out to the outer pixel rows.
         let roi = pixels(&whole, 120.0, 0.0, 180.0, 298.0);
-        for err in [0.0, spec, 3.0 * spec, 50.0] {
+        for (blend, err) in Blend::ALL
+            .into_iter()
+            .flat_map(|b| [0.0, spec, 3.0 * spec, 50.0].map(|e| (b, e)))
+        {
+            t.set_blend(blend);
             let tile = t.tile(&roi, 240, 200, err);
             let grid = SampleGrid::uniform(&roi, 240, 200);
             // Each patch is within its error of its own survey, and the blend is convex.
@@ -373,13 +396,13 @@ fn surveys_on_different_lattices_with_less_than_a_cell_between_them_leave_no_gap
                 .map(|x| x.span.min_z)
                 .fold(0.0, f64::max);
             for (p, z) in grid.points().zip(&tile.heights) {
-                assert!(!z.is_nan(), "a gap at {p:?}, e = {err}");
+                assert!(!z.is_nan(), "a gap at {p:?}, e = {err}, {blend:?}");
                 let hs = survey_heights(&[w.clone(), e.clone()], p);
                 let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
                 let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
                 assert!(
                     (*z as f64) >= lo - bound - 1e-3 && (*z as f64) <= hi + bound + 1e-3,
-                    "{z} outside [{lo}, {hi}] ± {bound} at {p:?}"
+                    "{z} outside [{lo}, {hi}] ± {bound} at {p:?}, {blend:?}"
                 );
             }
         }
@@ -430,7 +453,8 @@ fn by_rows_equals_by_points(t: &Terrain, b: Aabb, sizes: &[(usize, usize)]) -> (
                 for (k, (a, b)) in fast.iter().zip(&slow).enumerate() {
                     assert!(
                         a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()) || a == b,
-                        "{roi:?} e = {e} {width}x{height} sample {k}: {a} by rows, {b} by points"
+                        "{roi:?} e = {e} {width}x{height} sample {k}: {a} by rows, {b} by points ({:?})",
+                        t.blend()
                     );
                 }
                 compared += fast.iter().filter(|z| !z.is_nan()).count();
@@ -446,10 +470,13 @@ fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit
     // estimated accuracy (fallback tiers below it), a rotated one (resampled a point at a
     // time inside the same tile), each at several errors.
     let surveys = every_kind_of_patch();
-    let t = terrain_of(&surveys);
-    let (compared, _) =
-        by_rows_equals_by_points(&t, bounds_of(&surveys), &[(97, 61), (256, 256), (33, 190)]);
-    assert!(compared > 300_000, "only {compared} heights compared");
+    let mut t = terrain_of(&surveys);
+    for blend in Blend::ALL {
+        t.set_blend(blend);
+        let (compared, _) =
+            by_rows_equals_by_points(&t, bounds_of(&surveys), &[(97, 61), (256, 256), (33, 190)]);
+        assert!(compared > 300_000, "{blend:?}: only {compared} heights compared");
+    }
 }
 
 #[test]
@@ -470,11 +497,15 @@ fn blocks_that_one_patch_serves_alone_get_the_blend_to_the_bit() {
         survey_with(holed, 2.0),
         survey_with(decimate(&window(&g, 0, 0, 300, 240), 2), Auto),
     ];
-    let t = terrain_of(&surveys);
-    let (compared, alone) =
-        by_rows_equals_by_points(&t, bounds_of(&surveys), &[(300, 401), (512, 512)]);
-    assert!(compared > 1_000_000, "only {compared} heights compared");
-    assert!(alone > 1_000, "only {alone} blocks served by one patch");
+    let mut t = terrain_of(&surveys);
+    for blend in Blend::ALL {
+        t.set_blend(blend);
+        let (compared, alone) =
+            by_rows_equals_by_points(&t, bounds_of(&surveys), &[(300, 401), (512, 512)]);
+        println!("{blend:?}: {alone} blocks served by one patch, {compared} heights compared");
+        assert!(compared > 1_000_000, "{blend:?}: only {compared} heights compared");
+        assert!(alone > 1_000, "{blend:?}: only {alone} blocks served by one patch");
+    }
 }
 
 #[test]
@@ -546,4 +577,115 @@ fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
         }
     }
     assert!(seen > 1000, "only {seen} patches binned");
+}
+
+/// The accurate blend's bound (docs/MODEL.md, "Resampling"): a height is a convex combination
+/// of the patches laid over the point up to the first whose kernel holds it, so it lies within
+/// that patch's error e* of the surveys there, where Formula 1 promises only the largest error
+/// of every patch that reaches the point. Where the first patch that reaches a point holds it
+/// in its kernel, the height is that patch's, to the bit. Scenes a fine survey nested in a
+/// coarse copy and the Copernicus and NASADEM pair; regions and errors drawn at random.
+#[test]
+fn the_accurate_blend_keeps_the_bound_of_the_first_kernel_that_holds_a_point() {
+    let seed: u64 = std::env::var("PATCHWORK_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(1, |d| d.as_nanos() as u64)
+        });
+    println!("seed {seed} (PATCHWORK_SEED={seed} replays it)");
+    let mut draw = patchwork_core::geom::rng::uniform(seed);
+    let g = cop();
+    let scenes = [
+        (
+            "nested",
+            vec![
+                survey_with(window(&g, 60, 50, 180, 200), 2.0),
+                survey_with(decimate(&g, 2), 20.0),
+            ],
+        ),
+        (
+            "pair",
+            vec![
+                survey_with(g.clone(), Auto),
+                survey_with(real_crop("nasadem_n34w119_crop.tif"), Auto),
+            ],
+        ),
+    ];
+    let (mut checked, mut exact, mut tighter) = (0usize, 0usize, 0usize);
+    for (name, surveys) in &scenes {
+        let mut t = terrain_of(surveys);
+        t.set_blend(Blend::Accurate);
+        let b = bounds_of(surveys);
+        for _ in 0..6 {
+            let (fw, fh) = (0.15 + 0.5 * draw(), 0.15 + 0.5 * draw());
+            let (x0, y0) = (
+                b.min[0] + (1.0 - fw) * draw() * b.width(),
+                b.min[1] + (1.0 - fh) * draw() * b.height(),
+            );
+            let roi = Aabb::new(x0, y0, x0 + fw * b.width(), y0 + fh * b.height());
+            let e = [0.0, 1.0, 3.0, 8.0, 20.0, 40.0][(draw() * 6.0) as usize];
+            let grid = SampleGrid::uniform(&roi, 96, 80);
+            let set = t.resolve(&t.uniform(&roi, e));
+            let heights = cpu::resample(&set, &grid);
+            for (k, h) in heights.iter().enumerate() {
+                if h.is_nan() {
+                    continue;
+                }
+                let p = grid.point(k);
+                // The patches that reach p in the set's order, up to the first whose kernel
+                // holds p (weight 1), less those of a tier worse than the first that covers it.
+                let hits: Vec<_> = set
+                    .patches
+                    .iter()
+                    .filter_map(|q| q.at(p).map(|(w, hit)| (q, w, hit)))
+                    .collect();
+                let mut counted = Vec::new();
+                let mut stop = u32::MAX;
+                for &(q, w, hit) in &hits {
+                    if q.tier() > stop {
+                        break;
+                    }
+                    counted.push((q, hit));
+                    if hit.covered {
+                        stop = stop.min(q.tier());
+                    }
+                    if w == 1.0 {
+                        break;
+                    }
+                }
+                let e_star = counted.iter().map(|(q, _)| q.error).fold(0.0, f64::max);
+                let e_all = hits.iter().map(|(q, _, _)| q.error).fold(0.0, f64::max);
+                if counted.len() == 1 && hits[0].1 == 1.0 {
+                    assert_eq!(
+                        h.to_bits(),
+                        (counted[0].1.z as f32).to_bits(),
+                        "{name}, seed {seed}: the first patch holds {p:?} but {h} is not its {}",
+                        counted[0].1.z
+                    );
+                    exact += 1;
+                }
+                let hs = survey_heights(surveys, p);
+                if hs.is_empty() {
+                    continue;
+                }
+                let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
+                let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                let z = *h as f64;
+                assert!(
+                    z >= lo - e_star - 1e-3 && z <= hi + e_star + 1e-3,
+                    "{name}, seed {seed}, e = {e}: {z} outside [{lo}, {hi}] ± {e_star} at {p:?}"
+                );
+                checked += 1;
+                tighter += usize::from(e_star < e_all);
+            }
+        }
+    }
+    println!(
+        "{checked} heights within e* of the surveys, {exact} of them one patch's to the bit; \
+         e* below Formula 1's bound at {tighter}"
+    );
+    assert!(checked > 20_000 && exact > checked / 4, "too few heights checked");
 }

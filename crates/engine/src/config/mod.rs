@@ -6,7 +6,7 @@ use patchwork_core::crs::Crs;
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::evidence::Contradicted;
 use patchwork_core::model::mipmap::Filter;
-use patchwork_core::model::patch::PatchKind;
+use patchwork_core::model::patch::{Blend, PatchKind};
 use patchwork_core::model::survey::Recipe;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -317,6 +317,12 @@ impl Config {
             self.patches.kind = PatchKind::from_name(&v).ok_or_else(|| ConfigError::Env {
                 var: "PATCHWORK_PATCHES".into(),
                 message: format!("{v:?} is not a patch kind: use bilinear or bicubic"),
+            })?;
+        }
+        if let Some(v) = get("PATCHWORK_BLEND") {
+            self.patches.blend = Blend::from_name(&v).ok_or_else(|| ConfigError::Env {
+                var: "PATCHWORK_BLEND".into(),
+                message: format!("{v:?} is not a blend: use formula1 or accurate"),
             })?;
         }
         if let Some(v) = get("PATCHWORK_ALLOW_EMULATED_GPU") {

@@ -2,7 +2,7 @@
 //! deleted file does, `[accuracy]`, `[vertical]` and `[patches]`.
 
 use patchwork_core::model::evidence::Contradicted;
-use patchwork_core::model::patch::{PatchKind, PatchLayout};
+use patchwork_core::model::patch::{Blend, PatchKind, PatchLayout};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
@@ -99,7 +99,8 @@ impl Default for Vertical {
     }
 }
 
-/// The `[patches]` section: the layout every store keeps, and the kind of a new store.
+/// The `[patches]` section: the layout every store keeps, and the kind and blend of a new
+/// store.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Patches {
@@ -109,6 +110,8 @@ pub struct Patches {
     pub margin: usize,
     /// What a new store's patches evaluate; an existing store keeps its own.
     pub kind: PatchKind,
+    /// How a new store blends its patches into heights; an existing store keeps its own.
+    pub blend: Blend,
 }
 
 impl Default for Patches {
@@ -118,6 +121,7 @@ impl Default for Patches {
             kernel: l.kernel,
             margin: l.margin,
             kind: PatchKind::default(),
+            blend: Blend::default(),
         }
     }
 }

@@ -75,6 +75,7 @@ mod positions;
 use bytemuck::{Pod, Zeroable};
 use patchwork_core::geom::Aabb;
 use patchwork_core::model::ids::PatchId;
+use patchwork_core::model::patch::Blend;
 use patchwork_core::resample::{cpu, Backend, PatchSet, ResolvedPatch, SampleGrid, Surface, BLOCK};
 use patchwork_core::sync::lock;
 use std::collections::HashMap;
@@ -232,7 +233,8 @@ struct Params {
     /// Planes whose positions the device makes, and where the first one's start.
     planes: u32,
     plane0: u32,
-    _pad0: u32,
+    /// 1 for the accurate blend ([`PatchSet::with_blend`]), 0 for Formula 1.
+    blend: u32,
 }
 
 /// Where a patch's samples sit in the arena: its window grown by one cell where the level has
@@ -949,7 +951,7 @@ impl GpuResampler {
             pad: prep.pad,
             planes: planes as u32,
             plane0: prep.plane_start(1),
-            _pad0: 0,
+            blend: u32::from(set.blend == Blend::Accurate),
         };
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let uniform = wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST;

@@ -1,4 +1,5 @@
-// Formula 1 on the GPU: the same sums as `cpu::blend`, one invocation per output sample, one
+// Formula 1 or the accurate blend on the GPU: the same sums as `cpu::blend`, one invocation per
+// output sample, one
 // workgroup per BLOCK × BLOCK block of samples, visiting only the patches that meet the block.
 // The CPU bins patches into squares of SUPER × SUPER blocks; a first dispatch (`bin_blocks`)
 // tests each bin's patches against each of its blocks' bounds and lists those that meet it,
@@ -62,8 +63,11 @@ struct Params {
     // lattice after the carry's (if any), and where the first one's start in `points`.
     planes: u32,
     plane0: u32,
-    _pad0: u32,
+    // BLEND_ACCURATE for the accurate blend, else Formula 1.
+    blend: u32,
 }
+
+const BLEND_ACCURATE: u32 = 1u;
 
 // A lattice of a transformation between two CRSs (`Reprojection`), as one request reads it:
 // its nodes' images kept in `nodes`, 16 × 16 a block, found through `refs`.
@@ -402,6 +406,31 @@ fn in_kernel(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> bool {
     return all(((gh - k.xy) + gl) >= vec2<f32>(0.0)) && all(((gh - k.zw) + gl) <= vec2<f32>(0.0));
 }
 
+// The accurate blend's 1-D weight along one axis (`ResolvedPatch::axis_weight`): 1 where the
+// coordinate g = gh + gl lies in the kernel [k0, k1], else a ramp from the kernel's edge on
+// its side to the unclipped window's edge, s for bilinear and edge patches and the C2
+// 6s⁵ − 15s⁴ + 10s³ for bicubic ones.
+fn accurate_weight(q: Patch, gh: f32, gl: f32, k0: f32, k1: f32, centre: f32, inv_half: f32, t: f32) -> f32 {
+    let below = (gh - k0) + gl;
+    let above = (gh - k1) + gl;
+    if below >= 0.0 && above <= 0.0 {
+        return 1.0;
+    }
+    let edge = select(k1, k0, below < 0.0);
+    let tk = abs(edge - centre) * inv_half;
+    let s = clamp((1.0 - abs(t)) / (1.0 - tk), 0.0, 1.0);
+    if !(s > 0.0) {
+        return 0.0;
+    }
+    var w = s;
+    if q.kind == KIND_BICUBIC {
+        w = s * s * s * (s * (6.0 * s - 15.0) + 10.0);
+    }
+    // Below 1 off the kernel (`ResolvedPatch::axis_weight`): near the kernel's edge the ramp
+    // rounds up to 1 in f32, far more often than in f64.
+    return min(w, 0.99999994);
+}
+
 // The patch at grid coordinates gh + gl: (height relative to its base, weight factor,
 // covered, 1), or zeros where it has none.
 fn eval_patch(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> vec4<f32> {
@@ -450,7 +479,14 @@ fn sample_patch(u: Use, q: Patch, i: u32) -> vec4<f32> {
     if e.w == 0.0 {
         return vec4<f32>(0.0);
     }
-    let w = weight(q, t.x) * weight(q, t.y) * u.norm * e.y;
+    var w: f32;
+    if params.blend == BLEND_ACCURATE {
+        let k = q.kernel;
+        w = accurate_weight(q, gh.x, gl.x, k.x, k.z, q.centre.x, q.inv_half.x, t.x)
+            * accurate_weight(q, gh.y, gl.y, k.y, k.w, q.centre.y, q.inv_half.y, t.y) * e.y;
+    } else {
+        w = weight(q, t.x) * weight(q, t.y) * u.norm * e.y;
+    }
     return vec4<f32>(w, e.x, e.z, 1.0);
 }
 
@@ -614,6 +650,10 @@ fn main(
     let start = list_start(wid.xy, s, bin_offsets[s], bin_offsets[s + 1u]);
     let first = start + 1u;
     let end = first + lists[start];
+    if params.blend == BLEND_ACCURATE {
+        over(i, first, end);
+        return;
+    }
     // The tier: whether a cut patch covers the sample, else the best fallback rank that does.
     var cut_covers = false;
     var best = 0xffffffffu;
@@ -657,6 +697,44 @@ fn main(
     if covered && wsum > 0.0 {
         // One rounding of the exact sum, as the CPU's f64 sum rounded to f32.
         heights[i] = bitcast<u32>(zref + sum / wsum);
+    }
+}
+
+// The accurate blend at sample i (`cpu::over_by`): the block's patches, in the set's order
+// (tier, error, id), each laid under those before it with its weight's share of what they
+// left, until one whose kernel holds the sample takes the rest or a worse tier comes.
+fn over(i: u32, first: u32, end: u32) {
+    var sum = 0.0;
+    var asum = 0.0;
+    var rest = 1.0;
+    var stop = 0xffffffffu;
+    var have_ref = false;
+    var zref = 0.0;
+    for (var b = first; b < end; b++) {
+        let u = uses[lists[b]];
+        let tier = select(0u, 1u + (u.rank & ~FALLBACK), (u.rank & FALLBACK) != 0u);
+        if !(rest > 0.0) || tier > stop {
+            break;
+        }
+        let q = patches[u.slot];
+        let sp = sample_patch(u, q, i);
+        if sp.w == 0.0 {
+            continue;
+        }
+        if !have_ref {
+            zref = q.base;
+            have_ref = true;
+        }
+        let a = sp.x * rest;
+        sum += a * (sp.y + (q.base - zref));
+        asum += a;
+        rest -= a;
+        if sp.z != 0.0 {
+            stop = min(stop, tier);
+        }
+    }
+    if stop != 0xffffffffu && asum > 0.0 {
+        heights[i] = bitcast<u32>(zref + sum / asum);
     }
 }
 
