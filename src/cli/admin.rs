@@ -248,8 +248,8 @@ pub async fn stats(args: StatsArgs) -> Result<(), Fail> {
                     s.damaged
                 );
         }
-        println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {crs}\nvertical crs {vertical}\nbackend {}",
-                s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes, s.backend);
+        println!("surveys {} active, {} retired, {} failed\npatches {} ({} active boxes, {} quadtree nodes)\nsamples {}\ndisk {} bytes\ncrs {crs}\nvertical crs {vertical}\nbackend {}\nblend {}",
+                s.surveys, s.retired, s.failed, s.patches, s.active_boxes, s.quadtree_nodes, s.samples, s.disk_bytes, s.backend, s.blend);
         println!(
             "cache {} of {} bytes, {} hits, {} misses",
             s.cache_bytes, s.cache_capacity_bytes, s.cache_hits, s.cache_misses

@@ -1,7 +1,8 @@
 //! The Python client package (clients/python), installed as a user installs it into a virtual
 //! environment under the target folder, against a daemon: every Terrain call, `resample`
 //! against the daemon's tiles, a view session, and the README's example
-//! (tests/python/client.py), `resample` again in a store of bicubic patches, and across CRSs
+//! (tests/python/client.py), `resample` again in a store of bicubic patches, with the accurate
+//! blend, and across CRSs
 //! in a geographic store holding a UTM survey. Its committed
 //! stubs must match the protos.
 
@@ -43,6 +44,23 @@ fn the_python_client_resamples_bicubic_patches() {
     };
     let d = four_surveys(tmp.path(), setup);
     run_client(&python, &d, &["--bicubic"]);
+}
+
+#[test]
+fn the_python_client_resamples_with_the_accurate_blend() {
+    let python = python();
+    for kind in ["bilinear", "bicubic"] {
+        let tmp = tempfile::tempdir().unwrap();
+        let setup = Setup {
+            env: vec![
+                ("PATCHWORK_BLEND".into(), "accurate".into()),
+                ("PATCHWORK_PATCHES".into(), kind.into()),
+            ],
+            ..Setup::default()
+        };
+        let d = four_surveys(tmp.path(), setup);
+        run_client(&python, &d, &["--accurate"]);
+    }
 }
 
 #[test]

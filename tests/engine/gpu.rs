@@ -49,7 +49,11 @@ fn compare(
     what: &str,
 ) -> f64 {
     let set = t.resolve(&ps);
-    assert_eq!(set.blend, Blend::Formula1, "a terrain blends by Formula 1 by default");
+    assert_eq!(
+        set.blend,
+        Blend::Formula1,
+        "a terrain blends by Formula 1 by default"
+    );
     let accurate = set.clone().with_blend(Blend::Accurate);
     let f1 = compare_set(g, set, grid, &format!("{what}, formula1"));
     f1.max(compare_set(g, accurate, grid, &format!("{what}, accurate")))

@@ -557,7 +557,7 @@ fn settings_of_an_existing_store_win() {
 #[test]
 fn a_store_keeps_the_recipe_it_was_made_with() {
     use patchwork_core::model::mipmap::Filter;
-    use patchwork_core::model::patch::PatchKind;
+    use patchwork_core::model::patch::{Blend, PatchKind};
     use patchwork_core::model::survey::Recipe;
     let tmp = tempfile::tempdir().unwrap();
     let dir = store_dir(&tmp);
@@ -565,8 +565,12 @@ fn a_store_keeps_the_recipe_it_was_made_with() {
         recipe: Recipe { mipmap, patches },
         ..StoreOptions::default()
     };
-    let opened = |mipmap, patches| {
-        restore::open(&dir, LAYOUT, IndexConfig::default(), with(mipmap, patches))
+    let blending = |blend| StoreOptions {
+        blend,
+        ..with(Filter::Minimax, PatchKind::Bilinear)
+    };
+    let opened = |opts: StoreOptions| {
+        restore::open(&dir, LAYOUT, IndexConfig::default(), opts)
             .unwrap()
             .store
     };
@@ -574,8 +578,25 @@ fn a_store_keeps_the_recipe_it_was_made_with() {
         mipmap: Filter::Decimate,
         patches: PatchKind::Bicubic,
     };
-    assert_eq!(opened(Filter::Decimate, PatchKind::Bicubic).recipe(), made);
-    assert_eq!(opened(Filter::Minimax, PatchKind::Bilinear).recipe(), made);
+    let first = restore::open(
+        &dir,
+        LAYOUT,
+        IndexConfig::default(),
+        StoreOptions {
+            blend: Blend::Accurate,
+            ..with(Filter::Decimate, PatchKind::Bicubic)
+        },
+    )
+    .unwrap();
+    assert_eq!(first.store.recipe(), made);
+    assert_eq!(first.store.blend(), Blend::Accurate);
+    // The terrain an open restores blends as its store does.
+    assert_eq!(first.terrain.blend(), Blend::Accurate);
+    drop(first);
+    let again = opened(blending(Blend::Formula1));
+    assert_eq!(again.recipe(), made);
+    assert_eq!(again.blend(), Blend::Accurate);
+    drop(again);
 
     // A store from before the choices holds smooth, bilinear surveys, whatever a new store
     // would get.
@@ -592,21 +613,29 @@ fn a_store_keeps_the_recipe_it_was_made_with() {
     ingest(&mut store, &mut t, &pair().0, "a");
     store.raw().remove("meta/mipmap").unwrap();
     store.raw().remove("meta/patches").unwrap();
+    store.raw().remove("meta/blend").unwrap();
     drop(store);
     for _ in 0..2 {
         let o = restore::open(
             &old,
             LAYOUT,
             IndexConfig::default(),
-            with(Filter::Minimax, PatchKind::Bicubic),
-        );
+            StoreOptions {
+                blend: Blend::Accurate,
+                ..with(Filter::Minimax, PatchKind::Bicubic)
+            },
+        )
+        .unwrap();
         assert_eq!(
-            o.unwrap().store.recipe(),
+            o.store.recipe(),
             Recipe {
                 mipmap: Filter::Smooth,
                 patches: PatchKind::Bilinear
             }
         );
+        // It served Formula 1's heights, and keeps serving them.
+        assert_eq!(o.store.blend(), Blend::Formula1);
+        assert_eq!(o.terrain.blend(), Blend::Formula1);
     }
 }
 

@@ -51,7 +51,7 @@ def check_resample(c, roi, error, width, height):
     patches = c.query_patches(roi, error)
     require(patches, f"no patch over {roi} at {error} m")
     daemon = c.tile(roi, width, height, error, backend="cpu")
-    ours = pc.resample(patches, roi, width, height)
+    ours = pc.resample(patches, roi, width, height, blend=c.stats().blend)
     require(daemon.shape == ours.shape == (height, width), f"shapes {daemon.shape} {ours.shape}")
     dn, on = np.isnan(daemon), np.isnan(ours)
     require(
@@ -309,10 +309,20 @@ def run(address):
     )
 
 
+def run_accurate(address):
+    """In a store that blends with the accurate blend, of bilinear or bicubic patches,
+    `resample` given the store's blend is the daemon's tile."""
+    with pc.Client(address) as c:
+        require(c.stats().blend == "accurate", f"the store blends with {c.stats().blend}")
+        worst, kinds, fallback, _ = resample_tiles(c)
+    print(f"ok: the accurate blend of {sorted(kinds)} patches; resample within {worst * 1000:.3g} mm of the "
+          f"daemon on 6 tiles ({fallback} fallback patches)")
+
+
 def main(argv):
-    modes = {(): run, ("--bicubic",): run_bicubic, ("--crs",): run_crs}
+    modes = {(): run, ("--bicubic",): run_bicubic, ("--crs",): run_crs, ("--accurate",): run_accurate}
     if len(argv) < 2 or tuple(argv[2:]) not in modes:
-        print(f"usage: {argv[0]} HOST:PORT [--bicubic | --crs]", file=sys.stderr)
+        print(f"usage: {argv[0]} HOST:PORT [--bicubic | --crs | --accurate]", file=sys.stderr)
         return 2
     try:
         modes[tuple(argv[2:])](argv[1])

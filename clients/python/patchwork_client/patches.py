@@ -128,9 +128,10 @@ class Patch:
         b = (c * dy - s * dx) / det
         return _snap(a / self.step[0]), _snap(b / self.step[1])
 
-    def at(self, x: np.ndarray, y: np.ndarray):
+    def at(self, x: np.ndarray, y: np.ndarray, blend: str = "formula1"):
         """Weight, height and whether the patch covers each point; weight 0 where it does not
-        reach, height NaN where it has none."""
+        reach, height NaN where it has none. The weight is Formula 1's, or with ``blend``
+        "accurate" the accurate blend's (1 over the kernel, see :func:`resample`)."""
         gx, gy = self.to_grid(x, y)
         tx = (gx - self.centre[0]) / self.half[0]
         ty = (gy - self.centre[1]) / self.half[1]
@@ -146,11 +147,27 @@ class Patch:
         else:
             z, hit_weight = _bilinear(self.samples, gx, gy), 1.0
         reach &= ~np.isnan(z)
-        norm = 1.0 / (self.half[0] * self.step[0] * self.half[1] * self.step[1])
-        w = self._weight(tx) * self._weight(ty) * norm * hit_weight
         k = self.kernel
+        if blend == "accurate":
+            w = (self._ramp(gx, tx, k[0], k[2], self.centre[0], self.half[0])
+                 * self._ramp(gy, ty, k[1], k[3], self.centre[1], self.half[1]) * hit_weight)
+        else:
+            norm = 1.0 / (self.half[0] * self.step[0] * self.half[1] * self.step[1])
+            w = self._weight(tx) * self._weight(ty) * norm * hit_weight
         covered = reach & (gx >= k[0]) & (gx <= k[2]) & (gy >= k[1]) & (gy <= k[3])
         return np.where(reach, w, 0.0), np.where(reach, z, np.nan), covered, reach
+
+    def _ramp(self, g, t, k0, k1, centre, half):
+        """The accurate blend's weight along one axis: 1 on the kernel [k0, k1], else a ramp
+        from 1 at the kernel's edge on the point's side to 0 at the window's, s for bilinear
+        and edge patches and 6s⁵ − 15s⁴ + 10s³ for bicubic ones, kept below 1."""
+        edge = np.where(g < k0, k0, k1)
+        tk = np.abs(edge - centre) / half
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.clip((1.0 - np.abs(t)) / (1.0 - tk), 0.0, 1.0)
+        s = np.where(np.isnan(s), 0.0, s)
+        w = s**3 * (s * (6.0 * s - 15.0) + 10.0) if self.kind == "bicubic" else s
+        return np.where((g >= k0) & (g <= k1), 1.0, np.minimum(w, _BELOW_ONE))
 
     def _weight(self, t: np.ndarray) -> np.ndarray:
         a = np.minimum(np.abs(t), 1.0)
@@ -341,9 +358,15 @@ def _cell_surface(z, v, fx, fy):
     return np.where(n == 4, bil, np.where(anti, anti_z, main_z))
 
 
-def resample(patches: Sequence[Patch], roi: Rect, width: int, height: int, crs: str = "") -> np.ndarray:
-    """Formula 1 over a cut's patches: a height × width float32 tile over ``roi``, north row
+def resample(patches: Sequence[Patch], roi: Rect, width: int, height: int, crs: str = "",
+             blend: str = "formula1") -> np.ndarray:
+    """A cut's patches blended into a height × width float32 tile over ``roi``, north row
     first, sample (i, j) at its pixel's centre, NaN where no patch covers it.
+
+    ``blend`` is the store's (``Client.stats().blend``): "formula1", the weighted mean of the
+    patches that reach a point, or "accurate", the patches laid over one another in order of
+    tier, error and id, each weighing 1 over its kernel, so that the first whose kernel holds a
+    point ends it (docs/MODEL.md, "The accurate blend").
 
     Pass every patch of the cut the tile's daemon would use (``Client.query_patches`` with the
     same ROI and error): fallback patches are ranked among themselves, so a subset can blend
@@ -367,22 +390,34 @@ def resample(patches: Sequence[Patch], roi: Rect, width: int, height: int, crs: 
             X, Y = np.meshgrid(xs, ys)
             carried[target] = t.transform(X, Y)
         return carried[target]
+
+    def points(p: Patch):
+        """The tile's columns and rows the patch may reach, and its points there."""
+        if p.crs:
+            # Its reach is decided in its own plane, over the whole tile.
+            X, Y = in_crs(p.crs)
+            return (0, width, 0, height), X, Y
+        i0, i1, j0, j1 = _reach(p, xs, ys)
+        if i0 >= i1 or j0 >= j1:
+            return None
+        X, Y = np.meshgrid(xs[i0:i1], ys[j0:j1])
+        return (i0, i1, j0, j1), X, Y
+
     # Fallback patches blend by rank of error, equal errors sharing one.
     ranks = {e: k for k, e in enumerate(sorted({p.error for p in patches if p.fallback}))}
+    if blend == "accurate":
+        return _over(patches, ranks, points, width, height)
+    if blend != "formula1":
+        raise ValueError(f"{blend!r} is not a blend: use formula1 or accurate")
     tiers = 1 + len(ranks)
     shape = (tiers, height, width)
     total, wsum = np.zeros(shape), np.zeros(shape)
     covered, present = np.zeros(shape, bool), np.zeros(shape, bool)
     for p in patches:
-        if p.crs:
-            # Its reach is decided in its own plane, over the whole tile.
-            i0, i1, j0, j1 = 0, width, 0, height
-            X, Y = in_crs(p.crs)
-        else:
-            i0, i1, j0, j1 = _reach(p, xs, ys)
-            if i0 >= i1 or j0 >= j1:
-                continue
-            X, Y = np.meshgrid(xs[i0:i1], ys[j0:j1])
+        where = points(p)
+        if where is None:
+            continue
+        (i0, i1, j0, j1), X, Y = where
         w, z, cov, reach = p.at(X, Y)
         t = 1 + ranks[p.error] if p.fallback else 0
         box = (t, slice(j0, j1), slice(i0, i1))
@@ -404,6 +439,37 @@ def resample(patches: Sequence[Patch], roi: Rect, width: int, height: int, crs: 
         cov |= add & covered[t]
     out = np.where(cov & (ws > 0), s / np.where(ws > 0, ws, 1.0), np.nan)
     return out.astype(np.float32)
+
+
+def _over(patches, ranks, points, width: int, height: int) -> np.ndarray:
+    """The accurate blend: each patch, in order of tier (the cut's, then each fallback rank),
+    error and id, takes its weight's share of what the patches before it left at a point,
+    until a patch whose kernel holds the point has taken it; patches of a worse tier than the
+    first that covers a point do not count there."""
+    tier_of = lambda p: 1 + ranks[p.error] if p.fallback else 0  # noqa: E731
+    none = len(ranks) + 1
+    total, asum = np.zeros((height, width)), np.zeros((height, width))
+    rest, stop = np.ones((height, width)), np.full((height, width), none)
+    for p in sorted(patches, key=lambda p: (tier_of(p), p.error, p.id)):
+        where = points(p)
+        if where is None:
+            continue
+        (i0, i1, j0, j1), X, Y = where
+        box = (slice(j0, j1), slice(i0, i1))
+        w, z, cov, reach = p.at(X, Y, blend="accurate")
+        t = tier_of(p)
+        take = reach & (rest[box] > 0) & (t <= stop[box])
+        a = np.where(take, w * rest[box], 0.0)
+        total[box] += np.where(take, a * np.nan_to_num(z), 0.0)
+        asum[box] += a
+        rest[box] -= a
+        stop[box] = np.where(take & cov, np.minimum(stop[box], t), stop[box])
+    out = np.where((stop < none) & (asum > 0), total / np.where(asum > 0, asum, 1.0), np.nan)
+    return out.astype(np.float32)
+
+
+#: The largest double below 1: the most weight a patch has off its kernel.
+_BELOW_ONE = 1.0 - np.finfo(np.float64).eps / 2
 
 
 def _reach(p: Patch, xs: np.ndarray, ys: np.ndarray):

@@ -413,6 +413,7 @@ impl Engine {
             crs: self.cfg.crs_def().or_else(|| c.crs.clone()),
             vertical_crs: self.cfg.vertical_crs().or_else(|| c.vertical.clone()),
             backend: self.backend_name(),
+            blend: t.blend(),
             quadtree_nodes: t.index().tree_stats().nodes as u32,
             read_only: self.read_only(),
             cache: read(&self.reader).stats(),

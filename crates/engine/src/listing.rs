@@ -142,6 +142,8 @@ pub struct Stats {
     pub vertical_crs: Option<VerticalCrs>,
     /// "cpu", or "gpu (adapter)".
     pub backend: String,
+    /// How the store blends its patches.
+    pub blend: patchwork_core::model::patch::Blend,
     /// Nodes of the index's quadtree.
     pub quadtree_nodes: u32,
     /// Why writes are refused now (a full disk, a failed store); None when they are not.

@@ -717,7 +717,8 @@ impl ResolvedPatch {
                 }
             }
         };
-        let w = self.axis_weight(0, g[0], tx) * self.axis_weight(1, g[1], ty) * self.norm * hit.weight;
+        let w =
+            self.axis_weight(0, g[0], tx) * self.axis_weight(1, g[1], ty) * self.norm * hit.weight;
         Some((w, hit))
     }
 }

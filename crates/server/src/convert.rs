@@ -596,6 +596,7 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
             .map(|v| v.key().to_string())
             .unwrap_or_default(),
         backend: s.backend.clone(),
+        blend: s.blend.name().to_string(),
         quadtree_nodes: s.quadtree_nodes,
         read_only: s.read_only.clone().unwrap_or_default(),
         cache_bytes: s.cache.bytes,

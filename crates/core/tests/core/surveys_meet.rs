@@ -475,7 +475,10 @@ fn a_north_up_tile_resampled_by_rows_and_columns_is_the_pointwise_one_to_the_bit
         t.set_blend(blend);
         let (compared, _) =
             by_rows_equals_by_points(&t, bounds_of(&surveys), &[(97, 61), (256, 256), (33, 190)]);
-        assert!(compared > 300_000, "{blend:?}: only {compared} heights compared");
+        assert!(
+            compared > 300_000,
+            "{blend:?}: only {compared} heights compared"
+        );
     }
 }
 
@@ -503,8 +506,14 @@ fn blocks_that_one_patch_serves_alone_get_the_blend_to_the_bit() {
         let (compared, alone) =
             by_rows_equals_by_points(&t, bounds_of(&surveys), &[(300, 401), (512, 512)]);
         println!("{blend:?}: {alone} blocks served by one patch, {compared} heights compared");
-        assert!(compared > 1_000_000, "{blend:?}: only {compared} heights compared");
-        assert!(alone > 1_000, "{blend:?}: only {alone} blocks served by one patch");
+        assert!(
+            compared > 1_000_000,
+            "{blend:?}: only {compared} heights compared"
+        );
+        assert!(
+            alone > 1_000,
+            "{blend:?}: only {alone} blocks served by one patch"
+        );
     }
 }
 
@@ -687,5 +696,8 @@ fn the_accurate_blend_keeps_the_bound_of_the_first_kernel_that_holds_a_point() {
         "{checked} heights within e* of the surveys, {exact} of them one patch's to the bit; \
          e* below Formula 1's bound at {tighter}"
     );
-    assert!(checked > 20_000 && exact > checked / 4, "too few heights checked");
+    assert!(
+        checked > 20_000 && exact > checked / 4,
+        "too few heights checked"
+    );
 }
