@@ -36,13 +36,15 @@ struct Chart<'a> {
     scatter: bool,
 }
 
-const COLORS: [RGBColor; 6] = [
+const COLORS: [RGBColor; 8] = [
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
     RGBColor(44, 160, 44),
     RGBColor(214, 39, 40),
     RGBColor(148, 103, 189),
     RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
 ];
 
 fn draw_chart<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, c: &Chart) -> Result<(), String> {
@@ -666,4 +668,72 @@ pub fn wavelet(out: &Path, rows: &[super::wavelet::Row]) -> Result<(), Fail> {
             scatter: false,
         },
     )
+}
+
+/// Formula 1 beside the accurate blend (`blend.csv`): a chart a measure, against the error
+/// asked, a series a scene and blend.
+pub fn blend(out: &Path, rows: &[super::blend::Row]) -> Result<(), Fail> {
+    fonts();
+    let mut keys: Vec<(&str, &str)> = Vec::new();
+    for r in rows {
+        if !keys.contains(&(r.scene, r.blend)) {
+            keys.push((r.scene, r.blend));
+        }
+    }
+    let series = |y: &dyn Fn(&super::blend::Row) -> f64| -> Vec<(String, Vec<(f64, f64)>)> {
+        keys.iter()
+            .map(|&(scene, blend)| {
+                (
+                    format!("{scene}, {blend}"),
+                    rows.iter()
+                        .filter(|r| r.scene == scene && r.blend == blend)
+                        .map(|r| (r.error, y(r)))
+                        .collect(),
+                )
+            })
+            .collect()
+    };
+    type Measure<'a> = &'a dyn Fn(&super::blend::Row) -> f64;
+    let charts: [(&str, &str, &str, Measure); 4] = [
+        (
+            "blend_error",
+            "Formula 1 and the accurate blend: largest error against the most accurate survey",
+            "metres",
+            &|r| r.max_err,
+        ),
+        (
+            "blend_jump",
+            "Formula 1 and the accurate blend: slope jump along rows, 99th percentile",
+            "change of slope between steps (m/m)",
+            &|r| r.jump_p99,
+        ),
+        (
+            "blend_patches",
+            "Formula 1 and the accurate blend: patches blended per sample",
+            "patches (mean)",
+            &|r| r.per_sample,
+        ),
+        (
+            "blend_time",
+            "Formula 1 and the accurate blend: CPU time per tile",
+            "milliseconds (median)",
+            &|r| r.cpu_ms,
+        ),
+    ];
+    for (name, title, y, f) in charts {
+        both(
+            out,
+            name,
+            &Chart {
+                title,
+                x: "error asked, e (m)",
+                y,
+                series: series(f),
+                log_y: false,
+                diagonal: false,
+                scatter: false,
+            },
+        )?;
+    }
+    Ok(())
 }

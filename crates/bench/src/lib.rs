@@ -6,6 +6,7 @@
 //! flight path, ingest throughput and store size. Writes CSV and charts, and the tiles GDAL
 //! is compared on.
 
+pub mod blend;
 pub mod charts;
 pub use patchwork_testkit::copies;
 pub mod crs;

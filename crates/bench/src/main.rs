@@ -50,6 +50,10 @@ struct Cli {
     /// server's prefetch, the frames whole before they are asked for.
     #[arg(long, conflicts_with_all = ["meshes_only", "crs_only", "copies_only", "draws", "wavelet"])]
     sessions: bool,
+    /// Only Formula 1 beside the accurate blend on the mixed scenes and the pair: error
+    /// against the most accurate survey, slope jumps, patches per sample and time per tile.
+    #[arg(long, conflicts_with_all = ["meshes_only", "crs_only", "copies_only", "draws", "wavelet", "sessions"])]
+    blend: bool,
 }
 
 fn main() -> ExitCode {
@@ -77,6 +81,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         seed,
         wavelet,
         sessions,
+        blend,
     } = cli;
     if let Some(n) = draws {
         let seed = seed.unwrap_or_else(|| {
@@ -112,6 +117,11 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         .map(|f| shared.join(f))
         .collect()
     };
+    if blend {
+        patchwork_bench::blend::run(&files, &out, smoke)?;
+        println!("wrote {}", out.join("blend.csv").display());
+        return Ok(());
+    }
     if wavelet {
         patchwork_bench::wavelet::run(&files, &out)?;
         println!("wrote {}", out.join("wavelet.csv").display());

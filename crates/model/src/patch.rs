@@ -151,12 +151,13 @@ impl PatchKind {
 pub enum Blend {
     /// The paper's Formula 1: the weighted mean of every patch that reaches the point, each
     /// weighted by its kind's weight over its window divided by the window's area.
-    #[default]
     Formula1,
     /// The paper's proposed blend (§7.3): patches in order of error, each weighing 1 over its
     /// kernel and falling to 0 across its extension zone, laid over one another, so that inside
     /// the most accurate kernel that holds a point that patch alone counts, and blending happens
-    /// only where a more accurate patch's extension zone meets a less accurate kernel.
+    /// only where a more accurate patch's extension zone meets a less accurate kernel. The
+    /// default: docs/BENCHMARKS.md, "The accurate blend beside Formula 1".
+    #[default]
     Accurate,
 }
 

@@ -379,8 +379,12 @@ pub struct ResolvedPatch {
     /// 1 / the unclipped window's half-size: scales a grid offset from `centre` to the
     /// weight's t ∈ (−1, 1).
     pub inv_half: [f64; 2],
-    /// 1 / (dx·dy): the weight's unit volume, in world units.
+    /// What the weight is scaled by in the sums: Formula 1's `area_norm`, or 1 for the
+    /// accurate blend.
     pub norm: f64,
+    /// 1 / (dx·dy): the weight's unit volume, in world units, so that in Formula 1 smaller
+    /// patches weigh more.
+    pub area_norm: f64,
     /// 0 for the paper's tent, w(t) = 1 − |t|. For edge patches, half / margin: the weight is
     /// min(1, (1 − |t|)·flat), flat over the kernel and falling to 0 across the extension
     /// zone, so that the large tiles of edge patches weigh their kernel fully (and an f32
@@ -447,6 +451,7 @@ impl ResolvedPatch {
             centre,
             inv_half: [1.0 / half[0], 1.0 / half[1]],
             norm: 1.0 / (half[0] * g.step[0] * half[1] * g.step[1]),
+            area_norm: 1.0 / (half[0] * g.step[0] * half[1] * g.step[1]),
             flat: 0.0,
             window_aabb: w.aabb().intersection(&nominal.aabb()).unwrap_or(w.aabb()),
             error,
@@ -769,7 +774,8 @@ impl std::fmt::Debug for PatchSet {
 }
 
 impl PatchSet {
-    /// The set, with the fallback patches ranked by error.
+    /// The set, with the fallback patches ranked by error, blended by Formula 1 until
+    /// [`Self::with_blend`] says otherwise.
     pub fn new(mut patches: Vec<ResolvedPatch>) -> Self {
         let mut errors: Vec<f64> = patches
             .iter()
@@ -794,14 +800,16 @@ impl PatchSet {
     /// then id. Bins list patches in ascending index, so every bin, on the CPU and on the
     /// device, is then in that order, and a point stops at the first patch whose kernel holds
     /// it. The order compares two patches by their own tier, error and id alone, so a point
-    /// gets the same answer from any set that holds the patches reaching it.
+    /// gets the same answer from any set that holds the patches reaching it. Formula 1 keeps
+    /// the set's order, whatever it is: its sums are the same in any order but for rounding.
     pub fn with_blend(mut self, b: Blend) -> Self {
         self.blend = b;
-        if b == Blend::Accurate {
-            for p in &mut self.patches {
-                p.accurate = true;
-                p.norm = 1.0;
-            }
+        let accurate = b == Blend::Accurate;
+        for p in &mut self.patches {
+            p.accurate = accurate;
+            p.norm = if accurate { 1.0 } else { p.area_norm };
+        }
+        if accurate {
             self.patches.sort_by(|a, b| {
                 (a.tier().cmp(&b.tier()))
                     .then(a.error.total_cmp(&b.error))
