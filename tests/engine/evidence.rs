@@ -340,20 +340,12 @@ fn a_tile_says_where_no_data_is_as_accurate_as_asked_and_what_served_there() {
 /// and `PATCHWORK_DRAWS` sets how many draws.
 #[test]
 fn degraded_copies_drawn_at_random_rarely_displace_their_original() {
-    let seed: u64 = std::env::var("PATCHWORK_SEED")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .unwrap()
-                .as_nanos() as u64
-        });
+    let seed = seed();
     let draws: usize = std::env::var("PATCHWORK_DRAWS")
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(32);
-    println!("seed {seed} (PATCHWORK_SEED={seed} replays it), {draws} draws");
+    println!("{draws} draws");
     let scenes: Vec<_> = SCENES.iter().map(|n| (n, real_crop_in_crs(n))).collect();
     let mut next = patchwork_core::geom::rng::uniform(seed);
     let mut failed = Vec::new();

@@ -7,6 +7,7 @@
 use crate::common;
 
 use common::daemon::crop;
+use common::seed;
 use patchwork::config::Config;
 use patchwork::engine::{Backend, Ctx, Cut, Engine, Origin, Outcome, SampleRequest, TileRequest};
 use patchwork_core::geom::Aabb;
@@ -62,16 +63,7 @@ fn every_height_names_the_survey_that_served_it_and_what_its_sidecar_says() {
         bounds("nasadem_n34w119_crop.tif"),
     );
     let all = cb.union(&nb);
-    let seed: u64 = std::env::var("PATCHWORK_SEED")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .unwrap()
-                .as_nanos() as u64
-        });
-    println!("seed {seed} (PATCHWORK_SEED={seed} replays it)");
+    let seed = seed();
     let mut next = patchwork_core::geom::rng::uniform(seed);
     // Over both crops and a little beyond them.
     let pad = 0.01;

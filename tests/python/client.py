@@ -142,7 +142,7 @@ def run_crs(address):
                 except ValueError:
                     pass
                 daemon = c.tile(roi, 200, 160, error, backend="cpu")
-                ours = pc.resample(patches, roi, 200, 160, crs=stats.crs_key)
+                ours = pc.resample(patches, roi, 200, 160, crs=stats.crs_key, blend=stats.blend)
                 dn, on = np.isnan(daemon), np.isnan(ours)
                 require(np.array_equal(dn, on), f"{roi} at {error} m: nodata differs at {int((dn != on).sum())} samples")
                 require((~dn).any(), f"{roi} at {error} m: the tile has no data")

@@ -359,14 +359,14 @@ def _cell_surface(z, v, fx, fy):
 
 
 def resample(patches: Sequence[Patch], roi: Rect, width: int, height: int, crs: str = "",
-             blend: str = "formula1") -> np.ndarray:
+             blend: str = "accurate") -> np.ndarray:
     """A cut's patches blended into a height × width float32 tile over ``roi``, north row
     first, sample (i, j) at its pixel's centre, NaN where no patch covers it.
 
-    ``blend`` is the store's (``Client.stats().blend``): "formula1", the weighted mean of the
-    patches that reach a point, or "accurate", the patches laid over one another in order of
-    tier, error and id, each weighing 1 over its kernel, so that the first whose kernel holds a
-    point ends it (docs/MODEL.md, "The accurate blend").
+    ``blend`` is the store's (``Client.stats().blend``): "accurate" (a new store's default),
+    the patches laid over one another in order of tier, error and id, each weighing 1 over its
+    kernel, so that the first whose kernel holds a point ends it (docs/MODEL.md, "The accurate
+    blend"), or "formula1", the weighted mean of the patches that reach a point.
 
     Pass every patch of the cut the tile's daemon would use (``Client.query_patches`` with the
     same ROI and error): fallback patches are ranked among themselves, so a subset can blend

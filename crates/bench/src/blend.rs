@@ -19,13 +19,12 @@
 //! serves whole; and the median time of the tile on the CPU, and on a GPU where one is found
 //! (a software adapter only with PATCHWORK_ALLOW_EMULATED_GPU=1, named in the CSV).
 
-use crate::Fail;
+use crate::{meet, Fail};
 use patchwork_core::crs::Crs;
 use patchwork_core::geom::Aabb;
-use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::accuracy::AccuracySpec;
 use patchwork_core::model::grid::Grid;
-use patchwork_core::model::patch::{Blend, PatchLayout};
+use patchwork_core::model::patch::Blend;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::resample::{cpu, PatchSet, SampleGrid, BLOCK};
 use patchwork_core::terrain::Terrain;
@@ -72,23 +71,6 @@ struct Scene {
     truth: Grid,
 }
 
-fn survey(g: Grid, spec: AccuracySpec, crs: &Option<Crs>) -> Result<Arc<Survey>, Fail> {
-    Ok(Arc::new(Survey::build(
-        g,
-        spec,
-        crs.clone(),
-        PatchLayout::default(),
-    )?))
-}
-
-fn terrain(surveys: &[Arc<Survey>]) -> Terrain {
-    let mut t = Terrain::new(IndexConfig::default());
-    for s in surveys {
-        t.insert(s.clone());
-    }
-    t
-}
-
 /// The middle `side` × `side` samples of a grid, or all of it where it is smaller.
 fn middle(g: &Grid, side: usize) -> Grid {
     let (w, h) = (g.cols.min(side), g.rows.min(side));
@@ -106,9 +88,9 @@ fn scenes(files: &[PathBuf], side: usize) -> Result<Vec<Scene>, Fail> {
     let g = middle(&whole, side);
     let mut out = vec![Scene {
         name: "copies",
-        terrain: terrain(&[
-            survey(g.clone(), AccuracySpec::Auto, &crs)?,
-            survey(g.decimated(3), AccuracySpec::Auto, &crs)?,
+        terrain: meet::terrain(&[
+            meet::survey(g.clone(), AccuracySpec::Auto, crs.clone())?,
+            meet::survey(g.decimated(3), AccuracySpec::Auto, crs.clone())?,
         ]),
         truth: g.clone(),
     }];
@@ -116,9 +98,9 @@ fn scenes(files: &[PathBuf], side: usize) -> Result<Vec<Scene>, Fail> {
     let inner = g.window(w0, h0, w0, h0);
     out.push(Scene {
         name: "nested",
-        terrain: terrain(&[
-            survey(inner.clone(), AccuracySpec::Fixed(2.0), &crs)?,
-            survey(g.decimated(2), AccuracySpec::Fixed(20.0), &crs)?,
+        terrain: meet::terrain(&[
+            meet::survey(inner.clone(), AccuracySpec::Fixed(2.0), crs.clone())?,
+            meet::survey(g.decimated(2), AccuracySpec::Fixed(20.0), crs.clone())?,
         ]),
         truth: inner,
     });
@@ -130,11 +112,11 @@ fn scenes(files: &[PathBuf], side: usize) -> Result<Vec<Scene>, Fail> {
         g.window(hw, hh, g.cols - hw, g.rows - hh),
     ]
     .into_iter()
-    .map(|p| survey(p, AccuracySpec::Fixed(1.0), &crs))
+    .map(|p| meet::survey(p, AccuracySpec::Fixed(1.0), crs.clone()))
     .collect::<Result<Vec<_>, _>>()?;
     out.push(Scene {
         name: "mosaic",
-        terrain: terrain(&pieces),
+        terrain: meet::terrain(&pieces),
         truth: g.clone(),
     });
     if let Some(second) = files.get(1) {
@@ -157,9 +139,9 @@ fn scenes(files: &[PathBuf], side: usize) -> Result<Vec<Scene>, Fail> {
         };
         if c1 > c0 + 1 && r1 > r0 + 1 {
             let other = other.window(c0, r0, c1 - c0, r1 - r0);
-            let a = survey(g.clone(), AccuracySpec::Auto, &crs)?;
-            let o = survey(other.clone(), AccuracySpec::Auto, &crs)?;
-            let t = terrain(&[a.clone(), o.clone()]);
+            let a = meet::survey(g.clone(), AccuracySpec::Auto, crs.clone())?;
+            let o = meet::survey(other.clone(), AccuracySpec::Auto, crs.clone())?;
+            let t = meet::terrain(&[a.clone(), o.clone()]);
             // The more accurate of the two as the store serves them, once each has been
             // weighed against the other.
             let eps = |s: &Arc<Survey>| t.survey(s.id).map_or(f64::INFINITY, |m| m.accuracy);
@@ -172,19 +154,6 @@ fn scenes(files: &[PathBuf], side: usize) -> Result<Vec<Scene>, Fail> {
         }
     }
     Ok(out)
-}
-
-/// Max and RMS of |tile − the grid's surface| where the grid has a whole cell.
-fn against(g: &Grid, grid: &SampleGrid, heights: &[f32]) -> (f64, f64) {
-    let (worst, sum, n) = grid
-        .points()
-        .zip(heights)
-        .filter_map(|(p, z)| Some((g.bilinear(p)? - *z as f64).abs()))
-        .filter(|d| d.is_finite())
-        .fold((0.0f64, 0.0f64, 0usize), |(w, s, n), d| {
-            (w.max(d), s + d * d, n + 1)
-        });
-    (worst, (sum / n.max(1) as f64).sqrt())
 }
 
 /// The 99th percentile and the largest slope jump along rows, samples `step_m` apart: the
@@ -332,7 +301,7 @@ pub fn run(files: &[PathBuf], out: &Path, smoke: bool) -> Result<Vec<Row>, Fail>
                 let blend = set.blend;
                 let heights = &heights[k];
                 let gpu_ms = (!gpu_times[k].is_empty()).then(|| median(gpu_times[k].clone()));
-                let (max_err, rms_err) = against(g, &grid, heights);
+                let (max_err, rms_err) = meet::against(g, &grid, heights);
                 let (jump_p99, jump_max) = jumps(heights, tile, step_m);
                 let bins = cpu::bin(&set.patches, &grid);
                 let bx = tile.div_ceil(BLOCK);

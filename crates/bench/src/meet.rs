@@ -88,7 +88,7 @@ pub struct Scenes {
     pub mosaic: (f64, usize),
 }
 
-fn survey(g: Grid, spec: AccuracySpec, crs: Option<Crs>) -> Result<Arc<Survey>, Fail> {
+pub(crate) fn survey(g: Grid, spec: AccuracySpec, crs: Option<Crs>) -> Result<Arc<Survey>, Fail> {
     Ok(Arc::new(Survey::build(
         g,
         spec,
@@ -97,7 +97,7 @@ fn survey(g: Grid, spec: AccuracySpec, crs: Option<Crs>) -> Result<Arc<Survey>, 
     )?))
 }
 
-fn terrain(surveys: &[Arc<Survey>]) -> Terrain {
+pub(crate) fn terrain(surveys: &[Arc<Survey>]) -> Terrain {
     let mut t = Terrain::new(IndexConfig::default());
     for s in surveys {
         t.insert(s.clone());
@@ -114,7 +114,7 @@ fn pixels(g: &Grid, c0: f64, r0: f64, c1: f64, r1: f64) -> Aabb {
 }
 
 /// Max and RMS of |tile − the grid's surface| where the grid has a whole cell.
-fn against(g: &Grid, grid: &SampleGrid, heights: &[f32]) -> (f64, f64) {
+pub(crate) fn against(g: &Grid, grid: &SampleGrid, heights: &[f32]) -> (f64, f64) {
     let (worst, sum, n) = grid
         .points()
         .zip(heights)

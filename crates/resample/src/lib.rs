@@ -1,6 +1,6 @@
 //! Resampling extracted patches into heights (§5): sample grids, resolved patches and their
-//! surfaces, and the CPU implementation of Formula 1 ([`cpu`]). The GPU's, which holds to
-//! this one, is the daemon's (it needs a device). Pure computation: it blends whatever
+//! surfaces, and the CPU implementation of Formula 1 and of the accurate blend ([`cpu`]). The
+//! GPU's, which holds to this one, is the daemon's (it needs a device). Pure computation: it blends whatever
 //! patches it is given, and imports neither the index nor anything above.
 
 pub mod cpu;

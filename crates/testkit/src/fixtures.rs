@@ -428,3 +428,18 @@ pub fn real_survey_of(g: Grid, kind: patchwork_core::model::patch::PatchKind) ->
 pub fn data_dir() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data")
 }
+
+/// The seed of a test's random draws: `PATCHWORK_SEED` where set (it replays a run), else the
+/// clock's. Printed, so that a failure can be replayed.
+pub fn seed() -> u64 {
+    let seed = std::env::var("PATCHWORK_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(1, |d| d.as_nanos() as u64)
+        });
+    println!("seed {seed} (PATCHWORK_SEED={seed} replays it)");
+    seed
+}

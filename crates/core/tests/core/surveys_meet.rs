@@ -596,15 +596,7 @@ fn each_block_is_binned_every_patch_whose_window_meets_it_and_no_other() {
 /// coarse copy and the Copernicus and NASADEM pair; regions and errors drawn at random.
 #[test]
 fn the_accurate_blend_keeps_the_bound_of_the_first_kernel_that_holds_a_point() {
-    let seed: u64 = std::env::var("PATCHWORK_SEED")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(1, |d| d.as_nanos() as u64)
-        });
-    println!("seed {seed} (PATCHWORK_SEED={seed} replays it)");
+    let seed = seed();
     let mut draw = patchwork_core::geom::rng::uniform(seed);
     let g = cop();
     let scenes = [

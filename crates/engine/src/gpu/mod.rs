@@ -1,4 +1,5 @@
-//! Formula 1 on a GPU through wgpu: the sums of [`cpu::blend`] evaluated by a compute shader
+//! Formula 1 and the accurate blend on a GPU through wgpu: the sums of [`cpu::blend`]
+//! evaluated by a compute shader
 //! (`resample.wgsl`), one workgroup per [`BLOCK`] × [`BLOCK`] block of output samples, each
 //! visiting only the patches that meet its block (§7.3).
 //!
@@ -69,6 +70,12 @@
 //! ≤ 1 mm where surveys that agree meet (mosaic seams, holes, scattered soundings, nested
 //! surveys), and up to 4 mm where a synthetic survey 400 m off the others shares a pixel with
 //! them; they hold the GPU to 1 mm (two f32 spacings above 8,192 m) plus 2·10⁻⁵·Δ.
+//!
+//! *The accurate blend* ramps a weight from 1 to 0 across the 2-cell extension zone (a slope of
+//! 8 per unit of t, where the tent's is 1), so the same rounding moves its weights 8 times as
+//! much there, still ~10⁻⁶ of the spread blended; the same tests hold it to the same tolerance.
+//! Off the kernel its weight is kept below 1 in f32 as in f64: rounded up to 1, a patch would
+//! end a point's sum without covering it, and the mask would differ from the CPU's.
 
 mod positions;
 
