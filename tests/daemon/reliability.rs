@@ -356,7 +356,7 @@ fn an_inbox_folder_that_goes_away_retires_nothing() {
     assert_eq!(
         e.catalog()
             .records
-            .iter()
+            .values()
             .filter(|r| r.status == Status::Retired)
             .count(),
         1

@@ -13,6 +13,7 @@ pub mod crs;
 pub mod draws;
 pub mod evidence;
 pub mod flight;
+pub mod many;
 pub mod meet;
 pub mod meshes;
 pub mod stability;

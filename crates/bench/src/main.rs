@@ -54,6 +54,14 @@ struct Cli {
     /// against the most accurate survey, slope jumps, patches per sample and time per tile.
     #[arg(long, conflicts_with_all = ["meshes_only", "crs_only", "copies_only", "draws", "wavelet", "sessions"])]
     blend: bool,
+    /// Only N abutting grids cut from the first file, dropped into a daemon's inbox at once:
+    /// files a second by fifths, seconds a file by store size, and the store's open.
+    #[arg(long, value_name = "N", conflicts_with_all = ["meshes_only", "crs_only", "copies_only", "draws", "wavelet", "sessions", "blend"])]
+    many: Option<usize>,
+    /// Opens the store in this folder and prints its time and memory (what `--many` runs in
+    /// a process of its own).
+    #[arg(long, hide = true, value_name = "DIR")]
+    open_only: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -82,7 +90,12 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         wavelet,
         sessions,
         blend,
+        many,
+        open_only,
     } = cli;
+    if let Some(dir) = open_only {
+        return patchwork_bench::many::open_only(&dir);
+    }
     if let Some(n) = draws {
         let seed = seed.unwrap_or_else(|| {
             std::time::SystemTime::now()
@@ -117,6 +130,11 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         .map(|f| shared.join(f))
         .collect()
     };
+    if let Some(n) = many {
+        patchwork_bench::many::run(&files[0], n, &out)?;
+        println!("wrote {}", out.join("many.csv").display());
+        return Ok(());
+    }
     if blend {
         patchwork_bench::blend::run(&files, &out, smoke)?;
         println!("wrote {}", out.join("blend.csv").display());

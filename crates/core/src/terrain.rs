@@ -5,6 +5,7 @@
 use patchwork_crs::Crs;
 use patchwork_geom::Aabb;
 use patchwork_index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, PatchBox};
+use patchwork_index::quadtree::{Entry, MsQuadtree};
 use patchwork_index::query::{shortfall, Extracted, Shortfall, ViewQuery};
 use patchwork_model::edge::{self, EdgePatch, Member};
 use patchwork_model::evidence::{self, Blame, Contradicted, PairEvidence};
@@ -215,28 +216,83 @@ impl GroupMember {
 
 /// The surveys that share one lattice of one plane, and the edge patch of each of its tiles
 /// that has one.
+///
+/// A national programme puts thousands of abutting tiles on one lattice, so nothing here is
+/// looked up by going through the members: `near` finds those a tile's edge patch can read,
+/// and the maps are persistent (`imbl`), so that the copy of the terrain a commit makes shares
+/// all but what the commit changes.
 #[derive(Clone, Debug)]
 struct LatticeGroup {
     plane: PlaneId,
     lattice: Lattice,
-    members: Vec<GroupMember>,
-    tiles: HashMap<[i64; 2], SurveyId>,
+    /// The members, by id.
+    members: imbl::OrdMap<SurveyId, GroupMember>,
+    /// For each tile, the members whose samples its edge patch can read: those whose
+    /// [`GroupMember::tile_range`] holds it.
+    near: imbl::HashMap<[i64; 2], imbl::OrdSet<SurveyId>>,
+    tiles: imbl::HashMap<[i64; 2], SurveyId>,
 }
 
 impl LatticeGroup {
+    fn new(plane: PlaneId, lattice: Lattice) -> Self {
+        LatticeGroup {
+            plane,
+            lattice,
+            members: imbl::OrdMap::new(),
+            near: imbl::HashMap::new(),
+            tiles: imbl::HashMap::new(),
+        }
+    }
+
+    /// Every tile of a member's [`GroupMember::tile_range`].
+    fn range(m: &GroupMember) -> impl Iterator<Item = [i64; 2]> {
+        let [[x0, x1], [y0, y1]] = m.tile_range();
+        (y0..=y1).flat_map(move |y| (x0..=x1).map(move |x| [x, y]))
+    }
+
+    fn add(&mut self, m: GroupMember) {
+        let id = m.survey.id;
+        for t in Self::range(&m) {
+            self.near.entry(t).or_default().insert(id);
+        }
+        self.members.insert(id, m);
+    }
+
+    fn remove(&mut self, id: SurveyId) -> Option<GroupMember> {
+        let m = self.members.remove(&id)?;
+        for t in Self::range(&m) {
+            if let Some(ids) = self.near.get_mut(&t) {
+                ids.remove(&id);
+                if ids.is_empty() {
+                    self.near.remove(&t);
+                }
+            }
+        }
+        Some(m)
+    }
+
+    /// The members whose samples tile `t`'s edge patch can read, by id.
+    fn near(&self, t: [i64; 2]) -> impl Iterator<Item = &GroupMember> {
+        self.near
+            .get(&t)
+            .into_iter()
+            .flatten()
+            .filter_map(|id| self.members.get(id))
+    }
+
     /// The tiles a change to `m` (inserting or retiring it) can alter: its own edge tiles and
-    /// the edge tiles of the other members within its reach.
+    /// the edge tiles of the other members within its reach (those whose tile ranges meet
+    /// its own).
     fn affected_by(&self, m: &GroupMember) -> Vec<[i64; 2]> {
         let [[x0, x1], [y0, y1]] = m.tile_range();
         let mut set: BTreeSet<[i64; 2]> = m.edge_tiles().iter().copied().collect();
-        for o in &self.members {
-            if o.survey.id == m.survey.id {
-                continue;
-            }
-            let [[a0, a1], [b0, b1]] = o.tile_range();
-            if a0 > x1 || x0 > a1 || b0 > y1 || y0 > b1 {
-                continue;
-            }
+        let others: BTreeSet<SurveyId> = Self::range(m)
+            .filter_map(|t| self.near.get(&t))
+            .flatten()
+            .copied()
+            .filter(|&id| id != m.survey.id)
+            .collect();
+        for o in others.iter().filter_map(|id| self.members.get(id)) {
             set.extend(
                 o.edge_tiles()
                     .iter()
@@ -266,6 +322,9 @@ pub struct Terrain {
     /// The surveys as built, with their own claims; `surveys` holds them as the index takes
     /// them, their claims raised where other surveys' evidence finds them false.
     bases: HashMap<SurveyId, Arc<SurveyMeta>>,
+    /// The footprints of `bases`, each an entry under its survey's id: what finds the surveys
+    /// a new one overlaps without going through them all.
+    footprints: MsQuadtree,
     /// What each overlapping pair of surveys says of the other, by (smaller id, larger id).
     pairs: HashMap<(SurveyId, SurveyId), Arc<PairEvidence>>,
     /// The surveys each survey has a pair with.
@@ -276,6 +335,9 @@ pub struct Terrain {
     /// How resolved patches are blended (see [`PatchSet::with_blend`]).
     blend: Blend,
 }
+
+/// Footprints a node of [`Terrain::footprints`] holds before it splits.
+const FOOTPRINTS_PER_NODE: usize = 16;
 
 /// Edge patches to take out of the index and to put in.
 type EdgeDiff = (Vec<SurveyId>, Vec<Arc<EdgePatch>>);
@@ -293,6 +355,7 @@ impl Terrain {
             resident: HashMap::new(),
             source: None,
             bases: HashMap::new(),
+            footprints: MsQuadtree::new(FOOTPRINTS_PER_NODE),
             pairs: HashMap::new(),
             neighbours: HashMap::new(),
             raises: HashMap::new(),
@@ -439,7 +502,7 @@ impl Terrain {
             })
             .collect();
         for s in &surveys {
-            t.bases.insert(s.id, s.clone());
+            t.set_base(s.clone());
         }
         for p in pairs {
             // A pair whose surveys are not both here would be stale.
@@ -454,7 +517,7 @@ impl Terrain {
             t.set_raise(base.id, r);
             let gi = t.group_of(&s);
             let m = GroupMember::new(s.clone(), &t.lattices[gi].lattice);
-            t.lattices[gi].members.push(m);
+            t.lattices[gi].add(m);
             group_of_survey.insert(s.id, gi);
             t.register(s);
         }
@@ -526,12 +589,7 @@ impl Terrain {
         {
             Some(i) => i,
             None => {
-                self.lattices.push(LatticeGroup {
-                    plane,
-                    lattice: l,
-                    members: Vec::new(),
-                    tiles: HashMap::new(),
-                });
+                self.lattices.push(LatticeGroup::new(plane, l));
                 self.lattices.len() - 1
             }
         }
@@ -543,8 +601,10 @@ impl Terrain {
         let mut out: Option<(Arc<Plane>, Residuals)> = None;
         // The groups' members, not the registered surveys: an insertion builds its edge
         // patches before it registers the survey.
-        let all = self.lattices.iter().flat_map(|g| &g.members);
-        for m in all.filter(|g| members.contains(&g.survey.id)) {
+        let found = members
+            .iter()
+            .filter_map(|id| self.lattices.iter().find_map(|g| g.members.get(id)));
+        for m in found {
             let Some(p) = m.survey.placement.clone() else {
                 continue;
             };
@@ -583,7 +643,7 @@ impl Terrain {
     /// the owners that go and the patches that come.
     fn rebuild(&self, gi: usize, tiles: Vec<[i64; 2]>) -> Result<EdgeDiff, SampleError> {
         let g = &self.lattices[gi];
-        let Some(layout) = g.members.first().map(|m| m.survey.layout) else {
+        let Some(layout) = g.members.values().next().map(|m| m.survey.layout) else {
             return Ok((g.tiles.values().copied().collect(), Vec::new()));
         };
         let built: Vec<([i64; 2], Option<EdgePatch>)> = tiles
@@ -591,7 +651,7 @@ impl Terrain {
             .map(|&t| {
                 // Each tile reads only the members' samples around it.
                 let mut windows = Vec::new();
-                for m in &g.members {
+                for m in g.near(t) {
                     if let Some(rect) = m.reads(t) {
                         windows.push((m, self.window(&m.survey, 0, rect)?));
                     }
@@ -720,12 +780,12 @@ impl Terrain {
             self.add_pair(Arc::new(p));
         }
         // Its own claims are evidence in its neighbours' pairs.
-        self.bases.insert(s.id, base.clone());
+        self.set_base(base.clone());
         let around = self.within_reach(s.id, self.neighbours.get(&s.id).cloned());
         let result = self.change(Some(base.clone()), None, around);
         if result.is_err() {
             self.resident.remove(&s.id);
-            self.bases.remove(&s.id);
+            self.drop_base(s.id);
             self.drop_pairs(s.id);
         }
         result.map_err(TerrainError::from)
@@ -793,11 +853,8 @@ impl Terrain {
             let gi = self.group_index(*o).expect("a survey is a member");
             saved.entry(gi).or_insert_with(|| self.lattices[gi].clone());
             let g = &mut self.lattices[gi];
-            let m = g
-                .members
-                .iter_mut()
-                .find(|m| m.survey.id == *o)
-                .expect("member");
+            // A raise changes a member's claims, not where it lies: its tiles stay.
+            let m = g.members.get_mut(o).expect("member");
             m.survey = eff.clone();
             let m = m.clone();
             tiles.entry(gi).or_default().extend(g.affected_by(&m));
@@ -813,22 +870,14 @@ impl Terrain {
             let m = GroupMember::new(eff.clone(), &self.lattices[gi].lattice);
             let g = &mut self.lattices[gi];
             tiles.entry(gi).or_default().extend(g.affected_by(&m));
-            g.members.push(m);
+            g.add(m);
         }
         if let Some(id) = remove {
             let gi = self.group_index(id).expect("a survey is a member");
             saved.entry(gi).or_insert_with(|| self.lattices[gi].clone());
             let g = &mut self.lattices[gi];
-            let pos = g
-                .members
-                .iter()
-                .position(|m| m.survey.id == id)
-                .expect("member");
-            tiles
-                .entry(gi)
-                .or_default()
-                .extend(g.affected_by(&g.members[pos]));
-            g.members.remove(pos);
+            let m = g.remove(id).expect("member");
+            tiles.entry(gi).or_default().extend(g.affected_by(&m));
         }
         // Every touched group's edge patches, built again.
         let mut diffs: Vec<(usize, EdgeDiff)> = Vec::new();
@@ -871,13 +920,13 @@ impl Terrain {
             for p in &s.patches {
                 self.patches.remove(&p.id);
             }
-            self.bases.remove(&id);
+            self.drop_base(id);
             self.raises.remove(&id);
             self.resident.remove(&id);
         }
         if let Some((base, r, eff)) = added {
             self.set_raise(base.id, r);
-            self.bases.insert(base.id, base);
+            self.set_base(base);
             self.register(eff);
         }
         for ((o, r), (_, eff)) in reclaimed.into_iter().zip(new_metas) {
@@ -897,6 +946,22 @@ impl Terrain {
         Ok(stats)
     }
 
+    /// Keeps a survey as built, and its footprint.
+    fn set_base(&mut self, s: Arc<SurveyMeta>) {
+        if let Some(old) = self.bases.insert(s.id, s.clone()) {
+            self.footprints.remove(PatchId(old.id.0), &old.footprint());
+        }
+        self.footprints
+            .insert(Entry::new(PatchId(s.id.0), 1.0, 0.0, false, &s.footprint()));
+    }
+
+    /// Forgets a survey as built, and its footprint.
+    fn drop_base(&mut self, id: SurveyId) {
+        if let Some(old) = self.bases.remove(&id) {
+            self.footprints.remove(PatchId(old.id.0), &old.footprint());
+        }
+    }
+
     fn set_raise(&mut self, id: SurveyId, r: Raise) {
         if r.is_empty() {
             self.raises.remove(&id);
@@ -909,7 +974,7 @@ impl Terrain {
     fn group_index(&self, id: SurveyId) -> Option<usize> {
         self.lattices
             .iter()
-            .position(|g| g.members.iter().any(|m| m.survey.id == id))
+            .position(|g| g.members.contains_key(&id))
     }
 
     fn add_pair(&mut self, p: Arc<PairEvidence>) {
@@ -1136,12 +1201,29 @@ impl Terrain {
     /// carried into the other's CRS by the maps that place them (exactly as a tile would
     /// evaluate the other there); surveys of one plane, in that plane.
     fn compare_with_all(&self, s: &Arc<SurveyMeta>) -> Result<Vec<PairEvidence>, SampleError> {
-        let mut others: Vec<&Arc<SurveyMeta>> = self
-            .bases
-            .values()
+        let mut near = BTreeSet::new();
+        self.footprints.for_each_in(&s.footprint(), |e| {
+            near.insert(SurveyId(e.id.0));
+        });
+        let others: Vec<&Arc<SurveyMeta>> = near
+            .iter()
+            .filter_map(|id| self.bases.get(id))
             .filter(|o| o.id != s.id && s.footprint().intersects(&o.footprint()))
             .collect();
-        others.sort_by_key(|o| o.id);
+        debug_assert_eq!(
+            others.iter().map(|o| o.id).collect::<Vec<_>>(),
+            {
+                let mut all: Vec<SurveyId> = self
+                    .bases
+                    .values()
+                    .filter(|o| o.id != s.id && s.footprint().intersects(&o.footprint()))
+                    .map(|o| o.id)
+                    .collect();
+                all.sort_unstable();
+                all
+            },
+            "the footprint index misses an overlapping survey"
+        );
         let mut out = Vec::new();
         for o in others {
             let (fine, coarse) = if s.finer_than(o) { (s, o) } else { (o, s) };

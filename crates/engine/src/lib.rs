@@ -338,7 +338,7 @@ impl Engine {
     /// Every survey record and the failed files.
     pub fn records(&self) -> (Vec<SurveyRecord>, Vec<FailedRecord>) {
         let c = self.catalog();
-        (c.records.clone(), c.failures.clone())
+        (c.records.values().cloned().collect(), c.failures.clone())
     }
 
     /// The terrain, and every survey record, the failed files, and each active survey's
@@ -353,7 +353,7 @@ impl Engine {
             }
         }
         let listing = SurveyListing {
-            records: c.records.clone(),
+            records: c.records.values().cloned().collect(),
             failures: c.failures.clone(),
             damaged: c.damaged.clone(),
             conflicts,
@@ -401,7 +401,7 @@ impl Engine {
             surveys: active.len() as u32,
             retired: c
                 .records
-                .iter()
+                .values()
                 .filter(|r| r.status == patchwork_store::Status::Retired)
                 .count() as u32,
             failed: c.failures.len() as u32,
@@ -428,7 +428,7 @@ impl Engine {
 /// allocate far more, briefly, than serving keeps (tops read once, a raster's mipmap and
 /// chunks); glibc keeps such freed pages in its arenas, so without this a daemon's resident
 /// memory would stay at its largest ingest rather than what it serves from.
-fn release_free_memory() {
+pub fn release_free_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim only returns free pages of the allocator's own arenas to the
     // system; it touches no memory in use.

@@ -385,7 +385,7 @@ impl Engine {
                         .then(|| {
                             catalog
                                 .records
-                                .iter()
+                                .values()
                                 .rev()
                                 .find(|r| r.content_id == content)
                         })
@@ -535,7 +535,7 @@ impl Engine {
                         return;
                     }
                     let catalog = self.catalog();
-                    if let Some(r) = catalog.records.iter().find(|r| r.id == survey.id) {
+                    if let Some(r) = catalog.record(survey.id) {
                         let t = &r.ingest;
                         tracing::debug!(source = ?source, read_ms = t.read_ms, build_ms = t.build_ms, index_ms = t.index_ms, commit_ms = t.commit_ms, "ingest timings");
                     }
@@ -714,11 +714,7 @@ enum Refusal {
 /// commit and so is the store's own while the writer is held, rather than by decoding every
 /// record again.
 fn store_active_from(catalog: &Catalog, source: &str) -> Option<SurveyRecord> {
-    catalog
-        .records
-        .iter()
-        .find(|r| r.status == patchwork_store::Status::Active && r.source == source)
-        .cloned()
+    catalog.stored_active_from(source).cloned()
 }
 
 /// Commits the retirement of `rec` from `current` and returns the terrain without it.

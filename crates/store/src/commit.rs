@@ -320,6 +320,7 @@ impl Store {
             Replication::Follower(f) => return Err(f.refusal()),
         };
         self.db.apply_batch(batch.batch)?;
+        lock(&self.catalog).touched(&batch.touched);
         self.db.flush()?;
         if let (Some(seq), Replication::Writer(j)) = (seq, &self.replication) {
             j.applied(seq);
@@ -344,7 +345,9 @@ impl Store {
         *write(&self.crs) = staged.crs;
         let mut rec = staged.rec;
         rec.ingest.commit_ms = t0.elapsed().as_secs_f64() * 1e3;
-        self.db.insert(staged.key, encode(&rec)?)?;
+        let key = sled::IVec::from(staged.key);
+        self.db.insert(key.clone(), encode(&rec)?)?;
+        lock(&self.catalog).touched([&key]);
         Ok(())
     }
 

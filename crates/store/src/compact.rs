@@ -18,6 +18,7 @@ use super::{
     Replication, Status, Store, StoreError,
 };
 use patchwork_core::model::ids::{PatchId, SurveyId};
+use patchwork_core::sync::lock;
 use std::collections::HashSet;
 use std::path::Path;
 use std::sync::Arc;
@@ -318,6 +319,7 @@ impl Store {
             }
             self.guard.check(&dir, 0)?;
             self.db.apply_batch(batch)?;
+            lock(&self.catalog).forget();
             self.db.flush()?;
             let (loaded, mut report) = self.left_as_is(bytes_before, surveys_purged, kept)?;
             report.keys_removed = gone;

@@ -490,6 +490,8 @@ impl Store {
         if f.catch_up(&self.db)? == 0 {
             return Ok(None);
         }
+        // The writer's keys came as its log said, not through this store's writes.
+        lock(&self.catalog).forget();
         *write(&self.crs) = (
             self.db
                 .get(keys::CRS)?

@@ -73,7 +73,7 @@ pub use compact::CompactReport;
 pub use journal::Following;
 pub use migrate::CURRENT as SCHEMA_VERSION;
 use pack::ChunkStore;
-use patchwork_core::sync::{read, write};
+use patchwork_core::sync::{lock, read, write};
 pub use space::{DiskSpace, SpaceGuard, SystemDisk};
 pub use verify::{Checked, VerifyReport};
 
@@ -623,6 +623,8 @@ pub struct Store {
     recipe: Recipe,
     contradicted: Contradicted,
     blend: Blend,
+    /// The catalog last made, and the keys written since (see [`Store::catalog`]).
+    catalog: std::sync::Mutex<records::CatalogCache>,
     /// The horizontal and vertical CRSs, once set.
     crs: RwLock<(Option<Crs>, Option<VerticalCrs>)>,
     migrated: Vec<(u32, u32)>,

@@ -263,6 +263,7 @@ impl Store {
             recipe,
             contradicted,
             blend,
+            catalog: Default::default(),
             crs: RwLock::new(crs),
             migrated,
             damaged: RwLock::new(BTreeMap::new()),

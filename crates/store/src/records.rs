@@ -2,6 +2,7 @@
 //! failures and pins, the catalog readers take, and reading them back.
 
 use super::*;
+use std::collections::BTreeSet;
 
 /// A survey's patches and the edge tiles its samples reach, stored together under `p/` in
 /// their [`form::Patches`].
@@ -189,10 +190,16 @@ impl std::fmt::Display for Damaged {
 
 /// Everything the store holds besides samples and patches: what listings, stats and the inbox
 /// read. The engine keeps it beside the terrain, so that they never wait on the disk.
+///
+/// The records are a persistent map: the catalog after a commit is the one before with the
+/// commit's records put in (see [`Store::catalog`]), sharing the rest, so that a commit costs
+/// what it changes and not the store's size.
 #[derive(Clone, Debug, Default)]
 pub struct Catalog {
-    /// Every survey record, active and retired, in id order.
-    pub records: Vec<SurveyRecord>,
+    /// Every survey record, active and retired, by id.
+    pub records: imbl::OrdMap<SurveyId, SurveyRecord>,
+    /// The active records' ids by source (the smallest, should two share one).
+    by_source: imbl::HashMap<String, SurveyId>,
     /// Every recorded failure, in source order.
     pub failures: Vec<FailedRecord>,
     /// Sources retired by hand, with the content that stays retired (see [`Store::pins`]).
@@ -212,22 +219,84 @@ pub struct Catalog {
 impl Catalog {
     /// The record of survey `id`, active or retired.
     pub fn record(&self, id: SurveyId) -> Option<&SurveyRecord> {
-        // The records are in id order.
-        let k = self.records.binary_search_by_key(&id, |r| r.id).ok()?;
-        Some(&self.records[k])
+        self.records.get(&id)
     }
 
     /// The record of the active survey read from `source`, if any.
     /// Not a damaged one: its file is to be ingested again.
     pub fn active_from(&self, source: &str) -> Option<&SurveyRecord> {
-        self.active().find(|r| r.source == source)
+        self.stored_active_from(source)
+            .filter(|r| !self.damaged.contains_key(&r.id))
     }
 
-    /// The active surveys the terrain holds: damaged ones are not among them.
+    /// The record of the active survey read from `source` as the store has it, a damaged one
+    /// included.
+    pub fn stored_active_from(&self, source: &str) -> Option<&SurveyRecord> {
+        self.records.get(self.by_source.get(source)?)
+    }
+
+    /// The active surveys the terrain holds, in id order: damaged ones are not among them.
     pub fn active(&self) -> impl Iterator<Item = &SurveyRecord> {
         self.records
-            .iter()
+            .values()
             .filter(|r| r.status == Status::Active && !self.damaged.contains_key(&r.id))
+    }
+
+    /// Puts a record in, in place of any of its id.
+    fn put(&mut self, r: SurveyRecord) {
+        self.take(r.id);
+        if r.status == Status::Active {
+            match self.by_source.get(&r.source) {
+                Some(&other) if other < r.id => {}
+                _ => {
+                    self.by_source.insert(r.source.clone(), r.id);
+                }
+            }
+        }
+        self.records.insert(r.id, r);
+    }
+
+    /// Takes the record of `id` out, if there is one.
+    fn take(&mut self, id: SurveyId) {
+        let Some(old) = self.records.remove(&id) else {
+            return;
+        };
+        if self.by_source.get(&old.source) == Some(&id) {
+            self.by_source.remove(&old.source);
+            // Another active record of the same source, should there be one.
+            let next = self
+                .records
+                .values()
+                .filter(|r| r.status == Status::Active && r.source == old.source)
+                .map(|r| r.id)
+                .min();
+            if let Some(n) = next {
+                self.by_source.insert(old.source, n);
+            }
+        }
+    }
+}
+
+/// What [`Store::catalog`] keeps between calls: the catalog it last made, and the keys written
+/// since (None: every key may have changed, and the next call reads them all).
+#[derive(Default)]
+pub(crate) struct CatalogCache {
+    made: Option<Catalog>,
+    touched: Option<BTreeSet<sled::IVec>>,
+}
+
+impl CatalogCache {
+    /// Notes keys a write changed.
+    pub(crate) fn touched<'a>(&mut self, keys: impl IntoIterator<Item = &'a sled::IVec>) {
+        if let Some(t) = self.touched.as_mut() {
+            t.extend(keys.into_iter().cloned());
+        }
+    }
+
+    /// Forgets the catalog: a write whose keys are not known (a compaction, a replica's
+    /// catch-up).
+    pub(crate) fn forget(&mut self) {
+        *self = CatalogCache::default();
     }
 }
 
@@ -289,18 +358,78 @@ impl Store {
         Ok(out)
     }
 
-    /// The records, failures and pins as they stand.
+    /// The records, failures and pins as they stand. After the first call, only what was
+    /// written since is read again: the records under the keys the writes touched, and the
+    /// failures or pins if any of theirs was.
     pub fn catalog(&self) -> Result<Catalog, StoreError> {
-        Ok(Catalog {
-            records: self.surveys()?,
-            failures: self.failures()?,
-            pins: self.pins()?,
+        let mut cache = lock(&self.catalog);
+        let (Some(made), Some(touched)) = (cache.made.take(), cache.touched.take()) else {
+            let mut c = Catalog::default();
+            for r in self.surveys()? {
+                c.put(r);
+            }
+            c.failures = self.failures()?;
+            c.pins = self.pins()?;
+            let c = self.with_meta(c);
+            *cache = CatalogCache {
+                made: Some(c.clone()),
+                touched: Some(BTreeSet::new()),
+            };
+            return Ok(c);
+        };
+        let mut c = made;
+        let (mut failures, mut pins) = (false, false);
+        for k in &touched {
+            if let Some(id) = keys::parse_survey(k) {
+                let what = format!("record {}", String::from_utf8_lossy(k));
+                // As the full read takes them: a record that does not decode under its own
+                // key is left out (it is among the damaged).
+                match self.db.get(k)?.map(|v| decode::<SurveyRecord>(&v, &what)) {
+                    Some(Ok(r)) if r.id == id => c.put(r),
+                    _ => c.take(id),
+                }
+            } else if k.starts_with(keys::FAILURE_PREFIX) {
+                failures = true;
+            } else if k.starts_with(keys::PIN_PREFIX) {
+                pins = true;
+            }
+        }
+        if failures {
+            c.failures = self.failures()?;
+        }
+        if pins {
+            c.pins = self.pins()?;
+        }
+        let c = self.with_meta(c);
+        #[cfg(debug_assertions)]
+        {
+            // What the full read gives, in builds with their checks on (the tests').
+            let full: Vec<SurveyRecord> = self.surveys()?;
+            assert!(
+                full.len() == c.records.len()
+                    && full.iter().zip(c.records.values()).all(|(a, b)| a == b),
+                "the catalog kept between writes differs from the store's records"
+            );
+            assert_eq!(c.failures, self.failures()?, "failures kept between writes");
+            assert_eq!(c.pins, self.pins()?, "pins kept between writes");
+        }
+        *cache = CatalogCache {
+            made: Some(c.clone()),
+            touched: Some(BTreeSet::new()),
+        };
+        Ok(c)
+    }
+
+    /// `c` with what the store keeps beside its records.
+    fn with_meta(&self, c: Catalog) -> Catalog {
+        Catalog {
             damaged: self.damaged(),
             crs: self.crs(),
             vertical: self.vertical_crs(),
             layout: self.layout,
             recipe: self.recipe,
-        })
+            ..c
+        }
     }
 
     /// Every survey record, active and retired, in id order; a record that does not decode is
