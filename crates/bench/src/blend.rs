@@ -104,16 +104,10 @@ fn scenes(files: &[PathBuf], side: usize) -> Result<Vec<Scene>, Fail> {
         ]),
         truth: inner,
     });
-    let (hw, hh) = (g.cols / 2, g.rows / 2);
-    let pieces = [
-        g.window(0, 0, hw, hh),
-        g.window(hw, 0, g.cols - hw, hh),
-        g.window(0, hh, hw, g.rows - hh),
-        g.window(hw, hh, g.cols - hw, g.rows - hh),
-    ]
-    .into_iter()
-    .map(|p| meet::survey(p, AccuracySpec::Fixed(1.0), crs.clone()))
-    .collect::<Result<Vec<_>, _>>()?;
+    let pieces = meet::quarters(&g)
+        .into_iter()
+        .map(|p| meet::survey(p, AccuracySpec::Fixed(1.0), crs.clone()))
+        .collect::<Result<Vec<_>, _>>()?;
     out.push(Scene {
         name: "mosaic",
         terrain: meet::terrain(&pieces),

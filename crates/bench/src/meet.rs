@@ -105,6 +105,17 @@ pub(crate) fn terrain(surveys: &[Arc<Survey>]) -> Terrain {
     t
 }
 
+/// A grid cut into four abutting tiles: the mosaic scene's surveys.
+pub(crate) fn quarters(g: &Grid) -> [Grid; 4] {
+    let (hw, hh) = (g.cols / 2, g.rows / 2);
+    [
+        g.window(0, 0, hw, hh),
+        g.window(hw, 0, g.cols - hw, hh),
+        g.window(0, hh, hw, g.rows - hh),
+        g.window(hw, hh, g.cols - hw, g.rows - hh),
+    ]
+}
+
 /// The bounds of pixels [c0, c1) × [r0, r1) of a north-up grid.
 fn pixels(g: &Grid, c0: f64, r0: f64, c1: f64, r1: f64) -> Aabb {
     Aabb::of_points(&[
@@ -205,14 +216,7 @@ pub fn run(g: &Grid, crs: Option<Crs>, side: usize, errors: &[f64]) -> Result<Sc
         });
     }
 
-    let (hw, hh) = (g.cols / 2, g.rows / 2);
-    let pieces = [
-        g.window(0, 0, hw, hh),
-        g.window(hw, 0, g.cols - hw, hh),
-        g.window(0, hh, hw, g.rows - hh),
-        g.window(hw, hh, g.cols - hw, g.rows - hh),
-    ];
-    let pieces: Vec<Arc<Survey>> = pieces
+    let pieces: Vec<Arc<Survey>> = quarters(g)
         .into_iter()
         .map(|p| survey(p, AccuracySpec::Fixed(1.0), crs.clone()))
         .collect::<Result<_, _>>()?;
