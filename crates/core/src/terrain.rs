@@ -311,26 +311,28 @@ pub struct Terrain {
     /// The store's CRS and the planes of surveys in others, once the terrain has a CRS.
     planes: Option<Arc<Planes>>,
     index: LodIndex,
-    surveys: HashMap<SurveyId, Arc<SurveyMeta>>,
-    edges: HashMap<SurveyId, Arc<EdgePatch>>,
+    // The maps are persistent (`imbl`): the copy of the terrain a commit makes shares all
+    // that the commit leaves, so that it costs the change and not the store's size.
+    surveys: imbl::HashMap<SurveyId, Arc<SurveyMeta>>,
+    edges: imbl::HashMap<SurveyId, Arc<EdgePatch>>,
     lattices: Vec<LatticeGroup>,
-    patches: HashMap<PatchId, PatchHome>,
+    patches: imbl::HashMap<PatchId, PatchHome>,
     /// Samples held in memory: surveys inserted with them and not yet handed to a store.
-    resident: HashMap<SurveyId, Arc<[Arc<Grid>]>>,
+    resident: imbl::HashMap<SurveyId, Arc<[Arc<Grid>]>>,
     /// Where the samples of every other survey are read.
     source: Option<Arc<dyn SampleSource>>,
     /// The surveys as built, with their own claims; `surveys` holds them as the index takes
     /// them, their claims raised where other surveys' evidence finds them false.
-    bases: HashMap<SurveyId, Arc<SurveyMeta>>,
+    bases: imbl::HashMap<SurveyId, Arc<SurveyMeta>>,
     /// The footprints of `bases`, each an entry under its survey's id: what finds the surveys
     /// a new one overlaps without going through them all.
     footprints: MsQuadtree,
     /// What each overlapping pair of surveys says of the other, by (smaller id, larger id).
-    pairs: HashMap<(SurveyId, SurveyId), Arc<PairEvidence>>,
+    pairs: imbl::HashMap<(SurveyId, SurveyId), Arc<PairEvidence>>,
     /// The surveys each survey has a pair with.
-    neighbours: HashMap<SurveyId, BTreeSet<SurveyId>>,
+    neighbours: imbl::HashMap<SurveyId, BTreeSet<SurveyId>>,
     /// The raise of each survey's claims now in force (kernel, least ε); absent for none.
-    raises: HashMap<SurveyId, Raise>,
+    raises: imbl::HashMap<SurveyId, Raise>,
     contradicted: Contradicted,
     /// How resolved patches are blended (see [`PatchSet::with_blend`]).
     blend: Blend,
@@ -348,17 +350,17 @@ impl Terrain {
         Terrain {
             planes: None,
             index: LodIndex::new(cfg),
-            surveys: HashMap::new(),
-            edges: HashMap::new(),
+            surveys: imbl::HashMap::new(),
+            edges: imbl::HashMap::new(),
             lattices: Vec::new(),
-            patches: HashMap::new(),
-            resident: HashMap::new(),
+            patches: imbl::HashMap::new(),
+            resident: imbl::HashMap::new(),
             source: None,
-            bases: HashMap::new(),
+            bases: imbl::HashMap::new(),
             footprints: MsQuadtree::new(FOOTPRINTS_PER_NODE),
-            pairs: HashMap::new(),
-            neighbours: HashMap::new(),
-            raises: HashMap::new(),
+            pairs: imbl::HashMap::new(),
+            neighbours: imbl::HashMap::new(),
+            raises: imbl::HashMap::new(),
             contradicted: Contradicted::default(),
             blend: Blend::default(),
         }

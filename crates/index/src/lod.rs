@@ -27,7 +27,7 @@ use patchwork_model::survey::SurveyMeta;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::cmp::Ordering;
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{BTreeMap, HashSet};
 use std::sync::Arc;
 
 /// The settings of LOD space and of its quadtree.
@@ -447,8 +447,9 @@ struct SurveyEntry {
 #[derive(Clone, Debug)]
 pub struct LodIndex {
     cfg: IndexConfig,
-    slots: HashMap<PatchId, IndexedBox>,
-    surveys: HashMap<SurveyId, SurveyEntry>,
+    // Persistent maps: the copy of the index a commit makes shares every box it leaves.
+    slots: imbl::HashMap<PatchId, IndexedBox>,
+    surveys: imbl::HashMap<SurveyId, SurveyEntry>,
     tree: MsQuadtree,
 }
 
@@ -457,8 +458,8 @@ impl LodIndex {
     pub fn new(cfg: IndexConfig) -> Self {
         LodIndex {
             cfg,
-            slots: HashMap::new(),
-            surveys: HashMap::new(),
+            slots: imbl::HashMap::new(),
+            surveys: imbl::HashMap::new(),
             tree: MsQuadtree::new(cfg.node_capacity),
         }
     }
@@ -839,9 +840,9 @@ impl LodIndex {
     /// Re-derives every box's state from scratch and checks the tree: what `verify` runs.
     pub fn check(&self) -> Result<(), String> {
         self.tree.check()?;
-        let bad: Vec<String> = self
-            .slots
-            .par_iter()
+        let slots: Vec<(&PatchId, &IndexedBox)> = self.slots.iter().collect();
+        let bad: Vec<String> = slots
+            .into_par_iter()
             .filter_map(|(id, s)| {
                 let want = self.derive(&s.bx);
                 (!want.same(&s.state)).then(|| {
