@@ -453,7 +453,12 @@ impl<S: Sink> Reconciler<S> {
             }
         }
         // The files that are ready, several at once: the store's answer does not depend on
-        // the order they are taken in, and the sink bounds how many it reads at a time.
+        // the order they are taken in, and the sink bounds how many it reads at a time. They
+        // go in by path, not in the listing's hash order: a national programme names its
+        // tiles by where they lie, so neighbours come one after another, and a commit's edge
+        // tiles reach surveys already in (10,000 abutting files dropped at once: each tile's
+        // edge patch read 4 members in the first fifth and 15 in the last in hash order).
+        ready.sort_by(|a, b| a.0.cmp(&b.0));
         for ((p, source, stamp), result) in ready.iter().zip(self.ingest_all(&ready)) {
             match result {
                 Ok(r) => {
