@@ -196,8 +196,8 @@ fn blended_at(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> usize {
             n
         }
         Blend::Formula1 => {
-            // The cut's patches where one covers the point, else the fallback ranks up to the
-            // best that covers it with the cut's.
+            // The tiers up to the best that covers the point: the cut's alone where one of its
+            // patches covers it, else the fallback ranks up to the best covering one with them.
             let covering = hits
                 .iter()
                 .filter(|(_, _, h)| h.covered)
@@ -205,8 +205,7 @@ fn blended_at(set: &PatchSet, bin: &[u32], p: [f64; 2]) -> usize {
                 .min()
                 .unwrap_or(u32::MAX);
             hits.iter()
-                .filter(|(q, w, _)| *w > 0.0 && (q.tier() == 0 || q.tier() <= covering))
-                .filter(|(q, _, _)| covering > 0 || q.tier() == 0)
+                .filter(|(q, w, _)| *w > 0.0 && q.tier() <= covering)
                 .count()
         }
     }

@@ -278,24 +278,18 @@ fn write_csv(out: &Path, r: &Report) -> std::io::Result<()> {
             "files,side,fifth1_s,fifth2_s,fifth3_s,fifth4_s,fifth5_s,last_over_first,open_s,open_bytes,patches,surveys,bytes_per_patch"
         )?;
     }
+    let fifths: Vec<String> = r.fifths.iter().map(|s| format!("{s:.2}")).collect();
     writeln!(
         f,
-        "{},{},{},{:.3},{:.3},{},{},{}",
+        "{},{},{},{:.3},{:.3},{},{},{},{:.0}",
         r.files,
         r.side,
-        r.fifths
-            .iter()
-            .map(|s| format!("{s:.2}"))
-            .collect::<Vec<_>>()
-            .join(","),
+        fifths.join(","),
         r.fifths[4] / r.fifths[0].max(1e-9),
         r.open_s,
         r.open_bytes,
         r.patches,
-        format_args!(
-            "{},{:.0}",
-            r.surveys,
-            r.open_bytes as f64 / r.patches.max(1) as f64
-        )
+        r.surveys,
+        r.open_bytes as f64 / r.patches.max(1) as f64
     )
 }
