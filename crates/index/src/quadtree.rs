@@ -11,6 +11,7 @@
 use patchwork_geom::Aabb;
 use patchwork_model::ids::PatchId;
 use std::cmp::Ordering;
+use std::sync::Arc;
 
 /// Below this depth nodes stop splitting and simply grow; it only matters when more than
 /// `capacity` boxes pile up on one spot.
@@ -100,11 +101,15 @@ fn order(a: &Entry, b: &Entry) -> Ordering {
     b.ceiling.total_cmp(&a.ceiling).then(a.id.cmp(&b.id))
 }
 
+/// A node. Its children sit behind an `Arc`, so that a copy of the tree (one a commit makes of
+/// the terrain it publishes) shares every subtree until it is written: a write copies only the
+/// nodes on its way down (`Arc::make_mut`), and a commit costs what it changes rather than the
+/// size of the tree.
 #[derive(Clone, Debug)]
 struct Node {
     bounds: Aabb,
     entries: Vec<Entry>,
-    children: Option<Box<[Node; 4]>>,
+    children: Option<Arc<[Node; 4]>>,
 }
 
 impl Node {
@@ -118,16 +123,17 @@ impl Node {
 
     fn split(&mut self) -> &mut [Node; 4] {
         let b = self.bounds;
-        self.children.get_or_insert_with(|| {
+        let ch = self.children.get_or_insert_with(|| {
             let mx = (b.min[0] + b.max[0]) / 2.0;
             let my = (b.min[1] + b.max[1]) / 2.0;
-            Box::new([
+            Arc::new([
                 Node::new(Aabb::new(b.min[0], b.min[1], mx, my)),
                 Node::new(Aabb::new(mx, b.min[1], b.max[0], my)),
                 Node::new(Aabb::new(b.min[0], my, mx, b.max[1])),
                 Node::new(Aabb::new(mx, my, b.max[0], b.max[1])),
             ])
-        })
+        });
+        Arc::make_mut(ch)
     }
 
     fn put_sorted(&mut self, e: Entry) {
@@ -171,8 +177,11 @@ impl Node {
         }
         let mut found = false;
         if let Some(ch) = self.children.as_mut() {
-            for c in ch.iter_mut() {
-                found |= c.remove(id, aabb, cap);
+            // Only the children the box reaches are copied out of a shared subtree.
+            if ch.iter().any(|c| c.bounds.intersects(aabb)) {
+                for c in Arc::make_mut(ch).iter_mut() {
+                    found |= c.remove(id, aabb, cap);
+                }
             }
         }
         found
@@ -194,7 +203,7 @@ impl Node {
                 self.children = None;
                 return;
             };
-            for c in ch.iter_mut() {
+            for c in Arc::make_mut(ch).iter_mut() {
                 c.remove(best.id, &best.aabb(), cap);
             }
             self.entries.push(best);
