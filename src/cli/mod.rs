@@ -62,6 +62,27 @@ pub enum Cmd {
     /// Write the web pyramid's raster-DEM tiles as one file to host without a server:
     /// PMTiles or MBTiles, the same tiles the HTTP server serves.
     Export(export::ExportArgs),
+    /// Print an nginx config that routes web tiles to replicas of regions
+    /// (`serve --follow URL --region ...`) and the rest to a replica of the whole store.
+    ProxyConfig(ProxyConfigArgs),
+}
+
+// The arguments of `patchwork proxy-config`.
+#[derive(Args)]
+pub struct ProxyConfigArgs {
+    /// What nginx listens on: a port, or ADDRESS:PORT.
+    #[arg(long, default_value = "8080")]
+    pub listen: String,
+    /// The HTTP server of a replica of the whole store (or the writer): http://HOST:PORT.
+    #[arg(long, value_name = "URL")]
+    pub whole: String,
+    /// A replica of a region: NAME=http://HOST:PORT@WEST,SOUTH,EAST,NORTH, the box in degrees
+    /// (its region, for a store in EPSG:4326). Repeat for each.
+    #[arg(long, value_name = "NAME=URL@W,S,E,N", allow_hyphen_values = true)]
+    pub replica: Vec<String>,
+    /// The deepest tile level routed to a region.
+    #[arg(long, default_value_t = 24)]
+    pub max_level: u32,
 }
 
 // The arguments of `patchwork serve`.
@@ -73,6 +94,15 @@ pub struct ServeArgs {
     /// following its writer's commits; `data_dir` is the replica's own, empty at first.
     #[arg(long, value_name = "URL")]
     pub follow: Option<String>,
+    /// With --follow: hold and answer only the region XMIN,YMIN,XMAX,YMAX of the store's CRS
+    /// (the surveys that reach it), refusing requests beyond it.
+    #[arg(
+        long,
+        value_name = "XMIN,YMIN,XMAX,YMAX",
+        requires = "follow",
+        allow_hyphen_values = true
+    )]
+    pub region: Option<String>,
 }
 
 // The arguments of `patchwork ingest`.
@@ -376,10 +406,23 @@ pub fn achieved(e: f64, max_error: f64, short: Option<&pb::Shortfall>, what: &st
     }
 }
 
+/// Prints the nginx config of `patchwork proxy-config`.
+fn proxy_config(a: ProxyConfigArgs) -> Result<(), Fail> {
+    use patchwork::serve::web::proxy;
+    let whole = proxy::upstream_addr(&a.whole).map_err(|e| format!("--whole {e}"))?;
+    let regions = a
+        .replica
+        .iter()
+        .map(|r| proxy::RegionRoute::parse(r))
+        .collect::<Result<Vec<_>, _>>()?;
+    print!("{}", proxy::nginx(&a.listen, &whole, &regions, a.max_level));
+    Ok(())
+}
+
 /// Runs one command.
 pub async fn run(cli: Cli) -> Result<(), Fail> {
     match cli.cmd {
-        Cmd::Serve(a) => serve::serve(a.config, a.follow).await,
+        Cmd::Serve(a) => serve::serve(a.config, a.follow, a.region).await,
         Cmd::ProbeGpu => serve::probe_gpu(),
         Cmd::Ingest(a) => admin::ingest(a).await,
         Cmd::Surveys(a) => admin::surveys(a).await,
@@ -394,5 +437,6 @@ pub async fn run(cli: Cli) -> Result<(), Fail> {
         Cmd::Sample(a) => terrain::sample(a).await,
         Cmd::Mesh(a) => terrain::mesh(a).await,
         Cmd::Export(a) => export::export(a).await,
+        Cmd::ProxyConfig(a) => proxy_config(a),
     }
 }

@@ -12,12 +12,19 @@ use std::sync::Arc;
 /// is safe: a commit is one atomic batch, and the inbox picks the file up again.
 const GRACE: std::time::Duration = std::time::Duration::from_secs(3);
 
-pub async fn serve(config: Option<PathBuf>, follow: Option<String>) -> Result<(), Fail> {
+pub async fn serve(
+    config: Option<PathBuf>,
+    follow: Option<String>,
+    region: Option<String>,
+) -> Result<(), Fail> {
     let mut cfg = Config::load(config.as_deref())?;
     if let Some(url) = follow {
         cfg.storage.set_follow(&url)?;
-        cfg.validate()?;
     }
+    if let Some(r) = region {
+        cfg.storage.set_region(&r)?;
+    }
+    cfg.validate()?;
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_new(&cfg.log).unwrap_or_else(|_| "info".into()),

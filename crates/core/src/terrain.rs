@@ -338,6 +338,43 @@ pub struct Terrain {
     blend: Blend,
 }
 
+/// The surveys a terrain restored for `region` keeps: those whose footprints meet the region
+/// grown by the largest window, `w`, so that every patch whose window reaches a point of the
+/// region is kept. A survey's windows lie within its footprint, so `w` is bounded by the
+/// largest footprint's side; an edge patch lies within its members' samples, so its window is
+/// bounded by the side of their footprints' union, and every member of an edge patch that
+/// reaches the region lies within `w` of it, which keeps the plane its heights are read in.
+pub fn reaching(
+    region: &Aabb,
+    surveys: &[Arc<SurveyMeta>],
+    edges: &[Arc<EdgePatch>],
+) -> BTreeSet<SurveyId> {
+    let side = |b: &Aabb| b.width().max(b.height());
+    let footprints: HashMap<SurveyId, Aabb> =
+        surveys.iter().map(|s| (s.id, s.footprint())).collect();
+    let mut w = footprints.values().map(side).fold(0.0, f64::max);
+    for e in edges {
+        let union = e
+            .members
+            .iter()
+            .filter_map(|m| footprints.get(m))
+            .copied()
+            .reduce(|a, b| a.union(&b));
+        w = w.max(union.as_ref().map_or(0.0, side));
+    }
+    let grown = Aabb::new(
+        region.min[0] - w,
+        region.min[1] - w,
+        region.max[0] + w,
+        region.max[1] + w,
+    );
+    footprints
+        .into_iter()
+        .filter(|(_, f)| f.intersects(&grown))
+        .map(|(id, _)| id)
+        .collect()
+}
+
 /// Footprints a node of [`Terrain::footprints`] holds before it splits.
 const FOOTPRINTS_PER_NODE: usize = 16;
 
@@ -475,6 +512,10 @@ impl Terrain {
     /// Surveys of another CRS than `crs` get their patches' frames in its plane; their errors
     /// are as stored, raised where the stored `pairs` find their claims false under
     /// `contradicted`.
+    ///
+    /// With a `region` (of the store's plane), only the part of the terrain that answers
+    /// inside it is kept (see [`reaching`]): every point of the region gets the same patches,
+    /// with the same errors and states, and so the same height, as from the whole terrain.
     #[allow(clippy::too_many_arguments)]
     pub fn restore(
         cfg: IndexConfig,
@@ -485,6 +526,7 @@ impl Terrain {
         edges: Vec<Arc<EdgePatch>>,
         states: &HashMap<PatchId, BoxState>,
         source: Arc<dyn SampleSource>,
+        region: Option<&Aabb>,
     ) -> (Self, Vec<PatchId>) {
         let mut t = Terrain::with_crs(cfg, crs, None);
         t.contradicted = contradicted;
@@ -503,6 +545,10 @@ impl Terrain {
                 _ => s,
             })
             .collect();
+        let kept = region.map(|r| reaching(r, &surveys, &edges));
+        // Every survey is a base while the raises are worked out, whatever the region: a kept
+        // survey's raise depends on the claims of those it overlaps, and theirs on their own
+        // pairs. What the region does not need is let go afterwards.
         for s in &surveys {
             t.set_base(s.clone());
         }
@@ -514,6 +560,9 @@ impl Terrain {
         }
         let mut group_of_survey = HashMap::new();
         for base in surveys {
+            if kept.as_ref().is_some_and(|k| !k.contains(&base.id)) {
+                continue;
+            }
             let r = t.raise_of(&base);
             let s = effective(&base, &r);
             t.set_raise(base.id, r);
@@ -530,6 +579,9 @@ impl Terrain {
                 continue;
             };
             t.register_edge(gi, e);
+        }
+        if let Some(kept) = &kept {
+            t.keep_evidence_of(kept);
         }
         let mut missing = Vec::new();
         let mut state = |id: PatchId| {
@@ -555,6 +607,42 @@ impl Terrain {
         missing.sort_unstable();
         t.index = LodIndex::restore(cfg, units);
         (t, missing)
+    }
+
+    /// Lets go of the bases and pairs that say nothing of the surveys `kept`: a pair is kept
+    /// where one of its surveys is kept or has a pair with one (what a kept survey's evidence
+    /// is judged by), and a base where a kept pair or survey names it.
+    fn keep_evidence_of(&mut self, kept: &BTreeSet<SurveyId>) {
+        let mut near = kept.clone();
+        for id in kept {
+            near.extend(self.neighbours.get(id).into_iter().flatten().copied());
+        }
+        let stale: Vec<(SurveyId, SurveyId)> = self
+            .pairs
+            .keys()
+            .filter(|(a, b)| !near.contains(a) && !near.contains(b))
+            .copied()
+            .collect();
+        for (a, b) in stale {
+            self.pairs.remove(&(a, b));
+            for (x, y) in [(a, b), (b, a)] {
+                if let Some(set) = self.neighbours.get_mut(&x) {
+                    set.remove(&y);
+                    if set.is_empty() {
+                        self.neighbours.remove(&x);
+                    }
+                }
+            }
+        }
+        let gone: Vec<SurveyId> = self
+            .bases
+            .keys()
+            .filter(|id| !kept.contains(id) && !self.neighbours.contains_key(id))
+            .copied()
+            .collect();
+        for id in gone {
+            self.drop_base(id);
+        }
     }
 
     fn register(&mut self, s: Arc<SurveyMeta>) {

@@ -99,6 +99,24 @@ pub enum EngineError {
     /// The heights cannot be given from the vertical CRS asked.
     #[error(transparent)]
     Heights(#[from] HeightsError),
+    /// A replica of one region was asked beyond it (or for a view-dependent cut, which has
+    /// no bounds): ask the replica of the region, or one of the whole store.
+    #[error(
+        "this replica holds the region {} of the store's plane, and the request reaches {}: \
+         ask the replica of that region, or one of the whole store",
+        bounds(.region),
+        .asked.as_ref().map_or("beyond any bounds (a view-dependent cut)".into(), bounds)
+    )]
+    OutsideRegion {
+        /// The request's bounds in the store's plane; `None` for a view-dependent cut.
+        asked: Option<patchwork_core::geom::Aabb>,
+        /// The replica's region.
+        region: patchwork_core::geom::Aabb,
+    },
+}
+
+fn bounds(b: &patchwork_core::geom::Aabb) -> String {
+    format!("{},{},{},{}", b.min[0], b.min[1], b.max[0], b.max[1])
 }
 
 /// Why the store's heights cannot be carried into the frame a request asked for.
@@ -255,6 +273,8 @@ pub enum Reason {
     Implausible,
     /// A georeference or grid a survey cannot be made of.
     BadGrid,
+    /// A replica of one region was asked beyond it.
+    OutsideRegion,
 }
 
 impl Reason {
@@ -287,11 +307,12 @@ impl Reason {
             Reason::BadAccuracy => "BAD_ACCURACY",
             Reason::Implausible => "IMPLAUSIBLE",
             Reason::BadGrid => "BAD_GRID",
+            Reason::OutsideRegion => "OUTSIDE_REGION",
         }
     }
 
     /// Every kind, for the wire's tables and their tests.
-    pub const ALL: [Reason; 26] = [
+    pub const ALL: [Reason; 27] = [
         Reason::InvalidRequest,
         Reason::TooLarge,
         Reason::NotFound,
@@ -318,6 +339,7 @@ impl Reason {
         Reason::BadAccuracy,
         Reason::Implausible,
         Reason::BadGrid,
+        Reason::OutsideRegion,
     ];
 
     /// The kind [`Reason::as_str`] spells `s`.
@@ -352,6 +374,7 @@ impl EngineError {
             EngineError::GeoidGrid(_) | EngineError::Heights(_) => Reason::Geoid,
             EngineError::Cancelled => Reason::Deadline,
             EngineError::Store(e) => store_reason(e),
+            EngineError::OutsideRegion { .. } => Reason::OutsideRegion,
         }
     }
 }

@@ -4,6 +4,7 @@
 
 use super::{Engine, EngineError};
 use crate::restore;
+use patchwork_core::geom::Aabb;
 use patchwork_core::sync::{lock, read, write};
 use patchwork_store::Following;
 use std::sync::Arc;
@@ -24,6 +25,36 @@ impl Engine {
     pub fn follows(&self) -> Option<&str> {
         let url = self.cfg.storage.follow.as_str();
         (!url.is_empty()).then_some(url)
+    }
+
+    /// The region a replica of one holds and answers, in the store's plane; `None`: the whole
+    /// store.
+    pub fn region(&self) -> Option<&Aabb> {
+        self.region.as_ref()
+    }
+
+    /// Refuses a request that reaches beyond the region of a replica of one: its answer there
+    /// could lack surveys this replica does not hold. `area` is in the store's plane; `None`
+    /// is a request without bounds (a view-dependent cut).
+    pub(super) fn within_region(&self, area: Option<&Aabb>) -> Result<(), EngineError> {
+        let Some(region) = &self.region else {
+            return Ok(());
+        };
+        // A hair of slack for bounds carried from another CRS, which round in the last bits.
+        let tol = 1e-9 * region.width().max(region.height());
+        let grown = Aabb::new(
+            region.min[0] - tol,
+            region.min[1] - tol,
+            region.max[0] + tol,
+            region.max[1] + tol,
+        );
+        match area {
+            Some(a) if grown.contains(a) => Ok(()),
+            _ => Err(EngineError::OutsideRegion {
+                asked: area.copied(),
+                region: *region,
+            }),
+        }
     }
 
     /// Refuses a write on a replica, naming the writer that holds the lease.
@@ -54,7 +85,7 @@ impl Engine {
         let before = store.commit_seq();
         let mut applied = 0;
         if store.is_replica() {
-            let followed = restore::follow_up(store);
+            let followed = restore::follow_up(store, self.region.as_ref());
             // Where it stands is noted even when the round failed: the lag goes on growing.
             *write(&self.replication) = super::follow::Replication {
                 commit: store.commit_seq(),

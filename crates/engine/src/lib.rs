@@ -49,6 +49,7 @@ use crate::config::{BackendKind, Config, Storage};
 use crate::geoids::Geoids;
 use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::{Crs, Reprojection};
+use patchwork_core::geom::Aabb;
 use patchwork_core::model::ids::SurveyId;
 use patchwork_core::sync::{lock, read, write};
 use patchwork_core::terrain::Terrain;
@@ -125,6 +126,8 @@ pub struct Engine {
     held: Mutex<std::collections::BTreeMap<String, Held>>,
     /// The verification under way, for `stats`.
     verifying: Mutex<Option<listing::Verifying>>,
+    /// A replica of one region: the part of the store's plane it holds and answers.
+    region: Option<Aabb>,
 }
 
 impl Engine {
@@ -141,11 +144,16 @@ impl Engine {
             min_free: cfg.storage.min_free_mb << 20,
             reserve: cfg.storage.reserve_mb << 20,
         };
-        let opened = restore::open(
+        let region = cfg.storage.region_box().map_err(|e| EngineError::Storage {
+            what: "region".into(),
+            source: Box::new(e),
+        })?;
+        let opened = restore::open_within(
             &cfg.data_dir,
             cfg.patches.layout(),
             cfg.index,
             store_options(&cfg, &guard)?,
+            region.as_ref(),
         )?;
         for w in &opened.warnings {
             tracing::warn!(warning = %w, "store opened with a problem; `patchwork verify` tells more");
@@ -233,6 +241,7 @@ impl Engine {
             replication: RwLock::new(replication),
             held: Mutex::new(Default::default()),
             verifying: Mutex::new(None),
+            region,
             cfg,
             events,
             gpu: route::Device::default(),

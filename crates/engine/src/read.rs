@@ -249,10 +249,23 @@ impl Engine {
         Ok(Some(r))
     }
 
-    /// The store-plane bounds of a rectangle of another CRS: its border carried over.
+    /// The store-plane bounds of a rectangle of another CRS: its border carried over, grown
+    /// by a thousandth, since a side bows between the points carried by far less than that.
     fn store_roi(&self, crs: &Crs, roi: &Aabb) -> Result<Aabb, EngineError> {
+        let (b, m) = self.store_bounds(crs, roi)?;
+        Ok(Aabb::new(
+            b.min[0] - m,
+            b.min[1] - m,
+            b.max[0] + m,
+            b.max[1] + m,
+        ))
+    }
+
+    /// The bounds of the points of a rectangle's border carried into the store's plane, and
+    /// the margin that holds the border between them (0 in the store's own CRS).
+    fn store_bounds(&self, crs: &Crs, roi: &Aabb) -> Result<(Aabb, f64), EngineError> {
         let Some(r) = self.to_store(crs)? else {
-            return Ok(*roi);
+            return Ok((*roi, 0.0));
         };
         let n = 32;
         let mut pts = Vec::with_capacity(4 * n + 1);
@@ -272,15 +285,8 @@ impl Engine {
             from: crs.label(),
             to: r.to().label(),
         })?;
-        // A side bows between the points by far less than a thousandth of the extent.
         let b = Aabb::of_points(&mapped);
-        let m = 1e-3 * b.width().max(b.height());
-        Ok(Aabb::new(
-            b.min[0] - m,
-            b.min[1] - m,
-            b.max[0] + m,
-            b.max[1] + m,
-        ))
+        Ok((b, 1e-3 * b.width().max(b.height())))
     }
 
     /// The patches of a cut, with the snapshot they came from.
@@ -328,11 +334,22 @@ impl Engine {
     fn patches_of(&self, cut: &Cut) -> Result<(Arc<Terrain>, Vec<Extracted>), EngineError> {
         let t = self.snapshot();
         let ps = match cut {
-            Cut::Uniform { roi, error } => t.uniform(roi.aabb(), error.get()),
+            Cut::Uniform { roi, error } => {
+                self.within_region(Some(roi.aabb()))?;
+                t.uniform(roi.aabb(), error.get())
+            }
             Cut::UniformIn { crs, roi, error } => {
+                if self.region().is_some() {
+                    // The carried border itself, without the margin for bowing sides: a
+                    // tile's samples lie within it.
+                    self.within_region(Some(&self.store_bounds(crs, roi.aabb())?.0))?;
+                }
                 t.uniform(&self.store_roi(crs, roi.aabb())?, error.get())
             }
-            Cut::View(c) => t.view(&self.view_of(c)),
+            Cut::View(c) => {
+                self.within_region(None)?;
+                t.view(&self.view_of(c))
+            }
         };
         Ok((t, ps))
     }
@@ -850,16 +867,27 @@ impl Engine {
     }
 
     /// Points of `crs` (None for the store's) in the store's plane, NaN where the map does
-    /// not reach.
+    /// not reach; on a replica of a region, refused if one lies beyond it.
     fn in_store<'a>(
         &self,
         points: &'a [[f64; 2]],
         crs: Option<&Crs>,
     ) -> Result<std::borrow::Cow<'a, [[f64; 2]]>, EngineError> {
-        Ok(match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
+        let at = match crs.map(|c| self.to_store(c)).transpose()?.flatten() {
             Some(r) => std::borrow::Cow::Owned(r.map_where(points, self.reach())),
             None => std::borrow::Cow::Borrowed(points),
-        })
+        };
+        if self.region().is_some() {
+            let placed: Vec<[f64; 2]> = at
+                .iter()
+                .copied()
+                .filter(|p| p[0].is_finite() && p[1].is_finite())
+                .collect();
+            if !placed.is_empty() {
+                self.within_region(Some(&Aabb::of_points(&placed)))?;
+            }
+        }
+        Ok(at)
     }
 
     /// Heights at points of `crs` (None for the store's) at error `e`, given up once

@@ -3,6 +3,7 @@
 //! this is where its contents become a terrain again, and where the index is derived anew when
 //! the stored one cannot be trusted.
 
+use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::ids::PatchId;
 use patchwork_core::model::patch::PatchLayout;
@@ -44,20 +45,37 @@ pub fn open(
     index: IndexConfig,
     opts: impl Into<StoreOptions>,
 ) -> Result<Opened, StoreError> {
-    restore(Store::open_with(dir, layout, index, opts)?)
+    open_within(dir, layout, index, opts, None)
+}
+
+/// [`open`], restoring on a replica of a region only the part of the terrain that answers
+/// there (see [`terrain_of`]).
+pub fn open_within(
+    dir: &Path,
+    layout: PatchLayout,
+    index: IndexConfig,
+    opts: impl Into<StoreOptions>,
+    region: Option<&Aabb>,
+) -> Result<Opened, StoreError> {
+    restore_within(Store::open_with(dir, layout, index, opts)?, region)
 }
 
 /// The terrain of a store just opened: restored from the stored tops and edge patches without
 /// reading a sample, or derived again from the surveys when the store asks for it or a patch
 /// has no stored top.
 pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
+    restore_within(loaded, None)
+}
+
+/// [`restore`], of only the part of the terrain that answers inside `region`, if given.
+pub fn restore_within(loaded: Loaded, region: Option<&Aabb>) -> Result<Opened, StoreError> {
     let Loaded {
         mut store,
         contents,
         mut warnings,
         released_reserve,
     } = loaded;
-    let terrain = terrain_of(&mut store, contents, &mut warnings)?;
+    let terrain = terrain_of(&mut store, contents, &mut warnings, region)?;
     Ok(Opened {
         store,
         terrain,
@@ -68,19 +86,27 @@ pub fn restore(loaded: Loaded) -> Result<Opened, StoreError> {
 
 /// The terrain of a replica that applied its writer's new commits, restored as an open
 /// restores it (see [`Store::catch_up`]); `None` when there were none.
-pub fn follow_up(store: &mut Store) -> Result<Option<(Terrain, Vec<String>)>, StoreError> {
+pub fn follow_up(
+    store: &mut Store,
+    region: Option<&Aabb>,
+) -> Result<Option<(Terrain, Vec<String>)>, StoreError> {
     let Some(contents) = store.catch_up()? else {
         return Ok(None);
     };
     let mut warnings = Vec::new();
-    let terrain = terrain_of(store, contents, &mut warnings)?;
+    let terrain = terrain_of(store, contents, &mut warnings, region)?;
     Ok(Some((terrain, warnings)))
 }
 
+/// The terrain of a store's contents. With a `region` (a replica's, in the store's plane),
+/// only the surveys that reach it grown by the largest window are kept (see
+/// [`patchwork_core::terrain::reaching`]), which answer every point inside it as the whole
+/// terrain does. An index derived again (tops missing) is derived whole.
 fn terrain_of(
     store: &mut Store,
     contents: Contents,
     warnings: &mut Vec<String>,
+    region: Option<&Aabb>,
 ) -> Result<Terrain, StoreError> {
     let Contents {
         surveys,
@@ -103,6 +129,7 @@ fn terrain_of(
             edges,
             &tops,
             source,
+            region,
         );
         if let Some(p) = missing.first() {
             // A patch without a state would be a hole; deriving the index again costs an
@@ -117,7 +144,8 @@ fn terrain_of(
             for id in terrain.index().state().keys() {
                 tops.remove(id);
             }
-            if let Some(p) = tops.keys().min() {
+            // A region's terrain holds only some patches; the others' tops are the writer's.
+            if let Some(p) = tops.keys().min().filter(|_| region.is_none()) {
                 warnings.push(format!(
                     "{} stored tops belong to no patch of the terrain (first: {p}); ignored",
                     tops.len()
@@ -169,6 +197,7 @@ pub fn compact(
     live: &HashSet<PatchId>,
 ) -> Result<(Opened, CompactReport), StoreError> {
     let (loaded, report) = store.compact(live)?;
+    // Only the writer compacts, and it holds the whole store.
     Ok((restore(loaded)?, report))
 }
 

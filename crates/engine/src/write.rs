@@ -677,11 +677,12 @@ impl Engine {
             Ok((opened, report)) => (opened, Ok(report)),
             // Compaction leaves the old files in place on failure: reopen them.
             Err(e) => {
-                let opened = restore::open(
+                let opened = restore::open_within(
                     &self.dir,
                     self.cfg.patches.layout(),
                     self.cfg.index,
                     store_options(&self.cfg, &self.guard)?,
+                    self.region.as_ref(),
                 )?;
                 (opened, Err(e.into()))
             }

@@ -98,6 +98,12 @@ pub mod mercator {
         }
     }
 
+    /// The tiles of level `z` that lie wholly inside a longitude-latitude rectangle (degrees);
+    /// None if no tile does.
+    pub fn within(z: u32, lonlat: &Aabb) -> Option<TileRange> {
+        inner(over(z, lonlat), lonlat, lonlat_bounds)
+    }
+
     /// The vertical error a `size`-pixel tile of level `z` is cut at: half a pixel's side at
     /// the equator, metres. It depends on the level alone, not on the tile's latitude, so that
     /// neighbouring tiles of a level are cut alike and meet without a seam.
@@ -139,10 +145,48 @@ pub mod geographic {
         }
     }
 
+    /// The tiles of level `z` that lie wholly inside a longitude-latitude rectangle; None if
+    /// no tile does.
+    pub fn within(z: u32, lonlat: &Aabb) -> Option<TileRange> {
+        inner(over(z, lonlat), lonlat, bounds)
+    }
+
     /// Cesium's geometric error for level `z`, metres.
     pub fn geometric_error(z: u32) -> f64 {
         CESIUM_LEVEL0_ERROR / (1u64 << z) as f64
     }
+}
+
+/// The part of `r` (the tiles a rectangle touches) whose tiles lie wholly inside it: only its
+/// first and last rows and columns can reach outside.
+fn inner(r: TileRange, area: &Aabb, bounds: impl Fn(u32, u32, u32) -> Aabb) -> Option<TileRange> {
+    let (mut x0, mut x1, mut y0, mut y1) = (r.x0 as i64, r.x1 as i64, r.y0 as i64, r.y1 as i64);
+    let b = |x: i64, y: i64| bounds(r.z, x as u32, y as u32);
+    if b(x0, r.y0 as i64).min[0] < area.min[0] {
+        x0 += 1;
+    }
+    if b(x1, r.y0 as i64).max[0] > area.max[0] {
+        x1 -= 1;
+    }
+    // Rows run north to south in one pyramid and south to north in the other: test both
+    // sides of each end row.
+    let out = |y: i64| {
+        let t = b(r.x0 as i64, y);
+        t.min[1] < area.min[1] || t.max[1] > area.max[1]
+    };
+    if out(y0) {
+        y0 += 1;
+    }
+    if y1 >= y0 && out(y1) {
+        y1 -= 1;
+    }
+    (x0 <= x1 && y0 <= y1).then_some(TileRange {
+        z: r.z,
+        x0: x0 as u32,
+        y0: y0 as u32,
+        x1: x1 as u32,
+        y1: y1 as u32,
+    })
 }
 
 /// The first level whose pixels (a tile's side over `samples`) are no larger than `cell`,
@@ -159,6 +203,57 @@ pub fn finest_level(side0: f64, samples: u32, cell: f64) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_tiles_within_a_box_are_inside_it_and_their_neighbours_are_not() {
+        let inside = |t: &Aabb, a: &Aabb| a.contains(t);
+        let mut h = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            h ^= h << 13;
+            h ^= h >> 7;
+            h ^= h << 17;
+            (h >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for _ in 0..200 {
+            let (w, s) = (-180.0 + 300.0 * next(), -80.0 + 140.0 * next());
+            let area = Aabb::new(w, s, w + 60.0 * next(), s + 20.0 * next());
+            for z in [0, 3, 7, 12] {
+                type Of = fn(u32, u32, u32) -> Aabb;
+                let pyramids: [(Option<TileRange>, Of, u32, u32); 2] = [
+                    (
+                        mercator::within(z, &area),
+                        mercator::lonlat_bounds,
+                        1 << z,
+                        1 << z,
+                    ),
+                    (
+                        geographic::within(z, &area),
+                        geographic::bounds,
+                        2 << z,
+                        1 << z,
+                    ),
+                ];
+                for (r, bounds, cols, rows) in pyramids {
+                    let Some(r) = r else { continue };
+                    for (x, y) in [(r.x0, r.y0), (r.x1, r.y1), (r.x0, r.y1), (r.x1, r.y0)] {
+                        assert!(inside(&bounds(z, x, y), &area), "{z}/{x}/{y} in {area:?}");
+                    }
+                    if r.x0 > 0 {
+                        assert!(!inside(&bounds(z, r.x0 - 1, r.y0), &area));
+                    }
+                    if r.x1 + 1 < cols {
+                        assert!(!inside(&bounds(z, r.x1 + 1, r.y0), &area));
+                    }
+                    if r.y0 > 0 {
+                        assert!(!inside(&bounds(z, r.x0, r.y0 - 1), &area));
+                    }
+                    if r.y1 + 1 < rows {
+                        assert!(!inside(&bounds(z, r.x0, r.y1 + 1), &area));
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn mercator_tiles_tile_the_world_from_the_north() {

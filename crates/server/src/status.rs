@@ -57,6 +57,8 @@ pub fn code(r: Reason) -> Code {
         // Not this server's to do: the message says what (no GPU; the writer's name).
         Reason::Unavailable | Reason::ReadOnlyReplica => Code::FailedPrecondition,
         Reason::Deadline => Code::DeadlineExceeded,
+        // The request is valid, for another replica: out of this one's range.
+        Reason::OutsideRegion => Code::OutOfRange,
         Reason::Unauthenticated => Code::Unauthenticated,
         Reason::PermissionDenied => Code::PermissionDenied,
         // Retrying later can help: the disk may get room, the daemon a restart, an object

@@ -213,6 +213,9 @@ impl Config {
         if let Some(v) = get("PATCHWORK_FOLLOW").filter(|v| !v.is_empty()) {
             self.storage.set_follow(&v)?;
         }
+        if let Some(v) = get("PATCHWORK_REGION").filter(|v| !v.is_empty()) {
+            self.storage.set_region(&v)?;
+        }
         if let Some(v) = get("PATCHWORK_STORAGE_POLL_MS") {
             self.storage.poll_ms = num("PATCHWORK_STORAGE_POLL_MS", &v)?;
         }
@@ -354,6 +357,7 @@ impl Config {
         if let Some(c) = &self.crs {
             Crs::parse(c).map_err(|e| ConfigError::Invalid(format!("crs: {e}")))?;
         }
+        self.storage.region_box()?;
         if let Some(v) = &self.vertical.crs {
             VerticalCrs::parse(v)
                 .map_err(|e| ConfigError::Invalid(format!("vertical.crs: {e}")))?;

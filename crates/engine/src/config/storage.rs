@@ -1,6 +1,7 @@
 //! The `[storage]` section: the disk, and where the chunk bytes go.
 
 use super::ConfigError;
+use patchwork_core::geom::Aabb;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
@@ -39,6 +40,10 @@ pub struct Storage {
     /// A replica: how often it asks for the writer's new commits, in ms. The writer, too,
     /// tries this often to publish a commit's log that could not go up at once.
     pub poll_ms: u64,
+    /// A replica of one region, `[xmin, ymin, xmax, ymax]` in the store's CRS: it keeps only
+    /// the surveys that answer there and refuses requests beyond it. Absent: the whole
+    /// store. Set by `serve --region`.
+    pub region: Option<[f64; 4]>,
 }
 
 impl Storage {
@@ -66,6 +71,42 @@ impl Storage {
         self.follow = url.to_string();
         Ok(())
     }
+
+    /// Makes this replica one of the region `XMIN,YMIN,XMAX,YMAX` (the store's CRS).
+    pub fn set_region(&mut self, text: &str) -> Result<(), ConfigError> {
+        let v: Vec<f64> = text
+            .split(',')
+            .map(|x| x.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| {
+                ConfigError::Invalid(format!("--region {text}: expected XMIN,YMIN,XMAX,YMAX"))
+            })?;
+        let b: [f64; 4] = v
+            .try_into()
+            .map_err(|_| ConfigError::Invalid(format!("--region {text}: expected four numbers")))?;
+        self.region = Some(b);
+        Ok(())
+    }
+
+    /// The region of a replica of one, checked: finite, with area, and on a replica.
+    pub fn region_box(&self) -> Result<Option<Aabb>, ConfigError> {
+        let Some([x0, y0, x1, y1]) = self.region else {
+            return Ok(None);
+        };
+        if ![x0, y0, x1, y1].iter().all(|v| v.is_finite()) || x0 >= x1 || y0 >= y1 {
+            return Err(ConfigError::Invalid(format!(
+                "storage.region {x0},{y0},{x1},{y1}: expected finite XMIN < XMAX and YMIN < YMAX"
+            )));
+        }
+        if self.follow.is_empty() {
+            return Err(ConfigError::Invalid(
+                "storage.region is for a read replica (serve --follow URL --region ...): the \
+                 writer holds the whole store"
+                    .into(),
+            ));
+        }
+        Ok(Some(Aabb::new(x0, y0, x1, y1)))
+    }
 }
 
 impl Default for Storage {
@@ -83,6 +124,7 @@ impl Default for Storage {
             snapshot_every: 64,
             follow: String::new(),
             poll_ms: 1000,
+            region: None,
         }
     }
 }

@@ -9,6 +9,7 @@
 //! (so the limits on running requests and their deadline hold for both, counted together), and
 //! map its status to an HTTP code in one place ([`status_response`]).
 
+pub mod proxy;
 pub mod pyramid;
 pub(crate) mod raster;
 mod terrain;
@@ -294,6 +295,10 @@ fn matches_etag(header: &str, etag: &[u8; 16]) -> bool {
 /// [`super::status`], which maps the engine's errors).
 pub fn status_response(s: Status) -> Response {
     let code = match s.code() {
+        // A request a proxy sent to the replica of another region: 421, "misdirected".
+        Code::OutOfRange if super::status::reason_of(&s) == Some(Reason::OutsideRegion) => {
+            StatusCode::MISDIRECTED_REQUEST
+        }
         Code::InvalidArgument | Code::OutOfRange => StatusCode::BAD_REQUEST,
         Code::Unauthenticated => StatusCode::UNAUTHORIZED,
         Code::PermissionDenied => StatusCode::FORBIDDEN,
