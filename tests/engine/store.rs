@@ -1579,6 +1579,52 @@ fn a_damaged_survey_is_left_out_at_open_and_every_other_one_is_served() {
     }
 }
 
+/// An open reads back only the chunks committed since the one before it (the pack is
+/// append-only): damage to a chunk an earlier open checked is left to `verify` and to the read
+/// that meets it, which fails on its checksum rather than serve it; a survey found damaged is
+/// read whole at every open, so it stays left out.
+#[test]
+fn an_open_reads_back_only_the_chunks_committed_since_the_last_one() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = store_dir(&tmp);
+    let (_, b, _, range) = store_of_two(&dir);
+    // The store was opened empty, then took both: the next open reads their chunks back,
+    // and notes how far.
+    let o = open(&dir);
+    let noted = o.store.raw().get("meta/checked_to").unwrap();
+    let noted = noted.map(|v| u64::from_le_bytes(v.as_ref().try_into().unwrap()));
+    assert_eq!(noted, Some(range.end), "the open noted what it checked");
+    drop(o);
+    let pack = dir.join(patchwork::store::pack::PACK_FILE);
+    let mut bytes = std::fs::read(&pack).unwrap();
+    let at = (range.start + range.end) as usize / 2;
+    bytes[at] ^= 0x5a;
+    std::fs::write(&pack, &bytes).unwrap();
+    let o = open(&dir);
+    assert!(
+        o.store.damaged().is_empty(),
+        "the open read old chunks again"
+    );
+    let r = restore::verify(&o.store).unwrap();
+    assert!(
+        r.problems.iter().any(|p| p.contains(&b.id.to_string())),
+        "verify missed the damage: {:?}",
+        r.problems
+    );
+    let points: Vec<[f64; 2]> = {
+        let g = &b.levels[0];
+        (0..g.rows)
+            .step_by(3)
+            .flat_map(|r| (0..g.cols).step_by(3).map(move |c| (c, r)))
+            .map(|(c, r)| g.georef.to_world(c as f64, r as f64))
+            .collect()
+    };
+    assert!(
+        o.terrain.try_sample(&points, 0.0).is_err(),
+        "a damaged chunk was served"
+    );
+}
+
 #[test]
 fn a_truncated_pack_loses_only_the_surveys_whose_bytes_are_gone() {
     let tmp = tempfile::tempdir().unwrap();

@@ -62,6 +62,10 @@ struct Cli {
     /// a process of its own).
     #[arg(long, hide = true, value_name = "DIR")]
     open_only: Option<PathBuf>,
+    /// With --many: keeps the store the files went into in this folder (it must not exist),
+    /// for `--open-only` to open again.
+    #[arg(long, hide = true, value_name = "DIR", requires = "many")]
+    keep_store: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -92,6 +96,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         blend,
         many,
         open_only,
+        keep_store,
     } = cli;
     if let Some(dir) = open_only {
         return patchwork_bench::many::open_only(&dir);
@@ -131,7 +136,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         .collect()
     };
     if let Some(n) = many {
-        patchwork_bench::many::run(&files[0], n, &out)?;
+        patchwork_bench::many::run(&files[0], n, &out, keep_store.as_deref())?;
         println!("wrote {}", out.join("many.csv").display());
         return Ok(());
     }

@@ -93,7 +93,7 @@ fn write_tiles(
 }
 
 /// Runs the bench: `first` is the file the grids are cut from.
-pub fn run(first: &Path, n: usize, out: &Path) -> Result<Report, Fail> {
+pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Report, Fail> {
     std::fs::create_dir_all(out)?;
     let r = patchwork_read::read_raster(first, &Default::default())?;
     let crs = r.crs.crs.clone();
@@ -196,6 +196,8 @@ pub fn run(first: &Path, n: usize, out: &Path) -> Result<Report, Fail> {
     // The open, in a process of its own, so that the memory it adds is the open's alone,
     // less what the open of an empty store adds (sled, the thread pools, the caches' tables).
     let [open_s, open_bytes, patches, surveys] = open_in_child(&data)?;
+    // Again: an open reads back only the chunks committed since the one before.
+    let [again_s, _, _, _] = open_in_child(&data)?;
     let [_, empty_bytes, _, _] = open_in_child(&tmp.path().join("empty"))?;
     let open_bytes = (open_bytes - empty_bytes).max(0.0);
     let report = Report {
@@ -209,7 +211,8 @@ pub fn run(first: &Path, n: usize, out: &Path) -> Result<Report, Fail> {
         surveys: surveys as u32,
     };
     println!(
-        "many: open {:.2} s; {} surveys, {} patches; {:.0} bytes a patch, {:.0} a survey",
+        "many: open {:.2} s, again {again_s:.2} s; {} surveys, {} patches; {:.0} bytes a \
+         patch, {:.0} a survey",
         report.open_s,
         report.surveys,
         report.patches,
@@ -218,6 +221,10 @@ pub fn run(first: &Path, n: usize, out: &Path) -> Result<Report, Fail> {
     );
     debug_assert_eq!(stats.surveys as usize, n);
     write_csv(out, &report)?;
+    if let Some(keep) = keep {
+        std::fs::rename(&data, keep)
+            .map_err(|e| format!("keeping the store in {}: {e}", keep.display()))?;
+    }
     Ok(report)
 }
 
@@ -249,11 +256,12 @@ fn open_in_child(data: &Path) -> Result<[f64; 4], Fail> {
 pub fn open_only(data: &Path) -> Result<(), Fail> {
     let before = resident_bytes();
     let t0 = Instant::now();
-    let engine = Engine::open(Config {
-        data_dir: data.to_path_buf(),
-        inbox: vec![],
-        ..Config::default()
-    })?;
+    // The defaults, with the environment's overrides (PATCHWORK_CACHE_MB, say).
+    let mut cfg = Config::default();
+    cfg.apply_env(|k| std::env::var(k).ok())?;
+    cfg.data_dir = data.to_path_buf();
+    cfg.inbox = vec![];
+    let engine = Engine::open(cfg)?;
     let open_s = t0.elapsed().as_secs_f64();
     patchwork_engine::release_free_memory();
     let added = resident_bytes().saturating_sub(before);

@@ -250,6 +250,10 @@ impl Store {
                     removed += 1;
                     continue;
                 }
+                // Every chunk moves to the new pack: the next open reads them all back.
+                if k == keys::CHECKED_TO {
+                    continue;
+                }
                 kept += 1;
                 if keys::in_pack(&k) {
                     let b = read_packed(&self.db, self.pack.as_ref(), &k).map_err(|e| {

@@ -46,6 +46,12 @@ pub const REBUILD: &[u8] = b"meta/rebuild";
 /// damaged (bincode `Vec<SurveyId>`, in id order); absent when there are none.
 pub const QUARANTINED: &[u8] = b"meta/quarantined";
 
+/// `u64` LE, the local pack only: how far into the pack an open has read every chunk back and
+/// checked it. The pack is append-only, so an open checks only the chunks past it (and every
+/// chunk of a survey found damaged before); `verify`, and every read, check the rest. A
+/// compaction, which moves every chunk, leaves it behind.
+pub const CHECKED_TO: &[u8] = b"meta/checked_to";
+
 /// Every store-wide setting and counter.
 pub const META_PREFIX: &[u8] = b"meta/";
 /// Survey records, by survey id.

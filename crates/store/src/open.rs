@@ -280,6 +280,7 @@ impl Store {
             ));
         }
         let contents = store.load()?;
+        store.note_checked();
         warnings.extend(contents.damaged.iter().map(Damaged::to_string));
         if let Err(e) = store.guard.restore(&store.dir) {
             warnings.push(format!("could not make the reserve file: {e}"));
@@ -300,10 +301,21 @@ impl Store {
         let (active, unreadable) = self.records()?;
         let mut damaged: BTreeMap<SurveyId, Damaged> =
             unreadable.into_iter().map(|d| (d.id, d)).collect();
+        let left_out = self.quarantined()?;
+        let checked_to = self.checked_to()?;
         let checked: Vec<(&SurveyRecord, Result<SurveyMeta, String>)> = active
             .par_iter()
             .filter(|r| r.status == Status::Active)
-            .map(|r| Ok((r, self.load_checked(r)?)))
+            .map(|r| {
+                // A survey found damaged is read whole again: its damage is in what was
+                // checked, and it must be found again to stay left out.
+                let skip = if left_out.contains(&r.id) {
+                    0
+                } else {
+                    checked_to
+                };
+                Ok((r, self.load_checked(r, skip)?))
+            })
             .collect::<Result<_, StoreError>>()?;
         let mut surveys = Vec::with_capacity(checked.len());
         for (r, meta) in checked {
@@ -321,7 +333,6 @@ impl Store {
                 }
             }
         }
-        let left_out = self.quarantined()?;
         let rebuild = self.db.get(keys::REBUILD)?.is_some()
             || !damaged.keys().copied().eq(left_out.iter().copied());
         let found: Vec<Damaged> = damaged.values().cloned().collect();
@@ -348,12 +359,44 @@ impl Store {
         })
     }
 
+    /// How far into the local pack earlier opens read every chunk back ([`keys::CHECKED_TO`]);
+    /// 0 where an open must read them all: on an object store (which reads none), or where
+    /// the pack lost bytes.
+    fn checked_to(&self) -> Result<u64, StoreError> {
+        if !self.pack.local() || self.pack.lost() > 0 {
+            return Ok(0);
+        }
+        Ok(self
+            .db
+            .get(keys::CHECKED_TO)?
+            .and_then(|v| <[u8; 8]>::try_from(v.as_ref()).ok())
+            .map_or(0, u64::from_le_bytes)
+            .min(self.pack.len()))
+    }
+
+    /// Notes that every chunk of the local pack was read back and checked up to its end,
+    /// once an open did: the next reads only what comes after. Not kept if it cannot be
+    /// written (a full disk): the next open reads more.
+    pub(super) fn note_checked(&self) {
+        if !self.pack.local() || self.pack.lost() > 0 {
+            return;
+        }
+        let end = self.pack.len().to_le_bytes();
+        if self.db.get(keys::CHECKED_TO).ok().flatten().as_deref() != Some(&end[..]) {
+            if let Err(e) = self.db.insert(keys::CHECKED_TO, &end[..]) {
+                tracing::warn!(error = %e, "could not note how far the open checked the pack");
+            }
+        }
+    }
+
     /// A survey's meta, once its records decode and every chunk it should have is there and
-    /// matches its checksum; otherwise what is wrong. Only an error of the database itself
-    /// is an `Err`.
+    /// matches its checksum (a local chunk that ends at or before `skip` was checked by an
+    /// earlier open, and is not read again); otherwise what is wrong. Only an error of the
+    /// database itself is an `Err`.
     pub(super) fn load_checked(
         &self,
         r: &SurveyRecord,
+        skip: u64,
     ) -> Result<Result<SurveyMeta, String>, StoreError> {
         let meta = match self.load_meta(r) {
             Ok(m) => m,
@@ -395,6 +438,9 @@ impl Store {
                             self.pack.describe()
                         )));
                     }
+                    continue;
+                }
+                if loc.end() <= skip {
                     continue;
                 }
                 let bytes = match self.pack.read(loc) {

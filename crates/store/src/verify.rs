@@ -370,6 +370,18 @@ impl Store {
                     v.len()
                 ))),
             },
+            keys::CHECKED_TO => match <[u8; 8]>::try_from(v) {
+                Ok(b) if u64::from_le_bytes(b) <= self.pack.len() => Ok(None),
+                Ok(b) => Ok(Some(format!(
+                    "meta/checked_to says the open checked {} bytes, the pack holds {}",
+                    u64::from_le_bytes(b),
+                    self.pack.len()
+                ))),
+                Err(_) => Ok(Some(format!(
+                    "meta/checked_to holds {} bytes, not 8",
+                    v.len()
+                ))),
+            },
             keys::PACK_AT => Ok(
                 (String::from_utf8_lossy(v) != self.pack.describe()).then(|| {
                     format!(
