@@ -132,6 +132,7 @@ fn measure(store: PathBuf) {
         std::process::exit(0);
     }
     let terrain = engine.snapshot();
+    let catalog = engine.catalog();
     let index = terrain.index();
     let patches = index.len().max(1);
     if index.is_empty() {
@@ -158,13 +159,45 @@ fn measure(store: PathBuf) {
         std::mem::size_of::<patchwork_core::index::quadtree::Entry>(),
         index.tree_stats().stored as f64 / patches as f64
     );
+    // What the parts hold by their sizes: the surveys' metadata and the edge patches' samples.
+    let (mut surveys, mut meta, mut valid, mut accuracy) = (0usize, 0usize, 0usize, 0usize);
+    for m in terrain.surveys() {
+        surveys += 1;
+        meta += std::mem::size_of::<patchwork_core::model::survey::SurveyMeta>()
+            + m.shapes.len() * std::mem::size_of::<patchwork_core::model::grid::Shape>()
+            + m.patches.len() * std::mem::size_of::<patchwork_core::model::patch::Patch>()
+            + m.edge_tiles.len() * 16;
+        valid += m.patches.iter().map(|p| p.valid.len() * 16).sum::<usize>();
+        accuracy += m.kernel_accuracy.values.len() * 8;
+    }
+    let (mut edges, mut edge_bytes) = (0usize, 0usize);
+    for e in terrain.edges() {
+        edges += 1;
+        edge_bytes += std::mem::size_of::<patchwork_core::model::edge::EdgePatch>()
+            + e.members.len() * 8
+            + e.valid.len() * 32
+            + e.grid.heights.len() * 5;
+    }
+    let per = |b: usize| b as f64 / surveys.max(1) as f64;
+    println!(
+        "by sizes, a survey: its metadata and patches {:.0} B, their valid lists {:.0} B, its \
+         kernels' ε {:.0} B; {edges} edge patches, their samples and flags {:.0} B a survey",
+        per(meta),
+        per(valid),
+        per(accuracy),
+        per(edge_bytes)
+    );
     // What the terrain alone holds: the engine (its database, caches and tasks) dropped, the
     // published terrain kept.
     drop(engine);
+    let with_catalog = LIVE.load(Relaxed) - before;
+    drop(catalog);
     let terrain_only = LIVE.load(Relaxed) - before;
     println!(
-        "the terrain alone: {:.0} bytes a patch; the engine and its database: {:.0}",
+        "the terrain alone: {:.0} bytes a patch; the catalog of records: {:.0}; the engine and \
+         its database: {:.0}",
         terrain_only as f64 / patches as f64,
-        (held - terrain_only) as f64 / patches as f64
+        (with_catalog - terrain_only) as f64 / patches as f64,
+        (held - with_catalog) as f64 / patches as f64
     );
 }
