@@ -407,7 +407,7 @@ impl Engine {
         let (t, c) = self.published();
         let active: Vec<_> = c.active().collect();
         Stats {
-            surveys: active.len() as u32,
+            surveys: c.active_count() as u32,
             retired: c
                 .records
                 .values()

@@ -200,6 +200,9 @@ pub struct Catalog {
     pub records: imbl::OrdMap<SurveyId, SurveyRecord>,
     /// The active records' ids by source (the smallest, should two share one).
     by_source: imbl::HashMap<String, SurveyId>,
+    /// How many records are active, damaged ones included: kept as records come and go, so
+    /// that counting them costs nothing however large the store.
+    active_records: usize,
     /// Every recorded failure, in source order.
     pub failures: Vec<FailedRecord>,
     /// Sources retired by hand, with the content that stays retired (see [`Store::pins`]).
@@ -235,6 +238,20 @@ impl Catalog {
         self.records.get(self.by_source.get(source)?)
     }
 
+    /// How many surveys [`Catalog::active`] yields, without going through them.
+    pub fn active_count(&self) -> usize {
+        let damaged = self
+            .damaged
+            .keys()
+            .filter(|id| {
+                self.records
+                    .get(id)
+                    .is_some_and(|r| r.status == Status::Active)
+            })
+            .count();
+        self.active_records - damaged
+    }
+
     /// The active surveys the terrain holds, in id order: damaged ones are not among them.
     pub fn active(&self) -> impl Iterator<Item = &SurveyRecord> {
         self.records
@@ -246,6 +263,7 @@ impl Catalog {
     fn put(&mut self, r: SurveyRecord) {
         self.take(r.id);
         if r.status == Status::Active {
+            self.active_records += 1;
             match self.by_source.get(&r.source) {
                 Some(&other) if other < r.id => {}
                 _ => {
@@ -261,6 +279,9 @@ impl Catalog {
         let Some(old) = self.records.remove(&id) else {
             return;
         };
+        if old.status == Status::Active {
+            self.active_records -= 1;
+        }
         if self.by_source.get(&old.source) == Some(&id) {
             self.by_source.remove(&old.source);
             // Another active record of the same source, should there be one.
@@ -412,6 +433,11 @@ impl Store {
             );
             assert_eq!(c.failures, self.failures()?, "failures kept between writes");
             assert_eq!(c.pins, self.pins()?, "pins kept between writes");
+            assert_eq!(
+                c.active_count(),
+                c.active().count(),
+                "active records counted"
+            );
         }
         *cache = CatalogCache {
             made: Some(c.clone()),
