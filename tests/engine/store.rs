@@ -1458,6 +1458,14 @@ fn open_damaged(dir: &Path) -> Opened {
         .expect("a damaged store still opens")
 }
 
+/// Flips the pack's byte at `at` in the store at `dir`, as a failing disk might.
+fn flip_pack_byte(dir: &Path, at: u64) {
+    let pack = dir.join(patchwork::store::pack::PACK_FILE);
+    let mut bytes = std::fs::read(&pack).unwrap();
+    bytes[at as usize] ^= 0x5a;
+    std::fs::write(&pack, &bytes).unwrap();
+}
+
 /// The store of `a` then `b`, and where `b`'s bytes lie in the pack: after `a`'s, to the end.
 fn store_of_two(dir: &Path) -> (Arc<Survey>, Arc<Survey>, Terrain, std::ops::Range<u64>) {
     let (a, b) = pair();
@@ -1523,10 +1531,7 @@ fn a_damaged_survey_is_left_out_at_open_and_every_other_one_is_served() {
     for (n, at) in offsets.into_iter().enumerate() {
         let dir = tmp.path().join(format!("flip{n}"));
         copy_dir(&pristine, &dir);
-        let pack = dir.join(patchwork::store::pack::PACK_FILE);
-        let mut bytes = std::fs::read(&pack).unwrap();
-        bytes[at as usize] ^= 0x5a;
-        std::fs::write(&pack, &bytes).unwrap();
+        flip_pack_byte(&dir, at);
         let what = format!("byte {at} flipped");
         {
             let o = open_damaged(&dir);
@@ -1595,11 +1600,7 @@ fn an_open_reads_back_only_the_chunks_committed_since_the_last_one() {
     let noted = noted.map(|v| u64::from_le_bytes(v.as_ref().try_into().unwrap()));
     assert_eq!(noted, Some(range.end), "the open noted what it checked");
     drop(o);
-    let pack = dir.join(patchwork::store::pack::PACK_FILE);
-    let mut bytes = std::fs::read(&pack).unwrap();
-    let at = (range.start + range.end) as usize / 2;
-    bytes[at] ^= 0x5a;
-    std::fs::write(&pack, &bytes).unwrap();
+    flip_pack_byte(&dir, (range.start + range.end) / 2);
     let o = open(&dir);
     assert!(
         o.store.damaged().is_empty(),

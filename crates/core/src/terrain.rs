@@ -55,13 +55,7 @@ fn native_bounds(plane: Option<&Plane>, b: &Aabb) -> Option<Aabb> {
         }
     }
     let a = Aabb::of_points(&pts);
-    let m = 1e-3 * a.width().max(a.height());
-    Some(Aabb::new(
-        a.min[0] - m,
-        a.min[1] - m,
-        a.max[0] + m,
-        a.max[1] + m,
-    ))
+    Some(a.grown(1e-3 * a.width().max(a.height())))
 }
 
 /// What the reprojection can cost an edge patch's heights: as for a survey's patch (see
@@ -362,12 +356,7 @@ pub fn reaching(
             .reduce(|a, b| a.union(&b));
         w = w.max(union.as_ref().map_or(0.0, side));
     }
-    let grown = Aabb::new(
-        region.min[0] - w,
-        region.min[1] - w,
-        region.max[0] + w,
-        region.max[1] + w,
-    );
+    let grown = region.grown(w);
     footprints
         .into_iter()
         .filter(|(_, f)| f.intersects(&grown))

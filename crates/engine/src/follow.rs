@@ -41,13 +41,7 @@ impl Engine {
             return Ok(());
         };
         // A hair of slack for bounds carried from another CRS, which round in the last bits.
-        let tol = 1e-9 * region.width().max(region.height());
-        let grown = Aabb::new(
-            region.min[0] - tol,
-            region.min[1] - tol,
-            region.max[0] + tol,
-            region.max[1] + tol,
-        );
+        let grown = region.grown(1e-9 * region.width().max(region.height()));
         match area {
             Some(a) if grown.contains(a) => Ok(()),
             _ => Err(EngineError::OutsideRegion {

@@ -249,20 +249,9 @@ impl Engine {
         Ok(Some(r))
     }
 
-    /// The store-plane bounds of a rectangle of another CRS: its border carried over, grown
-    /// by a thousandth, since a side bows between the points carried by far less than that.
-    fn store_roi(&self, crs: &Crs, roi: &Aabb) -> Result<Aabb, EngineError> {
-        let (b, m) = self.store_bounds(crs, roi)?;
-        Ok(Aabb::new(
-            b.min[0] - m,
-            b.min[1] - m,
-            b.max[0] + m,
-            b.max[1] + m,
-        ))
-    }
-
     /// The bounds of the points of a rectangle's border carried into the store's plane, and
-    /// the margin that holds the border between them (0 in the store's own CRS).
+    /// the margin that holds the border between them (0 in the store's own CRS): a side bows
+    /// between the points carried by far less than a thousandth of the extent.
     fn store_bounds(&self, crs: &Crs, roi: &Aabb) -> Result<(Aabb, f64), EngineError> {
         let Some(r) = self.to_store(crs)? else {
             return Ok((*roi, 0.0));
@@ -339,12 +328,11 @@ impl Engine {
                 t.uniform(roi.aabb(), error.get())
             }
             Cut::UniformIn { crs, roi, error } => {
-                if self.region().is_some() {
-                    // The carried border itself, without the margin for bowing sides: a
-                    // tile's samples lie within it.
-                    self.within_region(Some(&self.store_bounds(crs, roi.aabb())?.0))?;
-                }
-                t.uniform(&self.store_roi(crs, roi.aabb())?, error.get())
+                // A region is asked of the carried border itself, where a tile's samples lie;
+                // the cut takes the margin for bowing sides too.
+                let (b, m) = self.store_bounds(crs, roi.aabb())?;
+                self.within_region(Some(&b))?;
+                t.uniform(&b.grown(m), error.get())
             }
             Cut::View(c) => {
                 self.within_region(None)?;

@@ -91,7 +91,7 @@ pub(super) fn changed_area(s: &SurveyMeta) -> Aabb {
     let cell =
         (f.width() / (g.cols.max(2) - 1) as f64).max(f.height() / (g.rows.max(2) - 1) as f64);
     let m = 2.0 * cell;
-    Aabb::new(f.min[0] - m, f.min[1] - m, f.max[0] + m, f.max[1] + m)
+    f.grown(m)
 }
 
 /// The outcome of ingesting one file.

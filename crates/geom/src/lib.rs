@@ -69,6 +69,16 @@ impl Aabb {
         p[0] >= self.min[0] && p[0] <= self.max[0] && p[1] >= self.min[1] && p[1] <= self.max[1]
     }
 
+    /// The box grown by `d` on every side.
+    pub fn grown(&self, d: f64) -> Aabb {
+        Aabb::new(
+            self.min[0] - d,
+            self.min[1] - d,
+            self.max[0] + d,
+            self.max[1] + d,
+        )
+    }
+
     /// The least box holding both.
     pub fn union(&self, o: &Aabb) -> Aabb {
         Aabb {

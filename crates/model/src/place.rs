@@ -84,13 +84,7 @@ impl Plane {
         // The border's images bound the images of the inside (the map is a homeomorphism);
         // between the border points a side bows out by at most what an affine fit of a
         // 1/64 of it leaves, far below this margin of a thousandth of the extent.
-        let m = 1e-3 * b.width().max(b.height());
-        Some(Aabb::new(
-            b.min[0] - m,
-            b.min[1] - m,
-            b.max[0] + m,
-            b.max[1] + m,
-        ))
+        Some(b.grown(1e-3 * b.width().max(b.height())))
     }
 
     /// The residuals of both lattices over a grid whose store-plane footprint is `bounds`:

@@ -594,8 +594,7 @@ impl ResolvedPatch {
     /// block's patches never depend on where the block begins.
     pub fn reach(&self) -> Aabb {
         let b = self.window_aabb;
-        let d = 1e-8 * b.width().max(b.height());
-        Aabb::new(b.min[0] - d, b.min[1] - d, b.max[0] + d, b.max[1] + d)
+        b.grown(1e-8 * b.width().max(b.height()))
     }
 
     /// Whether the patch's grid coordinate along x depends on x alone and along y on y alone

@@ -359,11 +359,17 @@ impl Store {
         })
     }
 
+    /// Whether opens read chunks back and keep [`keys::CHECKED_TO`]: on a local pack that lost
+    /// no bytes (one that did is read whole).
+    fn marks_checks(&self) -> bool {
+        self.pack.local() && self.pack.lost() == 0
+    }
+
     /// How far into the local pack earlier opens read every chunk back ([`keys::CHECKED_TO`]);
     /// 0 where an open must read them all: on an object store (which reads none), or where
     /// the pack lost bytes.
     fn checked_to(&self) -> Result<u64, StoreError> {
-        if !self.pack.local() || self.pack.lost() > 0 {
+        if !self.marks_checks() {
             return Ok(0);
         }
         Ok(self
@@ -378,7 +384,7 @@ impl Store {
     /// once an open did: the next reads only what comes after. Not kept if it cannot be
     /// written (a full disk): the next open reads more.
     pub(super) fn note_checked(&self) {
-        if !self.pack.local() || self.pack.lost() > 0 {
+        if !self.marks_checks() {
             return;
         }
         let end = self.pack.len().to_le_bytes();

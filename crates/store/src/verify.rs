@@ -331,6 +331,18 @@ impl Store {
         })
     }
 
+    /// What is wrong with a `u64` LE offset into the pack that must not pass its end.
+    fn within_pack(&self, what: &str, v: &[u8]) -> Option<String> {
+        match <[u8; 8]>::try_from(v).map(u64::from_le_bytes) {
+            Ok(n) if n <= self.pack.len() => None,
+            Ok(n) => Some(format!(
+                "{what} says {n} bytes, the pack holds {}",
+                self.pack.len()
+            )),
+            Err(_) => Some(format!("{what} holds {} bytes, not 8", v.len())),
+        }
+    }
+
     fn check_meta(&self, k: &[u8], v: &[u8], pr: &mut Problems) {
         let what = key_str(k);
         let res = match k {
@@ -358,30 +370,9 @@ impl Store {
             keys::BLEND => Ok(setting_problem(v, self.blend)),
             // Bytes past the committed length are a commit that did not happen (or has not
             // yet): an open cuts them. Fewer bytes than committed would be lost chunks.
-            keys::PACK_LEN => match <[u8; 8]>::try_from(v) {
-                Ok(b) if u64::from_le_bytes(b) <= self.pack.len() => Ok(None),
-                Ok(b) => Ok(Some(format!(
-                    "meta/pack_len says {} bytes, the pack holds {}",
-                    u64::from_le_bytes(b),
-                    self.pack.len()
-                ))),
-                Err(_) => Ok(Some(format!(
-                    "meta/pack_len holds {} bytes, not 8",
-                    v.len()
-                ))),
-            },
-            keys::CHECKED_TO => match <[u8; 8]>::try_from(v) {
-                Ok(b) if u64::from_le_bytes(b) <= self.pack.len() => Ok(None),
-                Ok(b) => Ok(Some(format!(
-                    "meta/checked_to says the open checked {} bytes, the pack holds {}",
-                    u64::from_le_bytes(b),
-                    self.pack.len()
-                ))),
-                Err(_) => Ok(Some(format!(
-                    "meta/checked_to holds {} bytes, not 8",
-                    v.len()
-                ))),
-            },
+            keys::PACK_LEN => Ok(self.within_pack(&what, v)),
+            // How far opens read the pack back: never past its end.
+            keys::CHECKED_TO => Ok(self.within_pack(&what, v)),
             keys::PACK_AT => Ok(
                 (String::from_utf8_lossy(v) != self.pack.describe()).then(|| {
                     format!(

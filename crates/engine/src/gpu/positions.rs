@@ -256,7 +256,7 @@ fn carried_squares(c: &Carried, side: usize) -> Option<(Vec<Option<Aabb>>, [f64;
     }
     for b in out.iter_mut().flatten() {
         let d = 1e-6 * b.width().max(b.height()) + 1e-12 * b.max[0].abs().max(b.max[1].abs());
-        *b = Aabb::new(b.min[0] - d, b.min[1] - d, b.max[0] + d, b.max[1] + d);
+        *b = b.grown(d);
     }
     Some((out, images[0]))
 }

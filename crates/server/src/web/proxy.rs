@@ -91,25 +91,24 @@ pub fn nginx(listen: &str, whole: &str, regions: &[RegionRoute], max_level: u32)
     );
     let _ = writeln!(out, "map $uri $patchwork_upstream {{");
     let _ = writeln!(out, "    default patchwork_whole;");
+    // The raster-DEM pyramid, then Cesium's: their paths and the tiles of a level in a box.
+    type Within = fn(u32, &Aabb) -> Option<TileRange>;
+    let pyramids: [(&str, &str, Within); 2] = [
+        ("tiles", "[a-z]+", mercator::within),
+        ("terrain", "terrain", geographic::within),
+    ];
     for r in regions {
         for z in 0..=max_level {
-            if let Some(t) = mercator::within(z, &r.lonlat) {
-                let _ = writeln!(
-                    out,
-                    "    \"~^/tiles/{z}/{}/{}\\.[a-z]+$\" patchwork_{};",
-                    tiles_pattern(&t, true),
-                    tiles_pattern(&t, false),
-                    r.name
-                );
-            }
-            if let Some(t) = geographic::within(z, &r.lonlat) {
-                let _ = writeln!(
-                    out,
-                    "    \"~^/terrain/{z}/{}/{}\\.terrain$\" patchwork_{};",
-                    tiles_pattern(&t, true),
-                    tiles_pattern(&t, false),
-                    r.name
-                );
+            for (path, ext, within) in pyramids {
+                if let Some(t) = within(z, &r.lonlat) {
+                    let _ = writeln!(
+                        out,
+                        "    \"~^/{path}/{z}/{}/{}\\.{ext}$\" patchwork_{};",
+                        range_pattern(t.x0, t.x1),
+                        range_pattern(t.y0, t.y1),
+                        r.name
+                    );
+                }
             }
         }
     }
@@ -133,15 +132,6 @@ pub fn nginx(listen: &str, whole: &str, regions: &[RegionRoute], max_level: u32)
          proxy_set_header Host $host;\n    }}\n}}"
     );
     out
-}
-
-/// The pattern of a range's columns (`cols`) or rows.
-fn tiles_pattern(t: &TileRange, cols: bool) -> String {
-    if cols {
-        range_pattern(t.x0, t.x1)
-    } else {
-        range_pattern(t.y0, t.y1)
-    }
 }
 
 /// A regular expression matching exactly the decimal numbers `lo..=hi` (no leading zeros).
