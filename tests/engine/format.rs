@@ -109,10 +109,11 @@ fn every_record_of_the_current_schema_decodes_and_encodes_back_to_its_bytes() {
             "meta/crs" => {
                 patchwork_core::crs::Crs::parse(std::str::from_utf8(&v).unwrap()).unwrap();
             }
-            "meta/mipmap" | "meta/patches" | "meta/contradicted" | "meta/vertical_crs" => {
+            "meta/mipmap" | "meta/patches" | "meta/contradicted" | "meta/vertical_crs"
+            | "meta/blend" => {
                 assert!(std::str::from_utf8(&v).is_ok(), "{what}: not UTF-8");
             }
-            "meta/pack_len" => assert_eq!(v.len(), 8),
+            "meta/pack_len" | "meta/checked_to" => assert_eq!(v.len(), 8),
             "meta/quarantined" => {
                 same_bytes::<Vec<u64>>(&v, &what);
             }

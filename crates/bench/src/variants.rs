@@ -112,7 +112,7 @@ pub fn run(
                         Some(PatchRef::Survey(_, p)) => {
                             (p.window.cols() as usize + 1) * (p.window.rows() as usize + 1)
                         }
-                        Some(PatchRef::Edge(g)) => g.grid.cols * g.grid.rows,
+                        Some(PatchRef::Edge(g)) => g.grid.kept_heights().len(),
                         None => 0,
                     };
                 }

@@ -62,25 +62,7 @@ fn native_bounds(plane: Option<&Plane>, b: &Aabb) -> Option<Aabb> {
 /// [`place::reprojection_error`]), with the largest slope of its own cells.
 fn edge_reprojection_error(e: &EdgePatch, rho: f64) -> f64 {
     let g = &e.grid;
-    let mut slope = 0.0f64;
-    for r in 0..g.rows {
-        for c in 0..g.cols {
-            let z = g.heights[r * g.cols + c] as f64;
-            if z.is_nan() {
-                continue;
-            }
-            for (dc, dr) in [(1, 0), (0, 1)] {
-                let (cc, rr) = (c + dc, r + dr);
-                if cc < g.cols && rr < g.rows {
-                    let w = g.heights[rr * g.cols + cc] as f64;
-                    if !w.is_nan() {
-                        slope = slope.max((w - z).abs());
-                    }
-                }
-            }
-        }
-    }
-    std::f64::consts::SQRT_2 * rho * g.georef.cells_per_unit() * slope
+    std::f64::consts::SQRT_2 * rho * g.georef.cells_per_unit() * g.slope
 }
 
 /// The key of a pair: its surveys' ids, smaller first.

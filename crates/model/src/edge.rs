@@ -58,44 +58,199 @@ pub const VALID: u8 = 1;
 /// The cell whose top-left corner this sample is belongs to the edge patch.
 pub const EDGE_CELL: u8 = 2;
 
-/// The samples an edge patch evaluates: its window on the lattice, voids filled where a valid
-/// sample is near, with a flag byte per sample.
+/// The samples an edge patch evaluates: the corners of its edge cells on its window of the
+/// lattice, voids filled where a valid sample is near, with a flag byte each.
+///
+/// Only an edge cell's four corners are ever read, and edge cells are thin (a seam between
+/// abutting tiles is one cell wide), so the grid keeps those samples and a bit a sample saying
+/// which they are: on a mosaic's tile a tenth of the window's samples, and a fifth of the
+/// memory the whole window took.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EdgeGrid {
-    /// Samples per row.
+    /// Samples per row of the window.
     pub cols: usize,
     /// Rows of samples.
     pub rows: usize,
-    /// Heights, filled at void corners of edge cells; NaN where nothing is near.
-    pub heights: Vec<f32>,
-    /// [`VALID`] and [`EDGE_CELL`] bits.
-    pub flags: Vec<u8>,
+    /// A bit a sample of the window, row-major, 64 to a word: whether the grid keeps it.
+    kept: Vec<u64>,
+    /// How many samples the words before each word of `kept` keep.
+    rank: Vec<u32>,
+    /// The kept samples' heights, in row-major order: filled at void corners; NaN where
+    /// nothing is near.
+    heights: Vec<f32>,
+    /// The kept samples' [`VALID`] and [`EDGE_CELL`] bits.
+    flags: Vec<u8>,
+    /// The largest height change between 4-neighbours of the whole window as it was built,
+    /// filled voids included, in metres: what a reprojection's horizontal error moves a
+    /// height by at most, a cell of it at a time.
+    pub slope: f64,
     /// The georeference of the member with the smallest id, moved to the grid's sample (0, 0).
     pub georef: Georef,
 }
 
-/// An edge patch's answer at a point of data.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct EdgeSample {
-    /// The height, in metres.
-    pub z: f64,
-    /// Scales the patch's blend weight: 1 half a pixel inside the data, towards 0 at its edge.
-    pub weight: f64,
+/// Why the parts of an edge grid do not make one.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BadEdgeGrid(pub String);
+
+impl std::fmt::Display for BadEdgeGrid {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "edge grid: {}", self.0)
+    }
 }
 
-/// The smallest weight a point of data gets, so that a point on the very edge of the pixels,
-/// where the ramp is 0, is still answered.
-pub const MIN_WEIGHT: f64 = 1e-6;
+impl std::error::Error for BadEdgeGrid {}
 
 impl EdgeGrid {
+    /// The grid of a whole window of `cols × rows` samples: it keeps the corners of the cells
+    /// whose top-left sample has [`EDGE_CELL`], and the window's slope.
+    pub fn from_dense(
+        cols: usize,
+        rows: usize,
+        heights: &[f32],
+        flags: &[u8],
+        georef: Georef,
+    ) -> EdgeGrid {
+        let n = cols * rows;
+        assert!(
+            heights.len() == n && flags.len() == n,
+            "a dense edge grid's sizes"
+        );
+        let mut kept = vec![0u64; n.div_ceil(64)];
+        let mut keep = |i: usize| kept[i / 64] |= 1 << (i % 64);
+        for r in 0..rows.saturating_sub(1) {
+            for c in 0..cols.saturating_sub(1) {
+                let i = r * cols + c;
+                if flags[i] & EDGE_CELL != 0 {
+                    for k in [i, i + 1, i + cols, i + cols + 1] {
+                        keep(k);
+                    }
+                }
+            }
+        }
+        let bit = |i: usize| kept[i / 64] >> (i % 64) & 1 != 0;
+        let heights_kept = (0..n).filter(|&i| bit(i)).map(|i| heights[i]).collect();
+        let flags_kept = (0..n).filter(|&i| bit(i)).map(|i| flags[i]).collect();
+        let slope = dense_slope(cols, rows, heights);
+        Self::from_parts(cols, rows, kept, heights_kept, flags_kept, slope, georef)
+            .expect("the parts just kept agree")
+    }
+
+    /// A grid from its stored parts, checked to agree.
+    pub fn from_parts(
+        cols: usize,
+        rows: usize,
+        kept: Vec<u64>,
+        heights: Vec<f32>,
+        flags: Vec<u8>,
+        slope: f64,
+        georef: Georef,
+    ) -> Result<EdgeGrid, BadEdgeGrid> {
+        let n = cols
+            .checked_mul(rows)
+            .filter(|_| cols >= 2 && rows >= 2)
+            .ok_or_else(|| BadEdgeGrid(format!("a window of {cols} × {rows} samples")))?;
+        if kept.len() != n.div_ceil(64) {
+            return Err(BadEdgeGrid(format!(
+                "{} words of kept bits for {n} samples",
+                kept.len()
+            )));
+        }
+        if n % 64 != 0 && kept[n / 64] >> (n % 64) != 0 {
+            return Err(BadEdgeGrid("kept bits beyond the window".into()));
+        }
+        let mut rank = Vec::with_capacity(kept.len());
+        let mut total = 0u32;
+        for w in &kept {
+            rank.push(total);
+            total += w.count_ones();
+        }
+        if heights.len() != total as usize || flags.len() != total as usize {
+            return Err(BadEdgeGrid(format!(
+                "{total} kept samples but {} heights and {} flags",
+                heights.len(),
+                flags.len()
+            )));
+        }
+        if !slope.is_finite() || slope < 0.0 {
+            return Err(BadEdgeGrid(format!("a slope of {slope}")));
+        }
+        Ok(EdgeGrid {
+            cols,
+            rows,
+            kept,
+            rank,
+            heights,
+            flags,
+            slope,
+            georef,
+        })
+    }
+
+    /// The bits saying which samples are kept, 64 to a word, row-major.
+    pub fn kept(&self) -> &[u64] {
+        &self.kept
+    }
+
+    /// The kept samples' heights, row-major.
+    pub fn kept_heights(&self) -> &[f32] {
+        &self.heights
+    }
+
+    /// The kept samples' flags, row-major.
+    pub fn kept_flags(&self) -> &[u8] {
+        &self.flags
+    }
+
+    /// The bytes the grid holds on the heap.
+    pub fn heap_bytes(&self) -> usize {
+        self.kept.capacity() * 8
+            + self.rank.capacity() * 4
+            + self.heights.capacity() * 4
+            + self.flags.capacity()
+    }
+
+    /// Where sample (c, r) is among the kept ones, if it is kept.
     #[inline]
-    fn flag(&self, c: usize, r: usize) -> u8 {
-        self.flags[r * self.cols + c]
+    fn slot(&self, c: usize, r: usize) -> Option<usize> {
+        let i = r * self.cols + c;
+        let (w, b) = (i / 64, i % 64);
+        let word = self.kept[w];
+        (word >> b & 1 != 0)
+            .then(|| self.rank[w] as usize + (word & ((1u64 << b) - 1)).count_ones() as usize)
+    }
+
+    /// Sample (c, r)'s height and flags: NaN and 0 where it is not kept.
+    #[inline]
+    pub fn sample(&self, c: usize, r: usize) -> (f32, u8) {
+        match self.slot(c, r) {
+            Some(k) => (self.heights[k], self.flags[k]),
+            None => (f32::NAN, 0),
+        }
+    }
+
+    /// The whole window, row-major: heights (NaN where not kept) and flags (0 there), as a
+    /// client or the GPU reads it.
+    pub fn dense(&self) -> (Vec<f32>, Vec<u8>) {
+        let n = self.cols * self.rows;
+        let mut heights = vec![f32::NAN; n];
+        let mut flags = vec![0u8; n];
+        let mut k = 0;
+        for (w, &word) in self.kept.iter().enumerate() {
+            let mut bits = word;
+            while bits != 0 {
+                let i = w * 64 + bits.trailing_zeros() as usize;
+                heights[i] = self.heights[k];
+                flags[i] = self.flags[k];
+                k += 1;
+                bits &= bits - 1;
+            }
+        }
+        (heights, flags)
     }
 
     #[inline]
     fn is_edge(&self, c: usize, r: usize) -> bool {
-        self.flag(c, r) & EDGE_CELL != 0
+        self.sample(c, r).1 & EDGE_CELL != 0
     }
 
     /// The surface at fractional grid coordinates, or None outside every edge cell and outside
@@ -130,18 +285,55 @@ impl EdgeGrid {
     }
 
     fn in_cell(&self, c: usize, r: usize, f: [f64; 2]) -> Option<EdgeSample> {
-        let i = r * self.cols + c;
-        let idx = [i, i + 1, i + self.cols, i + self.cols + 1];
-        let v = idx.map(|k| self.flags[k] & VALID != 0);
+        // An edge cell's corners are all kept.
+        let s = [(c, r), (c + 1, r), (c, r + 1), (c + 1, r + 1)].map(|(c, r)| self.sample(c, r));
+        let v = s.map(|(_, flag)| flag & VALID != 0);
         if !nearest_valid(v, f) {
             return None;
         }
-        let z = idx.map(|k| self.heights[k] as f64);
+        let z = s.map(|(z, _)| z as f64);
         Some(EdgeSample {
             z: cell_surface(z, v, f),
             weight: ramp(v, f).max(MIN_WEIGHT),
         })
     }
+}
+
+/// An edge patch's answer at a point of data.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EdgeSample {
+    /// The height, in metres.
+    pub z: f64,
+    /// Scales the patch's blend weight: 1 half a pixel inside the data, towards 0 at its edge.
+    pub weight: f64,
+}
+
+/// The smallest weight a point of data gets, so that a point on the very edge of the pixels,
+/// where the ramp is 0, is still answered.
+pub const MIN_WEIGHT: f64 = 1e-6;
+
+/// The largest height change between 4-neighbours of a window of `cols × rows` samples, NaN
+/// ones left out.
+fn dense_slope(cols: usize, rows: usize, heights: &[f32]) -> f64 {
+    let mut slope = 0.0f64;
+    for r in 0..rows {
+        for c in 0..cols {
+            let z = heights[r * cols + c] as f64;
+            if z.is_nan() {
+                continue;
+            }
+            for (dc, dr) in [(1, 0), (0, 1)] {
+                let (cc, rr) = (c + dc, r + dr);
+                if cc < cols && rr < rows {
+                    let w = heights[rr * cols + cc] as f64;
+                    if !w.is_nan() {
+                        slope = slope.max((w - z).abs());
+                    }
+                }
+            }
+        }
+    }
+    slope
 }
 
 /// Twice the distance from a point to the nearest void corner's pixel (the larger of the
@@ -561,13 +753,7 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
         half: [k as f64 / 2.0 + km as f64; 2],
         valid,
         error,
-        grid: Arc::new(EdgeGrid {
-            cols,
-            rows,
-            heights,
-            flags,
-            georef,
-        }),
+        grid: Arc::new(EdgeGrid::from_dense(cols, rows, &heights, &flags, georef)),
     })
 }
 
@@ -665,6 +851,55 @@ mod tests {
         let z = [-50.0, 3.0, 5.0, 7.0];
         let want = 1.0 + 2.0 * 0.7 + 4.0 * 0.6;
         assert!((cell_surface(z, v, [0.7, 0.6]) - want).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_grid_keeps_its_edge_cells_corners_and_the_whole_windows_slope() {
+        let (cols, rows) = (70, 9);
+        let georef = Georef::north_up([0.0, 0.0], [1.0, -1.0]);
+        let heights: Vec<f32> = (0..cols * rows).map(|i| (i * 7 % 13) as f32).collect();
+        let mut flags = vec![VALID; cols * rows];
+        // Edge cells along a seam at column 40 and one cell at the far corner.
+        for r in 0..rows - 1 {
+            flags[r * cols + 40] |= EDGE_CELL;
+        }
+        flags[(rows - 2) * cols + cols - 2] |= EDGE_CELL;
+        let g = EdgeGrid::from_dense(cols, rows, &heights, &flags, georef);
+        let (h, f) = g.dense();
+        let mut kept = 0;
+        for r in 0..rows {
+            for c in 0..cols {
+                let corner = [(0, 0), (1, 0), (0, 1), (1, 1)].iter().any(|&(dc, dr)| {
+                    c >= dc
+                        && r >= dr
+                        && c - dc < cols - 1
+                        && r - dr < rows - 1
+                        && flags[(r - dr) * cols + c - dc] & EDGE_CELL != 0
+                });
+                let i = r * cols + c;
+                if corner {
+                    kept += 1;
+                    assert_eq!((h[i], f[i]), (heights[i], flags[i]), "({c}, {r})");
+                } else {
+                    assert!(h[i].is_nan() && f[i] == 0, "({c}, {r}) is not kept");
+                }
+            }
+        }
+        assert_eq!(g.kept_heights().len(), kept);
+        // The slope is the whole window's, samples left out included.
+        assert_eq!(g.slope, dense_slope(cols, rows, &heights));
+        // Heights 7i mod 13: neighbours along a row differ by 7 or 6, down a column by 9 or 4.
+        assert_eq!(g.slope, 9.0);
+        // Parts that disagree are refused.
+        let bad = |kept: Vec<u64>, n: usize| {
+            EdgeGrid::from_parts(cols, rows, kept, vec![0.0; n], vec![0; n], 1.0, georef)
+        };
+        assert!(bad(g.kept().to_vec(), kept).is_ok());
+        assert!(bad(g.kept().to_vec(), kept + 1).is_err());
+        assert!(bad(g.kept()[1..].to_vec(), kept).is_err());
+        let mut beyond = g.kept().to_vec();
+        *beyond.last_mut().unwrap() |= 1 << 63;
+        assert!(bad(beyond, kept + 1).is_err());
     }
 
     #[test]

@@ -90,18 +90,21 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                 },
             }
         }
-        Some(PatchRef::Edge(e)) => Parts {
-            georef: e.grid.georef,
-            window: e.window,
-            kernel: e.kernel,
-            centre: e.centre,
-            half: e.half,
-            flat: e.flat,
-            valid: e.valid.clone(),
-            samples: e.grid.heights.clone(),
-            flags: e.grid.flags.clone(),
-            kind: pb::PatchKind::Edge,
-        },
+        Some(PatchRef::Edge(e)) => {
+            let (samples, flags) = e.grid.dense();
+            Parts {
+                georef: e.grid.georef,
+                window: e.window,
+                kernel: e.kernel,
+                centre: e.centre,
+                half: e.half,
+                flat: e.flat,
+                valid: e.valid.clone(),
+                samples,
+                flags,
+                kind: pb::PatchKind::Edge,
+            }
+        }
     };
     let (w, k) = (p.window, p.kernel);
     let (c0, r0) = (w.c0 as f64, w.r0 as f64);

@@ -398,17 +398,22 @@ impl From<Accuracies> for KernelAccuracy {
     }
 }
 
-/// The samples of an edge patch: the heights where surveys meet, on a lattice tile.
+/// The samples of an edge patch: the heights where surveys meet, on a lattice tile, kept
+/// at the corners of its edge cells only (since version 10).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EdgeGrid {
-    /// Samples a row.
+    /// Samples a row of the window.
     pub cols: usize,
-    /// Rows.
+    /// Rows of the window.
     pub rows: usize,
-    /// The heights, row by row.
+    /// A bit a sample of the window, row by row, 64 to a word: whether it is kept.
+    pub kept: Vec<u64>,
+    /// The kept samples' heights, row by row.
     pub heights: Vec<f32>,
-    /// A flag byte a sample.
+    /// A flag byte a kept sample.
     pub flags: Vec<u8>,
+    /// The largest height change between neighbours of the whole window, metres.
+    pub slope: f64,
     /// Where the grid is.
     pub georef: Georef,
 }
@@ -462,17 +467,30 @@ impl From<&EdgePatch> for Edge {
             grid: EdgeGrid {
                 cols: e.grid.cols,
                 rows: e.grid.rows,
-                heights: e.grid.heights.clone(),
-                flags: e.grid.flags.clone(),
+                kept: e.grid.kept().to_vec(),
+                heights: e.grid.kept_heights().to_vec(),
+                flags: e.grid.kept_flags().to_vec(),
+                slope: e.grid.slope,
                 georef: (&e.grid.georef).into(),
             },
         }
     }
 }
 
-impl From<Edge> for EdgePatch {
-    fn from(e: Edge) -> Self {
-        EdgePatch {
+impl TryFrom<Edge> for EdgePatch {
+    type Error = edge::BadEdgeGrid;
+
+    fn try_from(e: Edge) -> Result<Self, Self::Error> {
+        let grid = edge::EdgeGrid::from_parts(
+            e.grid.cols,
+            e.grid.rows,
+            e.grid.kept,
+            e.grid.heights,
+            e.grid.flags,
+            e.grid.slope,
+            e.grid.georef.into(),
+        )?;
+        Ok(EdgePatch {
             owner: SurveyId(e.owner),
             id: PatchId(e.id),
             tile: e.tile,
@@ -485,14 +503,8 @@ impl From<Edge> for EdgePatch {
             half: e.half,
             valid: e.valid,
             error: e.error,
-            grid: Arc::new(edge::EdgeGrid {
-                cols: e.grid.cols,
-                rows: e.grid.rows,
-                heights: e.grid.heights,
-                flags: e.grid.flags,
-                georef: e.grid.georef.into(),
-            }),
-        }
+            grid: Arc::new(grid),
+        })
     }
 }
 

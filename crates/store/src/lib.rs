@@ -538,6 +538,11 @@ pub fn decode<T: DeserializeOwned>(b: &[u8], what: &str) -> Result<T, StoreError
     Ok(v)
 }
 
+/// An edge patch's record (`e/`) read back, its grid's parts checked to agree.
+pub fn decode_edge(b: &[u8], what: &str) -> Result<EdgePatch, StoreError> {
+    EdgePatch::try_from(decode::<form::Edge>(b, what)?).map_err(|e| decode_error(what, e))
+}
+
 /// A box's state in a unit's record: the top (f64 LE), then 1 where it is exposed.
 pub fn encode_state(s: &BoxState) -> [u8; 9] {
     let mut b = [0u8; 9];

@@ -523,7 +523,7 @@ impl Store {
                     key: String::from_utf8_lossy(&k).into_owned(),
                 })
             })?;
-            let e: EdgePatch = decode::<form::Edge>(&v, &format!("edge patch {id}"))?.into();
+            let e = decode_edge(&v, &format!("edge patch {id}"))?;
             out.push(Arc::new(e));
         }
         Ok(out)

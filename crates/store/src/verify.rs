@@ -152,7 +152,7 @@ impl Store {
             } else if let Some((id, level, k)) = keys::parse_chunk(&k) {
                 chunks.insert((id, level, k), v);
             } else if let Some(id) = keys::parse_edge(&k) {
-                match decode::<crate::form::Edge>(&v, &key_str(&k)).map(EdgePatch::from) {
+                match crate::decode_edge(&v, &key_str(&k)) {
                     Ok(e) if e.id != id => {
                         pr.add("edge", format!("{} holds edge patch {}", key_str(&k), e.id))
                     }

@@ -1461,12 +1461,18 @@ fn extent(p: &ResolvedPatch) -> Extent {
 /// patch's flags or a bicubic patch's spline coefficients (relative to the same base).
 fn pack(p: &ResolvedPatch, offset: u32, data: &mut Vec<f32>) -> Uploaded {
     let e = extent(p);
+    // An edge grid keeps only its edge cells' corners; the shader reads its whole window,
+    // the samples it never evaluates void.
+    let whole;
     // Where the surface's samples start in its level: a window of a level may begin inside it.
     let (heights, cols, flags, at): (&[f32], usize, Option<&[u8]>, [usize; 2]) = match &p.surface {
         Surface::Bilinear(w) | Surface::Bicubic(w, _) => {
             (&w.grid.samples, w.grid.cols, None, [w.c0, w.r0])
         }
-        Surface::Edge(g) => (&g.heights, g.cols, Some(&g.flags), [0, 0]),
+        Surface::Edge(g) => {
+            whole = g.dense();
+            (&whole.0, g.cols, Some(&whole.1), [0, 0])
+        }
     };
     let rows = || (e.r0..e.r0 + e.rows).map(|r| r as usize - at[1]);
     let c0 = e.c0 as usize - at[0];

@@ -18,6 +18,8 @@ mod v6_to_v7;
 mod v7_to_v8;
 mod v8;
 mod v8_to_v9;
+mod v9;
+mod v9_to_v10;
 
 /// Every step, as (from version, to version, step). `migrate` follows them from the version a
 /// store records up to `migrate::CURRENT`.
@@ -31,10 +33,11 @@ const STEPS: &[(u32, u32, Step)] = &[
     (6, 7, v6_to_v7::run),
     (7, 8, v7_to_v8::run),
     (8, 9, v8_to_v9::run),
+    (9, 10, v9_to_v10::run),
 ];
 
 /// The schema this binary writes.
-pub const CURRENT: u32 = 9;
+pub const CURRENT: u32 = 10;
 
 /// What a step may need beyond the tree: the settings `open` was called with, which a fresh
 /// store adopts, and the pack that chunk bytes go to.
