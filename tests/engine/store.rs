@@ -260,7 +260,8 @@ fn committed_surveys_come_back_as_the_same_terrain() {
                 (5, 6),
                 (6, 7),
                 (7, 8),
-                (8, 9)
+                (8, 9),
+                (9, 10)
             ]
         );
         assert_eq!(terrain.index().len(), 0);
@@ -1265,7 +1266,8 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
             (5, 6),
             (6, 7),
             (7, 8),
-            (8, 9)
+            (8, 9),
+            (9, 10)
         ]
     );
     let roi = bounds_of(&[a.clone(), b.clone()]);
@@ -1344,7 +1346,7 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8), (8, 9)]);
+    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8), (8, 9), (9, 10)]);
     let migrated: Vec<(sled::IVec, sled::IVec)> =
         store.raw().scan_prefix("b/").map(Result::unwrap).collect();
     assert_eq!(migrated, records);
@@ -1370,7 +1372,7 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8), (8, 9)]);
+    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8), (8, 9), (9, 10)]);
     assert_eq!(store.raw().scan_prefix("t/").count(), 0);
     assert_eq!(terrain.index().state(), t.index().state());
     assert_verified(&store);
@@ -1724,7 +1726,10 @@ fn a_version_5_store_keeps_its_failures_with_no_content_known() {
         store.raw().flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(5, 6), (6, 7), (7, 8), (8, 9)]);
+    assert_eq!(
+        store.migrations_run(),
+        &[(5, 6), (6, 7), (7, 8), (8, 9), (9, 10)]
+    );
     assert_eq!(
         store.failures().unwrap(),
         vec![FailedRecord {
@@ -1885,7 +1890,7 @@ fn a_version_7_store_measures_its_overlaps_again() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(7, 8), (8, 9)]);
+    assert_eq!(store.migrations_run(), &[(7, 8), (8, 9), (9, 10)]);
     let pairs: Vec<PairEvidence> = store
         .all_pairs()
         .unwrap()

@@ -205,8 +205,8 @@ struct LatticeGroup {
     members: imbl::OrdMap<SurveyId, GroupMember>,
     /// For each tile, the members whose samples its edge patch can read: those whose
     /// [`GroupMember::tile_range`] holds it.
-    near: imbl::HashMap<[i64; 2], imbl::OrdSet<SurveyId>>,
-    tiles: imbl::HashMap<[i64; 2], SurveyId>,
+    near: imbl::OrdMap<[i64; 2], imbl::OrdSet<SurveyId>>,
+    tiles: imbl::OrdMap<[i64; 2], SurveyId>,
 }
 
 impl LatticeGroup {
@@ -215,8 +215,8 @@ impl LatticeGroup {
             plane,
             lattice,
             members: imbl::OrdMap::new(),
-            near: imbl::HashMap::new(),
-            tiles: imbl::HashMap::new(),
+            near: imbl::OrdMap::new(),
+            tiles: imbl::OrdMap::new(),
         }
     }
 
@@ -289,26 +289,26 @@ pub struct Terrain {
     index: LodIndex,
     // The maps are persistent (`imbl`): the copy of the terrain a commit makes shares all
     // that the commit leaves, so that it costs the change and not the store's size.
-    surveys: imbl::HashMap<SurveyId, Arc<SurveyMeta>>,
-    edges: imbl::HashMap<SurveyId, Arc<EdgePatch>>,
+    surveys: imbl::OrdMap<SurveyId, Arc<SurveyMeta>>,
+    edges: imbl::OrdMap<SurveyId, Arc<EdgePatch>>,
     lattices: Vec<LatticeGroup>,
-    patches: imbl::HashMap<PatchId, PatchHome>,
+    patches: imbl::OrdMap<PatchId, PatchHome>,
     /// Samples held in memory: surveys inserted with them and not yet handed to a store.
-    resident: imbl::HashMap<SurveyId, Arc<[Arc<Grid>]>>,
+    resident: imbl::OrdMap<SurveyId, Arc<[Arc<Grid>]>>,
     /// Where the samples of every other survey are read.
     source: Option<Arc<dyn SampleSource>>,
     /// The surveys as built, with their own claims; `surveys` holds them as the index takes
     /// them, their claims raised where other surveys' evidence finds them false.
-    bases: imbl::HashMap<SurveyId, Arc<SurveyMeta>>,
+    bases: imbl::OrdMap<SurveyId, Arc<SurveyMeta>>,
     /// The footprints of `bases`, each an entry under its survey's id: what finds the surveys
     /// a new one overlaps without going through them all.
     footprints: MsQuadtree,
     /// What each overlapping pair of surveys says of the other, by (smaller id, larger id).
-    pairs: imbl::HashMap<(SurveyId, SurveyId), Arc<PairEvidence>>,
+    pairs: imbl::OrdMap<(SurveyId, SurveyId), Arc<PairEvidence>>,
     /// The surveys each survey has a pair with.
-    neighbours: imbl::HashMap<SurveyId, BTreeSet<SurveyId>>,
+    neighbours: imbl::OrdMap<SurveyId, BTreeSet<SurveyId>>,
     /// The raise of each survey's claims now in force (kernel, least ε); absent for none.
-    raises: imbl::HashMap<SurveyId, Raise>,
+    raises: imbl::OrdMap<SurveyId, Raise>,
     contradicted: Contradicted,
     /// How resolved patches are blended (see [`PatchSet::with_blend`]).
     blend: Blend,
@@ -358,17 +358,17 @@ impl Terrain {
         Terrain {
             planes: None,
             index: LodIndex::new(cfg),
-            surveys: imbl::HashMap::new(),
-            edges: imbl::HashMap::new(),
+            surveys: imbl::OrdMap::new(),
+            edges: imbl::OrdMap::new(),
             lattices: Vec::new(),
-            patches: imbl::HashMap::new(),
-            resident: imbl::HashMap::new(),
+            patches: imbl::OrdMap::new(),
+            resident: imbl::OrdMap::new(),
             source: None,
-            bases: imbl::HashMap::new(),
+            bases: imbl::OrdMap::new(),
             footprints: MsQuadtree::new(FOOTPRINTS_PER_NODE),
-            pairs: imbl::HashMap::new(),
-            neighbours: imbl::HashMap::new(),
-            raises: imbl::HashMap::new(),
+            pairs: imbl::OrdMap::new(),
+            neighbours: imbl::OrdMap::new(),
+            raises: imbl::OrdMap::new(),
             contradicted: Contradicted::default(),
             blend: Blend::default(),
         }

@@ -347,7 +347,10 @@ impl Engine {
     /// Every survey record and the failed files.
     pub fn records(&self) -> (Vec<SurveyRecord>, Vec<FailedRecord>) {
         let c = self.catalog();
-        (c.records.values().cloned().collect(), c.failures.clone())
+        (
+            c.records.values().map(|r| (**r).clone()).collect(),
+            c.failures.clone(),
+        )
     }
 
     /// The terrain, and every survey record, the failed files, and each active survey's
@@ -362,7 +365,7 @@ impl Engine {
             }
         }
         let listing = SurveyListing {
-            records: c.records.values().cloned().collect(),
+            records: c.records.values().map(|r| (**r).clone()).collect(),
             failures: c.failures.clone(),
             damaged: c.damaged.clone(),
             conflicts,

@@ -388,6 +388,7 @@ impl Engine {
                                 .values()
                                 .rev()
                                 .find(|r| r.content_id == content)
+                                .map(|r| &**r)
                         })
                         .flatten()
                 });

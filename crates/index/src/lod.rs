@@ -448,8 +448,8 @@ struct SurveyEntry {
 pub struct LodIndex {
     cfg: IndexConfig,
     // Persistent maps: the copy of the index a commit makes shares every box it leaves.
-    slots: imbl::HashMap<PatchId, IndexedBox>,
-    surveys: imbl::HashMap<SurveyId, SurveyEntry>,
+    slots: imbl::OrdMap<PatchId, IndexedBox>,
+    surveys: imbl::OrdMap<SurveyId, SurveyEntry>,
     tree: MsQuadtree,
 }
 
@@ -458,8 +458,8 @@ impl LodIndex {
     pub fn new(cfg: IndexConfig) -> Self {
         LodIndex {
             cfg,
-            slots: imbl::HashMap::new(),
-            surveys: imbl::HashMap::new(),
+            slots: imbl::OrdMap::new(),
+            surveys: imbl::OrdMap::new(),
             tree: MsQuadtree::new(cfg.node_capacity),
         }
     }

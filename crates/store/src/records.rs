@@ -3,6 +3,7 @@
 
 use super::*;
 use std::collections::BTreeSet;
+use std::sync::Arc;
 
 /// A survey's patches and the edge tiles its samples reach, stored together under `p/` in
 /// their [`form::Patches`].
@@ -196,10 +197,12 @@ impl std::fmt::Display for Damaged {
 /// what it changes and not the store's size.
 #[derive(Clone, Debug, Default)]
 pub struct Catalog {
-    /// Every survey record, active and retired, by id.
-    pub records: imbl::OrdMap<SurveyId, SurveyRecord>,
+    /// Every survey record, active and retired, by id. Behind an `Arc`, so that the map's
+    /// nodes hold a pointer a record rather than the record (about 450 bytes) and the slack
+    /// of their unfilled slots costs pointers.
+    pub records: imbl::OrdMap<SurveyId, Arc<SurveyRecord>>,
     /// The active records' ids by source (the smallest, should two share one).
-    by_source: imbl::HashMap<String, SurveyId>,
+    by_source: imbl::OrdMap<String, SurveyId>,
     /// How many records are active, damaged ones included: kept as records come and go, so
     /// that counting them costs nothing however large the store.
     active_records: usize,
@@ -222,7 +225,7 @@ pub struct Catalog {
 impl Catalog {
     /// The record of survey `id`, active or retired.
     pub fn record(&self, id: SurveyId) -> Option<&SurveyRecord> {
-        self.records.get(&id)
+        self.records.get(&id).map(|r| &**r)
     }
 
     /// The record of the active survey read from `source`, if any.
@@ -235,7 +238,7 @@ impl Catalog {
     /// The record of the active survey read from `source` as the store has it, a damaged one
     /// included.
     pub fn stored_active_from(&self, source: &str) -> Option<&SurveyRecord> {
-        self.records.get(self.by_source.get(source)?)
+        self.records.get(self.by_source.get(source)?).map(|r| &**r)
     }
 
     /// How many surveys [`Catalog::active`] yields, without going through them.
@@ -256,6 +259,7 @@ impl Catalog {
     pub fn active(&self) -> impl Iterator<Item = &SurveyRecord> {
         self.records
             .values()
+            .map(|r| &**r)
             .filter(|r| r.status == Status::Active && !self.damaged.contains_key(&r.id))
     }
 
@@ -271,7 +275,7 @@ impl Catalog {
                 }
             }
         }
-        self.records.insert(r.id, r);
+        self.records.insert(r.id, Arc::new(r));
     }
 
     /// Takes the record of `id` out, if there is one.
@@ -292,7 +296,7 @@ impl Catalog {
                 .map(|r| r.id)
                 .min();
             if let Some(n) = next {
-                self.by_source.insert(old.source, n);
+                self.by_source.insert(old.source.clone(), n);
             }
         }
     }
@@ -428,7 +432,7 @@ impl Store {
             let full: Vec<SurveyRecord> = self.surveys()?;
             assert!(
                 full.len() == c.records.len()
-                    && full.iter().zip(c.records.values()).all(|(a, b)| a == b),
+                    && full.iter().zip(c.records.values()).all(|(a, b)| a == &**b),
                 "the catalog kept between writes differs from the store's records"
             );
             assert_eq!(c.failures, self.failures()?, "failures kept between writes");
