@@ -133,14 +133,6 @@ pub enum PatchRef<'a> {
     Edge(&'a Arc<EdgePatch>),
 }
 
-#[derive(Clone, Copy, Debug)]
-/// Where a patch's description is kept: the patch list of its survey, at an index, or the
-/// edge patches, under their owner.
-enum PatchHome {
-    Survey(SurveyId, u32),
-    Edge(SurveyId),
-}
-
 /// A survey on a lattice, with the tiles whose edge patches it can affect.
 #[derive(Clone, Debug)]
 struct GroupMember {
@@ -292,7 +284,6 @@ pub struct Terrain {
     surveys: imbl::OrdMap<SurveyId, Arc<SurveyMeta>>,
     edges: imbl::OrdMap<SurveyId, Arc<EdgePatch>>,
     lattices: Vec<LatticeGroup>,
-    patches: imbl::OrdMap<PatchId, PatchHome>,
     /// Samples held in memory: surveys inserted with them and not yet handed to a store.
     resident: imbl::OrdMap<SurveyId, Arc<[Arc<Grid>]>>,
     /// Where the samples of every other survey are read.
@@ -361,7 +352,6 @@ impl Terrain {
             surveys: imbl::OrdMap::new(),
             edges: imbl::OrdMap::new(),
             lattices: Vec::new(),
-            patches: imbl::OrdMap::new(),
             resident: imbl::OrdMap::new(),
             source: None,
             bases: imbl::OrdMap::new(),
@@ -617,21 +607,16 @@ impl Terrain {
     }
 
     fn register(&mut self, s: Arc<SurveyMeta>) {
-        for (k, p) in s.patches.iter().enumerate() {
-            self.patches.insert(p.id, PatchHome::Survey(s.id, k as u32));
-        }
         self.surveys.insert(s.id, s);
     }
 
     fn register_edge(&mut self, gi: usize, e: Arc<EdgePatch>) {
-        self.patches.insert(e.id, PatchHome::Edge(e.owner));
         self.lattices[gi].tiles.insert(e.tile, e.owner);
         self.edges.insert(e.owner, e);
     }
 
     fn unregister_edge(&mut self, gi: usize, owner: SurveyId) {
         if let Some(e) = self.edges.remove(&owner) {
-            self.patches.remove(&e.id);
             if self.lattices[gi].tiles.get(&e.tile) == Some(&owner) {
                 self.lattices[gi].tiles.remove(&e.tile);
             }
@@ -788,13 +773,14 @@ impl Terrain {
 
     /// A patch of the terrain.
     pub fn patch(&self, id: PatchId) -> Option<PatchRef<'_>> {
-        match self.patches.get(&id)? {
-            PatchHome::Survey(sid, k) => {
-                let s = self.surveys.get(sid)?;
-                Some(PatchRef::Survey(s, &s.patches[*k as usize]))
-            }
-            PatchHome::Edge(owner) => self.edges.get(owner).map(PatchRef::Edge),
+        // The index's box names the patch's unit and its place in the unit's list.
+        let (b, _) = self.index.get(id)?;
+        if let Some(e) = self.edges.get(&b.survey).filter(|e| e.id == id) {
+            return Some(PatchRef::Edge(e));
         }
+        let s = self.surveys.get(&b.survey)?;
+        let p = s.patches.get(b.position as usize).filter(|p| p.id == id)?;
+        Some(PatchRef::Survey(s, p))
     }
 
     /// Adds a survey, with the edge patches it changes; adding one already present changes
@@ -977,10 +963,7 @@ impl Terrain {
         let stats = self.index.apply(&gone, insert);
         // The terrain's own records.
         if let Some(id) = remove {
-            let s = self.surveys.remove(&id).expect("a survey");
-            for p in &s.patches {
-                self.patches.remove(&p.id);
-            }
+            self.surveys.remove(&id).expect("a survey");
             self.drop_base(id);
             self.raises.remove(&id);
             self.resident.remove(&id);

@@ -69,6 +69,10 @@ pub struct PatchBox {
     pub survey: SurveyId,
     /// The patch's mipmap level; 0 for an edge patch.
     pub level: u8,
+    /// Where the patch is in its survey's list of patches (0 for an edge patch): what finds
+    /// the patch from its box, so that no other map from ids to patches is kept. It fits in
+    /// the box's padding.
+    pub position: u32,
     /// Nominal kernel area in the store's plane, the first key of the global order.
     pub area: f64,
     /// Bottom of the box: the patch's error ε + δ.
@@ -154,6 +158,7 @@ impl PatchBox {
                 let framed = frames.map(|(plane, f)| (plane, &f[k]));
                 PatchBox::new(
                     p,
+                    k as u32,
                     &s.shapes[l].georef,
                     &lattices[l],
                     s.layout.kernel,
@@ -163,10 +168,12 @@ impl PatchBox {
             .collect()
     }
 
-    /// The box of a survey's patch on a level georeferenced by `g`, whose lattice is `lattice`;
-    /// `framed` places a patch of another plane in the store's.
+    /// The box of a survey's patch, `position` in its survey's list, on a level georeferenced
+    /// by `g`, whose lattice is `lattice`; `framed` places a patch of another plane in the
+    /// store's.
     pub fn new(
         p: &Patch,
+        position: u32,
         g: &Georef,
         lattice: &Arc<Lattice>,
         kernel_cells: usize,
@@ -179,6 +186,7 @@ impl PatchBox {
                 id: p.id,
                 survey: p.survey,
                 level: p.level,
+                position,
                 area: nominal_area(g, kernel_cells as f64),
                 min_z: p.error,
                 plane: STORE_PLANE,
@@ -202,6 +210,7 @@ impl PatchBox {
                 id: e.id,
                 survey: e.owner,
                 level: 0,
+                position: 0,
                 area: nominal_area(g, e.kernel_cells as f64),
                 min_z: e.error,
                 plane: STORE_PLANE,

@@ -80,17 +80,45 @@ pub struct Patch {
     pub kernel: CellRect,
     /// The window clipped to the level's grid.
     pub window: CellRect,
-    /// Centre of the unclipped window in level grid units. The blending weight uses it and
-    /// `half`, so a kernel edge lying on the grid border still gets a positive weight.
-    pub centre: [f64; 2],
-    /// Half the unclipped window's side along each axis, in cells.
-    pub half: [f64; 2],
+    /// Centre of the unclipped window in level grid units (see [`Patch::centre`]). The
+    /// blending weight uses it and `half`, so a kernel edge lying on the grid border still
+    /// gets a positive weight. A whole or half cell, so f32 holds it exactly: an index holds
+    /// a patch for every 576 samples, and 16 bytes of each is what this saves.
+    pub centre: [f32; 2],
+    /// Half the unclipped window's side along each axis, in cells (see [`Patch::half`]):
+    /// half a kernel and a margin, exact in f32 too.
+    pub half: [f32; 2],
     /// The kernel's valid cells as disjoint rectangles.
-    pub valid: Vec<CellRect>,
+    pub valid: Box<[CellRect]>,
     /// Largest vertical distance to level 0 anywhere in the window (0 for level 0).
     pub delta: f64,
     /// ε + δ: the bottom of the patch's box in LOD space.
     pub error: f64,
+}
+
+impl Patch {
+    /// Centre of the unclipped window in level grid units.
+    #[inline]
+    pub fn centre(&self) -> [f64; 2] {
+        self.centre.map(f64::from)
+    }
+
+    /// Half the unclipped window's side along each axis, in cells.
+    #[inline]
+    pub fn half(&self) -> [f64; 2] {
+        self.half.map(f64::from)
+    }
+}
+
+/// A window's centre or half side as a patch keeps it: a whole or half cell, which f32 holds
+/// exactly below 2²³ cells.
+pub fn compact(v: [f64; 2]) -> [f32; 2] {
+    let c = v.map(|x| x as f32);
+    debug_assert!(
+        c.iter().zip(v).all(|(&a, b)| f64::from(a) == b),
+        "{v:?} is not a whole or half cell"
+    );
+    c
 }
 
 /// Which function the patches of a store evaluate. A store makes all its surveys' patches of
@@ -790,9 +818,9 @@ pub fn make_patches(
                 index: [pi, pj],
                 kernel,
                 window,
-                centre: t.centre([pi, pj]),
-                half: [half, half],
-                valid,
+                centre: compact(t.centre([pi, pj])),
+                half: compact([half, half]),
+                valid: valid.into_boxed_slice(),
                 delta: 0.0,
                 error: eps,
             })

@@ -492,7 +492,14 @@ impl ResolvedPatch {
             }
         };
         Self::make(
-            p.id, surface, p.kernel, p.window, p.centre, p.half, p.error, fallback,
+            p.id,
+            surface,
+            p.kernel,
+            p.window,
+            p.centre(),
+            p.half(),
+            p.error,
+            fallback,
         )
     }
 

@@ -74,8 +74,8 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                 georef: level.level.georef,
                 window: w,
                 kernel: p.kernel,
-                centre: p.centre,
-                half: p.half,
+                centre: p.centre(),
+                half: p.half(),
                 flat: 0.0,
                 valid: p
                     .valid

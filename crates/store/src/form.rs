@@ -139,8 +139,8 @@ impl From<&patch::Patch> for Patch {
             index: p.index,
             kernel: (&p.kernel).into(),
             window: (&p.window).into(),
-            centre: p.centre,
-            half: p.half,
+            centre: p.centre(),
+            half: p.half(),
             valid: p.valid.iter().map(CellRect::from).collect(),
             delta: p.delta,
             error: p.error,
@@ -157,8 +157,8 @@ impl From<Patch> for patch::Patch {
             index: p.index,
             kernel: p.kernel.into(),
             window: p.window.into(),
-            centre: p.centre,
-            half: p.half,
+            centre: patch::compact(p.centre),
+            half: patch::compact(p.half),
             valid: p.valid.into_iter().map(Into::into).collect(),
             delta: p.delta,
             error: p.error,
@@ -186,8 +186,12 @@ impl From<StoredPatches> for Patches {
 
 impl From<Patches> for StoredPatches {
     fn from(s: Patches) -> Self {
+        let mut patches: Vec<patch::Patch> = s.patches.into_iter().map(Into::into).collect();
+        // The collect reuses the stored forms' allocation, which is larger than the patches
+        // need, and the list lives as long as its survey is in the index.
+        patches.shrink_to_fit();
         StoredPatches {
-            patches: s.patches.into_iter().map(Into::into).collect(),
+            patches,
             edge_tiles: s.edge_tiles,
         }
     }
