@@ -201,8 +201,10 @@ pub struct Catalog {
     /// nodes hold a pointer a record rather than the record (about 450 bytes) and the slack
     /// of their unfilled slots costs pointers.
     pub records: imbl::OrdMap<SurveyId, Arc<SurveyRecord>>,
-    /// The active records' ids by source (the smallest, should two share one).
-    by_source: imbl::OrdMap<String, SurveyId>,
+    /// The active records, as (source, id): the first of a source is the record
+    /// [`Catalog::stored_active_from`] gives, should two share one, and a retirement takes
+    /// its own pair out without looking for the next.
+    by_source: imbl::OrdSet<(String, SurveyId)>,
     /// How many records are active, damaged ones included: kept as records come and go, so
     /// that counting them costs nothing however large the store.
     active_records: usize,
@@ -238,7 +240,9 @@ impl Catalog {
     /// The record of the active survey read from `source` as the store has it, a damaged one
     /// included.
     pub fn stored_active_from(&self, source: &str) -> Option<&SurveyRecord> {
-        self.records.get(self.by_source.get(source)?).map(|r| &**r)
+        let from = (source.to_string(), SurveyId(0));
+        let (s, id) = self.by_source.range(from..).next()?;
+        (s == source).then(|| self.records.get(id).map(|r| &**r))?
     }
 
     /// How many surveys [`Catalog::active`] yields, without going through them.
@@ -268,12 +272,7 @@ impl Catalog {
         self.take(r.id);
         if r.status == Status::Active {
             self.active_records += 1;
-            match self.by_source.get(&r.source) {
-                Some(&other) if other < r.id => {}
-                _ => {
-                    self.by_source.insert(r.source.clone(), r.id);
-                }
-            }
+            self.by_source.insert((r.source.clone(), r.id));
         }
         self.records.insert(r.id, Arc::new(r));
     }
@@ -285,19 +284,7 @@ impl Catalog {
         };
         if old.status == Status::Active {
             self.active_records -= 1;
-        }
-        if self.by_source.get(&old.source) == Some(&id) {
-            self.by_source.remove(&old.source);
-            // Another active record of the same source, should there be one.
-            let next = self
-                .records
-                .values()
-                .filter(|r| r.status == Status::Active && r.source == old.source)
-                .map(|r| r.id)
-                .min();
-            if let Some(n) = next {
-                self.by_source.insert(old.source.clone(), n);
-            }
+            self.by_source.remove(&(old.source.clone(), id));
         }
     }
 }
