@@ -167,7 +167,7 @@ fn measure(store: PathBuf) {
             + m.shapes.len() * std::mem::size_of::<patchwork_core::model::grid::Shape>()
             + m.patches.len() * std::mem::size_of::<patchwork_core::model::patch::Patch>()
             + m.edge_tiles.len() * 16;
-        valid += m.patches.iter().map(|p| p.valid.len() * 16).sum::<usize>();
+        valid += m.patches.iter().map(|p| p.valid.held() * 16).sum::<usize>();
         accuracy += m.kernel_accuracy.values.len() * 8;
     }
     let (mut edges, mut edge_bytes) = (0usize, 0usize);

@@ -179,8 +179,8 @@ impl PatchBox {
         kernel_cells: usize,
         framed: Option<(PlaneId, &Frame)>,
     ) -> Self {
-        let whole = p.valid.len() == 1 && p.valid[0] == p.kernel;
-        let valid = (!whole).then(|| p.valid.iter().map(grid_coords).collect());
+        let whole = p.valid().len() == 1 && p.valid()[0] == p.kernel;
+        let valid = (!whole).then(|| p.valid().iter().map(grid_coords).collect());
         Self::placed(
             PatchBox {
                 id: p.id,

@@ -88,15 +88,49 @@ pub struct Patch {
     /// Half the unclipped window's side along each axis, in cells (see [`Patch::half`]):
     /// half a kernel and a margin, exact in f32 too.
     pub half: [f32; 2],
-    /// The kernel's valid cells as disjoint rectangles.
-    pub valid: Box<[CellRect]>,
+    /// The kernel's valid cells as disjoint rectangles (see [`Patch::valid`]).
+    pub valid: ValidCells,
     /// Largest vertical distance to level 0 anywhere in the window (0 for level 0).
     pub delta: f64,
     /// ε + δ: the bottom of the patch's box in LOD space.
     pub error: f64,
 }
 
+/// A kernel's valid cells as disjoint rectangles, held only where they are not the whole
+/// kernel: nearly every patch's are, and a list of one rectangle is an allocation of its own
+/// a patch (16 bytes, 32 with the allocator's).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ValidCells(Option<Box<[CellRect]>>);
+
+impl ValidCells {
+    /// The valid cells of `kernel`, `cells` being disjoint rectangles inside it.
+    pub fn of(kernel: &CellRect, cells: Vec<CellRect>) -> ValidCells {
+        let whole = cells.len() == 1 && cells[0] == *kernel;
+        ValidCells((!whole).then(|| cells.into_boxed_slice()))
+    }
+
+    /// The rectangles held: none where they are the whole kernel.
+    pub fn held(&self) -> usize {
+        self.0.as_ref().map_or(0, |c| c.len())
+    }
+
+    /// The rectangles, given the kernel they are of.
+    #[inline]
+    pub fn get<'a>(&'a self, kernel: &'a CellRect) -> &'a [CellRect] {
+        match &self.0 {
+            None => std::slice::from_ref(kernel),
+            Some(cells) => cells,
+        }
+    }
+}
+
 impl Patch {
+    /// The kernel's valid cells as disjoint rectangles.
+    #[inline]
+    pub fn valid(&self) -> &[CellRect] {
+        self.valid.get(&self.kernel)
+    }
+
     /// Centre of the unclipped window in level grid units.
     #[inline]
     pub fn centre(&self) -> [f64; 2] {
@@ -820,7 +854,7 @@ pub fn make_patches(
                 window,
                 centre: compact(t.centre([pi, pj])),
                 half: compact([half, half]),
-                valid: valid.into_boxed_slice(),
+                valid: ValidCells::of(&kernel, valid),
                 delta: 0.0,
                 error: eps,
             })

@@ -78,7 +78,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                 half: p.half(),
                 flat: 0.0,
                 valid: p
-                    .valid
+                    .valid()
                     .iter()
                     .map(|v| [v.c0, v.r0, v.c1, v.r1].map(f64::from))
                     .collect(),

@@ -141,7 +141,7 @@ impl From<&patch::Patch> for Patch {
             window: (&p.window).into(),
             centre: p.centre(),
             half: p.half(),
-            valid: p.valid.iter().map(CellRect::from).collect(),
+            valid: p.valid().iter().map(CellRect::from).collect(),
             delta: p.delta,
             error: p.error,
         }
@@ -150,16 +150,17 @@ impl From<&patch::Patch> for Patch {
 
 impl From<Patch> for patch::Patch {
     fn from(p: Patch) -> Self {
+        let kernel = p.kernel.into();
         patch::Patch {
             id: PatchId(p.id),
             survey: SurveyId(p.survey),
             level: p.level,
             index: p.index,
-            kernel: p.kernel.into(),
+            kernel,
             window: p.window.into(),
             centre: patch::compact(p.centre),
             half: patch::compact(p.half),
-            valid: p.valid.into_iter().map(Into::into).collect(),
+            valid: patch::ValidCells::of(&kernel, p.valid.into_iter().map(Into::into).collect()),
             delta: p.delta,
             error: p.error,
         }
