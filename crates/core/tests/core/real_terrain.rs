@@ -289,20 +289,34 @@ fn level0_error(t: &Terrain, id: patchwork_core::model::ids::SurveyId, p: [f64; 
         .map(|x| x.error)
 }
 
-#[test]
-fn an_index_restored_from_stored_tops_is_the_same_index() {
-    let r = real();
-    let all = [r.cop.clone(), r.nasa.clone(), r.rotated.clone()];
+/// A terrain of `all`, inserted in order, and the box states a store would hold after it:
+/// the moved states of each change written, the removed ones dropped.
+fn inserted_with_states(
+    all: &[Arc<Survey>],
+) -> (
+    Terrain,
+    std::collections::HashMap<
+        patchwork_core::model::ids::PatchId,
+        patchwork_core::index::lod::BoxState,
+    >,
+) {
     let mut t = Terrain::new(IndexConfig::default());
     let mut states = std::collections::HashMap::new();
-    for s in &all {
-        // A store writes the moved states of each change and drops the removed ones.
+    for s in all {
         let change = t.insert(s.clone());
         for id in &change.removed {
             states.remove(id);
         }
         states.extend(change.moved);
     }
+    (t, states)
+}
+
+#[test]
+fn an_index_restored_from_stored_tops_is_the_same_index() {
+    let r = real();
+    let all = [r.cop.clone(), r.nasa.clone(), r.rotated.clone()];
+    let (t, states) = inserted_with_states(&all);
     // What a store keeps: the surveys without samples (with their own claims), what each
     // overlapping pair says of the other, the edge patches, the states; the samples come
     // through a source.
@@ -573,15 +587,7 @@ fn a_terrain_restored_for_a_region_answers_inside_it_as_the_whole_one() {
     }
     all.push(survey_with(false_copy, 1.0));
     all.push(real_survey(turned(&window(&whole, 170, 170, 40, 40), 25.0)));
-    let mut t = Terrain::new(IndexConfig::default());
-    let mut states = std::collections::HashMap::new();
-    for s in &all {
-        let change = t.insert(s.clone());
-        for id in &change.removed {
-            states.remove(id);
-        }
-        states.extend(change.moved);
-    }
+    let (t, states) = inserted_with_states(&all);
     assert!(t.pairs().len() >= 2, "the scene has no overlapping pairs");
     assert!(
         t.edges().any(|e| e.members.len() >= 2),
