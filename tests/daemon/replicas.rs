@@ -296,7 +296,7 @@ fn at_commit(d: &Daemon, want: u64) {
 /// The web tiles of levels 11 to 14 over the N34W119 crops and of level 11 over the Ventoux
 /// crop, each with its bounds in degrees: raster-DEM (PNG) and quantized-mesh paths.
 fn tiles() -> Vec<(String, patchwork::serve::proto::Rect)> {
-    use patchwork_core::geom::tiles::{geographic, mercator};
+    use patchwork_core::geom::tiles::{geographic, mercator, TileRange};
     use patchwork_core::geom::Aabb;
     let rect = |b: Aabb| patchwork::serve::proto::Rect {
         xmin: b.min[0],
@@ -310,22 +310,22 @@ fn tiles() -> Vec<(String, patchwork::serve::proto::Rect)> {
         (Aabb::new(5.5, 44.65, 6.0, 45.0), 11..=11),
     ] {
         for z in levels {
-            let r = mercator::over(z, &area);
-            for x in r.x0..=r.x1 {
-                for y in r.y0..=r.y1 {
-                    out.push((
-                        format!("/tiles/{z}/{x}/{y}.png"),
-                        rect(mercator::lonlat_bounds(z, x, y)),
-                    ));
-                }
-            }
-            let r = geographic::over(z, &area);
-            for x in r.x0..=r.x1 {
-                for y in r.y0..=r.y1 {
-                    out.push((
-                        format!("/terrain/{z}/{x}/{y}.terrain"),
-                        rect(geographic::bounds(z, x, y)),
-                    ));
+            // Each pyramid: its tiles over an area, a tile's bounds, its path and extension.
+            let pyramids: [(
+                fn(u32, &Aabb) -> TileRange,
+                fn(u32, u32, u32) -> Aabb,
+                &str,
+                &str,
+            ); 2] = [
+                (mercator::over, mercator::lonlat_bounds, "tiles", "png"),
+                (geographic::over, geographic::bounds, "terrain", "terrain"),
+            ];
+            for (over, bounds, path, ext) in pyramids {
+                let r = over(z, &area);
+                for x in r.x0..=r.x1 {
+                    for y in r.y0..=r.y1 {
+                        out.push((format!("/{path}/{z}/{x}/{y}.{ext}"), rect(bounds(z, x, y))));
+                    }
                 }
             }
         }
