@@ -293,10 +293,19 @@ fn at_commit(d: &Daemon, want: u64) {
     }
 }
 
+/// A pyramid of web tiles: its tiles over an area in degrees, a tile's bounds, its path and
+/// its tiles' extension.
+type Pyramid = (
+    fn(u32, &patchwork_core::geom::Aabb) -> patchwork_core::geom::tiles::TileRange,
+    fn(u32, u32, u32) -> patchwork_core::geom::Aabb,
+    &'static str,
+    &'static str,
+);
+
 /// The web tiles of levels 11 to 14 over the N34W119 crops and of level 11 over the Ventoux
 /// crop, each with its bounds in degrees: raster-DEM (PNG) and quantized-mesh paths.
 fn tiles() -> Vec<(String, patchwork::serve::proto::Rect)> {
-    use patchwork_core::geom::tiles::{geographic, mercator, TileRange};
+    use patchwork_core::geom::tiles::{geographic, mercator};
     use patchwork_core::geom::Aabb;
     let rect = |b: Aabb| patchwork::serve::proto::Rect {
         xmin: b.min[0],
@@ -310,13 +319,7 @@ fn tiles() -> Vec<(String, patchwork::serve::proto::Rect)> {
         (Aabb::new(5.5, 44.65, 6.0, 45.0), 11..=11),
     ] {
         for z in levels {
-            // Each pyramid: its tiles over an area, a tile's bounds, its path and extension.
-            let pyramids: [(
-                fn(u32, &Aabb) -> TileRange,
-                fn(u32, u32, u32) -> Aabb,
-                &str,
-                &str,
-            ); 2] = [
+            let pyramids: [Pyramid; 2] = [
                 (mercator::over, mercator::lonlat_bounds, "tiles", "png"),
                 (geographic::over, geographic::bounds, "terrain", "terrain"),
             ];
