@@ -5,7 +5,9 @@
 //!
 //! cargo run --release -p patchwork-bench --example index_memory -- [FILE ...]
 //!
-//! The files default to the Copernicus N34W119 tile in ../shared/data.
+//! The files default to the Copernicus N34W119 tile in ../shared/data. With
+//! `INDEX_MEMORY_KEEP=DIR` the store is made in DIR and kept; `INDEX_MEMORY_OPEN=DIR` then only
+//! opens it, and with `INDEX_MEMORY_EXIT=1` too exits as soon as it is open.
 
 use patchwork_engine::config::Config;
 use patchwork_engine::{Engine, Origin};
@@ -81,7 +83,11 @@ fn main() {
         }
     };
     let tmp = tempfile::tempdir().expect("temporary directory");
-    let store = tmp.path().join("store");
+    // INDEX_MEMORY_KEEP=DIR ingests into DIR and keeps it, for a heap profiler's open of it.
+    let store = match std::env::var_os("INDEX_MEMORY_KEEP") {
+        Some(dir) => PathBuf::from(dir),
+        None => tmp.path().join("store"),
+    };
     let roots = files
         .iter()
         .filter_map(|f| f.parent().map(|p| p.to_path_buf()))
@@ -110,7 +116,7 @@ fn main() {
     };
     let empty = run(&tmp.path().join("empty"));
     let full = run(&store);
-    let patches: usize = std::fs::read_to_string(tmp.path().join("patches"))
+    let patches: usize = std::fs::read_to_string(store.with_file_name("patches"))
         .ok()
         .and_then(|v| v.trim().parse().ok())
         .expect("the child says how many patches");

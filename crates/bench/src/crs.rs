@@ -302,7 +302,7 @@ pub fn run(out: &Path, smoke: bool, gdal: &mut Vec<GdalTile>) -> Result<Report, 
             let pairs: Vec<(f64, f64)> = native
                 .patches
                 .iter()
-                .zip(&placed.patches)
+                .zip(placed.patches.iter())
                 .filter(|(p, _)| p.level == level)
                 .map(|(p, q)| (p.error, q.error))
                 .collect();

@@ -1445,7 +1445,7 @@ impl Terrain {
                         let level = p.level as usize;
                         let rect = ResolvedPatch::reads(p, &s.shapes[level]);
                         self.window(s, level, rect)
-                            .map(|w| ResolvedPatch::new(w, p, s.kind, x.fallback))
+                            .map(|w| ResolvedPatch::new(w, p, s.error(p), s.kind, x.fallback))
                     }
                     PatchRef::Edge(e) => Ok(ResolvedPatch::edge(e, x.fallback)),
                 };

@@ -158,6 +158,7 @@ impl PatchBox {
                 let framed = frames.map(|(plane, f)| (plane, &f[k]));
                 PatchBox::new(
                     p,
+                    s.error(p),
                     k as u32,
                     &s.shapes[l].georef,
                     &lattices[l],
@@ -168,11 +169,12 @@ impl PatchBox {
             .collect()
     }
 
-    /// The box of a survey's patch, `position` in its survey's list, on a level georeferenced
-    /// by `g`, whose lattice is `lattice`; `framed` places a patch of another plane in the
-    /// store's.
+    /// The box of a survey's patch at `error` (its own, or what raised claims made it),
+    /// `position` in its survey's list, on a level georeferenced by `g`, whose lattice is
+    /// `lattice`; `framed` places a patch of another plane in the store's.
     pub fn new(
         p: &Patch,
+        error: f64,
         position: u32,
         g: &Georef,
         lattice: &Arc<Lattice>,
@@ -188,7 +190,7 @@ impl PatchBox {
                 level: p.level,
                 position,
                 area: nominal_area(g, kernel_cells as f64),
-                min_z: p.error,
+                min_z: error,
                 plane: STORE_PLANE,
                 lattice: lattice.clone(),
                 kernel: p.kernel,

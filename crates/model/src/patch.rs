@@ -92,7 +92,10 @@ pub struct Patch {
     pub valid: ValidCells,
     /// Largest vertical distance to level 0 anywhere in the window (0 for level 0).
     pub delta: f64,
-    /// ε + δ: the bottom of the patch's box in LOD space.
+    /// ε + δ, with the survey's own claims: the bottom of the patch's box in LOD space unless
+    /// other surveys' evidence raised those claims (then [`SurveyMeta::error`] says what it is).
+    ///
+    /// [`SurveyMeta::error`]: crate::survey::SurveyMeta::error
     pub error: f64,
 }
 

@@ -3,7 +3,7 @@
 use super::accuracy::{self, AccuracySpec, KernelAccuracy};
 use super::edge;
 use super::grid::{Grid, Shape};
-use super::ids::{hash64, SurveyId};
+use super::ids::{hash64, PatchId, SurveyId};
 use super::lattice::Lattice;
 use super::mipmap;
 use super::mipmap::Filter;
@@ -70,8 +70,14 @@ pub struct SurveyMeta {
     pub kernel_accuracy: KernelAccuracy,
     /// The levels' sizes and georeferences, level 0 first.
     pub shapes: Vec<Shape>,
-    /// Its patches, of every level.
-    pub patches: Vec<Patch>,
+    /// Its patches, of every level, with the errors the survey's own claims give them. A
+    /// survey whose claims other surveys' evidence raised shares this list with the survey as
+    /// it came (see [`SurveyMeta::with_raised_claims`]), so that an overlap does not hold every
+    /// patch of it twice; [`SurveyMeta::error`] is a patch's error as the index takes it.
+    pub patches: Arc<[Patch]>,
+    /// The errors that raised claims changed, by patch id, ascending: none for a survey as it
+    /// came.
+    pub raised: Option<Arc<[(PatchId, f64)]>>,
     /// The lattice tiles whose edge patches this survey's samples can reach (see
     /// [`edge::edge_tiles`]): found once from the samples, so that inserting or retiring a
     /// neighbour never has to read them all again.
@@ -107,9 +113,24 @@ impl SurveyMeta {
         self.kernel_accuracy.max_over(&self.tiling, &cell)
     }
 
+    /// The error of `p`, one of the survey's patches, as the index takes it: its own, or
+    /// what raised claims made it.
+    #[inline]
+    pub fn error(&self, p: &Patch) -> f64 {
+        self.raised
+            .as_deref()
+            .and_then(|r| {
+                r.binary_search_by_key(&p.id, |&(id, _)| id)
+                    .ok()
+                    .map(|k| r[k].1)
+            })
+            .unwrap_or(p.error)
+    }
+
     /// The survey with its claims raised where other surveys' evidence contradicts them
     /// (see [`super::evidence`]): each kernel listed (row-major index, least ε) to at least
-    /// that ε, and every patch's error by what that adds to the part its claims make.
+    /// that ε, and every patch's error by what that adds to the part its claims make. The
+    /// patches themselves are shared; the errors raised are listed beside them.
     pub fn with_raised_claims(&self, raise: &[(u32, f32)]) -> SurveyMeta {
         let mut m = self.clone();
         for &(k, v) in raise {
@@ -117,15 +138,19 @@ impl SurveyMeta {
             *e = e.max(v as f64);
         }
         m.accuracy = m.kernel_accuracy.max();
-        for p in m.patches.iter_mut() {
-            let claim = |a: &KernelAccuracy| {
-                super::patch::claimed_error(a, &self.tiling, p.level, &p.kernel, &p.window)
-            };
-            let (before, after) = (claim(&self.kernel_accuracy), claim(&m.kernel_accuracy));
-            if after > before {
-                p.error += after - before;
-            }
-        }
+        let mut raised: Vec<(PatchId, f64)> = self
+            .patches
+            .iter()
+            .filter_map(|p| {
+                let claim = |a: &KernelAccuracy| {
+                    super::patch::claimed_error(a, &self.tiling, p.level, &p.kernel, &p.window)
+                };
+                let (before, after) = (claim(&self.kernel_accuracy), claim(&m.kernel_accuracy));
+                (after > before).then(|| (p.id, self.error(p) + (after - before)))
+            })
+            .collect();
+        raised.sort_unstable_by_key(|&(id, _)| id);
+        m.raised = (!raised.is_empty()).then(|| raised.into());
         m
     }
 
@@ -376,7 +401,8 @@ impl Survey {
                 tiling,
                 kernel_accuracy,
                 shapes: levels.iter().map(|g| g.shape()).collect(),
-                patches,
+                patches: patches.into(),
+                raised: None,
                 edge_tiles,
             }),
             levels,
@@ -430,7 +456,13 @@ impl Survey {
         let g0 = &self.shapes[0].georef;
         let slopes = place::kernel_slopes(&self.levels[0], &self.tiling);
         let [cw, ch] = self.shapes[0].cells();
-        for p in meta.patches.iter_mut() {
+        // A survey is placed as it came, before any evidence raises its claims.
+        debug_assert!(
+            meta.raised.is_none(),
+            "a survey placed after its claims were raised"
+        );
+        let mut patches = meta.patches.to_vec();
+        for p in patches.iter_mut() {
             let f = 1u32 << p.level;
             let under = CellRect {
                 c0: p.window.c0 * f,
@@ -440,6 +472,7 @@ impl Survey {
             };
             p.error += place::reprojection_error(rho, g0, &slopes, &self.tiling, &under);
         }
+        meta.patches = patches.into();
         meta.placement = Some(placement);
         Ok(Survey {
             meta: Arc::new(meta),

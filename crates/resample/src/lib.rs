@@ -481,9 +481,9 @@ impl ResolvedPatch {
         }
     }
 
-    /// A survey's patch of `kind` on its level, read through a window holding
-    /// [`Self::reads`].
-    pub fn new(level: Window, p: &Patch, kind: PatchKind, fallback: bool) -> Self {
+    /// A survey's patch of `kind` at `error` (as the index takes it) on its level, read
+    /// through a window holding [`Self::reads`].
+    pub fn new(level: Window, p: &Patch, error: f64, kind: PatchKind, fallback: bool) -> Self {
         let surface = match kind {
             PatchKind::Bilinear => Surface::Bilinear(level),
             PatchKind::Bicubic => {
@@ -498,7 +498,7 @@ impl ResolvedPatch {
             p.window,
             p.centre(),
             p.half(),
-            p.error,
+            error,
             fallback,
         )
     }

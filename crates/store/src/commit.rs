@@ -357,7 +357,7 @@ impl Store {
     /// an open cuts them, or a later commit leaves them as garbage for compaction.
     pub fn pack_survey(&self, s: &Survey) -> Result<Packed, StoreError> {
         let stored = StoredPatches {
-            patches: s.patches.clone(),
+            patches: s.patches.to_vec(),
             edge_tiles: s.edge_tiles.clone(),
         };
         let mut entries_keys = vec![keys::patches(s.id)];

@@ -187,10 +187,9 @@ impl From<StoredPatches> for Patches {
 
 impl From<Patches> for StoredPatches {
     fn from(s: Patches) -> Self {
-        let mut patches: Vec<patch::Patch> = s.patches.into_iter().map(Into::into).collect();
         // The collect reuses the stored forms' allocation, which is larger than the patches
-        // need, and the list lives as long as its survey is in the index.
-        patches.shrink_to_fit();
+        // need; the survey's metadata copies the list into one of its length.
+        let patches: Vec<patch::Patch> = s.patches.into_iter().map(Into::into).collect();
         StoredPatches {
             patches,
             edge_tiles: s.edge_tiles,

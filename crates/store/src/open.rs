@@ -655,7 +655,8 @@ impl Store {
             tiling,
             kernel_accuracy,
             shapes: r.levels.iter().map(LevelHeader::shape).collect(),
-            patches: stored.patches,
+            patches: stored.patches.into(),
+            raised: None,
             edge_tiles: stored.edge_tiles,
         })
     }

@@ -286,7 +286,7 @@ fn level0_error(t: &Terrain, id: patchwork_core::model::ids::SurveyId, p: [f64; 
                     && g[1] <= r.r1 as f64
             })
         })
-        .map(|x| x.error)
+        .map(|x| s.error(x))
 }
 
 /// A terrain of `all`, inserted in order, and the box states a store would hold after it:
