@@ -182,7 +182,7 @@ fn measure(store: PathBuf) {
         edge_bytes += std::mem::size_of::<patchwork_core::model::edge::EdgePatch>()
             + e.members.len() * 8
             + e.valid.len() * 32
-            + e.grid.heap_bytes();
+            + e.grid.as_ref().map_or(0, |g| g.heap_bytes());
     }
     let per = |b: usize| b as f64 / surveys.max(1) as f64;
     println!(

@@ -112,7 +112,9 @@ pub fn run(
                         Some(PatchRef::Survey(_, p)) => {
                             (p.window.cols() as usize + 1) * (p.window.rows() as usize + 1)
                         }
-                        Some(PatchRef::Edge(g)) => g.grid.kept_heights().len(),
+                        Some(PatchRef::Edge(e)) => {
+                            t.edge_grid(e).map_or(0, |g| g.kept_heights().len())
+                        }
                         None => 0,
                     };
                 }

@@ -7,12 +7,12 @@ use patchwork_geom::Aabb;
 use patchwork_index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, PatchBox};
 use patchwork_index::quadtree::{Entry, MsQuadtree};
 use patchwork_index::query::{shortfall, Extracted, Shortfall, ViewQuery};
-use patchwork_model::edge::{self, EdgePatch, Member};
+use patchwork_model::edge::{self, EdgeGrid, EdgePatch, Member};
 use patchwork_model::evidence::{self, Blame, Contradicted, PairEvidence};
 use patchwork_model::grid::{Grid, SampleRect, Window};
 use patchwork_model::ids::{PatchId, SurveyId};
 use patchwork_model::lattice::{tile_of, Lattice};
-use patchwork_model::patch::{Blend, Patch};
+use patchwork_model::patch::{Blend, Patch, PatchLayout};
 use patchwork_model::place::{
     self, Frame, PlaceError, Plane, PlaneId, Planes, Residuals, STORE_PLANE,
 };
@@ -58,12 +58,59 @@ fn native_bounds(plane: Option<&Plane>, b: &Aabb) -> Option<Aabb> {
     Some(a.grown(1e-3 * a.width().max(a.height())))
 }
 
-/// What the reprojection can cost an edge patch's heights: as for a survey's patch (see
-/// [`place::reprojection_error`]), with the largest slope of its own cells.
-fn edge_reprojection_error(e: &EdgePatch, rho: f64) -> f64 {
-    let g = &e.grid;
+/// What the reprojection can cost the heights of an edge patch whose samples are `g`: as for
+/// a survey's patch (see [`place::reprojection_error`]), with the largest slope of its own
+/// cells.
+fn edge_reprojection_error(g: &EdgeGrid, rho: f64) -> f64 {
     std::f64::consts::SQRT_2 * rho * g.georef.cells_per_unit() * g.slope
 }
+
+/// An edge patch as a terrain that can read its members' samples keeps it: without its own.
+fn bare(e: Arc<EdgePatch>) -> Arc<EdgePatch> {
+    if e.grid.is_some() {
+        Arc::new(e.without_grid())
+    } else {
+        e
+    }
+}
+
+/// The edge patches' samples a terrain made again from their members', by patch id, bounded
+/// in bytes. An edge patch's id names what it holds, so every snapshot of the terrain shares
+/// the one cache.
+#[derive(Clone)]
+struct EdgeGrids(Arc<quick_cache::sync::Cache<PatchId, Arc<EdgeGrid>, GridBytes>>);
+
+#[derive(Clone)]
+struct GridBytes;
+
+impl quick_cache::Weighter<PatchId, Arc<EdgeGrid>> for GridBytes {
+    fn weight(&self, _: &PatchId, g: &Arc<EdgeGrid>) -> u64 {
+        (g.heap_bytes() + std::mem::size_of::<EdgeGrid>()) as u64
+    }
+}
+
+impl EdgeGrids {
+    /// A cache of at most `bytes` of samples: a grid is about 10 kB.
+    fn new(bytes: u64) -> Self {
+        let items = (bytes / 10_000).max(16) as usize;
+        EdgeGrids(Arc::new(quick_cache::sync::Cache::with_weighter(
+            items, bytes, GridBytes,
+        )))
+    }
+}
+
+impl std::fmt::Debug for EdgeGrids {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EdgeGrids")
+            .field("bytes", &self.0.weight())
+            .field("grids", &self.0.len())
+            .finish()
+    }
+}
+
+/// What a terrain keeps of the edge patches' samples it makes again, unless told otherwise
+/// (see [`Terrain::set_edge_cache`]).
+const EDGE_CACHE_BYTES: u64 = 16 << 20;
 
 /// The key of a pair: its surveys' ids, smaller first.
 fn pair_key(a: SurveyId, b: SurveyId) -> (SurveyId, SurveyId) {
@@ -288,6 +335,8 @@ pub struct Terrain {
     resident: imbl::OrdMap<SurveyId, Arc<[Arc<Grid>]>>,
     /// Where the samples of every other survey are read.
     source: Option<Arc<dyn SampleSource>>,
+    /// The samples of edge patches held without them, made again from their members'.
+    edge_grids: EdgeGrids,
     /// The surveys as built, with their own claims; `surveys` holds them as the index takes
     /// them, their claims raised where other surveys' evidence finds them false.
     bases: imbl::OrdMap<SurveyId, Arc<SurveyMeta>>,
@@ -354,6 +403,7 @@ impl Terrain {
             lattices: Vec::new(),
             resident: imbl::OrdMap::new(),
             source: None,
+            edge_grids: EdgeGrids::new(EDGE_CACHE_BYTES),
             bases: imbl::OrdMap::new(),
             footprints: MsQuadtree::new(FOOTPRINTS_PER_NODE),
             pairs: imbl::OrdMap::new(),
@@ -417,9 +467,84 @@ impl Terrain {
         self.planes.as_ref()?.by_id(id).map(|p| p.crs.clone())
     }
 
-    /// Reads the samples of surveys not in memory from `source`.
+    /// Reads the samples of surveys not in memory from `source`, and lets go of the edge
+    /// patches' samples, which it can then make again from their members' when a read needs
+    /// them (see [`Terrain::edge_grid`]).
     pub fn set_source(&mut self, source: Arc<dyn SampleSource>) {
         self.source = Some(source);
+        self.edges = self
+            .edges
+            .iter()
+            .map(|(owner, e)| (*owner, bare(e.clone())))
+            .collect();
+    }
+
+    /// Keeps at most `bytes` of the edge patches' samples made again, for every snapshot of
+    /// the terrain from here on.
+    pub fn set_edge_cache(&mut self, bytes: u64) {
+        self.edge_grids = EdgeGrids::new(bytes);
+    }
+
+    /// The samples of an edge patch of the terrain: its own where it holds them, else made
+    /// again from its members' samples as the terrain has them, which is what built it (the
+    /// patch's id, which names what it holds, is checked), and kept in a cache shared by
+    /// every snapshot.
+    pub fn edge_grid(&self, e: &EdgePatch) -> Result<Arc<EdgeGrid>, SampleError> {
+        if let Some(g) = &e.grid {
+            return Ok(g.clone());
+        }
+        if let Some(g) = self.edge_grids.0.get(&e.id) {
+            return Ok(g);
+        }
+        let gone = |why: &str| SampleError {
+            survey: e.owner,
+            reason: format!("edge patch {}: {why}", e.id),
+            unavailable: false,
+        };
+        let g = self
+            .lattices
+            .iter()
+            .find(|g| g.tiles.get(&e.tile) == Some(&e.owner))
+            .ok_or_else(|| gone("not a patch of this terrain"))?;
+        let layout = g
+            .members
+            .values()
+            .next()
+            .map(|m| m.survey.layout)
+            .ok_or_else(|| gone("its lattice has no survey"))?;
+        let built = self
+            .build_tile(g, &layout, e.tile)?
+            .filter(|b| b.owner == e.owner)
+            .ok_or_else(|| gone("its surveys make another patch"))?;
+        let grid = built.grid.ok_or_else(|| gone("built without samples"))?;
+        self.edge_grids.0.insert(e.id, grid.clone());
+        Ok(grid)
+    }
+
+    /// The edge patch that tile `t` of the group calls for, from its members' samples, with
+    /// its samples and the error its members' claims give it; None where it calls for none.
+    fn build_tile(
+        &self,
+        g: &LatticeGroup,
+        layout: &PatchLayout,
+        t: [i64; 2],
+    ) -> Result<Option<EdgePatch>, SampleError> {
+        // Each tile reads only the members' samples around it.
+        let mut windows = Vec::new();
+        for m in g.near(t) {
+            if let Some(rect) = m.reads(t) {
+                windows.push((m, self.window(&m.survey, 0, rect)?));
+            }
+        }
+        let members: Vec<Member> = windows
+            .iter()
+            .map(|(m, w)| Member {
+                survey: &m.survey,
+                index: m.index,
+                samples: w,
+            })
+            .collect();
+        Ok(edge::build(t, &members, layout))
     }
 
     /// Drops a survey's samples from memory once its store can serve them; a terrain without
@@ -427,6 +552,28 @@ impl Terrain {
     pub fn page_out(&mut self, id: SurveyId) {
         if self.source.is_some() {
             self.resident.remove(&id);
+        }
+    }
+
+    /// Lets go of the samples of the edge patches that `changes` brought, once the store holds
+    /// them: the terrain makes them again from their members' when a read needs them. A
+    /// terrain without a source keeps them.
+    pub fn page_out_edges(&mut self, changes: &[&ChangeStats]) {
+        if self.source.is_none() {
+            return;
+        }
+        for (id, _) in changes.iter().flat_map(|c| c.moved.iter()) {
+            let Some(owner) = self.index.unit_of(*id) else {
+                continue;
+            };
+            let held = self
+                .edges
+                .get(&owner)
+                .filter(|e| e.id == *id && e.grid.is_some())
+                .cloned();
+            if let Some(e) = held {
+                self.edges.insert(owner, bare(e));
+            }
         }
     }
 
@@ -539,7 +686,8 @@ impl Terrain {
             let Some(&gi) = e.members.first().and_then(|m| group_of_survey.get(m)) else {
                 continue;
             };
-            t.register_edge(gi, e);
+            // A restored terrain reads its samples from the store: its edge patches' too.
+            t.register_edge(gi, bare(e));
         }
         if let Some(kept) = &kept {
             t.keep_evidence_of(kept);
@@ -670,18 +818,16 @@ impl Terrain {
 
     fn edge_frame(&self, e: &EdgePatch) -> Option<(PlaneId, Frame)> {
         let (plane, rho) = self.edge_plane(&e.members)?;
-        let frame = plane
-            .frame(&e.grid.georef, &e.window, &rho)
-            .unwrap_or(Frame {
-                // Every edge patch lies within its surveys' samples, which all have images;
-                // should the fit still fail, a frame that reaches everywhere keeps coverage
-                // conservative.
-                map: patchwork_geom::Affine {
-                    origin: [0.0; 2],
-                    m: [[1.0, 0.0], [0.0, 1.0]],
-                },
-                rho: f64::INFINITY,
-            });
+        let frame = plane.frame(&e.georef, &e.window, &rho).unwrap_or(Frame {
+            // Every edge patch lies within its surveys' samples, which all have images;
+            // should the fit still fail, a frame that reaches everywhere keeps coverage
+            // conservative.
+            map: patchwork_geom::Affine {
+                origin: [0.0; 2],
+                m: [[1.0, 0.0], [0.0, 1.0]],
+            },
+            rho: f64::INFINITY,
+        });
         Some((plane.id, frame))
     }
 
@@ -694,24 +840,7 @@ impl Terrain {
         };
         let built: Vec<([i64; 2], Option<EdgePatch>)> = tiles
             .par_iter()
-            .map(|&t| {
-                // Each tile reads only the members' samples around it.
-                let mut windows = Vec::new();
-                for m in g.near(t) {
-                    if let Some(rect) = m.reads(t) {
-                        windows.push((m, self.window(&m.survey, 0, rect)?));
-                    }
-                }
-                let members: Vec<Member> = windows
-                    .iter()
-                    .map(|(m, w)| Member {
-                        survey: &m.survey,
-                        index: m.index,
-                        samples: w,
-                    })
-                    .collect();
-                Ok((t, edge::build(t, &members, &layout)))
-            })
+            .map(|&t| Ok((t, self.build_tile(g, &layout, t)?)))
             .collect::<Result<_, SampleError>>()?;
         let mut gone = Vec::new();
         let mut come = Vec::new();
@@ -719,8 +848,8 @@ impl Terrain {
             // An edge patch of another plane, like its surveys' patches, answers for where the
             // reprojection moves its points: its error grows as theirs do.
             if let Some(e) = e.as_mut() {
-                if let Some((_, rho)) = self.edge_plane(&e.members) {
-                    e.error += edge_reprojection_error(e, rho.to_native);
+                if let (Some((_, rho)), Some(g)) = (self.edge_plane(&e.members), e.grid.clone()) {
+                    e.error += edge_reprojection_error(&g, rho.to_native);
                 }
             }
             let old = g.tiles.get(&t).copied();
@@ -1447,7 +1576,9 @@ impl Terrain {
                         self.window(s, level, rect)
                             .map(|w| ResolvedPatch::new(w, p, s.error(p), s.kind, x.fallback))
                     }
-                    PatchRef::Edge(e) => Ok(ResolvedPatch::edge(e, x.fallback)),
+                    PatchRef::Edge(e) => self
+                        .edge_grid(e)
+                        .map(|g| ResolvedPatch::edge(e, g, x.fallback)),
                 };
                 Some(r.map(|mut r| {
                     if x.plane != STORE_PLANE {

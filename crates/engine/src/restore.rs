@@ -5,6 +5,7 @@
 
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::IndexConfig;
+use patchwork_core::model::edge::EdgePatch;
 use patchwork_core::model::ids::PatchId;
 use patchwork_core::model::patch::PatchLayout;
 use patchwork_core::model::source::SampleSource;
@@ -23,6 +24,15 @@ pub fn terrain_error(e: TerrainError) -> StoreError {
         TerrainError::Samples(e) => StoreError::Samples(e),
         TerrainError::Place(e) => StoreError::Place(e),
     }
+}
+
+/// An edge patch as the store writes it: what `verify` compares.
+fn as_stored(e: &EdgePatch) -> Result<Vec<u8>, StoreError> {
+    let f = patchwork_store::form::Edge::try_from(e).map_err(|_| StoreError::Inconsistent {
+        survey: e.owner,
+        what: "an edge patch it owns holds no samples to compare",
+    })?;
+    encode(&f)
 }
 
 /// A store opened, and the terrain it holds.
@@ -155,6 +165,7 @@ fn terrain_of(
         }
     };
     terrain.set_blend(store.blend());
+    terrain.set_edge_cache(store.edge_cache_bytes());
     Ok(terrain)
 }
 
@@ -253,10 +264,14 @@ pub fn verify_with(
         for e in terrain.edges() {
             match edges.remove(&e.id) {
                 None => problems.add("missing edge", format!("edge patch {} is missing", e.id)),
-                // Compared as stored: heights hold NaN where nothing is near.
+                // Compared as stored: heights hold NaN where nothing is near. Both hold their
+                // samples: the stored one as read, the derived one as built, by a terrain
+                // that has no store to read them again from.
                 Some(stored)
-                    if encode(&patchwork_store::form::Edge::from(&stored))?
-                        != encode(&patchwork_store::form::Edge::from(e.as_ref()))? =>
+                    if as_stored(&stored)?
+                        != as_stored(
+                            &e.with_grid(terrain.edge_grid(e).map_err(StoreError::Samples)?),
+                        )? =>
                 {
                     problems.add(
                         "edge",

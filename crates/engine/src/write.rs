@@ -527,8 +527,10 @@ impl Engine {
                         }
                     };
                     let outcome = (outcome, conflicts_of(&next, survey.id));
-                    // The samples are on disk now; the terrain reads them from there.
+                    // The samples are on disk now; the terrain reads them from there, and
+                    // makes its new edge patches' again from them.
                     next.page_out(survey.id);
+                    next.page_out_edges(&[&retire, &insert]);
                     Ok((outcome, Some(next)))
                 },
                 |(outcome, found)| {
@@ -737,6 +739,7 @@ fn retire_in(
         edges: &next.edges_of(&[&change]),
         ..Change::default()
     })?;
+    next.page_out_edges(&[&change]);
     Ok(next)
 }
 

@@ -205,7 +205,7 @@ impl PatchBox {
     /// The box of an edge patch. Its nominal area is a level-0 kernel's, whatever its tile's
     /// size: its samples are level 0's, so it is ordered with level-0 patches.
     pub fn edge(e: &EdgePatch, framed: Option<(PlaneId, &Frame)>) -> Self {
-        let g = &e.grid.georef;
+        let g = &e.georef;
         let whole = e.valid.len() == 1 && e.valid[0] == grid_coords(&e.kernel);
         Self::placed(
             PatchBox {

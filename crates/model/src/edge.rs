@@ -453,8 +453,31 @@ pub struct EdgePatch {
     /// ε of the samples used plus, in a cell with a void corner, the largest height change over
     /// one cell at its valid corners, in metres (see the module docs).
     pub error: f64,
-    /// The samples the patch evaluates.
-    pub grid: Arc<EdgeGrid>,
+    /// Where the grid's sample (0, 0) is and its cells' size: held whether or not the grid is.
+    pub georef: Georef,
+    /// The samples the patch evaluates, or None where a terrain let them go: they are a
+    /// function of the members' samples, which it reads again when they are needed (see
+    /// `Terrain::edge_grid`), so that a store of thousands of abutting tiles does not hold its
+    /// edge patches' samples in memory beside the surveys' own in the store.
+    pub grid: Option<Arc<EdgeGrid>>,
+}
+
+impl EdgePatch {
+    /// The patch without its samples.
+    pub fn without_grid(&self) -> EdgePatch {
+        EdgePatch {
+            grid: None,
+            ..self.clone()
+        }
+    }
+
+    /// The patch with `grid` as its samples.
+    pub fn with_grid(&self, grid: Arc<EdgeGrid>) -> EdgePatch {
+        EdgePatch {
+            grid: Some(grid),
+            ..self.clone()
+        }
+    }
 }
 
 /// A survey on a lattice: where its sample (0, 0) is on the lattice, and its level-0 samples
@@ -766,7 +789,10 @@ pub fn build(tile: [i64; 2], members: &[Member], layout: &PatchLayout) -> Option
         half: [k as f64 / 2.0 + km as f64; 2],
         valid,
         error,
-        grid: Arc::new(EdgeGrid::from_dense(cols, rows, &heights, &flags, georef)),
+        georef,
+        grid: Some(Arc::new(EdgeGrid::from_dense(
+            cols, rows, &heights, &flags, georef,
+        ))),
     })
 }
 

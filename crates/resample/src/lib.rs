@@ -503,11 +503,11 @@ impl ResolvedPatch {
         )
     }
 
-    /// An edge patch, evaluating its filled samples with its flattened weight.
-    pub fn edge(e: &EdgePatch, fallback: bool) -> Self {
+    /// An edge patch, evaluating `grid`, its samples, with its flattened weight.
+    pub fn edge(e: &EdgePatch, grid: Arc<EdgeGrid>, fallback: bool) -> Self {
         let mut p = Self::make(
             e.id,
-            Surface::Edge(e.grid.clone()),
+            Surface::Edge(grid),
             e.kernel,
             e.window,
             e.centre,

@@ -91,9 +91,9 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
             }
         }
         Some(PatchRef::Edge(e)) => {
-            let (samples, flags) = e.grid.dense();
+            let (samples, flags) = t.edge_grid(e)?.dense();
             Parts {
-                georef: e.grid.georef,
+                georef: e.georef,
                 window: e.window,
                 kernel: e.kernel,
                 centre: e.centre,

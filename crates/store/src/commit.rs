@@ -150,6 +150,13 @@ impl Store {
         edges: &[Arc<EdgePatch>],
         pairs: &[Arc<PairEvidence>],
     ) -> Result<(), StoreError> {
+        // Every edge record goes, so every edge patch must come whole.
+        if let Some(e) = edges.iter().find(|e| e.grid.is_none()) {
+            return Err(StoreError::Inconsistent {
+                survey: e.owner,
+                what: "an edge patch it owns holds no samples to write",
+            });
+        }
         let mut batch = Writes::default();
         for prefix in [keys::BOXES_PREFIX, keys::EDGE_PREFIX, keys::OVERLAP_PREFIX] {
             for kv in self.db.scan_prefix(prefix) {
@@ -518,10 +525,14 @@ pub(super) fn stage_pairs(
 }
 
 /// The edge patches a commit leaves in place, written after every removal it stages: one
-/// that a retirement removed and an insertion brought back is there.
+/// that a retirement removed and an insertion brought back is there, built again with its
+/// samples. One whose samples the terrain let go of was read from the store, under its id,
+/// which names what it holds: a change that moved its top leaves its record as it stands.
 pub(super) fn stage_edges(batch: &mut Writes, edges: &[Arc<EdgePatch>]) -> Result<(), StoreError> {
     for e in edges {
-        batch.insert(keys::edge(e.id), encode(&form::Edge::from(e.as_ref()))?);
+        if let Ok(f) = form::Edge::try_from(e.as_ref()) {
+            batch.insert(keys::edge(e.id), encode(&f)?);
+        }
     }
     Ok(())
 }

@@ -453,9 +453,18 @@ pub struct Edge {
     pub grid: EdgeGrid,
 }
 
-impl From<&EdgePatch> for Edge {
-    fn from(e: &EdgePatch) -> Self {
-        Edge {
+/// An edge patch whose samples a terrain let go of: a store writes an edge patch whole, from
+/// the terrain that built it, and never such a one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("edge patch {0} holds no samples to write")]
+pub struct NoSamples(pub PatchId);
+
+impl TryFrom<&EdgePatch> for Edge {
+    type Error = NoSamples;
+
+    fn try_from(e: &EdgePatch) -> Result<Self, Self::Error> {
+        let grid = e.grid.as_ref().ok_or(NoSamples(e.id))?;
+        Ok(Edge {
             owner: e.owner.0,
             id: e.id.0,
             tile: e.tile,
@@ -469,15 +478,15 @@ impl From<&EdgePatch> for Edge {
             valid: e.valid.clone(),
             error: e.error,
             grid: EdgeGrid {
-                cols: e.grid.cols,
-                rows: e.grid.rows,
-                kept: e.grid.kept().to_vec(),
-                heights: e.grid.kept_heights().to_vec(),
-                flags: e.grid.kept_flags().to_vec(),
-                slope: e.grid.slope,
-                georef: (&e.grid.georef).into(),
+                cols: grid.cols,
+                rows: grid.rows,
+                kept: grid.kept().to_vec(),
+                heights: grid.kept_heights().to_vec(),
+                flags: grid.kept_flags().to_vec(),
+                slope: grid.slope,
+                georef: (&grid.georef).into(),
             },
-        }
+        })
     }
 }
 
@@ -507,7 +516,8 @@ impl TryFrom<Edge> for EdgePatch {
             half: e.half,
             valid: e.valid,
             error: e.error,
-            grid: Arc::new(grid),
+            georef: grid.georef,
+            grid: Some(Arc::new(grid)),
         })
     }
 }

@@ -156,6 +156,14 @@ impl StoreOptions {
     pub fn sled_cache_bytes(&self) -> u64 {
         (self.cache_bytes / 4).max(8 << 20)
     }
+
+    /// The terrain's cache of edge patches' samples, made again from the chunks when a read
+    /// needs them: an eighth of the chunk cache, at least 4 MiB. An edge patch's samples are
+    /// about 10 kB, so 64 MiB (the default's) holds some 6,000 of them; a store of 10,000
+    /// abutting tiles of 36² has 1,156.
+    pub fn edge_cache_bytes(&self) -> u64 {
+        (self.cache_bytes / 8).max(4 << 20)
+    }
 }
 
 impl Default for StoreOptions {
@@ -725,6 +733,12 @@ impl Store {
     /// The store's vertical CRS, once it has one.
     pub fn vertical_crs(&self) -> Option<VerticalCrs> {
         read(&self.crs).1.clone()
+    }
+
+    /// How many bytes of edge patches' samples the terrain keeps (see
+    /// [`StoreOptions::edge_cache_bytes`]).
+    pub fn edge_cache_bytes(&self) -> u64 {
+        self.opts.edge_cache_bytes()
     }
 
     /// The reader the terrain gets its samples through.

@@ -127,13 +127,17 @@ pub fn in_valid_kernel(t: &Terrain, x: &Extracted, p: [f64; 2]) -> bool {
             })
         }
         PatchRef::Edge(e) => {
-            let g = e.grid.georef.to_grid(p);
+            let g = e.georef.to_grid(p);
             let k = e.kernel;
             let inside = g[0] >= k.c0 as f64 - tol
                 && g[0] <= k.c1 as f64 + tol
                 && g[1] >= k.r0 as f64 - tol
                 && g[1] <= k.r1 as f64 + tol;
-            inside && e.grid.eval(g).is_some()
+            inside
+                && t.edge_grid(e)
+                    .expect("an edge patch's samples")
+                    .eval(g)
+                    .is_some()
         }
     }
 }

@@ -206,6 +206,98 @@ fn tiles_of_one_mosaic_join_as_one_survey() {
     assert_eq!(less.index().state(), never.index().state());
 }
 
+/// A terrain that reads its samples from a store lets go of its edge patches' samples and
+/// makes them again from their members' when a read needs them: to the bit those the patches
+/// were built with, tiles to the bit, from any snapshot, one that a retirement has since
+/// moved on from too. The mosaic is split at a random column and row.
+#[test]
+fn edge_patches_made_again_from_their_members_are_the_ones_built() {
+    use patchwork_core::model::edge::EdgeGrid;
+    use patchwork_core::model::source::MemorySource;
+    use patchwork_core::terrain::PatchRef;
+    use std::sync::Arc;
+    let whole = cop();
+    let mut draw = patchwork_core::geom::rng::uniform(seed());
+    let (cols, rows) = (whole.cols, whole.rows);
+    let cs = 40 + (draw() * (cols - 80) as f64) as usize;
+    let rs = 40 + (draw() * (rows - 80) as f64) as usize;
+    println!("split at column {cs} and row {rs}");
+    let pieces: Vec<_> = [
+        (0, 0, cs, rs),
+        (cs, 0, cols - cs, rs),
+        (0, rs, cs, rows - rs),
+        (cs, rs, cols - cs, rows - rs),
+    ]
+    .iter()
+    .map(|&(c, r, w, h)| survey_with(window(&whole, c, r, w, h), 1.0))
+    .collect();
+    let held = terrain_of(&pieces);
+    assert!(held.edges().count() > 0 && held.edges().all(|e| e.grid.is_some()));
+    let mut lean = held.clone();
+    lean.set_source(Arc::new(MemorySource::of(
+        pieces.iter().map(|s| s.as_ref()),
+    )));
+    for s in &pieces {
+        lean.page_out(s.id);
+    }
+    assert!(lean.edges().all(|e| e.grid.is_none()));
+    let same = |a: &EdgeGrid, b: &EdgeGrid| {
+        let bits = |g: &EdgeGrid| {
+            g.kept_heights()
+                .iter()
+                .map(|z| z.to_bits())
+                .collect::<Vec<_>>()
+        };
+        a.kept() == b.kept()
+            && bits(a) == bits(b)
+            && a.kept_flags() == b.kept_flags()
+            && a.slope.to_bits() == b.slope.to_bits()
+            && a.georef == b.georef
+    };
+    let made_again = |t: &Terrain, of: &Terrain| {
+        for e in of.edges() {
+            let Some(PatchRef::Edge(x)) = t.patch(e.id) else {
+                panic!("edge patch {} is not in the terrain", e.id);
+            };
+            let g = t.edge_grid(x).expect("the members' samples");
+            assert!(
+                same(&g, e.grid.as_ref().expect("built with its samples")),
+                "edge patch {} made again is not the one built",
+                e.id
+            );
+        }
+    };
+    made_again(&lean, &held);
+    let roi = pixels(&whole, 0.0, 0.0, (cols - 1) as f64, (rows - 1) as f64);
+    for e in [0.0, 2.0] {
+        let (a, b) = (held.tile(&roi, 257, 263, e), lean.tile(&roi, 257, 263, e));
+        assert!(
+            a.heights
+                .iter()
+                .zip(&b.heights)
+                .all(|(x, y)| x.to_bits() == y.to_bits()),
+            "e = {e}: the tile differs"
+        );
+    }
+    // A snapshot taken before a retirement still makes its own edge patches, with a cache
+    // of its own so that nothing is found ready.
+    let mut old = lean.clone();
+    let gone = (draw() * 4.0) as usize % 4;
+    lean.retire(pieces[gone].id).unwrap();
+    assert!(
+        old.edges().any(|e| lean.patch(e.id).is_none()),
+        "the retirement changed no edge patch"
+    );
+    old.set_edge_cache(1 << 20);
+    made_again(&old, &held);
+    // And the terrain after it makes those of a terrain that never had the piece.
+    let rest: Vec<_> = (0..4)
+        .filter(|&k| k != gone)
+        .map(|k| pieces[k].clone())
+        .collect();
+    made_again(&lean, &terrain_of(&rest));
+}
+
 /// Checks a survey alone: every valid sample comes back exactly at e = 0, by point and by
 /// tile; nothing is made up outside the pixels of valid samples; and a cell with three valid
 /// corners is the plane through them. Returns how many valid samples are in no whole cell.
