@@ -320,7 +320,11 @@ impl Store {
             unreadable.into_iter().map(|d| (d.id, d)).collect();
         let left_out = self.quarantined()?;
         let checked_to = self.checked_to()?;
-        let checked: Vec<(&SurveyRecord, Result<SurveyMeta, String>)> = active
+        // The reads and the chunk check run in parallel (on an object store each read is a
+        // request); the metadata the index keeps is decoded here, on this thread. Decoded on
+        // the workers, between their reads, it left each worker's malloc arena with holes it
+        // could not give back: 5.5 kB a survey resident at 10,000 surveys, 4.9 kB decoded here.
+        let checked: Vec<(&SurveyRecord, Result<Vec<u8>, String>)> = active
             .par_iter()
             .filter(|r| r.status == Status::Active)
             .map(|r| {
@@ -335,7 +339,17 @@ impl Store {
             })
             .collect::<Result<_, StoreError>>()?;
         let mut surveys = Vec::with_capacity(checked.len());
-        for (r, meta) in checked {
+        for (r, patches) in checked {
+            let meta = match patches {
+                Err(reason) => Err(reason),
+                Ok(p) => match self.meta_of(r, &p) {
+                    Ok(m) => Ok(m),
+                    Err(e @ (StoreError::Corrupt(_) | StoreError::Decode { .. })) => {
+                        Err(e.to_string())
+                    }
+                    Err(e) => return Err(e),
+                },
+            };
             match meta {
                 Ok(m) => surveys.push(Arc::new(m)),
                 Err(reason) => {
@@ -420,9 +434,9 @@ impl Store {
         &self,
         r: &SurveyRecord,
         skip: u64,
-    ) -> Result<Result<SurveyMeta, String>, StoreError> {
-        let meta = match self.load_meta(r) {
-            Ok(m) => m,
+    ) -> Result<Result<Vec<u8>, String>, StoreError> {
+        let patches = match self.read_patches(r.id) {
+            Ok(p) => p,
             Err(e @ (StoreError::Corrupt(_) | StoreError::Decode { .. })) => {
                 return Ok(Err(e.to_string()))
             }
@@ -483,7 +497,7 @@ impl Store {
                 }
             }
         }
-        Ok(Ok(meta))
+        Ok(Ok(patches))
     }
 
     /// The ids the stored index was derived without.
@@ -549,15 +563,18 @@ impl Store {
     /// A survey's patches and edge tiles, from the pack.
     #[doc(hidden)]
     pub fn load_patches(&self, id: SurveyId) -> Result<StoredPatches, StoreError> {
-        let what = format!("the patches of survey {id}");
+        decode_patches(id, &self.read_patches(id)?)
+    }
+
+    /// The encoded form of a survey's patches and edge tiles, read from the pack and unsealed.
+    fn read_patches(&self, id: SurveyId) -> Result<Vec<u8>, StoreError> {
         let unreadable = |why: String| Corruption::Unreadable {
-            what: what.clone(),
+            what: format!("the patches of survey {id}"),
             why,
         };
         let sealed = chunks::read_packed(&self.db, self.pack.as_ref(), &keys::patches(id))
             .map_err(|e| unreadable(e.to_string()))?;
-        let v = chunks::unseal(&sealed, MAX_RECORD_BYTES).map_err(unreadable)?;
-        decode(&v, &what)
+        Ok(chunks::unseal(&sealed, MAX_RECORD_BYTES).map_err(unreadable)?)
     }
 
     /// One whole level's samples from its chunks.
@@ -590,7 +607,13 @@ impl Store {
 
     /// A survey without its samples, from its record, patches and accuracies.
     pub(super) fn load_meta(&self, r: &SurveyRecord) -> Result<SurveyMeta, StoreError> {
-        let stored = self.load_patches(r.id)?;
+        self.meta_of(r, &self.read_patches(r.id)?)
+    }
+
+    /// A survey without its samples, from its record, the encoded form of its patches, and
+    /// its accuracies.
+    fn meta_of(&self, r: &SurveyRecord, patches: &[u8]) -> Result<SurveyMeta, StoreError> {
+        let stored = decode_patches(r.id, patches)?;
         if let Some(p) = stored
             .patches
             .iter()
@@ -728,6 +751,11 @@ fn open_pack(
 }
 
 /// `meta/pack_base` for an address space that ends at `base`, left behind now.
+/// A survey's patches and edge tiles from their encoded form.
+fn decode_patches(id: SurveyId, v: &[u8]) -> Result<StoredPatches, StoreError> {
+    decode(v, &format!("the patches of survey {id}"))
+}
+
 pub(super) fn encode_base(base: u64) -> Vec<u8> {
     let mut v = base.to_le_bytes().to_vec();
     v.extend_from_slice(&now_unix().to_le_bytes());
