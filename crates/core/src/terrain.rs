@@ -1376,7 +1376,7 @@ impl Terrain {
     fn compare_with_all(&self, s: &Arc<SurveyMeta>) -> Result<Vec<PairEvidence>, SampleError> {
         let mut near = BTreeSet::new();
         self.footprints.for_each_in(&s.footprint(), |e| {
-            near.insert(SurveyId(e.id.0));
+            near.insert(SurveyId(e.id().0));
         });
         let others: Vec<&Arc<SurveyMeta>> = near
             .iter()

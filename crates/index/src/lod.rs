@@ -633,7 +633,7 @@ impl LodIndex {
     /// Boxes whose window bounds meet `area`, each once, in id order.
     pub(crate) fn boxes_in(&self, area: &Aabb) -> Vec<&Arc<PatchBox>> {
         let mut ids = Vec::new();
-        self.tree.for_each_in(area, |e| ids.push(e.id));
+        self.tree.for_each_in(area, |e| ids.push(e.id()));
         ids.sort_unstable();
         ids.dedup();
         ids.iter().map(|id| &self.slots[id].bx).collect()
@@ -729,7 +729,7 @@ impl LodIndex {
                 let old = Self::entry(slot);
                 slot.state = *state;
                 let new = Self::entry(slot);
-                self.tree.remove(old.id, &old.aabb());
+                self.tree.remove(old.id(), &old.aabb());
                 self.tree.insert(new);
             }
             if changed || fresh.contains(id) {
@@ -929,7 +929,7 @@ impl LodIndex {
         self.tree.for_each_in(
             &self.tree.bounds().unwrap_or(Aabb::new(0.0, 0.0, 0.0, 0.0)),
             |e| {
-                seen.insert(e.id);
+                seen.insert(e.id());
             },
         );
         if seen.len() != self.slots.len() {

@@ -295,7 +295,7 @@ impl LodIndex {
         let area = roi.aabb();
         let mut ids = Vec::new();
         self.tree()
-            .cut(&area, |a| field.range(a), |e| ids.push(e.id));
+            .cut(&area, |a| field.range(a), |e| ids.push(e.id()));
         ids.sort_unstable();
         ids.dedup();
         // On every core: a 1° cut of 16,000 patches took 10 ms on one.
