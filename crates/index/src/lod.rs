@@ -61,7 +61,8 @@ impl Default for IndexConfig {
 /// that they are the rectangles the grid would give to the bit. An index holds a box for every
 /// patch of the store; 64-byte rectangles and their bounds kept ready made a box of about
 /// 300 bytes. The cells of a survey's patch are read from the patch, in its survey's list,
-/// which the box shares: a box of 72 bytes, where copies of them made one of 112.
+/// which the box shares, and its plane with its placement, which only a patch of another plane
+/// has: a box of 72 bytes, where copies of them made one of 112.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PatchBox {
     /// The patch the box stands for.
@@ -78,8 +79,6 @@ pub struct PatchBox {
     pub area: f64,
     /// Bottom of the box: the patch's error ε + δ.
     pub min_z: f64,
-    /// The plane the kernel, the valid parts and the window lie in.
-    pub plane: PlaneId,
     /// The grid the cells are of.
     lattice: Arc<Lattice>,
     /// The kernel's cells, the window's, and the kernel's valid parts.
@@ -92,8 +91,7 @@ pub struct PatchBox {
 #[derive(Clone)]
 enum Cells {
     /// A survey's patch: the one at the box's `position` in the survey's list. The survey's
-    /// metadata rather than the list, whose pointer is twice as wide: with two pointers the
-    /// box is 72 bytes, where a slice made it 80.
+    /// metadata rather than the list, whose pointer is twice as wide.
     Survey(Arc<SurveyMeta>),
     /// An edge patch's.
     Edge(Box<EdgeCells>),
@@ -170,6 +168,8 @@ fn grid_coords(c: &CellRect) -> [f64; 4] {
 /// within `rho` of the true image of the patch's own.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Placed {
+    /// The plane the patch's kernel, valid parts and window lie in.
+    pub plane: PlaneId,
     /// The map from the patch's plane into the store's.
     pub frame: Affine,
     /// The frame's inverse: from the store's plane into the patch's.
@@ -227,7 +227,6 @@ impl PatchBox {
                 position,
                 area: nominal_area(g, kernel_cells as f64),
                 min_z: error,
-                plane: STORE_PLANE,
                 lattice: lattice.clone(),
                 cells: Cells::Survey(s.clone()),
                 placed: None,
@@ -249,7 +248,6 @@ impl PatchBox {
                 position: 0,
                 area: nominal_area(g, e.kernel_cells as f64),
                 min_z: e.error,
-                plane: STORE_PLANE,
                 lattice: Lattice::of(g),
                 cells: Cells::Edge(Box::new(EdgeCells {
                     kernel: e.kernel,
@@ -272,6 +270,7 @@ impl PatchBox {
             .inverse()
             .expect("a frame maps the plane onto the plane");
         let placed = Placed {
+            plane,
             frame: f.map,
             inverse,
             rho: f.rho,
@@ -282,10 +281,16 @@ impl PatchBox {
         PatchBox {
             // In the store's units, so that patches of every plane order together.
             area: b.area * f.map.det().abs(),
-            plane,
             placed: Some(Box::new(placed)),
             ..b
         }
+    }
+
+    /// The plane the kernel, the valid parts and the window lie in: the store's, or for a
+    /// patch of another plane, its own (kept with its placement, which only such a patch has).
+    #[inline]
+    pub fn plane(&self) -> PlaneId {
+        self.placed.as_ref().map_or(STORE_PLANE, |p| p.plane)
     }
 
     /// The kernel's cells.
@@ -372,7 +377,7 @@ impl PatchBox {
     /// Whether two kernels may meet: exactly within one plane, through the store's plane
     /// (with both frames' bounds) between two.
     fn meets(&self, o: &PatchBox) -> bool {
-        if self.plane == o.plane {
+        if self.plane() == o.plane() {
             return self.kernel().intersects(&o.kernel());
         }
         self.store_kernel()
@@ -383,7 +388,7 @@ impl PatchBox {
     /// This box's valid parts as seen from `t`'s plane, shrunk where they are known only to
     /// within a frame's bound, so that whatever they cover there they truly cover.
     fn seen_from(&self, t: &PatchBox, out: &mut Vec<ORect>) {
-        if self.plane == t.plane {
+        if self.plane() == t.plane() {
             self.valid_into(out);
             return;
         }

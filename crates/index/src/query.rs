@@ -196,7 +196,7 @@ impl Extracted {
             span,
             kernel: b.store_kernel(),
             window: b.reach(),
-            plane: b.plane,
+            plane: b.plane(),
             fallback,
         }
     }
