@@ -189,14 +189,15 @@ impl PatchBox {
     pub fn of_survey(s: &Arc<SurveyMeta>) -> Vec<PatchBox> {
         let frames = s.placement.as_ref().map(|pl| (pl.plane.id, &pl.frames));
         let lattices: Vec<Arc<Lattice>> = s.shapes.iter().map(|l| Lattice::of(&l.georef)).collect();
-        (0..s.patches.len())
-            .map(|k| {
-                let l = s.patches[k].level as usize;
+        s.patches
+            .iter()
+            .enumerate()
+            .map(|(k, p)| {
+                let l = p.level as usize;
                 let framed = frames.map(|(plane, f)| (plane, &f[k]));
                 PatchBox::new(
                     s,
                     k as u32,
-                    s.error(&s.patches[k]),
                     &s.shapes[l].georef,
                     &lattices[l],
                     s.layout.kernel,
@@ -206,13 +207,12 @@ impl PatchBox {
             .collect()
     }
 
-    /// The box of the patch `position` in the list of the survey `s`, at `error` (its own,
-    /// or what raised claims made it), on a level georeferenced by `g`, whose lattice is
-    /// `lattice`; `framed` places a patch of another plane in the store's.
+    /// The box of the patch `position` in the list of the survey `s`, at the error the survey
+    /// gives it (its own, or what raised claims made it), on a level georeferenced by `g`,
+    /// whose lattice is `lattice`; `framed` places a patch of another plane in the store's.
     pub fn new(
         s: &Arc<SurveyMeta>,
         position: u32,
-        error: f64,
         g: &Georef,
         lattice: &Arc<Lattice>,
         kernel_cells: usize,
@@ -226,7 +226,7 @@ impl PatchBox {
                 level: p.level,
                 position,
                 area: nominal_area(g, kernel_cells as f64),
-                min_z: error,
+                min_z: s.error(p),
                 lattice: lattice.clone(),
                 cells: Cells::Survey(s.clone()),
                 placed: None,
