@@ -158,12 +158,15 @@ fn measure(store: PathBuf) {
         held as f64 / (1 << 20) as f64,
         held as f64 / patches as f64
     );
+    let tree = index.tree_stats();
     println!(
-        "by size alone: a box {} B, a patch {} B, a quadtree entry {} B ({:.2} stored a patch)",
-        std::mem::size_of::<patchwork_core::index::lod::PatchBox>(),
+        "by size alone: a patch {} B, a quadtree entry {} B ({:.2} stored a patch, {:.3} nodes a patch); \
+         a box, made when asked, {} B",
         std::mem::size_of::<patchwork_core::model::patch::Patch>(),
         std::mem::size_of::<patchwork_core::index::quadtree::Entry>(),
-        index.tree_stats().stored as f64 / patches as f64
+        tree.stored as f64 / patches as f64,
+        tree.nodes as f64 / patches as f64,
+        std::mem::size_of::<patchwork_core::index::lod::PatchBox>(),
     );
     // What the parts hold by their sizes: the surveys' metadata and the edge patches' samples.
     let (mut surveys, mut meta, mut valid, mut accuracy) = (0usize, 0usize, 0usize, 0usize);

@@ -4,7 +4,7 @@
 
 use patchwork_crs::Crs;
 use patchwork_geom::Aabb;
-use patchwork_index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, PatchBox};
+use patchwork_index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, UnitBoxes};
 use patchwork_index::quadtree::{Entry, MsQuadtree};
 use patchwork_index::query::{shortfall, Extracted, Shortfall, ViewQuery};
 use patchwork_model::edge::{self, EdgeGrid, EdgePatch, Member};
@@ -699,19 +699,17 @@ impl Terrain {
                 BoxState::EMPTY
             })
         };
-        let mut units: Vec<(SurveyId, Vec<(PatchBox, BoxState)>)> = Vec::new();
+        let mut units: Vec<(SurveyId, UnitBoxes, Vec<BoxState>)> = Vec::new();
         for s in t.surveys.values() {
-            let boxes = PatchBox::of_survey(s).into_iter().map(|b| {
-                let st = state(b.id);
-                (b, st)
-            });
-            units.push((s.id, boxes.collect()));
+            let boxes = UnitBoxes::of_survey(s);
+            let states = (0..boxes.len()).map(|k| state(boxes.id(k))).collect();
+            units.push((s.id, boxes, states));
         }
-        let boxes: Vec<(SurveyId, PatchBox)> =
+        let edges: Vec<(SurveyId, UnitBoxes)> =
             t.edges.values().map(|e| (e.owner, t.edge_box(e))).collect();
-        for (owner, b) in boxes {
-            let st = state(b.id);
-            units.push((owner, vec![(b, st)]));
+        for (owner, boxes) in edges {
+            let states = vec![state(boxes.id(0))];
+            units.push((owner, boxes, states));
         }
         missing.sort_unstable();
         t.index = LodIndex::restore(cfg, units);
@@ -811,9 +809,9 @@ impl Terrain {
 
     /// An edge patch as LOD space sees it: in its lattice's plane, framed in the store's
     /// for a lattice of another CRS.
-    fn edge_box(&self, e: &EdgePatch) -> PatchBox {
+    fn edge_box(&self, e: &EdgePatch) -> UnitBoxes {
         let framed = self.edge_frame(e);
-        PatchBox::edge(e, framed.as_ref().map(|(id, f)| (*id, f)))
+        UnitBoxes::edge(e, framed.as_ref().map(|(id, f)| (*id, f)))
     }
 
     fn edge_frame(&self, e: &EdgePatch) -> Option<(PlaneId, Frame)> {
@@ -902,13 +900,13 @@ impl Terrain {
 
     /// A patch of the terrain.
     pub fn patch(&self, id: PatchId) -> Option<PatchRef<'_>> {
-        // The index's box names the patch's unit and its place in the unit's list.
-        let (b, _) = self.index.get(id)?;
-        if let Some(e) = self.edges.get(&b.survey).filter(|e| e.id == id) {
+        // The index names the patch's unit and its place in the unit's list.
+        let (unit, position) = self.index.slot(id)?;
+        if let Some(e) = self.edges.get(&unit).filter(|e| e.id == id) {
             return Some(PatchRef::Edge(e));
         }
-        let s = self.surveys.get(&b.survey)?;
-        let p = s.patches.get(b.position as usize).filter(|p| p.id == id)?;
+        let s = self.surveys.get(&unit)?;
+        let p = s.patches.get(position as usize).filter(|p| p.id == id)?;
         Some(PatchRef::Survey(s, p))
     }
 
@@ -1077,17 +1075,17 @@ impl Terrain {
         // One change of the index: the survey in or out, the surveys whose claims moved out
         // and in again, and the edge patches.
         let mut gone: Vec<SurveyId> = remove.into_iter().collect();
-        let mut insert: Vec<(SurveyId, Vec<PatchBox>)> = Vec::new();
+        let mut insert: Vec<(SurveyId, UnitBoxes)> = Vec::new();
         if let Some((_, _, eff)) = &added {
-            insert.push((eff.id, PatchBox::of_survey(eff)));
+            insert.push((eff.id, UnitBoxes::of_survey(eff)));
         }
         for (o, eff) in &new_metas {
             gone.push(*o);
-            insert.push((*o, PatchBox::of_survey(eff)));
+            insert.push((*o, UnitBoxes::of_survey(eff)));
         }
         for (_, (g, c)) in &diffs {
             gone.extend(g.iter().copied());
-            insert.extend(c.iter().map(|e| (e.owner, vec![self.edge_box(e)])));
+            insert.extend(c.iter().map(|e| (e.owner, self.edge_box(e))));
         }
         let stats = self.index.apply(&gone, insert);
         // The terrain's own records.

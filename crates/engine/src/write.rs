@@ -606,10 +606,7 @@ impl Engine {
                 if store_active_from(&self.catalog(), &rec.source).is_none_or(|r| r.id != rec.id) {
                     return Err(StoreError::NotActive(rec.id));
                 }
-                let n = current
-                    .index()
-                    .survey_patches(rec.id)
-                    .map_or(0, |p| p.len());
+                let n = current.index().unit_len(rec.id).unwrap_or(0);
                 let next = retire_in(store, current, rec, pin)?;
                 Ok((n, Some(next)))
             },

@@ -185,86 +185,62 @@ pub struct Placed {
 }
 
 impl PatchBox {
-    /// A survey's patches as LOD-space boxes, placed in the store's plane as the survey is.
-    pub fn of_survey(s: &Arc<SurveyMeta>) -> Vec<PatchBox> {
-        let frames = s.placement.as_ref().map(|pl| (pl.plane.id, &pl.frames));
-        let lattices: Vec<Arc<Lattice>> = s.shapes.iter().map(|l| Lattice::of(&l.georef)).collect();
-        s.patches
-            .iter()
-            .enumerate()
-            .map(|(k, p)| {
-                let l = p.level as usize;
-                let framed = frames.map(|(plane, f)| (plane, &f[k]));
-                PatchBox::new(
-                    s,
-                    k as u32,
-                    &s.shapes[l].georef,
-                    &lattices[l],
-                    s.layout.kernel,
-                    framed,
-                )
-            })
-            .collect()
-    }
-
     /// The box of the patch `position` in the list of the survey `s`, at the error the survey
-    /// gives it (its own, or what raised claims made it), on a level georeferenced by `g`,
-    /// whose lattice is `lattice`; `framed` places a patch of another plane in the store's.
-    pub fn new(
+    /// gives it (its own, or what raised claims made it), on a level whose lattice is
+    /// `lattice` and whose kernels' nominal area is `area`; `framed` places a patch of another
+    /// plane in the store's.
+    fn of_patch(
         s: &Arc<SurveyMeta>,
         position: u32,
-        g: &Georef,
-        lattice: &Arc<Lattice>,
-        kernel_cells: usize,
+        (lattice, area): &(Arc<Lattice>, f64),
         framed: Option<(PlaneId, &Frame)>,
     ) -> Self {
         let p = &s.patches[position as usize];
-        Self::placed(
-            PatchBox {
-                id: p.id,
-                survey: p.survey,
-                level: p.level,
-                position,
-                area: nominal_area(g, kernel_cells as f64),
-                min_z: s.error(p),
-                lattice: lattice.clone(),
-                cells: Cells::Survey(s.clone()),
-                placed: None,
-            },
-            framed,
-        )
+        let b = PatchBox {
+            id: p.id,
+            survey: p.survey,
+            level: p.level,
+            position,
+            area: *area,
+            min_z: s.error(p),
+            lattice: lattice.clone(),
+            cells: Cells::Survey(s.clone()),
+            placed: None,
+        };
+        match framed {
+            Some(f) => Self::placed(b, f),
+            None => b,
+        }
     }
 
     /// The box of an edge patch. Its nominal area is a level-0 kernel's, whatever its tile's
     /// size: its samples are level 0's, so it is ordered with level-0 patches.
-    pub fn edge(e: &EdgePatch, framed: Option<(PlaneId, &Frame)>) -> Self {
+    fn edge(e: &EdgePatch, framed: Option<(PlaneId, &Frame)>) -> Self {
         let g = &e.georef;
         let whole = e.valid.len() == 1 && e.valid[0] == grid_coords(&e.kernel);
-        Self::placed(
-            PatchBox {
-                id: e.id,
-                survey: e.owner,
-                level: 0,
-                position: 0,
-                area: nominal_area(g, e.kernel_cells as f64),
-                min_z: e.error,
-                lattice: Lattice::of(g),
-                cells: Cells::Edge(Box::new(EdgeCells {
-                    kernel: e.kernel,
-                    window: e.window,
-                    valid: (!whole).then(|| e.valid.clone().into_boxed_slice()),
-                })),
-                placed: None,
-            },
-            framed,
-        )
+        let b = PatchBox {
+            id: e.id,
+            survey: e.owner,
+            level: 0,
+            position: 0,
+            area: nominal_area(g, e.kernel_cells as f64),
+            min_z: e.error,
+            lattice: Lattice::of(g),
+            cells: Cells::Edge(Box::new(EdgeCells {
+                kernel: e.kernel,
+                window: e.window,
+                valid: (!whole).then(|| e.valid.clone().into_boxed_slice()),
+            })),
+            placed: None,
+        };
+        match framed {
+            Some(f) => Self::placed(b, f),
+            None => b,
+        }
     }
 
-    /// A box in the store's plane, or carried into it through `framed`.
-    fn placed(b: PatchBox, framed: Option<(PlaneId, &Frame)>) -> Self {
-        let Some((plane, f)) = framed else {
-            return b;
-        };
+    /// A box carried into the store's plane through the frame of its plane.
+    fn placed(b: PatchBox, (plane, f): (PlaneId, &Frame)) -> Self {
         let inverse = f
             .map
             .inverse()
@@ -433,6 +409,123 @@ impl PatchBox {
     }
 }
 
+/// The boxes of a unit (a survey, or an edge patch's owner) as the index keeps them. The boxes
+/// of a survey in the store's plane are not kept at all: each is made from its patch when it is
+/// asked for, in a few multiplications, so that what the index holds for such a patch is its
+/// state, its quadtree entries and its place in the map from ids. A box of 72 bytes in an `Arc`
+/// of its own, with a map entry of its own, took about 150.
+#[derive(Clone, Debug)]
+pub struct UnitBoxes(Boxes);
+
+#[derive(Clone)]
+enum Boxes {
+    /// A survey's patches in the store's plane, with each level's lattice and nominal kernel
+    /// area.
+    Survey {
+        meta: Arc<SurveyMeta>,
+        levels: Arc<[(Arc<Lattice>, f64)]>,
+    },
+    /// Boxes made once and kept: an edge patch's, and those of a survey of another plane,
+    /// whose placement in the store's plane is worth working out once.
+    Made(Arc<[PatchBox]>),
+}
+
+impl std::fmt::Debug for Boxes {
+    // A survey's whole list would be printed.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Boxes::Survey { meta, .. } => {
+                write!(f, "Survey({}, {} patches)", meta.id, meta.patches.len())
+            }
+            Boxes::Made(b) => write!(f, "Made({} boxes)", b.len()),
+        }
+    }
+}
+
+impl UnitBoxes {
+    /// A survey's patches as LOD-space boxes, placed in the store's plane as the survey is.
+    pub fn of_survey(s: &Arc<SurveyMeta>) -> UnitBoxes {
+        let levels: Arc<[(Arc<Lattice>, f64)]> = s
+            .shapes
+            .iter()
+            .map(|l| {
+                let area = nominal_area(&l.georef, s.layout.kernel as f64);
+                (Lattice::of(&l.georef), area)
+            })
+            .collect();
+        let Some(pl) = &s.placement else {
+            return UnitBoxes(Boxes::Survey {
+                meta: s.clone(),
+                levels,
+            });
+        };
+        let boxes = s
+            .patches
+            .iter()
+            .enumerate()
+            .map(|(k, p)| {
+                let framed = Some((pl.plane.id, &pl.frames[k]));
+                PatchBox::of_patch(s, k as u32, &levels[p.level as usize], framed)
+            })
+            .collect();
+        UnitBoxes(Boxes::Made(boxes))
+    }
+
+    /// An edge patch's box, in its lattice's plane, carried into the store's through
+    /// `framed` for a lattice of another.
+    pub fn edge(e: &EdgePatch, framed: Option<(PlaneId, &Frame)>) -> UnitBoxes {
+        UnitBoxes(Boxes::Made(Arc::new([PatchBox::edge(e, framed)])))
+    }
+
+    /// The unit's boxes.
+    pub fn len(&self) -> usize {
+        match &self.0 {
+            Boxes::Survey { meta, .. } => meta.patches.len(),
+            Boxes::Made(b) => b.len(),
+        }
+    }
+
+    /// Whether the unit has no box.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The id of the box at `k` in the unit's list.
+    #[inline]
+    pub fn id(&self, k: usize) -> PatchId {
+        match &self.0 {
+            Boxes::Survey { meta, .. } => meta.patches[k].id,
+            Boxes::Made(b) => b[k].id,
+        }
+    }
+
+    /// The bottom of the box at `k`: its patch's error.
+    #[inline]
+    pub fn min_z(&self, k: usize) -> f64 {
+        match &self.0 {
+            Boxes::Survey { meta, .. } => meta.error(&meta.patches[k]),
+            Boxes::Made(b) => b[k].min_z,
+        }
+    }
+
+    /// The box at `k` in the unit's list.
+    #[inline]
+    pub fn get(&self, k: usize) -> PatchBox {
+        match &self.0 {
+            Boxes::Survey { meta, levels } => {
+                let level = meta.patches[k].level as usize;
+                PatchBox::of_patch(meta, k as u32, &levels[level], None)
+            }
+            Boxes::Made(b) => b[k].clone(),
+        }
+    }
+
+    /// Every box of the unit, in its list's order.
+    pub fn boxes(&self) -> impl Iterator<Item = PatchBox> + '_ {
+        (0..self.len()).map(|k| self.get(k))
+    }
+}
+
 /// The area of a kernel of `side` × `side` cells of a grid: the first key of the global order.
 fn nominal_area(g: &Georef, side: f64) -> f64 {
     let skew = if g.is_orthogonal() {
@@ -485,11 +578,18 @@ impl BoxState {
 /// The states of a unit's boxes, in patch id order.
 pub type UnitStates = Vec<(PatchId, BoxState)>;
 
+/// A unit in the index: its boxes, and their states in the same order.
 #[derive(Clone, Debug)]
-/// A box in the index with its state: its top in LOD space, and whether it is exposed.
-struct IndexedBox {
-    bx: Arc<PatchBox>,
-    state: BoxState,
+struct Unit {
+    boxes: UnitBoxes,
+    states: Arc<[BoxState]>,
+}
+
+/// Where the index finds a box: its unit, and its place in the unit's list.
+#[derive(Clone, Copy, Debug)]
+struct Slot {
+    unit: SurveyId,
+    position: u32,
 }
 
 /// What an insertion or retirement did.
@@ -510,19 +610,15 @@ pub struct ChangeStats {
     pub units: Vec<(SurveyId, Option<UnitStates>)>,
 }
 
-#[derive(Clone, Debug)]
-struct SurveyEntry {
-    patches: Vec<PatchId>,
-}
-
 /// LOD space: every patch's box and its state, by the unit it came with, and the
 /// multiple-storage quadtree over their windows that cuts are answered from.
 #[derive(Clone, Debug)]
 pub struct LodIndex {
     cfg: IndexConfig,
-    // Persistent maps: the copy of the index a commit makes shares every box it leaves.
-    slots: imbl::OrdMap<PatchId, IndexedBox>,
-    surveys: imbl::OrdMap<SurveyId, SurveyEntry>,
+    // Persistent maps: the copy of the index a commit makes shares every unit it leaves, and
+    // a unit's states are copied only where a box of it moved.
+    units: imbl::OrdMap<SurveyId, Unit>,
+    slots: imbl::OrdMap<PatchId, Slot>,
     tree: MsQuadtree,
 }
 
@@ -531,8 +627,8 @@ impl LodIndex {
     pub fn new(cfg: IndexConfig) -> Self {
         LodIndex {
             cfg,
+            units: imbl::OrdMap::new(),
             slots: imbl::OrdMap::new(),
-            surveys: imbl::OrdMap::new(),
             tree: MsQuadtree::new(cfg.node_capacity),
         }
     }
@@ -554,35 +650,51 @@ impl LodIndex {
 
     /// Whether the unit `s` (a survey, or an edge patch's owner) is present.
     pub fn contains_survey(&self, s: SurveyId) -> bool {
-        self.surveys.contains_key(&s)
+        self.units.contains_key(&s)
     }
 
     /// The units present, in no particular order.
     pub fn surveys(&self) -> impl Iterator<Item = SurveyId> + '_ {
-        self.surveys.keys().copied()
+        self.units.keys().copied()
     }
 
-    /// The ids of a unit's patches, in the order they were added; None when it is absent.
-    pub fn survey_patches(&self, s: SurveyId) -> Option<&[PatchId]> {
-        self.surveys.get(&s).map(|e| e.patches.as_slice())
+    /// How many boxes a unit has; None when it is absent.
+    pub fn unit_len(&self, s: SurveyId) -> Option<usize> {
+        self.units.get(&s).map(|u| u.boxes.len())
+    }
+
+    /// Where a present box is: its unit, and its place in the unit's list (its survey's list of
+    /// patches; 0 for an edge patch).
+    pub fn slot(&self, id: PatchId) -> Option<(SurveyId, u32)> {
+        self.slots.get(&id).map(|s| (s.unit, s.position))
+    }
+
+    fn find(&self, id: PatchId) -> Option<(&Unit, usize)> {
+        let s = self.slots.get(&id)?;
+        let u = self.units.get(&s.unit)?;
+        Some((u, s.position as usize))
+    }
+
+    /// A box and its state; None when no such patch is present.
+    fn lookup(&self, id: PatchId) -> Option<(PatchBox, BoxState)> {
+        let (u, k) = self.find(id)?;
+        Some((u.boxes.get(k), u.states[k]))
     }
 
     /// A box and its current z-span; None when no such patch is present.
-    pub fn get(&self, id: PatchId) -> Option<(&Arc<PatchBox>, Span)> {
-        self.slots.get(&id).map(|s| {
-            (
-                &s.bx,
-                Span {
-                    min_z: s.bx.min_z,
-                    max_z: s.state.top,
-                },
-            )
+    pub fn get(&self, id: PatchId) -> Option<(PatchBox, Span)> {
+        self.lookup(id).map(|(b, st)| {
+            let span = Span {
+                min_z: b.min_z,
+                max_z: st.top,
+            };
+            (b, span)
         })
     }
 
     /// A box's state, as a store keeps it; None when no such patch is present.
     pub fn state_of(&self, id: PatchId) -> Option<BoxState> {
-        self.slots.get(&id).map(|s| s.state)
+        self.find(id).map(|(u, k)| u.states[k])
     }
 
     /// The quadtree's shape: nodes, stored entries, depth.
@@ -603,51 +715,48 @@ impl LodIndex {
     /// Every box and its state, in id order: two indexes over the same surveys give equal maps.
     pub fn state(&self) -> BTreeMap<PatchId, (Span, bool)> {
         self.slots
-            .iter()
-            .map(|(id, s)| {
-                (
-                    *id,
-                    (
-                        Span {
-                            min_z: s.bx.min_z,
-                            max_z: s.state.top,
-                        },
-                        s.state.exposed,
-                    ),
-                )
+            .keys()
+            .filter_map(|id| {
+                let (u, k) = self.find(*id)?;
+                let st = u.states[k];
+                let span = Span {
+                    min_z: u.boxes.min_z(k),
+                    max_z: st.top,
+                };
+                Some((*id, (span, st.exposed)))
             })
             .collect()
     }
 
     /// Boxes not cut to nothing: those whose span is non-empty.
     pub fn active_count(&self) -> usize {
-        self.slots
+        self.units
             .values()
-            .filter(|s| s.state.top > s.bx.min_z)
-            .count()
+            .map(|u| {
+                (0..u.boxes.len())
+                    .filter(|&k| u.states[k].top > u.boxes.min_z(k))
+                    .count()
+            })
+            .sum()
     }
 
-    fn entry(slot: &IndexedBox) -> Entry {
-        Entry::new(
-            slot.bx.id,
-            slot.state.top,
-            slot.bx.min_z,
-            slot.state.exposed,
-            &slot.bx.window_aabb(),
-        )
+    fn entry(b: &PatchBox, state: BoxState) -> Entry {
+        Entry::new(b.id, state.top, b.min_z, state.exposed, &b.window_aabb())
     }
 
     /// Boxes whose window bounds meet `area`, each once, in id order.
-    pub(crate) fn boxes_in(&self, area: &Aabb) -> Vec<&Arc<PatchBox>> {
+    pub(crate) fn boxes_in(&self, area: &Aabb) -> Vec<PatchBox> {
         let mut ids = Vec::new();
         self.tree.for_each_in(area, |e| ids.push(e.id()));
         ids.sort_unstable();
         ids.dedup();
-        ids.iter().map(|id| &self.slots[id].bx).collect()
+        ids.iter()
+            .filter_map(|id| self.find(*id).map(|(u, k)| u.boxes.get(k)))
+            .collect()
     }
 
     /// Boxes other than `p` whose kernels meet `p`'s and that `keep` accepts.
-    fn neighbours(&self, p: &PatchBox, keep: impl Fn(&PatchBox) -> bool) -> Vec<&Arc<PatchBox>> {
+    fn neighbours(&self, p: &PatchBox, keep: impl Fn(&PatchBox) -> bool) -> Vec<PatchBox> {
         self.boxes_in(&p.aabb())
             .into_iter()
             .filter(|q| q.id != p.id && q.meets(p) && keep(q))
@@ -658,11 +767,10 @@ impl LodIndex {
     /// meet `p`'s). Candidates are taken in order of error (ties by id, so the answer never
     /// depends on iteration order); coverage is monotone in the set, so a binary search over
     /// the distinct errors finds the first that covers.
-    fn ceiling_of(&self, p: &PatchBox, near: &[&Arc<PatchBox>]) -> f64 {
+    fn ceiling_of(&self, p: &PatchBox, near: &[PatchBox]) -> f64 {
         let top = self.cfg.max_error;
-        let mut cands: Vec<&Arc<PatchBox>> = near
+        let mut cands: Vec<&PatchBox> = near
             .iter()
-            .copied()
             .filter(|q| q.order(p) == Ordering::Greater)
             .collect();
         if cands.is_empty() {
@@ -700,7 +808,7 @@ impl LodIndex {
 
     /// Whether some of `p`'s valid kernel is covered by no more accurate patch among `near`.
     /// Like the top, a pure function of the set of patches.
-    fn exposed(&self, p: &PatchBox, near: &[&Arc<PatchBox>]) -> bool {
+    fn exposed(&self, p: &PatchBox, near: &[PatchBox]) -> bool {
         let mut better: Vec<ORect> = Vec::new();
         for q in near.iter().filter(|q| q.more_accurate(p)) {
             q.seen_from(p, &mut better);
@@ -724,23 +832,28 @@ impl LodIndex {
         ids: Vec<PatchId>,
         fresh: &HashSet<PatchId>,
     ) -> (usize, Vec<(PatchId, BoxState)>) {
-        let states: Vec<(PatchId, BoxState)> = ids
+        let states: Vec<(PatchBox, BoxState)> = ids
             .par_iter()
-            .filter_map(|id| self.slots.get(id).map(|s| (*id, self.derive(&s.bx))))
+            .filter_map(|id| {
+                let (b, _) = self.lookup(*id)?;
+                let state = self.derive(&b);
+                Some((b, state))
+            })
             .collect();
         let mut moved = Vec::new();
-        for (id, state) in &states {
-            let slot = self.slots.get_mut(id).expect("present");
-            let changed = !slot.state.same(state);
+        for (b, state) in &states {
+            let slot = self.slots[&b.id];
+            let unit = self.units.get_mut(&slot.unit).expect("present");
+            let k = slot.position as usize;
+            let changed = !unit.states[k].same(state);
             if changed {
-                let old = Self::entry(slot);
-                slot.state = *state;
-                let new = Self::entry(slot);
-                self.tree.remove(old.id(), &old.aabb());
-                self.tree.insert(new);
+                // Copies the unit's states only where a snapshot still shares them.
+                Arc::make_mut(&mut unit.states)[k] = *state;
+                self.tree.remove(b.id, &b.window_aabb());
+                self.tree.insert(Self::entry(b, *state));
             }
-            if changed || fresh.contains(id) {
-                moved.push((*id, *state));
+            if changed || fresh.contains(&b.id) {
+                moved.push((b.id, *state));
             }
         }
         (states.len(), moved)
@@ -748,7 +861,7 @@ impl LodIndex {
 
     /// Boxes already present whose state a change to `changed` can move: smaller ones that
     /// meet them (their tops) and less accurate ones that meet them (their exposure).
-    fn touched_by(&self, changed: &[Arc<PatchBox>]) -> Vec<PatchId> {
+    fn touched_by(&self, changed: &[PatchBox]) -> Vec<PatchId> {
         let set: HashSet<PatchId> = changed
             .par_iter()
             .flat_map_iter(|b| {
@@ -763,63 +876,69 @@ impl LodIndex {
         v
     }
 
+    /// Puts a unit's boxes into the tree and the map of slots with `states`, and the unit
+    /// into the index. A box whose id another unit's box has already (two 64-bit hashes that
+    /// meet) is left out of both, so that the one present keeps its place.
+    fn put(&mut self, survey: SurveyId, boxes: UnitBoxes, states: Vec<BoxState>) -> Vec<PatchId> {
+        let mut ids = Vec::with_capacity(boxes.len());
+        for (k, b) in boxes.boxes().enumerate() {
+            if self.slots.contains_key(&b.id) {
+                continue;
+            }
+            self.tree.insert(Self::entry(&b, states[k]));
+            let slot = Slot {
+                unit: survey,
+                position: k as u32,
+            };
+            self.slots.insert(b.id, slot);
+            ids.push(b.id);
+        }
+        let states = states.into();
+        self.units.insert(survey, Unit { boxes, states });
+        ids
+    }
+
     /// Removes the patches of the units in `remove`, adds those of `insert`, and recomputes
     /// every box the change can touch, once (Algorithm 2 for all of them at once). Removing an
     /// absent unit or adding a present one changes nothing.
     pub fn apply(
         &mut self,
         remove: &[SurveyId],
-        insert: Vec<(SurveyId, Vec<PatchBox>)>,
+        insert: Vec<(SurveyId, UnitBoxes)>,
     ) -> ChangeStats {
-        let mut changed: Vec<Arc<PatchBox>> = Vec::new();
+        let mut changed: Vec<PatchBox> = Vec::new();
         let mut removed = Vec::new();
         for s in remove {
-            let Some(entry) = self.surveys.remove(s) else {
+            let Some(unit) = self.units.remove(s) else {
                 continue;
             };
-            for id in entry.patches {
-                if let Some(slot) = self.slots.remove(&id) {
-                    self.tree.remove(id, &slot.bx.window_aabb());
-                    removed.push(id);
-                    changed.push(slot.bx);
+            for b in unit.boxes.boxes() {
+                if self.slots.get(&b.id).is_some_and(|at| at.unit == *s) {
+                    self.slots.remove(&b.id);
+                    self.tree.remove(b.id, &b.window_aabb());
+                    removed.push(b.id);
+                    changed.push(b);
                 }
             }
         }
-        // What is new: each unit and box once, none already present.
-        let (mut seen_units, mut seen_boxes) = (HashSet::new(), HashSet::new());
-        let adding: Vec<(SurveyId, Vec<Arc<PatchBox>>)> = insert
+        // What is new: each unit once, none already present.
+        let mut seen = HashSet::new();
+        let adding: Vec<(SurveyId, UnitBoxes)> = insert
             .into_iter()
-            .filter(|(survey, _)| !self.surveys.contains_key(survey) && seen_units.insert(*survey))
-            .map(|(survey, boxes)| {
-                let boxes = boxes
-                    .into_iter()
-                    .filter(|b| !self.slots.contains_key(&b.id) && seen_boxes.insert(b.id))
-                    .map(Arc::new)
-                    .collect();
-                (survey, boxes)
-            })
+            .filter(|(survey, _)| !self.units.contains_key(survey) && seen.insert(*survey))
             .collect();
         // The boxes already present that the new ones can move are found before the new ones
         // go into the tree, so that the search meets only those: the new boxes are all
         // recomputed anyway, and a survey alone in its area (the first of a store, or a tile
         // of a mosaic) had every box search through its own survey's thousands for nothing.
-        changed.extend(adding.iter().flat_map(|(_, boxes)| boxes.iter().cloned()));
+        changed.extend(adding.iter().flat_map(|(_, boxes)| boxes.boxes()));
         let mut todo = self.touched_by(&changed);
+        drop(changed);
         let mut fresh = HashSet::new();
         for (survey, boxes) in adding {
-            let mut ids = Vec::with_capacity(boxes.len());
-            for bx in boxes {
-                // Provisionally empty; the recomputation below gives the real state.
-                let slot = IndexedBox {
-                    bx,
-                    state: BoxState::EMPTY,
-                };
-                self.tree.insert(Self::entry(&slot));
-                ids.push(slot.bx.id);
-                fresh.insert(slot.bx.id);
-                self.slots.insert(slot.bx.id, slot);
-            }
-            self.surveys.insert(survey, SurveyEntry { patches: ids });
+            // Provisionally empty; the recomputation below gives the real state.
+            let states = vec![BoxState::EMPTY; boxes.len()];
+            fresh.extend(self.put(survey, boxes, states));
         }
         // A box removed and added again in one change (same content) is simply recomputed.
         removed.retain(|id| !fresh.contains(id));
@@ -849,16 +968,14 @@ impl LodIndex {
 
     /// The unit a present box came with.
     pub fn unit_of(&self, id: PatchId) -> Option<SurveyId> {
-        self.slots.get(&id).map(|s| s.bx.survey)
+        self.slots.get(&id).map(|s| s.unit)
     }
 
     /// The states of a present unit's boxes, in id order.
     pub fn unit_states(&self, unit: SurveyId) -> Option<Vec<(PatchId, BoxState)>> {
-        let entry = self.surveys.get(&unit)?;
-        let mut v: Vec<(PatchId, BoxState)> = entry
-            .patches
-            .iter()
-            .filter_map(|id| self.slots.get(id).map(|s| (*id, s.state)))
+        let u = self.units.get(&unit)?;
+        let mut v: Vec<(PatchId, BoxState)> = (0..u.boxes.len())
+            .map(|k| (u.boxes.id(k), u.states[k]))
             .collect();
         v.sort_unstable_by_key(|(id, _)| *id);
         Some(v)
@@ -867,7 +984,7 @@ impl LodIndex {
     /// Every unit with the states of its boxes, both in id order: the whole index as a store
     /// keeps it.
     pub fn all_unit_states(&self) -> Vec<(SurveyId, Vec<(PatchId, BoxState)>)> {
-        let mut units: Vec<SurveyId> = self.surveys.keys().copied().collect();
+        let mut units: Vec<SurveyId> = self.units.keys().copied().collect();
         units.sort_unstable();
         units
             .into_iter()
@@ -876,7 +993,7 @@ impl LodIndex {
     }
 
     /// Adds a survey's patches. Adding a survey that is already present changes nothing.
-    pub fn insert_survey(&mut self, survey: SurveyId, boxes: Vec<PatchBox>) -> ChangeStats {
+    pub fn insert_survey(&mut self, survey: SurveyId, boxes: UnitBoxes) -> ChangeStats {
         self.apply(&[], vec![(survey, boxes)])
     }
 
@@ -887,41 +1004,34 @@ impl LodIndex {
             .then(|| self.apply(&[survey], Vec::new()))
     }
 
-    /// Rebuilds an index from boxes whose states were computed before (by a store), without
-    /// running the cutter. `check` tells whether the states are still right.
+    /// Rebuilds an index from units whose boxes' states were computed before (by a store),
+    /// each state in the order of its unit's boxes, without running the cutter.
     pub fn restore(
         cfg: IndexConfig,
-        surveys: impl IntoIterator<Item = (SurveyId, Vec<(PatchBox, BoxState)>)>,
+        units: impl IntoIterator<Item = (SurveyId, UnitBoxes, Vec<BoxState>)>,
     ) -> Self {
         let mut ix = LodIndex::new(cfg);
-        for (survey, boxes) in surveys {
-            let mut ids = Vec::with_capacity(boxes.len());
-            for (b, state) in boxes {
-                let slot = IndexedBox {
-                    bx: Arc::new(b),
-                    state,
-                };
-                ix.tree.insert(Self::entry(&slot));
-                ids.push(slot.bx.id);
-                ix.slots.insert(slot.bx.id, slot);
-            }
-            ix.surveys.insert(survey, SurveyEntry { patches: ids });
+        for (survey, boxes, states) in units {
+            assert_eq!(boxes.len(), states.len(), "a state for every box");
+            ix.put(survey, boxes, states);
         }
+        ix.tree.shrink_to_fit();
         ix
     }
 
     /// Re-derives every box's state from scratch and checks the tree: what `verify` runs.
     pub fn check(&self) -> Result<(), String> {
         self.tree.check()?;
-        let slots: Vec<(&PatchId, &IndexedBox)> = self.slots.iter().collect();
-        let bad: Vec<String> = slots
+        let ids: Vec<PatchId> = self.slots.keys().copied().collect();
+        let bad: Vec<String> = ids
             .into_par_iter()
-            .filter_map(|(id, s)| {
-                let want = self.derive(&s.bx);
-                (!want.same(&s.state)).then(|| {
+            .filter_map(|id| {
+                let (b, st) = self.lookup(id)?;
+                let want = self.derive(&b);
+                (!want.same(&st)).then(|| {
                     format!(
                         "patch {id}: top {} exposed {} should be {} {}",
-                        s.state.top, s.state.exposed, want.top, want.exposed
+                        st.top, st.exposed, want.top, want.exposed
                     )
                 })
             })

@@ -259,6 +259,15 @@ impl Node {
         }
     }
 
+    fn shrink_to_fit(&mut self) {
+        self.entries.shrink_to_fit();
+        if let Some(ch) = self.children.as_mut() {
+            for c in Arc::make_mut(ch).iter_mut() {
+                c.shrink_to_fit();
+            }
+        }
+    }
+
     fn stats(&self, depth: u32, s: &mut TreeStats) {
         s.nodes += 1;
         s.stored += self.entries.len();
@@ -378,6 +387,15 @@ impl MsQuadtree {
     ) {
         if let Some(r) = &self.root {
             r.cut(area, &range, &mut f);
+        }
+    }
+
+    /// Gives back what the nodes' lists hold beyond their entries. The lists grow by doubling,
+    /// so a tree built by insertions holds room for about a third more entries than it has
+    /// in its leaves. Meant for a tree just built: a subtree shared with a copy is copied.
+    pub fn shrink_to_fit(&mut self) {
+        if let Some(r) = self.root.as_mut() {
+            r.shrink_to_fit();
         }
     }
 

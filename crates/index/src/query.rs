@@ -309,10 +309,10 @@ impl LodIndex {
                 let aabb = b.aabb();
                 let (lo, hi) = field.range(&aabb.intersection(&area).unwrap_or(aabb));
                 if span.is_active() && b.min_z <= hi && span.max_z > lo {
-                    return Some(Extracted::of(b, span, false));
+                    return Some(Extracted::of(&b, span, false));
                 }
                 let exposed = self.state_of(id).is_some_and(|s| s.exposed);
-                (exposed && span.is_active() && b.min_z > lo).then(|| Extracted::of(b, span, true))
+                (exposed && span.is_active() && b.min_z > lo).then(|| Extracted::of(&b, span, true))
             })
             .collect()
     }

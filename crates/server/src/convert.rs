@@ -534,7 +534,7 @@ pub fn surveys(t: &Terrain, l: &SurveyListing) -> pb::SurveyList {
                     .map_or("unknown".into(), |v| v.key().to_string()),
                 vertical_error_m: r.vertical_error_m,
                 about: Some(about(&r.about)),
-                patches: t.index().survey_patches(r.id).map_or(0, |p| p.len() as u32),
+                patches: t.index().unit_len(r.id).map_or(0, |n| n as u32),
                 conflicts: l
                     .conflicts
                     .get(&r.id)

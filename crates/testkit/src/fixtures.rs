@@ -241,9 +241,9 @@ pub fn survey_heights(surveys: &[Arc<Survey>], p: [f64; 2]) -> Vec<f64> {
 /// fine enough (`cell / 8`) that every piece of the arrangement holds a sample when all grids
 /// share one orientation and their edges sit on a quarter-cell lattice.
 pub fn redundant(t: &Terrain, ps: &[Extracted], lattice: f64) -> Vec<String> {
-    let boxes: Vec<(Extracted, Arc<PatchBox>)> = ps
+    let boxes: Vec<(Extracted, PatchBox)> = ps
         .iter()
-        .map(|x| (x.clone(), t.index().get(x.id).unwrap().0.clone()))
+        .map(|x| (x.clone(), t.index().get(x.id).unwrap().0))
         .collect();
     let mut bad = Vec::new();
     for (x, b) in &boxes {
@@ -289,13 +289,13 @@ pub fn needless_fallback(
     fallback: &[Extracted],
     lattice: f64,
 ) -> Vec<String> {
-    let boxes: Vec<(Extracted, Arc<PatchBox>)> = all
+    let boxes: Vec<(Extracted, PatchBox)> = all
         .iter()
-        .map(|x| (x.clone(), t.index().get(x.id).unwrap().0.clone()))
+        .map(|x| (x.clone(), t.index().get(x.id).unwrap().0))
         .collect();
     let mut bad = Vec::new();
     for x in fallback {
-        let b = t.index().get(x.id).unwrap().0.clone();
+        let b = t.index().get(x.id).unwrap().0;
         let better: Vec<&Extracted> = boxes
             .iter()
             .filter(|(_, q)| q.more_accurate(&b) && q.kernel().intersects(&b.kernel()))
