@@ -1234,9 +1234,9 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
                 // Versions 1 and 2 kept the patches alone, in the database.
                 let id: SurveyId = id.parse().unwrap();
                 let p = store.load_patches(id).unwrap();
-                let patches: Vec<form::Patch> = p.patches.iter().map(form::Patch::from).collect();
+                let patches: &Vec<form::Patch> = &p.patches;
                 let bytes =
-                    bincode::serde::encode_to_vec(&patches, bincode::config::standard()).unwrap();
+                    bincode::serde::encode_to_vec(patches, bincode::config::standard()).unwrap();
                 db.insert(k, bytes).unwrap();
             }
         }

@@ -9,6 +9,7 @@
 //! `INDEX_MEMORY_KEEP=DIR` the store is made in DIR and kept; `INDEX_MEMORY_OPEN=DIR` then only
 //! opens it, and with `INDEX_MEMORY_EXIT=1` too exits as soon as it is open.
 
+use patchwork_core::index::lod::IndexConfig;
 use patchwork_engine::config::Config;
 use patchwork_engine::{Engine, Origin};
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -66,6 +67,14 @@ fn config(store: PathBuf, roots: Vec<PathBuf>) -> Config {
         // One MiB of decoded chunks and a quarter of it for sled's pages: what is left is the
         // index.
         cache_mb: 1,
+        index: IndexConfig {
+            // INDEX_MEMORY_NODE_CAPACITY=N makes a store whose quadtree nodes keep N boxes.
+            node_capacity: std::env::var("INDEX_MEMORY_NODE_CAPACITY")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(IndexConfig::default().node_capacity),
+            ..IndexConfig::default()
+        },
         ..Config::default()
     }
 }
@@ -196,6 +205,44 @@ fn measure(store: PathBuf) {
         per(accuracy),
         per(edge_bytes)
     );
+    // What the quadtree's shape costs a cut: 400 uniform cuts over squares of a hundredth to a
+    // tenth of the data's side, at errors from 0 to 30 m, drawn from a fixed seed so that two
+    // builds cut the same; the median and the 90th percentile.
+    if let Some(b) = index
+        .bounds()
+        .filter(|_| std::env::var_os("INDEX_MEMORY_CUTS").is_some())
+    {
+        let data = terrain
+            .surveys()
+            .map(|s| s.footprint())
+            .reduce(|a, b| a.union(&b));
+        let data = data.unwrap_or(b);
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut draw = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (mut ms, mut got) = (Vec::new(), 0usize);
+        for _ in 0..400 {
+            let side = data.width().min(data.height()) * (0.01 + 0.09 * draw());
+            let x = data.min[0] + (data.width() - side) * draw();
+            let y = data.min[1] + (data.height() - side) * draw();
+            let e = 30.0 * draw();
+            let roi = patchwork_core::geom::Aabb::new(x, y, x + side, y + side);
+            let t0 = std::time::Instant::now();
+            got += index.uniform(&roi, e).len();
+            ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        ms.sort_by(f64::total_cmp);
+        println!(
+            "400 uniform cuts: {:.3} ms (median), {:.3} ms (90th percentile), {} patches each",
+            ms[200],
+            ms[360],
+            got / 400
+        );
+    }
     // What an edge patch held without its samples costs the first read that needs them:
     // made again from its members' samples, read from the store through cold caches. A copy
     // of the terrain with a cache of its own makes them, so that nothing stays.

@@ -108,7 +108,7 @@ pub fn run(
                 let (mut coarse, mut samples) = (0, 0);
                 for x in &ps {
                     coarse += usize::from(x.level > 0);
-                    samples += match t.patch(x.id) {
+                    samples += match t.patch(x) {
                         Some(PatchRef::Survey(_, p)) => {
                             (p.window.cols() as usize + 1) * (p.window.rows() as usize + 1)
                         }

@@ -5,7 +5,7 @@
 use patchwork_crs::Crs;
 use patchwork_geom::Aabb;
 use patchwork_index::lod::{BoxState, ChangeStats, IndexConfig, LodIndex, UnitBoxes};
-use patchwork_index::quadtree::{Entry, MsQuadtree};
+use patchwork_index::quadtree::{At, Entry, MsQuadtree};
 use patchwork_index::query::{shortfall, Extracted, Shortfall, ViewQuery};
 use patchwork_model::edge::{self, EdgeGrid, EdgePatch, Member};
 use patchwork_model::evidence::{self, Blame, Contradicted, PairEvidence};
@@ -242,9 +242,10 @@ struct LatticeGroup {
     lattice: Lattice,
     /// The members, by id.
     members: imbl::OrdMap<SurveyId, GroupMember>,
-    /// For each tile, the members whose samples its edge patch can read: those whose
-    /// [`GroupMember::tile_range`] holds it.
-    near: imbl::OrdMap<[i64; 2], imbl::OrdSet<SurveyId>>,
+    /// The members' [`GroupMember::tile_range`]s, each an entry under its survey's id: what
+    /// finds the members whose samples a tile's edge patch can read. A map from every tile to
+    /// the set of its members held 15 bytes a patch of a survey of 3,601² samples.
+    near: MsQuadtree,
     tiles: imbl::OrdMap<[i64; 2], SurveyId>,
 }
 
@@ -254,45 +255,56 @@ impl LatticeGroup {
             plane,
             lattice,
             members: imbl::OrdMap::new(),
-            near: imbl::OrdMap::new(),
+            near: MsQuadtree::new(FOOTPRINTS_PER_NODE),
             tiles: imbl::OrdMap::new(),
         }
     }
 
-    /// Every tile of a member's [`GroupMember::tile_range`].
-    fn range(m: &GroupMember) -> impl Iterator<Item = [i64; 2]> {
+    /// A member's [`GroupMember::tile_range`] as bounds in tile numbers, corners included.
+    fn range_box(m: &GroupMember) -> Aabb {
         let [[x0, x1], [y0, y1]] = m.tile_range();
-        (y0..=y1).flat_map(move |y| (x0..=x1).map(move |x| [x, y]))
+        Aabb::new(x0 as f64, y0 as f64, x1 as f64, y1 as f64)
+    }
+
+    /// The members whose tile ranges meet `b` (tile numbers, corners included), by id; the
+    /// tree's answer, a superset where f32 rounded the ranges, is refined on the ranges.
+    fn members_in(&self, b: &Aabb) -> BTreeSet<SurveyId> {
+        let mut ids = BTreeSet::new();
+        self.near.for_each_in(b, |e| {
+            ids.insert(survey_of(e.at()));
+        });
+        ids.retain(|id| {
+            self.members.get(id).is_some_and(|m| {
+                let [[x0, x1], [y0, y1]] = m.tile_range();
+                x0 as f64 <= b.max[0]
+                    && b.min[0] <= x1 as f64
+                    && y0 as f64 <= b.max[1]
+                    && b.min[1] <= y1 as f64
+            })
+        });
+        ids
     }
 
     fn add(&mut self, m: GroupMember) {
         let id = m.survey.id;
-        for t in Self::range(&m) {
-            self.near.entry(t).or_default().insert(id);
-        }
+        let entry = Entry::new(survey_at(id), 1.0, 0.0, false, &Self::range_box(&m));
+        self.near.insert(entry);
         self.members.insert(id, m);
     }
 
     fn remove(&mut self, id: SurveyId) -> Option<GroupMember> {
         let m = self.members.remove(&id)?;
-        for t in Self::range(&m) {
-            if let Some(ids) = self.near.get_mut(&t) {
-                ids.remove(&id);
-                if ids.is_empty() {
-                    self.near.remove(&t);
-                }
-            }
-        }
+        self.near.remove(survey_at(id), &Self::range_box(&m));
         Some(m)
     }
 
     /// The members whose samples tile `t`'s edge patch can read, by id.
-    fn near(&self, t: [i64; 2]) -> impl Iterator<Item = &GroupMember> {
-        self.near
-            .get(&t)
+    fn near(&self, t: [i64; 2]) -> Vec<&GroupMember> {
+        let at = Aabb::new(t[0] as f64, t[1] as f64, t[0] as f64, t[1] as f64);
+        self.members_in(&at)
             .into_iter()
-            .flatten()
-            .filter_map(|id| self.members.get(id))
+            .filter_map(|id| self.members.get(&id))
+            .collect()
     }
 
     /// The tiles a change to `m` (inserting or retiring it) can alter: its own edge tiles and
@@ -301,13 +313,12 @@ impl LatticeGroup {
     fn affected_by(&self, m: &GroupMember) -> Vec<[i64; 2]> {
         let [[x0, x1], [y0, y1]] = m.tile_range();
         let mut set: BTreeSet<[i64; 2]> = m.edge_tiles().iter().copied().collect();
-        let others: BTreeSet<SurveyId> = Self::range(m)
-            .filter_map(|t| self.near.get(&t))
-            .flatten()
-            .copied()
-            .filter(|&id| id != m.survey.id)
-            .collect();
-        for o in others.iter().filter_map(|id| self.members.get(id)) {
+        let others = self.members_in(&Self::range_box(m));
+        for o in others
+            .iter()
+            .filter(|&&id| id != m.survey.id)
+            .filter_map(|id| self.members.get(id))
+        {
             set.extend(
                 o.edge_tiles()
                     .iter()
@@ -384,6 +395,20 @@ pub fn reaching(
         .filter(|(_, f)| f.intersects(&grown))
         .map(|(id, _)| id)
         .collect()
+}
+
+/// How a tree of surveys ([`Terrain::footprints`], a lattice group's members) names a survey:
+/// its id's two halves, low first.
+fn survey_at(id: SurveyId) -> At {
+    At {
+        unit: id.0 as u32,
+        position: (id.0 >> 32) as u32,
+    }
+}
+
+/// The survey a tree of surveys names by `at` (see [`survey_at`]).
+fn survey_of(at: At) -> SurveyId {
+    SurveyId(u64::from(at.unit) | (u64::from(at.position) << 32))
 }
 
 /// Footprints a node of [`Terrain::footprints`] holds before it splits.
@@ -562,17 +587,15 @@ impl Terrain {
         if self.source.is_none() {
             return;
         }
-        for (id, _) in changes.iter().flat_map(|c| c.moved.iter()) {
-            let Some(owner) = self.index.unit_of(*id) else {
-                continue;
-            };
-            let held = self
-                .edges
-                .get(&owner)
-                .filter(|e| e.id == *id && e.grid.is_some())
-                .cloned();
+        // An edge patch is a unit of its own: it moved where its unit is listed with states.
+        let owners = changes
+            .iter()
+            .flat_map(|c| c.units.iter())
+            .filter(|(_, states)| states.is_some());
+        for (owner, _) in owners {
+            let held = self.edges.get(owner).filter(|e| e.grid.is_some()).cloned();
             if let Some(e) = held {
-                self.edges.insert(owner, bare(e));
+                self.edges.insert(*owner, bare(e));
             }
         }
     }
@@ -885,29 +908,34 @@ impl Terrain {
     /// The edge patches this terrain holds among the boxes the changes moved: what a store
     /// writes of them besides their tops.
     pub fn edges_of(&self, changes: &[&ChangeStats]) -> Vec<Arc<EdgePatch>> {
+        // An edge patch is a unit of its own: it moved where its unit is listed with states.
         let mut out: Vec<Arc<EdgePatch>> = changes
             .iter()
-            .flat_map(|c| c.moved.iter())
-            .filter_map(|(id, _)| match self.patch(*id)? {
-                PatchRef::Edge(e) => Some(e.clone()),
-                PatchRef::Survey(..) => None,
-            })
+            .flat_map(|c| c.units.iter())
+            .filter(|(_, states)| states.is_some())
+            .filter_map(|(owner, _)| self.edges.get(owner).cloned())
             .collect();
         out.sort_by_key(|e| e.id);
         out.dedup_by_key(|e| e.id);
         out
     }
 
-    /// A patch of the terrain.
-    pub fn patch(&self, id: PatchId) -> Option<PatchRef<'_>> {
-        // The index names the patch's unit and its place in the unit's list.
-        let (unit, position) = self.index.slot(id)?;
-        if let Some(e) = self.edges.get(&unit).filter(|e| e.id == id) {
+    /// The patch a cut took: the one at its place in its unit's list.
+    pub fn patch(&self, x: &Extracted) -> Option<PatchRef<'_>> {
+        if let Some(e) = self.edges.get(&x.survey).filter(|e| e.id == x.id) {
             return Some(PatchRef::Edge(e));
         }
-        let s = self.surveys.get(&unit)?;
-        let p = s.patches.get(position as usize).filter(|p| p.id == id)?;
+        let s = self.surveys.get(&x.survey)?;
+        let p = s
+            .patches
+            .get(x.position as usize)
+            .filter(|p| p.id == x.id)?;
         Some(PatchRef::Survey(s, p))
+    }
+
+    /// The edge patch whose unit is `owner`.
+    pub fn edge(&self, owner: SurveyId) -> Option<&Arc<EdgePatch>> {
+        self.edges.get(&owner)
     }
 
     /// Adds a survey, with the edge patches it changes; adding one already present changes
@@ -1120,16 +1148,16 @@ impl Terrain {
     /// Keeps a survey as built, and its footprint.
     fn set_base(&mut self, s: Arc<SurveyMeta>) {
         if let Some(old) = self.bases.insert(s.id, s.clone()) {
-            self.footprints.remove(PatchId(old.id.0), &old.footprint());
+            self.footprints.remove(survey_at(old.id), &old.footprint());
         }
         self.footprints
-            .insert(Entry::new(PatchId(s.id.0), 1.0, 0.0, false, &s.footprint()));
+            .insert(Entry::new(survey_at(s.id), 1.0, 0.0, false, &s.footprint()));
     }
 
     /// Forgets a survey as built, and its footprint.
     fn drop_base(&mut self, id: SurveyId) {
         if let Some(old) = self.bases.remove(&id) {
-            self.footprints.remove(PatchId(old.id.0), &old.footprint());
+            self.footprints.remove(survey_at(old.id), &old.footprint());
         }
     }
 
@@ -1374,7 +1402,7 @@ impl Terrain {
     fn compare_with_all(&self, s: &Arc<SurveyMeta>) -> Result<Vec<PairEvidence>, SampleError> {
         let mut near = BTreeSet::new();
         self.footprints.for_each_in(&s.footprint(), |e| {
-            near.insert(SurveyId(e.id().0));
+            near.insert(survey_of(e.at()));
         });
         let others: Vec<&Arc<SurveyMeta>> = near
             .iter()
@@ -1567,12 +1595,12 @@ impl Terrain {
                     gave_up.store(true, std::sync::atomic::Ordering::Relaxed);
                     return None;
                 }
-                let r = match self.patch(x.id)? {
+                let r = match self.patch(x)? {
                     PatchRef::Survey(s, p) => {
                         let level = p.level as usize;
                         let rect = ResolvedPatch::reads(p, &s.shapes[level]);
                         self.window(s, level, rect)
-                            .map(|w| ResolvedPatch::new(w, p, s.error(p), s.kind, x.fallback))
+                            .map(|w| ResolvedPatch::new(w, s, x.position as usize, x.fallback))
                     }
                     PatchRef::Edge(e) => self
                         .edge_grid(e)
@@ -1606,7 +1634,7 @@ impl Terrain {
         };
         let wants: Vec<(SurveyId, usize, patchwork_model::grid::Shape, SampleRect)> = ps
             .iter()
-            .filter_map(|x| match self.patch(x.id)? {
+            .filter_map(|x| match self.patch(x)? {
                 PatchRef::Survey(s, p) if !self.resident.contains_key(&s.id) => {
                     let level = p.level as usize;
                     let shape = s.shapes[level];

@@ -16,7 +16,7 @@
 //! patches too, recomputed for the same neighbourhood of a change as the tops.
 
 use super::cover::covered_all;
-use super::quadtree::{Entry, MsQuadtree, TreeStats};
+use super::quadtree::{At, Entry, MsQuadtree, TreeStats};
 use patchwork_geom::{Aabb, Affine, ORect};
 use patchwork_model::edge::EdgePatch;
 use patchwork_model::grid::Georef;
@@ -198,11 +198,11 @@ impl PatchBox {
         let p = &s.patches[position as usize];
         let b = PatchBox {
             id: p.id,
-            survey: p.survey,
+            survey: s.id,
             level: p.level,
             position,
             area: *area,
-            min_z: s.error(p),
+            min_z: s.error_at(position as usize),
             lattice: lattice.clone(),
             cells: Cells::Survey(s.clone()),
             placed: None,
@@ -503,7 +503,7 @@ impl UnitBoxes {
     #[inline]
     pub fn min_z(&self, k: usize) -> f64 {
         match &self.0 {
-            Boxes::Survey { meta, .. } => meta.error(&meta.patches[k]),
+            Boxes::Survey { meta, .. } => meta.error_at(k),
             Boxes::Made(b) => b[k].min_z,
         }
     }
@@ -578,18 +578,48 @@ impl BoxState {
 /// The states of a unit's boxes, in patch id order.
 pub type UnitStates = Vec<(PatchId, BoxState)>;
 
-/// A unit in the index: its boxes, and their states in the same order.
+/// A unit in the index: its id, its boxes, and their states in the same order.
 #[derive(Clone, Debug)]
 struct Unit {
+    id: SurveyId,
     boxes: UnitBoxes,
-    states: Arc<[BoxState]>,
+    states: States,
 }
 
-/// Where the index finds a box: its unit, and its place in the unit's list.
-#[derive(Clone, Copy, Debug)]
-struct Slot {
-    unit: SurveyId,
-    position: u32,
+/// The states of a unit's boxes, by place: the tops, and whether each is exposed as a bit, 8
+/// bytes a box where a [`BoxState`] takes 16. Both are shared with the snapshots that hold
+/// them, and copied only where a box moves.
+#[derive(Clone, Debug)]
+struct States {
+    tops: Arc<[f64]>,
+    exposed: Arc<[u64]>,
+}
+
+impl States {
+    fn new(states: &[BoxState]) -> Self {
+        let mut exposed = vec![0u64; states.len().div_ceil(64)];
+        for (k, st) in states.iter().enumerate() {
+            exposed[k / 64] |= u64::from(st.exposed) << (k % 64);
+        }
+        States {
+            tops: states.iter().map(|st| st.top).collect(),
+            exposed: exposed.into(),
+        }
+    }
+
+    #[inline]
+    fn get(&self, k: usize) -> BoxState {
+        BoxState {
+            top: self.tops[k],
+            exposed: self.exposed[k / 64] >> (k % 64) & 1 == 1,
+        }
+    }
+
+    fn set(&mut self, k: usize, st: BoxState) {
+        Arc::make_mut(&mut self.tops)[k] = st.top;
+        let word = &mut Arc::make_mut(&mut self.exposed)[k / 64];
+        *word = (*word & !(1 << (k % 64))) | u64::from(st.exposed) << (k % 64);
+    }
 }
 
 /// What an insertion or retirement did.
@@ -612,13 +642,24 @@ pub struct ChangeStats {
 
 /// LOD space: every patch's box and its state, by the unit it came with, and the
 /// multiple-storage quadtree over their windows that cuts are answered from.
+///
+/// The index gives each unit a number, and the quadtree names a box by its unit's number and
+/// its place in the unit's list ([`At`]): no map from patch ids to boxes is kept, and a cut
+/// names each patch it takes by its unit and place too ([`Extracted`]).
+///
+/// [`Extracted`]: crate::query::Extracted
 #[derive(Clone, Debug)]
 pub struct LodIndex {
     cfg: IndexConfig,
     // Persistent maps: the copy of the index a commit makes shares every unit it leaves, and
     // a unit's states are copied only where a box of it moved.
-    units: imbl::OrdMap<SurveyId, Unit>,
-    slots: imbl::OrdMap<PatchId, Slot>,
+    numbers: imbl::OrdMap<SurveyId, u32>,
+    units: imbl::OrdMap<u32, Unit>,
+    /// The numbers of units that went, given to the next ones, so that the numbers stay below
+    /// the most units ever present at once.
+    free: Vec<u32>,
+    /// Boxes in the index.
+    boxes: usize,
     tree: MsQuadtree,
 }
 
@@ -627,8 +668,10 @@ impl LodIndex {
     pub fn new(cfg: IndexConfig) -> Self {
         LodIndex {
             cfg,
+            numbers: imbl::OrdMap::new(),
             units: imbl::OrdMap::new(),
-            slots: imbl::OrdMap::new(),
+            free: Vec::new(),
+            boxes: 0,
             tree: MsQuadtree::new(cfg.node_capacity),
         }
     }
@@ -640,61 +683,58 @@ impl LodIndex {
 
     /// Boxes in the index, active or not.
     pub fn len(&self) -> usize {
-        self.slots.len()
+        self.boxes
     }
 
     /// Whether the index holds no box.
     pub fn is_empty(&self) -> bool {
-        self.slots.is_empty()
+        self.boxes == 0
     }
 
     /// Whether the unit `s` (a survey, or an edge patch's owner) is present.
     pub fn contains_survey(&self, s: SurveyId) -> bool {
-        self.units.contains_key(&s)
+        self.numbers.contains_key(&s)
     }
 
     /// The units present, in no particular order.
     pub fn surveys(&self) -> impl Iterator<Item = SurveyId> + '_ {
-        self.units.keys().copied()
+        self.numbers.keys().copied()
+    }
+
+    fn unit(&self, s: SurveyId) -> Option<&Unit> {
+        self.units.get(self.numbers.get(&s)?)
     }
 
     /// How many boxes a unit has; None when it is absent.
     pub fn unit_len(&self, s: SurveyId) -> Option<usize> {
-        self.units.get(&s).map(|u| u.boxes.len())
+        self.unit(s).map(|u| u.boxes.len())
     }
 
-    /// Where a present box is: its unit, and its place in the unit's list (its survey's list of
-    /// patches; 0 for an edge patch).
-    pub fn slot(&self, id: PatchId) -> Option<(SurveyId, u32)> {
-        self.slots.get(&id).map(|s| (s.unit, s.position))
+    fn find(&self, at: At) -> Option<(&Unit, usize)> {
+        let u = self.units.get(&at.unit)?;
+        let k = at.position as usize;
+        (k < u.boxes.len()).then_some((u, k))
     }
 
-    fn find(&self, id: PatchId) -> Option<(&Unit, usize)> {
-        let s = self.slots.get(&id)?;
-        let u = self.units.get(&s.unit)?;
-        Some((u, s.position as usize))
+    /// A box and its state; None when no such box is present.
+    pub(crate) fn lookup(&self, at: At) -> Option<(PatchBox, BoxState)> {
+        let (u, k) = self.find(at)?;
+        Some((u.boxes.get(k), u.states.get(k)))
     }
 
-    /// A box and its state; None when no such patch is present.
-    fn lookup(&self, id: PatchId) -> Option<(PatchBox, BoxState)> {
-        let (u, k) = self.find(id)?;
-        Some((u.boxes.get(k), u.states[k]))
-    }
-
-    /// A box and its current z-span; None when no such patch is present.
-    pub fn get(&self, id: PatchId) -> Option<(PatchBox, Span)> {
-        self.lookup(id).map(|(b, st)| {
+    /// The box at `position` in the list of the unit `unit` (a survey's list of patches; 0 for
+    /// an edge patch), and its current z-span; None when there is no such box.
+    pub fn get(&self, unit: SurveyId, position: u32) -> Option<(PatchBox, Span)> {
+        let u = self.unit(unit)?;
+        let k = position as usize;
+        (k < u.boxes.len()).then(|| {
+            let b = u.boxes.get(k);
             let span = Span {
                 min_z: b.min_z,
-                max_z: st.top,
+                max_z: u.states.get(k).top,
             };
             (b, span)
         })
-    }
-
-    /// A box's state, as a store keeps it; None when no such patch is present.
-    pub fn state_of(&self, id: PatchId) -> Option<BoxState> {
-        self.find(id).map(|(u, k)| u.states[k])
     }
 
     /// The quadtree's shape: nodes, stored entries, depth.
@@ -714,16 +754,17 @@ impl LodIndex {
 
     /// Every box and its state, in id order: two indexes over the same surveys give equal maps.
     pub fn state(&self) -> BTreeMap<PatchId, (Span, bool)> {
-        self.slots
-            .keys()
-            .filter_map(|id| {
-                let (u, k) = self.find(*id)?;
-                let st = u.states[k];
-                let span = Span {
-                    min_z: u.boxes.min_z(k),
-                    max_z: st.top,
-                };
-                Some((*id, (span, st.exposed)))
+        self.units
+            .values()
+            .flat_map(|u| {
+                (0..u.boxes.len()).map(move |k| {
+                    let st = u.states.get(k);
+                    let span = Span {
+                        min_z: u.boxes.min_z(k),
+                        max_z: st.top,
+                    };
+                    (u.boxes.id(k), (span, st.exposed))
+                })
             })
             .collect()
     }
@@ -734,32 +775,36 @@ impl LodIndex {
             .values()
             .map(|u| {
                 (0..u.boxes.len())
-                    .filter(|&k| u.states[k].top > u.boxes.min_z(k))
+                    .filter(|&k| u.states.get(k).top > u.boxes.min_z(k))
                     .count()
             })
             .sum()
     }
 
-    fn entry(b: &PatchBox, state: BoxState) -> Entry {
-        Entry::new(b.id, state.top, b.min_z, state.exposed, &b.window_aabb())
+    fn entry(at: At, b: &PatchBox, state: BoxState) -> Entry {
+        Entry::new(at, state.top, b.min_z, state.exposed, &b.window_aabb())
     }
 
-    /// Boxes whose window bounds meet `area`, each once, in id order.
-    pub(crate) fn boxes_in(&self, area: &Aabb) -> Vec<PatchBox> {
-        let mut ids = Vec::new();
-        self.tree.for_each_in(area, |e| ids.push(e.id()));
-        ids.sort_unstable();
-        ids.dedup();
-        ids.iter()
-            .filter_map(|id| self.find(*id).map(|(u, k)| u.boxes.get(k)))
-            .collect()
+    /// Boxes whose window bounds meet `area`, each once, in id order (not in the order of
+    /// their units' numbers, which depends on the order the units came in).
+    pub(crate) fn boxes_in(&self, area: &Aabb) -> Vec<(At, PatchBox)> {
+        let mut ats = Vec::new();
+        self.tree.for_each_in(area, |e| ats.push(e.at()));
+        ats.sort_unstable();
+        ats.dedup();
+        let mut out: Vec<(At, PatchBox)> = ats
+            .into_iter()
+            .filter_map(|at| self.find(at).map(|(u, k)| (at, u.boxes.get(k))))
+            .collect();
+        out.sort_unstable_by_key(|(_, b)| b.id);
+        out
     }
 
     /// Boxes other than `p` whose kernels meet `p`'s and that `keep` accepts.
-    fn neighbours(&self, p: &PatchBox, keep: impl Fn(&PatchBox) -> bool) -> Vec<PatchBox> {
+    fn neighbours(&self, p: &PatchBox, keep: impl Fn(&PatchBox) -> bool) -> Vec<(At, PatchBox)> {
         self.boxes_in(&p.aabb())
             .into_iter()
-            .filter(|q| q.id != p.id && q.meets(p) && keep(q))
+            .filter(|(_, q)| q.id != p.id && q.meets(p) && keep(q))
             .collect()
     }
 
@@ -767,10 +812,11 @@ impl LodIndex {
     /// meet `p`'s). Candidates are taken in order of error (ties by id, so the answer never
     /// depends on iteration order); coverage is monotone in the set, so a binary search over
     /// the distinct errors finds the first that covers.
-    fn ceiling_of(&self, p: &PatchBox, near: &[PatchBox]) -> f64 {
+    fn ceiling_of(&self, p: &PatchBox, near: &[(At, PatchBox)]) -> f64 {
         let top = self.cfg.max_error;
         let mut cands: Vec<&PatchBox> = near
             .iter()
+            .map(|(_, q)| q)
             .filter(|q| q.order(p) == Ordering::Greater)
             .collect();
         if cands.is_empty() {
@@ -808,9 +854,9 @@ impl LodIndex {
 
     /// Whether some of `p`'s valid kernel is covered by no more accurate patch among `near`.
     /// Like the top, a pure function of the set of patches.
-    fn exposed(&self, p: &PatchBox, near: &[PatchBox]) -> bool {
+    fn exposed(&self, p: &PatchBox, near: &[(At, PatchBox)]) -> bool {
         let mut better: Vec<ORect> = Vec::new();
-        for q in near.iter().filter(|q| q.more_accurate(p)) {
+        for (_, q) in near.iter().filter(|(_, q)| q.more_accurate(p)) {
             q.seen_from(p, &mut better);
         }
         better.is_empty() || !covered_all(&p.valid(), &better)
@@ -825,77 +871,96 @@ impl LodIndex {
         BoxState { top, exposed }
     }
 
-    /// Recomputes the state of `ids` against the current set and moves changed boxes in the
-    /// tree. `fresh` boxes are reported whether or not their provisional state changed.
+    /// Recomputes the state of the boxes `todo` against the current set and moves changed
+    /// boxes in the tree. `fresh` boxes are reported whether or not their provisional state
+    /// changed. Gives the count recomputed, and the boxes moved in id order with their units.
     fn recompute(
         &mut self,
-        ids: Vec<PatchId>,
-        fresh: &HashSet<PatchId>,
-    ) -> (usize, Vec<(PatchId, BoxState)>) {
-        let states: Vec<(PatchBox, BoxState)> = ids
+        todo: Vec<At>,
+        fresh: &HashSet<At>,
+    ) -> (usize, Vec<(PatchId, BoxState, SurveyId)>) {
+        let states: Vec<(At, PatchBox, BoxState)> = todo
             .par_iter()
-            .filter_map(|id| {
-                let (b, _) = self.lookup(*id)?;
+            .filter_map(|&at| {
+                let (b, _) = self.lookup(at)?;
                 let state = self.derive(&b);
-                Some((b, state))
+                Some((at, b, state))
             })
             .collect();
         let mut moved = Vec::new();
-        for (b, state) in &states {
-            let slot = self.slots[&b.id];
-            let unit = self.units.get_mut(&slot.unit).expect("present");
-            let k = slot.position as usize;
-            let changed = !unit.states[k].same(state);
+        for (at, b, state) in &states {
+            let unit = self.units.get_mut(&at.unit).expect("present");
+            let k = at.position as usize;
+            let changed = !unit.states.get(k).same(state);
             if changed {
                 // Copies the unit's states only where a snapshot still shares them.
-                Arc::make_mut(&mut unit.states)[k] = *state;
-                self.tree.remove(b.id, &b.window_aabb());
-                self.tree.insert(Self::entry(b, *state));
+                unit.states.set(k, *state);
+                self.tree.remove(*at, &b.window_aabb());
+                self.tree.insert(Self::entry(*at, b, *state));
             }
-            if changed || fresh.contains(&b.id) {
-                moved.push((b.id, *state));
+            if changed || fresh.contains(at) {
+                moved.push((b.id, *state, unit.id));
             }
         }
+        moved.sort_unstable_by_key(|m| m.0);
         (states.len(), moved)
     }
 
     /// Boxes already present whose state a change to `changed` can move: smaller ones that
     /// meet them (their tops) and less accurate ones that meet them (their exposure).
-    fn touched_by(&self, changed: &[PatchBox]) -> Vec<PatchId> {
-        let set: HashSet<PatchId> = changed
+    fn touched_by(&self, changed: &[PatchBox]) -> Vec<At> {
+        let set: HashSet<At> = changed
             .par_iter()
             .flat_map_iter(|b| {
                 self.neighbours(b, |q| q.order(b) == Ordering::Less || b.more_accurate(q))
                     .into_iter()
-                    .map(|q| q.id)
+                    .map(|(at, _)| at)
                     .collect::<Vec<_>>()
             })
             .collect();
-        let mut v: Vec<PatchId> = set.into_iter().collect();
-        v.sort_unstable();
-        v
+        set.into_iter().collect()
     }
 
-    /// Puts a unit's boxes into the tree and the map of slots with `states`, and the unit
-    /// into the index. A box whose id another unit's box has already (two 64-bit hashes that
-    /// meet) is left out of both, so that the one present keeps its place.
-    fn put(&mut self, survey: SurveyId, boxes: UnitBoxes, states: Vec<BoxState>) -> Vec<PatchId> {
-        let mut ids = Vec::with_capacity(boxes.len());
+    /// Gives a unit a number and puts its boxes into the tree with `states`, and the unit into
+    /// the index. Returns where its boxes are.
+    fn put(&mut self, survey: SurveyId, boxes: UnitBoxes, states: Vec<BoxState>) -> Vec<At> {
+        let number = self.free.pop().unwrap_or_else(|| {
+            u32::try_from(self.units.len()).expect("fewer than 2³² units in an index")
+        });
+        let mut ats = Vec::with_capacity(boxes.len());
         for (k, b) in boxes.boxes().enumerate() {
-            if self.slots.contains_key(&b.id) {
-                continue;
-            }
-            self.tree.insert(Self::entry(&b, states[k]));
-            let slot = Slot {
-                unit: survey,
+            let at = At {
+                unit: number,
+                position: u32::try_from(k).expect("fewer than 2³² patches in a survey"),
+            };
+            self.tree.insert(Self::entry(at, &b, states[k]));
+            ats.push(at);
+        }
+        self.boxes += boxes.len();
+        self.numbers.insert(survey, number);
+        let unit = Unit {
+            id: survey,
+            boxes,
+            states: States::new(&states),
+        };
+        self.units.insert(number, unit);
+        ats
+    }
+
+    /// Takes a unit out of the index and its boxes out of the tree, and frees its number.
+    fn take(&mut self, survey: SurveyId) -> Option<Unit> {
+        let number = self.numbers.remove(&survey)?;
+        let unit = self.units.remove(&number).expect("a numbered unit");
+        for (k, b) in unit.boxes.boxes().enumerate() {
+            let at = At {
+                unit: number,
                 position: k as u32,
             };
-            self.slots.insert(b.id, slot);
-            ids.push(b.id);
+            self.tree.remove(at, &b.window_aabb());
         }
-        let states = states.into();
-        self.units.insert(survey, Unit { boxes, states });
-        ids
+        self.boxes -= unit.boxes.len();
+        self.free.push(number);
+        Some(unit)
     }
 
     /// Removes the patches of the units in `remove`, adds those of `insert`, and recomputes
@@ -907,25 +972,17 @@ impl LodIndex {
         insert: Vec<(SurveyId, UnitBoxes)>,
     ) -> ChangeStats {
         let mut changed: Vec<PatchBox> = Vec::new();
-        let mut removed = Vec::new();
         for s in remove {
-            let Some(unit) = self.units.remove(s) else {
-                continue;
-            };
-            for b in unit.boxes.boxes() {
-                if self.slots.get(&b.id).is_some_and(|at| at.unit == *s) {
-                    self.slots.remove(&b.id);
-                    self.tree.remove(b.id, &b.window_aabb());
-                    removed.push(b.id);
-                    changed.push(b);
-                }
+            if let Some(unit) = self.take(*s) {
+                changed.extend(unit.boxes.boxes());
             }
         }
+        let mut removed: Vec<PatchId> = changed.iter().map(|b| b.id).collect();
         // What is new: each unit once, none already present.
         let mut seen = HashSet::new();
         let adding: Vec<(SurveyId, UnitBoxes)> = insert
             .into_iter()
-            .filter(|(survey, _)| !self.units.contains_key(survey) && seen.insert(*survey))
+            .filter(|(survey, _)| !self.numbers.contains_key(survey) && seen.insert(*survey))
             .collect();
         // The boxes already present that the new ones can move are found before the new ones
         // go into the tree, so that the search meets only those: the new boxes are all
@@ -934,14 +991,16 @@ impl LodIndex {
         changed.extend(adding.iter().flat_map(|(_, boxes)| boxes.boxes()));
         let mut todo = self.touched_by(&changed);
         drop(changed);
-        let mut fresh = HashSet::new();
+        let (mut fresh, mut fresh_ids) = (HashSet::new(), HashSet::new());
         for (survey, boxes) in adding {
+            fresh_ids.extend((0..boxes.len()).map(|k| boxes.id(k)));
             // Provisionally empty; the recomputation below gives the real state.
             let states = vec![BoxState::EMPTY; boxes.len()];
             fresh.extend(self.put(survey, boxes, states));
         }
         // A box removed and added again in one change (same content) is simply recomputed.
-        removed.retain(|id| !fresh.contains(id));
+        removed.retain(|id| !fresh_ids.contains(id));
+        removed.sort_unstable();
         todo.extend(fresh.iter().copied());
         todo.sort_unstable();
         todo.dedup();
@@ -949,7 +1008,7 @@ impl LodIndex {
         let mut units: Vec<SurveyId> = remove
             .iter()
             .copied()
-            .chain(moved.iter().filter_map(|(id, _)| self.unit_of(*id)))
+            .chain(moved.iter().map(|m| m.2))
             .collect();
         units.sort_unstable();
         units.dedup();
@@ -960,22 +1019,17 @@ impl LodIndex {
         ChangeStats {
             patches: fresh.len(),
             recomputed,
-            moved,
+            moved: moved.into_iter().map(|(id, st, _)| (id, st)).collect(),
             removed,
             units,
         }
     }
 
-    /// The unit a present box came with.
-    pub fn unit_of(&self, id: PatchId) -> Option<SurveyId> {
-        self.slots.get(&id).map(|s| s.unit)
-    }
-
     /// The states of a present unit's boxes, in id order.
     pub fn unit_states(&self, unit: SurveyId) -> Option<Vec<(PatchId, BoxState)>> {
-        let u = self.units.get(&unit)?;
+        let u = self.unit(unit)?;
         let mut v: Vec<(PatchId, BoxState)> = (0..u.boxes.len())
-            .map(|k| (u.boxes.id(k), u.states[k]))
+            .map(|k| (u.boxes.id(k), u.states.get(k)))
             .collect();
         v.sort_unstable_by_key(|(id, _)| *id);
         Some(v)
@@ -984,7 +1038,7 @@ impl LodIndex {
     /// Every unit with the states of its boxes, both in id order: the whole index as a store
     /// keeps it.
     pub fn all_unit_states(&self) -> Vec<(SurveyId, Vec<(PatchId, BoxState)>)> {
-        let mut units: Vec<SurveyId> = self.units.keys().copied().collect();
+        let mut units: Vec<SurveyId> = self.numbers.keys().copied().collect();
         units.sort_unstable();
         units
             .into_iter()
@@ -1013,7 +1067,9 @@ impl LodIndex {
         let mut ix = LodIndex::new(cfg);
         for (survey, boxes, states) in units {
             assert_eq!(boxes.len(), states.len(), "a state for every box");
-            ix.put(survey, boxes, states);
+            if !ix.contains_survey(survey) {
+                ix.put(survey, boxes, states);
+            }
         }
         ix.tree.shrink_to_fit();
         ix
@@ -1022,16 +1078,22 @@ impl LodIndex {
     /// Re-derives every box's state from scratch and checks the tree: what `verify` runs.
     pub fn check(&self) -> Result<(), String> {
         self.tree.check()?;
-        let ids: Vec<PatchId> = self.slots.keys().copied().collect();
-        let bad: Vec<String> = ids
+        let ats: Vec<At> = self
+            .units
+            .iter()
+            .flat_map(|(&unit, u)| {
+                (0..u.boxes.len() as u32).map(move |position| At { unit, position })
+            })
+            .collect();
+        let bad: Vec<String> = ats
             .into_par_iter()
-            .filter_map(|id| {
-                let (b, st) = self.lookup(id)?;
+            .filter_map(|at| {
+                let (b, st) = self.lookup(at)?;
                 let want = self.derive(&b);
                 (!want.same(&st)).then(|| {
                     format!(
-                        "patch {id}: top {} exposed {} should be {} {}",
-                        st.top, st.exposed, want.top, want.exposed
+                        "patch {}: top {} exposed {} should be {} {}",
+                        b.id, st.top, st.exposed, want.top, want.exposed
                     )
                 })
             })
@@ -1046,14 +1108,14 @@ impl LodIndex {
         self.tree.for_each_in(
             &self.tree.bounds().unwrap_or(Aabb::new(0.0, 0.0, 0.0, 0.0)),
             |e| {
-                seen.insert(e.id());
+                seen.insert(e.at());
             },
         );
-        if seen.len() != self.slots.len() {
+        if seen.len() != self.boxes {
             return Err(format!(
                 "the quadtree holds {} boxes, the index {}",
                 seen.len(),
-                self.slots.len()
+                self.boxes
             ));
         }
         Ok(())

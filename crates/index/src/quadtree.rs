@@ -5,11 +5,12 @@
 //! lets a cut at z stop descending as soon as it meets a ceiling ≤ z. An entry may be stored in
 //! several nodes (one per branch it overlaps), never in a node and one of its descendants.
 //!
-//! Ties in ceiling are broken by patch id, so the content of every node is a function of the
-//! set of entries alone, whatever the order of insertions and removals.
+//! Ties in ceiling are broken by where the box is in its index ([`At`]), so the content of
+//! every node is a function of the set of entries alone, whatever the order of insertions and
+//! removals. (The numbers an index gives its units depend on the order they came in, so two
+//! indexes over the same surveys may store their trees differently; their cuts are the same.)
 
 use patchwork_geom::Aabb;
-use patchwork_model::ids::PatchId;
 use std::cmp::Ordering;
 use std::sync::Arc;
 
@@ -17,22 +18,34 @@ use std::sync::Arc;
 /// `capacity` boxes pile up on one spot.
 const MAX_DEPTH: u32 = 40;
 
+/// Where a box is in its index: its unit's number and its place in the unit's list. What an
+/// entry names its box by, in two 32-bit numbers, so that the index keeps no map from patch ids
+/// to boxes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct At {
+    /// The number the index gave the box's unit.
+    pub unit: u32,
+    /// The box's place in its unit's list.
+    pub position: u32,
+}
+
+/// The bit of [`Entry`]'s floor that says the box is exposed: its sign bit.
+const EXPOSED: u32 = 1 << 31;
+
 /// A box as the quadtree stores it: its z-span, whether it is exposed, and its window's bounds.
 ///
 /// The span and the bounds are kept in f32, rounded outwards (the ceiling up, the floor down,
 /// the bounds grown), so that what the tree answers is a superset of what the exact values
-/// would give, which callers refine on the boxes themselves; 36 bytes an entry where f64 took
+/// would give, which callers refine on the boxes themselves; 32 bytes an entry where f64 took
 /// 64, and an entry is stored 1.6 times a box. Rounding is monotone, so the tree's ordering
 /// invariant over the rounded ceilings keeps every cut's early stop conservative.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Entry {
-    /// The patch the box stands for, as two halves (low, high): with nothing wider than 32
-    /// bits in it the entry is 36 bytes, where a 64-bit id made it 40.
-    id: [u32; 2],
+    at: At,
     ceiling: f32,
-    floor: f32,
-    /// Whether the box is the most accurate data somewhere (see `lod`).
-    pub exposed: bool,
+    /// The floor's bits, never negative, with [`EXPOSED`] in the sign bit: the flag alone
+    /// would round the entry up from 32 bytes to 36.
+    floor: u32,
     bounds: [f32; 4],
 }
 
@@ -64,20 +77,33 @@ fn stored_bounds(b: &Aabb) -> [f32; 4] {
 impl Entry {
     /// The entry of a box whose z-span is `[floor, ceiling)` and whose window's bounds are
     /// `aabb`.
-    pub fn new(id: PatchId, ceiling: f64, floor: f64, exposed: bool, aabb: &Aabb) -> Self {
+    ///
+    /// # Panics
+    /// For a negative floor: a box's floor is its patch's error.
+    pub fn new(at: At, ceiling: f64, floor: f64, exposed: bool, aabb: &Aabb) -> Self {
+        assert!(
+            floor >= 0.0,
+            "a floor of {floor}: an error is never negative"
+        );
         Entry {
-            id: [id.0 as u32, (id.0 >> 32) as u32],
+            at,
             ceiling: up(ceiling),
-            floor: down(floor),
-            exposed,
+            // +0.0 for a floor of 0, so that the sign bit is free.
+            floor: down(floor).abs().to_bits() | if exposed { EXPOSED } else { 0 },
             bounds: stored_bounds(aabb),
         }
     }
 
-    /// The patch the box stands for.
+    /// The box the entry stands for.
     #[inline]
-    pub fn id(&self) -> PatchId {
-        PatchId(u64::from(self.id[0]) | (u64::from(self.id[1]) << 32))
+    pub fn at(&self) -> At {
+        self.at
+    }
+
+    /// Whether the box is the most accurate data somewhere (see `lod`).
+    #[inline]
+    pub fn exposed(&self) -> bool {
+        self.floor & EXPOSED != 0
     }
 
     /// Top of the box's z-span (exclusive), rounded up.
@@ -87,7 +113,7 @@ impl Entry {
 
     /// Bottom of the box's z-span, rounded down.
     pub fn floor(&self) -> f64 {
-        self.floor as f64
+        f64::from(f32::from_bits(self.floor & !EXPOSED))
     }
 
     /// Bounds of the box's window, grown to what f32 holds.
@@ -98,14 +124,14 @@ impl Entry {
 
     /// Whether the box's z-span `[floor, ceiling)`, as rounded, is non-empty.
     pub fn is_active(&self) -> bool {
-        self.ceiling > self.floor
+        f64::from(self.ceiling) > self.floor()
     }
 }
 
 /// Storage order: higher ceilings first, then lower ids.
 #[inline]
 fn order(a: &Entry, b: &Entry) -> Ordering {
-    b.ceiling.total_cmp(&a.ceiling).then(a.id().cmp(&b.id()))
+    b.ceiling.total_cmp(&a.ceiling).then(a.at.cmp(&b.at))
 }
 
 /// A node. Its children sit behind an `Arc`, so that a copy of the tree (one a commit makes of
@@ -173,11 +199,11 @@ impl Node {
         }
     }
 
-    fn remove(&mut self, id: PatchId, aabb: &Aabb, cap: usize) -> bool {
+    fn remove(&mut self, at: At, aabb: &Aabb, cap: usize) -> bool {
         if !self.bounds.intersects(aabb) {
             return false;
         }
-        if let Some(pos) = self.entries.iter().position(|x| x.id() == id) {
+        if let Some(pos) = self.entries.iter().position(|x| x.at() == at) {
             self.entries.remove(pos);
             self.refill(cap);
             return true;
@@ -187,7 +213,7 @@ impl Node {
             // Only the children the box reaches are copied out of a shared subtree.
             if ch.iter().any(|c| c.bounds.intersects(aabb)) {
                 for c in Arc::make_mut(ch).iter_mut() {
-                    found |= c.remove(id, aabb, cap);
+                    found |= c.remove(at, aabb, cap);
                 }
             }
         }
@@ -211,7 +237,7 @@ impl Node {
                 return;
             };
             for c in Arc::make_mut(ch).iter_mut() {
-                c.remove(best.id(), &best.aabb(), cap);
+                c.remove(best.at(), &best.aabb(), cap);
             }
             self.entries.push(best);
         }
@@ -248,7 +274,7 @@ impl Node {
                 // Every later entry, and everything below this node, is finer than needed.
                 return;
             }
-            if (e.floor() <= hi || e.exposed) && e.aabb().intersects(area) {
+            if (e.floor() <= hi || e.exposed()) && e.aabb().intersects(area) {
                 f(e);
             }
         }
@@ -360,13 +386,13 @@ impl MsQuadtree {
         }
     }
 
-    /// Removes the entry of patch `id`; `aabb` must be the bounds it was stored with (exact,
+    /// Removes the entry of the box `at`; `aabb` must be the bounds it was stored with (exact,
     /// or as the entry rounded them). False when no such entry is stored.
-    pub fn remove(&mut self, id: PatchId, aabb: &Aabb) -> bool {
+    pub fn remove(&mut self, at: At, aabb: &Aabb) -> bool {
         let cap = self.capacity;
         let b = stored_bounds(aabb).map(f64::from);
         let aabb = Aabb::new(b[0], b[1], b[2], b[3]);
-        self.root.as_mut().is_some_and(|r| r.remove(id, &aabb, cap))
+        self.root.as_mut().is_some_and(|r| r.remove(at, &aabb, cap))
     }
 
     /// Every stored entry whose bounds meet `area`, possibly more than once.
@@ -427,14 +453,14 @@ impl MsQuadtree {
             if let (Some(a), Some(first)) = (above, n.entries.first()) {
                 if order(first, a) == Ordering::Less {
                     return Err(format!(
-                        "node {:?} holds {} above its parent's last",
+                        "node {:?} holds {:?} above its parent's last",
                         n.bounds,
-                        first.id()
+                        first.at()
                     ));
                 }
             }
             if let Some(e) = n.entries.iter().find(|e| !n.bounds.intersects(&e.aabb())) {
-                return Err(format!("node {:?} holds {} outside it", n.bounds, e.id()));
+                return Err(format!("node {:?} holds {:?} outside it", n.bounds, e.at()));
             }
             if let Some(ch) = &n.children {
                 if n.entries.len() < cap && ch.iter().any(|c| !c.entries.is_empty()) {
@@ -462,10 +488,13 @@ mod tests {
     use super::*;
 
     /// An entry whose values f32 holds exactly, so that the tree's answers are exact too.
-    fn entry(id: u64, x: f64, y: f64, s: f64, ceiling: f64) -> Entry {
+    fn entry(id: u32, x: f64, y: f64, s: f64, ceiling: f64) -> Entry {
         let (x, y, s) = (x as f32 as f64, y as f32 as f64, s as f32 as f64);
         Entry::new(
-            PatchId(id),
+            At {
+                unit: id,
+                position: 0,
+            },
             ceiling,
             0.0,
             false,
@@ -487,7 +516,7 @@ mod tests {
             assert!(f64::from(down(x)) <= x && x <= f64::from(up(x)), "{x}");
         }
         let b = Aabb::new(-118.3, 34.1, -118.2, 34.2);
-        let e = Entry::new(PatchId(1), 5.3, 2.1, false, &b);
+        let e = Entry::new(At::default(), 5.3, 2.1, false, &b);
         assert!(e.aabb().contains(&b));
         assert!(e.ceiling() >= 5.3 && e.floor() <= 2.1);
     }
@@ -514,7 +543,7 @@ mod tests {
             t.check().unwrap();
         }
         for e in all.iter().step_by(3) {
-            assert!(t.remove(e.id(), &e.aabb()));
+            assert!(t.remove(e.at(), &e.aabb()));
             t.check().unwrap();
         }
         let kept: Vec<_> = all
@@ -525,14 +554,14 @@ mod tests {
             .collect();
         for z in [0.5, 2.5, 7.5] {
             let area = Aabb::new(10.0, 10.0, 40.0, 60.0);
-            let mut got: Vec<u64> = Vec::new();
-            t.cut(&area, |_| (z, z), |e| got.push(e.id().0));
+            let mut got: Vec<u32> = Vec::new();
+            t.cut(&area, |_| (z, z), |e| got.push(e.at().unit));
             got.sort();
             got.dedup();
-            let mut want: Vec<u64> = kept
+            let mut want: Vec<u32> = kept
                 .iter()
                 .filter(|e| e.ceiling() > z && e.floor() <= z && e.aabb().intersects(&area))
-                .map(|e| e.id().0)
+                .map(|e| e.at().unit)
                 .collect();
             want.sort();
             assert_eq!(got, want, "z = {z}");

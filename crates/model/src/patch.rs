@@ -70,8 +70,6 @@ impl CellRect {
 pub struct Patch {
     /// Derived from the survey, level and index.
     pub id: PatchId,
-    /// The survey it was cut from.
-    pub survey: SurveyId,
     /// Mipmap level; 0 is the survey's own samples.
     pub level: u8,
     /// Position of the kernel in the level's kernel tiling.
@@ -80,14 +78,6 @@ pub struct Patch {
     pub kernel: CellRect,
     /// The window clipped to the level's grid.
     pub window: CellRect,
-    /// Centre of the unclipped window in level grid units (see [`Patch::centre`]). The
-    /// blending weight uses it and `half`, so a kernel edge lying on the grid border still
-    /// gets a positive weight. A whole or half cell, so f32 holds it exactly: an index holds
-    /// a patch for every 576 samples, and 16 bytes of each is what this saves.
-    pub centre: [f32; 2],
-    /// Half the unclipped window's side along each axis, in cells (see [`Patch::half`]):
-    /// half a kernel and a margin, exact in f32 too.
-    pub half: [f32; 2],
     /// The kernel's valid cells as disjoint rectangles (see [`Patch::valid`]).
     pub valid: ValidCells,
     /// Largest vertical distance to level 0 anywhere in the window (0 for level 0).
@@ -134,29 +124,6 @@ impl Patch {
     pub fn valid(&self) -> &[CellRect] {
         self.valid.get(&self.kernel)
     }
-
-    /// Centre of the unclipped window in level grid units.
-    #[inline]
-    pub fn centre(&self) -> [f64; 2] {
-        self.centre.map(f64::from)
-    }
-
-    /// Half the unclipped window's side along each axis, in cells.
-    #[inline]
-    pub fn half(&self) -> [f64; 2] {
-        self.half.map(f64::from)
-    }
-}
-
-/// A window's centre or half side as a patch keeps it: a whole or half cell, which f32 holds
-/// exactly below 2²³ cells.
-pub fn compact(v: [f64; 2]) -> [f32; 2] {
-    let c = v.map(|x| x as f32);
-    debug_assert!(
-        c.iter().zip(v).all(|(&a, b)| f64::from(a) == b),
-        "{v:?} is not a whole or half cell"
-    );
-    c
 }
 
 /// Which function the patches of a store evaluate. A store makes all its surveys' patches of
@@ -848,16 +815,12 @@ pub fn make_patches(
             }
             let window = t.window(&kernel, m);
             let eps = claimed_error(accuracy, tiling0, lv as u8, &kernel, &window);
-            let half = layout.kernel as f64 / 2.0 + m as f64;
             Some(Patch {
                 id: PatchId::derive(survey, lv as u8, [pi, pj]),
-                survey,
                 level: lv as u8,
                 index: [pi, pj],
                 kernel,
                 window,
-                centre: compact(t.centre([pi, pj])),
-                half: compact([half, half]),
                 valid: ValidCells::of(&kernel, valid),
                 delta: 0.0,
                 error: eps,

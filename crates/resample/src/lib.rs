@@ -13,6 +13,7 @@ use patchwork_model::grid::{Georef, SampleRect, Shape, Window};
 use patchwork_model::ids::PatchId;
 use patchwork_model::patch::{Bicubic, Blend, CellRect, Patch, PatchKind};
 use patchwork_model::spline::Spline;
+use patchwork_model::survey::SurveyMeta;
 use std::sync::Arc;
 
 /// Where a tile is resampled: `Auto` takes the GPU when the daemon has one.
@@ -481,10 +482,11 @@ impl ResolvedPatch {
         }
     }
 
-    /// A survey's patch of `kind` at `error` (as the index takes it) on its level, read
-    /// through a window holding [`Self::reads`].
-    pub fn new(level: Window, p: &Patch, error: f64, kind: PatchKind, fallback: bool) -> Self {
-        let surface = match kind {
+    /// The patch at `k` in the list of the survey `s`, at the error the index takes it at, on
+    /// its level, read through a window holding [`Self::reads`].
+    pub fn new(level: Window, s: &SurveyMeta, k: usize, fallback: bool) -> Self {
+        let p = &s.patches[k];
+        let surface = match s.kind {
             PatchKind::Bilinear => Surface::Bilinear(level),
             PatchKind::Bicubic => {
                 let spline = Bicubic::spline_of(&p.window, |c, r| level.at(c, r));
@@ -496,9 +498,9 @@ impl ResolvedPatch {
             surface,
             p.kernel,
             p.window,
-            p.centre(),
-            p.half(),
-            error,
+            s.centre(p),
+            s.half(),
+            s.error_at(k),
             fallback,
         )
     }

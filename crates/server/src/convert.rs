@@ -54,7 +54,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
         flags: Vec<u8>,
         kind: pb::PatchKind,
     }
-    let p = match t.patch(x.id) {
+    let p = match t.patch(x) {
         None => return Ok(None),
         Some(PatchRef::Survey(s, p)) => {
             let w = p.window;
@@ -74,8 +74,8 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                 georef: level.level.georef,
                 window: w,
                 kernel: p.kernel,
-                centre: p.centre(),
-                half: p.half(),
+                centre: s.centre(p),
+                half: s.half(),
                 flat: 0.0,
                 valid: p
                     .valid()

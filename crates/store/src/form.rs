@@ -12,7 +12,7 @@
 //! Ids are stored as their `u64`, CRSs as their keys (`"EPSG:n"` or a WKT 2 definition), enums
 //! as their variant's index, in the order the forms list them.
 
-use crate::records::{IngestTimings, LevelHeader, Status, StoredPatches, SurveyRecord};
+use crate::records::{IngestTimings, LevelHeader, Status, SurveyRecord};
 use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::Crs;
 use patchwork_core::index::lod::IndexConfig;
@@ -24,6 +24,7 @@ use patchwork_core::model::evidence::PairEvidence;
 use patchwork_core::model::grid;
 use patchwork_core::model::ids::{PatchId, SurveyId};
 use patchwork_core::model::patch::{self, PatchLayout};
+use patchwork_core::model::survey::SurveyMeta;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -130,17 +131,18 @@ pub struct Patch {
     pub error: f64,
 }
 
-impl From<&patch::Patch> for Patch {
-    fn from(p: &patch::Patch) -> Self {
+impl Patch {
+    /// The stored form of `p`, one of the survey `s`'s patches.
+    pub fn of(p: &patch::Patch, s: &SurveyMeta) -> Self {
         Patch {
             id: p.id.0,
-            survey: p.survey.0,
+            survey: s.id.0,
             level: p.level,
             index: p.index,
             kernel: (&p.kernel).into(),
             window: (&p.window).into(),
-            centre: p.centre(),
-            half: p.half(),
+            centre: s.centre(p),
+            half: s.half(),
             valid: p.valid().iter().map(CellRect::from).collect(),
             delta: p.delta,
             error: p.error,
@@ -148,18 +150,17 @@ impl From<&patch::Patch> for Patch {
     }
 }
 
+/// A patch as memory holds it: without its survey's id and its window's centre and half
+/// side, which its survey gives (the open checks that they are the ones stored).
 impl From<Patch> for patch::Patch {
     fn from(p: Patch) -> Self {
         let kernel = p.kernel.into();
         patch::Patch {
             id: PatchId(p.id),
-            survey: SurveyId(p.survey),
             level: p.level,
             index: p.index,
             kernel,
             window: p.window.into(),
-            centre: patch::compact(p.centre),
-            half: patch::compact(p.half),
             valid: patch::ValidCells::of(&kernel, p.valid.into_iter().map(Into::into).collect()),
             delta: p.delta,
             error: p.error,
@@ -176,23 +177,12 @@ pub struct Patches {
     pub edge_tiles: Vec<[i64; 2]>,
 }
 
-impl From<StoredPatches> for Patches {
-    fn from(s: StoredPatches) -> Self {
+impl Patches {
+    /// The stored form of a survey's patches and edge tiles.
+    pub fn of(s: &SurveyMeta) -> Self {
         Patches {
-            patches: s.patches.iter().map(Patch::from).collect(),
-            edge_tiles: s.edge_tiles,
-        }
-    }
-}
-
-impl From<Patches> for StoredPatches {
-    fn from(s: Patches) -> Self {
-        // The collect reuses the stored forms' allocation, which is larger than the patches
-        // need; the survey's metadata copies the list into one of its length.
-        let patches: Vec<patch::Patch> = s.patches.into_iter().map(Into::into).collect();
-        StoredPatches {
-            patches,
-            edge_tiles: s.edge_tiles,
+            patches: s.patches.iter().map(|p| Patch::of(p, s)).collect(),
+            edge_tiles: s.edge_tiles.clone(),
         }
     }
 }

@@ -437,6 +437,14 @@ pub enum Corruption {
         /// The level the patch says it is at.
         level: usize,
     },
+    /// A patch's stored window is not where its survey's tiling puts it.
+    #[error("patch {patch} of survey {survey} has a window its survey's tiling does not give")]
+    PatchWindow {
+        /// The survey.
+        survey: SurveyId,
+        /// The patch.
+        patch: PatchId,
+    },
     /// A survey's kernel accuracies do not match its kernels.
     #[error("survey {survey} has {have:?} kernel accuracies for {want:?} kernels")]
     Accuracies {

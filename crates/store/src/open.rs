@@ -617,12 +617,12 @@ impl Store {
         if let Some(p) = stored
             .patches
             .iter()
-            .find(|p| p.survey != r.id || p.level as usize >= r.levels.len())
+            .find(|p| p.survey != r.id.0 || p.level as usize >= r.levels.len())
         {
             return Err(Corruption::ForeignPatch {
                 survey: r.id,
-                patch: p.id,
-                of: p.survey,
+                patch: PatchId(p.id),
+                of: SurveyId(p.survey),
                 level: p.level as usize,
             }
             .into());
@@ -664,6 +664,25 @@ impl Store {
                 k
             }
         };
+        // The patches in memory leave their windows' centres and half sides to the survey:
+        // those stored must be the ones it gives.
+        let shapes: Vec<Shape> = r.levels.iter().map(LevelHeader::shape).collect();
+        let half = self.layout.kernel as f64 / 2.0 + self.layout.margin as f64;
+        let tilings: Vec<Tiling> = (0..shapes.len())
+            .map(|l| match l {
+                0 => tiling,
+                _ => Tiling::new(shapes[l].cells(), self.layout.kernel, [0, 0]),
+            })
+            .collect();
+        if let Some(p) = stored.patches.iter().find(|p| {
+            p.centre != tilings[p.level as usize].centre(p.index) || p.half != [half, half]
+        }) {
+            return Err(Corruption::PatchWindow {
+                survey: r.id,
+                patch: PatchId(p.id),
+            }
+            .into());
+        }
         Ok(SurveyMeta {
             id: r.id,
             accuracy: kernel_accuracy.max(),
@@ -677,8 +696,8 @@ impl Store {
             kind: self.recipe.patches,
             tiling,
             kernel_accuracy,
-            shapes: r.levels.iter().map(LevelHeader::shape).collect(),
-            patches: stored.patches.into(),
+            shapes,
+            patches: stored.patches.into_iter().map(Patch::from).collect(),
             raised: None,
             edge_tiles: stored.edge_tiles,
         })

@@ -5,16 +5,10 @@ use super::*;
 use std::collections::BTreeSet;
 use std::sync::Arc;
 
-/// A survey's patches and the edge tiles its samples reach, stored together under `p/` in
-/// their [`form::Patches`].
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(from = "form::Patches", into = "form::Patches")]
-pub struct StoredPatches {
-    /// The survey's patches, of every level.
-    pub patches: Vec<Patch>,
-    /// The lattice tiles whose edge patches the survey's samples can reach.
-    pub edge_tiles: Vec<[i64; 2]>,
-}
+/// A survey's patches and the edge tiles its samples reach, stored together under `p/`, as
+/// they are stored: each patch with what the patches in memory leave to their survey (its id,
+/// its window's centre and half side), which the open checks against the survey.
+pub type StoredPatches = form::Patches;
 
 /// Whether a survey is part of the terrain.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -241,11 +241,14 @@ impl Store {
             if let Some(p) = ps
                 .patches
                 .iter()
-                .find(|p| p.survey != *id || p.level as usize >= r.levels.len())
+                .find(|p| p.survey != id.0 || p.level as usize >= r.levels.len())
             {
                 pr.add(
                     "patches",
-                    format!("survey {id} lists patch {} that is not its own", p.id),
+                    format!(
+                        "survey {id} lists patch {} that is not its own",
+                        PatchId(p.id)
+                    ),
                 );
                 continue;
             }

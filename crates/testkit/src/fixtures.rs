@@ -116,7 +116,7 @@ pub fn bounds_of(surveys: &[Arc<Survey>]) -> Aabb {
 /// the patch's own grid (not from the index's rectangles).
 pub fn in_valid_kernel(t: &Terrain, x: &Extracted, p: [f64; 2]) -> bool {
     let tol = 1e-7;
-    match t.patch(x.id).expect("extracted patches resolve") {
+    match t.patch(x).expect("extracted patches resolve") {
         PatchRef::Survey(s, patch) => {
             let g = s.shapes[patch.level as usize].georef.to_grid(p);
             patch.valid().iter().any(|r| {
@@ -243,7 +243,7 @@ pub fn survey_heights(surveys: &[Arc<Survey>], p: [f64; 2]) -> Vec<f64> {
 pub fn redundant(t: &Terrain, ps: &[Extracted], lattice: f64) -> Vec<String> {
     let boxes: Vec<(Extracted, PatchBox)> = ps
         .iter()
-        .map(|x| (x.clone(), t.index().get(x.id).unwrap().0))
+        .map(|x| (x.clone(), t.index().get(x.survey, x.position).unwrap().0))
         .collect();
     let mut bad = Vec::new();
     for (x, b) in &boxes {
@@ -291,11 +291,11 @@ pub fn needless_fallback(
 ) -> Vec<String> {
     let boxes: Vec<(Extracted, PatchBox)> = all
         .iter()
-        .map(|x| (x.clone(), t.index().get(x.id).unwrap().0))
+        .map(|x| (x.clone(), t.index().get(x.survey, x.position).unwrap().0))
         .collect();
     let mut bad = Vec::new();
     for x in fallback {
-        let b = t.index().get(x.id).unwrap().0;
+        let b = t.index().get(x.survey, x.position).unwrap().0;
         let better: Vec<&Extracted> = boxes
             .iter()
             .filter(|(_, q)| q.more_accurate(&b) && q.kernel().intersects(&b.kernel()))

@@ -275,18 +275,17 @@ fn as_served(t: &Terrain, s: &Arc<Survey>) -> Arc<Survey> {
 fn level0_error(t: &Terrain, id: patchwork_core::model::ids::SurveyId, p: [f64; 2]) -> Option<f64> {
     let s = t.survey(id)?;
     let g = s.shapes[0].georef.to_grid(p);
-    s.patches
-        .iter()
-        .filter(|x| x.level == 0)
-        .find(|x| {
-            x.valid().iter().any(|r| {
+    (0..s.patches.len())
+        .filter(|&k| s.patches[k].level == 0)
+        .find(|&k| {
+            s.patches[k].valid().iter().any(|r| {
                 g[0] >= r.c0 as f64
                     && g[0] <= r.c1 as f64
                     && g[1] >= r.r0 as f64
                     && g[1] <= r.r1 as f64
             })
         })
-        .map(|x| s.error(x))
+        .map(|k| s.error_at(k))
 }
 
 /// A terrain of `all`, inserted in order, and the box states a store would hold after it:

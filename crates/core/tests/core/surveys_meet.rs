@@ -214,7 +214,6 @@ fn tiles_of_one_mosaic_join_as_one_survey() {
 fn edge_patches_made_again_from_their_members_are_the_ones_built() {
     use patchwork_core::model::edge::EdgeGrid;
     use patchwork_core::model::source::MemorySource;
-    use patchwork_core::terrain::PatchRef;
     use std::sync::Arc;
     let whole = cop();
     let mut draw = patchwork_core::geom::rng::uniform(seed());
@@ -256,7 +255,7 @@ fn edge_patches_made_again_from_their_members_are_the_ones_built() {
     };
     let made_again = |t: &Terrain, of: &Terrain| {
         for e in of.edges() {
-            let Some(PatchRef::Edge(x)) = t.patch(e.id) else {
+            let Some(x) = t.edge(e.owner).filter(|x| x.id == e.id) else {
                 panic!("edge patch {} is not in the terrain", e.id);
             };
             let g = t.edge_grid(x).expect("the members' samples");
@@ -285,7 +284,8 @@ fn edge_patches_made_again_from_their_members_are_the_ones_built() {
     let gone = (draw() * 4.0) as usize % 4;
     lean.retire(pieces[gone].id).unwrap();
     assert!(
-        old.edges().any(|e| lean.patch(e.id).is_none()),
+        old.edges()
+            .any(|e| lean.edge(e.owner).is_none_or(|x| x.id != e.id)),
         "the retirement changed no edge patch"
     );
     old.set_edge_cache(1 << 20);

@@ -15,7 +15,6 @@ use crate::{chunks, decode, encode, form, keys, StoredPatches};
 use patchwork_core::model::edge;
 use patchwork_core::model::grid::Grid;
 use patchwork_core::model::lattice::Lattice;
-use patchwork_core::model::patch::Patch;
 
 /// Version 2's rows per band.
 const BAND_ROWS: usize = 64;
@@ -84,7 +83,6 @@ pub(super) fn run(tree: &sled::Tree, ctx: &Ctx) -> Result<sled::Batch, String> {
         };
         if let Some(v) = tree.get(keys::patches(id)).map_err(|e| e.to_string())? {
             let patches: Vec<form::Patch> = decode(&v, "patches").map_err(|e| e.to_string())?;
-            let patches: Vec<Patch> = patches.into_iter().map(Patch::from).collect();
             let index = Lattice::of(&g.georef).index_of(&g.georef);
             let stored = StoredPatches {
                 patches,
