@@ -270,6 +270,23 @@ pub fn open_only(data: &Path) -> Result<(), Fail> {
     let added = resident_bytes().saturating_sub(before);
     let s = engine.stats();
     println!("{open_s} {added} {} {}", s.patches, s.surveys);
+    // Which of the resident pages are the heap's and which are files' (the binary, sled's
+    // log), on standard error so that the parent's parse of the line above stays as it is.
+    if let Ok(status) = std::fs::read_to_string("/proc/self/status") {
+        let of = |k: &str| {
+            status
+                .lines()
+                .find(|l| l.starts_with(k))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .unwrap_or("?")
+                .to_string()
+        };
+        eprintln!(
+            "RssAnon {} kB, RssFile {} kB",
+            of("RssAnon:"),
+            of("RssFile:")
+        );
+    }
     Ok(())
 }
 
