@@ -6,8 +6,11 @@
 //! cargo run --release -p patchwork-bench --example index_memory -- [FILE ...]
 //!
 //! The files default to the Copernicus N34W119 tile in ../shared/data. With
-//! `INDEX_MEMORY_KEEP=DIR` the store is made in DIR and kept; `INDEX_MEMORY_OPEN=DIR` then only
-//! opens it, and with `INDEX_MEMORY_EXIT=1` too exits as soon as it is open.
+//! `INDEX_MEMORY_KEEP=DIR` the store is made in DIR and kept (`INDEX_MEMORY_INGEST_ONLY=1`
+//! stops there, before any open); `INDEX_MEMORY_OPEN=DIR` then only opens it, and with
+//! `INDEX_MEMORY_EXIT=1` too exits as soon as it is open. `INDEX_MEMORY_NODE_CAPACITY=N` makes
+//! a store whose quadtree nodes keep N boxes, and `INDEX_MEMORY_CUTS=1` times 400 uniform cuts
+//! of a fixed draw on the store opened.
 
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_engine::config::Config;
