@@ -78,18 +78,14 @@ impl Entry {
     /// The entry of a box whose z-span is `[floor, ceiling)` and whose window's bounds are
     /// `aabb`.
     ///
-    /// # Panics
-    /// For a negative floor: a box's floor is its patch's error.
+    /// A box's floor is its patch's error, never negative; were one negative (or not a
+    /// number), the entry would keep 0, which only makes the tree answer more.
     pub fn new(at: At, ceiling: f64, floor: f64, exposed: bool, aabb: &Aabb) -> Self {
-        assert!(
-            floor >= 0.0,
-            "a floor of {floor}: an error is never negative"
-        );
         Entry {
             at,
             ceiling: up(ceiling),
-            // +0.0 for a floor of 0, so that the sign bit is free.
-            floor: down(floor).abs().to_bits() | if exposed { EXPOSED } else { 0 },
+            // Never below +0.0 (`max` takes it over a NaN too), so that the sign bit is free.
+            floor: down(floor).max(0.0).to_bits() | if exposed { EXPOSED } else { 0 },
             bounds: stored_bounds(aabb),
         }
     }
