@@ -125,8 +125,6 @@ fn pair_key(a: SurveyId, b: SurveyId) -> (SurveyId, SurveyId) {
 /// index, least ε), ascending, as [`SurveyMeta::with_raised_claims`] takes it.
 type Raise = Arc<[(u32, f32)]>;
 
-/// A survey as the index takes it: its claims raised by `raise` (the survey itself when none
-/// are).
 /// Whether `raise` gives the survey `base` other claims than `now`, the survey as a terrain
 /// holds it. A survey's errors follow from its kernels' claims, so that equal claims make the
 /// same survey: no list of the raises in force is kept beside it.
@@ -143,6 +141,8 @@ fn claims_differ(base: &Arc<SurveyMeta>, raise: &[(u32, f32)], now: &Arc<SurveyM
     want != now.kernel_accuracy.values
 }
 
+/// A survey as the index takes it: its claims raised by `raise` (the survey itself when none
+/// are).
 fn effective(base: &Arc<SurveyMeta>, raise: &[(u32, f32)]) -> Arc<SurveyMeta> {
     if raise.is_empty() {
         base.clone()
@@ -606,16 +606,13 @@ impl Terrain {
         if self.source.is_none() {
             return;
         }
-        // An edge patch is a unit of its own: it moved where its unit is listed with states.
-        let owners = changes
-            .iter()
-            .flat_map(|c| c.units.iter())
-            .filter(|(_, states)| states.is_some());
-        for (owner, _) in owners {
-            let held = self.edges.get(owner).filter(|e| e.grid.is_some()).cloned();
-            if let Some(e) = held {
-                self.edges.insert(*owner, bare(e));
-            }
+        let held: Vec<Arc<EdgePatch>> = self
+            .moved_edges(changes)
+            .filter(|e| e.grid.is_some())
+            .cloned()
+            .collect();
+        for e in held {
+            self.edges.insert(e.owner, bare(e));
         }
     }
 
@@ -926,16 +923,23 @@ impl Terrain {
     /// The edge patches this terrain holds among the boxes the changes moved: what a store
     /// writes of them besides their tops.
     pub fn edges_of(&self, changes: &[&ChangeStats]) -> Vec<Arc<EdgePatch>> {
-        // An edge patch is a unit of its own: it moved where its unit is listed with states.
-        let mut out: Vec<Arc<EdgePatch>> = changes
-            .iter()
-            .flat_map(|c| c.units.iter())
-            .filter(|(_, states)| states.is_some())
-            .filter_map(|(owner, _)| self.edges.get(owner).cloned())
-            .collect();
+        let mut out: Vec<Arc<EdgePatch>> = self.moved_edges(changes).cloned().collect();
         out.sort_by_key(|e| e.id);
         out.dedup_by_key(|e| e.id);
         out
+    }
+
+    /// The edge patches held among the boxes the changes moved. An edge patch is a unit of its
+    /// own, so it moved where its unit is listed with states.
+    fn moved_edges<'a>(
+        &'a self,
+        changes: &'a [&ChangeStats],
+    ) -> impl Iterator<Item = &'a Arc<EdgePatch>> + 'a {
+        changes
+            .iter()
+            .flat_map(|c| c.units.iter())
+            .filter(|(_, states)| states.is_some())
+            .filter_map(|(owner, _)| self.edges.get(owner))
     }
 
     /// The patch a cut took: the one at its place in its unit's list.

@@ -83,9 +83,9 @@ pub struct Patch {
     /// Largest vertical distance to level 0 anywhere in the window (0 for level 0).
     pub delta: f64,
     /// ε + δ, with the survey's own claims: the bottom of the patch's box in LOD space unless
-    /// other surveys' evidence raised those claims (then [`SurveyMeta::error`] says what it is).
+    /// other surveys' evidence raised those claims (then [`SurveyMeta::error_at`] says what it is).
     ///
-    /// [`SurveyMeta::error`]: crate::survey::SurveyMeta::error
+    /// [`SurveyMeta::error_at`]: crate::survey::SurveyMeta::error_at
     pub error: f64,
 }
 

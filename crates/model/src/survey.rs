@@ -73,7 +73,7 @@ pub struct SurveyMeta {
     /// Its patches, of every level, with the errors the survey's own claims give them. A
     /// survey whose claims other surveys' evidence raised shares this list with the survey as
     /// it came (see [`SurveyMeta::with_raised_claims`]), so that an overlap does not hold every
-    /// patch of it twice; [`SurveyMeta::error`] is a patch's error as the index takes it.
+    /// patch of it twice; [`SurveyMeta::error_at`] is a patch's error as the index takes it.
     pub patches: Arc<[Patch]>,
     /// The errors that raised claims changed: none for a survey as it came.
     pub raised: Option<Raised>,
@@ -188,16 +188,16 @@ impl SurveyMeta {
                 }
             })
             .collect();
-        let changed = (0..errors.len())
+        let changed: Vec<usize> = (0..errors.len())
             .filter(|&k| errors[k] != self.patches[k].error)
-            .count();
-        m.raised = if changed == 0 {
+            .collect();
+        m.raised = if changed.is_empty() {
             None
-        } else if 2 * changed > errors.len() {
+        } else if 2 * changed.len() > errors.len() {
             Some(Raised::All(errors.into()))
         } else {
-            let mut some: Vec<(PatchId, f64)> = (0..errors.len())
-                .filter(|&k| errors[k] != self.patches[k].error)
+            let mut some: Vec<(PatchId, f64)> = changed
+                .into_iter()
                 .map(|k| (self.patches[k].id, errors[k]))
                 .collect();
             some.sort_unstable_by_key(|&(id, _)| id);

@@ -664,26 +664,9 @@ impl Store {
                 k
             }
         };
-        // The patches in memory leave their windows' centres and half sides to the survey:
-        // those stored must be the ones it gives.
-        let shapes: Vec<Shape> = r.levels.iter().map(LevelHeader::shape).collect();
-        let half = self.layout.kernel as f64 / 2.0 + self.layout.margin as f64;
-        let tilings: Vec<Tiling> = (0..shapes.len())
-            .map(|l| match l {
-                0 => tiling,
-                _ => Tiling::new(shapes[l].cells(), self.layout.kernel, [0, 0]),
-            })
-            .collect();
-        if let Some(p) = stored.patches.iter().find(|p| {
-            p.centre != tilings[p.level as usize].centre(p.index) || p.half != [half, half]
-        }) {
-            return Err(Corruption::PatchWindow {
-                survey: r.id,
-                patch: PatchId(p.id),
-            }
-            .into());
-        }
-        Ok(SurveyMeta {
+        let windows: Vec<([f64; 2], [f64; 2])> =
+            stored.patches.iter().map(|p| (p.centre, p.half)).collect();
+        let meta = SurveyMeta {
             id: r.id,
             accuracy: kernel_accuracy.max(),
             spec: r.spec(),
@@ -696,11 +679,25 @@ impl Store {
             kind: self.recipe.patches,
             tiling,
             kernel_accuracy,
-            shapes,
+            shapes: r.levels.iter().map(LevelHeader::shape).collect(),
             patches: stored.patches.into_iter().map(Patch::from).collect(),
             raised: None,
             edge_tiles: stored.edge_tiles,
-        })
+        };
+        // The patches in memory leave their windows' centres and half sides to the survey:
+        // those stored must be the ones it gives.
+        let half = meta.half();
+        if let Some(p) = (meta.patches.iter().zip(&windows))
+            .find(|(p, &(centre, h))| meta.centre(p) != centre || h != half)
+            .map(|(p, _)| p)
+        {
+            return Err(Corruption::PatchWindow {
+                survey: r.id,
+                patch: p.id,
+            }
+            .into());
+        }
+        Ok(meta)
     }
 
     /// A whole survey, samples and all: what deriving the index again and `verify` need.
