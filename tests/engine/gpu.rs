@@ -223,8 +223,13 @@ fn gpu_matches_cpu_on_the_real_crops() {
     let all = bounds_of(&surveys[..3]);
     let grid = SampleGrid::uniform(&all, 100, 90);
     let ps = t.uniform(&all, 0.0);
-    let largest = patchwork::gpu::prepare(&t.resolve(&ps), &grid).largest_bin();
+    let set = t.resolve(&ps);
+    let largest = patchwork::gpu::prepare(&set, &grid).largest_bin();
     assert!(largest > 256, "a bin of only {largest} patches");
+    // Estimated claims differ from kernel to kernel: patches whose accurate blend stops at a
+    // side of their kernel (`ResolvedPatch::closed`) are among them.
+    let closed = set.patches.iter().filter(|p| p.closed != 0).count();
+    assert!(closed > 10, "only {closed} patches with a closed side");
     let what = format!("the N34W119 three at e = 0, 100×90, a bin of {largest} patches");
     worst = worst.max(compare(&mut g, &t, ps.clone(), &grid, &what));
     // Columns that go back and forth: no block is bounded by its first and last column.

@@ -451,7 +451,7 @@ fn by_axes(
                         let over = &mut over[..cells.len()];
                         for &k in &live {
                             let p = &set.patches[k as usize];
-                            let tier = p.tier();
+                            let (tier, holds) = (p.tier(), p.closed != 0);
                             if !over.iter().any(|o| o.open(tier)) {
                                 break;
                             }
@@ -461,7 +461,7 @@ fn by_axes(
                                     let yh = &rows[slot[k as usize] as usize];
                                     for (o, i) in samples.filter(|(o, _)| o.open(tier)) {
                                         if let Some((w, h)) = p.at_axes(&c.at(i), yh) {
-                                            o.add(tier, w, h.z, h.covered);
+                                            o.add(tier, w, h.z, h.covered, holds);
                                         }
                                     }
                                 }
@@ -470,7 +470,7 @@ fn by_axes(
                                         let at = row_j * width + i;
                                         let q = in_plane(p, [axes.xs[i], y], planes, at);
                                         if let Some((w, h)) = p.at(q) {
-                                            o.add(tier, w, h.z, h.covered);
+                                            o.add(tier, w, h.z, h.covered, holds);
                                         }
                                     }
                                 }
@@ -543,9 +543,10 @@ fn by_axes(
 /// point covered by a better tier never adds a worse one. The sums are then w·z and w,
 /// divided as the blend divides them, so the height is the blend's to the bit.
 ///
-/// The accurate blend gives k's height alone wherever k's kernel holds the point and k is
-/// first of the block's patches in the set's order: its weight is exactly 1 there, so it
-/// takes the whole point, w = 1 and (0 + 1·z) / (0 + 1) = z as `Over` forms it.
+/// The accurate blend gives k's height alone wherever k's kernel holds the point with a
+/// weight of exactly 1 (all of it but the ramps inside closed sides) and k is first of the
+/// block's patches in the set's order: it takes the whole point, w = 1 and
+/// (0 + 1·z) / (0 + 1) = z as `Over` forms it.
 struct Alone {
     /// The patch.
     k: usize,
@@ -553,7 +554,8 @@ struct Alone {
     cell: [u32; BLOCK],
     frac: [f64; BLOCK],
     weight: [f64; BLOCK],
-    /// The columns in the patch's kernel and window, a bit each.
+    /// The columns in the patch's kernel and window (for the accurate blend, at weight 1), a
+    /// bit each.
     inside: u16,
     /// Columns in use: the block's, fewer at the tile's right edge.
     n: usize,
@@ -580,9 +582,12 @@ impl Alone {
             inside: 0,
             n,
         };
+        // In the accurate blend a patch takes a whole point only where its weight is 1: not
+        // on the ramp inside a closed side of its kernel.
+        let p = &set.patches[k];
         for d in 0..n {
             let h = c.at(i0 + d);
-            if h.reaches && h.covered {
+            if h.reaches && h.covered && (!p.accurate || h.weight == 1.0) {
                 (one.cell[d], one.frac[d], one.weight[d]) = (h.cell, h.frac, h.weight);
                 one.inside |= 1 << d;
             }
@@ -599,14 +604,15 @@ impl Alone {
     }
 
     /// One row of the block into `out`, `y` what the patch makes of the row's y. None where
-    /// the row lies off the patch's kernel: the whole row is the blend's to make. Otherwise
-    /// the samples it left for the blend, a bit each: those off the kernel, or over a void.
+    /// the row lies off the patch's kernel, or for the accurate blend on its ramp inside a
+    /// closed side: the whole row is the blend's to make. Otherwise the samples it left for
+    /// the blend, a bit each: those off the kernel, or over a void.
     #[inline]
     fn fill(&self, p: &ResolvedPatch, y: &AxisHit, out: &mut [f32]) -> Option<u16> {
         let Surface::Bilinear(level) = &p.surface else {
             unreachable!("only bilinear patches are separable")
         };
-        if !(y.reaches && y.covered) {
+        if !(y.reaches && y.covered) || (p.accurate && y.weight != 1.0) {
             return None;
         }
         let g = &level.grid;
@@ -763,6 +769,11 @@ struct Over {
     /// The tier of the first patch whose kernel holds the point, u32::MAX until one does:
     /// worse tiers no longer count, as in Formula 1's tiers.
     stop: u32,
+    /// The height of the first patch with a closed side ([`ResolvedPatch::closed`]) whose
+    /// kernel holds the point: on the ramp inside that side it weighs less than 1, and it
+    /// takes what its tier leaves, where its neighbour of the same samples would beyond
+    /// the edge.
+    hold: Option<f64>,
 }
 
 impl Default for Over {
@@ -772,6 +783,7 @@ impl Default for Over {
             asum: 0.0,
             rest: 1.0,
             stop: u32::MAX,
+            hold: None,
         }
     }
 }
@@ -784,22 +796,34 @@ impl Over {
         self.rest > 0.0 && tier <= self.stop
     }
 
-    /// Lays a patch of weight `w` and height `z` under those before it; its share.
+    /// Lays a patch of weight `w` and height `z` under those before it; its share. `holds`:
+    /// the patch has a closed side, so where it covers the point it takes what its tier
+    /// leaves ([`Self::hold`]).
     #[inline(always)]
-    fn add(&mut self, tier: u32, w: f64, z: f64, covered: bool) -> f64 {
+    fn add(&mut self, tier: u32, w: f64, z: f64, covered: bool, holds: bool) -> f64 {
         let a = w * self.rest;
         self.sum += a * z;
         self.asum += a;
         self.rest -= a;
         if covered {
             self.stop = self.stop.min(tier);
+            if holds && self.hold.is_none() {
+                self.hold = Some(z);
+            }
         }
         a
     }
 
     fn height(&self) -> f32 {
-        if self.stop != u32::MAX && self.asum > 0.0 {
-            (self.sum / self.asum) as f32
+        let (mut sum, mut asum) = (self.sum, self.asum);
+        if let Some(z) = self.hold {
+            if self.rest > 0.0 {
+                sum += self.rest * z;
+                asum += self.rest;
+            }
+        }
+        if self.stop != u32::MAX && asum > 0.0 {
+            (sum / asum) as f32
         } else {
             f32::NAN
         }
@@ -816,16 +840,29 @@ fn over_by(
 ) -> (f32, Option<u32>) {
     let mut o = Over::default();
     let mut most = (0.0, None);
+    // The patch that takes what its tier leaves, and its own share.
+    let mut holder = None;
     for &k in bin {
-        let tier = set.patches[k as usize].tier();
+        let q = &set.patches[k as usize];
+        let tier = q.tier();
         if !o.open(tier) {
             break;
         }
         if let Some((w, h)) = at(k as usize) {
-            let a = o.add(tier, w, h.z, h.covered);
+            let holds = q.closed != 0;
+            let first = o.hold.is_none();
+            let a = o.add(tier, w, h.z, h.covered, holds);
+            if first && o.hold.is_some() {
+                holder = Some((k, a));
+            }
             if a > most.0 {
                 most = (a, Some(k));
             }
+        }
+    }
+    if let Some((k, a)) = holder {
+        if a + o.rest > most.0 {
+            most = (a + o.rest, Some(k));
         }
     }
     let z = o.height();

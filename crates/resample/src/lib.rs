@@ -402,6 +402,17 @@ pub struct ResolvedPatch {
     /// at a point no cut patch covers, the fallback patches of the best rank covering it are
     /// blended, with any of better rank that reach it.
     pub rank: u32,
+    /// The sides of its kernel (bit 0 the first column, 1 the first row, 2 the last column,
+    /// 3 the last row) across which the accurate blend gives it no weight: for a level-0
+    /// survey patch, those where a neighbouring kernel of its survey claims a larger ε than
+    /// its own ([`closed_sides`]). Its extension zone there holds samples no better than that
+    /// claim, and laid over a more accurate survey's kernel they would leak into an answer
+    /// asked within the patch's own error. So beyond such a side it weighs 0, and its ramp
+    /// runs inside its kernel, where its samples are as good as it claims
+    /// ([`Self::inner_weight`]); where it holds a point it takes what the patches after it in
+    /// its tier leave. Heights stay continuous, and its neighbour of the same samples answers
+    /// beyond the edge.
+    pub closed: u8,
     /// Weighed as the accurate blend weighs it ([`PatchSet::with_blend`]): 1 over its kernel,
     /// falling to 0 across the extension zone, with `norm` 1.
     pub accurate: bool,
@@ -458,6 +469,7 @@ impl ResolvedPatch {
             error,
             fallback,
             rank: 0,
+            closed: 0,
             accurate: false,
             plane: 0,
             origin: g.origin,
@@ -493,7 +505,7 @@ impl ResolvedPatch {
                 Surface::Bicubic(level, Arc::new(spline))
             }
         };
-        Self::make(
+        let mut q = Self::make(
             p.id,
             surface,
             p.kernel,
@@ -502,7 +514,9 @@ impl ResolvedPatch {
             s.half(),
             s.error_at(k),
             fallback,
-        )
+        );
+        q.closed = closed_sides(s, p);
+        q
     }
 
     /// An edge patch, evaluating `grid`, its samples, with its flattened weight.
@@ -541,7 +555,9 @@ impl ResolvedPatch {
     /// to 0 at the unclipped window's. The ramp is s (a C0 join) for bilinear and edge patches
     /// and 6s⁵ − 15s⁴ + 10s³ (a C2 join at both ends) for bicubic ones, so the surface keeps
     /// the continuity its patches have. Exactly 1 on the kernel, so a point there that no
-    /// more accurate patch reaches gets the patch's height to the bit.
+    /// more accurate patch reaches gets the patch's height to the bit; but across a closed
+    /// side ([`Self::closed`]) the weight is 0 and the ramp runs inside the kernel instead
+    /// ([`Self::inner_weight`]).
     #[inline(always)]
     fn axis_weight(&self, axis: usize, g: f64, t: f64) -> f64 {
         if !self.accurate {
@@ -553,9 +569,17 @@ impl ResolvedPatch {
             (self.kernel.r0 as f64, self.kernel.r1 as f64)
         };
         if g >= k0 && g <= k1 {
-            return 1.0;
+            let sides = (self.closed >> axis) & 0b101;
+            if sides == 0 {
+                return 1.0;
+            }
+            return self.inner_weight(axis, g, [k0, k1], sides);
         }
-        let edge = if g < k0 { k0 } else { k1 };
+        let below = g < k0;
+        if self.closed & (1 << (axis + if below { 0 } else { 2 })) != 0 {
+            return 0.0;
+        }
+        let edge = if below { k0 } else { k1 };
         // The kernel's edge on g's side, as a t: the ramp runs from there to |t| = 1.
         let tk = (edge - self.centre[axis]).abs() * self.inv_half[axis];
         let s = ((1.0 - t.abs()) / (1.0 - tk)).clamp(0.0, 1.0);
@@ -571,6 +595,33 @@ impl ResolvedPatch {
         // kernel's edge that it rounds to 1 there, and the point would then end at a patch
         // that does not cover it, nodata where the next patch's kernel holds it.
         w.min(BELOW_ONE)
+    }
+
+    /// The accurate blend's weight inside the kernel along `axis`, at grid coordinate `g`,
+    /// where `sides` (bit 0 the kernel's first line, bit 2 its last) are closed: a ramp from 0
+    /// at a closed edge up to 1 a margin inside it (the extension zone's width on that side),
+    /// shaped as the outer ramp is. The patches after it in the order thus take over before
+    /// its edge, inside the kernel where its samples are within its claim, rather than after
+    /// it where they are not; what they leave, the patch takes (`cpu::Over::hold`), as its
+    /// neighbour of the same samples takes it beyond the edge. Below 1 wherever it ramps.
+    #[inline]
+    fn inner_weight(&self, axis: usize, g: f64, [k0, k1]: [f64; 2], sides: u8) -> f64 {
+        let (c, half) = (self.centre[axis], 1.0 / self.inv_half[axis]);
+        let mut s = 1.0f64;
+        if sides & 1 != 0 {
+            s = s.min((g - k0) / (half - (c - k0).abs()));
+        }
+        if sides & 4 != 0 {
+            s = s.min((k1 - g) / (half - (k1 - c).abs()));
+        }
+        if s >= 1.0 {
+            return 1.0;
+        }
+        let w = match self.surface {
+            Surface::Bicubic(..) => s * s * s * (s * (6.0 * s - 15.0) + 10.0),
+            _ => s,
+        };
+        w.clamp(0.0, BELOW_ONE)
     }
 
     /// Where the accurate blend puts the patch among those that reach a point: the cut's
@@ -734,6 +785,35 @@ impl ResolvedPatch {
             self.axis_weight(0, g[0], tx) * self.axis_weight(1, g[1], ty) * self.norm * hit.weight;
         Some((w, hit))
     }
+}
+
+/// The sides of a survey patch's kernel across which the accurate blend does not reach
+/// ([`ResolvedPatch::closed`]): for a level-0 patch, each side whose strip of the window
+/// beyond the kernel meets a kernel of a larger ε than the patch's own. A coarser patch's
+/// error already holds the largest ε under its whole window, so it reaches everywhere.
+pub fn closed_sides(s: &SurveyMeta, p: &Patch) -> u8 {
+    if p.level != 0 {
+        return 0;
+    }
+    let (k, w) = (p.kernel, p.window);
+    let own = s.kernel_accuracy.at(s.tiling.kernel_at(k.c0, k.r0));
+    // Most surveys claim one ε everywhere (`accuracy` is the largest): nothing to compare.
+    if s.accuracy <= own {
+        return 0;
+    }
+    let strips = [
+        (w.c0 < k.c0).then_some(CellRect { c1: k.c0, ..w }),
+        (w.r0 < k.r0).then_some(CellRect { r1: k.r0, ..w }),
+        (w.c1 > k.c1).then_some(CellRect { c0: k.c1, ..w }),
+        (w.r1 > k.r1).then_some(CellRect { r0: k.r1, ..w }),
+    ];
+    strips
+        .iter()
+        .enumerate()
+        .fold(0, |m, (i, strip)| match strip {
+            Some(r) if s.kernel_accuracy.max_over(&s.tiling, r) > own => m | 1 << i,
+            _ => m,
+        })
 }
 
 /// The largest f64 below 1: the most weight a patch has off its kernel.

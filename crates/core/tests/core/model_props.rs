@@ -277,3 +277,61 @@ proptest! {
         }
     }
 }
+
+/// Two exact surveys of one ground, a coarse one and a fine one over part of it. They disagree,
+/// so the evidence raises the coarse one's claim in one of its kernels (rows 5–13) but not in
+/// the next (rows 13–21), whose patch's extension zone reaches over the fine survey's kernel
+/// (which ends near row 12.5). At e = 0 that zone's samples, claimed no better than the raised
+/// kernel's ε, must not come into the fine survey's heights. (Found by the property above.)
+#[test]
+fn an_extension_zone_over_a_neighbour_that_claims_less_stays_out_of_the_blend() {
+    let coarse = Spec {
+        cols: 12,
+        rows: 37,
+        origin: [0.0, 7.821955293173482],
+        theta: 0.0,
+        step: [2.021270856020667, 1.6234329350105219],
+        voids: vec![
+            (7.097242220431542, 28.1679766514488, 1.0),
+            (9.25986006266391, 24.215391850981604, 1.7353243197654162),
+        ],
+        accuracy: 0.0,
+        seed: 7,
+    };
+    let fine = Spec {
+        cols: 12,
+        rows: 30,
+        origin: [0.0, 1.5378907949997815],
+        theta: 0.0,
+        step: [0.4, 0.48315068457707205],
+        voids: vec![],
+        accuracy: 0.0,
+        seed: 7,
+    };
+    let (a, b) = (coarse.survey().unwrap(), fine.survey().unwrap());
+    let surveys = build(&[coarse, fine]);
+    let t = terrain_of(&surveys);
+    let ps = t.uniform(&bounds_of(&surveys), 0.0);
+    let at = |r: f64| a.levels[0].georef.to_world(0.8, r);
+    let claim = |r: f64| accuracy_at(&t, &a, at(r)).unwrap();
+    assert!(
+        claim(12.5) > 1.0 && claim(13.5) == 0.0,
+        "the scene lost its raised kernel"
+    );
+    // Down column 0.8 of the coarse survey, in the raised kernel's last rows that the fine
+    // survey covers, where the next kernel's extension zone lies.
+    let mut checked = 0;
+    for i in 0..=500 {
+        let p = at(12.0 + i as f64 * 1e-3);
+        let Some(want) = b.levels[0].bilinear(p) else {
+            continue;
+        };
+        let h = blended(&t, &ps, p) as f64;
+        assert!(
+            (h - want).abs() < 1e-3,
+            "at {p:?}: {h}, where the fine survey has {want}"
+        );
+        checked += 1;
+    }
+    assert!(checked > 300, "only {checked} points in the fine survey");
+}

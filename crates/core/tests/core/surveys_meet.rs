@@ -785,3 +785,77 @@ fn the_accurate_blend_keeps_the_bound_of_the_first_kernel_that_holds_a_point() {
         "too few heights checked"
     );
 }
+
+/// Where a kernel's neighbour claims a larger ε, the accurate blend gives the patch no weight
+/// beyond that side and ramps it down inside its kernel instead (`ResolvedPatch::closed`).
+/// Heights must stay continuous across such an edge: on the Copernicus and NASADEM pair, whose
+/// estimated claims differ from kernel to kernel, at points drawn at random along every closed
+/// edge, just inside and just outside it.
+#[test]
+fn heights_stay_continuous_across_a_closed_side_of_a_kernel() {
+    let seed = seed();
+    let mut draw = patchwork_core::geom::rng::uniform(seed);
+    let surveys = vec![
+        survey_with(cop(), Auto),
+        survey_with(real_crop("nasadem_n34w119_crop.tif"), Auto),
+    ];
+    let mut t = terrain_of(&surveys);
+    t.set_blend(Blend::Accurate);
+    let b = bounds_of(&surveys);
+    let (mut edges, mut worst) = (0usize, 0.0f64);
+    for e in [0.0, 2.0, 6.0, 15.0] {
+        let set = t.resolve(&t.uniform(&b, e));
+        let all: Vec<u32> = (0..set.patches.len() as u32).collect();
+        for q in set.patches.iter().filter(|q| q.closed != 0) {
+            let k = q.kernel;
+            let world = |c: f64, r: f64| {
+                let (du, dv) = (c / q.inv_step[0], r / q.inv_step[1]);
+                [
+                    q.origin[0] + du * q.axes[0][0] + dv * q.axes[1][0],
+                    q.origin[1] + du * q.axes[0][1] + dv * q.axes[1][1],
+                ]
+            };
+            for side in (0..4).filter(|s| q.closed & (1 << s) != 0) {
+                edges += 1;
+                // Across the side, 10⁻⁶ of a cell either way of it, somewhere along it.
+                let mut along = |lo: u32, hi: u32| lo as f64 + draw() * (hi - lo) as f64;
+                let (inside, outside) = match side {
+                    0 => {
+                        let r = along(k.r0, k.r1);
+                        (world(k.c0 as f64 + 1e-6, r), world(k.c0 as f64 - 1e-6, r))
+                    }
+                    1 => {
+                        let c = along(k.c0, k.c1);
+                        (world(c, k.r0 as f64 + 1e-6), world(c, k.r0 as f64 - 1e-6))
+                    }
+                    2 => {
+                        let r = along(k.r0, k.r1);
+                        (world(k.c1 as f64 - 1e-6, r), world(k.c1 as f64 + 1e-6, r))
+                    }
+                    _ => {
+                        let c = along(k.c0, k.c1);
+                        (world(c, k.r1 as f64 - 1e-6), world(c, k.r1 as f64 + 1e-6))
+                    }
+                };
+                let (hi, ho) = (
+                    cpu::blend(&set, &all, inside),
+                    cpu::blend(&set, &all, outside),
+                );
+                if hi.is_nan() || ho.is_nan() {
+                    // A void's edge: no height to be continuous with.
+                    continue;
+                }
+                let d = (hi as f64 - ho as f64).abs();
+                assert!(
+                    d < 1e-3,
+                    "seed {seed}, e = {e}: {hi} inside and {ho} outside a closed side of patch \
+                     {:?} at {inside:?}",
+                    q.id
+                );
+                worst = worst.max(d);
+            }
+        }
+    }
+    println!("{edges} closed sides crossed; the largest step across one is {worst:.2e} m");
+    assert!(edges > 100, "only {edges} closed sides in the pair");
+}

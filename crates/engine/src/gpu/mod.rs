@@ -119,7 +119,8 @@ struct Held {
     slot: u32,
     /// A hash of the window's bounds in the store's plane that the record holds: a patch of
     /// another CRS has other bounds in a store of another, so a resampler that serves two
-    /// stores (tests do) keeps a record only for the bounds it was made with.
+    /// stores (tests do) keeps a record only for the bounds it was made with. With the
+    /// patch's closed sides, which change when another survey raises its survey's claims.
     bounds: u64,
 }
 
@@ -187,7 +188,9 @@ struct GpuPatch {
     cols: u32,
     rows: u32,
     kind: u32,
-    _pad: [u32; 2],
+    /// `ResolvedPatch::closed`.
+    closed: u32,
+    _pad: u32,
 }
 
 /// What a request adds to a patch kept on the device: where its first sample is from the
@@ -622,7 +625,10 @@ pub fn prepare(set: &PatchSet, grid: &SampleGrid) -> Prepared {
         norms.push(q.norm);
         max_norm = max_norm.max(q.norm);
         scale = scale.max(w.width()).max(w.height());
-        p.keys.push((q.id, bounds_hash(&w)));
+        // The closed sides follow the survey's claims, which other surveys can raise: a
+        // record kept from before a raise is not this patch's any more.
+        let h = (bounds_hash(&w) ^ u64::from(q.closed)).wrapping_mul(0x2545_f491_4f6c_dd1d);
+        p.keys.push((q.id, h));
         let k = q.plane as usize;
         p.uses.push(use_of(q, origins[k], p.plane_start(k)));
     }
@@ -1572,7 +1578,8 @@ fn gpu_patch(p: &ResolvedPatch, a: &Uploaded) -> GpuPatch {
             Surface::Edge(_) => KIND_EDGE,
         },
         flat: p.flat as f32,
-        _pad: [0; 2],
+        closed: p.closed as u32,
+        _pad: 0,
     }
 }
 

@@ -124,7 +124,9 @@ struct Patch {
     cols: u32,
     rows: u32,
     kind: u32,
-    _pad1: u32,
+    // `ResolvedPatch::closed`: the kernel's sides the accurate blend does not reach across,
+    // bit 0 the first column, 1 the first row, 2 the last column, 3 the last row.
+    closed: u32,
     _pad2: u32,
 }
 
@@ -407,14 +409,38 @@ fn in_kernel(q: Patch, gh: vec2<f32>, gl: vec2<f32>) -> bool {
 }
 
 // The accurate blend's 1-D weight along one axis (`ResolvedPatch::axis_weight`): 1 where the
-// coordinate g = gh + gl lies in the kernel [k0, k1], else a ramp from the kernel's edge on
-// its side to the unclipped window's edge, s for bilinear and edge patches and the C2
-// 6s⁵ − 15s⁴ + 10s³ for bicubic ones.
-fn accurate_weight(q: Patch, gh: f32, gl: f32, k0: f32, k1: f32, centre: f32, inv_half: f32, t: f32) -> f32 {
+// coordinate g = gh + gl lies in the kernel [k0, k1] (but on the ramp inside a closed side,
+// `ResolvedPatch::inner_weight`), else 0 beyond a closed side (`axis` picks the bits of
+// `q.closed`), else a ramp from the kernel's edge on its side to the unclipped window's edge,
+// s for bilinear and edge patches and the C2 6s⁵ − 15s⁴ + 10s³ for bicubic ones.
+fn accurate_weight(q: Patch, axis: u32, gh: f32, gl: f32, k0: f32, k1: f32, centre: f32, inv_half: f32, t: f32) -> f32 {
     let below = (gh - k0) + gl;
     let above = (gh - k1) + gl;
     if below >= 0.0 && above <= 0.0 {
-        return 1.0;
+        let sides = (q.closed >> axis) & 5u;
+        if sides == 0u {
+            return 1.0;
+        }
+        let half = 1.0 / inv_half;
+        var s = 1.0;
+        if (sides & 1u) != 0u {
+            s = min(s, below / (half - abs(k0 - centre)));
+        }
+        if (sides & 4u) != 0u {
+            s = min(s, -above / (half - abs(k1 - centre)));
+        }
+        if s >= 1.0 {
+            return 1.0;
+        }
+        var v = s;
+        if q.kind == KIND_BICUBIC {
+            v = s * s * s * (s * (6.0 * s - 15.0) + 10.0);
+        }
+        return clamp(v, 0.0, 0.99999994);
+    }
+    let side = select(axis + 2u, axis, below < 0.0);
+    if (q.closed & (1u << side)) != 0u {
+        return 0.0;
     }
     let edge = select(k1, k0, below < 0.0);
     let tk = abs(edge - centre) * inv_half;
@@ -482,8 +508,8 @@ fn sample_patch(u: Use, q: Patch, i: u32) -> vec4<f32> {
     var w: f32;
     if params.blend == BLEND_ACCURATE {
         let k = q.kernel;
-        w = accurate_weight(q, gh.x, gl.x, k.x, k.z, q.centre.x, q.inv_half.x, t.x)
-            * accurate_weight(q, gh.y, gl.y, k.y, k.w, q.centre.y, q.inv_half.y, t.y) * e.y;
+        w = accurate_weight(q, 0u, gh.x, gl.x, k.x, k.z, q.centre.x, q.inv_half.x, t.x)
+            * accurate_weight(q, 1u, gh.y, gl.y, k.y, k.w, q.centre.y, q.inv_half.y, t.y) * e.y;
     } else {
         w = weight(q, t.x) * weight(q, t.y) * u.norm * e.y;
     }
@@ -702,7 +728,9 @@ fn main(
 
 // The accurate blend at sample i (`cpu::over_by`): the block's patches, in the set's order
 // (tier, error, id), each laid under those before it with its weight's share of what they
-// left, until one whose kernel holds the sample takes the rest or a worse tier comes.
+// left, until one whose kernel holds the sample takes the rest or a worse tier comes. The
+// first patch with a closed side whose kernel holds the sample takes what is left at the end
+// (`cpu::Over::hold`).
 fn over(i: u32, first: u32, end: u32) {
     var sum = 0.0;
     var asum = 0.0;
@@ -710,6 +738,8 @@ fn over(i: u32, first: u32, end: u32) {
     var stop = 0xffffffffu;
     var have_ref = false;
     var zref = 0.0;
+    var holding = false;
+    var hold = 0.0;
     for (var b = first; b < end; b++) {
         let u = uses[lists[b]];
         let tier = select(0u, 1u + (u.rank & ~FALLBACK), (u.rank & FALLBACK) != 0u);
@@ -731,7 +761,15 @@ fn over(i: u32, first: u32, end: u32) {
         rest -= a;
         if sp.z != 0.0 {
             stop = min(stop, tier);
+            if q.closed != 0u && !holding {
+                hold = sp.y + (q.base - zref);
+                holding = true;
+            }
         }
+    }
+    if holding && rest > 0.0 {
+        sum += rest * hold;
+        asum += rest;
     }
     if stop != 0xffffffffu && asum > 0.0 {
         heights[i] = bitcast<u32>(zref + sum / asum);
