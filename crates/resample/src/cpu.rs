@@ -772,8 +772,8 @@ struct Over {
     /// The height of the first patch with a closed side ([`ResolvedPatch::closed`]) whose
     /// kernel holds the point: on the ramp inside that side it weighs less than 1, and it
     /// takes what its tier leaves, where its neighbour of the same samples would beyond
-    /// the edge.
-    hold: Option<f64>,
+    /// the edge. NaN until one does (a height is never NaN).
+    hold: f64,
 }
 
 impl Default for Over {
@@ -783,7 +783,7 @@ impl Default for Over {
             asum: 0.0,
             rest: 1.0,
             stop: u32::MAX,
-            hold: None,
+            hold: f64::NAN,
         }
     }
 }
@@ -807,8 +807,8 @@ impl Over {
         self.rest -= a;
         if covered {
             self.stop = self.stop.min(tier);
-            if holds && self.hold.is_none() {
-                self.hold = Some(z);
+            if holds && self.hold.is_nan() {
+                self.hold = z;
             }
         }
         a
@@ -816,11 +816,9 @@ impl Over {
 
     fn height(&self) -> f32 {
         let (mut sum, mut asum) = (self.sum, self.asum);
-        if let Some(z) = self.hold {
-            if self.rest > 0.0 {
-                sum += self.rest * z;
-                asum += self.rest;
-            }
+        if self.rest > 0.0 && !self.hold.is_nan() {
+            sum += self.rest * self.hold;
+            asum += self.rest;
         }
         if self.stop != u32::MAX && asum > 0.0 {
             (sum / asum) as f32
@@ -850,9 +848,9 @@ fn over_by(
         }
         if let Some((w, h)) = at(k as usize) {
             let holds = q.closed != 0;
-            let first = o.hold.is_none();
+            let first = o.hold.is_nan();
             let a = o.add(tier, w, h.z, h.covered, holds);
-            if first && o.hold.is_some() {
+            if first && !o.hold.is_nan() {
                 holder = Some((k, a));
             }
             if a > most.0 {
