@@ -5,6 +5,10 @@ mod cli;
 use clap::Parser;
 use std::process::ExitCode;
 
+#[cfg(feature = "jemalloc")]
+#[global_allocator]
+static ALLOCATOR: patchwork::engine::Jemalloc = patchwork::engine::Jemalloc;
+
 fn main() -> ExitCode {
     // Process-wide settings first, before any thread exists to see them change.
     patchwork::tune_allocator();

@@ -6,6 +6,11 @@ use clap::Parser;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+// The daemon's allocator, so that what the bench measures (the resident set above all) is
+// what the daemon would.
+#[global_allocator]
+static ALLOCATOR: patchwork_engine::Jemalloc = patchwork_engine::Jemalloc;
+
 /// Measure speed against accuracy on real surveys, with GDAL on the same tiles.
 #[derive(Parser)]
 #[command(name = "patchwork-bench", version)]

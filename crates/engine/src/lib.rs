@@ -87,6 +87,26 @@ pub fn tune_allocator() {
     }
 }
 
+/// The allocator the daemon and the bench run on: jemalloc, chosen by measurement
+/// (docs/SCALE.md, "The allocator"). glibc's arenas kept, after an open, the pages the open's
+/// parallel reads left partly in use: the Copernicus and NASADEM pair's open held twice the
+/// memory its structures need. A library cannot set the global allocator (the tests and
+/// examples that count allocations set their own), so each program names it:
+/// `#[global_allocator] static A: Jemalloc = Jemalloc;`.
+#[cfg(feature = "jemalloc")]
+pub use tikv_jemallocator::Jemalloc;
+
+/// jemalloc's settings, which it reads at its first allocation, by this symbol's name: a
+/// background thread gives back pages a second after they were last freed (not ten), and
+/// straight to the system rather than marked free first (pages the resident set still counts
+/// until the kernel wants them). A second keeps the buffers of one request or one ingest for the
+/// next, whose faults would cost more than the pages (see [`tune_allocator`]). Nothing
+/// reads it where jemalloc is not the program's allocator.
+#[cfg(feature = "jemalloc")]
+#[allow(non_upper_case_globals)]
+#[export_name = "_rjem_malloc_conf"]
+pub static malloc_conf: &u8 = &b"background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0\0"[0];
+
 /// What readers see: a terrain and the catalog of the same commit.
 struct Published {
     terrain: Arc<Terrain>,
@@ -446,6 +466,15 @@ pub fn release_free_memory() {
     // system; it touches no memory in use.
     unsafe {
         libc::malloc_trim(0);
+    }
+    // jemalloc's background thread would give them back within a second; an open or an ingest
+    // just done gives them back now. Arena 4096 is MALLCTL_ARENAS_ALL: every arena.
+    #[cfg(feature = "jemalloc")]
+    // SAFETY: "arena.<i>.purge" reads and writes nothing through the pointers, which are
+    // null; it only returns the arenas' unused dirty pages to the system.
+    unsafe {
+        let (none, len) = (std::ptr::null_mut(), std::ptr::null_mut());
+        tikv_jemalloc_sys::mallctl(c"arena.4096.purge".as_ptr(), none, len, none, 0);
     }
 }
 
