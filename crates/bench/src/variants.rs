@@ -109,8 +109,9 @@ pub fn run(
                 for x in &ps {
                     coarse += usize::from(x.level > 0);
                     samples += match t.patch(x) {
-                        Some(PatchRef::Survey(_, p)) => {
-                            (p.window.cols() as usize + 1) * (p.window.rows() as usize + 1)
+                        Some(PatchRef::Survey(s, p)) => {
+                            let w = s.window(p);
+                            (w.cols() as usize + 1) * (w.rows() as usize + 1)
                         }
                         Some(PatchRef::Edge(e)) => {
                             t.edge_grid(e).map_or(0, |g| g.kept_heights().len())

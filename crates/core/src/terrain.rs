@@ -1610,7 +1610,7 @@ impl Terrain {
                 let r = match self.patch(x)? {
                     PatchRef::Survey(s, p) => {
                         let level = p.level as usize;
-                        let rect = ResolvedPatch::reads(p, &s.shapes[level]);
+                        let rect = ResolvedPatch::reads(s, p);
                         self.window(s, level, rect)
                             .map(|w| ResolvedPatch::new(w, s, x.position as usize, x.fallback))
                     }
@@ -1650,7 +1650,7 @@ impl Terrain {
                 PatchRef::Survey(s, p) if !self.resident.contains_key(&s.id) => {
                     let level = p.level as usize;
                     let shape = s.shapes[level];
-                    Some((s.id, level, shape, ResolvedPatch::reads(p, &shape)))
+                    Some((s.id, level, shape, ResolvedPatch::reads(s, p)))
                 }
                 _ => None,
             })

@@ -287,10 +287,10 @@ impl PatchBox {
     /// Where the patch can contribute to a blend, in the patch's plane.
     pub fn window(&self) -> ORect {
         let w = match &self.cells {
-            Cells::Survey(s) => &s.patches[self.position as usize].window,
-            Cells::Edge(e) => &e.window,
+            Cells::Survey(s) => s.window(&s.patches[self.position as usize]),
+            Cells::Edge(e) => e.window,
         };
-        self.lattice.cells(w)
+        self.lattice.cells(&w)
     }
 
     /// The kernel's valid parts, as disjoint shapes in the patch's plane: what greater patches

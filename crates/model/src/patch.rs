@@ -72,12 +72,14 @@ pub struct Patch {
     pub id: PatchId,
     /// Mipmap level; 0 is the survey's own samples.
     pub level: u8,
-    /// Position of the kernel in the level's kernel tiling.
-    pub index: [u32; 2],
-    /// The kernel's cells, clipped to the level.
+    /// The kernel's cells, clipped to the level. Its place in the level's tiling and its
+    /// window (the kernel grown by the margin, clipped to the level) are its survey's to
+    /// work out ([`SurveyMeta::kernel_index`], [`SurveyMeta::window`]): an index holds a
+    /// patch for every 576 samples, and 24 bytes a patch kept nothing the tiling does not say.
+    ///
+    /// [`SurveyMeta::kernel_index`]: crate::survey::SurveyMeta::kernel_index
+    /// [`SurveyMeta::window`]: crate::survey::SurveyMeta::window
     pub kernel: CellRect,
-    /// The window clipped to the level's grid.
-    pub window: CellRect,
     /// The kernel's valid cells as disjoint rectangles (see [`Patch::valid`]).
     pub valid: ValidCells,
     /// Largest vertical distance to level 0 anywhere in the window (0 for level 0).
@@ -800,7 +802,7 @@ pub fn make_patches(
             }
         }
     }
-    let mut patches: Vec<Patch> = slots
+    let (mut patches, windows): (Vec<Patch>, Vec<(usize, CellRect)>) = slots
         .into_par_iter()
         .filter_map(|(lv, pi, pj)| {
             let g = &levels[lv];
@@ -815,22 +817,17 @@ pub fn make_patches(
             }
             let window = t.window(&kernel, m);
             let eps = claimed_error(accuracy, tiling0, lv as u8, &kernel, &window);
-            Some(Patch {
+            let p = Patch {
                 id: PatchId::derive(survey, lv as u8, [pi, pj]),
                 level: lv as u8,
-                index: [pi, pj],
                 kernel,
-                window,
                 valid: ValidCells::of(&kernel, valid),
                 delta: 0.0,
                 error: eps,
-            })
+            };
+            Some((p, (lv, window)))
         })
-        .collect();
-    let windows: Vec<(usize, CellRect)> = patches
-        .iter()
-        .map(|p| (p.level as usize, p.window))
-        .collect();
+        .unzip();
     for (p, delta) in patches.iter_mut().zip(func.deviations(levels, &windows)) {
         // Rounding δ up by a few ulps keeps the bound a bound after f32 storage downstream.
         p.delta = if delta > 0.0 {
@@ -873,7 +870,17 @@ mod tests {
         for (lv, level) in levels.iter().enumerate() {
             let [cw, ch] = level.cells();
             let mut seen = vec![0u8; cw * ch];
+            // A patch keeps no index: its kernel's first cell gives it back, as its survey
+            // works it out (`SurveyMeta::kernel_index`), and with it the id it was made with.
+            let t = if lv == 0 {
+                t0
+            } else {
+                Tiling::new(level.cells(), 28, [0, 0])
+            };
             for p in patches.iter().filter(|p| p.level as usize == lv) {
+                let index = t.kernel_at(p.kernel.c0, p.kernel.r0);
+                assert_eq!(t.kernel(index), p.kernel, "level {lv}");
+                assert_eq!(PatchId::derive(SurveyId(1), p.level, index), p.id);
                 for r in p.kernel.r0..p.kernel.r1 {
                     for c in p.kernel.c0..p.kernel.c1 {
                         seen[r as usize * cw + c as usize] += 1;

@@ -138,7 +138,24 @@ impl SurveyMeta {
     /// lying on the grid border still gets a positive weight. Worked out when asked rather
     /// than kept with each patch: an index holds a patch for every 576 samples.
     pub fn centre(&self, p: &Patch) -> [f64; 2] {
-        self.level_tiling(p.level as usize).centre(p.index)
+        self.level_tiling(p.level as usize)
+            .centre(self.kernel_index(p))
+    }
+
+    /// The place of `p`, one of the survey's patches, in its level's tiling of kernels: the
+    /// index its id was derived from.
+    #[inline]
+    pub fn kernel_index(&self, p: &Patch) -> [u32; 2] {
+        self.level_tiling(p.level as usize)
+            .kernel_at(p.kernel.c0, p.kernel.r0)
+    }
+
+    /// The window of `p`, one of the survey's patches: its kernel grown by the layout's
+    /// margin, clipped to its level's grid.
+    #[inline]
+    pub fn window(&self, p: &Patch) -> CellRect {
+        self.level_tiling(p.level as usize)
+            .window(&p.kernel, self.layout.margin as u32)
     }
 
     /// Half the unclipped window's side along each axis, in cells: half a kernel and a
@@ -177,7 +194,13 @@ impl SurveyMeta {
             .map(|k| {
                 let p = &self.patches[k];
                 let claim = |a: &KernelAccuracy| {
-                    super::patch::claimed_error(a, &self.tiling, p.level, &p.kernel, &p.window)
+                    super::patch::claimed_error(
+                        a,
+                        &self.tiling,
+                        p.level,
+                        &p.kernel,
+                        &self.window(p),
+                    )
                 };
                 let (before, after) = (claim(&self.kernel_accuracy), claim(&m.kernel_accuracy));
                 let own = self.error_at(k);
@@ -237,7 +260,7 @@ impl SurveyMeta {
         let windows: Vec<(usize, CellRect)> = self
             .patches
             .iter()
-            .map(|p| (p.level as usize, p.window))
+            .map(|p| (p.level as usize, self.window(p)))
             .collect();
         Placement::new(plane, &self.shapes, windows).map(|p| Some(Arc::new(p)))
     }
@@ -516,11 +539,12 @@ impl Survey {
         let mut patches = meta.patches.to_vec();
         for p in patches.iter_mut() {
             let f = 1u32 << p.level;
+            let w = meta.window(p);
             let under = CellRect {
-                c0: p.window.c0 * f,
-                r0: p.window.r0 * f,
-                c1: (p.window.c1 * f).min(cw as u32),
-                r1: (p.window.r1 * f).min(ch as u32),
+                c0: w.c0 * f,
+                r0: w.r0 * f,
+                c1: (w.c1 * f).min(cw as u32),
+                r1: (w.r1 * f).min(ch as u32),
             };
             p.error += place::reprojection_error(rho, g0, &slopes, &self.tiling, &under);
         }

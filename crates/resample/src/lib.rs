@@ -9,7 +9,7 @@ use patchwork_crs::Reprojection;
 use patchwork_geom::snap;
 use patchwork_geom::{Aabb, ORect};
 use patchwork_model::edge::{EdgeGrid, EdgePatch};
-use patchwork_model::grid::{Georef, SampleRect, Shape, Window};
+use patchwork_model::grid::{Georef, SampleRect, Window};
 use patchwork_model::ids::PatchId;
 use patchwork_model::patch::{Bicubic, Blend, CellRect, Patch, PatchKind};
 use patchwork_model::spline::Spline;
@@ -483,9 +483,9 @@ impl ResolvedPatch {
 
     /// The samples of its level a survey patch reads: its window and one more cell on every
     /// side the level has (the rule for points on a cell edge may look at the cell beyond).
-    pub fn reads(p: &Patch, level: &Shape) -> SampleRect {
-        let w = p.window;
-        let [cw, ch] = level.cells();
+    pub fn reads(s: &SurveyMeta, p: &Patch) -> SampleRect {
+        let w = s.window(p);
+        let [cw, ch] = s.shapes[p.level as usize].cells();
         SampleRect {
             c0: w.c0.saturating_sub(1) as usize,
             r0: w.r0.saturating_sub(1) as usize,
@@ -498,10 +498,11 @@ impl ResolvedPatch {
     /// its level, read through a window holding [`Self::reads`].
     pub fn new(level: Window, s: &SurveyMeta, k: usize, fallback: bool) -> Self {
         let p = &s.patches[k];
+        let window = s.window(p);
         let surface = match s.kind {
             PatchKind::Bilinear => Surface::Bilinear(level),
             PatchKind::Bicubic => {
-                let spline = Bicubic::spline_of(&p.window, |c, r| level.at(c, r));
+                let spline = Bicubic::spline_of(&window, |c, r| level.at(c, r));
                 Surface::Bicubic(level, Arc::new(spline))
             }
         };
@@ -509,7 +510,7 @@ impl ResolvedPatch {
             p.id,
             surface,
             p.kernel,
-            p.window,
+            window,
             s.centre(p),
             s.half(),
             s.error_at(k),
@@ -795,7 +796,7 @@ pub fn closed_sides(s: &SurveyMeta, p: &Patch) -> u8 {
     if p.level != 0 {
         return 0;
     }
-    let (k, w) = (p.kernel, p.window);
+    let (k, w) = (p.kernel, s.window(p));
     let own = s.kernel_accuracy.at(s.tiling.kernel_at(k.c0, k.r0));
     // Most surveys claim one ε everywhere (`accuracy` is the largest): nothing to compare.
     if s.accuracy <= own {

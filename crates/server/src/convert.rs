@@ -57,7 +57,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
     let p = match t.patch(x) {
         None => return Ok(None),
         Some(PatchRef::Survey(s, p)) => {
-            let w = p.window;
+            let w = s.window(p);
             let rect = SampleRect {
                 c0: w.c0 as usize,
                 r0: w.r0 as usize,

@@ -138,9 +138,9 @@ impl Patch {
             id: p.id.0,
             survey: s.id.0,
             level: p.level,
-            index: p.index,
+            index: s.kernel_index(p),
             kernel: (&p.kernel).into(),
-            window: (&p.window).into(),
+            window: (&s.window(p)).into(),
             centre: s.centre(p),
             half: s.half(),
             valid: p.valid().iter().map(CellRect::from).collect(),
@@ -150,17 +150,16 @@ impl Patch {
     }
 }
 
-/// A patch as memory holds it: without its survey's id and its window's centre and half
-/// side, which its survey gives (the open checks that they are the ones stored).
+/// A patch as memory holds it: without its survey's id, its place in its level's tiling and
+/// its window with that window's centre and half side, which its survey gives (the open
+/// checks that they are the ones stored).
 impl From<Patch> for patch::Patch {
     fn from(p: Patch) -> Self {
         let kernel = p.kernel.into();
         patch::Patch {
             id: PatchId(p.id),
             level: p.level,
-            index: p.index,
             kernel,
-            window: p.window.into(),
             valid: patch::ValidCells::of(&kernel, p.valid.into_iter().map(Into::into).collect()),
             delta: p.delta,
             error: p.error,

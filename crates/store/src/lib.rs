@@ -437,7 +437,8 @@ pub enum Corruption {
         /// The level the patch says it is at.
         level: usize,
     },
-    /// A patch's stored window is not where its survey's tiling puts it.
+    /// A patch's stored place in its level's tiling, or its window, is not the one its
+    /// survey's tiling gives.
     #[error("patch {patch} of survey {survey} has a window its survey's tiling does not give")]
     PatchWindow {
         /// The survey.

@@ -664,8 +664,17 @@ impl Store {
                 k
             }
         };
-        let windows: Vec<([f64; 2], [f64; 2])> =
-            stored.patches.iter().map(|p| (p.centre, p.half)).collect();
+        type Placed = (
+            [u32; 2],
+            patchwork_core::model::patch::CellRect,
+            [f64; 2],
+            [f64; 2],
+        );
+        let windows: Vec<Placed> = stored
+            .patches
+            .iter()
+            .map(|p| (p.index, p.window.into(), p.centre, p.half))
+            .collect();
         let meta = SurveyMeta {
             id: r.id,
             accuracy: kernel_accuracy.max(),
@@ -684,11 +693,17 @@ impl Store {
             raised: None,
             edge_tiles: stored.edge_tiles,
         };
-        // The patches in memory leave their windows' centres and half sides to the survey:
-        // those stored must be the ones it gives.
+        // The patches in memory leave their places in the tiling, their windows and the
+        // windows' centres and half sides to the survey: those stored must be the ones it
+        // gives.
         let half = meta.half();
         if let Some(p) = (meta.patches.iter().zip(&windows))
-            .find(|(p, &(centre, h))| meta.centre(p) != centre || h != half)
+            .find(|(p, &(index, window, centre, h))| {
+                meta.kernel_index(p) != index
+                    || meta.window(p) != window
+                    || meta.centre(p) != centre
+                    || h != half
+            })
             .map(|(p, _)| p)
         {
             return Err(Corruption::PatchWindow {
