@@ -75,6 +75,9 @@ class Patch:
     row_theta: Optional[float] = None
     #: The CRS of the frame, "EPSG:n" or a WKT 2 definition; empty for the store's.
     crs: str = ""
+    #: The accurate blend's closed sides of the kernel: bit 0 its first column, bit 1 its
+    #: first row, bit 2 its last column, bit 3 its last row (see :func:`resample`).
+    closed: int = 0
 
     @staticmethod
     def from_proto(p: "pb.Patch") -> "Patch":
@@ -112,6 +115,7 @@ class Patch:
             coef=_spline_fit(z.reshape(rows, cols)) if p.kind == pb.PATCH_KIND_BICUBIC else None,
             row_theta=p.frame.row_theta if p.frame.HasField("row_theta") else None,
             crs=p.crs,
+            closed=p.closed,
         )
 
     def to_grid(self, x: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -149,25 +153,46 @@ class Patch:
         reach &= ~np.isnan(z)
         k = self.kernel
         if blend == "accurate":
-            w = (self._ramp(gx, tx, k[0], k[2], self.centre[0], self.half[0])
-                 * self._ramp(gy, ty, k[1], k[3], self.centre[1], self.half[1]) * hit_weight)
+            w = (self._ramp(gx, tx, k[0], k[2], self.centre[0], self.half[0], self.closed)
+                 * self._ramp(gy, ty, k[1], k[3], self.centre[1], self.half[1], self.closed >> 1)
+                 * hit_weight)
         else:
             norm = 1.0 / (self.half[0] * self.step[0] * self.half[1] * self.step[1])
             w = self._weight(tx) * self._weight(ty) * norm * hit_weight
         covered = reach & (gx >= k[0]) & (gx <= k[2]) & (gy >= k[1]) & (gy <= k[3])
         return np.where(reach, w, 0.0), np.where(reach, z, np.nan), covered, reach
 
-    def _ramp(self, g, t, k0, k1, centre, half):
+    def _ramp(self, g, t, k0, k1, centre, half, closed):
         """The accurate blend's weight along one axis: 1 on the kernel [k0, k1], else a ramp
         from 1 at the kernel's edge on the point's side to 0 at the window's, s for bilinear
-        and edge patches and 6s⁵ − 15s⁴ + 10s³ for bicubic ones, kept below 1."""
+        and edge patches and 6s⁵ − 15s⁴ + 10s³ for bicubic ones, kept below 1.
+
+        ``closed`` holds the axis's closed sides in bits 0 (k0) and 2 (k1): beyond such a side
+        the weight is 0, and inside it the same ramp runs from 0 at the side to 1 a margin in
+        (the unclipped window's extension zone on that side)."""
+        shape = self._shape
         edge = np.where(g < k0, k0, k1)
         tk = np.abs(edge - centre) / half
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.clip((1.0 - np.abs(t)) / (1.0 - tk), 0.0, 1.0)
         s = np.where(np.isnan(s), 0.0, s)
-        w = s**3 * (s * (6.0 * s - 15.0) + 10.0) if self.kind == "bicubic" else s
-        return np.where((g >= k0) & (g <= k1), 1.0, np.minimum(w, _BELOW_ONE))
+        outer = np.minimum(shape(s), _BELOW_ONE)
+        lo, hi = bool(closed & 1), bool(closed & 4)
+        outer = np.where((g < k0) & lo, 0.0, outer)
+        outer = np.where((g > k1) & hi, 0.0, outer)
+        inner = np.ones_like(g, dtype=np.float64)
+        if lo or hi:
+            s = np.ones_like(g, dtype=np.float64)
+            if lo:
+                s = np.minimum(s, (g - k0) / (half - abs(centre - k0)))
+            if hi:
+                s = np.minimum(s, (k1 - g) / (half - abs(k1 - centre)))
+            inner = np.where(s >= 1.0, 1.0, np.clip(shape(s), 0.0, _BELOW_ONE))
+        return np.where((g >= k0) & (g <= k1), inner, outer)
+
+    def _shape(self, s):
+        """The ramp's shape: s, or 6s⁵ − 15s⁴ + 10s³ for bicubic patches (a C2 join)."""
+        return s**3 * (s * (6.0 * s - 15.0) + 10.0) if self.kind == "bicubic" else s
 
     def _weight(self, t: np.ndarray) -> np.ndarray:
         a = np.minimum(np.abs(t), 1.0)
@@ -445,11 +470,14 @@ def _over(patches, ranks, points, width: int, height: int) -> np.ndarray:
     """The accurate blend: each patch, in order of tier (the cut's, then each fallback rank),
     error and id, takes its weight's share of what the patches before it left at a point,
     until a patch whose kernel holds the point has taken it; patches of a worse tier than the
-    first that covers a point do not count there."""
+    first that covers a point do not count there. The first patch with a closed side whose
+    kernel holds a point takes what is left there at the end (it weighs less than 1 on the
+    ramp inside that side)."""
     tier_of = lambda p: 1 + ranks[p.error] if p.fallback else 0  # noqa: E731
     none = len(ranks) + 1
     total, asum = np.zeros((height, width)), np.zeros((height, width))
     rest, stop = np.ones((height, width)), np.full((height, width), none)
+    hold = np.full((height, width), np.nan)
     for p in sorted(patches, key=lambda p: (tier_of(p), p.error, p.id)):
         where = points(p)
         if where is None:
@@ -464,6 +492,12 @@ def _over(patches, ranks, points, width: int, height: int) -> np.ndarray:
         asum[box] += a
         rest[box] -= a
         stop[box] = np.where(take & cov, np.minimum(stop[box], t), stop[box])
+        if p.closed:
+            first = take & cov & np.isnan(hold[box])
+            hold[box] = np.where(first, z, hold[box])
+    held = (rest > 0) & ~np.isnan(hold)
+    total += np.where(held, rest * np.nan_to_num(hold), 0.0)
+    asum += np.where(held, rest, 0.0)
     out = np.where((stop < none) & (asum > 0), total / np.where(asum > 0, asum, 1.0), np.nan)
     return out.astype(np.float32)
 

@@ -12,6 +12,7 @@ use patchwork_core::model::accuracy::AccuracySource;
 use patchwork_core::model::grid::{Georef, SampleRect};
 use patchwork_core::model::patch::{CellRect, PatchKind};
 use patchwork_core::model::source::SampleError;
+use patchwork_core::resample::closed_sides;
 use patchwork_core::terrain::{PatchRef, Terrain, Tile};
 use patchwork_engine::sources::{About, Source};
 use patchwork_engine::{
@@ -53,6 +54,8 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
         samples: Vec<f32>,
         flags: Vec<u8>,
         kind: pb::PatchKind,
+        /// The accurate blend's closed sides of the kernel.
+        closed: u8,
     }
     let p = match t.patch(x) {
         None => return Ok(None),
@@ -88,6 +91,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                     PatchKind::Bilinear => pb::PatchKind::Bilinear,
                     PatchKind::Bicubic => pb::PatchKind::Bicubic,
                 },
+                closed: closed_sides(s, p),
             }
         }
         Some(PatchRef::Edge(e)) => {
@@ -103,6 +107,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
                 samples,
                 flags,
                 kind: pb::PatchKind::Edge,
+                closed: 0,
             }
         }
     };
@@ -155,6 +160,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
             })
             .collect(),
         crs: crs.unwrap_or_default(),
+        closed: p.closed.into(),
     }))
 }
 
