@@ -1356,7 +1356,7 @@ impl Terrain {
             let contested = self.contested(other);
             // A coarser survey's evidence never makes a finer one worse than its own claim.
             let capped = p.finer == id && p.cell_ratio() >= 2.0;
-            for &(k, ko, d) in p.departs(id) {
+            for (k, ko, d) in p.departs(id).iter() {
                 let claim =
                     theirs.values[ko as usize].max(contested.get(&ko).map_or(0.0, |&v| v as f64));
                 let need = if capped {

@@ -82,11 +82,12 @@ pub struct Patch {
     pub kernel: CellRect,
     /// The kernel's valid cells as disjoint rectangles (see [`Patch::valid`]).
     pub valid: ValidCells,
-    /// Largest vertical distance to level 0 anywhere in the window (0 for level 0).
-    pub delta: f64,
     /// ε + δ, with the survey's own claims: the bottom of the patch's box in LOD space unless
     /// other surveys' evidence raised those claims (then [`SurveyMeta::error_at`] says what it is).
+    /// δ itself, the largest vertical distance to level 0 anywhere in the window, is the
+    /// store's to keep ([`Survey::deltas`]): nothing the index does needs it apart.
     ///
+    /// [`Survey::deltas`]: crate::survey::Survey::deltas
     /// [`SurveyMeta::error_at`]: crate::survey::SurveyMeta::error_at
     pub error: f64,
 }
@@ -766,7 +767,8 @@ pub fn claimed_error(
     accuracy.max_over(tiling0, &under)
 }
 
-/// Cuts every level into patches and measures each patch's error, in parallel.
+/// Cuts every level into patches and measures each patch's error, in parallel: the patches,
+/// and each one's δ.
 ///
 /// `tiling0` cuts level 0; coarser levels are cut from their first sample. A level-0 patch's
 /// error is its kernel's ε; a coarser patch's is the largest ε of the level-0 kernels under its
@@ -780,7 +782,7 @@ pub fn make_patches(
     tiling0: &Tiling,
     layout: &PatchLayout,
     func: &dyn PatchFunction,
-) -> Vec<Patch> {
+) -> (Vec<Patch>, Vec<f64>) {
     let m = layout.margin as u32;
     let tilings: Vec<Tiling> = levels
         .iter()
@@ -822,22 +824,27 @@ pub fn make_patches(
                 level: lv as u8,
                 kernel,
                 valid: ValidCells::of(&kernel, valid),
-                delta: 0.0,
                 error: eps,
             };
             Some((p, (lv, window)))
         })
         .unzip();
-    for (p, delta) in patches.iter_mut().zip(func.deviations(levels, &windows)) {
+    let deltas: Vec<f64> = func
+        .deviations(levels, &windows)
+        .into_iter()
         // Rounding δ up by a few ulps keeps the bound a bound after f32 storage downstream.
-        p.delta = if delta > 0.0 {
-            delta * (1.0 + 1e-9) + 1e-6
-        } else {
-            0.0
-        };
-        p.error += p.delta;
+        .map(|d| {
+            if d > 0.0 {
+                d * (1.0 + 1e-9) + 1e-6
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    for (p, delta) in patches.iter_mut().zip(&deltas) {
+        p.error += delta;
     }
-    patches
+    (patches, deltas)
 }
 
 #[cfg(test)]
@@ -859,7 +866,7 @@ mod tests {
         let g = grid(100, 61, |c, r| ((c * 7 + r * 3) % 11) as f32);
         let levels = mipmap::build(g, 28);
         let t0 = Tiling::new(levels[0].cells(), 28, [-5, 17]);
-        let patches = make_patches(
+        let (patches, _) = make_patches(
             SurveyId(1),
             &KernelAccuracy::constant(&t0, 0.0),
             &levels,

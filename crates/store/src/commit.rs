@@ -363,7 +363,7 @@ impl Store {
     /// run it beside that work. Until a commit points at them the bytes are not the store's:
     /// an open cuts them, or a later commit leaves them as garbage for compaction.
     pub fn pack_survey(&self, s: &Survey) -> Result<Packed, StoreError> {
-        let stored = StoredPatches::of(&s.meta);
+        let stored = StoredPatches::of(s);
         let mut entries_keys = vec![keys::patches(s.id)];
         let mut bytes = vec![chunks::seal(&encode(&stored)?)];
         for (level, g) in s.levels.iter().enumerate() {

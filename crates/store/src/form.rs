@@ -20,11 +20,11 @@ use patchwork_core::model::accuracy::{self, KernelAccuracy};
 use patchwork_core::model::coreg;
 use patchwork_core::model::detail;
 use patchwork_core::model::edge::{self, EdgePatch};
-use patchwork_core::model::evidence::PairEvidence;
+use patchwork_core::model::evidence::{Departures, PairEvidence};
 use patchwork_core::model::grid;
 use patchwork_core::model::ids::{PatchId, SurveyId};
 use patchwork_core::model::patch::{self, PatchLayout};
-use patchwork_core::model::survey::SurveyMeta;
+use patchwork_core::model::survey::{Survey as Cut, SurveyMeta};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -132,8 +132,8 @@ pub struct Patch {
 }
 
 impl Patch {
-    /// The stored form of `p`, one of the survey `s`'s patches.
-    pub fn of(p: &patch::Patch, s: &SurveyMeta) -> Self {
+    /// The stored form of `p`, one of the survey `s`'s patches, whose δ is `delta`.
+    pub fn of(p: &patch::Patch, s: &SurveyMeta, delta: f64) -> Self {
         Patch {
             id: p.id.0,
             survey: s.id.0,
@@ -144,7 +144,7 @@ impl Patch {
             centre: s.centre(p),
             half: s.half(),
             valid: p.valid().iter().map(CellRect::from).collect(),
-            delta: p.delta,
+            delta,
             error: p.error,
         }
     }
@@ -152,7 +152,7 @@ impl Patch {
 
 /// A patch as memory holds it: without its survey's id, its place in its level's tiling and
 /// its window with that window's centre and half side, which its survey gives (the open
-/// checks that they are the ones stored).
+/// checks that they are the ones stored), and without its δ, which only the store keeps.
 impl From<Patch> for patch::Patch {
     fn from(p: Patch) -> Self {
         let kernel = p.kernel.into();
@@ -161,7 +161,6 @@ impl From<Patch> for patch::Patch {
             level: p.level,
             kernel,
             valid: patch::ValidCells::of(&kernel, p.valid.into_iter().map(Into::into).collect()),
-            delta: p.delta,
             error: p.error,
         }
     }
@@ -177,10 +176,12 @@ pub struct Patches {
 }
 
 impl Patches {
-    /// The stored form of a survey's patches and edge tiles.
-    pub fn of(s: &SurveyMeta) -> Self {
+    /// The stored form of a survey's patches, with their δ, and its edge tiles.
+    pub fn of(s: &Cut) -> Self {
         Patches {
-            patches: s.patches.iter().map(|p| Patch::of(p, s)).collect(),
+            patches: (s.patches.iter().zip(s.deltas.iter()))
+                .map(|(p, &delta)| Patch::of(p, s, delta))
+                .collect(),
             edge_tiles: s.edge_tiles.clone(),
         }
     }
@@ -663,8 +664,8 @@ impl From<&PairEvidence> for Pair {
             metres_per_unit: p.metres_per_unit,
             against_finer: p.against_finer.clone(),
             against_coarser: p.against_coarser.clone(),
-            departs_finer: p.departs_finer.clone(),
-            departs_coarser: p.departs_coarser.clone(),
+            departs_finer: p.departs_finer.to_vec(),
+            departs_coarser: p.departs_coarser.to_vec(),
         }
     }
 }
@@ -718,8 +719,8 @@ impl From<Pair> for PairEvidence {
             metres_per_unit: p.metres_per_unit,
             against_finer: p.against_finer,
             against_coarser: p.against_coarser,
-            departs_finer: p.departs_finer,
-            departs_coarser: p.departs_coarser,
+            departs_finer: Departures::new(&p.departs_finer),
+            departs_coarser: Departures::new(&p.departs_coarser),
         }
     }
 }

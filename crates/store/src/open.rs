@@ -343,7 +343,7 @@ impl Store {
             let meta = match patches {
                 Err(reason) => Err(reason),
                 Ok(p) => match self.meta_of(r, &p) {
-                    Ok(m) => Ok(m),
+                    Ok((m, _)) => Ok(m),
                     Err(e @ (StoreError::Corrupt(_) | StoreError::Decode { .. })) => {
                         Err(e.to_string())
                     }
@@ -605,14 +605,13 @@ impl Store {
             })
     }
 
-    /// A survey without its samples, from its record, patches and accuracies.
-    pub(super) fn load_meta(&self, r: &SurveyRecord) -> Result<SurveyMeta, StoreError> {
-        self.meta_of(r, &self.read_patches(r.id)?)
-    }
-
     /// A survey without its samples, from its record, the encoded form of its patches, and
-    /// its accuracies.
-    fn meta_of(&self, r: &SurveyRecord, patches: &[u8]) -> Result<SurveyMeta, StoreError> {
+    /// its accuracies; and its patches' δ, which the survey in memory does not keep.
+    fn meta_of(
+        &self,
+        r: &SurveyRecord,
+        patches: &[u8],
+    ) -> Result<(SurveyMeta, Vec<f64>), StoreError> {
         let stored = decode_patches(r.id, patches)?;
         if let Some(p) = stored
             .patches
@@ -675,6 +674,7 @@ impl Store {
             .iter()
             .map(|p| (p.index, p.window.into(), p.centre, p.half))
             .collect();
+        let deltas: Vec<f64> = stored.patches.iter().map(|p| p.delta).collect();
         let meta = SurveyMeta {
             id: r.id,
             accuracy: kernel_accuracy.max(),
@@ -712,12 +712,12 @@ impl Store {
             }
             .into());
         }
-        Ok(meta)
+        Ok((meta, deltas))
     }
 
     /// A whole survey, samples and all: what deriving the index again and `verify` need.
     pub(super) fn load_survey(&self, r: &SurveyRecord) -> Result<Survey, StoreError> {
-        let meta = self.load_meta(r)?;
+        let (meta, deltas) = self.meta_of(r, &self.read_patches(r.id)?)?;
         let levels: Vec<Arc<Grid>> = r
             .levels
             .iter()
@@ -725,7 +725,11 @@ impl Store {
             .map(|(k, h)| self.load_level(r.id, k, h).map(Arc::new))
             .collect::<Result<_, _>>()?;
         let meta = Arc::new(meta);
-        Ok(Survey { meta, levels })
+        Ok(Survey {
+            meta,
+            levels,
+            deltas: deltas.into(),
+        })
     }
 }
 

@@ -267,6 +267,7 @@ fn as_served(t: &Terrain, s: &Arc<Survey>) -> Arc<Survey> {
     Arc::new(Survey {
         meta: t.survey(s.id).unwrap().clone(),
         levels: s.levels.clone(),
+        deltas: s.deltas.clone(),
     })
 }
 
