@@ -1903,3 +1903,44 @@ fn a_version_7_store_measures_its_overlaps_again() {
     assert!(terrain.blame(orig.id, copy.id).is_some());
     assert_verified(&store);
 }
+
+/// A patch in memory keeps only its kernel's place in its level's tiling; the cells stored
+/// beside it must be the ones that place gives, and the place must lie in the tiling. A
+/// patch list that says otherwise (a kernel one cell short, a place past the end of its row)
+/// leaves its survey damaged, as any other damage to it does, and every other survey served.
+#[test]
+fn a_stored_patch_whose_kernel_is_not_its_place_in_the_tiling_damages_its_survey() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pristine = store_dir(&tmp);
+    let (a, b, _, _) = store_of_two(&pristine);
+    type Tamper = fn(&mut form::Patch);
+    let tampers: [(&str, Tamper); 3] = [
+        ("a kernel a cell short", |p| p.kernel.c1 -= 1),
+        ("a place past its row", |p| p.index[0] += 1 << 20),
+        ("a place one row down", |p| p.index[1] += 1),
+    ];
+    for (n, (what, tamper)) in tampers.into_iter().enumerate() {
+        let dir = tmp.path().join(format!("tamper{n}"));
+        copy_dir(&pristine, &dir);
+        {
+            let Opened { store, .. } = open(&dir);
+            let mut stored = store.load_patches(b.id).unwrap();
+            // The last level-0 patch: one row down from it is past its level's tiling.
+            let k = stored.patches.iter().rposition(|p| p.level == 0).unwrap();
+            tamper(&mut stored.patches[k]);
+            let sealed =
+                patchwork::store::chunks::seal(&patchwork::store::encode(&stored).unwrap());
+            let loc = store.raw_pack().append(&[sealed]).unwrap()[0];
+            let end = store.raw_pack().len();
+            drop(store);
+            let db = sled::open(&dir).unwrap();
+            db.insert(patchwork::store::keys::patches(b.id), &loc.to_bytes()[..])
+                .unwrap();
+            db.insert(patchwork::store::keys::PACK_LEN, &end.to_le_bytes()[..])
+                .unwrap();
+            db.flush().unwrap();
+        }
+        let o = open_damaged(&dir);
+        assert_quarantined(&o, &a, &b, what);
+    }
+}

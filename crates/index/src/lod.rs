@@ -272,16 +272,16 @@ impl PatchBox {
 
     /// The kernel's cells.
     #[inline]
-    fn kernel_cells(&self) -> &CellRect {
+    fn kernel_cells(&self) -> CellRect {
         match &self.cells {
-            Cells::Survey(s) => &s.patches[self.position as usize].kernel,
-            Cells::Edge(e) => &e.kernel,
+            Cells::Survey(s) => s.kernel(&s.patches[self.position as usize]),
+            Cells::Edge(e) => e.kernel,
         }
     }
 
     /// The kernel, in the patch's plane.
     pub fn kernel(&self) -> ORect {
-        self.lattice.cells(self.kernel_cells())
+        self.lattice.cells(&self.kernel_cells())
     }
 
     /// Where the patch can contribute to a blend, in the patch's plane.
@@ -305,8 +305,7 @@ impl PatchBox {
     pub fn valid_into(&self, out: &mut Vec<ORect>) {
         match &self.cells {
             Cells::Survey(s) => out.extend(
-                s.patches[self.position as usize]
-                    .valid()
+                s.valid(&s.patches[self.position as usize])
                     .iter()
                     .map(|c| self.lattice.cells(c)),
             ),

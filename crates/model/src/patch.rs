@@ -72,15 +72,19 @@ pub struct Patch {
     pub id: PatchId,
     /// Mipmap level; 0 is the survey's own samples.
     pub level: u8,
-    /// The kernel's cells, clipped to the level. Its place in the level's tiling and its
-    /// window (the kernel grown by the margin, clipped to the level) are its survey's to
-    /// work out ([`SurveyMeta::kernel_index`], [`SurveyMeta::window`]): an index holds a
-    /// patch for every 576 samples, and 24 bytes a patch kept nothing the tiling does not say.
+    /// Its kernel's place in its level's tiling of kernels, row-major: the index `[i, j]`
+    /// its id was derived from is `[index % nx, index / nx]`, nx the tiling's kernels along a
+    /// row. The kernel's cells, its window (the kernel grown by the margin, clipped to the
+    /// level) and the window's centre are the tiling's to work out from it
+    /// ([`SurveyMeta::kernel`], [`SurveyMeta::window`]): an index holds a patch for every
+    /// 576 samples, and a patch keeps nothing that the tiling says.
     ///
-    /// [`SurveyMeta::kernel_index`]: crate::survey::SurveyMeta::kernel_index
+    /// [`SurveyMeta::kernel`]: crate::survey::SurveyMeta::kernel
     /// [`SurveyMeta::window`]: crate::survey::SurveyMeta::window
-    pub kernel: CellRect,
-    /// The kernel's valid cells as disjoint rectangles (see [`Patch::valid`]).
+    pub index: u32,
+    /// The kernel's valid cells as disjoint rectangles ([`SurveyMeta::valid`]).
+    ///
+    /// [`SurveyMeta::valid`]: crate::survey::SurveyMeta::valid
     pub valid: ValidCells,
     /// ε + δ, with the survey's own claims: the bottom of the patch's box in LOD space unless
     /// other surveys' evidence raised those claims (then [`SurveyMeta::error_at`] says what it is).
@@ -111,6 +115,12 @@ impl ValidCells {
         self.0.as_ref().map_or(0, |c| c.len())
     }
 
+    /// The rectangles where they are not the whole kernel.
+    #[inline]
+    pub fn parts(&self) -> Option<&[CellRect]> {
+        self.0.as_deref().map(|b| &**b)
+    }
+
     /// The rectangles, given the kernel they are of.
     #[inline]
     pub fn get<'a>(&'a self, kernel: &'a CellRect) -> &'a [CellRect] {
@@ -118,14 +128,6 @@ impl ValidCells {
             None => std::slice::from_ref(kernel),
             Some(cells) => cells,
         }
-    }
-}
-
-impl Patch {
-    /// The kernel's valid cells as disjoint rectangles.
-    #[inline]
-    pub fn valid(&self) -> &[CellRect] {
-        self.valid.get(&self.kernel)
     }
 }
 
@@ -822,7 +824,7 @@ pub fn make_patches(
             let p = Patch {
                 id: PatchId::derive(survey, lv as u8, [pi, pj]),
                 level: lv as u8,
-                kernel,
+                index: pj * t.counts()[0] as u32 + pi,
                 valid: ValidCells::of(&kernel, valid),
                 error: eps,
             };
@@ -877,19 +879,21 @@ mod tests {
         for (lv, level) in levels.iter().enumerate() {
             let [cw, ch] = level.cells();
             let mut seen = vec![0u8; cw * ch];
-            // A patch keeps no index: its kernel's first cell gives it back, as its survey
-            // works it out (`SurveyMeta::kernel_index`), and with it the id it was made with.
+            // A patch keeps its kernel's place in the tiling, row-major: it gives back the
+            // index its id was made with, and the kernel.
             let t = if lv == 0 {
                 t0
             } else {
                 Tiling::new(level.cells(), 28, [0, 0])
             };
+            let nx = t.counts()[0] as u32;
             for p in patches.iter().filter(|p| p.level as usize == lv) {
-                let index = t.kernel_at(p.kernel.c0, p.kernel.r0);
-                assert_eq!(t.kernel(index), p.kernel, "level {lv}");
+                let index = [p.index % nx, p.index / nx];
+                let kernel = t.kernel(index);
+                assert_eq!(t.kernel_at(kernel.c0, kernel.r0), index, "level {lv}");
                 assert_eq!(PatchId::derive(SurveyId(1), p.level, index), p.id);
-                for r in p.kernel.r0..p.kernel.r1 {
-                    for c in p.kernel.c0..p.kernel.c1 {
+                for r in kernel.r0..kernel.r1 {
+                    for c in kernel.c0..kernel.c1 {
                         seen[r as usize * cw + c as usize] += 1;
                     }
                 }

@@ -94,6 +94,27 @@ pub enum Raised {
     All(Arc<[f64]>),
 }
 
+/// A patch's valid cells ([`SurveyMeta::valid`]): its whole kernel, or the rectangles it
+/// keeps where they are not.
+#[derive(Clone, Copy, Debug)]
+pub enum Valid<'a> {
+    /// The whole kernel.
+    Whole(CellRect),
+    /// Disjoint rectangles inside it.
+    Parts(&'a [CellRect]),
+}
+
+impl std::ops::Deref for Valid<'_> {
+    type Target = [CellRect];
+    #[inline]
+    fn deref(&self) -> &[CellRect] {
+        match self {
+            Valid::Whole(k) => std::slice::from_ref(k),
+            Valid::Parts(v) => v,
+        }
+    }
+}
+
 /// A survey with its samples: what a reader's grid becomes before it is stored.
 #[derive(Clone, Debug)]
 pub struct Survey {
@@ -142,24 +163,54 @@ impl SurveyMeta {
     /// lying on the grid border still gets a positive weight. Worked out when asked rather
     /// than kept with each patch: an index holds a patch for every 576 samples.
     pub fn centre(&self, p: &Patch) -> [f64; 2] {
-        self.level_tiling(p.level as usize)
-            .centre(self.kernel_index(p))
+        let t = self.level_tiling(p.level as usize);
+        t.centre(Self::place(&t, p))
     }
 
     /// The place of `p`, one of the survey's patches, in its level's tiling of kernels: the
     /// index its id was derived from.
     #[inline]
     pub fn kernel_index(&self, p: &Patch) -> [u32; 2] {
-        self.level_tiling(p.level as usize)
-            .kernel_at(p.kernel.c0, p.kernel.r0)
+        Self::place(&self.level_tiling(p.level as usize), p)
+    }
+
+    /// `p`'s place in `t`, its level's tiling, from its row-major index.
+    #[inline]
+    fn place(t: &Tiling, p: &Patch) -> [u32; 2] {
+        let nx = t.counts()[0].max(1) as u32;
+        [p.index % nx, p.index / nx]
+    }
+
+    /// The kernel of `p`, one of the survey's patches: its cells, clipped to its level.
+    #[inline]
+    pub fn kernel(&self, p: &Patch) -> CellRect {
+        let t = self.level_tiling(p.level as usize);
+        t.kernel(Self::place(&t, p))
     }
 
     /// The window of `p`, one of the survey's patches: its kernel grown by the layout's
     /// margin, clipped to its level's grid.
     #[inline]
     pub fn window(&self, p: &Patch) -> CellRect {
-        self.level_tiling(p.level as usize)
-            .window(&p.kernel, self.layout.margin as u32)
+        let t = self.level_tiling(p.level as usize);
+        t.window(&t.kernel(Self::place(&t, p)), self.layout.margin as u32)
+    }
+
+    /// The kernel of `p` and its window at once, for the callers that need both.
+    #[inline]
+    pub fn kernel_and_window(&self, p: &Patch) -> (CellRect, CellRect) {
+        let t = self.level_tiling(p.level as usize);
+        let k = t.kernel(Self::place(&t, p));
+        (k, t.window(&k, self.layout.margin as u32))
+    }
+
+    /// The valid cells of `p`'s kernel as disjoint rectangles: where it covers a point.
+    #[inline]
+    pub fn valid<'a>(&self, p: &'a Patch) -> Valid<'a> {
+        match p.valid.parts() {
+            None => Valid::Whole(self.kernel(p)),
+            Some(v) => Valid::Parts(v),
+        }
     }
 
     /// Half the unclipped window's side along each axis, in cells: half a kernel and a
@@ -197,14 +248,9 @@ impl SurveyMeta {
         let errors: Vec<f64> = (0..self.patches.len())
             .map(|k| {
                 let p = &self.patches[k];
+                let (kernel, window) = self.kernel_and_window(p);
                 let claim = |a: &KernelAccuracy| {
-                    super::patch::claimed_error(
-                        a,
-                        &self.tiling,
-                        p.level,
-                        &p.kernel,
-                        &self.window(p),
-                    )
+                    super::patch::claimed_error(a, &self.tiling, p.level, &kernel, &window)
                 };
                 let (before, after) = (claim(&self.kernel_accuracy), claim(&m.kernel_accuracy));
                 let own = self.error_at(k);

@@ -498,7 +498,7 @@ impl ResolvedPatch {
     /// its level, read through a window holding [`Self::reads`].
     pub fn new(level: Window, s: &SurveyMeta, k: usize, fallback: bool) -> Self {
         let p = &s.patches[k];
-        let window = s.window(p);
+        let (kernel, window) = s.kernel_and_window(p);
         let surface = match s.kind {
             PatchKind::Bilinear => Surface::Bilinear(level),
             PatchKind::Bicubic => {
@@ -509,7 +509,7 @@ impl ResolvedPatch {
         let mut q = Self::make(
             p.id,
             surface,
-            p.kernel,
+            kernel,
             window,
             s.centre(p),
             s.half(),
@@ -796,7 +796,7 @@ pub fn closed_sides(s: &SurveyMeta, p: &Patch) -> u8 {
     if p.level != 0 {
         return 0;
     }
-    let (k, w) = (p.kernel, s.window(p));
+    let (k, w) = s.kernel_and_window(p);
     let own = s.kernel_accuracy.at(s.tiling.kernel_at(k.c0, k.r0));
     // Most surveys claim one ε everywhere (`accuracy` is the largest): nothing to compare.
     if s.accuracy <= own {

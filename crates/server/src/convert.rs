@@ -60,7 +60,7 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
     let p = match t.patch(x) {
         None => return Ok(None),
         Some(PatchRef::Survey(s, p)) => {
-            let w = s.window(p);
+            let (kernel, w) = s.kernel_and_window(p);
             let rect = SampleRect {
                 c0: w.c0 as usize,
                 r0: w.r0 as usize,
@@ -76,12 +76,12 @@ pub fn patch(t: &Terrain, x: &Extracted) -> Result<Option<pb::Patch>, SampleErro
             Parts {
                 georef: level.level.georef,
                 window: w,
-                kernel: p.kernel,
+                kernel,
                 centre: s.centre(p),
                 half: s.half(),
                 flat: 0.0,
-                valid: p
-                    .valid()
+                valid: s
+                    .valid(p)
                     .iter()
                     .map(|v| [v.c0, v.r0, v.c1, v.r1].map(f64::from))
                     .collect(),

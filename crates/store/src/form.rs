@@ -134,35 +134,42 @@ pub struct Patch {
 impl Patch {
     /// The stored form of `p`, one of the survey `s`'s patches, whose δ is `delta`.
     pub fn of(p: &patch::Patch, s: &SurveyMeta, delta: f64) -> Self {
+        let (kernel, window) = s.kernel_and_window(p);
         Patch {
             id: p.id.0,
             survey: s.id.0,
             level: p.level,
             index: s.kernel_index(p),
-            kernel: (&p.kernel).into(),
-            window: (&s.window(p)).into(),
+            kernel: (&kernel).into(),
+            window: (&window).into(),
             centre: s.centre(p),
             half: s.half(),
-            valid: p.valid().iter().map(CellRect::from).collect(),
+            valid: s.valid(p).iter().map(CellRect::from).collect(),
             delta,
             error: p.error,
         }
     }
 }
 
-/// A patch as memory holds it: without its survey's id, its place in its level's tiling and
-/// its window with that window's centre and half side, which its survey gives (the open
-/// checks that they are the ones stored), and without its δ, which only the store keeps.
-impl From<Patch> for patch::Patch {
-    fn from(p: Patch) -> Self {
-        let kernel = p.kernel.into();
-        patch::Patch {
-            id: PatchId(p.id),
-            level: p.level,
-            kernel,
-            valid: patch::ValidCells::of(&kernel, p.valid.into_iter().map(Into::into).collect()),
-            error: p.error,
+impl Patch {
+    /// The patch as memory holds it, in a level whose tiling has `nx` kernels along a row:
+    /// its place in that tiling, row-major, for its kernel's cells and its window with that
+    /// window's centre and half side, which its survey gives (the open checks that they are
+    /// the ones stored); without its survey's id, and without its δ, which only the store
+    /// keeps. None where the stored place is outside a row (a damaged record).
+    pub fn into_patch(self, nx: u32) -> Option<patch::Patch> {
+        let [i, j] = self.index;
+        if i >= nx {
+            return None;
         }
+        let kernel = self.kernel.into();
+        Some(patch::Patch {
+            id: PatchId(self.id),
+            level: self.level,
+            index: j.checked_mul(nx)?.checked_add(i)?,
+            valid: patch::ValidCells::of(&kernel, self.valid.into_iter().map(Into::into).collect()),
+            error: self.error,
+        })
     }
 }
 

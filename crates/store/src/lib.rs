@@ -95,7 +95,7 @@ use patchwork_core::model::grid::{Georef, Grid, Shape};
 use patchwork_core::model::ids::{PatchId, SurveyId};
 use patchwork_core::model::mipmap::Filter;
 use patchwork_core::model::patch::Blend;
-use patchwork_core::model::patch::{Patch, PatchKind, PatchLayout, Tiling};
+use patchwork_core::model::patch::{PatchKind, PatchLayout, Tiling};
 use patchwork_core::model::source::SampleSource;
 use patchwork_core::model::survey::Recipe;
 use patchwork_core::model::survey::{Survey, SurveyMeta};
@@ -437,8 +437,8 @@ pub enum Corruption {
         /// The level the patch says it is at.
         level: usize,
     },
-    /// A patch's stored place in its level's tiling, or its window, is not the one its
-    /// survey's tiling gives.
+    /// A patch's stored place in its level's tiling lies outside it, or its kernel or
+    /// window is not the one its survey's tiling gives there.
     #[error("patch {patch} of survey {survey} has a window its survey's tiling does not give")]
     PatchWindow {
         /// The survey.

@@ -663,19 +663,15 @@ impl Store {
                 k
             }
         };
-        type Placed = (
-            [u32; 2],
-            patchwork_core::model::patch::CellRect,
-            [f64; 2],
-            [f64; 2],
-        );
+        use patchwork_core::model::patch::CellRect;
+        type Placed = ([u32; 2], CellRect, CellRect, [f64; 2], [f64; 2]);
         let windows: Vec<Placed> = stored
             .patches
             .iter()
-            .map(|p| (p.index, p.window.into(), p.centre, p.half))
+            .map(|p| (p.index, p.kernel.into(), p.window.into(), p.centre, p.half))
             .collect();
         let deltas: Vec<f64> = stored.patches.iter().map(|p| p.delta).collect();
-        let meta = SurveyMeta {
+        let mut meta = SurveyMeta {
             id: r.id,
             accuracy: kernel_accuracy.max(),
             spec: r.spec(),
@@ -689,17 +685,35 @@ impl Store {
             tiling,
             kernel_accuracy,
             shapes: r.levels.iter().map(LevelHeader::shape).collect(),
-            patches: stored.patches.into_iter().map(Patch::from).collect(),
+            patches: Arc::from([]),
             raised: None,
             edge_tiles: stored.edge_tiles,
         };
-        // The patches in memory leave their places in the tiling, their windows and the
-        // windows' centres and half sides to the survey: those stored must be the ones it
-        // gives.
+        // A patch in memory keeps its place in its level's tiling, row-major, for which the
+        // tiling's row is needed.
+        let rows: Vec<u32> = (0..r.levels.len())
+            .map(|l| meta.level_tiling(l).counts()[0] as u32)
+            .collect();
+        meta.patches = stored
+            .patches
+            .into_iter()
+            .map(|p| {
+                let (id, nx) = (PatchId(p.id), rows[p.level as usize]);
+                p.into_patch(nx).ok_or_else(|| {
+                    StoreError::from(Corruption::PatchWindow {
+                        survey: r.id,
+                        patch: id,
+                    })
+                })
+            })
+            .collect::<Result<_, _>>()?;
+        // The patches in memory leave their kernels' cells, their windows and the windows'
+        // centres and half sides to the survey: those stored must be the ones it gives.
         let half = meta.half();
         if let Some(p) = (meta.patches.iter().zip(&windows))
-            .find(|(p, &(index, window, centre, h))| {
+            .find(|(p, &(index, kernel, window, centre, h))| {
                 meta.kernel_index(p) != index
+                    || meta.kernel(p) != kernel
                     || meta.window(p) != window
                     || meta.centre(p) != centre
                     || h != half

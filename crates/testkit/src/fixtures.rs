@@ -119,7 +119,7 @@ pub fn in_valid_kernel(t: &Terrain, x: &Extracted, p: [f64; 2]) -> bool {
     match t.patch(x).expect("extracted patches resolve") {
         PatchRef::Survey(s, patch) => {
             let g = s.shapes[patch.level as usize].georef.to_grid(p);
-            patch.valid().iter().any(|r| {
+            s.valid(patch).iter().any(|r| {
                 g[0] >= r.c0 as f64 - tol
                     && g[0] <= r.c1 as f64 + tol
                     && g[1] >= r.r0 as f64 - tol

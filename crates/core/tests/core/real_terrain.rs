@@ -279,7 +279,7 @@ fn level0_error(t: &Terrain, id: patchwork_core::model::ids::SurveyId, p: [f64; 
     (0..s.patches.len())
         .filter(|&k| s.patches[k].level == 0)
         .find(|&k| {
-            s.patches[k].valid().iter().any(|r| {
+            s.valid(&s.patches[k]).iter().any(|r| {
                 g[0] >= r.c0 as f64
                     && g[0] <= r.c1 as f64
                     && g[1] >= r.r0 as f64
