@@ -775,10 +775,17 @@ mod departures_tests {
     /// of u32, and differences of every kind of f32 (the bits kept, NaN included).
     #[test]
     fn departures_come_back_as_they_went_in() {
-        let seed = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(1, |d| d.as_nanos() as u64);
-        println!("seed {seed}");
+        // As the workspace's other random tests draw theirs (testkit's `seed`, which this
+        // crate sits below): PATCHWORK_SEED replays a run.
+        let seed = std::env::var("PATCHWORK_SEED")
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| {
+                std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(1, |d| d.as_nanos() as u64)
+            });
+        println!("seed {seed} (PATCHWORK_SEED={seed} replays it)");
         let mut x = seed;
         let mut next = move || {
             // splitmix64

@@ -797,7 +797,7 @@ pub fn closed_sides(s: &SurveyMeta, p: &Patch) -> u8 {
         return 0;
     }
     let (k, w) = s.kernel_and_window(p);
-    let own = s.kernel_accuracy.at(s.tiling.kernel_at(k.c0, k.r0));
+    let own = s.kernel_accuracy.at(s.kernel_index(p));
     // Most surveys claim one ε everywhere (`accuracy` is the largest): nothing to compare.
     if s.accuracy <= own {
         return 0;

@@ -149,9 +149,7 @@ impl Patch {
             error: p.error,
         }
     }
-}
 
-impl Patch {
     /// The patch as memory holds it, in a level whose tiling has `nx` kernels along a row:
     /// its place in that tiling, row-major, for its kernel's cells and its window with that
     /// window's centre and half side, which its survey gives (the open checks that they are
