@@ -1598,9 +1598,16 @@ fn an_open_reads_back_only_the_chunks_committed_since_the_last_one() {
     // The store was opened empty, then took both: the next open reads their chunks back,
     // and notes how far.
     let o = open(&dir);
-    let noted = o.store.raw().get("meta/checked_to").unwrap();
-    let noted = noted.map(|v| u64::from_le_bytes(v.as_ref().try_into().unwrap()));
-    assert_eq!(noted, Some(range.end), "the open noted what it checked");
+    assert_eq!(
+        o.store.raw_pack().checked_to(),
+        Some(range.end),
+        "the open noted what it checked"
+    );
+    assert_eq!(
+        o.store.raw().get("meta/checked_to").unwrap(),
+        None,
+        "the open wrote its mark into the database"
+    );
     drop(o);
     flip_pack_byte(&dir, (range.start + range.end) / 2);
     let o = open(&dir);
@@ -1626,6 +1633,67 @@ fn an_open_reads_back_only_the_chunks_committed_since_the_last_one() {
         o.terrain.try_sample(&points, 0.0).is_err(),
         "a damaged chunk was served"
     );
+}
+
+/// The mark of how far opens checked the pack is a file beside it: one that is damaged or gone
+/// makes the open read every chunk back again, and a store from before the file, which kept
+/// the mark in its database, is read from there.
+#[test]
+fn a_damaged_or_missing_mark_makes_the_open_read_the_pack_again() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pristine = store_dir(&tmp);
+    let (_, b, _, range) = store_of_two(&pristine);
+    drop(open(&pristine));
+    let mark = pristine.join(patchwork::store::pack::CHECKED_FILE);
+    let bytes = std::fs::read(&mark).unwrap();
+    let damaged_after = |name: &str, change: &dyn Fn(&Path)| {
+        let dir = tmp.path().join(name);
+        copy_dir(&pristine, &dir);
+        change(&dir);
+        flip_pack_byte(&dir, (range.start + range.end) / 2);
+        let o = restore::open(
+            &dir,
+            LAYOUT,
+            IndexConfig::default(),
+            StoreOptions::default(),
+        )
+        .expect("store opens");
+        o.store.damaged().keys().copied().collect::<Vec<_>>()
+    };
+    let mark_of = |dir: &Path| dir.join(patchwork::store::pack::CHECKED_FILE);
+    // The mark as it is: the old chunk's damage is left to verify.
+    assert!(damaged_after("kept", &|_| {}).is_empty());
+    // Any byte of the mark flipped: no mark, the open reads the pack whole.
+    for at in [0, 3, 8, 15] {
+        let found = damaged_after(&format!("flipped{at}"), &|d| {
+            let mut m = bytes.clone();
+            m[at] ^= 0x10;
+            std::fs::write(mark_of(d), m).unwrap();
+        });
+        assert_eq!(
+            found,
+            vec![b.id],
+            "a mark with byte {at} flipped was trusted"
+        );
+    }
+    for (name, content) in [("empty", Vec::new()), ("short", bytes[..8].to_vec())] {
+        let found = damaged_after(name, &|d| std::fs::write(mark_of(d), &content).unwrap());
+        assert_eq!(found, vec![b.id], "a mark {name} was trusted");
+    }
+    assert_eq!(
+        damaged_after("gone", &|d| std::fs::remove_file(mark_of(d)).unwrap()),
+        vec![b.id],
+        "the open trusted a mark that is gone"
+    );
+    // A store from before the file: the database's mark is read.
+    let found = damaged_after("in_database", &|d| {
+        std::fs::remove_file(mark_of(d)).unwrap();
+        let db = sled::Config::new().path(d).open().unwrap();
+        db.insert("meta/checked_to", &range.end.to_le_bytes()[..])
+            .unwrap();
+        db.flush().unwrap();
+    });
+    assert!(found.is_empty(), "the database's mark was not read");
 }
 
 #[test]

@@ -46,9 +46,9 @@ pub const REBUILD: &[u8] = b"meta/rebuild";
 /// damaged (bincode `Vec<SurveyId>`, in id order); absent when there are none.
 pub const QUARANTINED: &[u8] = b"meta/quarantined";
 
-/// `u64` LE, the local pack only: how far into the pack an open has read every chunk back and
-/// checked it. The pack is append-only, so an open checks only the chunks past it (and every
-/// chunk of a survey found damaged before); `verify`, and every read, check the rest. A
+/// `u64` LE, the local pack only, in stores written before the mark moved beside the pack
+/// ([`super::pack::CHECKED_FILE`]): how far into the pack an open had read every chunk back
+/// and checked it. Read where the pack has no mark of its own, never written now; a
 /// compaction, which moves every chunk, leaves it behind.
 pub const CHECKED_TO: &[u8] = b"meta/checked_to";
 

@@ -31,6 +31,11 @@
 //! | `r/<source path>` | hex content id of a file whose survey was retired by hand while the file stayed in the inbox |
 //! | `meta/rebuild` | present when the next open must derive the index again from the surveys |
 //! | `meta/quarantined` | the ids of the damaged surveys the stored index was derived without (bincode `Vec<SurveyId>`); absent when none are |
+//! | `meta/checked_to` | in stores from before [`pack::CHECKED_FILE`]: how far opens had read the local pack back (`u64` LE); read where the pack has no such file, never written now |
+//!
+//! Beside the database, in the same directory: the local pack ([`pack::PACK_FILE`]) and the
+//! note of how far opens read it back ([`pack::CHECKED_FILE`]), kept out of the database so
+//! that an open writes nothing to it.
 //!
 //! A survey whose record, patch list, accuracies or chunks do not read back as written (a
 //! checksum that does not match, bytes past the end of a truncated pack) is *damaged*: every

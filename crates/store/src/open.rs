@@ -279,7 +279,9 @@ impl Store {
         // second one, whose cache holds nothing yet.
         let first = assemble(db, Replication::None, lock.try_clone()?);
         let contents = first.load()?;
-        first.note_checked();
+        // Once every chunk was read back, the pack marks it beside itself: a write to the
+        // database here kept 3.5 MB that sled let go of but never returned (docs/SCALE.md).
+        first.pack.note_checked();
         let damaged = read(&first.damaged).clone();
         // The catalog too, which the engine asks for next: it reads every record again.
         first.catalog()?;
@@ -390,18 +392,16 @@ impl Store {
         })
     }
 
-    /// Whether opens read chunks back and keep [`keys::CHECKED_TO`]: on a local pack that lost
-    /// no bytes (one that did is read whole).
-    fn marks_checks(&self) -> bool {
-        self.pack.local() && self.pack.lost() == 0
-    }
-
-    /// How far into the local pack earlier opens read every chunk back ([`keys::CHECKED_TO`]);
-    /// 0 where an open must read them all: on an object store (which reads none), or where
-    /// the pack lost bytes.
+    /// How far into the local pack earlier opens read every chunk back: the pack's mark
+    /// ([`pack::CHECKED_FILE`]), or where a store from before it has none, the database's
+    /// [`keys::CHECKED_TO`], which is read and never written now. 0 where an open must read
+    /// them all: on an object store (which reads none), or where the pack lost bytes.
     fn checked_to(&self) -> Result<u64, StoreError> {
-        if !self.marks_checks() {
+        if !self.pack.local() || self.pack.lost() > 0 {
             return Ok(0);
+        }
+        if let Some(at) = self.pack.checked_to() {
+            return Ok(at);
         }
         Ok(self
             .db
@@ -409,21 +409,6 @@ impl Store {
             .and_then(|v| <[u8; 8]>::try_from(v.as_ref()).ok())
             .map_or(0, u64::from_le_bytes)
             .min(self.pack.len()))
-    }
-
-    /// Notes that every chunk of the local pack was read back and checked up to its end,
-    /// once an open did: the next reads only what comes after. Not kept if it cannot be
-    /// written (a full disk): the next open reads more.
-    pub(super) fn note_checked(&self) {
-        if !self.marks_checks() {
-            return;
-        }
-        let end = self.pack.len().to_le_bytes();
-        if self.db.get(keys::CHECKED_TO).ok().flatten().as_deref() != Some(&end[..]) {
-            if let Err(e) = self.db.insert(keys::CHECKED_TO, &end[..]) {
-                tracing::warn!(error = %e, "could not note how far the open checked the pack");
-            }
-        }
     }
 
     /// A survey's meta, once its records decode and every chunk it should have is there and
