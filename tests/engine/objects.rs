@@ -262,3 +262,52 @@ fn replicas_follow_the_writer_through_inserts_a_replacement_a_retirement_and_a_c
         "{e}"
     );
 }
+
+/// On a folder, as on S3, the writer renews its lease and writes on past the lease's first
+/// term, and a lease that a writer left behind (killed, or stopped once its lease had run out)
+/// is taken over once it runs out: the folder gives the conditional PUT both need.
+#[test]
+fn a_writer_on_a_folder_renews_its_lease_and_one_left_behind_is_taken_over() {
+    let tmp = tempfile::tempdir().unwrap();
+    let folder = tmp.path().join("objects");
+    let cfg = Config {
+        data_dir: tmp.path().join("data"),
+        ingest_roots: vec![crop("")],
+        storage: Storage {
+            backend: BackendKind::Folder,
+            folder: Some(folder.clone()),
+            lease_s: 1,
+            ..Storage::default()
+        },
+        ..Config::default()
+    };
+    let ingest = |e: &Engine, f: &str| {
+        let done = e.ingest(&crop(f), None, Origin::Request).unwrap();
+        assert!(done.error.is_empty(), "{f}: {}", done.error);
+    };
+    let e = Engine::open(cfg.clone()).unwrap();
+    ingest(&e, "copernicus_n34w119_crop.tif");
+    // Three terms of the lease later.
+    std::thread::sleep(std::time::Duration::from_millis(3000));
+    ingest(&e, "nasadem_n34w119_crop.tif");
+    drop(e);
+    // A writer on another host that stopped without giving the lease back.
+    let now_ms = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64;
+    let left = format!(
+        r#"{{"holder":"another-host:1:0","expires_ms":{}}}"#,
+        now_ms + 1500
+    );
+    std::fs::write(folder.join("lease"), left).unwrap();
+    let refused = Engine::open(cfg.clone())
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(refused.contains("another-host"), "{refused}");
+    std::thread::sleep(std::time::Duration::from_millis(2000));
+    let e = Engine::open(cfg).expect("the lease that ran out is taken over");
+    assert_eq!(e.stats().surveys, 2);
+    assert!(e.verify().unwrap().problems.is_empty());
+}

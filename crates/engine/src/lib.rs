@@ -562,8 +562,8 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
                 what: format!("folder {}", dir.display()),
                 source: Box::new(e),
             })?;
-            let store = object_store::local::LocalFileSystem::new_with_prefix(dir)
-                .map_err(|e| bad("folder", e))?;
+            // LocalFileSystem with the conditional PUT the writer's lease is renewed with.
+            let store = patchwork_store::folder::Folder::new(dir).map_err(|e| bad("folder", e))?;
             let dir = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.clone());
             (
                 Arc::new(store),

@@ -60,6 +60,7 @@
 pub mod chunks;
 mod commit;
 mod compact;
+pub mod folder;
 pub mod form;
 mod journal;
 pub mod keys;
