@@ -10,7 +10,11 @@
 //! - seconds a file by store size, over windows of a fiftieth of the files;
 //! - the open of the store in a fresh process (this binary again, `--open-only`): its time,
 //!   and the resident memory it adds to the process (Linux's VmRSS, less the process's before
-//!   the open), beyond what the open of an empty store adds, a patch and a survey.
+//!   the open), beyond what the open of an empty store adds, a patch and a survey;
+//! - with the chunks on an object store (the environment's overrides, as the daemon takes
+//!   them: `PATCHWORK_STORAGE_BACKEND=folder PATCHWORK_STORAGE_FOLDER=DIR`, or S3's), the
+//!   start of a read replica in a fresh process: from an empty folder, the newest snapshot and
+//!   the logs after it, to a terrain it serves.
 
 use crate::Fail;
 use patchwork_core::model::grid::Grid;
@@ -40,6 +44,9 @@ pub struct Report {
     pub patches: u64,
     /// Active surveys.
     pub surveys: u32,
+    /// With the chunks on an object store: the start of a read replica in a fresh process,
+    /// seconds, and the resident bytes it added.
+    pub replica: Option<(f64, u64)>,
 }
 
 /// The process's resident memory, bytes (Linux; 0 elsewhere).
@@ -109,18 +116,26 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
         t0.elapsed().as_secs_f64()
     );
     let data = tmp.path().join("data");
-    let cfg = Config {
-        data_dir: data.clone(),
-        inbox: vec![inbox.clone()],
-        ..Config::default()
-    };
+    // The defaults, with the environment's overrides, as `--open-only` takes them: the chunks
+    // may go to an object store.
+    let mut cfg = Config::default();
+    cfg.apply_env(|k| std::env::var(k).ok())?;
+    cfg.data_dir = data.clone();
+    cfg.inbox = vec![inbox.clone()];
+    let place = object_store_url(&cfg);
     let engine = Arc::new(Engine::open(cfg)?);
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()?;
     let (stop, stopped) = tokio::sync::watch::channel(false);
-    let watcher = rt.spawn(patchwork_engine::watch::run(engine.clone(), stopped));
+    let watcher = rt.spawn(patchwork_engine::watch::run(
+        engine.clone(),
+        stopped.clone(),
+    ));
+    // As `serve` runs them: on an object store, the writer's log that did not go up at once is
+    // published again here.
+    let rounds = rt.spawn(patchwork_engine::rounds(engine.clone(), stopped));
     // The watcher's first scan, before anything arrives.
     std::thread::sleep(Duration::from_millis(500));
     let start = Instant::now();
@@ -162,6 +177,7 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
     }
     let _ = stop.send(true);
     let _ = rt.block_on(watcher);
+    let _ = rt.block_on(rounds);
     let stats = engine.stats();
     drop(engine);
     drop(rt);
@@ -198,11 +214,34 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
     );
     // The open, in a process of its own, so that the memory it adds is the open's alone,
     // less what the open of an empty store adds (sled, the thread pools, the caches' tables).
-    let [open_s, open_bytes, patches, surveys] = open_in_child(&data)?;
+    let [open_s, open_bytes, patches, surveys] = open_in_child(&data, &[])?;
     // Again: an open reads back only the chunks committed since the one before.
-    let [again_s, _, _, _] = open_in_child(&data)?;
-    let [_, empty_bytes, _, _] = open_in_child(&tmp.path().join("empty"))?;
+    let [again_s, _, _, _] = open_in_child(&data, &[])?;
+    // The empty store on the local pack: an object store's place holds the store above.
+    let local = [("PATCHWORK_STORAGE_BACKEND", "local")];
+    let [_, empty_bytes, _, _] = open_in_child(&tmp.path().join("empty"), &local)?;
     let open_bytes = (open_bytes - empty_bytes).max(0.0);
+    let replica = match &place {
+        Some(url) => {
+            let [s, bytes, p, n] = open_in_child(
+                &tmp.path().join("replica"),
+                &[("PATCHWORK_FOLLOW", url.as_str())],
+            )?;
+            if (p, n) != (patches, surveys) {
+                return Err(format!(
+                    "the replica holds {n} surveys and {p} patches, the writer {surveys} and \
+                     {patches}"
+                )
+                .into());
+            }
+            println!(
+                "many: a replica of {url} started in {s:.2} s, {:.0} bytes a survey",
+                (bytes - empty_bytes).max(0.0) / n.max(1.0)
+            );
+            Some((s, (bytes - empty_bytes).max(0.0) as u64))
+        }
+        None => None,
+    };
     let report = Report {
         files: n,
         side,
@@ -212,6 +251,7 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
         open_bytes: open_bytes as u64,
         patches: patches as u64,
         surveys: surveys as u32,
+        replica,
     };
     println!(
         "many: open {:.2} s, again {again_s:.2} s; {} surveys, {} patches; {:.0} bytes a \
@@ -231,11 +271,33 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
     Ok(report)
 }
 
-/// [`open_only`] in a process of its own: seconds, bytes added, patches, surveys.
-fn open_in_child(data: &Path) -> Result<[f64; 4], Fail> {
+/// The URL a replica follows the store of `cfg` by (`serve --follow`); `None` on the local
+/// pack.
+fn object_store_url(cfg: &Config) -> Option<String> {
+    use patchwork_engine::config::BackendKind;
+    let st = &cfg.storage;
+    match st.backend {
+        BackendKind::Local => None,
+        BackendKind::S3 => Some(format!(
+            "s3://{}/{}",
+            st.s3.bucket,
+            st.s3.prefix.trim_matches('/')
+        )),
+        BackendKind::Folder => {
+            let dir = st.folder.as_ref()?;
+            let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.clone());
+            Some(format!("file://{}", dir.display()))
+        }
+    }
+}
+
+/// [`open_only`] in a process of its own, with `env` on top of this one's: seconds, bytes
+/// added, patches, surveys.
+fn open_in_child(data: &Path, env: &[(&str, &str)]) -> Result<[f64; 4], Fail> {
     let child = std::process::Command::new(std::env::current_exe()?)
         .arg("--open-only")
         .arg(data)
+        .envs(env.iter().copied())
         .output()?;
     if !child.status.success() {
         return Err(format!(

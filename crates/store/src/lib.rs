@@ -138,7 +138,8 @@ pub struct StoreOptions {
     pub blend: Blend,
     /// Where the chunk bytes go. A store keeps the backend it was made with.
     pub backend: ChunkBackend,
-    /// On an object store, a snapshot of the database for replicas every this many commits.
+    /// On an object store, at least this many commits between snapshots of the database for
+    /// replicas (one is due once the logs since the last add up to a quarter of its size).
     pub snapshot_every: u64,
 }
 

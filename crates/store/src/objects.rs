@@ -36,6 +36,10 @@ use std::io;
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::Duration;
 
+/// Requests [`ObjectPack::get_many`] keeps in flight: a GET to S3 takes tens of
+/// milliseconds, and a replica may start with hundreds of logs to read.
+pub const GETS_AT_ONCE: usize = 16;
+
 /// Segments larger than this go up in parts; S3 takes at most 5 GiB in one PUT, and a part
 /// that fails is sent again alone.
 pub const MULTIPART_BYTES: usize = 64 << 20;
@@ -291,6 +295,37 @@ impl ObjectPack {
         });
         got.map(|b| b.map(|b| b.to_vec()))
             .map_err(|e| io_error(&format!("reading {}/{name}", self.objects.url), e))
+    }
+
+    /// [`ObjectPack::get`] of each of `names`, up to [`GETS_AT_ONCE`] requests in flight:
+    /// a replica starting from a snapshot reads the logs after it, each one object.
+    pub fn get_many(&self, names: &[String]) -> Vec<io::Result<Option<Vec<u8>>>> {
+        use futures::StreamExt;
+        let store = self.objects.store.clone();
+        let paths: Vec<ObjectPath> = names.iter().map(|n| self.object(n)).collect();
+        let got: Vec<object_store::Result<Option<bytes::Bytes>>> = self.run(async move {
+            futures::stream::iter(paths)
+                .map(|path| {
+                    let store = store.clone();
+                    async move {
+                        match store.get(&path).await {
+                            Ok(r) => r.bytes().await.map(Some),
+                            Err(object_store::Error::NotFound { .. }) => Ok(None),
+                            Err(e) => Err(e),
+                        }
+                    }
+                })
+                .buffered(GETS_AT_ONCE)
+                .collect()
+                .await
+        });
+        got.into_iter()
+            .zip(names)
+            .map(|(g, name)| {
+                g.map(|b| b.map(|b| b.to_vec()))
+                    .map_err(|e| io_error(&format!("reading {}/{name}", self.objects.url), e))
+            })
+            .collect()
     }
 
     /// The objects of the folder `dir` under the prefix: (file name, when last written, as

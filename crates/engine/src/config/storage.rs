@@ -31,8 +31,9 @@ pub struct Storage {
     /// Object-store backends: how long the writer's lease lasts unless renewed, in seconds;
     /// it is renewed every third of that.
     pub lease_s: u64,
-    /// Object-store backends: the writer publishes a snapshot of its database for replicas
-    /// every this many commits (each commit's log goes up anyway).
+    /// Object-store backends: the writer publishes a snapshot of its database for replicas at
+    /// most every this many commits, once the commits' logs since the last add up to a
+    /// quarter of its size (each commit's log goes up anyway).
     pub snapshot_every: u64,
     /// Serve as a read replica of the store at this URL (`s3://bucket/prefix`, or
     /// `file:///folder`) instead of as its writer; empty: the writer. Set by `serve --follow`.
