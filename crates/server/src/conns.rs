@@ -46,7 +46,11 @@ pub struct Conns {
     header: Duration,
     idle: Duration,
     epoch: Instant,
-    open: Mutex<HashMap<SocketAddr, Arc<Conn>>>,
+    /// By the connection's two ends, the daemon's and the client's: one client port can
+    /// reach both of the daemon's ports at once (the kernel picks a source port for each
+    /// destination apart), and keyed by the client's alone the second connection hid the
+    /// first, which then was never closed as silent or idle.
+    open: Mutex<HashMap<(SocketAddr, SocketAddr), Arc<Conn>>>,
     /// Accept errors since the last one logged, so that a burst is one line.
     accept_errors: AtomicU64,
     /// Whether the task that closes silent and idle connections runs.
@@ -55,8 +59,10 @@ pub struct Conns {
 
 /// One open connection.
 pub struct Conn {
-    /// The client's address, which tells this connection from the others.
+    /// The client's address.
     pub peer: SocketAddr,
+    /// The daemon's end: its address on the port the connection came to.
+    local: SocketAddr,
     /// When bytes last moved (at first, when it was accepted), in ms since [`Conns::epoch`].
     last: AtomicU64,
     /// Whether it has sent anything at all.
@@ -159,9 +165,9 @@ impl Conns {
         self.epoch.elapsed().as_millis() as u64
     }
 
-    /// The open connection from `peer`.
-    pub fn get(&self, peer: SocketAddr) -> Option<Arc<Conn>> {
-        lock(&self.open).get(&peer).cloned()
+    /// The open connection from `peer` to the daemon's `local` address.
+    pub fn get(&self, local: SocketAddr, peer: SocketAddr) -> Option<Arc<Conn>> {
+        lock(&self.open).get(&(local, peer)).cloned()
     }
 
     /// Closes the connections that said nothing within the header timeout of opening, and
@@ -237,7 +243,7 @@ impl Conns {
             match victim {
                 Some(v) => {
                     v.close();
-                    open.remove(&v.peer);
+                    open.remove(&(v.local, v.peer));
                 }
                 None => {
                     tracing::debug!(%peer, "every connection is busy: refused");
@@ -245,8 +251,13 @@ impl Conns {
                 }
             }
         }
+        // Without its own address the connection is still held, under the unspecified one.
+        let local = tcp
+            .local_addr()
+            .unwrap_or_else(|_| SocketAddr::from(([0, 0, 0, 0], 0)));
         let conn = Arc::new(Conn {
             peer,
+            local,
             last: AtomicU64::new(now),
             heard: AtomicBool::new(false),
             asked: AtomicU64::new(0),
@@ -255,7 +266,7 @@ impl Conns {
             closing: AtomicBool::new(false),
             waker: AtomicWaker::new(),
         });
-        open.insert(peer, conn.clone());
+        open.insert((local, peer), conn.clone());
         Some(Tracked {
             io: tcp,
             conn,
@@ -282,10 +293,10 @@ impl<S> Drop for Tracked<S> {
     fn drop(&mut self) {
         let mut open = lock(&self.conns.open);
         if open
-            .get(&self.conn.peer)
+            .get(&(self.conn.local, self.conn.peer))
             .is_some_and(|c| Arc::ptr_eq(c, &self.conn))
         {
-            open.remove(&self.conn.peer);
+            open.remove(&(self.conn.local, self.conn.peer));
         }
     }
 }
@@ -447,14 +458,12 @@ where
     fn call(&mut self, req: axum::http::Request<B>) -> Self::Future {
         use tonic::transport::server::{TcpConnectInfo, TlsConnectInfo};
         let ext = req.extensions();
-        let peer = ext
-            .get::<TcpConnectInfo>()
-            .and_then(|i| i.remote_addr())
-            .or_else(|| {
-                ext.get::<TlsConnectInfo<TcpConnectInfo>>()
-                    .and_then(|i| i.get_ref().remote_addr())
-            });
-        let conn = peer.and_then(|p| self.conns.get(p));
+        let ends = |i: &TcpConnectInfo| Some((i.local_addr()?, i.remote_addr()?));
+        let ends = ext.get::<TcpConnectInfo>().and_then(ends).or_else(|| {
+            ext.get::<TlsConnectInfo<TcpConnectInfo>>()
+                .and_then(|i| ends(i.get_ref()))
+        });
+        let conn = ends.and_then(|(local, peer)| self.conns.get(local, peer));
         let fut = self.inner.call(req);
         Box::pin(async move {
             match conn {
@@ -465,5 +474,52 @@ where
                 None => fut.await,
             }
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One client port can reach both of the daemon's ports at once: the two connections are
+    /// two, each closed as silent in its turn, not one hiding the other.
+    #[tokio::test]
+    async fn two_connections_from_one_client_port_to_both_ports_are_both_held() {
+        let conns = Conns::new(
+            64,
+            4096,
+            Duration::from_millis(200),
+            Duration::from_secs(60),
+        );
+        let (a, b) = (
+            TcpListener::bind("127.0.0.1:0").await.unwrap(),
+            TcpListener::bind("127.0.0.1:0").await.unwrap(),
+        );
+        let client = |to: SocketAddr, from: Option<SocketAddr>| async move {
+            let s = tokio::net::TcpSocket::new_v4().unwrap();
+            s.set_reuseaddr(true).unwrap();
+            s.bind(from.unwrap_or_else(|| SocketAddr::from(([127, 0, 0, 1], 0))))
+                .unwrap();
+            s.connect(to).await.unwrap()
+        };
+        let first = client(a.local_addr().unwrap(), None).await;
+        let port = first.local_addr().unwrap();
+        let second = client(b.local_addr().unwrap(), Some(port)).await;
+        assert_eq!(second.local_addr().unwrap(), port, "the same client port");
+        let (ta, tb) = (conns.accept(&a).await, conns.accept(&b).await);
+        assert_eq!(conns.len(), 2);
+        let got = |l: &TcpListener| conns.get(l.local_addr().unwrap(), port).unwrap();
+        assert!(Arc::ptr_eq(&got(&a), ta.conn()) && Arc::ptr_eq(&got(&b), tb.conn()));
+        // Both silent past the header timeout once read: the reaper closes both.
+        let mut buf = [0u8; 8];
+        for mut t in [ta, tb] {
+            tokio::spawn(async move {
+                let _ = tokio::io::AsyncReadExt::read(&mut t, &mut buf).await;
+            });
+        }
+        tokio::time::sleep(Duration::from_millis(400)).await;
+        conns.reap();
+        assert_eq!(conns.len(), 0, "a silent connection was kept");
+        drop((first, second));
     }
 }
