@@ -27,21 +27,32 @@ fn segments(folder: &Path) -> Vec<u64> {
     out
 }
 
+/// A store in `root/data` whose chunks are in the folder `root/objects`, with `storage`'s
+/// other settings; it ingests the crops.
+fn on_folder(root: &Path, storage: Storage) -> Config {
+    Config {
+        data_dir: root.join("data"),
+        ingest_roots: vec![crop("")],
+        storage: Storage {
+            backend: BackendKind::Folder,
+            folder: Some(root.join("objects")),
+            ..storage
+        },
+        ..Config::default()
+    }
+}
+
 #[test]
 fn compaction_on_an_object_store_moves_the_live_chunks_and_lets_the_old_segments_go() {
     let tmp = tempfile::tempdir().unwrap();
     let folder = tmp.path().join("objects");
-    let cfg = Config {
-        data_dir: tmp.path().join("data"),
-        ingest_roots: vec![crop("")],
-        storage: Storage {
-            backend: BackendKind::Folder,
-            folder: Some(folder.clone()),
+    let cfg = on_folder(
+        tmp.path(),
+        Storage {
             gc_grace_s: 0,
             ..Storage::default()
         },
-        ..Config::default()
-    };
+    );
     let roi = Aabb {
         min: [-118.99, 34.46],
         max: [-118.90, 34.53],
@@ -270,17 +281,13 @@ fn replicas_follow_the_writer_through_inserts_a_replacement_a_retirement_and_a_c
 fn a_writer_on_a_folder_renews_its_lease_and_one_left_behind_is_taken_over() {
     let tmp = tempfile::tempdir().unwrap();
     let folder = tmp.path().join("objects");
-    let cfg = Config {
-        data_dir: tmp.path().join("data"),
-        ingest_roots: vec![crop("")],
-        storage: Storage {
-            backend: BackendKind::Folder,
-            folder: Some(folder.clone()),
+    let cfg = on_folder(
+        tmp.path(),
+        Storage {
             lease_s: 1,
             ..Storage::default()
         },
-        ..Config::default()
-    };
+    );
     let ingest = |e: &Engine, f: &str| {
         let done = e.ingest(&crop(f), None, Origin::Request).unwrap();
         assert!(done.error.is_empty(), "{f}: {}", done.error);

@@ -44,9 +44,6 @@ pub struct Report {
     pub patches: u64,
     /// Active surveys.
     pub surveys: u32,
-    /// With the chunks on an object store: the start of a read replica in a fresh process,
-    /// seconds, and the resident bytes it added.
-    pub replica: Option<(f64, u64)>,
 }
 
 /// The process's resident memory, bytes (Linux; 0 elsewhere).
@@ -122,7 +119,7 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
     cfg.apply_env(|k| std::env::var(k).ok())?;
     cfg.data_dir = data.clone();
     cfg.inbox = vec![inbox.clone()];
-    let place = object_store_url(&cfg);
+    let place = cfg.storage.url();
     let engine = Arc::new(Engine::open(cfg)?);
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -221,27 +218,23 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
     let local = [("PATCHWORK_STORAGE_BACKEND", "local")];
     let [_, empty_bytes, _, _] = open_in_child(&tmp.path().join("empty"), &local)?;
     let open_bytes = (open_bytes - empty_bytes).max(0.0);
-    let replica = match &place {
-        Some(url) => {
-            let [s, bytes, p, n] = open_in_child(
-                &tmp.path().join("replica"),
-                &[("PATCHWORK_FOLLOW", url.as_str())],
-            )?;
-            if (p, n) != (patches, surveys) {
-                return Err(format!(
-                    "the replica holds {n} surveys and {p} patches, the writer {surveys} and \
-                     {patches}"
-                )
-                .into());
-            }
-            println!(
-                "many: a replica of {url} started in {s:.2} s, {:.0} bytes a survey",
-                (bytes - empty_bytes).max(0.0) / n.max(1.0)
-            );
-            Some((s, (bytes - empty_bytes).max(0.0) as u64))
+    if let Some(url) = &place {
+        let [s, bytes, p, n] = open_in_child(
+            &tmp.path().join("replica"),
+            &[("PATCHWORK_FOLLOW", url.as_str())],
+        )?;
+        if (p, n) != (patches, surveys) {
+            return Err(format!(
+                "the replica holds {n} surveys and {p} patches, the writer {surveys} and \
+                 {patches}"
+            )
+            .into());
         }
-        None => None,
-    };
+        println!(
+            "many: a replica of {url} started in {s:.2} s, {:.0} bytes a survey",
+            (bytes - empty_bytes).max(0.0) / n.max(1.0)
+        );
+    }
     let report = Report {
         files: n,
         side,
@@ -251,7 +244,6 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
         open_bytes: open_bytes as u64,
         patches: patches as u64,
         surveys: surveys as u32,
-        replica,
     };
     println!(
         "many: open {:.2} s, again {again_s:.2} s; {} surveys, {} patches; {:.0} bytes a \
@@ -269,26 +261,6 @@ pub fn run(first: &Path, n: usize, out: &Path, keep: Option<&Path>) -> Result<Re
             .map_err(|e| format!("keeping the store in {}: {e}", keep.display()))?;
     }
     Ok(report)
-}
-
-/// The URL a replica follows the store of `cfg` by (`serve --follow`); `None` on the local
-/// pack.
-fn object_store_url(cfg: &Config) -> Option<String> {
-    use patchwork_engine::config::BackendKind;
-    let st = &cfg.storage;
-    match st.backend {
-        BackendKind::Local => None,
-        BackendKind::S3 => Some(format!(
-            "s3://{}/{}",
-            st.s3.bucket,
-            st.s3.prefix.trim_matches('/')
-        )),
-        BackendKind::Folder => {
-            let dir = st.folder.as_ref()?;
-            let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.clone());
-            Some(format!("file://{}", dir.display()))
-        }
-    }
 }
 
 /// [`open_only`] in a process of its own, with `env` on top of this one's: seconds, bytes

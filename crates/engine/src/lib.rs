@@ -553,8 +553,7 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
             }
             let store = b.build().map_err(|e| bad("s3", e))?;
             let prefix = s3.prefix.trim_matches('/').to_string();
-            let url = format!("s3://{}/{prefix}", s3.bucket);
-            (Arc::new(store), prefix, url)
+            (Arc::new(store), prefix, st.url().expect("a bucket"))
         }
         BackendKind::Folder => {
             let dir = st.folder.as_ref().expect("validated: folder is set");
@@ -564,18 +563,13 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
             })?;
             // LocalFileSystem with the conditional PUT the writer's lease is renewed with.
             let store = patchwork_store::folder::Folder::new(dir).map_err(|e| bad("folder", e))?;
-            let dir = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.clone());
-            (
-                Arc::new(store),
-                String::new(),
-                format!("file://{}", dir.display()),
-            )
+            (Arc::new(store), String::new(), st.url().expect("a folder"))
         }
     };
     let objects = Objects {
         store,
         prefix: object_store::path::Path::from(prefix),
-        url: url.trim_end_matches('/').to_string(),
+        url,
         grace: std::time::Duration::from_secs(st.gc_grace_s),
         lease: std::time::Duration::from_secs(st.lease_s),
     };

@@ -601,9 +601,8 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::objects::Objects;
+    use crate::objects::tests::objects as under;
     use object_store::memory::InMemory;
-    use object_store::path::Path as ObjectPath;
 
     /// Snapshots come as the logs since the last one add up to a quarter of its size, not
     /// every `every` commits: on a database of 400 kB, 200 commits of 1 kB each write three,
@@ -627,13 +626,7 @@ mod tests {
             db.insert(format!("s/{k:08}"), noise(k + 1000)).unwrap();
         }
         let mem: Arc<dyn object_store::ObjectStore> = Arc::new(InMemory::new());
-        let objects = || Objects {
-            store: mem.clone(),
-            prefix: ObjectPath::from("store1"),
-            url: "memory://store1".into(),
-            grace: Duration::ZERO,
-            lease: Duration::from_secs(30),
-        };
+        let objects = || under(mem.clone());
         let pack = Arc::new(ObjectPack::open(objects(), 0, false).unwrap());
         let j = Journal::open(pack.clone(), &db, 8).unwrap();
         let mut written = 0;

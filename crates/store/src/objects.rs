@@ -610,11 +610,12 @@ impl ChunkStore for ObjectPack {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use object_store::memory::InMemory;
 
-    fn objects(store: Arc<dyn ObjectStore>) -> Objects {
+    /// A store's objects under `store1` of `store`, for the crate's tests.
+    pub(crate) fn objects(store: Arc<dyn ObjectStore>) -> Objects {
         Objects {
             store,
             prefix: ObjectPath::from("store1"),

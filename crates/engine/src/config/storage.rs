@@ -108,6 +108,28 @@ impl Storage {
         }
         Ok(Some(Aabb::new(x0, y0, x1, y1)))
     }
+
+    /// The URL of the object store the chunks go to, as the store records it and replicas
+    /// follow it (`s3://bucket/prefix`, `file:///folder` with the folder's canonical path once
+    /// it exists); `None` for the local pack.
+    pub fn url(&self) -> Option<String> {
+        let url = match self.backend {
+            BackendKind::Local => return None,
+            BackendKind::S3 => format!(
+                "s3://{}/{}",
+                self.s3.bucket,
+                self.s3.prefix.trim_matches('/')
+            ),
+            BackendKind::Folder => {
+                let dir = self.folder.as_ref()?;
+                let dir = std::fs::canonicalize(dir)
+                    .or_else(|_| std::path::absolute(dir))
+                    .unwrap_or_else(|_| dir.clone());
+                format!("file://{}", dir.display())
+            }
+        };
+        Some(url.trim_end_matches('/').to_string())
+    }
 }
 
 impl Default for Storage {
