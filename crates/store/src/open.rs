@@ -81,8 +81,22 @@ pub(super) fn open_sled(dir: &Path, cache_bytes: u64) -> Result<sled::Db, StoreE
     }
 }
 
+/// How long taking `<dir>.lock` waits on a holder before saying the store is locked.
+///
+/// A flock belongs to the open file, and a child process shares its parent's open files from
+/// its fork until its exec closes them: a handle that this process has just closed can stay
+/// locked for as long as a child that another thread spawns takes to reach its exec (rarely
+/// more than milliseconds, seen to last long enough on a loaded machine for a compaction that
+/// failed to lose its reopen). A second daemon on the store still hears "locked", this much
+/// later.
+const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// Takes the exclusive lock that keeps other processes (and other handles in this one) out.
 pub(super) fn lock_dir(dir: &Path) -> Result<File, StoreError> {
+    lock_dir_within(dir, LOCK_WAIT)
+}
+
+fn lock_dir_within(dir: &Path, wait: std::time::Duration) -> Result<File, StoreError> {
     let path = sibling(dir, ".lock")?;
     if let Some(parent) = path.parent() {
         std::fs::create_dir_all(parent)?;
@@ -92,12 +106,20 @@ pub(super) fn lock_dir(dir: &Path) -> Result<File, StoreError> {
         .truncate(false)
         .write(true)
         .open(&path)?;
-    match f.try_lock_exclusive() {
-        Ok(()) => Ok(f),
-        Err(e) if is_lock_error(&e) => Err(StoreError::Locked {
-            dir: dir.to_path_buf(),
-        }),
-        Err(e) => Err(e.into()),
+    let deadline = std::time::Instant::now() + wait;
+    loop {
+        match f.try_lock_exclusive() {
+            Ok(()) => return Ok(f),
+            Err(e) if is_lock_error(&e) && std::time::Instant::now() < deadline => {
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+            Err(e) if is_lock_error(&e) => {
+                return Err(StoreError::Locked {
+                    dir: dir.to_path_buf(),
+                })
+            }
+            Err(e) => return Err(e.into()),
+        }
     }
 }
 
@@ -809,4 +831,34 @@ pub(super) fn decode_base(v: &[u8]) -> Result<(u64, u64), StoreError> {
         u64::from_le_bytes(b[..8].try_into().expect("8 bytes")),
         u64::from_le_bytes(b[8..].try_into().expect("8 bytes")),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A copy of the lock's open file, as a child process holds one between its fork and its
+    /// exec, keeps the lock held after this process closed its own handle: the next open waits
+    /// for it rather than calling the store locked.
+    #[test]
+    fn a_lock_held_a_moment_by_a_copy_of_the_handle_is_waited_for() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("store");
+        let first = lock_dir(&dir).unwrap();
+        let child = first.try_clone().unwrap();
+        drop(first);
+        let exec = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(150));
+            drop(child);
+        });
+        let started = std::time::Instant::now();
+        let again = lock_dir(&dir).expect("taken once the copy closes");
+        assert!(started.elapsed() >= std::time::Duration::from_millis(100));
+        exec.join().unwrap();
+
+        // A holder that stays is still refused, once the wait is over.
+        let err = lock_dir_within(&dir, std::time::Duration::from_millis(60)).unwrap_err();
+        assert!(matches!(err, StoreError::Locked { .. }), "{err}");
+        drop(again);
+    }
 }
