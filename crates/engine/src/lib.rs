@@ -71,9 +71,20 @@ use tokio::sync::broadcast;
 /// scale bench, docs/BENCHMARKS.md). Freed pages still go back after each batch (the engine
 /// trims the heap once no ingest is left running); one ingest peaks some 12% higher.
 ///
+/// On jemalloc, it also starts rayon's pool, whose workers alone keep a cache of the blocks
+/// they free (see [`malloc_conf`]).
+///
 /// Process-wide, so it is the program's to set: `main` calls it first thing, before any
 /// thread starts.
 pub fn tune_allocator() {
+    #[cfg(feature = "jemalloc")]
+    {
+        // Fails only where the pool was started already, whose workers then go without the
+        // cache: a few per cent slower at most, no less right.
+        let _ = rayon::ThreadPoolBuilder::new()
+            .start_handler(|_| thread_cache(true))
+            .build_global();
+    }
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets a parameter of the allocator, which serialises it with
     // allocations; called from main before any other thread exists.
@@ -102,10 +113,36 @@ pub use tikv_jemallocator::Jemalloc;
 /// until the kernel wants them). A second keeps the buffers of one request or one ingest for the
 /// next, whose faults would cost more than the pages (see [`tune_allocator`]). Nothing
 /// reads it where jemalloc is not the program's allocator.
+///
+/// No thread keeps a cache of the small blocks it freed (`tcache:false`) but rayon's workers,
+/// which do the heavy work and which the engine flushes after an open or an ingest (see
+/// [`release_free_memory`]). A cache is flushed only by its own thread, and a thread that
+/// goes idle never does: sled's seven I/O threads, the object store's runtime and the
+/// server's threads each held theirs, whose blocks kept the slabs around them in use. A
+/// replica's first start of 10,000 surveys held 5.9–6.2 kB a survey with every thread
+/// caching, 4.0–4.2 kB without (docs/SCALE.md, "The allocator").
 #[cfg(feature = "jemalloc")]
 #[allow(non_upper_case_globals)]
 #[export_name = "_rjem_malloc_conf"]
-pub static malloc_conf: &u8 = &b"background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0\0"[0];
+pub static malloc_conf: &u8 =
+    &b"background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0,tcache:false\0"[0];
+
+/// Turns the calling thread's cache of freed small blocks on or off (see [`malloc_conf`]).
+#[cfg(feature = "jemalloc")]
+fn thread_cache(on: bool) {
+    let mut on = on;
+    // SAFETY: "thread.tcache.enabled" takes a bool, given by pointer with its size, and
+    // writes nothing back through the null old-value pointers.
+    unsafe {
+        tikv_jemalloc_sys::mallctl(
+            c"thread.tcache.enabled".as_ptr(),
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            (&raw mut on).cast(),
+            std::mem::size_of::<bool>(),
+        );
+    }
+}
 
 /// What readers see: a terrain and the catalog of the same commit.
 struct Published {
