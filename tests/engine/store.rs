@@ -854,6 +854,23 @@ fn a_write_the_disk_has_no_room_for_is_refused_with_nothing_written() {
     )
     .unwrap();
     assert_verified(&store);
+    // A compaction the disk has no room for gives the store back, open and as it was, rather
+    // than closing it for the caller to open again; its partial copy is gone.
+    disk.0.store(10 << 20, std::sync::atomic::Ordering::SeqCst);
+    let live = next.index().state().into_keys().collect();
+    let Err(failed) = restore::compact(store, &live) else {
+        panic!("a compaction with no room for its copy went through");
+    };
+    assert!(
+        matches!(failed.error, StoreError::Full { .. }),
+        "{}",
+        failed.error
+    );
+    let store = *failed.store.expect("the store, given back open");
+    assert!(!Path::new(&format!("{}.compact", dir.display())).exists());
+    disk.0.store(u64::MAX, std::sync::atomic::Ordering::SeqCst);
+    assert!(store.writable().is_ok());
+    assert_verified(&store);
     drop(store);
     // A store opens on a full disk, and says it cannot be written.
     disk.0.store(0, std::sync::atomic::Ordering::SeqCst);

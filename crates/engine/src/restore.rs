@@ -11,7 +11,8 @@ use patchwork_core::model::patch::PatchLayout;
 use patchwork_core::model::source::SampleSource;
 use patchwork_core::terrain::{Terrain, TerrainError};
 use patchwork_store::{
-    encode, CompactReport, Contents, Loaded, Store, StoreError, StoreOptions, VerifyReport,
+    encode, CompactFailed, CompactReport, Contents, Loaded, Store, StoreError, StoreOptions,
+    VerifyReport,
 };
 use std::collections::HashSet;
 use std::path::Path;
@@ -202,14 +203,15 @@ fn derive(store: &mut Store, warnings: &mut Vec<String>) -> Result<Terrain, Stor
 }
 
 /// Physically removes retired surveys (see [`Store::compact`]) and restores the terrain of the
-/// compacted store.
+/// compacted store. A failure that left the store open gives it back.
 pub fn compact(
     store: Store,
     live: &HashSet<PatchId>,
-) -> Result<(Opened, CompactReport), StoreError> {
+) -> Result<(Opened, CompactReport), CompactFailed> {
     let (loaded, report) = store.compact(live)?;
     // Only the writer compacts, and it holds the whole store.
-    Ok((restore(loaded)?, report))
+    let opened = restore(loaded).map_err(|error| CompactFailed { store: None, error })?;
+    Ok((opened, report))
 }
 
 /// Re-checks the whole store: its own checks (see [`Store::check`]), then that its box states

@@ -17,8 +17,8 @@ use patchwork_core::sync::{lock, write};
 use patchwork_core::terrain::Terrain;
 use patchwork_read::{content_id, file_content_id, ReadError, ReadLimits, REFUSED_PATH};
 use patchwork_store::{
-    now_unix, Catalog, Change, Damaged, FailedRecord, IngestTimings, Insertion, Retirement, Store,
-    StoreError, SurveyRecord,
+    now_unix, Catalog, Change, CompactFailed, Damaged, FailedRecord, IngestTimings, Insertion,
+    Retirement, Store, StoreError, SurveyRecord,
 };
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -675,8 +675,20 @@ impl Engine {
         let result = restore::compact(store, &live);
         let (opened, report) = match result {
             Ok((opened, report)) => (opened, Ok(report)),
+            // A failure before the swap (a full disk, say) gives the store back as it was:
+            // the terrain published from it stands.
+            Err(CompactFailed {
+                store: Some(store),
+                error,
+            }) => {
+                *guard = Some(*store);
+                return Err(error.into());
+            }
             // Compaction leaves the old files in place on failure: reopen them.
-            Err(e) => {
+            Err(CompactFailed {
+                store: None,
+                error: e,
+            }) => {
                 let opened = restore::open_within(
                     &self.dir,
                     self.cfg.patches.layout(),

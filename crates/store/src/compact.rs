@@ -41,6 +41,40 @@ pub struct CompactReport {
     pub keys_kept: u64,
 }
 
+/// A compaction that failed ([`Store::compact`]): why, and the store, open as it was, where the
+/// failure came before the copy replaced it. Without it (the swap or the open of the copy
+/// failed), the next open finds the directories as [`recover`] expects them.
+pub struct CompactFailed {
+    /// The store, open, where the failure left it as it was.
+    pub store: Option<Box<Store>>,
+    /// Why it failed.
+    pub error: StoreError,
+}
+
+impl std::fmt::Debug for CompactFailed {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CompactFailed")
+            .field("store_open", &self.store.is_some())
+            .field("error", &self.error)
+            .finish()
+    }
+}
+
+impl From<CompactFailed> for StoreError {
+    fn from(f: CompactFailed) -> StoreError {
+        f.error
+    }
+}
+
+/// What [`Store::copy_live`] did, for the report, and whether the copy is to replace the store.
+struct Copied {
+    bytes_before: u64,
+    surveys_purged: usize,
+    kept: u64,
+    removed: u64,
+    swap: bool,
+}
+
 /// Batches of about this many bytes fill the new database, so that a large store is not held
 /// in memory twice.
 const COPY_BATCH_BYTES: usize = 64 << 20;
@@ -90,14 +124,42 @@ pub(super) fn recover(dir: &Path) -> Result<(), StoreError> {
 }
 
 impl Store {
-    /// What a compaction that changed nothing gives back: the store as it was, loaded.
-    fn left_as_is(
+    /// Removes retired surveys for good (records, samples, patches) and every key that belongs
+    /// to no active survey, then rewrites the files. `live` holds the patches of the terrain
+    /// the store holds (its surveys' and the edge patches they call for): only their box
+    /// states and edge patches are kept. A pin stays: it names a file's content, not a survey.
+    ///
+    /// A failure before the copy replaces the store gives the store back as it was, open (see
+    /// [`CompactFailed`]): a full disk, the commonest cause, is no reason to close and open a
+    /// store again.
+    pub fn compact(
         self,
-        bytes_before: u64,
-        surveys_purged: usize,
-        keys_kept: u64,
-    ) -> Result<(Loaded, CompactReport), StoreError> {
-        let contents = self.load()?;
+        live: &HashSet<PatchId>,
+    ) -> Result<(Loaded, CompactReport), CompactFailed> {
+        let back = |store: Store, error| CompactFailed {
+            store: Some(Box::new(store)),
+            error,
+        };
+        let copied = match self.copy_live(live) {
+            Ok(c) => c,
+            Err(e) => return Err(back(self, e)),
+        };
+        let Copied {
+            bytes_before,
+            surveys_purged,
+            kept,
+            removed,
+            swap,
+        } = copied;
+        if swap {
+            return self
+                .swap(bytes_before, surveys_purged, removed, kept)
+                .map_err(|error| CompactFailed { store: None, error });
+        }
+        let contents = match self.load() {
+            Ok(c) => c,
+            Err(e) => return Err(back(self, e)),
+        };
         let bytes_after = self.disk_bytes();
         Ok((
             Loaded {
@@ -110,22 +172,19 @@ impl Store {
                 bytes_before,
                 bytes_after,
                 surveys_purged,
-                keys_removed: 0,
-                keys_kept,
+                keys_removed: removed,
+                keys_kept: kept,
                 swapped: false,
             },
         ))
     }
 
-    /// Removes retired surveys for good (records, samples, patches) and every key that belongs
-    /// to no active survey, then rewrites the files. `live` holds the patches of the terrain
-    /// the store holds (its surveys' and the edge patches they call for): only their box
-    /// states and edge patches are kept. A pin stays: it names a file's content, not a survey.
-    pub fn compact(self, live: &HashSet<PatchId>) -> Result<(Loaded, CompactReport), StoreError> {
+    /// Compaction's work up to the swap, which leaves the store as it is: the live keys copied
+    /// to `<dir>.compact` where that pays, or what retirements left removed in place.
+    fn copy_live(&self, live: &HashSet<PatchId>) -> Result<Copied, StoreError> {
         let bytes_before = self.disk_bytes();
         let dir = self.dir.clone();
         let tmp = sibling(&dir, ".compact")?;
-        let old = sibling(&dir, ".old")?;
         if tmp.exists() {
             std::fs::remove_dir_all(&tmp)?;
         }
@@ -209,7 +268,13 @@ impl Store {
                 k.is_ok_and(|k| live(&k))
             });
             if nothing_goes {
-                return self.left_as_is(bytes_before, surveys_purged, keys_kept);
+                return Ok(Copied {
+                    bytes_before,
+                    surveys_purged,
+                    kept: keys_kept,
+                    removed: 0,
+                    swap: false,
+                });
             }
         }
         let (mut kept, mut removed) = (0u64, 0u64);
@@ -306,8 +371,15 @@ impl Store {
         let smaller = dir_bytes(&tmp) + margin <= bytes_before;
         if !(smaller || remote && removed > 0) {
             std::fs::remove_dir_all(&tmp)?;
+            let as_is = Copied {
+                bytes_before,
+                surveys_purged,
+                kept,
+                removed: 0,
+                swap: false,
+            };
             if removed == 0 {
-                return self.left_as_is(bytes_before, surveys_purged, kept);
+                return Ok(as_is);
             }
             // What retirements left goes all the same, from the store itself: its keys are
             // removed in one batch, and the chunks they named stay in the pack as dead bytes
@@ -325,11 +397,32 @@ impl Store {
             self.db.apply_batch(batch)?;
             lock(&self.catalog).forget();
             self.db.flush()?;
-            let (loaded, mut report) = self.left_as_is(bytes_before, surveys_purged, kept)?;
-            report.keys_removed = gone;
-            return Ok((loaded, report));
+            return Ok(Copied {
+                removed: gone,
+                ..as_is
+            });
         }
         self.db.flush()?;
+        Ok(Copied {
+            bytes_before,
+            surveys_purged,
+            kept,
+            removed,
+            swap: true,
+        })
+    }
+
+    /// Replaces the store with its copy in `<dir>.compact` and opens that.
+    fn swap(
+        self,
+        bytes_before: u64,
+        surveys_purged: usize,
+        removed: u64,
+        kept: u64,
+    ) -> Result<(Loaded, CompactReport), StoreError> {
+        let dir = self.dir.clone();
+        let tmp = sibling(&dir, ".compact")?;
+        let old = sibling(&dir, ".old")?;
         let Store {
             db,
             pack,

@@ -75,7 +75,7 @@ pub mod space;
 mod verify;
 
 pub use chunks::{CacheStats, ChunkReader};
-pub use compact::CompactReport;
+pub use compact::{CompactFailed, CompactReport};
 pub use journal::Following;
 pub use migrate::CURRENT as SCHEMA_VERSION;
 use pack::ChunkStore;
