@@ -81,9 +81,7 @@ pub fn tune_allocator() {
     {
         // Fails only where the pool was started already, whose workers then go without the
         // cache: a few per cent slower at most, no less right.
-        let _ = rayon::ThreadPoolBuilder::new()
-            .start_handler(|_| thread_cache(true))
-            .build_global();
+        let _ = workers().build_global();
     }
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets a parameter of the allocator, which serialises it with
@@ -126,6 +124,12 @@ pub use tikv_jemallocator::Jemalloc;
 #[export_name = "_rjem_malloc_conf"]
 pub static malloc_conf: &u8 =
     &b"background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0,tcache:false\0"[0];
+
+/// Rayon's pool as the programs start it: its workers keep a thread cache.
+#[cfg(feature = "jemalloc")]
+fn workers() -> rayon::ThreadPoolBuilder {
+    rayon::ThreadPoolBuilder::new().start_handler(|_| thread_cache(true))
+}
 
 /// Turns the calling thread's cache of freed small blocks on or off (see [`malloc_conf`]).
 #[cfg(feature = "jemalloc")]
@@ -619,6 +623,36 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
 
 #[cfg(test)]
 mod tests {
+    /// Whether the calling thread keeps a jemalloc thread cache.
+    #[cfg(feature = "jemalloc")]
+    fn cached() -> bool {
+        let (mut on, mut len) = (false, std::mem::size_of::<bool>());
+        // SAFETY: "thread.tcache.enabled" writes a bool through the pointer given, whose size
+        // is given with it.
+        let rc = unsafe {
+            tikv_jemalloc_sys::mallctl(
+                c"thread.tcache.enabled".as_ptr(),
+                (&raw mut on).cast(),
+                &raw mut len,
+                std::ptr::null_mut(),
+                0,
+            )
+        };
+        assert_eq!(rc, 0, "jemalloc answers");
+        on
+    }
+
+    #[cfg(feature = "jemalloc")]
+    #[test]
+    fn only_the_pools_workers_keep_a_thread_cache() {
+        assert!(
+            !std::thread::spawn(cached).join().unwrap(),
+            "a thread starts without one"
+        );
+        let pool = super::workers().num_threads(3).build().unwrap();
+        assert_eq!(pool.broadcast(|_| cached()), vec![true; 3]);
+    }
+
     use super::*;
     use crate::paths::source_name;
     use patchwork_store::StoreError;
