@@ -128,13 +128,13 @@ pub static malloc_conf: &u8 =
 /// Rayon's pool as the programs start it: its workers keep a thread cache.
 #[cfg(feature = "jemalloc")]
 fn workers() -> rayon::ThreadPoolBuilder {
-    rayon::ThreadPoolBuilder::new().start_handler(|_| thread_cache(true))
+    rayon::ThreadPoolBuilder::new().start_handler(|_| keep_thread_cache())
 }
 
-/// Turns the calling thread's cache of freed small blocks on or off (see [`malloc_conf`]).
+/// Gives the calling thread a cache of the small blocks it frees (see [`malloc_conf`]).
 #[cfg(feature = "jemalloc")]
-fn thread_cache(on: bool) {
-    let mut on = on;
+fn keep_thread_cache() {
+    let mut on = true;
     // SAFETY: "thread.tcache.enabled" takes a bool, given by pointer with its size, and
     // writes nothing back through the null old-value pointers.
     unsafe {
@@ -623,6 +623,11 @@ fn backend(st: &Storage) -> Result<ChunkBackend, EngineError> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+    use crate::paths::source_name;
+    use patchwork_store::StoreError;
+    use std::path::Path;
+
     /// Whether the calling thread keeps a jemalloc thread cache.
     #[cfg(feature = "jemalloc")]
     fn cached() -> bool {
@@ -652,11 +657,6 @@ mod tests {
         let pool = super::workers().num_threads(3).build().unwrap();
         assert_eq!(pool.broadcast(|_| cached()), vec![true; 3]);
     }
-
-    use super::*;
-    use crate::paths::source_name;
-    use patchwork_store::StoreError;
-    use std::path::Path;
 
     #[test]
     fn after_an_io_error_under_a_write_the_engine_stops_writing_and_keeps_reading() {

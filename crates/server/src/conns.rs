@@ -79,6 +79,11 @@ pub struct Conn {
 }
 
 impl Conn {
+    /// What [`Conns`] holds it by: the daemon's end and the client's.
+    fn key(&self) -> (SocketAddr, SocketAddr) {
+        (self.local, self.peer)
+    }
+
     /// A request started on this connection: running until the guard goes.
     pub fn begin(self: &Arc<Self>) -> InFlight {
         self.in_flight.fetch_add(1, Relaxed);
@@ -243,7 +248,7 @@ impl Conns {
             match victim {
                 Some(v) => {
                     v.close();
-                    open.remove(&(v.local, v.peer));
+                    open.remove(&v.key());
                 }
                 None => {
                     tracing::debug!(%peer, "every connection is busy: refused");
@@ -293,10 +298,10 @@ impl<S> Drop for Tracked<S> {
     fn drop(&mut self) {
         let mut open = lock(&self.conns.open);
         if open
-            .get(&(self.conn.local, self.conn.peer))
+            .get(&self.conn.key())
             .is_some_and(|c| Arc::ptr_eq(c, &self.conn))
         {
-            open.remove(&(self.conn.local, self.conn.peer));
+            open.remove(&self.conn.key());
         }
     }
 }
