@@ -6,7 +6,7 @@
 
 use crate::common;
 
-use common::{landscape, LAYOUT};
+use common::{config, landscape, LAYOUT};
 use patchwork_core::crs::{Crs, Transform};
 use patchwork_core::geom::Aabb;
 use patchwork_core::index::lod::IndexConfig;
@@ -174,7 +174,7 @@ fn valid_point(s: &Survey, a: f64, b: f64, c: f64) -> Option<[f64; 2]> {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+    #![proptest_config(config(48))]
 
     #[test]
     fn across_crss_order_and_retirement_do_not_matter(
