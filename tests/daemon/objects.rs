@@ -181,3 +181,98 @@ fn a_store_on_s3_serves_as_a_local_one_and_rides_out_the_server_going_away() {
     assert!(!v.status.success(), "{said}");
     assert!(said.contains("s3://terrain/store1"), "{said}");
 }
+
+/// An operator's `stats` and listing answer while every turn to run a request waits on a
+/// backend that answers nothing: 16 clients' cold tiles hold the turns and queue for more.
+/// The admin reads run beside the turns, so they neither wait for one nor take one.
+#[test]
+fn stats_and_the_listing_answer_while_tiles_queue_behind_a_stalled_backend() {
+    use patchwork::serve::proto::terrain_client::TerrainClient;
+    use patchwork::serve::proto::{self as pb, admin_client::AdminClient};
+    use std::sync::atomic::Ordering;
+    const CLIENTS: usize = 16;
+    let tmp = tempfile::tempdir().unwrap();
+    let s3 = S3Server::start(&tmp.path().join("s3"));
+    // A GET held for the whole test must not time out in the store's client meanwhile.
+    let config = tmp.path().join("patchwork.toml");
+    std::fs::write(&config, "[storage]\ntimeout_ms = 120000\n").unwrap();
+    let mut env = s3.env("stalled");
+    env.push(("PATCHWORK_CONFIG".into(), config.to_string_lossy().into()));
+    let setup = Setup {
+        env,
+        ..Setup::default()
+    };
+    let d = Daemon::start_with(&tmp.path().join("d"), setup.clone());
+    drop_by_rename(&crop(FILE), &d.inbox(), FILE);
+    active(&d);
+    // A fresh start: every sample is read from the bucket.
+    let mut d = d;
+    d.stop();
+    let d = Daemon::start_with(&d.root.clone(), setup);
+    s3.faults.hold_gets.store(true, Ordering::SeqCst);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let limit = rt.block_on(async {
+        let mut tiles = Vec::new();
+        for k in 0..CLIENTS {
+            let url = d.url.clone();
+            tiles.push(tokio::spawn(async move {
+                let mut t = TerrainClient::connect(url).await.unwrap();
+                let mut req = crop_tile(16 + k as u32, 16);
+                req.backend = pb::Backend::Cpu as i32;
+                t.resample_tile(req).await
+            }));
+        }
+        let mut admin = AdminClient::connect(d.url.clone()).await.unwrap();
+        let stats = || {
+            let mut r = tonic::Request::new(pb::StatsRequest {});
+            // Far past what an answer that waits for no turn takes; far short of the held
+            // GETs, so that an answer queued behind them fails here.
+            r.set_timeout(Duration::from_secs(5));
+            let mut a = admin.clone();
+            async move { a.stats(r).await.map(|r| r.into_inner()) }
+        };
+        // Until every turn is held by a tile whose read hangs, and tiles wait for more.
+        let t0 = Instant::now();
+        let limit = loop {
+            let s = stats().await.expect("stats while tiles hold the turns");
+            if s.requests_running == s.requests_limit && s.requests_waiting > 0 {
+                break s.requests_limit;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(30),
+                "the tiles never held every turn: {s:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        };
+        assert!(s3.faults.held.load(Ordering::SeqCst) > 0);
+        let mut took = Vec::new();
+        for _ in 0..10 {
+            let t0 = Instant::now();
+            let s = stats().await.expect("stats while tiles queue");
+            took.push(t0.elapsed().as_secs_f64() * 1e3);
+            assert_eq!(s.requests_running, s.requests_limit);
+            assert_eq!(s.surveys, 1);
+        }
+        let mut r = tonic::Request::new(pb::ListSurveysRequest {});
+        r.set_timeout(Duration::from_secs(5));
+        let listed = admin
+            .list_surveys(r)
+            .await
+            .expect("the listing while tiles queue");
+        assert_eq!(listed.into_inner().surveys.len(), 1);
+        took.sort_by(f64::total_cmp);
+        eprintln!(
+            "stats beside {CLIENTS} tiles held on the backend: median {:.1} ms, worst {:.1} ms",
+            took[took.len() / 2],
+            took[took.len() - 1]
+        );
+        // The backend answers again: every tile is served.
+        s3.faults.hold_gets.store(false, Ordering::SeqCst);
+        for t in tiles {
+            let tile = t.await.unwrap();
+            assert!(tile.is_ok(), "{tile:?}");
+        }
+        limit
+    });
+    assert_eq!(limit, 8);
+}

@@ -99,19 +99,40 @@ impl Kept {
     }
 }
 
+/// About the most bytes of patches in one message of a view session (past it, the message
+/// ends with the patch that crossed it). Small, since an unread session holds a few messages
+/// (the one made ahead, the one in its channel, the one the connection is encoding): about a
+/// megabyte, where a step of 256-patch messages held three or four and a whole step of a
+/// large store is tens.
+const MESSAGE_BYTES: u64 = 256 << 10;
+
 /// Frames ahead the cameras are predicted.
 const AHEAD: usize = 3;
 
 impl ViewSession {
-    /// The messages that take the client from what it holds to the cut for `v`, with what it
-    /// can take back from its cache named, not sent, and the patches of the cameras predicted
-    /// next within `v.prefetch_bytes`. What the session holds changes only once the step is
-    /// made whole, so a step that fails leaves it as the client has it.
+    /// The messages that take the client from what it holds to the cut for `v`, all at once:
+    /// [`ViewSession::begin`], every message of the step, then [`ViewSession::finish`]. What
+    /// the session holds changes only once the step is made whole, so a step that fails
+    /// leaves it as the client has it.
     pub fn step(
         &mut self,
         engine: &Engine,
         v: &pb::ViewCut,
     ) -> Result<Vec<pb::ViewDelta>, EngineError> {
+        let mut step = self.begin(engine, v)?;
+        let mut deltas = Vec::new();
+        while let Some(d) = step.next(engine)? {
+            deltas.push(d);
+        }
+        self.finish(step);
+        Ok(deltas)
+    }
+
+    /// A step to the cut for `v`: the cut, and what of it the client holds already or can take
+    /// back from its cache. No patch is read yet: [`Step::next`] makes the messages one at a
+    /// time, so that a client that stops reading costs the messages it has not taken, not the
+    /// whole cut's samples.
+    pub fn begin(&self, engine: &Engine, v: &pb::ViewCut) -> Result<Step, EngineError> {
         let camera = Camera::try_from(v)?;
         let (t, ps) = engine.query(&Cut::View(camera))?;
         let next: std::collections::HashMap<_, _> =
@@ -126,8 +147,7 @@ impl ViewSession {
         // The client's cache after the removed patches join it, as the client keeps it: a
         // copy, kept only once the step is whole.
         let mut cache = self.cache.clone();
-        let most = v.cache_bytes;
-        if most > 0 {
+        if v.cache_bytes > 0 {
             for (id, (held, bytes)) in &removed {
                 cache.put(*id, *held, *bytes);
             }
@@ -151,80 +171,167 @@ impl ViewSession {
                 added.push(x);
             }
         }
-        // Each added patch as sent, with its size. One the snapshot no longer has (never,
-        // the cut being of that snapshot) is not held, and so asked for again.
-        let mut sent = Vec::with_capacity(added.len());
-        for x in &added {
-            match convert::patch(&t, x) {
-                Ok(Some(p)) => {
-                    // An older copy in the client's cache leaves it, as the client drops it.
-                    cache.take(x.id);
-                    held.insert(x.id, (Held::of(x), p.encoded_len() as u64));
-                    sent.push(p);
-                }
-                Ok(None) => {}
-                Err(e) => return Err(StoreError::from(e).into()),
-            }
-        }
         let cameras = {
             let mut c = self.cameras.clone();
             c.push(([v.eye_x, v.eye_y, v.eye_z], [v.look_x, v.look_y, v.look_z]));
             let n = c.len();
             c.split_off(n.saturating_sub(2))
         };
-        let mut prefetched = Vec::new();
-        if most > 0 && v.prefetch_bytes > 0 {
-            prefetched = prefetch(engine, v, &cameras, &held, &cache)?;
-        }
-        for (id, h, p) in &prefetched {
-            cache.put(*id, *h, p.encoded_len() as u64);
-        }
-        cache.fit(most);
-
-        let mut deltas: Vec<pb::ViewDelta> = sent
-            .chunks(BATCH)
-            .map(|chunk| pb::ViewDelta {
-                frame: self.frame,
-                added: chunk.to_vec(),
-                ..Default::default()
-            })
-            .collect();
-        let prefetched: Vec<pb::Patch> = prefetched.into_iter().map(|p| p.2).collect();
-        deltas.extend(prefetched.chunks(BATCH).map(|chunk| pb::ViewDelta {
+        Ok(Step {
+            v: *v,
             frame: self.frame,
-            prefetched: chunk.to_vec(),
-            ..Default::default()
-        }));
-        if deltas.is_empty() {
-            deltas.push(pb::ViewDelta {
-                frame: self.frame,
-                ..Default::default()
-            });
-        }
-        deltas[0].removed = removed.iter().map(|r| r.0 .0).collect();
-        deltas[0].restored = restored;
-        let last = deltas.last_mut().expect("one message at least");
-        last.last = true;
-        last.patches = held.len() as u32;
-        self.held = held;
-        self.cache = cache;
-        self.cameras = cameras;
+            t,
+            first: Some((removed.iter().map(|r| r.0 .0).collect(), restored)),
+            added: added.into_iter(),
+            prefetch: None,
+            prefetched_bytes: 0,
+            held,
+            cache,
+            cameras,
+            pending: None,
+            done: false,
+        })
+    }
+
+    /// Takes on what `step` left the client holding, once its last message is made: the
+    /// cut, the cache as the client evicts it, and the camera.
+    pub fn finish(&mut self, mut step: Step) {
+        debug_assert!(
+            step.done,
+            "a step is finished once its last message is made"
+        );
+        step.cache.fit(step.v.cache_bytes);
+        self.held = step.held;
+        self.cache = step.cache;
+        self.cameras = step.cameras;
         self.frame += 1;
-        Ok(deltas)
+    }
+}
+
+/// One step of a view session under way, whose messages are made as they are taken: the
+/// patches still to send are ids and boxes until their message is made, so that what an unread
+/// step holds is its plan and at most one message ahead of the client.
+pub struct Step {
+    v: pb::ViewCut,
+    frame: u64,
+    t: std::sync::Arc<Terrain>,
+    /// `removed` and `restored`, for the step's first message.
+    first: Option<(Vec<u64>, Vec<u64>)>,
+    /// The cut's patches the client lacks, in id order.
+    added: std::vec::IntoIter<Extracted>,
+    /// The predicted cameras' patches, nearest frame first: found once the added ones are
+    /// all sent, since what the client will hold then decides them.
+    prefetch: Option<std::vec::IntoIter<(std::sync::Arc<Terrain>, Extracted)>>,
+    prefetched_bytes: u64,
+    held: std::collections::HashMap<patchwork_core::model::ids::PatchId, (Held, u64)>,
+    cache: Kept,
+    cameras: Vec<([f64; 3], [f64; 3])>,
+    /// The message made ahead of the one given out, which tells whether that one is the last.
+    pending: Option<pb::ViewDelta>,
+    done: bool,
+}
+
+impl Step {
+    /// The step's next message, None once its last (the one with `last` set) is out.
+    pub fn next(&mut self, engine: &Engine) -> Result<Option<pb::ViewDelta>, EngineError> {
+        if self.done {
+            return Ok(None);
+        }
+        let current = match self.pending.take() {
+            Some(m) => m,
+            None => self.make(engine)?.expect("a step has one message at least"),
+        };
+        match self.make(engine)? {
+            Some(following) => {
+                self.pending = Some(following);
+                Ok(Some(current))
+            }
+            None => {
+                self.done = true;
+                Ok(Some(pb::ViewDelta {
+                    last: true,
+                    patches: self.held.len() as u32,
+                    ..current
+                }))
+            }
+        }
+    }
+
+    /// Whether the step's last message is made.
+    pub fn done(&self) -> bool {
+        self.done
+    }
+
+    /// Makes the message after those made: up to [`BATCH`] added patches or
+    /// [`MESSAGE_BYTES`] of them, else as many prefetched ones; the first message is made even
+    /// when it carries nothing but the frame.
+    fn make(&mut self, engine: &Engine) -> Result<Option<pb::ViewDelta>, EngineError> {
+        let first = self.first.take();
+        let mut d = pb::ViewDelta {
+            frame: self.frame,
+            ..Default::default()
+        };
+        let opening = first.is_some();
+        let mut bytes = 0u64;
+        if let Some((removed, restored)) = first {
+            d.removed = removed;
+            d.restored = restored;
+        }
+        for x in self.added.by_ref() {
+            // One the snapshot no longer has (never, the cut being of that snapshot) is not
+            // held, and so asked for again.
+            if let Some(p) = convert::patch(&self.t, &x).map_err(StoreError::from)? {
+                // An older copy in the client's cache leaves it, as the client drops it.
+                self.cache.take(x.id);
+                let n = p.encoded_len() as u64;
+                self.held.insert(x.id, (Held::of(&x), n));
+                bytes += n;
+                d.added.push(p);
+            }
+            if d.added.len() == BATCH || bytes >= MESSAGE_BYTES {
+                break;
+            }
+        }
+        if d.added.is_empty() && self.v.cache_bytes > 0 && self.v.prefetch_bytes > 0 {
+            if self.prefetch.is_none() {
+                let wanted = prefetch(engine, &self.v, &self.cameras, &self.held, &self.cache)?;
+                self.prefetch = Some(wanted.into_iter());
+            }
+            let todo = self.prefetch.as_mut().expect("planned");
+            while d.prefetched.len() < BATCH && bytes < MESSAGE_BYTES {
+                let Some((t, x)) = todo.next() else { break };
+                let Some(p) = convert::patch(&t, &x).map_err(StoreError::from)? else {
+                    continue;
+                };
+                let n = p.encoded_len() as u64;
+                if self.prefetched_bytes + n > self.v.prefetch_bytes {
+                    // The budget is spent: nothing more is prefetched this step.
+                    todo.by_ref().for_each(drop);
+                    break;
+                }
+                self.prefetched_bytes += n;
+                bytes += n;
+                self.cache.put(x.id, Held::of(&x), n);
+                d.prefetched.push(p);
+            }
+        }
+        let empty = d.added.is_empty() && d.prefetched.is_empty();
+        Ok((opening || !empty).then_some(d))
     }
 }
 
 /// The patches the cameras predicted after `cameras` (the last two, the latest last) will
-/// need that the client has neither in its cut nor in its cache, nearest frame first, within
-/// `v.prefetch_bytes`. The motion from one camera to the next goes on: the eye at the same
-/// velocity, the view turning about the vertical at the same rate.
+/// need that the client has neither in its cut nor in its cache, nearest frame first, each
+/// with the snapshot it was cut from; the caller sends them within `v.prefetch_bytes`. The
+/// motion from one camera to the next goes on: the eye at the same velocity, the view turning
+/// about the vertical at the same rate.
 fn prefetch(
     engine: &Engine,
     v: &pb::ViewCut,
     cameras: &[([f64; 3], [f64; 3])],
     held: &std::collections::HashMap<patchwork_core::model::ids::PatchId, (Held, u64)>,
     cache: &Kept,
-) -> Result<Vec<(patchwork_core::model::ids::PatchId, Held, pb::Patch)>, EngineError> {
+) -> Result<Vec<(std::sync::Arc<Terrain>, Extracted)>, EngineError> {
     let [(e1, l1), (e2, l2)] = match cameras {
         [a, b] => [*a, *b],
         _ => return Ok(Vec::new()),
@@ -240,7 +347,6 @@ fn prefetch(
     };
     let mut seen = std::collections::HashSet::new();
     let mut out = Vec::new();
-    let mut bytes = 0u64;
     for k in 1..=AHEAD {
         let kf = k as f64;
         let (s, c) = (kf * turn).sin_cos();
@@ -255,26 +361,16 @@ fn prefetch(
             continue;
         };
         let (t, ps) = engine.query(&Cut::View(camera))?;
-        let want: Vec<Extracted> = ps
-            .into_iter()
-            .filter(|x| {
-                let h = Held::of(x);
-                held.get(&x.id).is_none_or(|k| k.0 != h)
-                    && !cache.holds(x.id, h)
-                    && seen.insert(x.id)
-            })
-            .collect();
-        for x in &want {
-            let Some(p) = convert::patch(&t, x).map_err(StoreError::from)? else {
-                continue;
-            };
-            let n = p.encoded_len() as u64;
-            if bytes + n > v.prefetch_bytes {
-                return Ok(out);
-            }
-            bytes += n;
-            out.push((x.id, Held::of(x), p));
-        }
+        out.extend(
+            ps.into_iter()
+                .filter(|x| {
+                    let h = Held::of(x);
+                    held.get(&x.id).is_none_or(|k| k.0 != h)
+                        && !cache.holds(x.id, h)
+                        && seen.insert(x.id)
+                })
+                .map(|x| (t.clone(), x)),
+        );
     }
     Ok(out)
 }

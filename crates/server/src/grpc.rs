@@ -31,6 +31,11 @@ pub struct Service {
     /// The view sessions' steps take their turns from this first: at most half the turns, so
     /// that however many sessions wait, one-off requests still find one.
     session_turns: Arc<tokio::sync::Semaphore>,
+    /// The admin calls that read what the engine publishes (`stats`, the listing, `forget`)
+    /// run beside the turns, not within them, a few at once: they read counters and the
+    /// published catalog, never samples, so that an operator's `stats` (and a verify's
+    /// progress in it) answers while tiles queue for every turn behind a slow backend.
+    admin_turns: Arc<tokio::sync::Semaphore>,
     streams: Arc<Streams>,
     /// Subscribe is on the Terrain service but tells what the Admin listing tells.
     admin: Gate,
@@ -38,6 +43,19 @@ pub struct Service {
     stopping: tokio::sync::watch::Receiver<bool>,
     /// The connections of both ports, within one limit.
     conns: Arc<Conns>,
+}
+
+/// Admin reads that run at once, beside the turns (see `Service::admin_turns`).
+const ADMIN_TURNS: usize = 2;
+
+/// Where a request's work takes its turn.
+enum Lane {
+    /// A turn, handed round the clients fairly: tiles, queries, points.
+    Requests,
+    /// A turn, once the sessions' lane has room.
+    Sessions,
+    /// The admin lane alone, no turn.
+    Admin,
 }
 
 fn stopping_status() -> Status {
@@ -153,6 +171,7 @@ impl Service {
             admin: Gate::admin(engine.config()),
             running: Turns::new(n),
             session_turns: Arc::new(tokio::sync::Semaphore::new((n / 2).max(1))),
+            admin_turns: Arc::new(tokio::sync::Semaphore::new(ADMIN_TURNS)),
             conns: Conns::new(
                 limits.max_connections,
                 conns::file_limit(),
@@ -193,16 +212,13 @@ impl Service {
         T: Send + 'static,
         F: FnOnce(&Engine, &Cancel) -> Result<T, EngineError> + Send + 'static,
     {
-        self.run_in(None, f).await
+        self.run_in(Lane::Requests, f).await
     }
 
-    /// [`Service::run`], taking a permit of `lane` first (within the deadline too), so that
-    /// the work of one kind holds no more turns than the lane has.
-    async fn run_in<T, F>(
-        &self,
-        lane: Option<Arc<tokio::sync::Semaphore>>,
-        f: F,
-    ) -> Result<T, Status>
+    /// [`Service::run`] in `lane`: a view session's step takes a permit of the sessions'
+    /// lane before its turn (within the deadline too), so that sessions hold no more turns
+    /// than the lane has; an admin read takes one of the admin lane instead of a turn.
+    async fn run_in<T, F>(&self, lane: Lane, f: F) -> Result<T, Status>
     where
         T: Send + 'static,
         F: FnOnce(&Engine, &Cancel) -> Result<T, EngineError> + Send + 'static,
@@ -217,15 +233,24 @@ impl Service {
         let load = self.load.clone();
         let work = async {
             let waiting = Waiting::new(&self.load);
-            let lane = match lane {
+            let (semaphore, turn) = match lane {
+                Lane::Requests => (None, true),
+                Lane::Sessions => (Some(&self.session_turns), true),
+                Lane::Admin => (Some(&self.admin_turns), false),
+            };
+            let lane = match semaphore {
                 Some(l) => Some(
-                    l.acquire_owned()
+                    l.clone()
+                        .acquire_owned()
                         .await
                         .map_err(|_| Status::unavailable("the daemon is stopping"))?,
                 ),
                 None => None,
             };
-            let permit = self.running.take(conns::client()).await;
+            let permit = match turn {
+                true => Some(self.running.take(conns::client()).await),
+                false => None,
+            };
             drop(waiting);
             let job = tokio::task::spawn_blocking(move || {
                 let r = f(&engine, &job_cancel);
@@ -346,9 +371,11 @@ impl terrain_server::Terrain for Service {
         let slot = self.streams.open(r.remote_addr())?;
         let mut cameras = r.into_inner();
         let ms = self.engine.config().limits.deadline_ms;
-        // Two messages ahead at most: a client that stops reading holds those, and only until
-        // the step's deadline.
-        let (tx, rx) = tokio::sync::mpsc::channel(2);
+        // One message ahead at most, and each made only once there is room for it: a client
+        // that stops reading holds that message and what the connection buffers, and only
+        // until the step's deadline, not its whole cut (whose samples, on a large store, are
+        // tens of megabytes a session).
+        let (tx, rx) = tokio::sync::mpsc::channel(1);
         let svc = self.clone();
         tokio::spawn(async move {
             // The session counts against the limits until this task ends.
@@ -357,22 +384,21 @@ impl terrain_server::Terrain for Service {
             while let Ok(Some(camera)) = cameras.message().await {
                 let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
                 let s = session.clone();
-                let step = svc
-                    .run_in(Some(svc.session_turns.clone()), move |e, _| {
-                        let mut s = lock(&s);
-                        s.step(e, &camera)
-                    })
+                let begun = svc
+                    .run_in(Lane::Sessions, move |e, _| lock(&s).begin(e, &camera))
                     .await;
-                let deltas = match step {
-                    Ok(d) => d,
+                let mut step = match begun {
+                    Ok(step) => step,
                     Err(status) => {
                         let _ = tokio::time::timeout_at(deadline, tx.send(Err(status))).await;
                         return;
                     }
                 };
-                for d in deltas {
-                    match tokio::time::timeout_at(deadline, tx.send(Ok(d))).await {
-                        Ok(Ok(())) => {}
+                while !step.done() {
+                    // Room first, then the message: nothing is read or made for a client
+                    // that does not take it.
+                    let permit = match tokio::time::timeout_at(deadline, tx.reserve()).await {
+                        Ok(Ok(p)) => p,
                         // The client is gone.
                         Ok(Err(_)) => return,
                         // It stopped reading: end with an error, should it read again, so
@@ -385,8 +411,28 @@ impl terrain_server::Terrain for Service {
                             .await;
                             return;
                         }
+                    };
+                    let made = svc.run_in(Lane::Sessions, move |e, _| {
+                        let d = step.next(e)?;
+                        Ok((step, d))
+                    });
+                    match tokio::time::timeout_at(deadline, made).await {
+                        Ok(Ok((s, Some(d)))) => {
+                            step = s;
+                            permit.send(Ok(d));
+                        }
+                        Ok(Ok((s, None))) => step = s,
+                        Ok(Err(status)) => {
+                            permit.send(Err(status));
+                            return;
+                        }
+                        Err(_) => {
+                            permit.send(Err(status::deadline(ms)));
+                            return;
+                        }
                     }
                 }
+                lock(&session).finish(step);
             }
         });
         Ok(Response::new(Box::pin(
@@ -508,7 +554,7 @@ impl admin_server::Admin for Service {
         &self,
         _: Request<pb::ListSurveysRequest>,
     ) -> Result<Response<pb::SurveyList>, Status> {
-        self.run(|e, _| api::list_surveys(e))
+        self.run_in(Lane::Admin, |e, _| api::list_surveys(e))
             .await
             .map(Response::new)
     }
@@ -529,7 +575,7 @@ impl admin_server::Admin for Service {
         r: Request<pb::ForgetRequest>,
     ) -> Result<Response<pb::ForgetReply>, Status> {
         let r = r.into_inner();
-        self.run(move |e, _| api::forget(e, &r))
+        self.run_in(Lane::Admin, move |e, _| api::forget(e, &r))
             .await
             .map(Response::new)
     }
@@ -538,7 +584,7 @@ impl admin_server::Admin for Service {
         &self,
         _: Request<pb::StatsRequest>,
     ) -> Result<Response<pb::StatsReply>, Status> {
-        let mut r = self.run(|e, _| api::stats(e)).await?;
+        let mut r = self.run_in(Lane::Admin, |e, _| api::stats(e)).await?;
         self.load(&mut r);
         Ok(Response::new(r))
     }

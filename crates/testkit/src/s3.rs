@@ -4,7 +4,7 @@
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// The bucket the server holds.
@@ -34,6 +34,11 @@ pub struct Faults {
     pub refused: AtomicU32,
     /// The bytes of the objects' contents served by GETs: what clients fetched.
     pub fetched: AtomicU64,
+    /// While set, every GET waits, unanswered, until it is cleared: a backend as slow as
+    /// one can be.
+    pub hold_gets: AtomicBool,
+    /// GETs that are waiting on `hold_gets` now.
+    pub held: AtomicU32,
 }
 
 impl Faults {
@@ -113,6 +118,13 @@ impl S3Server {
                     return Ok::<_, s3s::HttpError>(slow);
                 }
                 let get = req.method() == hyper::Method::GET;
+                if get && faults.hold_gets.load(Ordering::SeqCst) {
+                    faults.held.fetch_add(1, Ordering::SeqCst);
+                    while faults.hold_gets.load(Ordering::SeqCst) {
+                        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+                    }
+                    faults.held.fetch_sub(1, Ordering::SeqCst);
+                }
                 let resp = hyper::service::Service::call(&s3, req).await?;
                 if get && resp.status().is_success() {
                     let len = resp
