@@ -31,10 +31,12 @@ pub struct Service {
     /// The view sessions' steps take their turns from this first: at most half the turns, so
     /// that however many sessions wait, one-off requests still find one.
     session_turns: Arc<tokio::sync::Semaphore>,
-    /// The admin calls that read what the engine publishes (`stats`, the listing, `forget`)
-    /// run beside the turns, not within them, a few at once: they read counters and the
-    /// published catalog, never samples, so that an operator's `stats` (and a verify's
+    /// The admin calls that read what the engine publishes (`stats`, the listing) run beside
+    /// the turns, not within them, a few at once: they read counters and the published
+    /// catalog, never samples nor the writer, so that an operator's `stats` (and a verify's
     /// progress in it) answers while tiles queue for every turn behind a slow backend.
+    /// (`forget` takes the writer, which a verify or an ingest holds for minutes: it takes a
+    /// turn, so that it can never hold this lane's permits from `stats`.)
     admin_turns: Arc<tokio::sync::Semaphore>,
     streams: Arc<Streams>,
     /// Subscribe is on the Terrain service but tells what the Admin listing tells.
@@ -575,7 +577,7 @@ impl admin_server::Admin for Service {
         r: Request<pb::ForgetRequest>,
     ) -> Result<Response<pb::ForgetReply>, Status> {
         let r = r.into_inner();
-        self.run_in(Lane::Admin, move |e, _| api::forget(e, &r))
+        self.run(move |e, _| api::forget(e, &r))
             .await
             .map(Response::new)
     }
