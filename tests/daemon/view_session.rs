@@ -65,6 +65,13 @@ async fn apply(
         let d = deltas.message().await.unwrap().expect("a whole step");
         assert_eq!(d.frame, frame);
         assert!(d.added.len() <= 256);
+        // About 256 KB at most: the patch that crosses it ends the message.
+        let sizes: Vec<usize> = d.added.iter().map(|p| p.encoded_len()).collect();
+        let before_last: usize = sizes.iter().rev().skip(1).sum();
+        assert!(
+            before_last < 256 << 10,
+            "{before_last} B before a message's last patch"
+        );
         if step.is_empty() {
             for id in &d.removed {
                 assert!(held.remove(id).is_some(), "removed {id:016x}, never held");
