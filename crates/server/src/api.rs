@@ -184,7 +184,6 @@ impl ViewSession {
             first: Some((removed.iter().map(|r| r.0 .0).collect(), restored)),
             added: added.into_iter(),
             prefetch: None,
-            prefetched_bytes: 0,
             held,
             cache,
             cameras,
@@ -219,10 +218,9 @@ pub struct Step {
     first: Option<(Vec<u64>, Vec<u64>)>,
     /// The cut's patches the client lacks, in id order.
     added: std::vec::IntoIter<Extracted>,
-    /// The predicted cameras' patches, nearest frame first: found once the added ones are
-    /// all sent, since what the client will hold then decides them.
-    prefetch: Option<std::vec::IntoIter<(std::sync::Arc<Terrain>, Extracted)>>,
-    prefetched_bytes: u64,
+    /// The predicted cameras' patches: begun once the added ones are all sent, since what the
+    /// client will hold then decides them.
+    prefetch: Option<Prefetch>,
     held: std::collections::HashMap<patchwork_core::model::ids::PatchId, (Held, u64)>,
     cache: Kept,
     cameras: Vec<([f64; 3], [f64; 3])>,
@@ -293,23 +291,23 @@ impl Step {
             }
         }
         if d.added.is_empty() && self.v.cache_bytes > 0 && self.v.prefetch_bytes > 0 {
-            if self.prefetch.is_none() {
-                let wanted = prefetch(engine, &self.v, &self.cameras, &self.held, &self.cache)?;
-                self.prefetch = Some(wanted.into_iter());
-            }
-            let todo = self.prefetch.as_mut().expect("planned");
+            let todo = self
+                .prefetch
+                .get_or_insert_with(|| Prefetch::new(&self.v, &self.cameras));
             while d.prefetched.len() < BATCH && bytes < MESSAGE_BYTES {
-                let Some((t, x)) = todo.next() else { break };
+                let Some((t, x)) = todo.next(engine, &self.held, &self.cache)? else {
+                    break;
+                };
                 let Some(p) = convert::patch(&t, &x).map_err(StoreError::from)? else {
                     continue;
                 };
                 let n = p.encoded_len() as u64;
-                if self.prefetched_bytes + n > self.v.prefetch_bytes {
+                if todo.bytes + n > self.v.prefetch_bytes {
                     // The budget is spent: nothing more is prefetched this step.
-                    todo.by_ref().for_each(drop);
+                    todo.spent = true;
                     break;
                 }
-                self.prefetched_bytes += n;
+                todo.bytes += n;
                 bytes += n;
                 self.cache.put(x.id, Held::of(&x), n);
                 d.prefetched.push(p);
@@ -320,59 +318,93 @@ impl Step {
     }
 }
 
-/// The patches the cameras predicted after `cameras` (the last two, the latest last) will
-/// need that the client has neither in its cut nor in its cache, nearest frame first, each
-/// with the snapshot it was cut from; the caller sends them within `v.prefetch_bytes`. The
-/// motion from one camera to the next goes on: the eye at the same velocity, the view turning
-/// about the vertical at the same rate.
-fn prefetch(
-    engine: &Engine,
-    v: &pb::ViewCut,
-    cameras: &[([f64; 3], [f64; 3])],
-    held: &std::collections::HashMap<patchwork_core::model::ids::PatchId, (Held, u64)>,
-    cache: &Kept,
-) -> Result<Vec<(std::sync::Arc<Terrain>, Extracted)>, EngineError> {
-    let [(e1, l1), (e2, l2)] = match cameras {
-        [a, b] => [*a, *b],
-        _ => return Ok(Vec::new()),
-    };
-    let vel = [e2[0] - e1[0], e2[1] - e1[1], e2[2] - e1[2]];
-    let (d1, d2) = (
-        [l1[0] - e1[0], l1[1] - e1[1], l1[2] - e1[2]],
-        [l2[0] - e2[0], l2[1] - e2[1], l2[2] - e2[2]],
-    );
-    let turn = {
-        let w = d2[1].atan2(d2[0]) - d1[1].atan2(d1[0]);
-        (w + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI
-    };
-    let mut seen = std::collections::HashSet::new();
-    let mut out = Vec::new();
-    for k in 1..=AHEAD {
-        let kf = k as f64;
-        let (s, c) = (kf * turn).sin_cos();
-        let eye = [
-            e2[0] + kf * vel[0],
-            e2[1] + kf * vel[1],
-            e2[2] + kf * vel[2],
-        ];
-        let d = [d2[0] * c - d2[1] * s, d2[0] * s + d2[1] * c, d2[2]];
-        let look = [eye[0] + d[0], eye[1] + d[1], eye[2] + d[2]];
-        let Ok(camera) = Camera::new(eye, look, v.fov_deg, v.viewport_px, v.pixel_error) else {
-            continue;
-        };
-        let (t, ps) = engine.query(&Cut::View(camera))?;
-        out.extend(
-            ps.into_iter()
+/// A step's prefetch under way: the predicted cameras not cut yet, and of the one cut last
+/// the patches the client has neither in its cut nor in its cache, nearest frame first. A
+/// camera is cut only once the patches of the one before are used up, so that a budget the
+/// first fills costs one cut, not [`AHEAD`].
+struct Prefetch {
+    cameras: std::vec::IntoIter<Camera>,
+    t: Option<std::sync::Arc<Terrain>>,
+    todo: std::vec::IntoIter<Extracted>,
+    seen: std::collections::HashSet<patchwork_core::model::ids::PatchId>,
+    /// Bytes of patches prefetched, within `ViewCut.prefetch_bytes`.
+    bytes: u64,
+    /// Whether the next patch found no room: nothing more is prefetched.
+    spent: bool,
+}
+
+impl Prefetch {
+    /// The cameras predicted after `cameras` (the last two, the latest last): the motion from
+    /// one to the next goes on, the eye at the same velocity, the view turning about the
+    /// vertical at the same rate. With fewer than two cameras, none.
+    fn new(v: &pb::ViewCut, cameras: &[([f64; 3], [f64; 3])]) -> Prefetch {
+        let mut ahead = Vec::new();
+        if let [(e1, l1), (e2, l2)] = *cameras {
+            let vel = [e2[0] - e1[0], e2[1] - e1[1], e2[2] - e1[2]];
+            let (d1, d2) = (
+                [l1[0] - e1[0], l1[1] - e1[1], l1[2] - e1[2]],
+                [l2[0] - e2[0], l2[1] - e2[1], l2[2] - e2[2]],
+            );
+            let turn = {
+                let w = d2[1].atan2(d2[0]) - d1[1].atan2(d1[0]);
+                (w + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI)
+                    - std::f64::consts::PI
+            };
+            for k in 1..=AHEAD {
+                let kf = k as f64;
+                let (s, c) = (kf * turn).sin_cos();
+                let eye = [
+                    e2[0] + kf * vel[0],
+                    e2[1] + kf * vel[1],
+                    e2[2] + kf * vel[2],
+                ];
+                let d = [d2[0] * c - d2[1] * s, d2[0] * s + d2[1] * c, d2[2]];
+                let look = [eye[0] + d[0], eye[1] + d[1], eye[2] + d[2]];
+                ahead.extend(Camera::new(eye, look, v.fov_deg, v.viewport_px, v.pixel_error).ok());
+            }
+        }
+        Prefetch {
+            cameras: ahead.into_iter(),
+            t: None,
+            todo: Vec::new().into_iter(),
+            seen: Default::default(),
+            bytes: 0,
+            spent: false,
+        }
+    }
+
+    /// The next patch to weigh, with the snapshot it was cut from; None once the cameras are
+    /// used up or the budget spent. The client holds what `held` and `cache` say, and every
+    /// patch given out before (which `seen` keeps out).
+    fn next(
+        &mut self,
+        engine: &Engine,
+        held: &std::collections::HashMap<patchwork_core::model::ids::PatchId, (Held, u64)>,
+        cache: &Kept,
+    ) -> Result<Option<(std::sync::Arc<Terrain>, Extracted)>, EngineError> {
+        while !self.spent {
+            if let Some(x) = self.todo.next() {
+                return Ok(Some((self.t.clone().expect("cut with its patches"), x)));
+            }
+            let Some(camera) = self.cameras.next() else {
+                break;
+            };
+            let (t, ps) = engine.query(&Cut::View(camera))?;
+            let seen = &mut self.seen;
+            let todo: Vec<Extracted> = ps
+                .into_iter()
                 .filter(|x| {
                     let h = Held::of(x);
                     held.get(&x.id).is_none_or(|k| k.0 != h)
                         && !cache.holds(x.id, h)
                         && seen.insert(x.id)
                 })
-                .map(|x| (t.clone(), x)),
-        );
+                .collect();
+            self.todo = todo.into_iter();
+            self.t = Some(t);
+        }
+        Ok(None)
     }
-    Ok(out)
 }
 
 /// The client's side of a view session: its cut and its cache, kept by the rule `ViewDelta`

@@ -84,6 +84,14 @@ fn accuracy_at(t: &patchwork_core::terrain::Terrain, s: &Survey, p: [f64; 2]) ->
     Some(claims.at(s.tiling.kernel_at(c, r)))
 }
 
+/// The lowest and highest of the surveys' heights at p (see `survey_heights`).
+fn heights_range(surveys: &[Arc<Survey>], p: [f64; 2]) -> (f64, f64) {
+    let hs = survey_heights(surveys, p);
+    let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
+    let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    (lo, hi)
+}
+
 fn answers(t: &patchwork_core::terrain::Terrain, roi: &Aabb) -> Vec<Vec<String>> {
     [0.0, 0.7, 2.0, 6.0, 25.0]
         .iter()
@@ -268,9 +276,7 @@ proptest! {
                 (accurate, e)
             };
             let h = blended(&t, &ps, p) as f64;
-            let hs = survey_heights(&pool, p);
-            let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
-            let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            let (lo, hi) = heights_range(&pool, p);
             let tol = 1e-3;
             prop_assert!(h >= lo - bound - tol && h <= hi + bound + tol,
                 "at {:?}: {} outside [{} − {bound}, {} + {bound}], e = {e}", p, h, lo, hi);
@@ -389,9 +395,7 @@ fn two_exact_surveys_on_different_lattices_keep_the_bound_at_zero() {
                     continue;
                 }
                 let h = blended(&t, &ps, p) as f64;
-                let hs = survey_heights(&accurate, p);
-                let lo = hs.iter().cloned().fold(f64::INFINITY, f64::min);
-                let hi = hs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                let (lo, hi) = heights_range(&accurate, p);
                 let off = (lo - h).max(h - hi).max(0.0);
                 checked += 1;
                 if off > worst.0 {
