@@ -433,6 +433,11 @@ fn tools() -> Option<Tools> {
 /// folder, served as the daemon's `/lib` and loaded by browser.mjs. Installed again only when
 /// the package files change.
 fn node_modules(tools: &Tools) -> PathBuf {
+    // Both browser tests ask for the folder, on threads of one test binary: one at a time, or
+    // the second would remove the folder under the first one's npm (which then fails with no
+    // working directory) and both would install.
+    static INSTALL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _turn = INSTALL.lock().unwrap_or_else(|e| e.into_inner());
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("web-env");
     let files = ["package.json", "package-lock.json"];
@@ -448,7 +453,7 @@ fn node_modules(tools: &Tools) -> PathBuf {
     {
         return modules;
     }
-    // Only this test installs it, and cargo runs test binaries one at a time.
+    // cargo runs test binaries one at a time, and within this one the lock above holds.
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     for f in files {
