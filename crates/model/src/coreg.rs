@@ -43,29 +43,166 @@ const MOST_POINTS: usize = 60_000;
 const SEARCH_POINTS: usize = 3_000;
 const SEARCH_CELLS: i32 = 13;
 
+/// Where the other's content lies against the reference's: the reference's point p is found
+/// in the other at `p + shift + linear · (p − centre)`. A shift alone where `linear` is zero;
+/// a rotation, a stretch or a shear about the overlap's centre besides (a copy turned by half
+/// a degree is 5 cells off at the edge of a 1,200-cell overlap, which no shift mends).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Placement {
+    /// The point the linear part turns about: the middle of the overlap, in the reference's
+    /// plane.
+    pub centre: [f64; 2],
+    /// The move at the centre, in the reference plane's units.
+    pub shift: [f64; 2],
+    /// The linear part beyond the identity, row-major: zero for a shift alone.
+    pub linear: [[f64; 2]; 2],
+}
+
+impl Placement {
+    /// A shift alone.
+    pub fn shift(shift: [f64; 2]) -> Placement {
+        Placement {
+            centre: [0.0, 0.0],
+            shift,
+            linear: [[0.0; 2]; 2],
+        }
+    }
+
+    /// Where the reference's point `p` is found in the other (in the reference's plane).
+    #[inline]
+    pub fn forth(&self, p: [f64; 2]) -> [f64; 2] {
+        let d = [p[0] - self.centre[0], p[1] - self.centre[1]];
+        let l = &self.linear;
+        [
+            p[0] + self.shift[0] + l[0][0] * d[0] + l[0][1] * d[1],
+            p[1] + self.shift[1] + l[1][0] * d[0] + l[1][1] * d[1],
+        ]
+    }
+
+    /// The reference's point that [`Self::forth`] takes to `q`.
+    #[inline]
+    pub fn back(&self, q: [f64; 2]) -> [f64; 2] {
+        let l = &self.linear;
+        let m = [[1.0 + l[0][0], l[0][1]], [l[1][0], 1.0 + l[1][1]]];
+        let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+        let e = [
+            q[0] - self.centre[0] - self.shift[0],
+            q[1] - self.centre[1] - self.shift[1],
+        ];
+        [
+            self.centre[0] + (m[1][1] * e[0] - m[0][1] * e[1]) / det,
+            self.centre[1] + (m[0][0] * e[1] - m[1][0] * e[0]) / det,
+        ]
+    }
+
+    /// The largest move over `bounds` (at one of its corners, the move being affine), in the
+    /// reference plane's units.
+    pub fn largest_move(&self, bounds: &Aabb) -> f64 {
+        [
+            bounds.min,
+            [bounds.max[0], bounds.min[1]],
+            [bounds.min[0], bounds.max[1]],
+            bounds.max,
+        ]
+        .iter()
+        .map(|&p| {
+            let q = self.forth(p);
+            (q[0] - p[0]).hypot(q[1] - p[1])
+        })
+        .fold(0.0, f64::max)
+    }
+
+    /// The rotation of the linear part, degrees anticlockwise, and its scale (the root of its
+    /// determinant): what a listing reports of it.
+    pub fn rotation_and_scale(&self) -> (f64, f64) {
+        let l = &self.linear;
+        let m = [[1.0 + l[0][0], l[0][1]], [l[1][0], 1.0 + l[1][1]]];
+        let angle = (m[1][0] - m[0][1]).atan2(m[0][0] + m[1][1]).to_degrees();
+        let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+        (angle, det.abs().sqrt())
+    }
+}
+
 /// How one survey lies against another.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Coregistration {
     /// `other(p + shift) ≈ reference(p) + dz`: where the other's content lies relative to the
-    /// reference's, in the reference plane's units.
+    /// reference's at the overlap's centre, in the reference plane's units.
     pub shift: [f64; 2],
-    /// The other's heights less the reference's, in metres.
+    /// The other's heights less the reference's at the overlap's centre, in metres.
     pub dz: f64,
+    /// The overlap's centre, in the reference's plane: what `linear` turns about and `tilt`
+    /// is measured from.
+    pub centre: [f64; 2],
+    /// Half the overlap's width and height, in the reference plane's units: how far from the
+    /// centre the placement reaches.
+    pub half_extent: [f64; 2],
+    /// The placement's linear part beyond the identity (see [`Placement`]): zero unless a
+    /// rotation, stretch or shear fits the overlap markedly better than a shift alone.
+    pub linear: [[f64; 2]; 2],
+    /// The vertical difference's slope, metres per unit of the reference's plane, east and
+    /// north: `other ≈ reference + dz + tilt · (p − centre)`. Zero with the shift alone.
+    pub tilt: [f64; 2],
     /// RMS of the differences as the surveys lie, in metres.
     pub rms_before: f64,
-    /// RMS once shifted and offset.
+    /// RMS once placed and offset.
     pub rms_after: f64,
-    /// The normalised median absolute deviation of the differences once shifted: the spread
+    /// The normalised median absolute deviation of the differences once placed: the spread
     /// that outliers do not inflate.
     pub nmad_after: f64,
-    /// How many reference samples the figures once shifted and offset are over.
+    /// How many reference samples the figures once placed and offset are over.
     pub samples: u64,
     /// Whether the shift is determined: enough samples, relief in every direction (the
     /// shift's standard error along the flattest direction under [`MOST_SHIFT_ERROR`]
-    /// cells), and an overlap at least [`LEAST_WIDTH`] coarse cells wide. A thin, low-relief strip of coast is not: any shift fits it about as well, and
-    /// the one found blames nobody.
+    /// cells), and an overlap at least [`LEAST_WIDTH`] coarse cells wide. A thin, low-relief
+    /// strip of coast is not: any shift fits it about as well, and the one found blames
+    /// nobody.
     pub conditioned: bool,
 }
+
+impl Coregistration {
+    /// Where the other's content lies.
+    pub fn placement(&self) -> Placement {
+        Placement {
+            centre: self.centre,
+            shift: self.shift,
+            linear: self.linear,
+        }
+    }
+
+    /// The largest move the placement makes over the overlap.
+    pub fn largest_move(&self) -> f64 {
+        let [c, e] = [self.centre, self.half_extent];
+        self.placement().largest_move(&Aabb::new(
+            c[0] - e[0],
+            c[1] - e[1],
+            c[0] + e[0],
+            c[1] + e[1],
+        ))
+    }
+
+    /// The other's height less the reference's at the reference's point `p`, once placed.
+    pub fn dz_at(&self, p: [f64; 2]) -> f64 {
+        self.dz + self.tilt[0] * (p[0] - self.centre[0]) + self.tilt[1] * (p[1] - self.centre[1])
+    }
+
+    /// The same figures with the surveys read as they lie (no placement, no tilt): what the
+    /// tests of detail read where the placement is not determined.
+    pub fn as_they_lie(&self) -> Coregistration {
+        Coregistration {
+            shift: [0.0, 0.0],
+            linear: [[0.0; 2]; 2],
+            tilt: [0.0, 0.0],
+            ..*self
+        }
+    }
+}
+
+/// How much a rotation, stretch or shear (with a vertical tilt) must lower the spread of the
+/// differences left by the best shift for it to be kept: by a tenth. Six more parameters fit
+/// noise a little better whatever the truth; a copy turned by half a degree, or stretched by
+/// half a percent, leaves a spread 2–10 times that of its shift's fit.
+pub const AFFINE_GAIN: f64 = 0.9;
 
 /// The fewest samples that determine a shift.
 pub const LEAST_SAMPLES: u64 = 1000;
@@ -287,15 +424,155 @@ pub fn coregister_by(
     let conditioned = after.len() as u64 >= LEAST_SAMPLES
         && w.min(h) >= LEAST_WIDTH * step
         && error_cells <= MOST_SHIFT_ERROR;
-    Some(Coregistration {
+    let centre = [
+        0.5 * (bounds.min[0] + bounds.max[0]),
+        0.5 * (bounds.min[1] + bounds.max[1]),
+    ];
+    let shifted = Coregistration {
         shift: s,
         dz,
+        centre,
+        half_extent: [0.5 * w, 0.5 * h],
+        linear: [[0.0; 2]; 2],
+        tilt: [0.0, 0.0],
         rms_before,
         rms_after: rms(&after, dz),
         nmad_after,
         samples: after.len() as u64,
         conditioned,
+    };
+    if method == Method::Search {
+        return Some(shifted);
+    }
+    // A rotation, stretch or shear, and a tilt, fitted from the shift's answer; kept only
+    // where it explains the differences markedly better.
+    let radius = 0.5 * w.max(h);
+    let placed = fit_affine(&pts, &at, step, radius, &shifted)?;
+    let left: Vec<f64> = pts
+        .par_iter()
+        .filter_map(|&(p, z)| {
+            let q = placed.placement().forth(p);
+            Some(at(q, [0.0, 0.0])? - z - (placed.dz_at(p) - placed.dz))
+        })
+        .collect();
+    if (left.len() as u64) < LEAST_SAMPLES.min(after.len() as u64) {
+        return Some(shifted);
+    }
+    let (m, nmad) = robust(&left);
+    if nmad >= AFFINE_GAIN * nmad_after {
+        return Some(shifted);
+    }
+    Some(Coregistration {
+        dz: m,
+        rms_after: rms(&left, m),
+        nmad_after: nmad,
+        samples: left.len() as u64,
+        ..placed
     })
+}
+
+/// Nuth and Kääb's fit widened to an affine placement and a plane: the difference at the
+/// reference's point p, with d = p − centre, moves by ∇h · (shift + L·d) − (dz + k·d) for a
+/// change of the shift, the linear part L, the offset and the tilt k, nine unknowns solved
+/// by least squares over the same samples, iterated from `start` (the shift's answer), with
+/// differences beyond three NMADs left out. `radius` scales d to about one, so that the
+/// normal equations stay balanced. None where the fit does not settle.
+fn fit_affine(
+    pts: &[([f64; 2], f64)],
+    at: &(dyn Fn([f64; 2], [f64; 2]) -> Option<f64> + Sync),
+    step: f64,
+    radius: f64,
+    start: &Coregistration,
+) -> Option<Coregistration> {
+    let mut k = *start;
+    let h = step * 0.5;
+    for _ in 0..30 {
+        let place = k.placement();
+        let rows: Vec<([f64; 9], f64)> = pts
+            .par_iter()
+            .filter_map(|&(p, z)| {
+                let q = place.forth(p);
+                let here = at(q, [0.0, 0.0])?;
+                let gx = (at(q, [h, 0.0])? - at(q, [-h, 0.0])?) / (2.0 * h);
+                let gy = (at(q, [0.0, h])? - at(q, [0.0, -h])?) / (2.0 * h);
+                let (u, v) = ((p[0] - k.centre[0]) / radius, (p[1] - k.centre[1]) / radius);
+                Some((
+                    [gx, gy, gx * u, gx * v, gy * u, gy * v, -1.0, -u, -v],
+                    here - z - k.dz_at(p),
+                ))
+            })
+            .collect();
+        if rows.len() < 64 {
+            return None;
+        }
+        let r: Vec<f64> = rows.iter().map(|x| x.1).collect();
+        let (m, nmad) = robust(&r);
+        let keep = 3.0 * nmad.max(1e-6);
+        let mut n = [[0.0f64; 9]; 9];
+        let mut b = [0.0f64; 9];
+        for (g, d) in rows.iter().filter(|x| (x.1 - m).abs() <= keep) {
+            for i in 0..9 {
+                for j in 0..9 {
+                    n[i][j] += g[i] * g[j];
+                }
+                b[i] -= g[i] * d;
+            }
+        }
+        let x = solve(n, b)?;
+        k.shift = [k.shift[0] + x[0], k.shift[1] + x[1]];
+        k.linear[0][0] += x[2] / radius;
+        k.linear[0][1] += x[3] / radius;
+        k.linear[1][0] += x[4] / radius;
+        k.linear[1][1] += x[5] / radius;
+        k.dz += x[6];
+        k.tilt = [k.tilt[0] + x[7] / radius, k.tilt[1] + x[8] / radius];
+        // Settled when nothing moves any point by a thousandth of a cell, or its height by
+        // a millimetre.
+        let moved = x[..6].iter().map(|v| v.abs()).fold(0.0, f64::max);
+        let lifted = x[6..].iter().map(|v| v.abs()).fold(0.0, f64::max);
+        if moved < 1e-3 * step && lifted < 1e-3 {
+            break;
+        }
+        // A placement that moves the overlap's corners past the search's reach has lost the
+        // basin, and one that folds the plane (a determinant near zero) is no copy's.
+        let l = &k.linear;
+        let det = (1.0 + l[0][0]) * (1.0 + l[1][1]) - l[0][1] * l[1][0];
+        let far = (k.shift[0].abs() + k.shift[1].abs())
+            + radius * l.iter().flatten().map(|v| v.abs()).sum::<f64>();
+        if !(det > 0.5 && far <= 2.0 * (SEARCH_CELLS + 2) as f64 * step) {
+            return None;
+        }
+    }
+    Some(k)
+}
+
+/// The n × n system `m x = b` by Gaussian elimination with partial pivoting; None when
+/// singular (or NaN).
+fn solve<const N: usize>(mut m: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
+    let scale = m.iter().flatten().fold(0.0f64, |a, v| a.max(v.abs()));
+    for col in 0..N {
+        let pivot = (col..N).max_by(|&i, &j| m[i][col].abs().total_cmp(&m[j][col].abs()))?;
+        if m[pivot][col].abs().partial_cmp(&(1e-12 * scale)) != Some(std::cmp::Ordering::Greater) {
+            return None;
+        }
+        m.swap(col, pivot);
+        b.swap(col, pivot);
+        let (top, below) = m.split_at_mut(col + 1);
+        let pivot_row = &top[col];
+        for (i, row) in below.iter_mut().enumerate() {
+            let f = row[col] / pivot_row[col];
+            for (x, p) in row[col..].iter_mut().zip(&pivot_row[col..]) {
+                *x -= f * p;
+            }
+            b[col + 1 + i] -= f * b[col];
+        }
+    }
+    let mut x = [0.0; N];
+    for row in (0..N).rev() {
+        let s: f64 = (row + 1..N).map(|k| m[row][k] * x[k]).sum();
+        x[row] = (b[row] - s) / m[row][row];
+    }
+    Some(x)
 }
 
 /// The 3 × 3 system `n x = b` by Cramer's rule; None when singular.
@@ -477,20 +754,29 @@ fn windows_over(g: &Grid, bounds: &Aabb) -> Vec<Grid> {
     out
 }
 
-/// Residuals of one prediction, one list per width of [`SIGMAS`].
-type Residuals = Vec<Vec<f64>>;
+/// Residuals of one prediction, per width of [`SIGMAS`]: read bilinearly, then by a cubic.
+type Residuals = Vec<[Vec<f64>; 2]>;
 
 /// The residuals of `target`'s samples predicted by low-passes of `source`, one list per
 /// width of [`SIGMAS`], each sample carried into the source's plane by `to_source` (the
-/// coregistration already applied), with `dz` added to the prediction.
-fn residuals(source: &Grid, target: &Grid, to_source: Carry, dz: f64) -> Residuals {
+/// coregistration already applied), with `dz(p, q)` added to the prediction of the target's
+/// point p carried to q.
+fn residuals(
+    source: &Grid,
+    target: &Grid,
+    to_source: Carry,
+    dz: &dyn Fn([f64; 2], [f64; 2]) -> f64,
+) -> Residuals {
     let pts: Vec<([f64; 2], f64)> = (0..target.rows)
         .flat_map(|r| (0..target.cols).map(move |c| (c, r)))
         .filter_map(|(c, r)| {
             let z = target.at(c, r);
             (!z.is_nan()).then(|| (target.georef.to_world(c as f64, r as f64), z as f64))
         })
-        .filter_map(|(p, z)| Some((to_source(p)?, z)))
+        .filter_map(|(p, z)| {
+            let q = to_source(p)?;
+            Some((q, z - dz(p, q)))
+        })
         .collect();
     SIGMAS
         .iter()
@@ -498,24 +784,42 @@ fn residuals(source: &Grid, target: &Grid, to_source: Carry, dz: f64) -> Residua
             let b = blurred(source, sigma);
             // Only points whose filtered value is whole: 3σ inside the source's samples.
             let margin = 3.0 * sigma + 1.0;
-            pts.iter()
-                .filter_map(|&(q, z)| {
-                    let g = b.georef.to_grid(q);
-                    let inside = g[0] >= margin
-                        && g[1] >= margin
-                        && g[0] <= (b.cols - 1) as f64 - margin
-                        && g[1] <= (b.rows - 1) as f64 - margin;
-                    inside.then(|| Some(b.bilinear_grid(g)? + dz - z)).flatten()
-                })
-                .collect()
+            // Read bilinearly and by a cubic: a copy resampled by a cubic is predicted from
+            // its original by a cubic reading to the float's rounding, and the bilinear
+            // reading's own smoothing would otherwise hide that (a copy stretched by 1.6% with
+            // a cubic was predicted no better than its original, 1.1 m against 0.7).
+            let read = |g: [f64; 2], cubic: bool| {
+                if cubic {
+                    b.cubic_grid(g)
+                } else {
+                    b.bilinear_grid(g)
+                }
+            };
+            [false, true].map(|cubic| {
+                pts.iter()
+                    .filter_map(|&(q, z)| {
+                        let g = b.georef.to_grid(q);
+                        let inside = g[0] >= margin
+                            && g[1] >= margin
+                            && g[0] <= (b.cols - 1) as f64 - margin
+                            && g[1] <= (b.rows - 1) as f64 - margin;
+                        inside.then(|| Some(read(g, cubic)? - z)).flatten()
+                    })
+                    .collect()
+            })
         })
         .collect()
 }
 
-/// The best prediction over [`SIGMAS`] from residuals gathered over several windows.
-fn best_prediction(per_sigma: &[Vec<f64>]) -> Option<Prediction> {
+/// The best prediction over [`SIGMAS`] and both readings, from residuals gathered over
+/// several windows.
+fn best_prediction(per_sigma: &[[Vec<f64>; 2]]) -> Option<Prediction> {
     let mut best: Option<Prediction> = None;
-    for (d, &sigma) in per_sigma.iter().zip(SIGMAS.iter()) {
+    for (d, &sigma) in per_sigma
+        .iter()
+        .zip(SIGMAS.iter())
+        .flat_map(|(two, s)| two.iter().map(move |d| (d, s)))
+    {
         if d.len() < 32 {
             continue;
         }
@@ -539,9 +843,9 @@ pub fn degradation(
     c: &Coregistration,
     bounds: &Aabb,
 ) -> Option<Degradation> {
-    let s = c.shift;
-    let back = |q: [f64; 2]| to_reference(q).map(|p| [p[0] - s[0], p[1] - s[1]]);
-    let forth = |p: [f64; 2]| to_other([p[0] + s[0], p[1] + s[1]]);
+    let place = c.placement();
+    let back = |q: [f64; 2]| to_reference(q).map(|p| place.back(p));
+    let forth = |p: [f64; 2]| to_other(place.forth(p));
     // Room for the widest filter around each window.
     let reach = (3.0 * SIGMAS[SIGMAS.len() - 1] + 2.0)
         * reference.georef.step[0].max(reference.georef.step[1]);
@@ -582,16 +886,19 @@ pub fn degradation(
             let rb = other.shape().rect_over(&Aabb::of_points(&inner))?;
             let b_inner = other.window(rb.c0, rb.r0, rb.cols(), rb.rows());
             Some((
-                residuals(&wide, &b_inner, &back, c.dz),
-                residuals(&b, a, &forth, -c.dz),
+                // The offset where the reference's point is: the carried point in the first
+                // prediction, the target's own in the second.
+                residuals(&wide, &b_inner, &back, &|_, q| c.dz_at(q)),
+                residuals(&b, a, &forth, &|p, _| -c.dz_at(p)),
             ))
         })
         .collect();
     let pool = |pick: fn(&(Residuals, Residuals)) -> &Residuals| {
-        let mut all = vec![Vec::new(); SIGMAS.len()];
+        let mut all = vec![[Vec::new(), Vec::new()]; SIGMAS.len()];
         for w in &per_window {
             for (into, from) in all.iter_mut().zip(pick(w)) {
-                into.extend_from_slice(from);
+                into[0].extend_from_slice(&from[0]);
+                into[1].extend_from_slice(&from[1]);
             }
         }
         all

@@ -23,7 +23,7 @@
 //! 256² samples of the finer, once it is low-passed), so one patch of cloud or sea does not
 //! decide it.
 
-use super::coreg::{blurred, Carry};
+use super::coreg::{blurred, Carry, Placement};
 use super::grid::{Georef, Grid};
 use patchwork_geom::Aabb;
 use rayon::prelude::*;
@@ -277,14 +277,14 @@ struct Sums {
 
 /// The bands of `reference` (the finer survey's window over the overlap) and `other` (the
 /// coarser's), over `bounds` in the reference's plane, with `other`'s content found at
-/// `to_other(p + shift)` for the reference's point p. `cell` is the coarser survey's cell in
+/// `to_other(place.forth(p))` for the reference's point p. `cell` is the coarser survey's cell in
 /// the reference plane's units. None where the overlap is too small for any band.
 pub fn measure(
     reference: &Grid,
     other: &Grid,
     to_other: Carry,
     to_reference: Carry,
-    shift: [f64; 2],
+    place: &Placement,
     bounds: &Aabb,
     cell: f64,
 ) -> Option<Detail> {
@@ -347,7 +347,7 @@ pub fn measure(
             let (w, h) = (side.min(a.cols - c0), side.min(a.rows - r0));
             let wa = a.window(c0, r0, w, h);
             let ba = bands_of(&wa, &sig_a);
-            // The other's samples over the window and its filters' reach, moved by the shift.
+            // The other's samples over the window and its filters' reach, where it lies.
             let wb = wa.world_bounds();
             let reach = 3.0 * sig[sig.len() - 1] + 2.0 * cell;
             let corners: Vec<[f64; 2]> = [
@@ -357,7 +357,7 @@ pub fn measure(
                 [wb.max[0] + reach, wb.max[1] + reach],
             ]
             .iter()
-            .filter_map(|&p| to_other([p[0] + shift[0], p[1] + shift[1]]))
+            .filter_map(|&p| to_other(place.forth(p)))
             .collect();
             if corners.len() < 4 {
                 return None;
@@ -370,12 +370,12 @@ pub fn measure(
             // nodes moved by δ / 2): bilinear reading then damps both alike, and neither
             // looks smoother for being the one read between its samples.
             let centre = wa.georef.to_world(w as f64 / 2.0, h as f64 / 2.0);
-            let half = to_other([centre[0] + shift[0], centre[1] + shift[1]])
+            let half = to_other(place.forth(centre))
                 .and_then(|q| {
                     let g = gb.georef.to_grid(q);
                     let node = gb.georef.to_world(g[0].round(), g[1].round());
                     let p = to_reference(node)?;
-                    let ga = wa.georef.to_grid([p[0] - shift[0], p[1] - shift[1]]);
+                    let ga = wa.georef.to_grid(place.back(p));
                     Some([(ga[0] - ga[0].round()) / 2.0, (ga[1] - ga[1].round()) / 2.0])
                 })
                 .unwrap_or([0.0, 0.0]);
@@ -396,7 +396,7 @@ pub fn measure(
                         if !bounds.contains_point(p) {
                             continue;
                         }
-                        let Some(q) = to_other([p[0] + shift[0], p[1] + shift[1]]) else {
+                        let Some(q) = to_other(place.forth(p)) else {
                             continue;
                         };
                         let Some(zb) = bb[i].bilinear(q) else {

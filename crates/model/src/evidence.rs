@@ -314,22 +314,13 @@ pub fn compare(
     let coreg = coreg::coregister(f, c, to_coarser, bounds);
     // The tests of detail run on the surveys aligned where the alignment is determined, and
     // as they lie where it is not.
-    let aligned = coreg.map(|k| {
-        if k.conditioned {
-            k
-        } else {
-            Coregistration {
-                shift: [0.0, 0.0],
-                ..k
-            }
-        }
-    });
+    let aligned = coreg.map(|k| if k.conditioned { k } else { k.as_they_lie() });
     let degradation = aligned
         .as_ref()
         .and_then(|k| coreg::degradation(f, c, to_coarser, to_finer, k, bounds));
     let detail = aligned
         .as_ref()
-        .and_then(|k| detail::measure(f, c, to_coarser, to_finer, k.shift, bounds, cell));
+        .and_then(|k| detail::measure(f, c, to_coarser, to_finer, &k.placement(), bounds, cell));
     let departs_finer = departures(departs_f);
     let departs_coarser = departures(departs_c);
     // Each one's median claim over the kernels compared.
@@ -470,12 +461,13 @@ impl PairEvidence {
         !(self.against_finer.is_empty() && self.against_coarser.is_empty())
     }
 
-    /// Whether one survey lies shifted or offset from the other: by half the coarser cell or
-    /// more, or by more height than the spread of their differences once aligned explains.
+    /// Whether one survey lies shifted, turned, stretched or offset from the other: somewhere
+    /// in the overlap by half the coarser cell or more, or by more height than the spread of
+    /// their differences once aligned explains.
     pub fn misregistered(&self) -> bool {
         self.coreg.as_ref().is_some_and(|c| {
             c.conditioned
-                && (c.shift[0].hypot(c.shift[1]) >= 0.5 * self.cell
+                && (c.largest_move() >= 0.5 * self.cell
                     || c.dz.abs() > (3.0 * c.nmad_after).max(1.0))
         })
     }

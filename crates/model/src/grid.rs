@@ -367,6 +367,44 @@ impl Grid {
         None
     }
 
+    /// Catmull-Rom cubic height at fractional grid coordinates, through the 4 × 4 samples
+    /// around the point; None where any of them is void or outside the grid.
+    pub fn cubic_grid(&self, g: [f64; 2]) -> Option<f64> {
+        if !(g[0].is_finite() && g[1].is_finite()) {
+            return None;
+        }
+        let (c0, r0) = (g[0].floor(), g[1].floor());
+        let (fx, fy) = (g[0] - c0, g[1] - r0);
+        let (c0, r0) = (c0 as isize - 1, r0 as isize - 1);
+        if c0 < 0 || r0 < 0 || c0 + 3 >= self.cols as isize || r0 + 3 >= self.rows as isize {
+            return None;
+        }
+        let w = |t: f64| {
+            let (t2, t3) = (t * t, t * t * t);
+            [
+                0.5 * (-t3 + 2.0 * t2 - t),
+                0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+                0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+                0.5 * (t3 - t2),
+            ]
+        };
+        let (wx, wy) = (w(fx), w(fy));
+        let mut out = 0.0;
+        for (j, wj) in wy.iter().enumerate() {
+            let row = (r0 as usize + j) * self.cols + c0 as usize;
+            let mut s = 0.0;
+            for (i, wi) in wx.iter().enumerate() {
+                let z = self.samples[row + i];
+                if z.is_nan() {
+                    return None;
+                }
+                s += wi * z as f64;
+            }
+            out += wj * s;
+        }
+        Some(out)
+    }
+
     /// Bilinear height at position `f` ∈ [0, 1]² inside cell (c, r); None where a corner is void.
     #[inline]
     pub fn bilinear_in_cell(&self, c: usize, r: usize, f: [f64; 2]) -> Option<f64> {

@@ -528,13 +528,21 @@ pub struct Deviation {
     pub samples: u64,
 }
 
-/// The shift that registers one survey on another.
+/// The placement that registers one survey on another.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Coregistration {
-    /// Horizontal shift, plane units.
+    /// Horizontal shift at the overlap's centre, plane units.
     pub shift: [f64; 2],
-    /// Vertical offset, metres.
+    /// Vertical offset at the overlap's centre, metres.
     pub dz: f64,
+    /// The overlap's centre, plane units (from version 11).
+    pub centre: [f64; 2],
+    /// Half the overlap's width and height, plane units (from version 11).
+    pub half_extent: [f64; 2],
+    /// The placement's linear part beyond the identity, row-major (from version 11).
+    pub linear: [[f64; 2]; 2],
+    /// The vertical difference's slope, metres a plane unit (from version 11).
+    pub tilt: [f64; 2],
     /// RMS before, metres.
     pub rms_before: f64,
     /// RMS after, metres.
@@ -634,6 +642,10 @@ impl From<&PairEvidence> for Pair {
             coreg: p.coreg.map(|c| Coregistration {
                 shift: c.shift,
                 dz: c.dz,
+                centre: c.centre,
+                half_extent: c.half_extent,
+                linear: c.linear,
+                tilt: c.tilt,
                 rms_before: c.rms_before,
                 rms_after: c.rms_after,
                 nmad_after: c.nmad_after,
@@ -689,6 +701,10 @@ impl From<Pair> for PairEvidence {
             coreg: p.coreg.map(|c| coreg::Coregistration {
                 shift: c.shift,
                 dz: c.dz,
+                centre: c.centre,
+                half_extent: c.half_extent,
+                linear: c.linear,
+                tilt: c.tilt,
                 rms_before: c.rms_before,
                 rms_after: c.rms_after,
                 nmad_after: c.nmad_after,

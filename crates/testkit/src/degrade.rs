@@ -273,6 +273,29 @@ pub fn resampled_onto(g: &Grid, onto: &Grid, cubic: bool) -> Grid {
     Grid::new(onto.cols, onto.rows, out, onto.georef).expect("the same shape")
 }
 
+/// `g` placed by an affine map about its centre, on its own lattice: the copy's sample at
+/// grid position p is `g` read at `centre + m · (p − centre)` (a rotation, a stretch or a
+/// shear, or any mix), interpolated as a resampler does; NaN where that falls outside.
+pub fn warped(g: &Grid, m: [[f64; 2]; 2], cubic: bool) -> Grid {
+    let centre = [(g.cols - 1) as f64 / 2.0, (g.rows - 1) as f64 / 2.0];
+    let mut out = Vec::with_capacity(g.samples.len());
+    for r in 0..g.rows {
+        for c in 0..g.cols {
+            let d = [c as f64 - centre[0], r as f64 - centre[1]];
+            let x = centre[0] + m[0][0] * d[0] + m[0][1] * d[1];
+            let y = centre[1] + m[1][0] * d[0] + m[1][1] * d[1];
+            out.push(interpolate(g, x, y, cubic));
+        }
+    }
+    Grid::new(g.cols, g.rows, out, g.georef).expect("the same shape")
+}
+
+/// A rotation by `degrees` (anticlockwise in grid terms), as [`warped`] takes it.
+pub fn rotation(degrees: f64) -> [[f64; 2]; 2] {
+    let (s, c) = degrees.to_radians().sin_cos();
+    [[c, -s], [s, c]]
+}
+
 /// Every height rounded to a multiple of `q` metres.
 pub fn quantised(g: &Grid, q: f64) -> Grid {
     let mut out = g.clone();

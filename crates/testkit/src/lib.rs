@@ -7,6 +7,7 @@ pub mod copies;
 pub mod degrade;
 pub mod fixtures;
 pub mod s3;
+pub mod widened;
 
 use patchwork_core::geom::rng;
 use patchwork_core::model::grid::Grid;

@@ -24,6 +24,7 @@ mod common {
 }
 
 mod crs_props;
+mod degradations;
 mod model_props;
 mod real_terrain;
 mod surveys_meet;

@@ -8,6 +8,7 @@ use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::patch::PatchLayout;
 
 mod v0_to_v1;
+mod v10_to_v11;
 mod v1_to_v2;
 mod v2_to_v3;
 mod v3;
@@ -34,10 +35,11 @@ const STEPS: &[(u32, u32, Step)] = &[
     (7, 8, v7_to_v8::run),
     (8, 9, v8_to_v9::run),
     (9, 10, v9_to_v10::run),
+    (10, 11, v10_to_v11::run),
 ];
 
 /// The schema this binary writes.
-pub const CURRENT: u32 = 10;
+pub const CURRENT: u32 = 11;
 
 /// What a step may need beyond the tree: the settings `open` was called with, which a fresh
 /// store adopts, and the pack that chunk bytes go to.

@@ -1,0 +1,410 @@
+//! Degradations beyond [`crate::degrade`]'s family: placements beyond a shift (rotations,
+//! stretches, shears), filters in the frequency domain (brick-wall and Butterworth
+//! low-passes, whose brick wall rings), sharpening after a blur, vertical trends, periodic
+//! artefacts, voids filled with fabricated smooth ground, and aliasing. Drawn alone or
+//! chained with each other and with the old family's operations, every parameter from a seed.
+//!
+//! Some kinds are held back: never drawn while the arbitration between surveys was being
+//! developed, only in the tests that report them apart ([`Kind::held_back`]). A method
+//! judged only on the cases it was tuned to proves nothing.
+
+use crate::degrade::{self, rotation, warped};
+use patchwork_core::model::coreg::blurred as blurred_copy;
+use patchwork_core::model::grid::Grid;
+use rustfft::{num_complex::Complex, FftPlanner};
+
+/// One kind of degradation of the widened family.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    /// Turned by 0.1–2° about the grid's centre.
+    Rotation,
+    /// Stretched or shrunk by 0.2–2%, alike or apart along the axes.
+    Stretch,
+    /// Sheared by 0.2–1.5%. Held back.
+    Shear,
+    /// A Butterworth low-pass in the frequency domain, cut at 0.15–0.6 of the Nyquist
+    /// frequency, of order 2–8.
+    SpectralLowPass,
+    /// A brick-wall low-pass in the frequency domain, which rings beside every cliff. Held
+    /// back.
+    Ringing,
+    /// A Gaussian blur, then an unsharp mask that raises what is left of the fine relief.
+    SharpenedBlur,
+    /// A plane or a bowl added: metres over the grid.
+    Trend,
+    /// Stripes: a sinusoid along the rows or the columns, 0.5–5 m, 3–40 cells a period.
+    Stripes,
+    /// One to four discs of ground replaced by a smooth fabricated surface (a plane through
+    /// each disc's rim, as a void filler makes).
+    FabricatedFill,
+    /// Every 2nd–4th sample kept with no low-pass first, brought back by the nearest.
+    Aliasing,
+    /// Stripes at an angle to both axes, a sensor's pattern rather than a scan line's. Held
+    /// back.
+    SlantedStripes,
+}
+
+impl Kind {
+    /// Every kind.
+    pub const ALL: [Kind; 11] = [
+        Kind::Rotation,
+        Kind::Stretch,
+        Kind::Shear,
+        Kind::SpectralLowPass,
+        Kind::Ringing,
+        Kind::SharpenedBlur,
+        Kind::Trend,
+        Kind::Stripes,
+        Kind::FabricatedFill,
+        Kind::Aliasing,
+        Kind::SlantedStripes,
+    ];
+
+    /// Whether this kind was kept out of the development of the arbitration: the tests
+    /// report these apart.
+    pub fn held_back(self) -> bool {
+        matches!(self, Kind::Shear | Kind::Ringing | Kind::SlantedStripes)
+    }
+
+    /// A short name, for reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Kind::Rotation => "rotation",
+            Kind::Stretch => "stretch",
+            Kind::Shear => "shear",
+            Kind::SpectralLowPass => "spectral low-pass",
+            Kind::Ringing => "brick-wall low-pass",
+            Kind::SharpenedBlur => "sharpened blur",
+            Kind::Trend => "trend",
+            Kind::Stripes => "stripes",
+            Kind::FabricatedFill => "fabricated fill",
+            Kind::Aliasing => "aliasing",
+            Kind::SlantedStripes => "slanted stripes",
+        }
+    }
+}
+
+fn between(next: &mut impl FnMut() -> f64, lo: f64, hi: f64) -> f64 {
+    lo + (hi - lo) * next()
+}
+
+fn sign(next: &mut impl FnMut() -> f64) -> f64 {
+    if next() < 0.5 {
+        -1.0
+    } else {
+        1.0
+    }
+}
+
+/// One degradation of `kind`, its parameters drawn from `next`: a label and the copy.
+pub fn apply(kind: Kind, g: &Grid, next: &mut impl FnMut() -> f64) -> (String, Grid) {
+    let cubic = next() < 0.5;
+    let how = if cubic { "cubic" } else { "bilinear" };
+    match kind {
+        Kind::Rotation => {
+            let a = between(next, 0.1, 2.0) * sign(next);
+            (
+                format!("rotated {a:.2}° ({how})"),
+                warped(g, rotation(a), cubic),
+            )
+        }
+        Kind::Stretch => {
+            let sx = 1.0 + between(next, 0.002, 0.02) * sign(next);
+            let sy = if next() < 0.5 {
+                sx
+            } else {
+                1.0 + between(next, 0.002, 0.02) * sign(next)
+            };
+            (
+                format!("stretched {sx:.4} × {sy:.4} ({how})"),
+                warped(g, [[sx, 0.0], [0.0, sy]], cubic),
+            )
+        }
+        Kind::Shear => {
+            let k = between(next, 0.002, 0.015) * sign(next);
+            let m = if next() < 0.5 {
+                [[1.0, k], [0.0, 1.0]]
+            } else {
+                [[1.0, 0.0], [k, 1.0]]
+            };
+            (format!("sheared {k:.4} ({how})"), warped(g, m, cubic))
+        }
+        Kind::SpectralLowPass => {
+            let cut = between(next, 0.15, 0.6);
+            let order = 2 + (next() * 7.0) as i32;
+            (
+                format!("Butterworth low-pass at {cut:.2} of Nyquist, order {order}"),
+                spectral(g, |f| 1.0 / (1.0 + (f / cut).powi(2 * order)).sqrt()),
+            )
+        }
+        Kind::Ringing => {
+            let cut = between(next, 0.2, 0.7);
+            (
+                format!("brick-wall low-pass at {cut:.2} of Nyquist"),
+                spectral(g, |f| if f <= cut { 1.0 } else { 0.0 }),
+            )
+        }
+        Kind::SharpenedBlur => {
+            let s = between(next, 0.7, 2.5);
+            let amount = between(next, 0.5, 2.0);
+            let b = blurred_copy(g, s);
+            let bb = blurred_copy(&b, s);
+            let mut out = b.clone();
+            for ((z, &zb), &zbb) in out.samples.iter_mut().zip(&b.samples).zip(&bb.samples) {
+                *z = if zbb.is_nan() {
+                    zb
+                } else {
+                    zb + (amount * (zb as f64 - zbb as f64)) as f32
+                };
+            }
+            (
+                format!("gaussian σ {s:.2}, then sharpened ×{amount:.2}"),
+                out,
+            )
+        }
+        Kind::Trend => {
+            let a = between(next, 0.5, 10.0) * sign(next);
+            let angle = between(next, 0.0, std::f64::consts::TAU);
+            let bowl = next() < 0.4;
+            let (w, h) = (g.cols as f64, g.rows as f64);
+            let mut out = g.clone();
+            for r in 0..g.rows {
+                for c in 0..g.cols {
+                    let (u, v) = (c as f64 / w - 0.5, r as f64 / h - 0.5);
+                    let t = if bowl {
+                        a * 4.0 * (u * u + v * v)
+                    } else {
+                        a * (u * angle.cos() + v * angle.sin())
+                    };
+                    out.samples[r * g.cols + c] += t as f32;
+                }
+            }
+            let what = if bowl { "bowl" } else { "plane" };
+            (format!("{what} of {a:.1} m"), out)
+        }
+        Kind::Stripes | Kind::SlantedStripes => {
+            let amp = between(next, 0.5, 5.0);
+            let period = between(next, 3.0, 40.0);
+            let angle = if kind == Kind::Stripes {
+                if next() < 0.5 {
+                    0.0
+                } else {
+                    90.0
+                }
+            } else {
+                between(next, 15.0, 75.0)
+            };
+            let (s, c) = angle.to_radians().sin_cos();
+            let mut out = g.clone();
+            for r in 0..g.rows {
+                for col in 0..g.cols {
+                    let t = (col as f64 * c + r as f64 * s) / period;
+                    out.samples[r * g.cols + col] +=
+                        (amp * (std::f64::consts::TAU * t).sin()) as f32;
+                }
+            }
+            (
+                format!("stripes of {amp:.1} m every {period:.1} cells at {angle:.0}°"),
+                out,
+            )
+        }
+        Kind::FabricatedFill => {
+            let n = 1 + (next() * 4.0) as usize;
+            let mut out = g.clone();
+            let mut radii = Vec::new();
+            for _ in 0..n {
+                let rad = between(next, 8.0, 0.15 * g.cols.min(g.rows) as f64).max(4.0);
+                let cx = between(next, rad, g.cols as f64 - rad);
+                let cy = between(next, rad, g.rows as f64 - rad);
+                fill_disc(&mut out, [cx, cy], rad);
+                radii.push(format!("{rad:.0}"));
+            }
+            (
+                format!("{n} discs (radii {}) filled smooth", radii.join(", ")),
+                out,
+            )
+        }
+        Kind::Aliasing => {
+            let k = 2 + (next() * 3.0) as usize;
+            let mut out = g.clone();
+            for r in 0..g.rows {
+                for c in 0..g.cols {
+                    let (rr, cc) = ((r + k / 2) / k * k, (c + k / 2) / k * k);
+                    out.samples[r * g.cols + c] = g.at(cc.min(g.cols - 1), rr.min(g.rows - 1));
+                }
+            }
+            (format!("every {k}th sample, nearest back up"), out)
+        }
+    }
+}
+
+/// Draws a copy of `g` from the widened family, from the kinds `pick` allows: one to `most`
+/// operations, each a widened kind, or where `old_family`, one in four after the first, an
+/// operation of [`degrade`]'s family. Returns the label, the copy and the kinds drawn.
+pub fn draw(
+    g: &Grid,
+    next: &mut impl FnMut() -> f64,
+    pick: impl Fn(Kind) -> bool,
+    most: usize,
+    old_family: bool,
+) -> (String, Grid, Vec<Kind>) {
+    let kinds: Vec<Kind> = Kind::ALL.into_iter().filter(|&k| pick(k)).collect();
+    assert!(!kinds.is_empty(), "no kind to draw from");
+    let mut out = g.clone();
+    let mut labels = Vec::new();
+    let mut drawn = Vec::new();
+    for i in 0..1 + (next() * most as f64) as usize {
+        if old_family && i > 0 && next() < 0.25 {
+            let d = degrade::draw(&out, next);
+            labels.push(d.label);
+            out = d.grid;
+            continue;
+        }
+        let k = kinds[(next() * kinds.len() as f64) as usize];
+        let (l, grid) = apply(k, &out, next);
+        labels.push(l);
+        drawn.push(k);
+        out = grid;
+    }
+    (labels.join(" + "), out, drawn)
+}
+
+/// `g` filtered in the frequency domain by `gain` of the frequency (radial, as a fraction of
+/// the Nyquist frequency, 0 to √2): its voids are filled with the mean for the transform and
+/// stay voids.
+pub fn spectral(g: &Grid, gain: impl Fn(f64) -> f64) -> Grid {
+    let (w, h) = (g.cols, g.rows);
+    let valid: Vec<f64> = g
+        .samples
+        .iter()
+        .filter(|z| !z.is_nan())
+        .map(|&z| z as f64)
+        .collect();
+    let mean = valid.iter().sum::<f64>() / valid.len().max(1) as f64;
+    let mut data: Vec<Complex<f64>> = g
+        .samples
+        .iter()
+        .map(|&z| Complex::new(if z.is_nan() { 0.0 } else { z as f64 - mean }, 0.0))
+        .collect();
+    let mut planner = FftPlanner::new();
+    let (row_f, col_f) = (planner.plan_fft_forward(w), planner.plan_fft_forward(h));
+    let (row_i, col_i) = (planner.plan_fft_inverse(w), planner.plan_fft_inverse(h));
+    let columns = |data: &mut Vec<Complex<f64>>, fft: &dyn rustfft::Fft<f64>| {
+        let mut col = vec![Complex::new(0.0, 0.0); h];
+        for c in 0..w {
+            for r in 0..h {
+                col[r] = data[r * w + c];
+            }
+            fft.process(&mut col);
+            for r in 0..h {
+                data[r * w + c] = col[r];
+            }
+        }
+    };
+    for row in data.chunks_mut(w) {
+        row_f.process(row);
+    }
+    columns(&mut data, col_f.as_ref());
+    let freq = |k: usize, n: usize| {
+        let k = if k <= n / 2 {
+            k as f64
+        } else {
+            k as f64 - n as f64
+        };
+        2.0 * k / n as f64
+    };
+    for r in 0..h {
+        for c in 0..w {
+            let f = freq(c, w).hypot(freq(r, h));
+            data[r * w + c] *= gain(f);
+        }
+    }
+    columns(&mut data, col_i.as_ref());
+    for row in data.chunks_mut(w) {
+        row_i.process(row);
+    }
+    let n = (w * h) as f64;
+    let samples = g
+        .samples
+        .iter()
+        .zip(&data)
+        .map(|(&z, v)| {
+            if z.is_nan() {
+                f32::NAN
+            } else {
+                (v.re / n + mean) as f32
+            }
+        })
+        .collect();
+    Grid::new(w, h, samples, g.georef).expect("the same shape")
+}
+
+/// The disc of radius `rad` (cells) about `centre` replaced by the plane that fits its rim
+/// (the samples within a cell outside it), as a void filler's interpolation makes.
+fn fill_disc(g: &mut Grid, centre: [f64; 2], rad: f64) {
+    let mut rim = Vec::new();
+    let (c0, c1) = (
+        (centre[0] - rad - 2.0).max(0.0) as usize,
+        ((centre[0] + rad + 2.0) as usize).min(g.cols - 1),
+    );
+    let (r0, r1) = (
+        (centre[1] - rad - 2.0).max(0.0) as usize,
+        ((centre[1] + rad + 2.0) as usize).min(g.rows - 1),
+    );
+    for r in r0..=r1 {
+        for c in c0..=c1 {
+            let d = (c as f64 - centre[0]).hypot(r as f64 - centre[1]);
+            let z = g.at(c, r);
+            if d > rad && d <= rad + 1.5 && !z.is_nan() {
+                rim.push([c as f64, r as f64, z as f64]);
+            }
+        }
+    }
+    if rim.len() < 3 {
+        return;
+    }
+    // The least-squares plane z = a + b·x + c·y through the rim.
+    let mut n = [[0.0f64; 3]; 3];
+    let mut v = [0.0f64; 3];
+    for p in &rim {
+        let row = [1.0, p[0] - centre[0], p[1] - centre[1]];
+        for i in 0..3 {
+            for j in 0..3 {
+                n[i][j] += row[i] * row[j];
+            }
+            v[i] += row[i] * p[2];
+        }
+    }
+    let Some(x) = solve3(n, v) else {
+        return;
+    };
+    for r in r0..=r1 {
+        for c in c0..=c1 {
+            let (dx, dy) = (c as f64 - centre[0], r as f64 - centre[1]);
+            if dx.hypot(dy) <= rad && !g.at(c, r).is_nan() {
+                g.samples[r * g.cols + c] = (x[0] + x[1] * dx + x[2] * dy) as f32;
+            }
+        }
+    }
+}
+
+fn solve3(n: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det(&n);
+    if d.abs() < 1e-12 {
+        return None;
+    }
+    let mut x = [0.0; 3];
+    for (k, xk) in x.iter_mut().enumerate() {
+        let mut m = n;
+        for i in 0..3 {
+            m[i][k] = b[i];
+        }
+        *xk = det(&m) / d;
+    }
+    Some(x)
+}
