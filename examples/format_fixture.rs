@@ -10,6 +10,7 @@
 //! estimated (its kernels' accuracies), a file that is not a DEM (a failure), and a survey
 //! retired by hand while its file stays in the inbox (its content id, pinned). From version
 //! 9 the Copernicus crop has a sidecar saying where it came from (its record's `about`).
+//! From version 11 each pair carries the regions where the ground changed between its surveys.
 
 use patchwork::config::Config;
 use patchwork::engine::{Engine, Origin};

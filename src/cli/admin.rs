@@ -449,8 +449,24 @@ fn conflict_line(c: &pb::Conflict) -> String {
         ),
         None => String::new(),
     };
+    let changes: String = c
+        .changes
+        .iter()
+        .map(|r| {
+            let who = match r.later.as_str() {
+                "this" => "this survey saw it last and serves it",
+                "other" => "the other saw it last and serves it",
+                _ => "undated, so neither takes precedence",
+            };
+            format!(
+                "\n      changed ground: {:.0} m², {:.0} m³ gained and {:.0} m³ lost, up to \
+                 {:.1} m; {who}",
+                r.area_m2, r.gained_m3, r.lost_m3, r.most_m
+            )
+        })
+        .collect();
     format!(
-        "conflicts with {}: up to {:.2} m apart, {:.2} m RMS{shift}; {whose}",
+        "conflicts with {}: up to {:.2} m apart, {:.2} m RMS{shift}; {whose}{changes}",
         c.survey, c.max_m, c.rms_m
     )
 }

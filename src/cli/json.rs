@@ -97,6 +97,22 @@ pub struct ConflictJson<'a> {
     shift_determined: bool,
     /// Undetermined: whether this survey takes the tie.
     takes_tie: bool,
+    /// Where the ground changed between the two.
+    changes: Vec<ChangeJson<'a>>,
+}
+
+/// A region where the ground changed, as `surveys --json` gives it.
+#[derive(Serialize)]
+pub struct ChangeJson<'a> {
+    /// Which saw the ground last and serves there: "this", "other" or "undated".
+    later: &'a str,
+    area_m2: f64,
+    /// From the earlier survey to the later (this one to the other where undated).
+    gained_m3: f64,
+    lost_m3: f64,
+    most_m: f64,
+    /// In the finer survey's CRS: least x, least y, greatest x, greatest y.
+    bounds: &'a [f64],
 }
 
 /// Whose claim a conflict distrusts; either, for a value this client does not know.
@@ -150,6 +166,18 @@ impl<'a> SurveyJson<'a> {
                     confidence: c.confidence,
                     shift_determined: c.shift_determined,
                     takes_tie: c.takes_tie,
+                    changes: c
+                        .changes
+                        .iter()
+                        .map(|r| ChangeJson {
+                            later: &r.later,
+                            area_m2: r.area_m2,
+                            gained_m3: r.gained_m3,
+                            lost_m3: r.lost_m3,
+                            most_m: r.most_m,
+                            bounds: &r.bounds,
+                        })
+                        .collect(),
                 })
                 .collect(),
         }

@@ -5,6 +5,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod change;
 mod crs;
 mod docs;
 mod evidence;

@@ -184,10 +184,11 @@ fn every_height_names_the_survey_that_served_it_and_what_its_sidecar_says() {
     assert_eq!(shares.len(), 2, "{shares:?}");
     assert!(shares.windows(2).all(|w| w[0].samples >= w[1].samples));
 
-    // A sidecar edited afterwards: the samples are the same survey, what it says is new.
+    // A sidecar edited afterwards: the samples are the same survey, what it says is new. Its
+    // epoch stays (a new one is a new survey: tests/engine/change.rs).
     std::fs::write(
         tmp.path().join("cop.tif.toml"),
-        "accuracy_m = 3.0\ntitle = \"GLO-30, tile N34 W119\"\n",
+        "accuracy_m = 3.0\ntitle = \"GLO-30, tile N34 W119\"\nacquired = \"2011-01/2015-01\"\n",
     )
     .unwrap();
     let done = e.ingest(&cop, None, Origin::Request).unwrap();

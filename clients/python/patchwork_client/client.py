@@ -166,6 +166,25 @@ class Conflict:
     shift_determined: bool = False
     #: Undetermined: whether this survey takes the tie, never displaced by the other.
     takes_tie: bool = False
+    #: Where the ground changed between the two.
+    changes: Tuple["ChangeRegion", ...] = ()
+
+
+@dataclass(frozen=True)
+class ChangeRegion:
+    """A region where the ground changed between two surveys."""
+    #: Which saw the ground last and serves there: "this", "other" or "undated" (an epoch
+    #: unknown, or the two overlapping: neither takes precedence).
+    later: str
+    area_m2: float
+    #: The volume gained and lost from the earlier survey to the later (from this survey to
+    #: the other where undated), cubic metres.
+    gained_m3: float
+    lost_m3: float
+    #: The largest height change, metres.
+    most_m: float
+    #: Its extent in the finer survey's CRS: least x, least y, greatest x, greatest y.
+    bounds: Tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -273,7 +292,11 @@ def _conflict(c) -> Conflict:
                     rms_after_m=c.shift.rms_after_m if has else None,
                     distrusted=_DISTRUSTED.get(c.distrusted, ""),
                     decided_by=c.decided_by, statistic=c.statistic, confidence=c.confidence,
-                    shift_determined=c.shift_determined, takes_tie=c.takes_tie)
+                    shift_determined=c.shift_determined, takes_tie=c.takes_tie,
+                    changes=tuple(ChangeRegion(later=r.later, area_m2=r.area_m2,
+                                               gained_m3=r.gained_m3, lost_m3=r.lost_m3,
+                                               most_m=r.most_m, bounds=tuple(r.bounds))
+                                  for r in c.changes))
 
 
 def _reason(value: int) -> str:

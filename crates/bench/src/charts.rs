@@ -619,6 +619,46 @@ pub fn draws(out: &Path, rows: &[(String, f64)]) -> Result<(), Fail> {
     )
 }
 
+/// Shares drawn by kind (`rows`: kind, share), draws sorted from the worst, a series a kind,
+/// as `file`.svg and .png, titled by `what`.
+pub fn draws_by(out: &Path, file: &str, what: &str, rows: &[(String, f64)]) -> Result<(), Fail> {
+    fonts();
+    let mut order: Vec<usize> = (0..rows.len()).collect();
+    order.sort_by(|&a, &b| rows[a].1.total_cmp(&rows[b].1));
+    let mut kinds: Vec<&str> = Vec::new();
+    for (k, _) in rows {
+        if !kinds.contains(&k.as_str()) {
+            kinds.push(k);
+        }
+    }
+    let series = kinds
+        .iter()
+        .map(|kind| {
+            let pts = order
+                .iter()
+                .enumerate()
+                .filter(|(_, &k)| rows[k].0 == *kind)
+                .map(|(rank, &k)| ((rank + 1) as f64, 100.0 * rows[k].1))
+                .collect();
+            (kind.to_string(), pts)
+        })
+        .collect();
+    let title = format!("{} {what}", rows.len());
+    both(
+        out,
+        file,
+        &Chart {
+            title: &title,
+            x: "draw, from the worst",
+            y: "% of the samples",
+            series,
+            log_y: false,
+            diagonal: false,
+            scatter: true,
+        },
+    )
+}
+
 /// Windows underestimated and M/N_T by level, a series a survey and share.
 pub fn wavelet(out: &Path, rows: &[super::wavelet::Row]) -> Result<(), Fail> {
     fonts();

@@ -1324,7 +1324,12 @@ impl Terrain {
         let mut raise = BTreeMap::new();
         for p in self.pairs_of(id) {
             if self.blame_pair(&p) == Some(Blame::Both) && !self.discredited(p.other(id)) {
+                // Ground that changed between dated surveys is no contradiction of either.
+                let changed = self.dated_change(&p, id);
                 for &(k, v) in p.against(id) {
+                    if changed.contains_key(&k) {
+                        continue;
+                    }
                     let e = raise.entry(k).or_insert(0.0f32);
                     *e = e.max(v);
                 }
@@ -1345,6 +1350,25 @@ impl Terrain {
         let mut raise = self.contested(id);
         let own = &base.kernel_accuracy;
         for p in self.pairs_of(id) {
+            let changed = self.dated_change(&p, id);
+            if !changed.is_empty() && self.later(&p) == Some(p.other(id)) {
+                // The ground this survey saw there is gone: the later survey serves, and this
+                // one is held, for the present, to how far the ground moved plus the later's
+                // claim over the change.
+                let later = &self.bases[&p.other(id)].kernel_accuracy;
+                let theirs = self
+                    .dated_change(&p, p.other(id))
+                    .keys()
+                    .map(|&k| later.values[k as usize])
+                    .fold(0.0, f64::max);
+                for (&k, &d) in &changed {
+                    let need = d as f64 + theirs;
+                    if need > own.values[k as usize] * (1.0 + 1e-9) + 1e-9 {
+                        let e = raise.entry(k).or_insert(0.0);
+                        *e = e.max(need as f32);
+                    }
+                }
+            }
             // A survey found false, or one that loses the tie of a pair nothing decides, is
             // held over the whole overlap: where the two agree within their claims the
             // loser's own estimate (which smoothness flatters) would otherwise still win.
@@ -1357,6 +1381,11 @@ impl Terrain {
             // A coarser survey's evidence never makes a finer one worse than its own claim.
             let capped = p.finer == id && p.cell_ratio() >= 2.0;
             for (k, ko, d) in p.departs(id).iter() {
+                // Where it saw the ground after the change, it departs by the change, not
+                // by an error.
+                if changed.contains_key(&k) {
+                    continue;
+                }
                 let claim =
                     theirs.values[ko as usize].max(contested.get(&ko).map_or(0.0, |&v| v as f64));
                 let need = if capped {
@@ -1371,6 +1400,44 @@ impl Terrain {
             }
         }
         raise.into_iter().collect()
+    }
+
+    /// Which survey of the pair saw the ground last: the one whose epoch lies wholly after
+    /// the other's. None where either epoch is unknown or the two overlap: an unknown epoch
+    /// gives no precedence.
+    pub fn later(&self, p: &PairEvidence) -> Option<SurveyId> {
+        let (ef, ec) = (
+            self.bases.get(&p.finer)?.epoch?,
+            self.bases.get(&p.coarser)?.epoch?,
+        );
+        if ef.after(&ec) {
+            Some(p.finer)
+        } else if ec.after(&ef) {
+            Some(p.coarser)
+        } else {
+            None
+        }
+    }
+
+    /// The kernels of `id` that the pair's changes cover, with the largest change in each,
+    /// where the pair's epochs say which saw the ground last; none otherwise.
+    fn dated_change(&self, p: &PairEvidence, id: SurveyId) -> BTreeMap<u32, f32> {
+        let mut out = BTreeMap::new();
+        if p.changes.is_empty() || self.later(p).is_none() {
+            return out;
+        }
+        for c in &p.changes {
+            let ks = if id == p.finer {
+                &c.finer_kernels
+            } else {
+                &c.coarser_kernels
+            };
+            for &(k, d) in ks {
+                let e = out.entry(k).or_insert(0.0f32);
+                *e = e.max(d);
+            }
+        }
+        out
     }
 
     /// The survey as built, with the claims it makes itself.

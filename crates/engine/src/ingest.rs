@@ -4,6 +4,7 @@ use crate::config::DefaultAccuracy;
 use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::Crs;
 use patchwork_core::model::accuracy::{AccuracySource, AccuracySpec};
+use patchwork_core::model::epoch::Epoch;
 use patchwork_core::model::geoid;
 use patchwork_core::model::grid::Grid;
 use patchwork_core::model::patch::PatchLayout;
@@ -192,7 +193,10 @@ pub struct Sidecar {
     pub license: Option<String>,
     /// The attribution its licence asks for, as a map shows it.
     pub attribution: Option<String>,
-    /// When it was acquired, as its producer gives it: "2011-02", "2000-02-11/2000-02-22".
+    /// When it was acquired, in ISO 8601: a year, a month, a day, a date-time, or an interval
+    /// of them ("2011-02", "2000-02-11/2000-02-22"). Where surveys disagree because the ground
+    /// changed, the one acquired wholly after the other serves; where this says nothing, the
+    /// file's own metadata is read, else the epoch is unknown.
     pub acquired: Option<String>,
 }
 
@@ -505,6 +509,7 @@ pub fn prepare_with(
     };
     let t1 = Instant::now();
     phase(Phase::Modelling);
+    let file_acquired = raster.acquired.clone();
     let mut grid = raster.into_grid()?;
     // Heights in another vertical CRS than the store's are converted to it; a survey that
     // names none is taken to be in the store's.
@@ -526,10 +531,22 @@ pub fn prepare_with(
         }
         (None, to) => (to.clone(), 0.0),
     };
-    let about = side.about().map_err(|message| IngestError::Sidecar {
+    let mut about = side.about().map_err(|message| IngestError::Sidecar {
         path: sidecar_path(path),
         message,
     })?;
+    // The epoch: the sidecar's, else the file's own; never the time the file arrived, which
+    // would make the store depend on the order of its files.
+    let epoch = match &about.acquired {
+        Some(a) => Some(Epoch::parse(a).map_err(|e| IngestError::Sidecar {
+            path: sidecar_path(path),
+            message: format!("acquired: {e}"),
+        })?),
+        None => {
+            about.acquired = file_acquired;
+            about.acquired.as_deref().and_then(|a| Epoch::parse(a).ok())
+        }
+    };
     let offset_error_m =
         correct(&mut grid, &crs, &side).map_err(|message| IngestError::Sidecar {
             path: sidecar_path(path),
@@ -545,9 +562,10 @@ pub fn prepare_with(
         AccuracySpec::Fixed(_) => 0.0,
     };
     let mut survey = Survey::build_adding(grid, spec, Some(crs), s.layout, s.recipe, extra)?;
-    std::sync::Arc::get_mut(&mut survey.meta)
-        .expect("a survey just built is not shared")
-        .vertical = vertical;
+    let meta =
+        std::sync::Arc::get_mut(&mut survey.meta).expect("a survey just built is not shared");
+    meta.vertical = vertical;
+    meta.epoch = epoch;
     if survey.accuracy >= s.max_accuracy {
         return Err(IngestError::BadAccuracy {
             value: survey.accuracy,

@@ -12,7 +12,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::time::Instant;
 
 /// Two surveys that disagree by more than their accuracies allow where they overlap.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Conflict {
     /// The other survey.
     pub survey: SurveyId,
@@ -33,6 +33,49 @@ pub struct Conflict {
     pub shift_determined: bool,
     /// Undetermined: whether this survey takes the tie.
     pub takes_tie: bool,
+    /// Where the ground changed between the two.
+    pub changes: Vec<ChangeRegion>,
+}
+
+/// A region where the ground changed between two surveys, from one of the two's side.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ChangeRegion {
+    /// Which saw the ground last, by their epochs: that one serves there.
+    pub later: Later,
+    /// Its area, square metres.
+    pub area_m2: f64,
+    /// The volume the ground gained from the earlier survey to the later, cubic metres (from
+    /// this survey to the other where undated).
+    pub gained_m3: f64,
+    /// The volume it lost, cubic metres (positive).
+    pub lost_m3: f64,
+    /// The largest height change, metres.
+    pub most_m: f64,
+    /// Its extent in the finer survey's plane.
+    pub bounds: Aabb,
+}
+
+/// Which of two surveys saw changed ground last.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Later {
+    /// This survey: it serves the change.
+    This,
+    /// The other.
+    Other,
+    /// Neither's epoch says: one is unknown, or the two overlap. The change is read as any
+    /// contradiction of their claims is.
+    Undated,
+}
+
+impl Later {
+    /// As listings and the API name it.
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Later::This => "this",
+            Later::Other => "other",
+            Later::Undated => "undated",
+        }
+    }
 }
 
 /// Which claim of a conflicting pair is false, from one of the two's side.
@@ -85,6 +128,37 @@ pub fn conflicts_of(t: &Terrain, id: SurveyId) -> Vec<Conflict> {
                 decided: verdict.by,
                 shift_determined: p.coreg.as_ref().is_some_and(|c| c.conditioned),
                 takes_tie: p.tie_to_finer() == Some(finer),
+                changes: {
+                    let later = match t.later(p) {
+                        Some(l) if l == id => Later::This,
+                        Some(_) => Later::Other,
+                        None => Later::Undated,
+                    };
+                    // The pair measures the coarser above the finer; a listing, the later
+                    // above the earlier (the other above this one where undated).
+                    let coarser_up = match later {
+                        Later::This => p.coarser == id,
+                        Later::Other | Later::Undated => p.coarser != id,
+                    };
+                    p.changes
+                        .iter()
+                        .map(|c| {
+                            let (gained_m3, lost_m3) = if coarser_up {
+                                (c.above_m3, c.below_m3)
+                            } else {
+                                (c.below_m3, c.above_m3)
+                            };
+                            ChangeRegion {
+                                later,
+                                area_m2: c.area_m2,
+                                gained_m3,
+                                lost_m3,
+                                most_m: c.most_m,
+                                bounds: c.bounds,
+                            }
+                        })
+                        .collect()
+                },
             })
         })
         .collect();

@@ -441,6 +441,22 @@ impl Engine {
             None => prepared.survey.clone(),
         };
         let survey = Arc::new(survey);
+        // Which survey serves where the ground changed follows from the epochs, through every
+        // pair the survey is in: a new epoch for the same samples is a new survey, not a new
+        // label. (The writer's turn below sees the same surveys: only this path writes them.)
+        if let Some(served) = self.snapshot().survey(survey.id) {
+            if served.epoch != survey.epoch {
+                return Err(Refusal::File(
+                    Reason::InvalidRequest,
+                    format!(
+                        "the sidecar's acquired changed ({} to {}) for samples already \
+                         served; retire the survey and add the file again",
+                        epoch_text(served.epoch),
+                        epoch_text(survey.epoch)
+                    ),
+                ));
+            }
+        }
         let samples = survey.levels[0].valid_count() as u64;
         let t1 = Instant::now();
         let mut conflicts = Vec::new();
@@ -775,4 +791,8 @@ fn record(
     rec.vertical_error_m = prepared.vertical_error_m;
     rec.about = prepared.about.clone();
     rec
+}
+
+fn epoch_text(e: Option<patchwork_core::model::epoch::Epoch>) -> String {
+    e.map_or_else(|| "unknown".to_string(), |e| e.to_string())
 }

@@ -27,6 +27,7 @@
 //! takes its evidence with it.
 
 use super::accuracy::{Deviation, KernelAccuracy};
+use super::change::{self, Change};
 use super::coreg::{self, Carry, Coregistration, Degradation, Degraded};
 use super::detail::{self, Detail, Finding};
 use super::grid::Grid;
@@ -74,6 +75,9 @@ pub struct PairEvidence {
     pub departs_finer: Departures,
     /// The same for the coarser survey, by its kernel and the finer's.
     pub departs_coarser: Departures,
+    /// Where the ground changed between the two (see [`super::change`]): coherent regions
+    /// where, placed, they differ by more than both claims and their spread allow.
+    pub changes: Vec<Change>,
 }
 
 /// How far one survey of a pair departs from the other, kernel by kernel: entries of (own
@@ -321,6 +325,16 @@ pub fn compare(
     let detail = aligned
         .as_ref()
         .and_then(|k| detail::measure(f, c, to_coarser, to_finer, &k.placement(), bounds, cell));
+    let changes = changes(
+        finer,
+        coarser,
+        to_coarser,
+        bounds,
+        aligned.as_ref(),
+        seen_coarse.as_ref(),
+        metres_per_unit,
+        ratio,
+    );
     let departs_finer = departures(departs_f);
     let departs_coarser = departures(departs_c);
     // Each one's median claim over the kernels compared.
@@ -357,7 +371,109 @@ pub fn compare(
         claims,
         departs_finer: Departures::new(&departs_finer),
         departs_coarser: Departures::new(&departs_coarser),
+        changes,
     })
+}
+
+/// The coherent regions where the coarser, placed on the finer by `placed` (as they lie where
+/// that is None), differs from the finer's samples (low-passed to the coarser's scale as
+/// `seen_coarse`, where it is much coarser) by more than the level of detection: both claims
+/// there, and at least [`change::SPREAD_FACTOR`] times the pair's spread once placed.
+#[allow(clippy::too_many_arguments)]
+fn changes(
+    finer: &Side,
+    coarser: &Side,
+    to_coarser: Carry,
+    bounds: &Aabb,
+    placed: Option<&Coregistration>,
+    seen_coarse: Option<&Grid>,
+    metres_per_unit: [f64; 2],
+    ratio: f64,
+) -> Vec<Change> {
+    let (f, c) = (finer.grid, coarser.grid);
+    let place = placed.map_or(coreg::Placement::shift([0.0, 0.0]), |k| k.placement());
+    let floor = placed.map_or(0.0, |k| change::SPREAD_FACTOR * k.nmad_after);
+    // The difference at a finer sample, and the coarser's kernel there.
+    let diff = |col: usize, r: usize| -> Option<(f64, u32)> {
+        let z = match seen_coarse {
+            Some(lp) => lp.at(col, r),
+            None => f.at(col, r),
+        };
+        if z.is_nan() || f.at(col, r).is_nan() {
+            return None;
+        }
+        let p = f.georef.to_world(col as f64, r as f64);
+        if !bounds.contains_point(p) {
+            return None;
+        }
+        let g = c.georef.to_grid(to_coarser(place.forth(p))?);
+        let h = c.bilinear_grid(g)?;
+        let dz = placed.map_or(0.0, |k| k.dz_at(p));
+        Some((h - z as f64 - dz, coarser.kernel_of(g)))
+    };
+    let beyond: Vec<bool> = (0..f.rows)
+        .into_par_iter()
+        .flat_map_iter(|r| {
+            let diff = &diff;
+            (0..f.cols).map(move |col| {
+                diff(col, r).is_some_and(|(d, kc)| {
+                    let lod = (finer.claim_at(col, r) + coarser.claim(kc)).max(floor);
+                    d.abs() > lod
+                })
+            })
+        })
+        .collect();
+    if !beyond.contains(&true) {
+        return Vec::new();
+    }
+    // The opening's square: a cell of the coarser survey at least, so that a cliff's line
+    // of its interpolation errors is no change.
+    let w = ((0.5 * ratio).ceil() as usize).max(1);
+    let least = (4.0 * ratio * ratio).ceil().max(16.0) as usize;
+    let cell_m2 = f.georef.step[0] * metres_per_unit[0] * f.georef.step[1] * metres_per_unit[1];
+    change::regions(&beyond, f.cols, f.rows, w, least)
+        .into_iter()
+        .map(|region| {
+            let mut out = Change {
+                bounds: Aabb::new(f64::MAX, f64::MAX, f64::MIN, f64::MIN),
+                samples: region.len() as u64,
+                area_m2: region.len() as f64 * cell_m2,
+                above_m3: 0.0,
+                below_m3: 0.0,
+                most_m: 0.0,
+                finer_kernels: Vec::new(),
+                coarser_kernels: Vec::new(),
+            };
+            let (mut fk, mut ck) = (HashMap::new(), HashMap::new());
+            for i in region {
+                let (col, r) = (i % f.cols, i / f.cols);
+                let Some((d, kc)) = diff(col, r) else {
+                    continue;
+                };
+                let p = f.georef.to_world(col as f64, r as f64);
+                out.bounds.min = [out.bounds.min[0].min(p[0]), out.bounds.min[1].min(p[1])];
+                out.bounds.max = [out.bounds.max[0].max(p[0]), out.bounds.max[1].max(p[1])];
+                if d > 0.0 {
+                    out.above_m3 += d * cell_m2;
+                } else {
+                    out.below_m3 -= d * cell_m2;
+                }
+                out.most_m = out.most_m.max(d.abs());
+                for k in finer.kernels_at(col, r) {
+                    keep_max(&mut fk, k, d.abs());
+                }
+                keep_max(&mut ck, kc, d.abs());
+            }
+            let sorted = |m: HashMap<u32, f32>| {
+                let mut v: Vec<(u32, f32)> = m.into_iter().collect();
+                v.sort_unstable_by_key(|e| e.0);
+                v
+            };
+            out.finer_kernels = sorted(fk);
+            out.coarser_kernels = sorted(ck);
+            out
+        })
+        .collect()
 }
 
 /// What a comparison gathers: the largest and the sum of squares of the differences and their

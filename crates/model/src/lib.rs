@@ -1,9 +1,11 @@
 //! The model: grids, mipmaps and patches. Pure computation, no I/O.
 
 pub mod accuracy;
+pub mod change;
 pub mod coreg;
 pub mod detail;
 pub mod edge;
+pub mod epoch;
 pub mod evidence;
 pub mod geoid;
 pub mod grid;

@@ -2,6 +2,7 @@
 
 use super::accuracy::{self, AccuracySpec, KernelAccuracy};
 use super::edge;
+use super::epoch::Epoch;
 use super::grid::{Grid, Shape};
 use super::ids::{hash64, PatchId, SurveyId};
 use super::lattice::Lattice;
@@ -81,6 +82,9 @@ pub struct SurveyMeta {
     /// [`edge::edge_tiles`]): found once from the samples, so that inserting or retiring a
     /// neighbour never has to read them all again.
     pub edge_tiles: Vec<[i64; 2]>,
+    /// When it was acquired, where known: where it and an overlapping survey disagree by
+    /// change (see [`crate::change`]), the one acquired wholly after the other serves.
+    pub epoch: Option<Epoch>,
 }
 
 /// The errors of a survey's patches that raised claims changed (see
@@ -532,10 +536,18 @@ impl Survey {
                 patches: patches.into(),
                 raised: None,
                 edge_tiles,
+                epoch: None,
             }),
             levels,
             deltas: deltas.into(),
         }
+    }
+
+    /// The survey acquired over `epoch` (None where unknown): what decides, where it and an
+    /// overlapping survey saw different ground, which one serves there.
+    pub fn with_epoch(mut self, epoch: Option<Epoch>) -> Survey {
+        Arc::make_mut(&mut self.meta).epoch = epoch;
+        self
     }
 
     /// What the index keeps of the survey.

@@ -221,6 +221,7 @@ pub fn read_ascii_grid_from(file: &mut Source, limits: &ReadLimits) -> Result<Ra
         geotransform,
         crs,
         nodata: h.nodata,
+        acquired: None,
     })
 }
 

@@ -93,6 +93,7 @@ pub fn read_gtx(path: &Path, limits: &ReadLimits) -> Result<Raster, ReadError> {
             vertical: None,
         },
         nodata: Some(f64::from(NODATA)),
+        acquired: None,
     })
 }
 

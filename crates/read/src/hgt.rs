@@ -124,6 +124,7 @@ pub fn read_hgt_from(file: &mut Source, limits: &ReadLimits) -> Result<Raster, R
             vertical: patchwork_crs::vertical::VerticalCrs::epsg(5773),
         },
         nodata: Some(f64::from(HGT_VOID)),
+        acquired: None,
     })
 }
 

@@ -41,6 +41,10 @@ pub struct Raster {
     pub crs: crs::FileCrs,
     /// The declared nodata value if any (already applied: such samples are NaN in `samples`).
     pub nodata: Option<f64>,
+    /// When the file says its survey was acquired, as it says it (a GDAL metadata item that
+    /// names an acquisition date, else TIFF's `DateTime`), where that is a date
+    /// [`patchwork_model::epoch::Epoch`] reads; None where it says nothing usable.
+    pub acquired: Option<String>,
 }
 
 impl Raster {
@@ -105,6 +109,7 @@ impl Raster {
             ],
             crs: self.crs.clone(),
             nodata: self.nodata,
+            acquired: self.acquired.clone(),
         }
     }
 }

@@ -473,6 +473,23 @@ pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
             confidence: c.decided.confidence,
             shift_determined: c.shift_determined,
             takes_tie: c.takes_tie,
+            changes: c
+                .changes
+                .iter()
+                .map(|r| pb::ChangeRegion {
+                    later: r.later.as_str().to_string(),
+                    area_m2: r.area_m2,
+                    gained_m3: r.gained_m3,
+                    lost_m3: r.lost_m3,
+                    most_m: r.most_m,
+                    bounds: vec![
+                        r.bounds.min[0],
+                        r.bounds.min[1],
+                        r.bounds.max[0],
+                        r.bounds.max[1],
+                    ],
+                })
+                .collect(),
         })
         .collect()
 }

@@ -17,6 +17,7 @@ use patchwork_core::crs::vertical::VerticalCrs;
 use patchwork_core::crs::Crs;
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::accuracy::{self, KernelAccuracy};
+use patchwork_core::model::change;
 use patchwork_core::model::coreg;
 use patchwork_core::model::detail;
 use patchwork_core::model::edge::{self, EdgePatch};
@@ -626,6 +627,65 @@ pub struct Pair {
     pub departs_finer: Vec<(u32, u32, f32)>,
     /// Kernels of the coarser survey whose claim the finer contradicts.
     pub departs_coarser: Vec<(u32, u32, f32)>,
+    /// Where the ground changed between them (from version 11).
+    pub changes: Vec<Change>,
+}
+
+/// A region where the ground changed between two surveys.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Change {
+    /// Its extent in the finer survey's plane: least x and y, then greatest.
+    pub bounds: [f64; 4],
+    /// The finer survey's samples in it.
+    pub samples: u64,
+    /// Its area, m².
+    pub area_m2: f64,
+    /// Volume where the coarser lies above the finer, m³.
+    pub above_m3: f64,
+    /// Volume where it lies below, m³.
+    pub below_m3: f64,
+    /// Largest |difference|, m.
+    pub most_m: f64,
+    /// The finer survey's kernels in it, each with its largest |difference|.
+    pub finer_kernels: Vec<(u32, f32)>,
+    /// The coarser survey's.
+    pub coarser_kernels: Vec<(u32, f32)>,
+}
+
+impl From<&change::Change> for Change {
+    fn from(c: &change::Change) -> Self {
+        Change {
+            bounds: [
+                c.bounds.min[0],
+                c.bounds.min[1],
+                c.bounds.max[0],
+                c.bounds.max[1],
+            ],
+            samples: c.samples,
+            area_m2: c.area_m2,
+            above_m3: c.above_m3,
+            below_m3: c.below_m3,
+            most_m: c.most_m,
+            finer_kernels: c.finer_kernels.clone(),
+            coarser_kernels: c.coarser_kernels.clone(),
+        }
+    }
+}
+
+impl From<Change> for change::Change {
+    fn from(c: Change) -> Self {
+        let b = c.bounds;
+        change::Change {
+            bounds: patchwork_core::geom::Aabb::new(b[0], b[1], b[2], b[3]),
+            samples: c.samples,
+            area_m2: c.area_m2,
+            above_m3: c.above_m3,
+            below_m3: c.below_m3,
+            most_m: c.most_m,
+            finer_kernels: c.finer_kernels,
+            coarser_kernels: c.coarser_kernels,
+        }
+    }
 }
 
 impl From<&PairEvidence> for Pair {
@@ -683,6 +743,7 @@ impl From<&PairEvidence> for Pair {
             against_coarser: p.against_coarser.clone(),
             departs_finer: p.departs_finer.to_vec(),
             departs_coarser: p.departs_coarser.to_vec(),
+            changes: p.changes.iter().map(Change::from).collect(),
         }
     }
 }
@@ -742,6 +803,7 @@ impl From<Pair> for PairEvidence {
             against_coarser: p.against_coarser,
             departs_finer: Departures::new(&p.departs_finer),
             departs_coarser: Departures::new(&p.departs_coarser),
+            changes: p.changes.into_iter().map(change::Change::from).collect(),
         }
     }
 }

@@ -96,6 +96,7 @@ use patchwork_core::crs::Crs;
 use patchwork_core::index::lod::{BoxState, ChangeStats, IndexConfig};
 use patchwork_core::model::accuracy::{AccuracySource, AccuracySpec, KernelAccuracy};
 use patchwork_core::model::edge::EdgePatch;
+use patchwork_core::model::epoch::Epoch;
 use patchwork_core::model::evidence::{Contradicted, PairEvidence};
 use patchwork_core::model::grid::{Georef, Grid, Shape};
 use patchwork_core::model::ids::{PatchId, SurveyId};

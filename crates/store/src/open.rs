@@ -695,6 +695,13 @@ impl Store {
             patches: Arc::from([]),
             raised: None,
             edge_tiles: stored.edge_tiles,
+            // From what its sidecar (or its file) said, as recorded; a text that is no date
+            // was refused at ingest, and one from an older store gives no epoch.
+            epoch: r
+                .about
+                .acquired
+                .as_deref()
+                .and_then(|a| Epoch::parse(a).ok()),
         };
         // A patch in memory keeps its place in its level's tiling, row-major, for which the
         // tiling's row is needed.

@@ -3,6 +3,7 @@
 //! voids, a rotation). Kept out of the daemon and of the core: they make test data, and serve
 //! no request.
 
+pub mod changes;
 pub mod copies;
 pub mod degrade;
 pub mod fixtures;

@@ -11,6 +11,7 @@
 use crate::degrade::{self, rotation, warped};
 use patchwork_core::model::coreg::blurred as blurred_copy;
 use patchwork_core::model::grid::Grid;
+use patchwork_core::terrain::Terrain;
 use rustfft::{num_complex::Complex, FftPlanner};
 
 /// One kind of degradation of the widened family.
@@ -407,4 +408,26 @@ fn solve3(n: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
         *xk = det(&m) / d;
     }
     Some(x)
+}
+
+/// The share of `g`'s valid samples that `t` serves at e = 0 within `tol` metres of them.
+pub fn served_within(t: &Terrain, g: &Grid, tol: f64) -> f64 {
+    let mut pts = Vec::new();
+    let mut want = Vec::new();
+    for r in 0..g.rows {
+        for c in 0..g.cols {
+            let z = g.at(c, r);
+            if !z.is_nan() {
+                pts.push(g.georef.to_world(c as f64, r as f64));
+                want.push(z as f64);
+            }
+        }
+    }
+    let got = t.sample(&pts, 0.0);
+    let ok = got
+        .iter()
+        .zip(&want)
+        .filter(|(h, z)| !h.is_nan() && (**h as f64 - **z).abs() <= tol)
+        .count();
+    ok as f64 / want.len().max(1) as f64
 }

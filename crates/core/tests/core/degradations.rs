@@ -12,30 +12,8 @@ use patchwork_core::model::grid::Grid;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::terrain::Terrain;
 use patchwork_testkit::degrade::SCENES;
-use patchwork_testkit::widened::{self, Kind};
+use patchwork_testkit::widened::{self, served_within, Kind};
 use std::sync::Arc;
-
-/// The share of `g`'s valid samples that `t` serves at e = 0 within `tol` metres of them.
-fn served_within(t: &Terrain, g: &Grid, tol: f64) -> f64 {
-    let mut pts = Vec::new();
-    let mut want = Vec::new();
-    for r in 0..g.rows {
-        for c in 0..g.cols {
-            let z = g.at(c, r);
-            if !z.is_nan() {
-                pts.push(g.georef.to_world(c as f64, r as f64));
-                want.push(z as f64);
-            }
-        }
-    }
-    let got = t.sample(&pts, 0.0);
-    let ok = got
-        .iter()
-        .zip(&want)
-        .filter(|(h, z)| !h.is_nan() && (**h as f64 - **z).abs() <= tol)
-        .count();
-    ok as f64 / want.len().max(1) as f64
-}
 
 fn draws(default: usize) -> usize {
     std::env::var("PATCHWORK_DRAWS")

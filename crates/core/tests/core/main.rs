@@ -23,6 +23,7 @@ mod common {
     }
 }
 
+mod changes;
 mod crs_props;
 mod degradations;
 mod model_props;

@@ -317,3 +317,53 @@ pub(super) fn gdal_nodata<R: Read + Seek>(dec: &mut Decoder<R>) -> Result<Option
         ))
     })
 }
+
+/// When the file says its survey was acquired: the first GDAL metadata item (tag 42112) whose
+/// name speaks of acquisition (`ACQUISITION_DATE`, `DATE_ACQUIRED`, `ACQUISITION_START_TIME`,
+/// ...) or of a survey's or capture's date, else TIFF's `DateTime` (306, which many writers
+/// set to when the file was made: the weaker word, so the later asked). Only a value that
+/// reads as a date counts; a file's metadata is no promise, so one that does not is passed
+/// over rather than refused.
+pub(super) fn acquired<R: Read + Seek>(dec: &mut Decoder<R>) -> Option<String> {
+    let dated = |v: &str| {
+        let v = v.trim_matches(|c: char| c == '\0' || c.is_whitespace());
+        patchwork_model::epoch::Epoch::parse(v)
+            .is_ok()
+            .then(|| v.to_string())
+    };
+    let ascii = |dec: &mut Decoder<R>, tag| match dec.find_tag(tag) {
+        Ok(Some(Value::Ascii(t))) => Some(t),
+        _ => None,
+    };
+    if let Some(xml) = ascii(dec, Tag::Unknown(42112)) {
+        let found = gdal_items(&xml).find_map(|(name, value)| {
+            let n = name.to_ascii_uppercase();
+            let speaks = n.contains("ACQUI")
+                || ["SURVEY", "CAPTURE", "COLLECT"]
+                    .iter()
+                    .any(|w| n.contains(w) && (n.contains("DATE") || n.contains("TIME")));
+            speaks.then(|| dated(&value)).flatten()
+        });
+        if found.is_some() {
+            return found;
+        }
+    }
+    ascii(dec, Tag::DateTime).and_then(|t| dated(&t))
+}
+
+/// The (name, value) of each `<Item name="...">value</Item>` of GDAL's metadata XML, the
+/// entities of the value decoded.
+fn gdal_items(xml: &str) -> impl Iterator<Item = (String, String)> + '_ {
+    xml.split("<Item").skip(1).filter_map(|item| {
+        let (head, rest) = item.split_once('>')?;
+        let name = head.split("name=\"").nth(1)?.split('"').next()?;
+        let value = rest.split("</Item>").next()?;
+        let value = value
+            .replace("&lt;", "<")
+            .replace("&gt;", ">")
+            .replace("&quot;", "\"")
+            .replace("&apos;", "'")
+            .replace("&amp;", "&");
+        Some((name.to_string(), value))
+    })
+}

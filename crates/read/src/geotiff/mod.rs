@@ -130,6 +130,7 @@ fn decode_with(
     let kind = sample_kind(&mut dec)?;
     let (geotransform, crs) = georeference(&mut dec)?;
     let nodata = gdal_nodata(&mut dec)?;
+    let acquired = acquired(&mut dec);
     let chunks = chunk_layout_check(&mut dec, file_len)?;
     let expansion = codec_expansion(&mut dec)?;
     limits.check_fillable(
@@ -169,6 +170,7 @@ fn decode_with(
         geotransform,
         crs,
         nodata,
+        acquired,
     })
 }
 

@@ -957,3 +957,48 @@ fn corrupted_bytes_never_panic_out() {
         let _ = read(&path);
     }
 }
+
+#[test]
+fn the_acquisition_date_comes_from_gdal_metadata_else_the_tiff_date() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = |name: &str, extra: Vec<(u16, Val)>| {
+        let mut tags = image_tags(2, 1, 16, 2);
+        tags.extend(geo_tags((0.0, 0.0), 1.0, 32631));
+        tags.extend(extra);
+        read(&write_temp(
+            &dir,
+            name,
+            &build_tiff(tags, &[vec![1, 0, 2, 0]], false),
+        ))
+        .unwrap()
+        .acquired
+    };
+    let xml = "<GDALMetadata>\n  <Item name=\"AREA_OR_POINT\">Area</Item>\n  \
+               <Item name=\"ACQUISITION_DATE\">2011-02-11</Item>\n</GDALMetadata>\n";
+    assert_eq!(
+        file(
+            "both.tif",
+            vec![
+                (306, Val::Ascii("2019:05:03 10:00:00")),
+                (42112, Val::Ascii(xml))
+            ]
+        )
+        .as_deref(),
+        Some("2011-02-11")
+    );
+    // An item that is no date is passed over for the TIFF's own.
+    let vague = "<GDALMetadata><Item name=\"DATE_ACQUIRED\">unknown</Item></GDALMetadata>";
+    assert_eq!(
+        file(
+            "vague.tif",
+            vec![
+                (306, Val::Ascii("2019:05:03 10:00:00")),
+                (42112, Val::Ascii(vague))
+            ]
+        )
+        .as_deref(),
+        Some("2019:05:03 10:00:00")
+    );
+    assert_eq!(file("none.tif", vec![]), None);
+    assert_eq!(file("bad.tif", vec![(306, Val::Ascii("yesterday"))]), None);
+}
