@@ -261,7 +261,8 @@ fn committed_surveys_come_back_as_the_same_terrain() {
                 (6, 7),
                 (7, 8),
                 (8, 9),
-                (9, 10)
+                (9, 10),
+                (10, 11)
             ]
         );
         assert_eq!(terrain.index().len(), 0);
@@ -1284,7 +1285,8 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
             (6, 7),
             (7, 8),
             (8, 9),
-            (9, 10)
+            (9, 10),
+            (10, 11)
         ]
     );
     let roi = bounds_of(&[a.clone(), b.clone()]);
@@ -1363,7 +1365,10 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8), (8, 9), (9, 10)]);
+    assert_eq!(
+        store.migrations_run(),
+        &[(6, 7), (7, 8), (8, 9), (9, 10), (10, 11)]
+    );
     let migrated: Vec<(sled::IVec, sled::IVec)> =
         store.raw().scan_prefix("b/").map(Result::unwrap).collect();
     assert_eq!(migrated, records);
@@ -1389,7 +1394,10 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(6, 7), (7, 8), (8, 9), (9, 10)]);
+    assert_eq!(
+        store.migrations_run(),
+        &[(6, 7), (7, 8), (8, 9), (9, 10), (10, 11)]
+    );
     assert_eq!(store.raw().scan_prefix("t/").count(), 0);
     assert_eq!(terrain.index().state(), t.index().state());
     assert_verified(&store);
@@ -1813,7 +1821,7 @@ fn a_version_5_store_keeps_its_failures_with_no_content_known() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(
         store.migrations_run(),
-        &[(5, 6), (6, 7), (7, 8), (8, 9), (9, 10)]
+        &[(5, 6), (6, 7), (7, 8), (8, 9), (9, 10), (10, 11)]
     );
     assert_eq!(
         store.failures().unwrap(),
@@ -1975,7 +1983,7 @@ fn a_version_7_store_measures_its_overlaps_again() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(store.migrations_run(), &[(7, 8), (8, 9), (9, 10)]);
+    assert_eq!(store.migrations_run(), &[(7, 8), (8, 9), (9, 10), (10, 11)]);
     let pairs: Vec<PairEvidence> = store
         .all_pairs()
         .unwrap()
