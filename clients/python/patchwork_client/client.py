@@ -157,7 +157,7 @@ class Conflict:
     rms_after_m: Optional[float] = None
     #: Whose claim the evidence finds false: "this", "other", "both" or "" (neither).
     distrusted: str = ""
-    #: The test that decided it: "prediction", "detail", "noise", "consensus" or
+    #: The test that decided it: "prediction", "detail", "noise", "line", "consensus" or
     #: "undetermined", with its statistic and a confidence from 0 to 1.
     decided_by: str = ""
     statistic: float = 0.0

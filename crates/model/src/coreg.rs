@@ -548,7 +548,7 @@ fn fit_affine(
 
 /// The n × n system `m x = b` by Gaussian elimination with partial pivoting; None when
 /// singular (or NaN).
-fn solve<const N: usize>(mut m: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
+pub(crate) fn solve<const N: usize>(mut m: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
     let scale = m.iter().flatten().fold(0.0f64, |a, v| a.max(v.abs()));
     for col in 0..N {
         let pivot = (col..N).max_by(|&i, &j| m[i][col].abs().total_cmp(&m[j][col].abs()))?;

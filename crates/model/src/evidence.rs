@@ -32,6 +32,7 @@ use super::coreg::{self, Carry, Coregistration, Degradation, Degraded};
 use super::detail::{self, Detail, Finding};
 use super::grid::Grid;
 use super::ids::SurveyId;
+use super::lines::{self, Line};
 use super::patch::Tiling;
 use patchwork_geom::Aabb;
 use rayon::prelude::*;
@@ -55,6 +56,9 @@ pub struct PairEvidence {
     pub degradation: Option<Degradation>,
     /// The detail each holds and shares, band by band; None where the overlap is too small.
     pub detail: Option<Detail>,
+    /// The strongest line of their differences' spectrum, and how each side's spectrum
+    /// stands there (see [`super::lines`]); None where the overlap is too small.
+    pub line: Option<Line>,
     /// The finer survey's cell, in its plane's units.
     pub finer_cell: f64,
     /// The median claim of each, the finer's then the coarser's, over the samples compared.
@@ -325,6 +329,9 @@ pub fn compare(
     let detail = aligned
         .as_ref()
         .and_then(|k| detail::measure(f, c, to_coarser, to_finer, &k.placement(), bounds, cell));
+    let line = aligned
+        .as_ref()
+        .and_then(|k| lines::measure(f, c, to_coarser, &k.placement(), bounds, cell));
     let changes = changes(
         finer,
         coarser,
@@ -363,6 +370,7 @@ pub fn compare(
         coreg,
         degradation,
         detail,
+        line,
         finer_cell,
         cell,
         metres_per_unit,
@@ -604,9 +612,10 @@ impl PairEvidence {
 
     /// Which one the pair alone finds the lesser copy, by the first test that decides: the
     /// predictions (a low-pass of one predicts the other, and not the other way round), the
-    /// bands' shared detail (one lacks detail the other has, which noise cannot fake), or
+    /// bands' shared detail (one lacks detail the other has, which noise cannot fake),
     /// added noise (one holds detail the other does not share, while all of the other's is
-    /// shared). None where no test decides.
+    /// shared), or a line in the spectrum of their differences that one side holds, or lacks,
+    /// where the other's is smooth. None where no test decides.
     pub fn finding(&self) -> Option<(Blame, Decided)> {
         if let Some(d) = &self.degradation {
             let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { 1.0 };
@@ -621,19 +630,29 @@ impl PairEvidence {
                 _ => {}
             }
         }
-        let detail = self.detail.as_ref()?;
-        Some(match detail.finding() {
+        let by_detail = self.detail.as_ref().and_then(|d| match d.finding() {
             Finding::ReferenceLacks { gain, .. } => {
-                (Blame::Finer, Decided::new(Test::Detail, gain))
+                Some((Blame::Finer, Decided::new(Test::Detail, gain)))
             }
-            Finding::OtherLacks { gain, .. } => (Blame::Coarser, Decided::new(Test::Detail, gain)),
+            Finding::OtherLacks { gain, .. } => {
+                Some((Blame::Coarser, Decided::new(Test::Detail, gain)))
+            }
             Finding::ReferenceNoisy { excess, .. } => {
-                (Blame::Finer, Decided::new(Test::Noise, excess))
+                Some((Blame::Finer, Decided::new(Test::Noise, excess)))
             }
             Finding::OtherNoisy { excess, .. } => {
-                (Blame::Coarser, Decided::new(Test::Noise, excess))
+                Some((Blame::Coarser, Decided::new(Test::Noise, excess)))
             }
-            Finding::Undecided => return None,
+            Finding::Undecided => None,
+        });
+        by_detail.or_else(|| {
+            let l = self.line.as_ref()?;
+            let blame = if l.altered()? {
+                Blame::Finer
+            } else {
+                Blame::Coarser
+            };
+            Some((blame, Decided::new(Test::Line, l.standing())))
         })
     }
 
@@ -769,6 +788,10 @@ pub enum Test {
     /// One adds detail the other does not share: the statistic is its band's excess
     /// `E / C − 1` (over [`detail::NOISY_ABOVE`]).
     Noise,
+    /// One holds a line in its spectrum (stripes) or a notch that the other, smooth there,
+    /// lacks: the statistic is how many times it stands out from its ring (over
+    /// [`lines::ALTERED`]).
+    Line,
     /// Surveys overlapping both lie where one lies: the statistic is the margin of votes.
     Consensus,
     /// Nothing decides: the statistic is 0, and the pair's tie goes as
@@ -783,6 +806,7 @@ impl Test {
             Test::Prediction => "prediction",
             Test::Detail => "detail",
             Test::Noise => "noise",
+            Test::Line => "line",
             Test::Consensus => "consensus",
             Test::Undetermined => "undetermined",
         }
@@ -807,6 +831,7 @@ impl Decided {
             Test::Prediction => 1.0 - statistic / coreg::DEGRADED_RATIO,
             Test::Detail => 1.0 - statistic / detail::LACKS_BELOW,
             Test::Noise => 1.0 - detail::NOISY_ABOVE / statistic,
+            Test::Line => 1.0 - lines::ALTERED.ln() / statistic.ln(),
             Test::Consensus => statistic,
             Test::Undetermined => 0.0,
         };

@@ -11,6 +11,7 @@ pub mod geoid;
 pub mod grid;
 pub mod ids;
 pub mod lattice;
+pub mod lines;
 pub mod mipmap;
 pub mod patch;
 pub mod place;

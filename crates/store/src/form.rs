@@ -24,6 +24,7 @@ use patchwork_core::model::edge::{self, EdgePatch};
 use patchwork_core::model::evidence::{Departures, PairEvidence};
 use patchwork_core::model::grid;
 use patchwork_core::model::ids::{PatchId, SurveyId};
+use patchwork_core::model::lines;
 use patchwork_core::model::patch::{self, PatchLayout};
 use patchwork_core::model::survey::{Survey as Cut, SurveyMeta};
 use serde::{Deserialize, Serialize};
@@ -596,6 +597,49 @@ pub struct Detail {
     pub bands: Vec<Band>,
 }
 
+/// The strongest line of a pair's differences' spectrum.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Line {
+    /// Its wavelength, reference plane units.
+    pub period: f64,
+    /// Its direction, degrees.
+    pub angle: f64,
+    /// Its share of the differences' power.
+    pub share: f64,
+    /// How far it stands above its ring in the differences.
+    pub strength: f64,
+    /// How far each side's spectrum stands there, the reference's first.
+    pub prominence: [f64; 2],
+    /// Each side's power there over the differences'.
+    pub held: [f64; 2],
+}
+
+impl From<lines::Line> for Line {
+    fn from(l: lines::Line) -> Self {
+        Line {
+            period: l.period,
+            angle: l.angle,
+            share: l.share,
+            strength: l.strength,
+            prominence: l.prominence,
+            held: l.held,
+        }
+    }
+}
+
+impl From<Line> for lines::Line {
+    fn from(l: Line) -> Self {
+        lines::Line {
+            period: l.period,
+            angle: l.angle,
+            share: l.share,
+            strength: l.strength,
+            prominence: l.prominence,
+            held: l.held,
+        }
+    }
+}
+
 /// What two overlapping surveys say of each other's claims (`o/`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Pair {
@@ -611,6 +655,8 @@ pub struct Pair {
     pub degradation: Option<Degradation>,
     /// Their detail band by band, where measured.
     pub detail: Option<Detail>,
+    /// The strongest line of their differences' spectrum, where measured (from version 12).
+    pub line: Option<Line>,
     /// The finer survey's cell, plane units.
     pub finer_cell: f64,
     /// Their claimed ε.
@@ -735,6 +781,7 @@ impl From<&PairEvidence> for Pair {
                     })
                     .collect(),
             }),
+            line: p.line.map(Line::from),
             finer_cell: p.finer_cell,
             claims: p.claims,
             cell: p.cell,
@@ -795,6 +842,7 @@ impl From<Pair> for PairEvidence {
                     })
                     .collect(),
             }),
+            line: p.line.map(lines::Line::from),
             finer_cell: p.finer_cell,
             claims: p.claims,
             cell: p.cell,

@@ -7,7 +7,7 @@
 use crate::common::*;
 use patchwork_core::index::lod::IndexConfig;
 use patchwork_core::model::accuracy::AccuracySpec;
-use patchwork_core::model::evidence::Contradicted;
+use patchwork_core::model::evidence::{Contradicted, Test};
 use patchwork_core::model::grid::Grid;
 use patchwork_core::model::survey::Survey;
 use patchwork_core::terrain::Terrain;
@@ -22,15 +22,26 @@ fn draws(default: usize) -> usize {
         .unwrap_or(default)
 }
 
+/// What one draw found.
+struct Draw {
+    /// The line to print.
+    line: String,
+    /// The share of the original's samples served within 1 m.
+    share: f64,
+    /// Whether a held-back kind was drawn.
+    held_back: bool,
+    /// Whether the pair was left undetermined.
+    undetermined: bool,
+}
+
 /// One draw: a crop, one copy of it made by `pick`'s kinds (one to `most` chained), both
-/// inserted in a random order, and the share of the original served within 1 m. Returns the
-/// line to print, the share and whether a held-back kind was drawn.
+/// inserted in a random order, and the share of the original served within 1 m.
 fn one_draw(
     scenes: &[(&str, (Grid, Option<patchwork_core::crs::Crs>))],
     next: &mut impl FnMut() -> f64,
     pick: impl Fn(Kind) -> bool,
     most: usize,
-) -> (String, f64, bool) {
+) -> Draw {
     let (name, (g, crs)) = &scenes[(next() * scenes.len() as f64) as usize];
     let build = |g: Grid| {
         Arc::new(Survey::build(g, AccuracySpec::Auto, crs.clone(), Default::default()).unwrap())
@@ -48,6 +59,10 @@ fn one_draw(
     }
     let share = served_within(&t, g, 1.0);
     let original = Some(original.id);
+    let undetermined = t.pairs().iter().all(|p| {
+        t.verdict(p.finer, p.coarser)
+            .is_none_or(|v| v.by.test == Test::Undetermined)
+    });
     let verdicts: Vec<String> =
         t.pairs()
             .iter()
@@ -57,11 +72,12 @@ fn one_draw(
                     // Why the pair let the copy serve.
                     v += &format!(
                     "; the original is the {}; predictions {:?}; claims {:?}; tie to the finer \
-                     {:?}; bands {:?}",
+                     {:?}; line {:?}; bands {:?}",
                     if Some(p.finer) == original { "finer" } else { "coarser" },
                     p.degradation,
                     p.claims,
                     p.tie_to_finer(),
+                    p.line,
                     p.detail.as_ref().map(|d| d
                         .bands
                         .iter()
@@ -72,15 +88,16 @@ fn one_draw(
                 v
             })
             .collect();
-    (
-        format!(
+    Draw {
+        line: format!(
             "{name}, {label}: {:.1}% within 1 m ({})",
             100.0 * share,
             verdicts.join(", ")
         ),
         share,
-        kinds.iter().any(|k| k.held_back()),
-    )
+        held_back: kinds.iter().any(|k| k.held_back()),
+        undetermined,
+    }
 }
 
 /// Copies turned, stretched or sheared (bilinear or cubic): the pair is placed by an affine
@@ -97,7 +114,12 @@ fn copies_turned_stretched_or_sheared_do_not_displace_their_original() {
     let placements = |k: Kind| matches!(k, Kind::Rotation | Kind::Stretch | Kind::Shear);
     let (mut all, mut held, mut low) = (Vec::new(), Vec::new(), Vec::new());
     for draw in 0..n {
-        let (line, share, held_back) = one_draw(&scenes, &mut next, placements, 1);
+        let Draw {
+            line,
+            share,
+            held_back,
+            ..
+        } = one_draw(&scenes, &mut next, placements, 1);
         println!("draw {draw}: {line}");
         if held_back {
             held.push(share);
@@ -122,5 +144,59 @@ fn copies_turned_stretched_or_sheared_do_not_displace_their_original() {
         low.join("\n")
     );
     let pooled = mean(&[all, held].concat());
+    assert!(pooled >= 0.98, "seed {seed}: pooled {:.1}%", 100.0 * pooled);
+}
+
+/// Copies filtered (in the frequency domain, sharpened after a blur, ringing), trended,
+/// striped, filled with fabricated ground or aliased, one to three chained, any kind with any
+/// other, the placements included. Where the pair decides, it decides for the original: in
+/// every decided draw the original keeps at least 90% of its samples within 1 m, and pooled
+/// over them at least 98%. Some pairs are symmetric, and no rule on the two alone can tell
+/// which is the original (a copy that is the original plus a plane is the original less a
+/// plane, and stripes weaker than the ground's own relief at their wavelength are as much
+/// in one as the other): those must be reported undetermined, and are counted apart.
+/// Ringing and slanted stripes are held back, with shears.
+#[test]
+fn copies_filtered_striped_filled_or_aliased_do_not_displace_their_original() {
+    let seed = seed();
+    let n = draws(12);
+    let scenes: Vec<_> = SCENES.iter().map(|n| (*n, real_crop_in_crs(n))).collect();
+    let mut next = uniform(seed);
+    let (mut decided, mut held, mut undecided, mut wrong) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for draw in 0..n {
+        // Every other draw a kind alone, so that each is seen on its own as well as chained.
+        let most = if draw % 2 == 0 { 1 } else { 3 };
+        let d = one_draw(&scenes, &mut next, |_| true, most);
+        println!("draw {draw}: {}", d.line);
+        if d.undetermined {
+            undecided.push(d.share);
+        } else if d.held_back {
+            held.push(d.share);
+        } else {
+            decided.push(d.share);
+        }
+        if d.share < 0.9 && !d.undetermined {
+            wrong.push(format!("draw {draw}: {}", d.line));
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    println!(
+        "seed {seed}: decided, pooled {:.1}% over {} draws; held back {:.1}% over {}; \
+         undetermined {} draws, the original keeping {:.1}%; all {:.1}%",
+        100.0 * mean(&decided),
+        decided.len(),
+        100.0 * mean(&held),
+        held.len(),
+        undecided.len(),
+        100.0 * mean(&undecided),
+        100.0 * mean(&[decided.clone(), held.clone(), undecided.clone()].concat()),
+    );
+    assert!(
+        wrong.is_empty(),
+        "seed {seed}: decided for the copy, the original keeping under 90%, in:\n{}",
+        wrong.join("\n")
+    );
+    let pooled = mean(&[decided, held].concat());
     assert!(pooled >= 0.98, "seed {seed}: pooled {:.1}%", 100.0 * pooled);
 }

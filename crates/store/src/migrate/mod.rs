@@ -9,6 +9,7 @@ use patchwork_core::model::patch::PatchLayout;
 
 mod v0_to_v1;
 mod v10_to_v11;
+mod v11_to_v12;
 mod v1_to_v2;
 mod v2_to_v3;
 mod v3;
@@ -36,10 +37,11 @@ const STEPS: &[(u32, u32, Step)] = &[
     (8, 9, v8_to_v9::run),
     (9, 10, v9_to_v10::run),
     (10, 11, v10_to_v11::run),
+    (11, 12, v11_to_v12::run),
 ];
 
 /// The schema this binary writes.
-pub const CURRENT: u32 = 11;
+pub const CURRENT: u32 = 12;
 
 /// What a step may need beyond the tree: the settings `open` was called with, which a fresh
 /// store adopts, and the pack that chunk bytes go to.
