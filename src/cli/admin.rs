@@ -443,10 +443,31 @@ fn conflict_line(c: &pb::Conflict) -> String {
             "; the shift is undetermined ({:.1} m east, {:.1} m north fit no better than none)",
             s.east_m, s.north_m
         ),
-        Some(s) => format!(
-            "; it lies {:.1} m east, {:.1} m north and {:.2} m up of this one, {:.2} m RMS once moved back",
-            s.east_m, s.north_m, s.up_m, s.rms_after_m
-        ),
+        Some(s) => {
+            // A turn, a scale or a tilt worth naming: past what a shift alone leaves.
+            let turned = if s.turned_deg.abs() >= 0.01 {
+                format!(", turned {:.2}°", s.turned_deg)
+            } else {
+                String::new()
+            };
+            let scaled = if (s.scale - 1.0).abs() >= 1e-4 {
+                format!(", scaled {:.4}", s.scale)
+            } else {
+                String::new()
+            };
+            let tilted = if s.tilt_east_m_per_km.hypot(s.tilt_north_m_per_km) >= 0.01 {
+                format!(
+                    ", tilted {:.2} m/km east and {:.2} m/km north",
+                    s.tilt_east_m_per_km, s.tilt_north_m_per_km
+                )
+            } else {
+                String::new()
+            };
+            format!(
+                "; it lies {:.1} m east, {:.1} m north and {:.2} m up of this one{turned}{scaled}{tilted}, {:.2} m RMS once moved back",
+                s.east_m, s.north_m, s.up_m, s.rms_after_m
+            )
+        }
         None => String::new(),
     };
     let changes: String = c

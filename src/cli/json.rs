@@ -85,6 +85,12 @@ pub struct ConflictJson<'a> {
     /// is moved back; null where they could not be coregistered.
     shift_m: Option<[f64; 3]>,
     rms_after_m: Option<f64>,
+    /// Beyond the shift: the other turned (degrees anticlockwise), scaled, and tilted (its
+    /// heights less this one's, metres per kilometre east and north); null where they could
+    /// not be coregistered.
+    turned_deg: Option<f64>,
+    scale: Option<f64>,
+    tilt_m_per_km: Option<[f64; 2]>,
     /// Whose claim the evidence finds false: "this", "other" or "both".
     #[serde(serialize_with = "word")]
     distrusted: pb::Distrusted,
@@ -160,6 +166,12 @@ impl<'a> SurveyJson<'a> {
                     rms_m: c.rms_m,
                     shift_m: c.shift.as_ref().map(|s| [s.east_m, s.north_m, s.up_m]),
                     rms_after_m: c.shift.as_ref().map(|s| s.rms_after_m),
+                    turned_deg: c.shift.as_ref().map(|s| s.turned_deg),
+                    scale: c.shift.as_ref().map(|s| s.scale),
+                    tilt_m_per_km: c
+                        .shift
+                        .as_ref()
+                        .map(|s| [s.tilt_east_m_per_km, s.tilt_north_m_per_km]),
                     distrusted: distrusted(c),
                     decided_by: &c.decided_by,
                     statistic: c.statistic,

@@ -462,3 +462,60 @@ fn a_coarse_independent_survey_never_displaces_a_fine_one() {
         assert!(!p.misregistered());
     }
 }
+
+/// A copy turned by 0.8° is named by both surveys' conflicts with the turn, opposite ways
+/// round, a scale of 1 and no tilt; and a copy stretched by 1% with its scale.
+#[test]
+fn a_turned_or_stretched_copy_is_listed_with_its_placement() {
+    let g = patchwork_testkit::fixtures::real_crop("copernicus_n34w119_crop.tif");
+    let orig = auto(g.clone());
+    for (m, turned, scale) in [
+        (patchwork_testkit::degrade::rotation(0.8), 0.8, 1.0),
+        ([[1.01, 0.0], [0.0, 1.01]], 0.0, 1.01),
+    ] {
+        let copy = auto(patchwork_testkit::degrade::warped(&g, m, true));
+        let t = terrain(&[orig.clone(), copy.clone()], Contradicted::Distrust);
+        let mine = conflicts_of(&t, copy.id);
+        let theirs = conflicts_of(&t, orig.id);
+        let (a, b) = (
+            mine[0].placed.expect("placed"),
+            theirs[0].placed.expect("placed"),
+        );
+        assert!((a.turned_deg.abs() - turned).abs() < 0.05, "{a:?}");
+        assert!((a.turned_deg + b.turned_deg).abs() < 1e-9, "{a:?} {b:?}");
+        // The copy's content is the original's read at m times its offset from the centre:
+        // the original, seen from the copy, is scaled by m, or by its inverse.
+        let s = a.scale.max(1.0 / a.scale);
+        assert!((s - scale).abs() < 0.002, "{a:?}");
+        assert!((a.scale * b.scale - 1.0).abs() < 1e-9, "{a:?} {b:?}");
+        assert!(a.tilt_m_per_km[0].hypot(a.tilt_m_per_km[1]) < 0.5, "{a:?}");
+    }
+}
+
+/// A copy that is the original plus a plane (30 m across the crop, more than their claims
+/// allow; no offset at its middle) is the original less a plane as much: the pair alone
+/// leaves it undetermined, and a third survey of the same ground (NASADEM beside Copernicus)
+/// finds the copy tilted against it and the original not.
+#[test]
+fn a_tilted_copy_is_undetermined_alone_and_found_by_a_third_survey() {
+    let g = real_crop("copernicus_n34w119_crop.tif");
+    let orig = auto(g.clone());
+    let nasa = auto(real_crop("nasadem_n34w119_crop.tif"));
+    let mut tilted = g.clone();
+    let (w, h) = ((g.cols - 1) as f64, (g.rows - 1) as f64);
+    for r in 0..g.rows {
+        for c in 0..g.cols {
+            let (u, v) = (c as f64 / w - 0.5, r as f64 / h - 0.5);
+            tilted.samples[r * g.cols + c] += (30.0 * (0.6 * u + 0.8 * v)) as f32;
+        }
+    }
+    let tilted = auto(tilted);
+    let pair = terrain_of(&[orig.clone(), tilted.clone()]);
+    assert_eq!(pair.blame(orig.id, tilted.id), Some(Blame::Both));
+    let all = terrain_of(&[orig.clone(), nasa.clone(), tilted.clone()]);
+    let k = conflicts_of(&all, tilted.id);
+    let k = k.iter().find(|k| k.survey == orig.id).unwrap();
+    assert_eq!(k.distrusted, Distrusted::This, "{k:?}");
+    let tilt = k.placed.expect("placed").tilt_m_per_km;
+    assert!(tilt[0].hypot(tilt[1]) > 0.1, "{k:?}");
+}

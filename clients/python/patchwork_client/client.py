@@ -155,6 +155,12 @@ class Conflict:
     #: coregistered.
     shift_m: Optional[Tuple[float, float, float]] = None
     rms_after_m: Optional[float] = None
+    #: Beyond the shift: the other turned (degrees anticlockwise), its scale, and the slope
+    #: of its heights less this one's (metres per kilometre east, north); None where they
+    #: could not be coregistered.
+    turned_deg: Optional[float] = None
+    scale: Optional[float] = None
+    tilt_m_per_km: Optional[Tuple[float, float]] = None
     #: Whose claim the evidence finds false: "this", "other", "both" or "" (neither).
     distrusted: str = ""
     #: The test that decided it: "prediction", "detail", "noise", "line", "consensus" or
@@ -290,6 +296,10 @@ def _conflict(c) -> Conflict:
     return Conflict(survey=c.survey, max_m=c.max_m, rms_m=c.rms_m,
                     shift_m=(c.shift.east_m, c.shift.north_m, c.shift.up_m) if has else None,
                     rms_after_m=c.shift.rms_after_m if has else None,
+                    turned_deg=c.shift.turned_deg if has else None,
+                    scale=c.shift.scale if has else None,
+                    tilt_m_per_km=(c.shift.tilt_east_m_per_km, c.shift.tilt_north_m_per_km)
+                    if has else None,
                     distrusted=_DISTRUSTED.get(c.distrusted, ""),
                     decided_by=c.decided_by, statistic=c.statistic, confidence=c.confidence,
                     shift_determined=c.shift_determined, takes_tie=c.takes_tie,

@@ -33,8 +33,8 @@ pub use crate::ingest::Phase;
 pub use error::{EngineError, HeightsError, Reason, TooLarge};
 pub use follow::{rounds, Replication};
 pub use listing::{
-    conflicts_of, ChangeRegion, Conflict, Distrusted, Footprint, Held, Later, Progress, Stats,
-    SurveyListing,
+    conflicts_of, ChangeRegion, Conflict, Distrusted, Footprint, Held, Later, Placed, Progress,
+    Stats, SurveyListing,
 };
 pub use patchwork_core::resample::Backend;
 pub use patchwork_read::REFUSED_PATH;

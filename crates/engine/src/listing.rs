@@ -25,6 +25,9 @@ pub struct Conflict {
     pub shift_m: Option<[f64; 3]>,
     /// Their root-mean-square difference once the other is moved back by `shift_m`.
     pub rms_after_m: Option<f64>,
+    /// How the other lies turned, scaled and tilted against this one beyond the shift; None
+    /// where they could not be coregistered.
+    pub placed: Option<Placed>,
     /// Whose claim the evidence finds false.
     pub distrusted: Distrusted,
     /// The test that decided it, with its statistic and confidence.
@@ -35,6 +38,20 @@ pub struct Conflict {
     pub takes_tie: bool,
     /// Where the ground changed between the two.
     pub changes: Vec<ChangeRegion>,
+}
+
+/// How one survey's content lies against another's beyond a shift: what an affine placement
+/// and a vertical plane found over their overlap (a turn of 0, a scale of 1 and no tilt where
+/// a shift explained them as well).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Placed {
+    /// Degrees anticlockwise.
+    pub turned_deg: f64,
+    /// Its scale: over 1 where the other's content is stretched against this one's.
+    pub scale: f64,
+    /// The other's heights less this one's, their slope: metres per kilometre east and
+    /// north.
+    pub tilt_m_per_km: [f64; 2],
 }
 
 /// A region where the ground changed between two surveys, from one of the two's side.
@@ -124,6 +141,26 @@ pub fn conflicts_of(t: &Terrain, id: SurveyId) -> Vec<Conflict> {
                 // The pair measures the coarser against the finer.
                 shift_m: p.shift_m().map(|s| if finer { s } else { s.map(|v| -v) }),
                 rms_after_m: p.coreg.as_ref().map(|c| c.rms_after),
+                placed: p.coreg.as_ref().map(|c| {
+                    // The pair places the coarser on the finer; from the coarser's side, the
+                    // other is turned, scaled and tilted the other way.
+                    let (turned, scale) = c.placement().rotation_and_scale();
+                    let per_km = |i: usize| 1000.0 * c.tilt[i] / p.metres_per_unit[i];
+                    let tilt = [per_km(0), per_km(1)];
+                    if finer {
+                        Placed {
+                            turned_deg: turned,
+                            scale,
+                            tilt_m_per_km: tilt,
+                        }
+                    } else {
+                        Placed {
+                            turned_deg: -turned,
+                            scale: 1.0 / scale,
+                            tilt_m_per_km: tilt.map(|v| -v),
+                        }
+                    }
+                }),
                 distrusted,
                 decided: verdict.by,
                 shift_determined: p.coreg.as_ref().is_some_and(|c| c.conditioned),

@@ -181,6 +181,13 @@ impl Coregistration {
         ))
     }
 
+    /// The largest vertical difference the offset and tilt make over the overlap: at its
+    /// centre the offset, at a corner the offset and the tilt's reach.
+    pub fn largest_rise(&self) -> f64 {
+        let [e, n] = self.half_extent;
+        self.dz.abs() + self.tilt[0].abs() * e + self.tilt[1].abs() * n
+    }
+
     /// The other's height less the reference's at the reference's point `p`, once placed.
     pub fn dz_at(&self, p: [f64; 2]) -> f64 {
         self.dz + self.tilt[0] * (p[0] - self.centre[0]) + self.tilt[1] * (p[1] - self.centre[1])

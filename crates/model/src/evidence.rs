@@ -585,14 +585,14 @@ impl PairEvidence {
         !(self.against_finer.is_empty() && self.against_coarser.is_empty())
     }
 
-    /// Whether one survey lies shifted, turned, stretched or offset from the other: somewhere
-    /// in the overlap by half the coarser cell or more, or by more height than the spread of
-    /// their differences once aligned explains.
+    /// Whether one survey lies shifted, turned, stretched, offset or tilted from the other:
+    /// somewhere in the overlap by half the coarser cell or more, or by more height than the
+    /// spread of their differences once aligned explains.
     pub fn misregistered(&self) -> bool {
         self.coreg.as_ref().is_some_and(|c| {
             c.conditioned
                 && (c.largest_move() >= 0.5 * self.cell
-                    || c.dz.abs() > (3.0 * c.nmad_after).max(1.0))
+                    || c.largest_rise() > (3.0 * c.nmad_after).max(1.0))
         })
     }
 
@@ -660,17 +660,21 @@ impl PairEvidence {
     /// Noise turns the predictions round (a low-pass of a noisy copy predicts the clean
     /// original, which cannot predict noise). Its mark at the finest band is a clean side
     /// whose detail is all shared (`E / C` within 2% of 1) beside one holding detail the
-    /// other does not share (over 1.1); where the band shares too little to say, a side
-    /// with over twice the other's energy. A blurred or resampled copy lacks shared detail
-    /// or holds aliases of its own, and is not taken for the clean side.
+    /// other does not share (over 1.1), or beside one whose `E / C` is over twice its own
+    /// (and 2); where the band shares too little to say, a side with over twice the other's
+    /// energy. A blurred or resampled copy lacks shared detail or holds aliases of its own,
+    /// and is not taken for the clean side.
     fn may_be_degraded(&self, finer: bool) -> bool {
         let Some(b) = self.detail.as_ref().and_then(|d| d.bands.first()) else {
             return true;
         };
         let pick = |r: f64, o: f64| if finer { (r, o) } else { (o, r) };
         if b.informative() {
+            // A side whose band holds more than twice the unshared energy of this one's (and
+            // of a clean one's) is not cleaner: junk a filter left round voids and edges, as
+            // a transform's ringing, turns the predictions round as noise does.
             let (mine, theirs) = pick(b.reference_gain(), b.other_gain());
-            !((0.98..=1.02).contains(&mine) && theirs > 1.1)
+            !(((0.98..=1.02).contains(&mine) && theirs > 1.1) || theirs > 2.0 * mine.max(1.0))
         } else {
             let (mine, theirs) = pick(b.energy_reference, b.energy_other);
             theirs <= 2.0 * mine

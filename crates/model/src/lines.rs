@@ -44,9 +44,9 @@ pub const LEAST_SHARE: f64 = 0.05;
 /// ... and stand this many times above its ring's mean.
 pub const LEAST_LINE: f64 = 20.0;
 /// A side that holds the line's content and stands out from its ring at least this many
-/// times had it added (nine bins of a smooth spectrum scatter about their ring's mean by a
-/// factor under 2), while the other lies within that factor of its own ring: not standing
-/// out as well (ground periodic in both), nor cut away there (a notch in such ground).
+/// times, and this many times more than the other stands out from its own, had it added
+/// (nine bins of a smooth spectrum scatter about their ring's mean by a factor under 2); the
+/// other must not fall under its inverse (a notch in ground periodic in both).
 pub const ALTERED: f64 = 5.0;
 
 /// The strongest line of a pair's differences, and how each side's spectrum stands there.
@@ -71,9 +71,11 @@ pub struct Line {
 
 impl Line {
     /// Which side was altered: Some(true) for the reference, Some(false) for the other. The
-    /// side that holds the line's content had it added where it stands out from its ring
-    /// and the other lies near its own (neither standing out too nor cut away). None where
-    /// the differences hold no clear line, or the spectra do not tell.
+    /// side that holds the line's content had it added where it stands out from its ring,
+    /// and from the other's standing in its own, by [`ALTERED`] times, and the other is not
+    /// cut away there. None where the differences hold no clear line, or the spectra do not
+    /// tell: ground that stands out at that frequency in both (a ridge's direction, dunes)
+    /// holds weak stripes as much in one side as in the other.
     ///
     /// A notch (a line cut from one side) is not decided: the holder smooth there and the
     /// other far under its ring is also what weak stripes on rough ground look like where the
@@ -87,7 +89,7 @@ impl Line {
         let reference = self.held[0] >= self.held[1];
         let [r, o] = self.prominence;
         let (holder, other) = if reference { (r, o) } else { (o, r) };
-        (holder >= ALTERED && (1.0 / ALTERED..ALTERED).contains(&other)).then_some(reference)
+        (holder >= ALTERED * other.max(1.0) && other >= 1.0 / ALTERED).then_some(reference)
     }
 
     /// How far the altered side stands out from its ring, as a factor of 1 or more.

@@ -462,6 +462,10 @@ pub fn conflicts(cs: &[Conflict]) -> Vec<pb::Conflict> {
                 north_m: n,
                 up_m: u,
                 rms_after_m: c.rms_after_m.unwrap_or(f64::NAN),
+                turned_deg: c.placed.map_or(0.0, |p| p.turned_deg),
+                scale: c.placed.map_or(1.0, |p| p.scale),
+                tilt_east_m_per_km: c.placed.map_or(0.0, |p| p.tilt_m_per_km[0]),
+                tilt_north_m_per_km: c.placed.map_or(0.0, |p| p.tilt_m_per_km[1]),
             }),
             distrusted: match c.distrusted {
                 Distrusted::This => pb::Distrusted::This,
