@@ -255,8 +255,10 @@ pub fn measure(
             1.0
         }
     };
-    // Both halves of the spectrum hold the line (the samples are real).
-    let share = 2.0 * lobe(&pd, &md).0 / total;
+    // The line's power in the differences; both halves of the spectrum hold it (the samples
+    // are real).
+    let line_power = lobe(&pd, &md).0;
+    let share = 2.0 * line_power / total;
     // Cycles per plane unit along the columns and down the rows; the rows run clockwise
     // from the columns.
     let step = a.georef.step;
@@ -265,9 +267,8 @@ pub fn measure(
         signed(v, ny) / (ny as f64 * step[1]),
     );
     let held = |p: &[f64]| {
-        let d = lobe(&pd, &md).0;
-        if d > 0.0 {
-            lobe(p, &md).0 / d
+        if line_power > 0.0 {
+            lobe(p, &md).0 / line_power
         } else {
             1.0
         }
@@ -304,12 +305,26 @@ fn spectrum(z: &[f64], nx: usize, ny: usize) -> Vec<Complex<f64>> {
             Complex::new(d * hx[c] * hy[r], 0.0)
         })
         .collect();
+    fft2(&mut data, nx, ny, false);
+    data
+}
+
+/// The 2-D discrete Fourier transform of an nx × ny field, row-major, in place: along the
+/// rows, then down the columns. Unnormalised both ways: an inverse after a forward gives the
+/// field times nx · ny.
+pub fn fft2(data: &mut [Complex<f64>], nx: usize, ny: usize, inverse: bool) {
     let mut planner = FftPlanner::new();
-    let along = planner.plan_fft_forward(nx);
+    let mut plan = |n| {
+        if inverse {
+            planner.plan_fft_inverse(n)
+        } else {
+            planner.plan_fft_forward(n)
+        }
+    };
+    let (along, down) = (plan(nx), plan(ny));
     for row in data.chunks_exact_mut(nx) {
         along.process(row);
     }
-    let down = planner.plan_fft_forward(ny);
     let mut col = vec![Complex::new(0.0, 0.0); ny];
     for c in 0..nx {
         for r in 0..ny {
@@ -320,7 +335,6 @@ fn spectrum(z: &[f64], nx: usize, ny: usize) -> Vec<Complex<f64>> {
             data[r * nx + c] = col[r];
         }
     }
-    data
 }
 
 /// The least-squares plane `a + b·c + d·r` through the valid samples.
@@ -383,20 +397,7 @@ mod tests {
                 Complex::new(rad * t.cos(), rad * t.sin()) * f.powf(-1.5) * 400.0
             })
             .collect();
-        let ifft = FftPlanner::new().plan_fft_inverse(n);
-        for row in data.chunks_exact_mut(n) {
-            ifft.process(row);
-        }
-        let mut col = vec![Complex::new(0.0, 0.0); n];
-        for c in 0..n {
-            for r in 0..n {
-                col[r] = data[r * n + c];
-            }
-            ifft.process(&mut col);
-            for r in 0..n {
-                data[r * n + c] = col[r];
-            }
-        }
+        fft2(&mut data, n, n, true);
         let samples = data.iter().map(|z| (z.re / n as f64) as f32).collect();
         Grid::new(
             n,

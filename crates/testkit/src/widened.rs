@@ -11,8 +11,9 @@
 use crate::degrade::{self, rotation, warped};
 use patchwork_core::model::coreg::blurred as blurred_copy;
 use patchwork_core::model::grid::Grid;
+use patchwork_core::model::lines::fft2;
 use patchwork_core::terrain::Terrain;
-use rustfft::{num_complex::Complex, FftPlanner};
+use rustfft::num_complex::Complex;
 
 /// One kind of degradation of the widened family.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -287,25 +288,7 @@ pub fn spectral(g: &Grid, gain: impl Fn(f64) -> f64) -> Grid {
         .iter()
         .map(|&z| Complex::new(if z.is_nan() { 0.0 } else { z as f64 - mean }, 0.0))
         .collect();
-    let mut planner = FftPlanner::new();
-    let (row_f, col_f) = (planner.plan_fft_forward(w), planner.plan_fft_forward(h));
-    let (row_i, col_i) = (planner.plan_fft_inverse(w), planner.plan_fft_inverse(h));
-    let columns = |data: &mut Vec<Complex<f64>>, fft: &dyn rustfft::Fft<f64>| {
-        let mut col = vec![Complex::new(0.0, 0.0); h];
-        for c in 0..w {
-            for r in 0..h {
-                col[r] = data[r * w + c];
-            }
-            fft.process(&mut col);
-            for r in 0..h {
-                data[r * w + c] = col[r];
-            }
-        }
-    };
-    for row in data.chunks_mut(w) {
-        row_f.process(row);
-    }
-    columns(&mut data, col_f.as_ref());
+    fft2(&mut data, w, h, false);
     let freq = |k: usize, n: usize| {
         let k = if k <= n / 2 {
             k as f64
@@ -320,10 +303,7 @@ pub fn spectral(g: &Grid, gain: impl Fn(f64) -> f64) -> Grid {
             data[r * w + c] *= gain(f);
         }
     }
-    columns(&mut data, col_i.as_ref());
-    for row in data.chunks_mut(w) {
-        row_i.process(row);
-    }
+    fft2(&mut data, w, h, true);
     let n = (w * h) as f64;
     let samples = g
         .samples
