@@ -914,7 +914,9 @@ fn tiles_come_as_bands_of_bytes_that_any_client_can_take_and_small_ones_at_once(
             tonic::Code::OutOfRange,
             "one message is over the default limit"
         );
-        // A small tile answers at once: replies no longer wait out a delayed ACK (40 ms).
+        // A small tile answers at once: replies no longer wait out a delayed ACK (40 ms
+        // each). The bound sits halfway to that wait, not near a quiet machine's 1-2 ms,
+        // so that a loaded machine passes and the delayed ACK alone fails.
         let mut ms = Vec::new();
         for _ in 0..21 {
             let t0 = std::time::Instant::now();
@@ -922,7 +924,7 @@ fn tiles_come_as_bands_of_bytes_that_any_client_can_take_and_small_ones_at_once(
             ms.push(t0.elapsed().as_secs_f64() * 1e3);
         }
         ms.sort_by(f64::total_cmp);
-        assert!(ms[10] < 5.0, "a 16² tile takes {:.1} ms (median)", ms[10]);
+        assert!(ms[10] < 20.0, "a 16² tile takes {:.1} ms (median)", ms[10]);
     });
 }
 
