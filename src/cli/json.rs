@@ -94,7 +94,7 @@ pub struct ConflictJson<'a> {
     /// Whose claim the evidence finds false: "this", "other" or "both".
     #[serde(serialize_with = "word")]
     distrusted: pb::Distrusted,
-    /// The test that decided it ("prediction", "detail", "noise", "line", "consensus" or
+    /// The test that decided it ("prediction", "detail", "transfer", "noise", "line", "consensus" or
     /// "undetermined"), its statistic and confidence.
     decided_by: &'a str,
     statistic: f64,

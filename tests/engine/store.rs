@@ -263,7 +263,8 @@ fn committed_surveys_come_back_as_the_same_terrain() {
                 (8, 9),
                 (9, 10),
                 (10, 11),
-                (11, 12)
+                (11, 12),
+                (12, 13)
             ]
         );
         assert_eq!(terrain.index().len(), 0);
@@ -1288,7 +1289,8 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
             (8, 9),
             (9, 10),
             (10, 11),
-            (11, 12)
+            (11, 12),
+            (12, 13)
         ]
     );
     let roi = bounds_of(&[a.clone(), b.clone()]);
@@ -1369,7 +1371,15 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(
         store.migrations_run(),
-        &[(6, 7), (7, 8), (8, 9), (9, 10), (10, 11), (11, 12)]
+        &[
+            (6, 7),
+            (7, 8),
+            (8, 9),
+            (9, 10),
+            (10, 11),
+            (11, 12),
+            (12, 13)
+        ]
     );
     let migrated: Vec<(sled::IVec, sled::IVec)> =
         store.raw().scan_prefix("b/").map(Result::unwrap).collect();
@@ -1398,7 +1408,15 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(
         store.migrations_run(),
-        &[(6, 7), (7, 8), (8, 9), (9, 10), (10, 11), (11, 12)]
+        &[
+            (6, 7),
+            (7, 8),
+            (8, 9),
+            (9, 10),
+            (10, 11),
+            (11, 12),
+            (12, 13)
+        ]
     );
     assert_eq!(store.raw().scan_prefix("t/").count(), 0);
     assert_eq!(terrain.index().state(), t.index().state());
@@ -1823,7 +1841,16 @@ fn a_version_5_store_keeps_its_failures_with_no_content_known() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(
         store.migrations_run(),
-        &[(5, 6), (6, 7), (7, 8), (8, 9), (9, 10), (10, 11), (11, 12)]
+        &[
+            (5, 6),
+            (6, 7),
+            (7, 8),
+            (8, 9),
+            (9, 10),
+            (10, 11),
+            (11, 12),
+            (12, 13)
+        ]
     );
     assert_eq!(
         store.failures().unwrap(),
@@ -1987,7 +2014,7 @@ fn a_version_7_store_measures_its_overlaps_again() {
     let Opened { store, terrain, .. } = open(&dir);
     assert_eq!(
         store.migrations_run(),
-        &[(7, 8), (8, 9), (9, 10), (10, 11), (11, 12)]
+        &[(7, 8), (8, 9), (9, 10), (10, 11), (11, 12), (12, 13)]
     );
     let pairs: Vec<PairEvidence> = store
         .all_pairs()

@@ -84,7 +84,15 @@ def check_conflicts(active):
     # each says so of the other with the sign turned.
     require(np.hypot(ab.shift_m[0], ab.shift_m[1]) < 5.0, f"{ab}")
     require(np.allclose(ab.shift_m, [-v for v in ba.shift_m]), f"{ab} vs {ba}")
-    tests = {"prediction", "detail", "noise", "line", "consensus", "undetermined"}
+    tests = {
+        "prediction",
+        "detail",
+        "transfer",
+        "noise",
+        "line",
+        "consensus",
+        "undetermined",
+    }
     require(all(k.decided_by in tests for s in active for k in s.conflicts), f"{active}")
     require(len(d.conflicts) == 2, f"{d}")
     require(all(k.distrusted == "this" or (k.distrusted == "both" and not k.takes_tie)

@@ -163,7 +163,7 @@ class Conflict:
     tilt_m_per_km: Optional[Tuple[float, float]] = None
     #: Whose claim the evidence finds false: "this", "other", "both" or "" (neither).
     distrusted: str = ""
-    #: The test that decided it: "prediction", "detail", "noise", "line", "consensus" or
+    #: The test that decided it: "prediction", "detail", "transfer", "noise", "line", "consensus" or
     #: "undetermined", with its statistic and a confidence from 0 to 1.
     decided_by: str = ""
     statistic: float = 0.0

@@ -34,6 +34,7 @@ use super::grid::Grid;
 use super::ids::SurveyId;
 use super::lines::{self, Line};
 use super::patch::Tiling;
+use super::transfer::{self, Transfer};
 use patchwork_geom::Aabb;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -59,6 +60,9 @@ pub struct PairEvidence {
     /// The strongest line of their differences' spectrum, and how each side's spectrum
     /// stands there (see [`super::lines`]); None where the overlap is too small.
     pub line: Option<Line>,
+    /// Whether either is a filter of the other, ring by ring of their spectra (see
+    /// [`super::transfer`]); None where the overlap holds too few whole tiles.
+    pub transfer: Option<Transfer>,
     /// The finer survey's cell, in its plane's units.
     pub finer_cell: f64,
     /// The median claim of each, the finer's then the coarser's, over the samples compared.
@@ -329,9 +333,11 @@ pub fn compare(
     let detail = aligned
         .as_ref()
         .and_then(|k| detail::measure(f, c, to_coarser, to_finer, &k.placement(), bounds, cell));
-    let line = aligned
+    let samples = aligned
         .as_ref()
-        .and_then(|k| lines::measure(f, c, to_coarser, &k.placement(), bounds, cell));
+        .and_then(|k| lines::read(f, c, to_coarser, &k.placement(), bounds, cell));
+    let line = samples.as_ref().and_then(lines::line);
+    let transfer = samples.as_ref().and_then(transfer::measure);
     let changes = changes(
         finer,
         coarser,
@@ -371,6 +377,7 @@ pub fn compare(
         degradation,
         detail,
         line,
+        transfer,
         finer_cell,
         cell,
         metres_per_unit,
@@ -612,7 +619,8 @@ impl PairEvidence {
 
     /// Which one the pair alone finds the lesser copy, by the first test that decides: the
     /// predictions (a low-pass of one predicts the other, and not the other way round), the
-    /// bands' shared detail (one lacks detail the other has, which noise cannot fake),
+    /// bands' shared detail (one lacks detail the other has, which noise cannot fake), the
+    /// transfer between them (one a filter of the other, ring by ring of their spectra),
     /// added noise (one holds detail the other does not share, while all of the other's is
     /// shared), or a line in the spectrum of their differences that one side holds, or lacks,
     /// where the other's is smooth. None where no test decides.
@@ -630,29 +638,49 @@ impl PairEvidence {
                 _ => {}
             }
         }
-        let by_detail = self.detail.as_ref().and_then(|d| match d.finding() {
+        let found = self
+            .detail
+            .as_ref()
+            .map_or(Finding::Undecided, |d| d.finding());
+        match found {
             Finding::ReferenceLacks { gain, .. } => {
-                Some((Blame::Finer, Decided::new(Test::Detail, gain)))
+                return Some((Blame::Finer, Decided::new(Test::Detail, gain)))
             }
             Finding::OtherLacks { gain, .. } => {
-                Some((Blame::Coarser, Decided::new(Test::Detail, gain)))
+                return Some((Blame::Coarser, Decided::new(Test::Detail, gain)))
             }
+            _ => {}
+        }
+        // The reference blamed where `reference`, else the other.
+        let blame = |reference: bool| {
+            if reference {
+                Blame::Finer
+            } else {
+                Blame::Coarser
+            }
+        };
+        // Before noise: a hard low-pass leaves its copy's bands all shared, and the
+        // original's excess over them reads as noise; ring by ring it is a filter.
+        if let Some(t) = &self.transfer {
+            if let Some(reference) = t.filtered() {
+                return Some((
+                    blame(reference),
+                    Decided::new(Test::Transfer, t.statistic()),
+                ));
+            }
+        }
+        let by_detail = match found {
             Finding::ReferenceNoisy { excess, .. } => {
                 Some((Blame::Finer, Decided::new(Test::Noise, excess)))
             }
             Finding::OtherNoisy { excess, .. } => {
                 Some((Blame::Coarser, Decided::new(Test::Noise, excess)))
             }
-            Finding::Undecided => None,
-        });
+            _ => None,
+        };
         by_detail.or_else(|| {
             let l = self.line.as_ref()?;
-            let blame = if l.altered()? {
-                Blame::Finer
-            } else {
-                Blame::Coarser
-            };
-            Some((blame, Decided::new(Test::Line, l.standing())))
+            Some((blame(l.altered()?), Decided::new(Test::Line, l.standing())))
         })
     }
 
@@ -796,6 +824,10 @@ pub enum Test {
     /// lacks: the statistic is how many times it stands out from its ring (over
     /// [`lines::ALTERED`]).
     Line,
+    /// One is a filter of the other: it lost power coherently over several rings of their
+    /// spectra, or its spectrum falls off an edge where the other's is smooth; the statistic
+    /// is the edge's fall, else the rings of coherent loss (see [`super::transfer`]).
+    Transfer,
     /// Surveys overlapping both lie where one lies: the statistic is the margin of votes.
     Consensus,
     /// Nothing decides: the statistic is 0, and the pair's tie goes as
@@ -811,6 +843,7 @@ impl Test {
             Test::Detail => "detail",
             Test::Noise => "noise",
             Test::Line => "line",
+            Test::Transfer => "transfer",
             Test::Consensus => "consensus",
             Test::Undetermined => "undetermined",
         }
@@ -836,6 +869,8 @@ impl Decided {
             Test::Detail => 1.0 - statistic / detail::LACKS_BELOW,
             Test::Noise => 1.0 - detail::NOISY_ABOVE / statistic,
             Test::Line => 1.0 - lines::ALTERED.ln() / statistic.ln(),
+            // Rings of loss over the least that count; an edge (20 or more) is near 1.
+            Test::Transfer => 1.0 - transfer::LEAST_LOSSY as f64 / statistic,
             Test::Consensus => statistic,
             Test::Undetermined => 0.0,
         };

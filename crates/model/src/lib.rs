@@ -18,3 +18,4 @@ pub mod place;
 pub mod source;
 pub mod spline;
 pub mod survey;
+pub mod transfer;

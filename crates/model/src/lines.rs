@@ -22,7 +22,7 @@
 
 use super::coreg::{Carry, Placement};
 use super::detail::block_mean;
-use super::grid::Grid;
+use super::grid::{Georef, Grid};
 use patchwork_geom::Aabb;
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
@@ -99,17 +99,34 @@ impl Line {
     }
 }
 
-/// The strongest line of the differences of `other` (read at `to_other(place.forth(p))` for
-/// the reference's point p) from `reference` over `bounds`, with `cell` the coarser survey's
-/// cell in the reference plane's units. None where the overlap is too small.
-pub fn measure(
+/// Both sides' samples over the rectangle at the overlap's middle, as the spectra take them:
+/// the reference's block means at about the coarser survey's cell, and the other read at
+/// the same points through the placement. NaN where either has no sample.
+pub struct Samples {
+    /// The reference's samples, row-major.
+    pub reference: Vec<f64>,
+    /// The other's, at the same points.
+    pub other: Vec<f64>,
+    /// Columns.
+    pub nx: usize,
+    /// Rows.
+    pub ny: usize,
+    /// Where the samples lie.
+    pub georef: Georef,
+}
+
+/// The samples of `reference` and of `other` (read at `to_other(place.forth(p))` for the
+/// reference's point p) over the largest rectangle at the middle of `bounds`, with `cell` the
+/// coarser survey's cell in the reference plane's units. None where the overlap is too small,
+/// or holds samples of both over less than half the rectangle.
+pub fn read(
     reference: &Grid,
     other: &Grid,
     to_other: Carry,
     place: &Placement,
     bounds: &Aabb,
     cell: f64,
-) -> Option<Line> {
+) -> Option<Samples> {
     let rect = reference.shape().rect_over(bounds)?;
     let own = reference.georef.step[0].max(reference.georef.step[1]);
     // At about the coarser survey's cell: the finer's detail past it is not in the other.
@@ -147,8 +164,34 @@ pub fn measure(
     if 2 * valid < nx * ny {
         return None;
     }
-    let fa = spectrum(&za, nx, ny);
-    let fb = spectrum(&zb, nx, ny);
+    Some(Samples {
+        reference: za,
+        other: zb,
+        nx,
+        ny,
+        georef: a.georef,
+    })
+}
+
+/// The strongest line of the differences of `other` (read at `to_other(place.forth(p))` for
+/// the reference's point p) from `reference` over `bounds`, with `cell` the coarser survey's
+/// cell in the reference plane's units. None where the overlap is too small.
+pub fn measure(
+    reference: &Grid,
+    other: &Grid,
+    to_other: Carry,
+    place: &Placement,
+    bounds: &Aabb,
+    cell: f64,
+) -> Option<Line> {
+    line(&read(reference, other, to_other, place, bounds, cell)?)
+}
+
+/// The strongest line of the differences of two sides' samples.
+pub fn line(s: &Samples) -> Option<Line> {
+    let (za, zb, nx, ny) = (&s.reference, &s.other, s.nx, s.ny);
+    let fa = spectrum(za, nx, ny);
+    let fb = spectrum(zb, nx, ny);
     let power = |f: &[Complex<f64>]| f.iter().map(|z| z.norm_sqr()).collect::<Vec<f64>>();
     let fd: Vec<Complex<f64>> = fb.iter().zip(&fa).map(|(b, a)| b - a).collect();
     let (pa, pb, pd) = (power(&fa), power(&fb), power(&fd));
@@ -261,7 +304,7 @@ pub fn measure(
     let share = 2.0 * line_power / total;
     // Cycles per plane unit along the columns and down the rows; the rows run clockwise
     // from the columns.
-    let step = a.georef.step;
+    let step = s.georef.step;
     let (fx, fy) = (
         signed(u, nx) / (nx as f64 * step[0]),
         signed(v, ny) / (ny as f64 * step[1]),
@@ -275,7 +318,7 @@ pub fn measure(
     };
     Some(Line {
         period: 1.0 / fx.hypot(fy),
-        angle: (a.georef.theta.to_degrees() - fy.atan2(fx).to_degrees()).rem_euclid(180.0),
+        angle: (s.georef.theta.to_degrees() - fy.atan2(fx).to_degrees()).rem_euclid(180.0),
         share: share.min(1.0),
         strength: stand(&pd, &md),
         prominence: [stand(&pa, &ma), stand(&pb, &mb)],
@@ -285,7 +328,7 @@ pub fn measure(
 
 /// The 2-D spectrum of an nx × ny field (NaN where there is no sample), less its own
 /// least-squares plane and tapered by a Hann window; gaps count as the plane.
-fn spectrum(z: &[f64], nx: usize, ny: usize) -> Vec<Complex<f64>> {
+pub(crate) fn spectrum(z: &[f64], nx: usize, ny: usize) -> Vec<Complex<f64>> {
     let plane = fit_plane(z, nx, ny);
     let hann = |n: usize| -> Vec<f64> {
         (0..n)
@@ -366,13 +409,13 @@ fn fit_plane(z: &[f64], nx: usize, ny: usize) -> [f64; 3] {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::grid::Georef;
 
     /// Rough ground of a power-law spectrum (power as f⁻³, random in each bin, as real
     /// relief's is), from a seed.
-    fn ground(n: usize, seed: u64) -> Grid {
+    pub(crate) fn ground(n: usize, seed: u64) -> Grid {
         let mut x = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
         let mut next = move || {
             x = x

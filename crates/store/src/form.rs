@@ -27,6 +27,7 @@ use patchwork_core::model::ids::{PatchId, SurveyId};
 use patchwork_core::model::lines;
 use patchwork_core::model::patch::{self, PatchLayout};
 use patchwork_core::model::survey::{Survey as Cut, SurveyMeta};
+use patchwork_core::model::transfer;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -640,6 +641,37 @@ impl From<Line> for lines::Line {
     }
 }
 
+/// Whether either side of a pair is a filter of the other, ring by ring of their spectra.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Transfer {
+    /// Rings of coherent loss, the reference's first.
+    pub lossy: [u32; 2],
+    /// The largest fall of each side's spectrum over two rings, the reference's first.
+    pub edge: [f64; 2],
+    /// Tiles the spectra are over.
+    pub tiles: u32,
+}
+
+impl From<transfer::Transfer> for Transfer {
+    fn from(t: transfer::Transfer) -> Self {
+        Transfer {
+            lossy: t.lossy,
+            edge: t.edge,
+            tiles: t.tiles,
+        }
+    }
+}
+
+impl From<Transfer> for transfer::Transfer {
+    fn from(t: Transfer) -> Self {
+        transfer::Transfer {
+            lossy: t.lossy,
+            edge: t.edge,
+            tiles: t.tiles,
+        }
+    }
+}
+
 /// What two overlapping surveys say of each other's claims (`o/`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Pair {
@@ -657,6 +689,8 @@ pub struct Pair {
     pub detail: Option<Detail>,
     /// The strongest line of their differences' spectrum, where measured (from version 12).
     pub line: Option<Line>,
+    /// Whether either is a filter of the other, where measured (from version 13).
+    pub transfer: Option<Transfer>,
     /// The finer survey's cell, plane units.
     pub finer_cell: f64,
     /// Their claimed ε.
@@ -782,6 +816,7 @@ impl From<&PairEvidence> for Pair {
                     .collect(),
             }),
             line: p.line.map(Line::from),
+            transfer: p.transfer.map(Transfer::from),
             finer_cell: p.finer_cell,
             claims: p.claims,
             cell: p.cell,
@@ -843,6 +878,7 @@ impl From<Pair> for PairEvidence {
                     .collect(),
             }),
             line: p.line.map(lines::Line::from),
+            transfer: p.transfer.map(transfer::Transfer::from),
             finer_cell: p.finer_cell,
             claims: p.claims,
             cell: p.cell,

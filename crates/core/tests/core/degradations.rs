@@ -72,12 +72,13 @@ fn one_draw(
                     // Why the pair let the copy serve.
                     v += &format!(
                     "; the original is the {}; predictions {:?}; claims {:?}; tie to the finer \
-                     {:?}; line {:?}; bands {:?}",
+                     {:?}; line {:?}; transfer {:?}; bands {:?}",
                     if Some(p.finer) == original { "finer" } else { "coarser" },
                     p.degradation,
                     p.claims,
                     p.tie_to_finer(),
                     p.line,
+                    p.transfer,
                     p.detail.as_ref().map(|d| d
                         .bands
                         .iter()

@@ -10,6 +10,7 @@ use patchwork_core::model::patch::PatchLayout;
 mod v0_to_v1;
 mod v10_to_v11;
 mod v11_to_v12;
+mod v12_to_v13;
 mod v1_to_v2;
 mod v2_to_v3;
 mod v3;
@@ -38,10 +39,11 @@ const STEPS: &[(u32, u32, Step)] = &[
     (9, 10, v9_to_v10::run),
     (10, 11, v10_to_v11::run),
     (11, 12, v11_to_v12::run),
+    (12, 13, v12_to_v13::run),
 ];
 
 /// The schema this binary writes.
-pub const CURRENT: u32 = 12;
+pub const CURRENT: u32 = 13;
 
 /// What a step may need beyond the tree: the settings `open` was called with, which a fresh
 /// store adopts, and the pack that chunk bytes go to.
