@@ -15,10 +15,11 @@
 //!   and the two are more coherent than [`COHERENT`] and than twice that ratio. No amount of
 //!   noise in the other makes that; a filter's slope does (a Butterworth's, a Gaussian's, a
 //!   resampling's).
-//! - **An edge**: one side's power falls by [`EDGE`] times or more within two rings (the
-//!   window's main lobe), where the other's falls by at most [`SMOOTH`], and stays under
-//!   [`LOSS`]² of the other's past it. Ground's spectrum and any noise's are smooth: a power
-//!   law falls by a factor under 3 over two rings past the fourth. Only a filter in the
+//! - **An edge**: one side's power falls [`EDGE`] times more than the other's within two
+//!   rings (the window's main lobe), from ring [`FIRST_EDGE`] out, holding over [`LOSS`]² of
+//!   the other's power before and under it after, while the other side has no such fall of
+//!   [`SMOOTH`]. Ground's spectrum and any noise's are smooth: a power law as steep as
+//!   ground's falls by at most 5 over two rings from the fourth out. Only a filter in the
 //!   frequency domain cuts a spectrum off, and past its cut the copy holds nothing the
 //!   coherence could measure.
 //!
@@ -40,7 +41,7 @@ const FIRST_RING: usize = 2;
 /// The innermost ring an edge may start at: a power law as steep as ground's (f⁻⁴ a bin)
 /// falls by 5 from the fourth ring to the sixth, and a side whose noise flattens its
 /// spectrum there would stand that far from the other.
-const FIRST_EDGE: usize = 4;
+pub const FIRST_EDGE: usize = 4;
 /// A side holding at most this share of the other's power in a ring has lost some of it...
 pub const LOSS: f64 = 0.5;
 /// ... coherently, where their coherence there is over this, and over twice the share.
@@ -50,8 +51,8 @@ pub const LEAST_LOSSY: u32 = 3;
 /// A fall of a side's power over two rings, beyond the other's there, that is an edge: twice
 /// the most a smooth spectrum falls past [`FIRST_EDGE`].
 pub const EDGE: f64 = 10.0;
-/// The most the other side's own spectrum may fall by anywhere over two rings, beyond the
-/// first side's, for the edge to count: a spectrum that falls this fast is not ground's.
+/// The most the other side's own edge may reach for the first side's to count: where both
+/// fall off, neither spectrum is ground's.
 pub const SMOOTH: f64 = 5.0;
 /// A bin standing this many times over its ring's median is a line, not a filter's work.
 const LINE: f64 = 20.0;
