@@ -173,21 +173,7 @@ pub fn read(
     })
 }
 
-/// The strongest line of the differences of `other` (read at `to_other(place.forth(p))` for
-/// the reference's point p) from `reference` over `bounds`, with `cell` the coarser survey's
-/// cell in the reference plane's units. None where the overlap is too small.
-pub fn measure(
-    reference: &Grid,
-    other: &Grid,
-    to_other: Carry,
-    place: &Placement,
-    bounds: &Aabb,
-    cell: f64,
-) -> Option<Line> {
-    line(&read(reference, other, to_other, place, bounds, cell)?)
-}
-
-/// The strongest line of the differences of two sides' samples.
+/// The strongest line of the differences of two sides' samples ([`read`]).
 pub fn line(s: &Samples) -> Option<Line> {
     let (za, zb, nx, ny) = (&s.reference, &s.other, s.nx, s.ny);
     let fa = spectrum(za, nx, ny);
@@ -471,7 +457,8 @@ pub(crate) mod tests {
     fn line(a: &Grid, b: &Grid) -> Line {
         let same = |p: [f64; 2]| Some(p);
         let bounds = a.world_bounds();
-        measure(a, b, &same, &Placement::shift([0.0, 0.0]), &bounds, 1.0).unwrap()
+        let s = read(a, b, &same, &Placement::shift([0.0, 0.0]), &bounds, 1.0).unwrap();
+        super::line(&s).unwrap()
     }
 
     /// Stripes of any direction and period are found in the side that holds them, whichever
