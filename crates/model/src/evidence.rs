@@ -718,9 +718,14 @@ impl PairEvidence {
         }
     }
 
-    /// Who takes a pair that nothing decides: the finer cells, then the one whose bands lack
-    /// less of the detail the two share, then the one a low-pass of the other predicts less
-    /// well, then the one that adds less detail the other does not share. Never the smoother
+    /// Who takes a pair that nothing decides: the finer cells, then the one a low-pass of the
+    /// other predicts less well (by half), then the one whose bands lack less of the detail
+    /// the two share, then the one that adds less detail the other does not share. The
+    /// predictions come before the bands because they read each side both bilinearly and by
+    /// a cubic, where the bands read the other side bilinearly alone: placed by a fraction of
+    /// a cell, that reading smooths it, and a copy turned by 0.1° with a cubic, taken as the
+    /// reference, made its original seem to lack 6% of the finest shared detail while the
+    /// original predicted it 2.7 times better than the reverse. Never the smoother
     /// by its own estimate, which smoothness flatters. Some(true) where the finer survey
     /// takes it; None where nothing tells them apart (the same content moved or offset),
     /// and the claims, raised alike, decide. Where the two hold the same detail, the one
@@ -730,11 +735,6 @@ impl PairEvidence {
             return Some(true);
         }
         let detail = self.detail.as_ref();
-        if let Some(lack) = detail.map(|d| d.lack()) {
-            if lack.abs() > LEAN {
-                return Some(lack < 0.0);
-            }
-        }
         if let Some(d) = &self.degradation {
             let (a, b) = (d.other_from_reference.rms, d.reference_from_other.rms);
             if a < 0.5 * b && self.may_be_degraded(false) {
@@ -742,6 +742,11 @@ impl PairEvidence {
             }
             if b < 0.5 * a && self.may_be_degraded(true) {
                 return Some(false);
+            }
+        }
+        if let Some(lack) = detail.map(|d| d.lack()) {
+            if lack.abs() > LEAN {
+                return Some(lack < 0.0);
             }
         }
         if let Some(x) = detail.and_then(|d| d.excess()) {
