@@ -145,7 +145,7 @@ fn widened_draws(
     scenes: &Scenes,
     next: &mut impl FnMut() -> f64,
 ) -> Result<(), Fail> {
-    println!("{n} copies of the widened family (held back: shear, ringing, slanted stripes)");
+    println!("{n} copies of the widened family (held back: shear, ringing, slanted stripes, block compression)");
     let mut csv = String::from("draw,scene,kind,copy,share\n");
     let mut rows = Vec::new();
     for k in 0..n {

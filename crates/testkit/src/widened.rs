@@ -44,11 +44,16 @@ pub enum Kind {
     /// Stripes at an angle to both axes, a sensor's pattern rather than a scan line's. Held
     /// back.
     SlantedStripes,
+    /// Compressed as a lossy codec does: each whole block of 8 × 8 cells by its cosine
+    /// transform, the coefficients rounded to a step of 0.25–4 m at the mean that grows with
+    /// the frequency, so that fine detail is lost block by block and the blocks' edges show.
+    /// Held back.
+    BlockCompression,
 }
 
 impl Kind {
     /// Every kind.
-    pub const ALL: [Kind; 11] = [
+    pub const ALL: [Kind; 12] = [
         Kind::Rotation,
         Kind::Stretch,
         Kind::Shear,
@@ -60,12 +65,16 @@ impl Kind {
         Kind::FabricatedFill,
         Kind::Aliasing,
         Kind::SlantedStripes,
+        Kind::BlockCompression,
     ];
 
     /// Whether this kind was kept out of the development of the arbitration: the tests
     /// report these apart.
     pub fn held_back(self) -> bool {
-        matches!(self, Kind::Shear | Kind::Ringing | Kind::SlantedStripes)
+        matches!(
+            self,
+            Kind::Shear | Kind::Ringing | Kind::SlantedStripes | Kind::BlockCompression
+        )
     }
 
     /// A short name, for reports.
@@ -82,6 +91,7 @@ impl Kind {
             Kind::FabricatedFill => "fabricated fill",
             Kind::Aliasing => "aliasing",
             Kind::SlantedStripes => "slanted stripes",
+            Kind::BlockCompression => "block compression",
         }
     }
 }
@@ -237,7 +247,89 @@ pub fn apply(kind: Kind, g: &Grid, next: &mut impl FnMut() -> f64) -> (String, G
             }
             (format!("every {k}th sample, nearest back up"), out)
         }
+        Kind::BlockCompression => {
+            let step = between(next, 0.25, 4.0);
+            let growth = between(next, 0.5, 2.0);
+            (
+                format!("8 × 8 cosine blocks quantised by {step:.2} m, ×{growth:.2} a frequency"),
+                block_compressed(g, step, growth),
+            )
+        }
     }
+}
+
+/// `g` with each whole 8 × 8 block of cells taken to its orthonormal cosine transform (DCT-II),
+/// the coefficient of frequencies (u, v) rounded to a multiple of `step · (1 + growth · (u +
+/// v))`, and taken back. Voids are filled with their block's mean for the transform and stay
+/// voids; a block with no valid sample, and the partial blocks at the right and bottom
+/// edges, are kept as they are.
+pub fn block_compressed(g: &Grid, step: f64, growth: f64) -> Grid {
+    const N: usize = 8;
+    let basis: Vec<[f64; N]> = (0..N)
+        .map(|k| {
+            let a = if k == 0 {
+                (1.0 / N as f64).sqrt()
+            } else {
+                (2.0 / N as f64).sqrt()
+            };
+            let mut row = [0.0; N];
+            for (n, x) in row.iter_mut().enumerate() {
+                *x = a
+                    * (std::f64::consts::PI * (2 * n + 1) as f64 * k as f64 / (2 * N) as f64).cos();
+            }
+            row
+        })
+        .collect();
+    let mut out = g.clone();
+    for by in 0..g.rows / N {
+        for bx in 0..g.cols / N {
+            let at = |r: usize, c: usize| (by * N + r) * g.cols + bx * N + c;
+            let valid: Vec<f64> = (0..N * N)
+                .map(|i| g.samples[at(i / N, i % N)] as f64)
+                .filter(|z| !z.is_nan())
+                .collect();
+            if valid.is_empty() {
+                continue;
+            }
+            let mean = valid.iter().sum::<f64>() / valid.len() as f64;
+            let mut x = [[0.0f64; N]; N];
+            for (r, row) in x.iter_mut().enumerate() {
+                for (c, v) in row.iter_mut().enumerate() {
+                    let z = g.samples[at(r, c)] as f64;
+                    *v = if z.is_nan() { mean } else { z };
+                }
+            }
+            // Forward: X = B x Bᵀ, quantised, then back: x = Bᵀ X B.
+            let mut f = [[0.0f64; N]; N];
+            for u in 0..N {
+                for v in 0..N {
+                    let mut sum = 0.0;
+                    for r in 0..N {
+                        for c in 0..N {
+                            sum += basis[u][r] * x[r][c] * basis[v][c];
+                        }
+                    }
+                    let q = step * (1.0 + growth * (u + v) as f64);
+                    f[u][v] = (sum / q).round() * q;
+                }
+            }
+            for r in 0..N {
+                for c in 0..N {
+                    if g.samples[at(r, c)].is_nan() {
+                        continue;
+                    }
+                    let mut sum = 0.0;
+                    for u in 0..N {
+                        for v in 0..N {
+                            sum += basis[u][r] * f[u][v] * basis[v][c];
+                        }
+                    }
+                    out.samples[at(r, c)] = sum as f32;
+                }
+            }
+        }
+    }
+    out
 }
 
 /// Draws a copy of `g` from the widened family, from the kinds `pick` allows: one to `most`
@@ -410,4 +502,51 @@ pub fn served_within(t: &Terrain, g: &Grid, tol: f64) -> f64 {
         .filter(|(h, z)| !h.is_nan() && (**h as f64 - **z).abs() <= tol)
         .count();
     ok as f64 / want.len().max(1) as f64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use patchwork_core::model::grid::Georef;
+
+    /// Rough ground of 20 × 18 cells: two whole blocks across and two down, and partial ones.
+    fn rough() -> Grid {
+        let s = (0..20 * 18)
+            .map(|k| {
+                let (c, r) = ((k % 20) as f32, (k / 20) as f32);
+                100.0 + 3.0 * c + (c * 1.7).sin() * 4.0 + (r * 2.3).cos() * 5.0
+            })
+            .collect();
+        Grid::new(20, 18, s, Georef::north_up([0.0, 18.0], [1.0, 1.0])).unwrap()
+    }
+
+    #[test]
+    fn block_compression_is_lossless_at_a_fine_step_and_keeps_voids_and_partial_blocks() {
+        let mut g = rough();
+        g.samples[3 * 20 + 4] = f32::NAN;
+        let fine = block_compressed(&g, 1e-6, 1.0);
+        for (a, b) in g.samples.iter().zip(&fine.samples) {
+            assert!(a.is_nan() && b.is_nan() || (a - b).abs() < 1e-3, "{a} {b}");
+        }
+        let coarse = block_compressed(&g, 4.0, 1.0);
+        assert!(coarse.samples[3 * 20 + 4].is_nan());
+        // The 17th column on (a partial block) and the 17th row down are kept as they were.
+        assert_eq!(coarse.at(17, 5), g.at(17, 5));
+        assert_eq!(coarse.at(5, 16), g.at(5, 16));
+        // A whole block loses detail but keeps its mean to within a sixteenth of the step
+        // (the mean is the zero frequency's coefficient over 8).
+        let mean = |g: &Grid| {
+            let v: Vec<f64> = (8..16)
+                .flat_map(|r| (8..16).map(move |c| (c, r)))
+                .map(|(c, r)| g.at(c, r) as f64)
+                .collect();
+            v.iter().sum::<f64>() / v.len() as f64
+        };
+        assert!((mean(&coarse) - mean(&g)).abs() <= 4.0 / 16.0 + 1e-4);
+        let changed = (8..16)
+            .flat_map(|r| (8..16).map(move |c| (c, r)))
+            .filter(|&(c, r)| (coarse.at(c, r) - g.at(c, r)).abs() > 0.01)
+            .count();
+        assert!(changed > 32, "only {changed} of 64 samples changed");
+    }
 }
