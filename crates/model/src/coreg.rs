@@ -518,29 +518,15 @@ fn affine_f(
     placed: &Coregistration,
 ) -> (f64, f64) {
     const B: usize = JACKKNIFE_BLOCKS;
-    let h = step * 0.5;
-    let place = placed.placement();
-    let rows: Vec<(usize, [f64; 9], f64)> = pts
-        .par_iter()
-        .filter_map(|&(p, z)| {
-            let q = place.forth(p);
-            let here = at(q, [0.0, 0.0])?;
-            let gx = (at(q, [h, 0.0])? - at(q, [-h, 0.0])?) / (2.0 * h);
-            let gy = (at(q, [0.0, h])? - at(q, [0.0, -h])?) / (2.0 * h);
-            let (u, v) = (
-                (p[0] - placed.centre[0]) / radius,
-                (p[1] - placed.centre[1]) / radius,
-            );
-            let cell = |x: f64, lo: f64, hi: f64| {
-                (((x - lo) / (hi - lo) * B as f64).floor().max(0.0) as usize).min(B - 1)
-            };
+    let cell = |x: f64, lo: f64, hi: f64| {
+        (((x - lo) / (hi - lo) * B as f64).floor().max(0.0) as usize).min(B - 1)
+    };
+    let rows: Vec<(usize, [f64; 9], f64)> = affine_rows(pts, at, step, radius, placed)
+        .into_iter()
+        .map(|(p, g, d)| {
             let block = cell(p[1], bounds.min[1], bounds.max[1]) * B
                 + cell(p[0], bounds.min[0], bounds.max[0]);
-            Some((
-                block,
-                [gx, gy, gx * u, gx * v, gy * u, gy * v, -1.0, -u, -v],
-                here - z - placed.dz_at(p),
-            ))
+            (block, g, d)
         })
         .collect();
     let r: Vec<f64> = rows.iter().map(|x| x.2).collect();
@@ -635,6 +621,34 @@ fn affine_f(
     (t2 * (kk - 6) as f64 / (6.0 * (kk - 1) as f64), share)
 }
 
+/// The rows of the affine fit at placement `k`: for each sample p of the reference that the
+/// other covers, p, the difference's derivatives by the nine unknowns (the shift, the linear
+/// part, the offset and the tilt, d = p − centre scaled by `radius`), and the difference left.
+fn affine_rows(
+    pts: &[([f64; 2], f64)],
+    at: &(dyn Fn([f64; 2], [f64; 2]) -> Option<f64> + Sync),
+    step: f64,
+    radius: f64,
+    k: &Coregistration,
+) -> Vec<([f64; 2], [f64; 9], f64)> {
+    let h = step * 0.5;
+    let place = k.placement();
+    pts.par_iter()
+        .filter_map(|&(p, z)| {
+            let q = place.forth(p);
+            let here = at(q, [0.0, 0.0])?;
+            let gx = (at(q, [h, 0.0])? - at(q, [-h, 0.0])?) / (2.0 * h);
+            let gy = (at(q, [0.0, h])? - at(q, [0.0, -h])?) / (2.0 * h);
+            let (u, v) = ((p[0] - k.centre[0]) / radius, (p[1] - k.centre[1]) / radius);
+            Some((
+                p,
+                [gx, gy, gx * u, gx * v, gy * u, gy * v, -1.0, -u, -v],
+                here - z - k.dz_at(p),
+            ))
+        })
+        .collect()
+}
+
 /// Nuth and Kääb's fit widened to an affine placement and a plane: the difference at the
 /// reference's point p, with d = p − centre, moves by ∇h · (shift + L·d) − (dz + k·d) for a
 /// change of the shift, the linear part L, the offset and the tilt k, nine unknowns solved
@@ -649,22 +663,10 @@ fn fit_affine(
     start: &Coregistration,
 ) -> Option<Coregistration> {
     let mut k = *start;
-    let h = step * 0.5;
     for _ in 0..30 {
-        let place = k.placement();
-        let rows: Vec<([f64; 9], f64)> = pts
-            .par_iter()
-            .filter_map(|&(p, z)| {
-                let q = place.forth(p);
-                let here = at(q, [0.0, 0.0])?;
-                let gx = (at(q, [h, 0.0])? - at(q, [-h, 0.0])?) / (2.0 * h);
-                let gy = (at(q, [0.0, h])? - at(q, [0.0, -h])?) / (2.0 * h);
-                let (u, v) = ((p[0] - k.centre[0]) / radius, (p[1] - k.centre[1]) / radius);
-                Some((
-                    [gx, gy, gx * u, gx * v, gy * u, gy * v, -1.0, -u, -v],
-                    here - z - k.dz_at(p),
-                ))
-            })
+        let rows: Vec<([f64; 9], f64)> = affine_rows(pts, at, step, radius, &k)
+            .into_iter()
+            .map(|(_, g, d)| (g, d))
             .collect();
         if rows.len() < 64 {
             return None;
