@@ -22,6 +22,11 @@ use patchwork_core::model::survey::Survey;
 use patchwork_core::resample::SampleGrid;
 use patchwork_core::terrain::Terrain;
 
+/// The migration steps an open runs from schema `from` to the current one, in order.
+fn steps_from(from: u32) -> Vec<(u32, u32)> {
+    (from..SCHEMA_VERSION).map(|v| (v, v + 1)).collect()
+}
+
 /// A box state as the store writes it: the top, then the exposure byte.
 fn state_bytes(top: f64, exposed: bool) -> Vec<u8> {
     let mut b = top.to_le_bytes().to_vec();
@@ -249,24 +254,7 @@ fn committed_surveys_come_back_as_the_same_terrain() {
         let Opened {
             mut store, terrain, ..
         } = open(&dir);
-        assert_eq!(
-            store.migrations_run(),
-            &[
-                (0, 1),
-                (1, 2),
-                (2, 3),
-                (3, 4),
-                (4, 5),
-                (5, 6),
-                (6, 7),
-                (7, 8),
-                (8, 9),
-                (9, 10),
-                (10, 11),
-                (11, 12),
-                (12, 13)
-            ]
-        );
+        assert_eq!(store.migrations_run(), &steps_from(0)[..]);
         assert_eq!(terrain.index().len(), 0);
         ingest(&mut store, &mut t, &a, "/data/a.tif");
         ingest(&mut store, &mut t, &b, "/data/b.tif");
@@ -1276,23 +1264,7 @@ fn a_version_1_store_is_migrated_and_its_index_derived_again() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(
-        store.migrations_run(),
-        &[
-            (1, 2),
-            (2, 3),
-            (3, 4),
-            (4, 5),
-            (5, 6),
-            (6, 7),
-            (7, 8),
-            (8, 9),
-            (9, 10),
-            (10, 11),
-            (11, 12),
-            (12, 13)
-        ]
-    );
+    assert_eq!(store.migrations_run(), &steps_from(1)[..]);
     let roi = bounds_of(&[a.clone(), b.clone()]);
     assert_same(&terrain, &t, &roi);
     assert_eq!(terrain.index().state(), t.index().state());
@@ -1369,18 +1341,7 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(
-        store.migrations_run(),
-        &[
-            (6, 7),
-            (7, 8),
-            (8, 9),
-            (9, 10),
-            (10, 11),
-            (11, 12),
-            (12, 13)
-        ]
-    );
+    assert_eq!(store.migrations_run(), &steps_from(6)[..]);
     let migrated: Vec<(sled::IVec, sled::IVec)> =
         store.raw().scan_prefix("b/").map(Result::unwrap).collect();
     assert_eq!(migrated, records);
@@ -1406,18 +1367,7 @@ fn a_version_6_store_keeps_its_box_states_a_unit_at_a_time() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(
-        store.migrations_run(),
-        &[
-            (6, 7),
-            (7, 8),
-            (8, 9),
-            (9, 10),
-            (10, 11),
-            (11, 12),
-            (12, 13)
-        ]
-    );
+    assert_eq!(store.migrations_run(), &steps_from(6)[..]);
     assert_eq!(store.raw().scan_prefix("t/").count(), 0);
     assert_eq!(terrain.index().state(), t.index().state());
     assert_verified(&store);
@@ -1839,19 +1789,7 @@ fn a_version_5_store_keeps_its_failures_with_no_content_known() {
         store.raw().flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(
-        store.migrations_run(),
-        &[
-            (5, 6),
-            (6, 7),
-            (7, 8),
-            (8, 9),
-            (9, 10),
-            (10, 11),
-            (11, 12),
-            (12, 13)
-        ]
-    );
+    assert_eq!(store.migrations_run(), &steps_from(5)[..]);
     assert_eq!(
         store.failures().unwrap(),
         vec![FailedRecord {
@@ -2012,10 +1950,7 @@ fn a_version_7_store_measures_its_overlaps_again() {
         db.flush().unwrap();
     }
     let Opened { store, terrain, .. } = open(&dir);
-    assert_eq!(
-        store.migrations_run(),
-        &[(7, 8), (8, 9), (9, 10), (10, 11), (11, 12), (12, 13)]
-    );
+    assert_eq!(store.migrations_run(), &steps_from(7)[..]);
     let pairs: Vec<PairEvidence> = store
         .all_pairs()
         .unwrap()
