@@ -405,12 +405,7 @@ pub fn coregister_by(
         let mut n = [[0.0f64; 3]; 3];
         let mut b = [0.0f64; 3];
         for (g, d) in rows.iter().filter(|x| (x.1 - m).abs() <= keep) {
-            for i in 0..3 {
-                for j in 0..3 {
-                    n[i][j] += g[i] * g[j];
-                }
-                b[i] -= g[i] * d;
-            }
+            add_row(&mut n, &mut b, g, *d);
         }
         let kept = rows
             .iter()
@@ -490,8 +485,12 @@ pub fn coregister_by(
         return Some(shifted);
     }
     let (m, nmad) = robust(&left);
-    let (f, share) = affine_f(&pts, &at, step, radius, bounds, &placed);
-    if nmad >= AFFINE_GAIN * nmad_after && !(share >= AFFINE_EXPLAINS && f >= AFFINE_F) {
+    // The jackknife reads the samples once more: only where the tenth does not settle it.
+    let kept = nmad < AFFINE_GAIN * nmad_after || {
+        let (f, share) = affine_f(&pts, &at, step, radius, bounds, &placed);
+        share >= AFFINE_EXPLAINS && f >= AFFINE_F
+    };
+    if !kept {
         return Some(shifted);
     }
     Some(Coregistration {
@@ -503,12 +502,28 @@ pub fn coregister_by(
     })
 }
 
+/// The columns of the affine fit's rows (see [`affine_rows`]) beyond the shift and offset:
+/// the linear part's four and the tilt's two.
+const BEYOND_SHIFT: [usize; 6] = [2, 3, 4, 5, 7, 8];
+
+/// Adds one row `g` with difference `d` to the normal equations `n x = b` of a least-squares
+/// fit of the difference's change (`b` gathers −g d).
+fn add_row<const N: usize>(n: &mut [[f64; N]; N], b: &mut [f64; N], g: &[f64; N], d: f64) {
+    for i in 0..N {
+        for j in 0..N {
+            n[i][j] += g[i] * g[j];
+        }
+        b[i] -= g[i] * d;
+    }
+}
+
 /// The F statistic of an affine placement's six parameters beyond the shift (its linear part
 /// and tilt), by a block jackknife: the overlap cut into [`JACKKNIFE_BLOCKS`]² blocks, the
 /// fit with each block left out is one Gauss–Newton step from `placed` (the normal equations
 /// less that block's), and the spread of those fits is the parameters' covariance. Hotelling's
 /// T² over it, scaled to F with 6 and K − 6 degrees of freedom for K blocks that hold
-/// samples. NaN where too few blocks hold samples to say.
+/// samples; NaN where too few blocks hold samples to say. With it, the share of the
+/// differences' variance the six explain (see [`AFFINE_EXPLAINS`]).
 fn affine_f(
     pts: &[([f64; 2], f64)],
     at: &(dyn Fn([f64; 2], [f64; 2]) -> Option<f64> + Sync),
@@ -536,12 +551,7 @@ fn affine_f(
     let mut b = vec![[0.0f64; 9]; B * B];
     let mut count = vec![0usize; B * B];
     for (k, g, d) in rows.iter().filter(|x| (x.2 - m).abs() <= keep) {
-        for i in 0..9 {
-            for j in 0..9 {
-                n[*k][i][j] += g[i] * g[j];
-            }
-            b[*k][i] -= g[i] * d;
-        }
+        add_row(&mut n[*k], &mut b[*k], g, *d);
         count[*k] += 1;
     }
     let (mut all_n, mut all_b) = ([[0.0f64; 9]; 9], [0.0f64; 9]);
@@ -570,11 +580,7 @@ fn affine_f(
     // shift alone is about the residuals' plus the six parameters' part.
     let (mut left, mut explained) = (0.0, 0.0);
     for (_, g, d) in rows.iter().filter(|x| (x.2 - m).abs() <= keep) {
-        let c: f64 = [2, 3, 4, 5, 7, 8]
-            .iter()
-            .zip(theta)
-            .map(|(&j, t)| g[j] * t)
-            .sum();
+        let c: f64 = BEYOND_SHIFT.iter().zip(theta).map(|(&j, t)| g[j] * t).sum();
         left += (d - m) * (d - m);
         explained += c * c;
     }
@@ -591,7 +597,7 @@ fn affine_f(
         }
         let Some(x) = solve(nk, bk) else { continue };
         let mut t = theta;
-        for (i, at) in [2, 3, 4, 5, 7, 8].into_iter().enumerate() {
+        for (i, at) in BEYOND_SHIFT.into_iter().enumerate() {
             t[i] += x[at];
         }
         leave.push(t);
@@ -677,12 +683,7 @@ fn fit_affine(
         let mut n = [[0.0f64; 9]; 9];
         let mut b = [0.0f64; 9];
         for (g, d) in rows.iter().filter(|x| (x.1 - m).abs() <= keep) {
-            for i in 0..9 {
-                for j in 0..9 {
-                    n[i][j] += g[i] * g[j];
-                }
-                b[i] -= g[i] * d;
-            }
+            add_row(&mut n, &mut b, g, *d);
         }
         let x = solve(n, b)?;
         k.shift = [k.shift[0] + x[0], k.shift[1] + x[1]];
