@@ -205,7 +205,7 @@ def wait_http(base, path, seconds, proc, what):
 
 def start_daemon(bin_path, sources, tmp, config=None):
     """A daemon on free loopback ports with a store under `tmp`, the sources dropped into its
-    inbox (by rename, as the README says), with `config` (TOML text) as its config file."""
+    inbox (by rename, as docs/OPERATIONS.md says), with `config` (TOML text) as its config file."""
     grpc_port, http_port = free_port(), free_port()
     inbox = os.path.join(tmp, "inbox")
     os.makedirs(inbox)

@@ -6,7 +6,7 @@ use super::json::{distrusted, StatsJson, SurveyJson, Word};
 use super::terrain::tile_crs;
 use super::{
     printable, CompactArgs, Fail, ForgetArgs, IngestArgs, RepairArgs, RetireArgs, StatsArgs,
-    SurveysArgs, VerifyArgs,
+    SurveysArgs, VerifyArgs, WaitArgs,
 };
 use patchwork::engine::Engine;
 use patchwork::paths::source_name;
@@ -170,6 +170,82 @@ pub async fn surveys(args: SurveysArgs) -> Result<(), Fail> {
         }
     }
     Ok(())
+}
+
+/// Waits for the daemon, then for each file to be a survey it serves. A file is looked for by
+/// the name the daemon records it under (its absolute path), so `inbox/x.tif` names the file
+/// dropped there.
+pub async fn wait(args: WaitArgs) -> Result<(), Fail> {
+    let WaitArgs {
+        files,
+        timeout,
+        target,
+    } = args;
+    if target.data_dir.is_some() {
+        return Err(
+            "wait talks to a running daemon: a store opened with --data-dir takes \
+                    files only through `patchwork ingest`"
+                .into(),
+        );
+    }
+    let until = std::time::Instant::now() + std::time::Duration::from_secs_f64(timeout.max(0.0));
+    let pause = || tokio::time::sleep(std::time::Duration::from_millis(100));
+    // A daemon just started may not listen yet.
+    let mut c = loop {
+        match Client::connect(&target).await {
+            Ok(c) => break c,
+            Err(e) if std::time::Instant::now() >= until => {
+                return Err(format!("{e} (waited {timeout} s)").into())
+            }
+            Err(_) => pause().await,
+        }
+    };
+    let mut waiting: Vec<(String, String)> = files
+        .iter()
+        .map(|f| (printable(&source_name(f)).into_owned(), source_name(f)))
+        .collect();
+    loop {
+        let list = call!(
+            &mut c,
+            admin.list_surveys(pb::ListSurveysRequest {}),
+            api::list_surveys
+        )?;
+        let mut still = Vec::new();
+        for (shown, source) in waiting {
+            let of: Vec<&pb::SurveyInfo> =
+                list.surveys.iter().filter(|s| s.source == source).collect();
+            if let Some(s) = of.iter().find(|s| s.status() == pb::SurveyStatus::Active) {
+                println!("{shown}: active, survey {}", s.id);
+            } else if let Some(s) = of.iter().find(|s| {
+                matches!(
+                    s.status(),
+                    pb::SurveyStatus::Failed
+                        | pb::SurveyStatus::Skipped
+                        | pb::SurveyStatus::Damaged
+                )
+            }) {
+                return Err(
+                    format!("{shown}: {} ({})", s.status().word(), printable(&s.error)).into(),
+                );
+            } else {
+                still.push((shown, source));
+            }
+        }
+        waiting = still;
+        if waiting.is_empty() {
+            return Ok(());
+        }
+        if std::time::Instant::now() >= until {
+            let names: Vec<&str> = waiting.iter().map(|(s, _)| s.as_str()).collect();
+            return Err(format!(
+                "after {timeout} s, not yet a survey: {} (is it in one of the daemon's inbox \
+                 folders? `patchwork surveys` lists what it holds, deferred files with why)",
+                names.join(", ")
+            )
+            .into());
+        }
+        pause().await;
+    }
 }
 
 /// What a survey's sidecar says of it, on a line: title, acquisition, licence, attribution,
@@ -480,7 +556,8 @@ fn conflict_line(c: &pb::Conflict) -> String {
                 _ => "undated, so neither takes precedence",
             };
             format!(
-                "\n      changed ground: {:.0} m², {:.0} m³ gained and {:.0} m³ lost, up to \
+                // Under the conflict's line, which starts 18 columns in.
+                "\n                    changed ground: {:.0} m², {:.0} m³ gained and {:.0} m³ lost, up to \
                  {:.1} m; {who}",
                 r.area_m2, r.gained_m3, r.lost_m3, r.most_m
             )

@@ -1,5 +1,5 @@
-//! The JSON the commands print with `--json`: stable, and documented field by field in the
-//! README.
+//! The JSON the commands print with `--json`: stable, and documented field by field in
+//! docs/API.md.
 
 use patchwork::serve::proto as pb;
 use serde::{Serialize, Serializer};
@@ -41,7 +41,7 @@ fn maybe_word<S: Serializer, E: Word>(e: &Option<E>, s: S) -> Result<S::Ok, S::E
     }
 }
 
-/// `surveys --json`: one object per survey or failed file. The README documents each field.
+/// `surveys --json`: one object per survey or failed file. docs/API.md documents each field.
 #[derive(Serialize)]
 pub struct SurveyJson<'a> {
     id: &'a str,
@@ -376,7 +376,7 @@ mod tests {
         }
     }
 
-    /// The words of the JSON are the README's, spelled from the wire enums.
+    /// The words of the JSON are docs/API.md's, spelled from the wire enums.
     #[test]
     fn survey_json_keeps_its_words() {
         let s = pb::SurveyInfo {

@@ -33,6 +33,9 @@ pub enum Cmd {
     Ingest(IngestArgs),
     /// List surveys, failed files included.
     Surveys(SurveysArgs),
+    /// Wait until the daemon answers and each file named (a file dropped into the inbox, say)
+    /// is a survey it serves; fail at once, with the reason, where one of them fails.
+    Wait(WaitArgs),
     /// Retire a survey by id or source path. A survey whose file stays in the inbox stays
     /// retired until that file's content changes.
     Retire(RetireArgs),
@@ -122,6 +125,17 @@ pub struct IngestArgs {
 pub struct SurveysArgs {
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub target: Target,
+}
+
+// The arguments of `patchwork wait`.
+#[derive(Args)]
+pub struct WaitArgs {
+    pub files: Vec<PathBuf>,
+    /// Give up after this many seconds.
+    #[arg(long, value_name = "S", default_value_t = 120.0)]
+    pub timeout: f64,
     #[command(flatten)]
     pub target: Target,
 }
@@ -426,6 +440,7 @@ pub async fn run(cli: Cli) -> Result<(), Fail> {
         Cmd::ProbeGpu => serve::probe_gpu(),
         Cmd::Ingest(a) => admin::ingest(a).await,
         Cmd::Surveys(a) => admin::surveys(a).await,
+        Cmd::Wait(a) => admin::wait(a).await,
         Cmd::Retire(a) => admin::retire(a).await,
         Cmd::Forget(a) => admin::forget(a).await,
         Cmd::Stats(a) => admin::stats(a).await,

@@ -11,6 +11,7 @@ mod hostile;
 mod load;
 mod objects;
 mod python_client;
+mod quickstart;
 mod reliability;
 mod replicas;
 mod view_session;
