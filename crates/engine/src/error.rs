@@ -26,7 +26,7 @@ pub enum EngineError {
     TooLarge(#[from] TooLarge),
     /// The request's CRS has no map to the store's.
     #[error("crs: {0}")]
-    Reprojection(#[from] CrsError),
+    Reprojection(CrsError),
     /// Part of a region of another CRS lies where the map to the store's does not reach.
     #[error("part of the region lies where {from} cannot be carried into the store's {to}")]
     Unreachable {
@@ -88,7 +88,7 @@ pub enum EngineError {
     )]
     StoreFailed(String),
     /// The store failed under a read or a write; its error says how (see [`Reason`]).
-    #[error("{0}")]
+    #[error(transparent)]
     Store(#[from] StoreError),
     /// An answer could not be encoded (a GeoTIFF tile, say): a bug, not the request's.
     #[error("the answer cannot be encoded: {0}")]
@@ -113,6 +113,14 @@ pub enum EngineError {
         /// The replica's region.
         region: patchwork_core::geom::Aabb,
     },
+}
+
+// These variants' messages name the inner error already, so it is not also their source: a
+// reporter that walks the chain would print it twice.
+impl From<CrsError> for EngineError {
+    fn from(e: CrsError) -> Self {
+        EngineError::Reprojection(e)
+    }
 }
 
 fn bounds(b: &patchwork_core::geom::Aabb) -> String {
@@ -157,7 +165,7 @@ pub enum HeightsError {
     #[error("{0}")]
     Grid(IngestError),
     /// A height lies where a grid has no undulation.
-    #[error("{0}")]
+    #[error(transparent)]
     Convert(#[from] patchwork_core::model::geoid::GeoidError),
 }
 

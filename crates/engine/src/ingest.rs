@@ -23,7 +23,7 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum IngestError {
     /// The file could not be read as a DEM.
-    #[error("{0}")]
+    #[error(transparent)]
     Read(#[from] ReadError),
     /// The sidecar could not be read, or says something that cannot be used.
     #[error("sidecar {path}: {message}")]
@@ -105,7 +105,7 @@ pub enum IngestError {
     },
     /// The heights could not be converted between vertical CRSs.
     #[error("converting the heights between vertical CRSs: {0}")]
-    Convert(#[from] patchwork_core::model::geoid::GeoidError),
+    Convert(patchwork_core::model::geoid::GeoidError),
     /// ε, given or estimated, is not below the top of LOD space.
     #[error(
         "accuracy {value} m ({given_by}) is refused: it must be a number of metres in \
@@ -122,9 +122,9 @@ pub enum IngestError {
     },
     /// The file's georeference cannot make a grid.
     #[error("georeference: {0}")]
-    Grid(#[from] patchwork_core::model::grid::GridError),
+    Grid(patchwork_core::model::grid::GridError),
     /// The survey could not be modelled.
-    #[error("{0}")]
+    #[error(transparent)]
     Survey(#[from] SurveyError),
     /// Valid samples lie outside the plausible heights of `[limits]`.
     #[error(
@@ -168,6 +168,20 @@ pub enum IngestError {
         /// Why it could not be opened.
         source: std::io::Error,
     },
+}
+
+// These variants' messages name the inner error already, so it is not also their source: a
+// reporter that walks the chain would print it twice.
+impl From<patchwork_core::model::geoid::GeoidError> for IngestError {
+    fn from(e: patchwork_core::model::geoid::GeoidError) -> Self {
+        IngestError::Convert(e)
+    }
+}
+
+impl From<patchwork_core::model::grid::GridError> for IngestError {
+    fn from(e: patchwork_core::model::grid::GridError) -> Self {
+        IngestError::Grid(e)
+    }
 }
 
 /// What `<file>.toml` beside a DEM may say.

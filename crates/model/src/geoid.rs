@@ -48,7 +48,7 @@ pub enum GeoidError {
         grid: String,
     },
     /// The survey's positions could not be carried into the geoid's CRS.
-    #[error("{0}")]
+    #[error(transparent)]
     Crs(#[from] patchwork_crs::CrsError),
 }
 

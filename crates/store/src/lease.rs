@@ -30,35 +30,46 @@ fn now_ms() -> u64 {
         .map_or(0, |d| d.as_millis() as u64)
 }
 
-/// Why a lease could not be taken or kept.
-#[derive(Debug)]
+/// Why a lease could not be taken.
+#[derive(Debug, thiserror::Error)]
 pub enum LeaseError {
     /// Another writer holds it.
+    #[error("{}", held_message(.0))]
     Held(Held),
-    /// The object store failed.
+    /// The object store failed. Its message is this one's, so it is not also the source.
+    #[error("the lease: {0}")]
     Store(object_store::Error),
     /// The lease object is not one this version wrote.
-    Unreadable(String),
+    #[error("the lease object {path} is not one this version wrote: {why}")]
+    Unreadable {
+        path: String,
+        why: serde_json::Error,
+    },
 }
 
-impl std::fmt::Display for LeaseError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            LeaseError::Held(h) => {
-                let left = h.expires_ms.saturating_sub(now_ms());
-                write!(
-                    f,
-                    "another writer, {}, holds the store's lease for {:.1} s more (until Unix \
-                     time {:.3}); a store has one writer",
-                    h.holder,
-                    left as f64 / 1000.0,
-                    h.expires_ms as f64 / 1000.0
-                )
-            }
-            LeaseError::Store(e) => write!(f, "the lease: {e}"),
-            LeaseError::Unreadable(why) => write!(f, "the lease object: {why}"),
-        }
-    }
+fn held_message(h: &Held) -> String {
+    let left = h.expires_ms.saturating_sub(now_ms());
+    format!(
+        "another writer, {}, holds the store's lease for {:.1} s more (until Unix time {:.3}); \
+         a store has one writer",
+        h.holder,
+        left as f64 / 1000.0,
+        h.expires_ms as f64 / 1000.0
+    )
+}
+
+/// Why a writer may not append now.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum Lapse {
+    /// Another writer took the lease: for good.
+    #[error("another writer took the store's lease")]
+    Taken,
+    /// The lease ran out unrenewed; writes resume once it is renewed.
+    #[error(
+        "the store's lease ran out (the object store could not be reached to renew it): \
+         writes resume once it is renewed"
+    )]
+    RanOut,
 }
 
 /// The state of a lease this writer holds.
@@ -68,7 +79,7 @@ struct Ours {
     /// Until when it is ours, by this machine's clock, less a margin for clocks that differ.
     until_ms: u64,
     /// Set when another writer took it.
-    lost: Option<String>,
+    lost: bool,
 }
 
 /// A lease held, renewed on the caller's runtime until dropped.
@@ -136,8 +147,11 @@ pub async fn take(
                 version: got.meta.version.clone(),
             };
             let bytes = got.bytes().await.map_err(LeaseError::Store)?;
-            let held: Held = serde_json::from_slice(&bytes)
-                .map_err(|e| LeaseError::Unreadable(format!("{path}: {e}")))?;
+            let held: Held =
+                serde_json::from_slice(&bytes).map_err(|why| LeaseError::Unreadable {
+                    path: path.to_string(),
+                    why,
+                })?;
             if held.expires_ms > now_ms() && !gone(&held.holder) {
                 return Err(LeaseError::Held(held));
             }
@@ -162,7 +176,7 @@ pub async fn take(
     let ours = Arc::new(Mutex::new(Ours {
         version: version(&written),
         until_ms: expires - margin(ttl),
-        lost: None,
+        lost: false,
     }));
     let wake = Arc::new(tokio::sync::Notify::new());
     let renewer = tokio::spawn(renew(store, path, holder, ttl, ours.clone(), wake.clone()));
@@ -219,9 +233,8 @@ async fn renew(
                         continue;
                     }
                 }
-                let why = "another writer took the store's lease".to_string();
-                tracing::error!("{why}: this daemon takes no more writes");
-                patchwork_core::sync::lock(&ours).lost = Some(why);
+                tracing::error!("{}: this daemon takes no more writes", Lapse::Taken);
+                patchwork_core::sync::lock(&ours).lost = true;
                 return;
             }
             // Tried again at the next round; the lease runs out meanwhile if this goes on,
@@ -237,7 +250,7 @@ async fn renew(
 impl Lease {
     /// Whether another writer took the lease: for good, unlike one that ran out.
     pub fn lost(&self) -> bool {
-        patchwork_core::sync::lock(&self.ours).lost.is_some()
+        patchwork_core::sync::lock(&self.ours).lost
     }
 
     /// Asks the renewer to renew now.
@@ -246,17 +259,13 @@ impl Lease {
     }
 
     /// Whether appends may go on: the lease is ours and has not run out.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), Lapse> {
         let o = patchwork_core::sync::lock(&self.ours);
-        if let Some(why) = &o.lost {
-            return Err(why.clone());
+        if o.lost {
+            return Err(Lapse::Taken);
         }
         if now_ms() >= o.until_ms {
-            return Err(
-                "the store's lease ran out (the object store could not be reached to renew \
-                 it): writes resume once it is renewed"
-                    .into(),
-            );
+            return Err(Lapse::RanOut);
         }
         Ok(())
     }

@@ -220,7 +220,7 @@ pub enum StoreError {
     },
     /// The store's files are not as the store leaves them.
     #[error("the store is corrupt: {0}")]
-    Corrupt(#[from] Corruption),
+    Corrupt(Corruption),
     /// The store is kept elsewhere than `[storage]` says: a store keeps the backend it was
     /// made with.
     #[error(
@@ -347,7 +347,7 @@ pub enum StoreError {
     Sled(sled::Error),
     /// A file or the object store the store uses could not be read or written.
     #[error("store I/O: {0}")]
-    Io(#[from] std::io::Error),
+    Io(std::io::Error),
     /// A record could not be encoded.
     #[error("could not encode a record: {0}")]
     Encode(String),
@@ -363,7 +363,7 @@ pub enum StoreError {
     #[error(transparent)]
     Samples(#[from] patchwork_core::model::source::SampleError),
     /// A survey could not be placed in the store's CRS.
-    #[error("{0}")]
+    #[error(transparent)]
     Place(#[from] patchwork_core::model::place::PlaceError),
     /// A read replica refuses writes: they go to the writer it follows.
     #[error("this is a read replica of {url}: writes go to its writer{}", writer.as_ref().map(|w| format!(", {w}")).unwrap_or_default())]
@@ -373,6 +373,20 @@ pub enum StoreError {
         /// Who holds the writer's lease there now, if anyone does and it could be read.
         writer: Option<String>,
     },
+}
+
+// These variants' messages name the inner error already, so it is not also their source: a
+// reporter that walks the chain would print it twice.
+impl From<Corruption> for StoreError {
+    fn from(e: Corruption) -> Self {
+        StoreError::Corrupt(e)
+    }
+}
+
+impl From<std::io::Error> for StoreError {
+    fn from(e: std::io::Error) -> Self {
+        StoreError::Io(e)
+    }
 }
 
 /// What is wrong with a store's files: the part that does not read back as written.
