@@ -282,6 +282,13 @@ pub struct StatsJson<'a> {
     verify_done: u64,
     verify_total: u64,
     verify_seconds: f64,
+    /// Passes the inbox watcher has finished since the daemon started.
+    inbox_passes: u64,
+    /// The ingest under way: its file and phase ("reading", "modelling", "indexing",
+    /// "committing"); null when none runs.
+    ingesting_source: Option<&'a str>,
+    #[serde(serialize_with = "maybe_word")]
+    ingesting_phase: Option<pb::IngestPhase>,
 }
 
 impl<'a> StatsJson<'a> {
@@ -316,6 +323,10 @@ impl<'a> StatsJson<'a> {
             verify_done: s.verify_done,
             verify_total: s.verify_total,
             verify_seconds: s.verify_seconds,
+            inbox_passes: s.inbox_passes,
+            ingesting_source: (!s.ingesting_source.is_empty())
+                .then_some(s.ingesting_source.as_str()),
+            ingesting_phase: (!s.ingesting_source.is_empty()).then(|| s.ingesting_phase()),
         }
     }
 }

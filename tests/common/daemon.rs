@@ -235,6 +235,39 @@ impl Daemon {
             .clone()
     }
 
+    /// The passes the daemon's inbox watcher has finished (`stats`).
+    pub fn inbox_passes(&self) -> u64 {
+        self.json(&["stats", "--json"])["inbox_passes"]
+            .as_u64()
+            .expect("stats' inbox_passes")
+    }
+
+    /// Waits until the daemon has seen its inbox as it is now, and done what it does with it:
+    /// two more passes than now have finished (the first may have begun before the change).
+    /// Meanwhile a file the watcher leaves alone by its name (a dot file) is made and removed
+    /// in the inbox, so that a pass comes at once rather than at the idle one. For a test that
+    /// expects nothing to happen: after this, nothing will.
+    pub fn settle_inbox(&self) {
+        let start = self.inbox_passes();
+        let t0 = Instant::now();
+        for k in 0.. {
+            let now = self.inbox_passes();
+            if now >= start + 2 {
+                return;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(60),
+                "the inbox watcher finished {} passes in 60 s\n{}",
+                now - start,
+                self.log()
+            );
+            let nudge = self.inbox().join(format!(".nudge-{k}"));
+            std::fs::write(&nudge, b"").unwrap();
+            std::thread::sleep(Duration::from_millis(100));
+            let _ = std::fs::remove_file(&nudge);
+        }
+    }
+
     /// Waits until the survey list satisfies `ok`.
     pub fn wait(&self, what: &str, ok: impl Fn(&[Value]) -> bool) -> Vec<Value> {
         let t0 = Instant::now();

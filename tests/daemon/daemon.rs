@@ -247,7 +247,7 @@ fn bad_files_are_reported_and_the_daemon_keeps_serving() {
     assert_eq!(before, answers(&d));
     assert!(d.cli(&["verify"]).status.success());
     // A failed file is not retried until it changes; when it does, it is.
-    std::thread::sleep(Duration::from_millis(1200));
+    d.settle_inbox();
     assert_eq!(count(&d.surveys(), "failed"), expect.len());
     std::fs::remove_file(inbox.join("empty.tif")).unwrap();
     drop_by_rename(&crop("nasadem_n34w119_crop.tif"), &inbox, "empty.tif");
@@ -404,7 +404,7 @@ fn a_copy_under_another_name_keeps_the_survey_when_the_first_goes() {
         &d.inbox(),
         "second.tif",
     );
-    std::thread::sleep(Duration::from_millis(1500));
+    d.settle_inbox();
     // Identical content is one survey.
     assert_eq!(count(&d.surveys(), "active"), 1);
     std::fs::remove_file(d.inbox().join("first.tif")).unwrap();

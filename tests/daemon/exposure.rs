@@ -231,7 +231,15 @@ fn sigterm_stops_the_daemon_within_five_seconds_even_mid_ingest() {
         .stderr(std::process::Stdio::null())
         .spawn()
         .unwrap();
-    std::thread::sleep(Duration::from_millis(700));
+    // The signal lands while the daemon says the file is being ingested.
+    let t0 = Instant::now();
+    while d.json(&["stats", "--json"])["ingesting_source"].is_null() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60) && ingest.try_wait().unwrap().is_none(),
+            "the ingest never showed in stats"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let busy = ingest.try_wait().unwrap().is_none();
     let took = d.stop_timed();
     assert!(
@@ -334,7 +342,7 @@ fn a_daemon_on_a_full_disk_starts_read_only_and_says_so() {
     std::fs::copy(crop("nasadem_n34w119_crop.tif"), &nasa).unwrap();
     let o = d.cli(&["ingest", nasa.to_str().unwrap()]);
     assert!(stderr(&o).contains("MiB free"), "{}", stderr(&o));
-    std::thread::sleep(Duration::from_millis(1500));
+    d.settle_inbox();
     let s = d.surveys();
     assert_eq!(
         (count(&s, "active"), count(&s, "failed")),
@@ -416,10 +424,11 @@ fn a_client_that_stops_reading_a_tile_holds_its_work_only_until_the_deadline() {
         tokio::time::sleep(Duration::from_millis(1_500)).await;
         // Past the deadline the permit is free again, while the stalled stream is still open.
         let mut other = TerrainClient::connect(url).await.unwrap();
-        let t0 = Instant::now();
+        // With one request at a time and a deadline of a second, a permit still held would
+        // leave this tile waiting past its deadline: that it is served is the proof, whatever
+        // the machine's speed.
         let small = other.tile_bands(tile(64, 64)).await;
         assert!(small.is_ok(), "{:?}", small.err());
-        assert!(t0.elapsed() < Duration::from_millis(900));
         drop(s);
     });
 }

@@ -188,6 +188,9 @@ pub struct Engine {
     held: Mutex<std::collections::BTreeMap<String, Held>>,
     /// The verification under way, for `stats`.
     verifying: Mutex<Option<listing::Verifying>>,
+    /// Passes the inbox watcher has finished over its folders: a client that changed a
+    /// folder knows the daemon has seen the change once two more have finished.
+    inbox_passes: std::sync::atomic::AtomicU64,
     /// A replica of one region: the part of the store's plane it holds and answers.
     region: Option<Aabb>,
 }
@@ -303,6 +306,7 @@ impl Engine {
             replication: RwLock::new(replication),
             held: Mutex::new(Default::default()),
             verifying: Mutex::new(None),
+            inbox_passes: Default::default(),
             region,
             cfg,
             events,
@@ -466,6 +470,12 @@ impl Engine {
         self.guard.check(&self.dir, 0).err().map(|e| e.to_string())
     }
 
+    /// Counts a pass of the inbox watcher over its folders, finished.
+    pub fn note_inbox_pass(&self) {
+        self.inbox_passes
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    }
+
     /// Figures for `patchwork stats`, all from the published state and the caches, without the
     /// writer.
     pub fn stats(&self) -> Stats {
@@ -493,6 +503,7 @@ impl Engine {
             cache: read(&self.reader).stats(),
             ingesting: self.progress(),
             verifying: lock(&self.verifying).clone(),
+            inbox_passes: self.inbox_passes.load(std::sync::atomic::Ordering::Relaxed),
             replication: self.replication(),
         }
     }

@@ -267,6 +267,8 @@ pub struct Stats {
     pub replication: super::Replication,
     /// The verification under way, if any.
     pub verifying: Option<Verifying>,
+    /// Passes the inbox watcher has finished since the daemon started.
+    pub inbox_passes: u64,
 }
 
 /// Where a verification stands: what it checks now, how many of how many, since when.

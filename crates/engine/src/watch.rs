@@ -692,6 +692,7 @@ pub async fn run(engine: Arc<Engine>, mut shutdown: tokio::sync::watch::Receiver
             .await
             .expect("reconcile pass");
             rec = r;
+            engine.note_inbox_pass();
             watch(back);
             waiting = more;
             last_pass = Instant::now();

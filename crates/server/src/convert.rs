@@ -633,6 +633,7 @@ pub fn stats(s: &Stats) -> pb::StatsReply {
         cache_capacity_bytes: s.cache.capacity,
         cache_hits: s.cache.hits,
         cache_misses: s.cache.misses,
+        inbox_passes: s.inbox_passes,
         commit: s.replication.commit.unwrap_or(0),
         follows: f.map(|f| f.url.clone()).unwrap_or_default(),
         published_commit: f.map_or(0, |f| f.published),

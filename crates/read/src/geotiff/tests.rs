@@ -794,9 +794,9 @@ fn a_few_bytes_claiming_a_huge_raster_are_refused_at_once() {
     tags.push((279, Val::Long(vec![0])));
     let bytes = build_tiff(tags, &[], false);
     assert!(bytes.len() < 300, "{} bytes", bytes.len());
-    let t0 = std::time::Instant::now();
+    // Refused by the header's own figures, before any strip is read or any buffer made: the
+    // message is the check's, which runs before both.
     let e = expect_err(&write_temp(&dir, "sparse.tif", &bytes));
-    assert!(t0.elapsed().as_millis() < 100, "took {:?}", t0.elapsed());
     assert!(e.to_string().contains("can fill at most 0"), "{e}");
     // A compressed strip can only expand so far: 16 bytes of zstd fill 128 Ki samples.
     let bytes = build_tiff(raster(20_000, 50000), &[vec![0u8; 16]], false);
