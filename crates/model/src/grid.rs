@@ -101,6 +101,12 @@ impl Georef {
     /// Unit vectors of the column and row axes.
     #[inline]
     pub fn axes(&self) -> [[f64; 2]; 2] {
+        // North-up grids, nearly all of them, without the sine and cosine: placing every
+        // sample of an overlap spent a tenth of a comparison's time in them. The same bits:
+        // sin 0 = 0 and cos 0 = 1 exactly (a θ of −0 takes the long way, for its signed zeros).
+        if self.theta.to_bits() == 0 && self.row_theta.is_none() {
+            return [[1.0, 0.0], [0.0, -1.0]];
+        }
         let (s, c) = self.theta.sin_cos();
         let v = match self.row_theta {
             None => [s, -c],
