@@ -29,6 +29,9 @@ pub struct Cli {
 pub enum Cmd {
     /// Run the daemon: watch the inbox and serve the gRPC API.
     Serve(ServeArgs),
+    /// Print the configuration `serve` would run with, key by key, and where each value came
+    /// from: the compiled-in default, the file, or the environment.
+    Config(ConfigArgs),
     /// Ingest files now.
     Ingest(IngestArgs),
     /// List surveys, failed files included.
@@ -106,6 +109,13 @@ pub struct ServeArgs {
         allow_hyphen_values = true
     )]
     pub region: Option<String>,
+}
+
+// The arguments of `patchwork config`.
+#[derive(Args)]
+pub struct ConfigArgs {
+    #[arg(long, env = "PATCHWORK_CONFIG", value_name = "FILE")]
+    pub config: Option<PathBuf>,
 }
 
 // The arguments of `patchwork ingest`.
@@ -438,6 +448,7 @@ pub async fn run(cli: Cli) -> Result<(), Fail> {
     match cli.cmd {
         Cmd::Serve(a) => serve::serve(a.config, a.follow, a.region).await,
         Cmd::ProbeGpu => serve::probe_gpu(),
+        Cmd::Config(a) => serve::print_config(a.config.as_deref()),
         Cmd::Ingest(a) => admin::ingest(a).await,
         Cmd::Surveys(a) => admin::surveys(a).await,
         Cmd::Wait(a) => admin::wait(a).await,

@@ -194,3 +194,30 @@ use patchwork::gpu::software_refused;
 fn software_refused(adapters: &str) -> String {
     format!("this build has no GPU support (the gpu feature); adapters seen: {adapters}")
 }
+
+/// `patchwork config`: every key that is set, with its value and where it came from.
+pub fn print_config(file: Option<&std::path::Path>) -> Result<(), Fail> {
+    let settings = patchwork::config::explain(file, |k| std::env::var(k).ok())?;
+    let lines: Vec<String> = settings
+        .iter()
+        .map(|s| format!("{} = {}", s.key, s.value))
+        .collect();
+    let width = lines
+        .iter()
+        .map(|l| l.chars().count())
+        .max()
+        .unwrap_or(0)
+        .min(60);
+    match file {
+        Some(f) => println!(
+            "# serve's configuration: {} and the environment",
+            f.display()
+        ),
+        None => println!("# serve's configuration: the compiled-in defaults and the environment"),
+    }
+    for (line, s) in lines.iter().zip(&settings) {
+        let pad = width.saturating_sub(line.chars().count());
+        println!("{line}{}  # {}", " ".repeat(pad), s.origin.word());
+    }
+    Ok(())
+}

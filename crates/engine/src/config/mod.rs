@@ -12,11 +12,13 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
+mod explain;
 mod http;
 mod limits;
 mod storage;
 mod surveys;
 
+pub use explain::{explain, Origin, Setting};
 pub use http::{valid_token, Http, Secret};
 pub use limits::Limits;
 pub use storage::{BackendKind, Storage, S3};
@@ -162,6 +164,19 @@ pub fn parse_epsg(s: &str) -> Option<u32> {
     n.parse().ok()
 }
 
+/// A boolean from the environment: `true`/`false`, `1`/`0`, `yes`/`no` or `on`/`off`, in any
+/// case; anything else is refused, naming the variable, rather than read as false.
+fn boolean(var: &str, v: &str) -> Result<bool, ConfigError> {
+    match v.trim().to_ascii_lowercase().as_str() {
+        "true" | "1" | "yes" | "on" => Ok(true),
+        "false" | "0" | "no" | "off" => Ok(false),
+        _ => Err(ConfigError::Env {
+            var: var.into(),
+            message: format!("{v:?} is not a boolean: use true or false (1 or 0)"),
+        }),
+    }
+}
+
 impl Config {
     /// Defaults, then `file` if given, then the environment.
     pub fn load(file: Option<&Path>) -> Result<Config, ConfigError> {
@@ -178,13 +193,19 @@ impl Config {
             }
             None => Config::default(),
         };
-        if !cfg.storage.follow.is_empty() {
-            let url = cfg.storage.follow.clone();
-            cfg.storage.set_follow(&url)?;
-        }
-        cfg.apply_env(|k| std::env::var(k).ok())?;
-        cfg.validate()?;
+        cfg.finish_load(|k| std::env::var(k).ok())?;
         Ok(cfg)
+    }
+
+    /// What a load does after the file: the follower's URL taken apart, the environment's
+    /// overrides, and the rules checked.
+    fn finish_load(&mut self, get: impl Fn(&str) -> Option<String>) -> Result<(), ConfigError> {
+        if !self.storage.follow.is_empty() {
+            let url = self.storage.follow.clone();
+            self.storage.set_follow(&url)?;
+        }
+        self.apply_env(get)?;
+        self.validate()
     }
 
     /// Applies `PATCHWORK_<KEY>` overrides for the top-level keys.
@@ -226,7 +247,7 @@ impl Config {
             self.storage.folder = Some(v.into());
         }
         if let Some(v) = get("PATCHWORK_S3_ALLOW_HTTP") {
-            self.storage.s3.allow_http = matches!(v.trim(), "1" | "true" | "yes");
+            self.storage.s3.allow_http = boolean("PATCHWORK_S3_ALLOW_HTTP", &v)?;
         }
         if let Some(v) = get("PATCHWORK_DATA_DIR") {
             self.data_dir = v.into();
@@ -329,16 +350,7 @@ impl Config {
             })?;
         }
         if let Some(v) = get("PATCHWORK_ALLOW_EMULATED_GPU") {
-            self.allow_emulated_gpu = match v.as_str() {
-                "1" | "true" => true,
-                "0" | "false" => false,
-                other => {
-                    return Err(ConfigError::Env {
-                        var: "PATCHWORK_ALLOW_EMULATED_GPU".into(),
-                        message: format!("{other:?} is neither true nor false (or 1 and 0)"),
-                    })
-                }
-            };
+            self.allow_emulated_gpu = boolean("PATCHWORK_ALLOW_EMULATED_GPU", &v)?;
         }
         Ok(())
     }
@@ -378,27 +390,30 @@ impl Config {
         }
         let l = &self.limits;
         let ordered = l.min_height_m < l.max_height_m;
+        // Each by its name, so that the message says which one is wrong.
         let counts = [
-            l.max_ingest_mb,
-            l.max_failures,
-            l.max_ingest_paths,
-            l.max_running_requests,
-            l.ingest_parallel,
-            l.max_streams,
-            l.max_streams_per_connection,
-            l.max_connections,
-            l.header_timeout_ms,
-            l.idle_timeout_ms,
-            l.max_web_tile_patches,
+            ("max_ingest_mb", l.max_ingest_mb),
+            ("max_failures", l.max_failures),
+            ("max_ingest_paths", l.max_ingest_paths),
+            ("max_running_requests", l.max_running_requests),
+            ("ingest_parallel", l.ingest_parallel),
+            ("max_streams", l.max_streams),
+            ("max_streams_per_connection", l.max_streams_per_connection),
+            ("max_connections", l.max_connections),
+            ("header_timeout_ms", l.header_timeout_ms),
+            ("idle_timeout_ms", l.idle_timeout_ms),
+            ("max_web_tile_patches", l.max_web_tile_patches),
         ];
-        if !ordered || counts.contains(&0) {
-            return Err(ConfigError::Invalid(
-                "limits.min_height_m must be below limits.max_height_m, and \
-                 limits.max_ingest_mb, max_failures, max_ingest_paths, max_running_requests, \
-                 ingest_parallel, max_streams, max_streams_per_connection, max_connections, \
-                 header_timeout_ms, idle_timeout_ms and max_web_tile_patches at least 1"
-                    .into(),
-            ));
+        if !ordered {
+            return Err(ConfigError::Invalid(format!(
+                "limits.min_height_m ({}) must be below limits.max_height_m ({})",
+                l.min_height_m, l.max_height_m
+            )));
+        }
+        if let Some((name, _)) = counts.iter().find(|(_, v)| *v == 0) {
+            return Err(ConfigError::Invalid(format!(
+                "limits.{name} must be at least 1, got 0"
+            )));
         }
         if let Some(u) = &self.http.public_url {
             let ok = (u.starts_with("http://") || u.starts_with("https://"))
@@ -489,6 +504,45 @@ mod tests {
         let text = std::fs::read_to_string(path).unwrap();
         let parsed: Config = toml::from_str(&text).unwrap();
         assert_eq!(parsed, Config::default());
+    }
+
+    #[test]
+    fn a_boolean_from_the_environment_is_one_or_refused() {
+        for (v, want) in [
+            ("1", true),
+            ("TRUE", true),
+            ("yes", true),
+            ("off", false),
+            ("0", false),
+        ] {
+            let mut c = Config::default();
+            c.apply_env(|k| (k == "PATCHWORK_S3_ALLOW_HTTP").then(|| v.to_string()))
+                .unwrap();
+            assert_eq!(c.storage.s3.allow_http, want, "{v}");
+        }
+        for var in ["PATCHWORK_S3_ALLOW_HTTP", "PATCHWORK_ALLOW_EMULATED_GPU"] {
+            let e = Config::default()
+                .apply_env(|k| (k == var).then(|| "maybe".to_string()))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(var) && e.contains("\"maybe\""), "{e}");
+        }
+    }
+
+    #[test]
+    fn a_limit_of_0_is_named_alone() {
+        let mut c = Config::default();
+        c.limits.max_streams = 0;
+        let e = c.validate().unwrap_err().to_string();
+        assert_eq!(e, "limits.max_streams must be at least 1, got 0");
+        let mut c = Config::default();
+        c.limits.min_height_m = 10.0;
+        c.limits.max_height_m = 5.0;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("min_height_m (10)") && !e.contains("max_streams"),
+            "{e}"
+        );
     }
 
     #[test]
