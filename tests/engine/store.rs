@@ -1126,13 +1126,6 @@ fn sled_lock_errors_are_recognised() {
     ));
 }
 
-#[test]
-fn a_store_can_be_shared_between_threads() {
-    fn shared<T: Send + Sync>() {}
-    shared::<Store>();
-    shared::<Opened>();
-}
-
 /// A version-1 georeference and level, field for field.
 #[derive(serde::Serialize)]
 struct GeorefV1 {

@@ -36,6 +36,13 @@ fn as_stored(e: &EdgePatch) -> Result<Vec<u8>, StoreError> {
     encode(&f)
 }
 
+// An open store and its terrain are handed from the thread that opened them to the engine's:
+// they stay Send and Sync, which the crate's compilation checks.
+const _: () = {
+    const fn shared<T: Send + Sync>() {}
+    shared::<Opened>()
+};
+
 /// A store opened, and the terrain it holds.
 pub struct Opened {
     /// The store, open for writing (or following, on a replica).

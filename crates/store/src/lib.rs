@@ -653,6 +653,13 @@ impl Drop for CloseReader {
     }
 }
 
+// The engine's writer and every reader's thread share one store: it stays Send and Sync, which
+// the crate's compilation checks (a type, not a behaviour, so not a test).
+const _: () = {
+    const fn shared<T: Send + Sync>() {}
+    shared::<Store>()
+};
+
 /// An open store: its database, its chunk pack and its settings, under its lock.
 pub struct Store {
     db: sled::Db,
