@@ -1,7 +1,7 @@
 //! The effective configuration, key by key, with where each value came from: what
 //! `patchwork config` prints, so that a setting that does not take is found at a glance.
 
-use super::{Config, ConfigError};
+use super::{parse_file, read_file, Config, ConfigError};
 use std::path::Path;
 
 /// Where a key's value came from.
@@ -41,25 +41,16 @@ pub struct Setting {
 const SECRET: [&str; 2] = ["admin_token", "read_token"];
 
 /// The configuration `serve` would run with, from `file` and the environment that `get`
-/// reads, key by key in the file's order (keys left unset are not listed). Fails as `serve`
-/// would, naming what is wrong.
+/// reads, key by key, each section's keys sorted by name (keys left unset are not listed).
+/// Fails as `serve` would, naming what is wrong.
 pub fn explain(
     file: Option<&Path>,
     get: impl Fn(&str) -> Option<String>,
 ) -> Result<Vec<Setting>, ConfigError> {
     let (from_file, written) = match file {
         Some(path) => {
-            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-                path: path.into(),
-                source,
-            })?;
-            let parse = |e: toml::de::Error| ConfigError::Parse {
-                path: path.into(),
-                message: e.to_string(),
-            };
-            let cfg: Config = toml::from_str(&text).map_err(parse)?;
-            let table: toml::Table = toml::from_str(&text).map_err(parse)?;
-            (cfg, table)
+            let text = read_file(path)?;
+            (parse_file(path, &text)?, parse_file(path, &text)?)
         }
         None => (Config::default(), toml::Table::new()),
     };
@@ -87,7 +78,8 @@ pub fn explain(
         .collect())
 }
 
-/// A config's keys and values, dotted, in its fields' order.
+/// A config's keys and values, dotted: a section's keys sorted by name, as TOML's tables
+/// keep them.
 fn flatten(c: &Config) -> Vec<(String, toml::Value)> {
     let table = toml::Table::try_from(c).expect("a config serialises as TOML");
     flat_table(&table)

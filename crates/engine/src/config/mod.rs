@@ -164,6 +164,22 @@ pub fn parse_epsg(s: &str) -> Option<u32> {
     n.parse().ok()
 }
 
+/// A config file's text.
+fn read_file(path: &Path) -> Result<String, ConfigError> {
+    std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        path: path.into(),
+        source,
+    })
+}
+
+/// A config file's text read as `T`: the config, or its bare table of keys.
+fn parse_file<T: serde::de::DeserializeOwned>(path: &Path, text: &str) -> Result<T, ConfigError> {
+    toml::from_str(text).map_err(|e| ConfigError::Parse {
+        path: path.into(),
+        message: e.to_string(),
+    })
+}
+
 /// A boolean from the environment: `true`/`false`, `1`/`0`, `yes`/`no` or `on`/`off`, in any
 /// case; anything else is refused, naming the variable, rather than read as false.
 fn boolean(var: &str, v: &str) -> Result<bool, ConfigError> {
@@ -181,16 +197,7 @@ impl Config {
     /// Defaults, then `file` if given, then the environment.
     pub fn load(file: Option<&Path>) -> Result<Config, ConfigError> {
         let mut cfg = match file {
-            Some(path) => {
-                let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-                    path: path.into(),
-                    source,
-                })?;
-                toml::from_str(&text).map_err(|e| ConfigError::Parse {
-                    path: path.into(),
-                    message: e.to_string(),
-                })?
-            }
+            Some(path) => parse_file(path, &read_file(path)?)?,
             None => Config::default(),
         };
         cfg.finish_load(|k| std::env::var(k).ok())?;
